@@ -1,0 +1,65 @@
+# aumesh: every entry point a user needs. `make demo` then `make test` on a fresh clone.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+UV_VERSION := 0.13.8
+STAMP := $(VENV)/.installed
+
+.PHONY: help venv demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui
+
+help:
+	@echo "make demo        - create .venv from requirements.lock, pull the demo data, run the pipeline (dvc repro)"
+	@echo "make test        - run the test suite (fast tests)"
+	@echo "make test-slow   - run the slow end-to-end and scale tests"
+	@echo "make lock        - re-resolve requirements.lock from pyproject.toml"
+	@echo "make params      - recompose params.yaml from conf/ (what dvc exp run does)"
+	@echo "make bench       - run the benchmarks under benchmarks/"
+	@echo "make mlflow-server - start an MLflow tracking server (SQLite backend) on 127.0.0.1:5000"
+
+# The environment: a fresh venv, exact pins from requirements.lock, then the package itself without deps.
+$(STAMP): requirements.lock pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check uv==$(UV_VERSION)
+	$(BIN)/uv pip sync --quiet --python $(BIN)/python requirements.lock
+	$(BIN)/uv pip install --quiet --python $(BIN)/python --no-deps -e .
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+lock:
+	uv pip compile pyproject.toml --extra test --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
+
+params: $(STAMP)
+	$(BIN)/aumesh compose-params
+
+demo: $(STAMP)
+	$(BIN)/dvc pull --quiet
+	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/dvc repro
+	@echo
+	@echo "Release written to $(CURDIR)/release/:"
+	@ls -1 release
+	@$(BIN)/python -c "import json; c=json.load(open('release/model_card.json')); print('CV R2 = %.4f +/- %.4f  (folds %s), MAE = %.4f' % (c['cv']['r2_mean'], c['cv']['r2_std'], c['cv']['r2_folds'], c['cv']['mae_mean']))"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+test-all: $(STAMP)
+	$(BIN)/python -m pytest -q -m "slow or not slow"
+
+repro: $(STAMP)
+	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/dvc repro
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/bench_engine_vs_sklearn.py
+	$(BIN)/python benchmarks/bench_scaling.py
+
+MLFLOW_PORT ?= 5000
+mlflow-server: $(STAMP)
+	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --host 127.0.0.1 --port $(MLFLOW_PORT)
+
+clean-build:
+	rm -rf build release

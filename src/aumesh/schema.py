@@ -1,0 +1,47 @@
+"""Column names and shapes of the frame tables and of the released model.
+
+One place for every name the card fixes, so no module spells them again.
+"""
+
+from __future__ import annotations
+
+# Card, "File format": input_columns = AU01..AU43, Pitch, Yaw, Roll.
+AU_COLUMNS: tuple[str, ...] = (
+    "AU01", "AU02", "AU04", "AU05", "AU06", "AU07", "AU09", "AU10", "AU11", "AU12",
+    "AU14", "AU15", "AU17", "AU20", "AU23", "AU24", "AU25", "AU26", "AU28", "AU43",
+)
+# The model's pose order (py-feat's Fex tables store Pitch, Roll, Yaw: always select by name).
+POSE_COLUMNS: tuple[str, ...] = ("Pitch", "Yaw", "Roll")
+INPUT_COLUMNS: tuple[str, ...] = AU_COLUMNS + POSE_COLUMNS
+
+N_VERTICES = 478
+N_TARGETS = 3 * N_VERTICES  # 1434
+
+# Card, "Training data": 12 stable upper-face anchors.
+ANCHOR_INDICES: tuple[int, ...] = (10, 9, 8, 151, 6, 168, 197, 195, 33, 263, 133, 362)
+
+VIDEO_COLUMN = "video_id"
+FRAME_COLUMN = "frame"
+INPUT_PATH_COLUMN = "input"  # py-feat's source-file column, used to derive video_id
+
+
+def mesh_columns_axis_major(n_vertices: int = N_VERTICES) -> list[str]:
+    """Mesh column names in the model's output layout ``[x_0..x_477 | y_0.. | z_0..]``."""
+    return [f"{axis}_{i}" for axis in "xyz" for i in range(n_vertices)]
+
+
+def interaction_columns(au_columns=AU_COLUMNS, pose_columns=POSE_COLUMNS) -> list[str]:
+    """Names of the pose x AU interaction features, pose-major: ``Pitch*AU01 .. Roll*AU43``."""
+    return [f"{p}*{a}" for p in pose_columns for a in au_columns]
+
+
+def feature_columns(pose: bool, interactions: bool) -> list[str]:
+    """Design-matrix column names for a feature configuration (20, 23 or 83 columns)."""
+    if interactions and not pose:
+        raise ValueError("features.interactions=true needs features.pose=true (interactions are pose x AU)")
+    cols = list(AU_COLUMNS)
+    if pose:
+        cols += list(POSE_COLUMNS)
+    if interactions:
+        cols += interaction_columns()
+    return cols
