@@ -1,0 +1,458 @@
+"""aumesh's own face-like 478-vertex template, regions, triangulation and AU fields.
+
+Everything here is the project's own documented data, generated deterministically
+by code. Nothing is copied from MediaPipe's canonical model: only the *index
+numbers* of the MediaPipe FaceMesh topology are used, to say which vertex sits at
+which anatomical landmark (e.g. 1 = nose tip, 33/263 = outer eye corners). The
+other vertices ("filler") are spread evenly over the face by farthest-point
+sampling; their positions do not correspond to MediaPipe's.
+
+Orientation convention (the "face frame", used by every function here)
+-----------------------------------------------------------------------
+Image orientation, like py-feat's pixel meshes:
+
+* ``x`` grows to image right, which is the **subject's left**
+  (``T[263, 0] > T[33, 0]``);
+* ``y`` grows **down** (``T[152, 1] > T[10, 1]``: chin below forehead);
+* ``z`` grows **away from the camera** (the nose tip ``1`` has the smallest z).
+
+``(x, y, z)`` is right-handed (``x × y = z``). Units: inter-ocular distance
+(outer eye corners 33 ↔ 263, 3-D) is 1.0; the template is centred at the mean of
+its vertices.
+
+:func:`face_frame` recovers this frame from *any* mesh with the MediaPipe
+topology (any rotation, scale, translation, or y-up / mirrored convention), from
+the landmarks alone: up = forehead 10 − chin 152, subject's left = 33 → 263,
+out of face = their cross product, sign fixed so the nose tip 1 is in front.
+
+Data in this module
+-------------------
+``LANDMARKS``   name -> MediaPipe index of the named anatomical points.
+``REGIONS``     name -> int array of MediaPipe indices (only named landmarks),
+                used by the AU-direction report. ``*_left`` / ``*_right`` are the
+                **subject's** left / right.
+``EYE_CONTOUR_RIGHT/LEFT``, ``LIPS_OUTER``, ``LIPS_INNER``, ``FACE_OVAL``:
+                closed contours (ordered) of the MediaPipe topology.
+``AU_FIELD_SPEC`` the synthetic FACS displacement recipe per AU (see
+                :func:`facs_displacement_fields`).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from aumesh.schema import AU_COLUMNS, N_VERTICES
+
+# --------------------------------------------------------------------------- contours
+FOREHEAD_MIDLINE: tuple[int, ...] = (10, 151, 9, 8)  # top -> down
+NOSE_MIDLINE: tuple[int, ...] = (168, 6, 197, 195, 5, 4, 1)  # bridge -> tip
+# Right eye (subject's right): lower lid outer->inner, then upper lid inner->outer.
+EYE_CONTOUR_RIGHT: tuple[int, ...] = (33, 7, 163, 144, 145, 153, 154, 155, 133,
+                                      173, 157, 158, 159, 160, 161, 246)
+EYE_CONTOUR_LEFT: tuple[int, ...] = (263, 249, 390, 373, 374, 380, 381, 382, 362,
+                                     398, 384, 385, 386, 387, 388, 466)
+BROW_UPPER_RIGHT: tuple[int, ...] = (70, 63, 105, 66, 107)  # outer -> inner
+BROW_LOWER_RIGHT: tuple[int, ...] = (46, 53, 52, 65, 55)
+BROW_UPPER_LEFT: tuple[int, ...] = (300, 293, 334, 296, 336)
+BROW_LOWER_LEFT: tuple[int, ...] = (276, 283, 282, 295, 285)
+# Lips: upper lip from right corner to left corner, then lower lip back.
+LIPS_OUTER: tuple[int, ...] = (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291,
+                               375, 321, 405, 314, 17, 84, 181, 91, 146)
+LIPS_INNER: tuple[int, ...] = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308,
+                               324, 318, 402, 317, 14, 87, 178, 88, 95)
+CHIN_MIDLINE: tuple[int, ...] = (18, 200, 199, 175, 152)  # below lower lip -> bottom
+# Face oval, clockwise in the image starting at the forehead top (10) toward the
+# subject's left; 152 (chin bottom) is exactly half-way.
+FACE_OVAL: tuple[int, ...] = (10, 338, 297, 332, 284, 251, 389, 356, 454, 323, 361, 288,
+                              397, 365, 379, 378, 400, 377, 152, 148, 176, 149, 150, 136,
+                              172, 58, 132, 93, 234, 127, 162, 21, 54, 103, 67, 109)
+IRIS_RIGHT: tuple[int, ...] = (468, 469, 470, 471, 472)  # centre first
+IRIS_LEFT: tuple[int, ...] = (473, 474, 475, 476, 477)
+
+LANDMARKS: dict[str, int] = {
+    "forehead_top": 10, "forehead": 151, "glabella_upper": 9, "glabella": 8,
+    "nose_bridge": 168, "nose_bridge_mid": 6, "nose_dorsum": 197, "nose_dorsum_low": 195,
+    "nose_above_tip": 5, "nose_tip_upper": 4, "nose_tip": 1, "subnasale": 2,
+    "eye_outer_right": 33, "eye_outer_left": 263, "eye_inner_right": 133, "eye_inner_left": 362,
+    "upper_lid_right": 159, "lower_lid_right": 145, "upper_lid_left": 386, "lower_lid_left": 374,
+    "iris_right": 468, "iris_left": 473,
+    "brow_inner_right": 107, "brow_outer_right": 70, "brow_inner_left": 336, "brow_outer_left": 300,
+    "lip_corner_right": 61, "lip_corner_left": 291, "upper_lip_top": 0, "lower_lip_bottom": 17,
+    "upper_lip_inner": 13, "lower_lip_inner": 14,
+    "chin": 152, "chin_upper": 18,
+    "cheek_right": 50, "cheek_left": 280,
+    "face_right": 234, "face_left": 454,
+}
+
+REGIONS: dict[str, np.ndarray] = {
+    name: np.asarray(idx, dtype=np.int64)
+    for name, idx in {
+        "brow_inner_right": (107, 66, 55, 65),
+        "brow_inner_left": (336, 296, 285, 295),
+        "brow_outer_right": (70, 63, 46, 53),
+        "brow_outer_left": (300, 293, 276, 283),
+        "upper_eyelid_right": (157, 158, 159, 160, 161),
+        "upper_eyelid_left": (384, 385, 386, 387, 388),
+        "lower_eyelid_right": (163, 144, 145, 153, 154),
+        "lower_eyelid_left": (390, 373, 374, 380, 381),
+        "nose": (195, 5, 4, 1, 48, 278, 98, 327, 64, 294, 2),
+        "cheek_right": (50, 205, 187, 123, 117, 116),
+        "cheek_left": (280, 425, 411, 352, 346, 345),
+        "nasolabial_right": (64, 205),
+        "nasolabial_left": (294, 425),
+        "lip_corner_right": (61, 146, 185, 78),
+        "lip_corner_left": (291, 375, 409, 308),
+        "upper_lip": (0, 37, 267, 39, 269, 13, 82, 312),
+        "lower_lip": (17, 84, 314, 181, 405, 14, 87, 317),
+        "chin": (18, 200, 199, 175, 152),
+        "jaw": (152, 148, 377, 176, 400, 149, 378, 175, 199),
+    }.items()
+}
+
+BILATERAL_SUFFIXES = ("_left", "_right")
+
+
+def region_side(name: str) -> int:
+    """Side of a region: +1 for the subject's left, -1 for right, 0 for midline."""
+    if name.endswith("_left"):
+        return 1
+    if name.endswith("_right"):
+        return -1
+    return 0
+
+
+# --------------------------------------------------------------------------- layout
+# Named landmark positions in (u, v): u = subject's left (= image right), v = up,
+# inter-ocular units; converted to the face frame (x = u, y = -v) below.
+_OVAL_CENTRE_V, _OVAL_A, _OVAL_B = -0.15, 0.78, 1.08
+
+
+def _oval_uv(n: int = len(FACE_OVAL)) -> np.ndarray:
+    theta = 2.0 * np.pi * np.arange(n) / n  # 0 at top, clockwise toward +u
+    c, s = np.cos(theta), np.sin(theta)
+    taper = 1.0 - 0.3 * np.where(c < 0, c**2, 0.0)  # narrower jaw
+    return np.stack([_OVAL_A * s * taper, _OVAL_CENTRE_V + _OVAL_B * c], axis=1)
+
+
+def _named_uv() -> dict[int, tuple[float, float]]:
+    p: dict[int, tuple[float, float]] = {}
+    for idx, (u, v) in zip(FACE_OVAL, _oval_uv()):
+        p[idx] = (float(u), float(v))
+    for idx, v in zip((151, 9, 8), (0.66, 0.40, 0.24)):
+        p[idx] = (0.0, v)
+    for idx, v in zip(NOSE_MIDLINE, (0.12, 0.02, -0.10, -0.21, -0.30, -0.37, -0.42)):
+        p[idx] = (0.0, v)
+    p[2] = (0.0, -0.50)
+    for idx, v in zip(CHIN_MIDLINE[:-1], (-0.93, -1.00, -1.07, -1.15)):
+        p[idx] = (0.0, v)
+    # Eyes: lower lid outer->inner (9 pts incl. corners), upper lid inner->outer.
+    for contour, iris, sgn in ((EYE_CONTOUR_RIGHT, IRIS_RIGHT, -1), (EYE_CONTOUR_LEFT, IRIS_LEFT, 1)):
+        outer, inner = 0.5 * sgn, 0.17 * sgn
+        t = np.arange(9) / 8.0
+        for idx, ti in zip(contour[:9], t):
+            p[idx] = (outer + ti * (inner - outer), -0.045 * np.sin(np.pi * ti))
+        for idx, ti in zip(contour[9:], 1.0 - t[1:8]):
+            p[idx] = (outer + ti * (inner - outer), 0.055 * np.sin(np.pi * ti) ** 0.8)
+        cu, r = 0.335 * sgn, 0.03
+        p[iris[0]] = (cu, 0.002)
+        for idx, ang in zip(iris[1:], (0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi)):
+            p[idx] = (cu + r * np.cos(ang), 0.002 + r * np.sin(ang))
+    # Brows, outer->inner, mirrored.
+    bu = np.array([0.58, 0.47, 0.36, 0.25, 0.14])
+    bv = np.array([0.22, 0.26, 0.275, 0.27, 0.25])
+    for up, lo, sgn in ((BROW_UPPER_RIGHT, BROW_LOWER_RIGHT, -1), (BROW_UPPER_LEFT, BROW_LOWER_LEFT, 1)):
+        for i in range(5):
+            p[up[i]] = (sgn * bu[i], bv[i])
+            p[lo[i]] = (sgn * (bu[i] - 0.01), bv[i] - 0.05)
+    # Lips. Upper outer / inner: 11 pts right corner -> left corner.
+    t = np.linspace(-1.0, 1.0, 11)
+    for idx, ti in zip(LIPS_OUTER[:11], t):
+        p[idx] = (0.27 * ti, -0.72 + 0.075 * (1 - ti**2) ** 0.8)
+    for idx, ti in zip(LIPS_INNER[:11], t):
+        p[idx] = (0.23 * ti, -0.73 + 0.015 * (1 - ti**2))
+    t9 = t[1:10][::-1]  # lower lip runs left -> right
+    for idx, ti in zip(LIPS_OUTER[11:], t9):
+        p[idx] = (0.27 * ti, -0.72 - 0.12 * (1 - ti**2) ** 0.8)
+    for idx, ti in zip(LIPS_INNER[11:], t9):
+        p[idx] = (0.23 * ti, -0.73 - 0.015 * (1 - ti**2))
+    # Nose base and cheeks: (right index, left index, |u|, v).
+    for r_i, l_i, u, v in ((48, 278, 0.11, -0.33), (64, 294, 0.15, -0.42), (98, 327, 0.10, -0.46),
+                           (116, 345, 0.62, -0.12), (117, 346, 0.48, -0.16), (123, 352, 0.60, -0.30),
+                           (50, 280, 0.36, -0.30), (187, 411, 0.50, -0.48), (205, 425, 0.34, -0.48)):
+        p[r_i] = (-u, v)
+        p[l_i] = (u, v)
+    return p
+
+
+def _points_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """Even-odd rule point-in-polygon. points (N, 2), polygon (M, 2) -> bool (N,)."""
+    x, y = points[:, 0][:, None], points[:, 1][:, None]
+    x0, y0 = polygon[:, 0][None, :], polygon[:, 1][None, :]
+    x1, y1 = np.roll(polygon[:, 0], -1)[None, :], np.roll(polygon[:, 1], -1)[None, :]
+    crosses = (y0 > y) != (y1 > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+    return (crosses & (x < x_at)).sum(axis=1) % 2 == 1
+
+
+def _depth(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Smooth face-depth function, z away from camera, inter-ocular units."""
+    z = 0.55 * (u / 0.85) ** 2 + 0.25 * ((v + 0.15) / 1.1) ** 2  # rounded face
+    prof = np.where(v >= -0.42, np.clip((0.12 - v) / 0.54, 0.0, 1.0) ** 1.3,
+                    np.exp(-(((v + 0.42) / 0.07) ** 2)))
+    width = 0.05 + 0.08 * prof
+    z = z - 0.28 * prof * np.exp(-(u**2) / (2 * width**2))  # nose
+    for cu in (-0.335, 0.335):
+        z = z + 0.06 * np.exp(-((u - cu) ** 2 + v**2) / (2 * 0.12**2))  # eye sockets
+    z = z - 0.03 * np.exp(-((v - 0.22) ** 2) / (2 * 0.06**2))  # brow ridge
+    z = z - 0.06 * np.exp(-0.5 * ((u / 0.2) ** 2 + ((v + 0.73) / 0.1) ** 2))  # lips
+    z = z - 0.05 * np.exp(-0.5 * ((u / 0.2) ** 2 + ((v + 1.05) / 0.12) ** 2))  # chin
+    return z
+
+
+@lru_cache(maxsize=1)
+def _template_cached() -> np.ndarray:
+    named = _named_uv()
+    n_fill = N_VERTICES - len(named)
+    fixed = np.array(list(named.values()))
+    # Candidate grid inside the (slightly shrunk) oval, outside eyes and mouth opening.
+    oval = _oval_uv(360) * np.array([0.97, 1.0]) + np.array([0.0, 0.03 * _OVAL_CENTRE_V])
+    g = np.arange(-1.3, 1.3, 0.012)
+    cand = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    keep = _points_in_polygon(cand, oval)
+    for contour in (EYE_CONTOUR_RIGHT, EYE_CONTOUR_LEFT, LIPS_INNER):
+        poly = np.array([named[i] for i in contour])
+        centre = poly.mean(axis=0)
+        keep &= ~_points_in_polygon(cand, centre + 1.25 * (poly - centre))
+    cand = cand[keep]
+    # Farthest-point sampling seeded with the named landmarks (deterministic).
+    d = np.min(np.linalg.norm(cand[:, None, :] - fixed[None, :, :], axis=2), axis=1)
+    chosen = []
+    for _ in range(n_fill):
+        k = int(np.argmax(d))
+        chosen.append(cand[k])
+        d = np.minimum(d, np.linalg.norm(cand - cand[k], axis=1))
+    chosen = np.array(chosen)
+    chosen = chosen[np.lexsort((chosen[:, 0], np.round(-chosen[:, 1], 6)))]  # top->bottom
+    uv = np.zeros((N_VERTICES, 2))
+    free = [i for i in range(N_VERTICES) if i not in named]
+    for i, (u, v) in named.items():
+        uv[i] = (u, v)
+    uv[free] = chosen
+    mesh = np.column_stack([uv[:, 0], -uv[:, 1], _depth(uv[:, 0], uv[:, 1])])
+    # Express the template exactly in its own face frame (so face_frame(T) is identity).
+    mesh = to_face_frame(mesh)
+    mesh.setflags(write=False)
+    return mesh
+
+
+def canonical_template() -> np.ndarray:
+    """The project's face-like 478-vertex template in the face frame.
+
+    Returns
+    -------
+    np.ndarray, shape (478, 3), float64
+        Vertex ``i`` sits at the anatomical position of MediaPipe FaceMesh vertex
+        ``i`` for every index in :data:`LANDMARKS` and the contours of this
+        module; the other indices fill the face evenly. x = subject's left,
+        y = down, z = away from camera; inter-ocular distance 1; mean-centred.
+        A fresh writable copy on every call.
+    """
+    return np.array(_template_cached(), dtype=np.float64, copy=True)
+
+
+# --------------------------------------------------------------------------- frames
+def face_frame(mesh: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Recover the face frame of any mesh with the MediaPipe topology.
+
+    Parameters
+    ----------
+    mesh : array-like, shape (478, 3)
+        Vertices in any rotation / scale / translation / handedness.
+
+    Returns
+    -------
+    origin : np.ndarray, shape (3,)
+        Mean of the vertices.
+    axes : np.ndarray, shape (3, 3)
+        Rows are the face-frame unit axes expressed in the input coordinates:
+        ``axes[0]`` = subject's left, ``axes[1]`` = down, ``axes[2]`` = away from
+        camera (sign chosen so the nose tip 1 is in front of the eye corners).
+        Orthonormal; may be a reflection if the input is mirrored.
+    scale : float
+        Inter-ocular distance |mesh[263] - mesh[33]| in input units.
+
+    Notes
+    -----
+    ``to_face_frame(mesh) == (mesh - origin) @ axes.T / scale``.
+    """
+    m = np.asarray(mesh, dtype=np.float64)
+    if m.shape != (N_VERTICES, 3):
+        raise ValueError(f"mesh must have shape ({N_VERTICES}, 3), got {m.shape}")
+    if not np.all(np.isfinite(m[[10, 152, 33, 263, 1]])):
+        raise ValueError("mesh landmarks 10, 152, 33, 263, 1 must be finite to find the face frame")
+    left = m[263] - m[33]
+    scale = float(np.linalg.norm(left))
+    if scale == 0.0:
+        raise ValueError("mesh has coincident outer eye corners 33 and 263; cannot find the face frame")
+    ex = left / scale
+    up = m[10] - m[152]
+    up = up - (up @ ex) * ex
+    nu = np.linalg.norm(up)
+    if nu == 0.0:
+        raise ValueError("forehead 10 - chin 152 is parallel to 33 -> 263; cannot find 'up'")
+    ey = -up / nu  # down
+    ez = np.cross(ex, ey)
+    eyes = 0.25 * (m[33] + m[263] + m[133] + m[362])
+    if (m[1] - eyes) @ ez > 0:  # nose tip must be toward the camera (smaller z)
+        ez = -ez
+    return m.mean(axis=0), np.stack([ex, ey, ez]), scale
+
+
+def to_face_frame(mesh: np.ndarray) -> np.ndarray:
+    """Express a mesh (478, 3) in the face frame (x left, y down, z away, IOD units, centred)."""
+    origin, axes, scale = face_frame(mesh)
+    return (np.asarray(mesh, dtype=np.float64) - origin) @ axes.T / scale
+
+
+# --------------------------------------------------------------------------- triangulation
+def triangulate(mesh: np.ndarray | None = None) -> np.ndarray:
+    """The project's own triangulation of a 478-vertex mesh.
+
+    Delaunay triangulation of the frontal (x, y) projection in the face frame
+    (see :func:`face_frame`, so any orientation works), dropping triangles whose
+    centroid lies inside an eye opening (eye contours), inside the mouth opening
+    (inner-lip contour) or outside the face oval, and over-long triangles
+    (longest edge > 4 x median edge). This is *not* MediaPipe's
+    ``FACEMESH_TESSELATION``; iris vertices 468-477 lie inside the eye openings
+    and are therefore not referenced.
+
+    Parameters
+    ----------
+    mesh : array-like, shape (478, 3), optional
+        Defaults to :func:`canonical_template`.
+
+    Returns
+    -------
+    np.ndarray, shape (T, 3), int64
+        Vertex indices, counter-clockwise in the displayed frontal view
+        (x right, y down is drawn with y flipped).
+    """
+    from scipy.spatial import Delaunay
+
+    m = canonical_template() if mesh is None else to_face_frame(mesh)
+    xy = m[:, :2]
+    tri = Delaunay(xy).simplices.astype(np.int64)
+    cen = xy[tri].mean(axis=1)
+    drop = np.zeros(len(tri), dtype=bool)
+    for contour in (EYE_CONTOUR_RIGHT, EYE_CONTOUR_LEFT, LIPS_INNER):
+        drop |= _points_in_polygon(cen, xy[list(contour)])
+    drop |= ~_points_in_polygon(cen, xy[list(FACE_OVAL)])
+    edges = np.linalg.norm(xy[tri] - xy[np.roll(tri, -1, axis=1)], axis=2)
+    drop |= edges.max(axis=1) > 4.0 * np.median(edges)
+    tri = tri[~drop]
+    # Consistent winding: counter-clockwise as seen with y up on screen.
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    cross = (b[:, 0] - a[:, 0]) * (-(c[:, 1] - a[:, 1])) - (-(b[:, 1] - a[:, 1])) * (c[:, 0] - a[:, 0])
+    flip = cross < 0
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    return tri
+
+
+# --------------------------------------------------------------------------- AU fields
+# Synthetic FACS ground truth. Each AU is a list of components
+#   (region, d_up, d_out, d_away, sigma, gate)
+# in inter-ocular units at intensity 1: the region's vertices move by
+# (d_out * side, -d_up, d_away) in the face frame (x left, y down, z away), where
+# side = +1 for the subject's left region, -1 for right (d_out must be 0 for
+# midline regions); every other vertex gets that vector times
+# exp(-d^2 / (2 sigma^2)), d = frontal distance to the nearest region vertex.
+# gate restricts the falloff to one side of a horizontal line:
+#   "above_mouth"/"below_mouth" (mouth line = mean y of 13, 14),
+#   "above_eye"/"below_eye" (eye line = mean y of the region's eye corners).
+AU_FIELD_SPEC: dict[str, list[tuple[str, float, float, float, float, str | None]]] = {
+    "AU01": [(f"brow_inner_{s}", 0.08, 0.0, 0.0, 0.08, "above_eye") for s in ("left", "right")],
+    "AU02": [(f"brow_outer_{s}", 0.08, 0.01, 0.0, 0.08, "above_eye") for s in ("left", "right")],
+    "AU04": [(f"brow_inner_{s}", -0.06, -0.04, 0.0, 0.08, "above_eye") for s in ("left", "right")],
+    "AU05": [(f"upper_eyelid_{s}", 0.04, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
+    "AU06": [(f"cheek_{s}", 0.06, 0.01, -0.01, 0.10, "below_eye") for s in ("left", "right")]
+    + [(f"lower_eyelid_{s}", 0.02, 0.0, 0.0, 0.03, "below_eye") for s in ("left", "right")],
+    "AU07": [(f"lower_eyelid_{s}", 0.035, 0.0, 0.0, 0.04, "below_eye") for s in ("left", "right")]
+    + [(f"upper_eyelid_{s}", -0.01, 0.0, 0.0, 0.03, "above_eye") for s in ("left", "right")],
+    "AU09": [("nose", 0.05, 0.0, 0.0, 0.06, "above_mouth")]
+    + [(f"brow_inner_{s}", -0.02, 0.0, 0.0, 0.06, "above_eye") for s in ("left", "right")],
+    "AU10": [("upper_lip", 0.06, 0.0, -0.01, 0.06, "above_mouth")],
+    "AU11": [(f"nasolabial_{s}", 0.035, 0.02, 0.0, 0.06, "above_mouth") for s in ("left", "right")],
+    "AU12": [(f"lip_corner_{s}", 0.08, 0.06, 0.0, 0.12, None) for s in ("left", "right")],
+    "AU14": [(f"lip_corner_{s}", 0.0, -0.015, 0.05, 0.08, None) for s in ("left", "right")],
+    "AU15": [(f"lip_corner_{s}", -0.07, 0.0, 0.0, 0.10, None) for s in ("left", "right")],
+    "AU17": [("chin", 0.07, 0.0, -0.02, 0.12, "below_mouth")],
+    "AU20": [(f"lip_corner_{s}", -0.01, 0.09, 0.0, 0.10, None) for s in ("left", "right")],
+    "AU23": [(f"lip_corner_{s}", 0.0, -0.06, 0.0, 0.08, None) for s in ("left", "right")],
+    "AU24": [("upper_lip", -0.03, 0.0, 0.0, 0.05, "above_mouth"),
+             ("lower_lip", 0.03, 0.0, 0.0, 0.05, "below_mouth")],
+    "AU25": [("upper_lip", 0.015, 0.0, 0.0, 0.05, "above_mouth"),
+             ("lower_lip", -0.06, 0.0, 0.0, 0.07, "below_mouth")],
+    "AU26": [("jaw", -0.15, 0.0, 0.0, 0.30, "below_mouth"),
+             ("lower_lip", -0.05, 0.0, 0.0, 0.08, "below_mouth")],
+    "AU28": [("upper_lip", 0.0, 0.0, 0.06, 0.05, "above_mouth"),
+             ("lower_lip", 0.0, 0.0, 0.06, 0.05, "below_mouth")],
+    "AU43": [(f"upper_eyelid_{s}", -0.06, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
+}
+
+
+def _gate(m: np.ndarray, region: str, gate: str | None) -> np.ndarray:
+    if gate is None:
+        return np.ones(len(m))
+    width = 0.008
+    if gate.endswith("mouth"):
+        line = 0.5 * (m[13, 1] + m[14, 1])
+    else:
+        side = region_side(region)
+        corners = (263, 362) if side > 0 else (33, 133) if side < 0 else (33, 263, 133, 362)
+        line = m[list(corners), 1].mean()
+    s = (m[:, 1] - line) / width  # > 0 below the line (y down)
+    s = np.clip(s, -50, 50)
+    below = 1.0 / (1.0 + np.exp(-s))
+    return below if gate.startswith("below") else 1.0 - below
+
+
+def facs_displacement_fields(template: np.ndarray | None = None) -> np.ndarray:
+    """Synthetic FACS-plausible displacement fields, one per AU, at intensity 1.
+
+    Parameters
+    ----------
+    template : array-like, shape (478, 3), optional
+        Mesh to build the fields on (any orientation/scale; the fields are built
+        in its face frame and mapped back). Defaults to :func:`canonical_template`.
+
+    Returns
+    -------
+    np.ndarray, shape (20, 478, 3), float64
+        ``fields[k]`` is the displacement of every vertex for AU
+        ``aumesh.schema.AU_COLUMNS[k]`` at intensity 1, in the template's own
+        orientation and units (inter-ocular units times the template's scale).
+        Recipe: :data:`AU_FIELD_SPEC` (smooth Gaussian falloff from each region).
+    """
+    if template is None:
+        m = canonical_template()
+        axes, scale = np.eye(3), 1.0
+    else:
+        _, axes, scale = face_frame(template)
+        m = to_face_frame(template)
+    xy = m[:, :2]
+    out = np.zeros((len(AU_COLUMNS), N_VERTICES, 3))
+    for k, au in enumerate(AU_COLUMNS):
+        for region, d_up, d_out, d_away, sigma, gate in AU_FIELD_SPEC[au]:
+            side = region_side(region)
+            if side == 0 and d_out != 0.0:
+                raise ValueError(f"{au}: midline region {region!r} cannot move outward")
+            vec = np.array([d_out * side, -d_up, d_away])
+            idx = REGIONS[region]
+            d = np.min(np.linalg.norm(xy[:, None, :] - xy[idx][None, :, :], axis=2), axis=1)
+            w = np.exp(-(d**2) / (2.0 * sigma**2)) * _gate(m, region, gate)
+            w[idx] = 1.0
+            out[k] += w[:, None] * vec[None, :]
+    return out @ axes * scale
