@@ -406,7 +406,7 @@ AU_FIELD_SPEC: dict[str, list[tuple[str, float, float, float, float, str | None]
 def _gate(m: np.ndarray, region: str, gate: str | None) -> np.ndarray:
     if gate is None:
         return np.ones(len(m))
-    width = 0.008
+    width = 0.003  # steep: the gate line runs through an opening (mouth or eye)
     if gate.endswith("mouth"):
         line = 0.5 * (m[13, 1] + m[14, 1])
     else:
