@@ -1,0 +1,751 @@
+"""MLflow tracking for aumesh: the only module that talks to MLflow.
+
+Design
+------
+* Everything goes through an explicit :class:`mlflow.MlflowClient` bound to the
+  URI from :func:`resolve_tracking_uri`; no fluent "active run", no
+  ``mlflow.set_tracking_uri`` and nothing at import time (``mlflow`` itself is
+  imported lazily, it takes ~2 s). Use the handle yielded by
+  :func:`tracked_run` to log, not ``mlflow.log_*``.
+* The default store is ``sqlite:///<workspace>/mlflow.db`` with artifacts in
+  ``<workspace>/mlartifacts``, both absolute so runs started from a
+  subdirectory or from a DVC queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``,
+  deleted after the run) land in the workspace store.
+* Before the first client is built, telemetry is switched off
+  (``MLFLOW_DISABLE_TELEMETRY=true`` and ``DO_NOT_TRACK=true``, which is what
+  ``mlflow.telemetry.utils.is_telemetry_disabled`` checks in MLflow 3.17) and
+  autologging is disabled (``mlflow.autolog(disable=True)``). No models are
+  logged here.
+
+Config keys (``tracking`` group, all optional): ``enabled`` (default True; when
+False :func:`tracked_run` yields a no-op handle), ``tracking_uri``,
+``experiment`` (default ``"aumesh"``), ``artifact_location`` (only used when the
+experiment is created), ``dvc_file`` (default ``"data.dvc"``, read for the data
+digest tag).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import getpass
+import json
+import os
+import sys
+import time
+import traceback
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from aumesh import provenance
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pandas as pd
+    from mlflow import MlflowClient
+
+DEFAULT_EXPERIMENT = "aumesh"
+DEFAULT_DB_NAME = "mlflow.db"
+DEFAULT_ARTIFACT_DIR = "mlartifacts"
+
+# MLflow limits (mlflow/utils/validation.py in 3.17).
+MAX_PARAM_VALUE_LENGTH = 6000
+MAX_TAG_VALUE_LENGTH = 8000
+MAX_KEY_LENGTH = 250
+MAX_BATCH = 100  # params/tags per log_batch call
+MAX_METRICS_BATCH = 1000
+MAX_DATASET_DIGEST_LENGTH = 36
+MAX_INPUT_TAG_VALUE_LENGTH = 500
+TRUNCATION_MARK = "...[truncated]"
+
+PARENT_TAG = "mlflow.parentRunId"
+ROLE_TAG = "aumesh.role"
+ERROR_TAG = "aumesh.error"
+
+# Innermost-last stack of runs opened by tracked_run in this context (for nested=True).
+_ACTIVE_RUNS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar(
+    "aumesh_active_runs", default=()
+)
+_QUIETED = False
+
+
+# --------------------------------------------------------------------------- setup
+def _quiet_mlflow() -> None:
+    """Disable MLflow telemetry and autologging (idempotent; env vars the user set win)."""
+    global _QUIETED
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    os.environ.setdefault("DO_NOT_TRACK", "true")
+    if _QUIETED:
+        return
+    import logging
+
+    import mlflow
+
+    for noisy in ("mlflow.store.db.utils", "alembic"):  # "Creating initial MLflow database tables..."
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+    try:  # mlflow builds its telemetry client at import; drop it if it was created
+        from mlflow.telemetry import set_telemetry_client
+
+        set_telemetry_client()
+    except Exception:  # pragma: no cover - internal API moved
+        pass
+    try:
+        mlflow.autolog(disable=True, silent=True)
+    except Exception:  # pragma: no cover
+        pass
+    _QUIETED = True
+
+
+def _absolute_local_uri(uri: str, root: Path) -> str:
+    """Make a relative ``sqlite:///`` / ``file:`` / plain-path URI absolute against *root*."""
+    if uri.startswith("sqlite:///"):
+        rest = uri[len("sqlite:///"):]
+        path, sep, query = rest.partition("?")
+        if path and not path.startswith("/") and path != ":memory:":
+            return f"sqlite:///{(root / path).resolve().as_posix()}{sep}{query}"
+        return uri
+    if uri.startswith("file://"):
+        return uri  # file:///abs or file://host/... : already absolute
+    if uri.startswith("file:"):
+        path = uri[len("file:"):]
+        p = Path(path)
+        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
+    if "://" not in uri and ":" not in uri.split("/")[0]:
+        p = Path(uri).expanduser()
+        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
+    return uri
+
+
+def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
+    """Return the MLflow tracking URI to use.
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping, optional
+        The ``tracking`` config group; only ``tracking_uri`` is read.
+
+    Returns
+    -------
+    str
+        1. ``MLFLOW_TRACKING_URI`` from the environment, verbatim, if set;
+        2. else ``tracking_cfg["tracking_uri"]`` if set, with relative
+           ``sqlite:///``, ``file:`` or plain paths made absolute against
+           :func:`aumesh.provenance.repo_root`;
+        3. else ``sqlite:///<repo_root()>/mlflow.db`` (absolute).
+    """
+    env = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
+    if env:
+        return env
+    cfg_uri = (tracking_cfg or {}).get("tracking_uri")
+    if cfg_uri:
+        cfg_uri = str(cfg_uri).strip()
+        if cfg_uri.startswith(("http://", "https://", "databricks")):
+            return cfg_uri
+        return _absolute_local_uri(cfg_uri, provenance.repo_root())
+    return f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}"
+
+
+def _default_artifact_location(uri: str, tracking_cfg: Mapping[str, Any] | None) -> str | None:
+    """Artifact root for a *new* experiment: explicit cfg, else ``<ws>/mlartifacts`` for local stores."""
+    cfg_loc = (tracking_cfg or {}).get("artifact_location")
+    if cfg_loc:
+        cfg_loc = str(cfg_loc)
+        if "://" in cfg_loc:
+            return cfg_loc
+        p = Path(cfg_loc).expanduser()
+        return (p if p.is_absolute() else provenance.repo_root() / p).resolve().as_uri()
+    if uri.startswith(("sqlite:", "file:")) or "://" not in uri:
+        # MLflow's default would be ./mlruns relative to the *current* directory,
+        # i.e. inside a DVC temp copy that is deleted after the run.
+        try:
+            return (provenance.repo_root() / DEFAULT_ARTIFACT_DIR).as_uri()
+        except FileNotFoundError:
+            return None
+    return None  # tracking server decides (e.g. mlflow-artifacts:/ proxy)
+
+
+def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
+    """An :class:`mlflow.MlflowClient` bound to :func:`resolve_tracking_uri` (telemetry off).
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping, optional
+        The ``tracking`` config group.
+
+    Returns
+    -------
+    mlflow.MlflowClient
+    """
+    _quiet_mlflow()
+    from mlflow import MlflowClient
+
+    return MlflowClient(tracking_uri=resolve_tracking_uri(tracking_cfg))
+
+
+def ensure_experiment(client: MlflowClient, name: str, artifact_location: str | None = None) -> str:
+    """Return the id of experiment *name*, creating it if needed (safe under races).
+
+    Parameters
+    ----------
+    client : mlflow.MlflowClient
+    name : str
+        Experiment name.
+    artifact_location : str, optional
+        Used only when the experiment is created.
+
+    Returns
+    -------
+    str
+        The experiment id.
+
+    Raises
+    ------
+    RuntimeError
+        If the experiment exists but is deleted (fix: restore it or use another name).
+    """
+    from mlflow.exceptions import MlflowException
+
+    exp = client.get_experiment_by_name(name)
+    if exp is None:
+        try:
+            return client.create_experiment(name, artifact_location=artifact_location)
+        except MlflowException:
+            exp = client.get_experiment_by_name(name)  # created concurrently by another process
+            if exp is None:
+                raise
+    if exp.lifecycle_stage == "deleted":
+        raise RuntimeError(
+            f"MLflow experiment {name!r} (id {exp.experiment_id}) is deleted in {client.tracking_uri}. "
+            "Restore it (`mlflow experiments restore --experiment-id ...`) or set tracking.experiment "
+            "to another name."
+        )
+    return exp.experiment_id
+
+
+# ------------------------------------------------------------------ value hygiene
+def _truncate(value: str, limit: int) -> str:
+    if len(value) <= limit:
+        return value
+    return value[: limit - len(TRUNCATION_MARK)] + TRUNCATION_MARK
+
+
+def _clean_key(key: str) -> str:
+    """Make *key* a valid MLflow param/metric name (``[/\\w.\\- :]``, <= 250 chars)."""
+    out = "".join(c if (c.isalnum() or c in "_-. /:") else "_" for c in str(key))
+    return out[:MAX_KEY_LENGTH] or "_"
+
+
+def _str_value(value: Any, limit: int) -> str:
+    if isinstance(value, (dict, list, tuple)):
+        value = json.dumps(value, default=str)
+    return _truncate(str(value), limit)
+
+
+def prepare_params(params: Mapping[str, Any]) -> dict[str, str]:
+    """Flatten *params* and make every key/value MLflow-safe.
+
+    Parameters
+    ----------
+    params : Mapping
+        Nested config.
+
+    Returns
+    -------
+    dict
+        ``{dotted.key: str}`` with values truncated to 6000 characters (ending in
+        ``"...[truncated]"``) and invalid key characters replaced by ``_``.
+    """
+    return {
+        _clean_key(k): _str_value(v, MAX_PARAM_VALUE_LENGTH)
+        for k, v in provenance.flatten(params).items()
+    }
+
+
+def _metric_value(value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"metric value {value!r} is not a number") from exc
+
+
+def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, str]:
+    """Tags describing code, data and environment; never raises.
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping, optional
+        ``dvc_file`` (default ``"data.dvc"``) names the DVC file to digest.
+
+    Returns
+    -------
+    dict
+        ``aumesh.git.commit``/``.dirty``/``.branch``/``.source``,
+        ``mlflow.source.git.commit`` (shown by the UI), ``aumesh.data.md5``/
+        ``.size``/``.nfiles``/``.path`` (or ``aumesh.data.error``),
+        ``aumesh.version``, ``aumesh.lib.<dist>`` for each library,
+        ``aumesh.workspace``, ``dvc.exp_name``/``dvc.stage``/``dvc.baseline_rev``
+        when DVC set them, ``mlflow.source.name``/``mlflow.source.type``/``mlflow.user``.
+    """
+    tags: dict[str, str] = {}
+    try:
+        root = provenance.repo_root()
+    except FileNotFoundError as exc:
+        root = None
+        tags["aumesh.workspace.error"] = str(exc)
+    if root is not None:
+        tags["aumesh.workspace"] = str(root)
+        git = provenance.git_commit(root)
+        tags["aumesh.git.commit"] = git["commit"] or "unknown"
+        tags["aumesh.git.dirty"] = str(git["dirty"]).lower()
+        tags["aumesh.git.branch"] = git["branch"] or ""
+        tags["aumesh.git.source"] = git["source"]
+        if git["commit"]:
+            tags["mlflow.source.git.commit"] = git["commit"]
+        try:
+            digest = provenance.data_digest(root, (tracking_cfg or {}).get("dvc_file") or "data.dvc")
+            for key in ("md5", "size", "nfiles", "path"):
+                if digest.get(key) is not None:
+                    tags[f"aumesh.data.{key}"] = str(digest[key])
+        except (FileNotFoundError, ValueError) as exc:
+            tags["aumesh.data.error"] = str(exc)
+    versions = provenance.library_versions()
+    tags["aumesh.version"] = versions.get("aumesh") or "unknown"
+    for dist, ver in versions.items():
+        if dist != "aumesh":
+            tags[f"aumesh.lib.{dist}"] = ver or "not installed"
+    for env, tag in (("DVC_EXP_NAME", "dvc.exp_name"), ("DVC_STAGE", "dvc.stage"),
+                     ("DVC_EXP_BASELINE_REV", "dvc.baseline_rev")):
+        if os.environ.get(env):
+            tags[tag] = os.environ[env]
+    tags["mlflow.source.name"] = sys.argv[0] if sys.argv and sys.argv[0] else "python"
+    tags["mlflow.source.type"] = "LOCAL"
+    try:
+        tags["mlflow.user"] = getpass.getuser()
+    except Exception:  # pragma: no cover - no user in some containers
+        pass
+    return tags
+
+
+# ----------------------------------------------------------------------- handle
+class TrackedRun:
+    """Handle for one MLflow run; every method logs to this run explicitly.
+
+    Attributes
+    ----------
+    run_id : str
+    experiment_id : str
+    tracking_uri : str
+    client : mlflow.MlflowClient
+    """
+
+    enabled = True
+
+    def __init__(self, client: MlflowClient, run_id: str, experiment_id: str) -> None:
+        self.client = client
+        self.run_id = run_id
+        self.experiment_id = experiment_id
+        self.tracking_uri = client.tracking_uri
+
+    def __repr__(self) -> str:
+        return f"TrackedRun(run_id={self.run_id!r}, tracking_uri={self.tracking_uri!r})"
+
+    # -- params / tags / metrics
+    def log_params(self, params: Mapping[str, Any]) -> dict[str, str]:
+        """Log flattened, truncated params (see :func:`prepare_params`); returns what was logged."""
+        from mlflow.entities import Param
+
+        flat = prepare_params(params)
+        items = [Param(k, v) for k, v in flat.items()]
+        for i in range(0, len(items), MAX_BATCH):
+            self.client.log_batch(self.run_id, params=items[i : i + MAX_BATCH])
+        return flat
+
+    def set_tags(self, tags: Mapping[str, Any]) -> None:
+        """Set run tags (values stringified, truncated to 8000 characters)."""
+        from mlflow.entities import RunTag
+
+        items = [RunTag(str(k)[:MAX_KEY_LENGTH], _str_value(v, MAX_TAG_VALUE_LENGTH)) for k, v in tags.items()]
+        for i in range(0, len(items), MAX_BATCH):
+            self.client.log_batch(self.run_id, tags=items[i : i + MAX_BATCH])
+
+    def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
+        """Log scalar metrics ``{name: value}`` (numpy scalars accepted) at *step* (default 0)."""
+        from mlflow.entities import Metric
+
+        ts = int(time.time() * 1000)
+        items = [Metric(_clean_key(k), _metric_value(v), ts, int(step or 0)) for k, v in metrics.items()]
+        for i in range(0, len(items), MAX_METRICS_BATCH):
+            self.client.log_batch(self.run_id, metrics=items[i : i + MAX_METRICS_BATCH])
+
+    def log_fold_metrics(self, name_to_list: Mapping[str, Any], summary: bool = False) -> None:
+        """Log per-fold values: ``{"r2": [f0, f1, f2]}`` -> metric ``r2`` at steps 0, 1, 2.
+
+        Parameters
+        ----------
+        name_to_list : Mapping
+            Metric name -> sequence of per-fold values (index = fold = step).
+        summary : bool, default False
+            Also log ``<name>_mean`` and ``<name>_std`` (population std) at step 0.
+        """
+        from mlflow.entities import Metric
+
+        ts = int(time.time() * 1000)
+        items = []
+        means: dict[str, float] = {}
+        for name, values in name_to_list.items():
+            vals = [_metric_value(v) for v in values]
+            key = _clean_key(name)
+            items += [Metric(key, v, ts, fold) for fold, v in enumerate(vals)]
+            if summary and vals:
+                mean = sum(vals) / len(vals)
+                means[f"{key}_mean"] = mean
+                means[f"{key}_std"] = (sum((v - mean) ** 2 for v in vals) / len(vals)) ** 0.5
+        for i in range(0, len(items), MAX_METRICS_BATCH):
+            self.client.log_batch(self.run_id, metrics=items[i : i + MAX_METRICS_BATCH])
+        if means:
+            self.log_metrics(means)
+
+    # -- artifacts
+    def log_dict(self, obj: Any, artifact_file: str) -> None:
+        """Log a JSON/YAML-serialisable object as *artifact_file* (``.json`` or ``.yaml``)."""
+        self.client.log_dict(self.run_id, provenance._plain(obj), artifact_file)
+
+    def log_text(self, text: str, artifact_file: str) -> None:
+        """Log a string as *artifact_file*."""
+        self.client.log_text(self.run_id, text, artifact_file)
+
+    def log_figure(self, figure: Any, artifact_file: str) -> None:
+        """Log a matplotlib (or plotly) figure as *artifact_file* (e.g. ``"plots/cv.png"``)."""
+        self.client.log_figure(self.run_id, figure, artifact_file)
+
+    def log_artifact(self, path: str | Path, artifact_path: str | None = None) -> None:
+        """Copy a local file or directory into the run's artifacts (under *artifact_path*)."""
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"log_artifact: {path} does not exist")
+        if path.is_dir():
+            self.client.log_artifacts(self.run_id, str(path), artifact_path)
+        else:
+            self.client.log_artifact(self.run_id, str(path), artifact_path)
+
+    def log_config(self, resolved_cfg: Any, artifact_file: str = "config.yaml") -> None:
+        """Log the resolved config (dict or OmegaConf) as ``config.yaml``."""
+        import yaml
+
+        try:  # resolve interpolations if an OmegaConf container was passed
+            from omegaconf import DictConfig, ListConfig, OmegaConf
+
+            if isinstance(resolved_cfg, (DictConfig, ListConfig)):
+                resolved_cfg = OmegaConf.to_container(resolved_cfg, resolve=True)
+        except ImportError:  # pragma: no cover
+            pass
+        text = yaml.safe_dump(provenance._plain(resolved_cfg), sort_keys=False, default_flow_style=False)
+        self.client.log_text(self.run_id, text, artifact_file)
+
+    # -- dataset
+    def log_dataset(
+        self,
+        digest: Mapping[str, Any],
+        source: str,
+        name: str = "frame_tables",
+        context: str = "training",
+    ) -> None:
+        """Record the DVC-tracked data as an MLflow dataset input of this run.
+
+        An :class:`mlflow.data.meta_dataset.MetaDataset` (metadata only, no data
+        copied) whose ``digest`` is the DVC hash (``digest["md5"]``, e.g.
+        ``"<32 hex>.dir"``, exactly MLflow's 36-char digest limit; longer values
+        are cut and the full value kept in the input tags) and whose source is
+        *source*: a local path (stored absolute, source type ``local``) or an
+        ``http(s)``/``s3``/... URI. Input tags: ``mlflow.data.context`` and
+        ``dvc.md5``/``dvc.size``/``dvc.nfiles``/``dvc.path``/``dvc.file``.
+
+        Parameters
+        ----------
+        digest : Mapping
+            Output of :func:`aumesh.provenance.data_digest`.
+        source : str
+            Where the data lives (e.g. the ``data`` directory).
+        name : str, default "frame_tables"
+        context : str, default "training"
+        """
+        from mlflow.entities import DatasetInput, InputTag
+        from mlflow.data.meta_dataset import MetaDataset
+
+        if not digest.get("md5"):
+            raise ValueError("log_dataset: digest has no 'md5' key; pass aumesh.provenance.data_digest(...)")
+        md5 = str(digest["md5"])
+        dataset = MetaDataset(_dataset_source(source), name=name, digest=md5[:MAX_DATASET_DIGEST_LENGTH])
+        tags = [InputTag("mlflow.data.context", context)]
+        for key, tag in (("md5", "dvc.md5"), ("size", "dvc.size"), ("nfiles", "dvc.nfiles"),
+                         ("path", "dvc.path"), ("dvc_file", "dvc.file")):
+            if digest.get(key) is not None:
+                tags.append(InputTag(tag, _truncate(str(digest[key]), MAX_INPUT_TAG_VALUE_LENGTH)))
+        self.client.log_inputs(self.run_id, datasets=[DatasetInput(dataset._to_mlflow_entity(), tags=tags)])
+
+
+class _NullRun(TrackedRun):
+    """No-op handle used when ``tracking.enabled`` is false."""
+
+    enabled = False
+
+    def __init__(self) -> None:  # noqa: D107 - nothing to bind
+        self.client = None  # type: ignore[assignment]
+        self.run_id = None  # type: ignore[assignment]
+        self.experiment_id = None  # type: ignore[assignment]
+        self.tracking_uri = None  # type: ignore[assignment]
+
+    def __getattribute__(self, item: str) -> Any:
+        if item.startswith("log_") or item == "set_tags":
+            return lambda *a, **k: None
+        return object.__getattribute__(self, item)
+
+
+def _dataset_source(source: str):
+    """MLflow DatasetSource for a path or URI (paths become absolute, source type ``local``)."""
+    import warnings
+
+    from mlflow.data.dataset_source_registry import resolve_dataset_source
+
+    src = str(source)
+    if "://" not in src:
+        src = Path(src).expanduser().absolute().as_posix()
+    if src.startswith(("http://", "https://")):
+        from mlflow.data.http_dataset_source import HTTPDatasetSource
+
+        return HTTPDatasetSource(src)
+    with warnings.catch_warnings():  # two "local" sources are registered; either is fine
+        warnings.simplefilter("ignore")
+        try:
+            return resolve_dataset_source(src)
+        except Exception:
+            from mlflow.data.code_dataset_source import CodeDatasetSource
+
+            return CodeDatasetSource({"source": src})
+
+
+# ------------------------------------------------------------------------- runs
+def _enabled(tracking_cfg: Mapping[str, Any] | None) -> bool:
+    value = (tracking_cfg or {}).get("enabled", True)
+    return value if isinstance(value, bool) else str(value).lower() not in {"0", "false", "no", "off"}
+
+
+def _open_run(
+    tracking_cfg: Mapping[str, Any] | None,
+    run_name: str | None,
+    tags: Mapping[str, Any] | None,
+    parent_run_id: str | None,
+) -> TrackedRun:
+    client = get_client(tracking_cfg)
+    uri = client.tracking_uri
+    name = str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT)
+    exp_id = ensure_experiment(client, name, _default_artifact_location(uri, tracking_cfg))
+    all_tags = provenance_tags(tracking_cfg)
+    if parent_run_id:
+        all_tags[PARENT_TAG] = parent_run_id
+    all_tags.update({str(k): v for k, v in (tags or {}).items()})
+    clean = {str(k)[:MAX_KEY_LENGTH]: _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in all_tags.items()}
+    run = client.create_run(exp_id, run_name=run_name, tags=clean)
+    return TrackedRun(client, run.info.run_id, exp_id)
+
+
+def _fail(handle: TrackedRun, exc: BaseException) -> None:
+    status = "KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED"
+    with contextlib.suppress(Exception):
+        handle.client.set_tag(handle.run_id, ERROR_TAG, _truncate(f"{type(exc).__name__}: {exc}", MAX_TAG_VALUE_LENGTH))
+    with contextlib.suppress(Exception):
+        tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+        handle.client.log_text(handle.run_id, tb, "error.txt")
+    with contextlib.suppress(Exception):
+        handle.client.set_terminated(handle.run_id, status)
+
+
+@contextlib.contextmanager
+def tracked_run(
+    tracking_cfg: Mapping[str, Any] | None,
+    run_name: str | None,
+    params: Mapping[str, Any] | None,
+    tags: Mapping[str, Any] | None = None,
+    parent_run_id: str | None = None,
+    nested: bool = False,
+) -> Iterator[TrackedRun]:
+    """Open an MLflow run, log params and provenance tags, close it with the right status.
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping or None
+        The ``tracking`` config group (``enabled``, ``tracking_uri``,
+        ``experiment``, ``artifact_location``, ``dvc_file``); None = defaults.
+    run_name : str or None
+        Display name of the run.
+    params : Mapping or None
+        Nested config; logged flattened (``a.b.c``), lists as JSON, values
+        truncated to MLflow's 6000-character limit.
+    tags : Mapping, optional
+        Extra run tags (override the provenance tags of the same key).
+    parent_run_id : str, optional
+        Make this run a child of *parent_run_id* (``mlflow.parentRunId`` tag, so
+        the UI nests it). May be in another process.
+    nested : bool, default False
+        If True and *parent_run_id* is None, use the innermost ``tracked_run``
+        currently open in this context as the parent. With False, an enclosing
+        run is ignored and an independent run is created.
+
+    Yields
+    ------
+    TrackedRun
+        Handle with ``run_id`` and ``log_*`` methods. A no-op handle
+        (``enabled=False``, ``run_id=None``) when ``tracking.enabled`` is false.
+
+    Notes
+    -----
+    On normal exit the run is FINISHED. If the body raises, the run gets the
+    ``aumesh.error`` tag and an ``error.txt`` traceback artifact, is terminated
+    as FAILED (KILLED for ``KeyboardInterrupt``) and the exception is re-raised.
+    Tags logged at start: see :func:`provenance_tags`.
+    """
+    if not _enabled(tracking_cfg):
+        yield _NullRun()
+        return
+    if parent_run_id is None and nested and _ACTIVE_RUNS.get():
+        parent_run_id = _ACTIVE_RUNS.get()[-1]
+    handle = _open_run(tracking_cfg, run_name, tags, parent_run_id)
+    token = _ACTIVE_RUNS.set(_ACTIVE_RUNS.get() + (handle.run_id,))
+    try:
+        if params:
+            handle.log_params(params)
+        yield handle
+    except BaseException as exc:
+        _fail(handle, exc)
+        raise
+    else:
+        handle.client.set_terminated(handle.run_id, "FINISHED")
+    finally:
+        _ACTIVE_RUNS.reset(token)
+
+
+# ------------------------------------------------------------------------ sweeps
+def start_parent_run(
+    tracking_cfg: Mapping[str, Any] | None,
+    run_name: str,
+    params: Mapping[str, Any] | None = None,
+    tags: Mapping[str, Any] | None = None,
+) -> str | None:
+    """Create the parent run of a sweep and leave it RUNNING; return its id.
+
+    Children are created with ``tracked_run(..., parent_run_id=<id>)`` (possibly
+    in other processes); finish the parent with :func:`end_run` or
+    :func:`mark_failed`. For an in-process sweep, ``with tracked_run(...,
+    tags={"aumesh.role": "sweep-parent"})`` is the context-managed equivalent.
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping or None
+    run_name : str
+    params : Mapping, optional
+        Sweep-level params (e.g. the sweep definition), flattened.
+    tags : Mapping, optional
+        Extra tags; ``aumesh.role=sweep-parent`` is always set.
+
+    Returns
+    -------
+    str or None
+        The run id; None when ``tracking.enabled`` is false.
+    """
+    if not _enabled(tracking_cfg):
+        return None
+    handle = _open_run(tracking_cfg, run_name, {ROLE_TAG: "sweep-parent", **(tags or {})}, None)
+    try:
+        if params:
+            handle.log_params(params)
+    except BaseException as exc:
+        _fail(handle, exc)
+        raise
+    return handle.run_id
+
+
+def run_handle(run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> TrackedRun:
+    """A :class:`TrackedRun` handle for an existing run (e.g. a sweep parent)."""
+    client = get_client(tracking_cfg)
+    run = client.get_run(run_id)
+    return TrackedRun(client, run_id, run.info.experiment_id)
+
+
+def end_run(run_id: str, tracking_cfg: Mapping[str, Any] | None = None, status: str = "FINISHED") -> None:
+    """Terminate *run_id* with *status* (``FINISHED``, ``FAILED`` or ``KILLED``)."""
+    if run_id is None:
+        return
+    get_client(tracking_cfg).set_terminated(run_id, status)
+
+
+def mark_failed(run_id: str, error: BaseException | str, tracking_cfg: Mapping[str, Any] | None = None) -> None:
+    """Tag *run_id* with the error (``aumesh.error``) and terminate it as FAILED.
+
+    Parameters
+    ----------
+    run_id : str
+    error : BaseException or str
+        Exceptions are recorded as ``"Type: message"`` plus an ``error.txt``
+        traceback artifact.
+    tracking_cfg : Mapping, optional
+    """
+    if run_id is None:
+        return
+    client = get_client(tracking_cfg)
+    if isinstance(error, BaseException):
+        run = client.get_run(run_id)
+        _fail(TrackedRun(client, run_id, run.info.experiment_id), error)
+        return
+    client.set_tag(run_id, ERROR_TAG, _truncate(str(error), MAX_TAG_VALUE_LENGTH))
+    client.set_terminated(run_id, "FAILED")
+
+
+def list_child_runs(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> pd.DataFrame:
+    """Child runs of *parent_run_id* as a DataFrame (one row per child, oldest first).
+
+    Parameters
+    ----------
+    parent_run_id : str
+    tracking_cfg : Mapping, optional
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``run_id``, ``run_name``, ``status``, ``start_time``, ``end_time``
+        (UTC timestamps), ``error`` (``aumesh.error`` tag or None), then
+        ``params.<key>`` (strings) and ``metrics.<key>`` (latest value).
+    """
+    import pandas as pd
+
+    client = get_client(tracking_cfg)
+    parent = client.get_run(parent_run_id)
+    rows: list[dict[str, Any]] = []
+    token = None
+    while True:
+        page = client.search_runs(
+            [parent.info.experiment_id],
+            filter_string=f"tags.`{PARENT_TAG}` = '{parent_run_id}'",
+            max_results=1000,
+            page_token=token,
+        )
+        for run in page:
+            row: dict[str, Any] = {
+                "run_id": run.info.run_id,
+                "run_name": run.info.run_name,
+                "status": run.info.status,
+                "start_time": pd.to_datetime(run.info.start_time, unit="ms", utc=True),
+                "end_time": pd.to_datetime(run.info.end_time, unit="ms", utc=True) if run.info.end_time else pd.NaT,
+                "error": run.data.tags.get(ERROR_TAG),
+            }
+            row.update({f"params.{k}": v for k, v in sorted(run.data.params.items())})
+            row.update({f"metrics.{k}": v for k, v in sorted(run.data.metrics.items())})
+            rows.append(row)
+        token = page.token
+        if not token:
+            break
+    base = ["run_id", "run_name", "status", "start_time", "end_time", "error"]
+    df = pd.DataFrame(rows, columns=None if rows else base)
+    if rows:
+        df = df.sort_values("start_time", kind="stable").reset_index(drop=True)
+    return df
