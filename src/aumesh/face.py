@@ -456,3 +456,61 @@ def facs_displacement_fields(template: np.ndarray | None = None) -> np.ndarray:
             w[idx] = 1.0
             out[k] += w[:, None] * vec[None, :]
     return out @ axes * scale
+
+
+def flatten_axis_major(mesh: np.ndarray) -> np.ndarray:
+    """(..., 478, 3) -> (..., 1434) in the model's layout ``[x_0..x_477 | y_.. | z_..]``."""
+    m = np.asarray(mesh)
+    return np.swapaxes(m, -1, -2).reshape(*m.shape[:-2], 3 * m.shape[-2])
+
+
+def unflatten_axis_major(flat: np.ndarray, n_vertices: int = N_VERTICES) -> np.ndarray:
+    """(..., 1434) axis-major -> (..., 478, 3); inverse of :func:`flatten_axis_major`."""
+    f = np.asarray(flat)
+    if f.shape[-1] != 3 * n_vertices:
+        raise ValueError(f"expected last axis of length {3 * n_vertices}, got {f.shape}")
+    return np.swapaxes(f.reshape(*f.shape[:-1], 3, n_vertices), -1, -2)
+
+
+def synthetic_release_arrays(template: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Release-NPZ-shaped arrays whose AU rows are exactly the synthetic FACS fields.
+
+    Parameters
+    ----------
+    template : array-like, shape (478, 3), optional
+        Neutral mesh (any orientation/units). Defaults to :func:`canonical_template`.
+
+    Returns
+    -------
+    dict
+        The card's keys: ``coef`` (23, 1434) float32 with rows
+        ``flatten_axis_major(facs_displacement_fields(template))`` for the AUs and
+        zeros for Pitch/Yaw/Roll; ``intercept`` (1434,) = the flattened template;
+        ``input_columns``, ``au_columns``, ``pose_columns``, ``mean_aligned_mesh``,
+        ``mean_low_au_mesh``, ``reference_anchors`` (12, 3), ``anchor_indices``
+        (12,), ``n_components`` (), ``model_card`` (), ``training_metadata`` () JSON.
+        Pass to ``np.savez(path, **arrays)`` to get a synthetic-truth release.
+    """
+    import json
+
+    from aumesh.schema import ANCHOR_INDICES, INPUT_COLUMNS, POSE_COLUMNS
+
+    t = canonical_template() if template is None else np.asarray(template, dtype=np.float64)
+    fields = facs_displacement_fields(None if template is None else t)
+    coef = np.zeros((len(INPUT_COLUMNS), 3 * N_VERTICES))
+    coef[: len(AU_COLUMNS)] = flatten_axis_major(fields)
+    anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)
+    return {
+        "coef": coef.astype(np.float32),
+        "intercept": flatten_axis_major(t).astype(np.float32),
+        "input_columns": np.array(INPUT_COLUMNS),
+        "au_columns": np.array(AU_COLUMNS),
+        "pose_columns": np.array(POSE_COLUMNS),
+        "mean_aligned_mesh": t.astype(np.float32),
+        "mean_low_au_mesh": t.astype(np.float32),
+        "reference_anchors": t[anchors].astype(np.float32),
+        "anchor_indices": anchors,
+        "n_components": np.array(len(AU_COLUMNS), dtype=np.int32),
+        "model_card": np.array("aumesh synthetic-truth release: coef rows = aumesh.face.facs_displacement_fields"),
+        "training_metadata": np.array(json.dumps({"source": "aumesh.face.synthetic_release_arrays"})),
+    }
