@@ -1,0 +1,249 @@
+"""Offline tests of aumesh.tracking / aumesh.provenance against a temporary SQLite store."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import uuid
+from pathlib import Path
+
+import pytest
+
+from aumesh import provenance, tracking
+
+MD5 = "0123456789abcdef0123456789abcdef.dir"
+DVC_FILE = f"""outs:
+- md5: {MD5}
+  size: 12345
+  nfiles: 7
+  hash: md5
+  path: data
+"""
+
+
+def _git(ws: Path, *args: str) -> str:
+    out = subprocess.run(
+        ["git", "-c", "user.email=t@example.com", "-c", "user.name=t", "-c", "commit.gpgsign=false", *args],
+        cwd=ws, capture_output=True, text=True, check=True,
+    )
+    return out.stdout.strip()
+
+
+@pytest.fixture(scope="module")
+def store_uri(tmp_path_factory) -> str:
+    """One SQLite store per module (schema creation costs ~1 s); tests use distinct experiments."""
+    return f"sqlite:///{tmp_path_factory.mktemp('store') / 'mlflow.db'}"
+
+
+@pytest.fixture
+def workspace(tmp_path, monkeypatch) -> Path:
+    """A throwaway aumesh-like workspace: git repo with dvc.yaml and data.dvc, as cwd."""
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "dvc.yaml").write_text("stages: {}\n")
+    (ws / "data.dvc").write_text(DVC_FILE)
+    for var in ("MLFLOW_TRACKING_URI", "DVC_ROOT", "DVC_EXP_BASELINE_REV", "DVC_EXP_NAME", "DVC_STAGE"):
+        monkeypatch.delenv(var, raising=False)
+    if shutil.which("git"):
+        _git(ws, "init", "-q")
+        _git(ws, "add", "dvc.yaml", "data.dvc")
+        _git(ws, "commit", "-q", "-m", "init")
+    monkeypatch.chdir(ws)
+    return ws
+
+
+@pytest.fixture
+def cfg(store_uri, workspace, monkeypatch) -> dict:
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", store_uri)
+    return {"enabled": True, "experiment": f"test-{uuid.uuid4().hex[:8]}"}
+
+
+def _client(uri: str):
+    from mlflow import MlflowClient
+
+    return MlflowClient(tracking_uri=uri)
+
+
+# ----------------------------------------------------------------------------- runs
+def test_run_logs_params_metrics_config_dataset_tags(cfg, store_uri, workspace):
+    params = {"model": {"n_components": 8, "scale": True}, "anchors": [10, 9, 8], "long": "x" * 7000}
+    with tracking.tracked_run(cfg, "fit", params, tags={"stage": "train"}) as run:
+        run.log_fold_metrics({"r2": [0.5, 0.6, 0.7], "mae": [0.3, 0.2, 0.1]})
+        run.log_metrics({"r2_mean": 0.6})
+        run.log_config({"model": {"n_components": 8}, "anchors": [10, 9, 8]})
+        run.log_dict({"a": 1}, "extra/a.json")
+        digest = provenance.data_digest(workspace)
+        run.log_dataset(digest, source=str(workspace / "data"))
+
+    client = _client(store_uri)
+    got = client.get_run(run.run_id)
+    assert got.info.status == "FINISHED"
+    assert got.info.run_name == "fit"
+    p = got.data.params
+    assert p["model.n_components"] == "8" and p["model.scale"] == "True"
+    assert p["anchors"] == "[10, 9, 8]"
+    assert len(p["long"]) == tracking.MAX_PARAM_VALUE_LENGTH and p["long"].endswith(tracking.TRUNCATION_MARK)
+
+    hist = client.get_metric_history(run.run_id, "r2")
+    assert sorted((m.step, m.value) for m in hist) == [(0, 0.5), (1, 0.6), (2, 0.7)]
+    assert [m.step for m in sorted(client.get_metric_history(run.run_id, "mae"), key=lambda m: m.step)] == [0, 1, 2]
+    assert got.data.metrics["r2_mean"] == pytest.approx(0.6)
+
+    arts = {a.path for a in client.list_artifacts(run.run_id)}
+    assert {"config.yaml", "extra"} <= arts
+    cfg_text = Path(client.download_artifacts(run.run_id, "config.yaml")).read_text()
+    assert "n_components: 8" in cfg_text
+    # artifacts land in the workspace (absolute), not ./mlruns of whatever cwd
+    assert Path(got.info.artifact_uri.removeprefix("file://")).is_relative_to(workspace / "mlartifacts")
+
+    (ds_in,) = got.inputs.dataset_inputs
+    assert ds_in.dataset.digest == MD5 and ds_in.dataset.name == "frame_tables"
+    assert str(workspace / "data") in ds_in.dataset.source
+    itags = {t.key: t.value for t in ds_in.tags}
+    assert itags["dvc.md5"] == MD5 and itags["dvc.nfiles"] == "7" and itags["mlflow.data.context"] == "training"
+
+    tags = got.data.tags
+    assert tags["stage"] == "train"
+    assert tags["aumesh.data.md5"] == MD5 and tags["aumesh.data.nfiles"] == "7"
+    assert tags["aumesh.version"] and tags["aumesh.lib.mlflow"]
+    assert tags["aumesh.workspace"] == str(workspace)
+    if shutil.which("git"):
+        head = _git(workspace, "rev-parse", "HEAD")
+        assert tags["aumesh.git.commit"] == head == tags["mlflow.source.git.commit"]
+        assert tags["aumesh.git.dirty"] == "false"
+
+
+def test_exception_marks_run_failed_and_reraises(cfg, store_uri):
+    with pytest.raises(RuntimeError, match="boom"):
+        with tracking.tracked_run(cfg, "broken", {"a": 1}) as run:
+            run.log_metrics({"partial": 1.0})
+            raise RuntimeError("boom")
+    got = _client(store_uri).get_run(run.run_id)
+    assert got.info.status == "FAILED"
+    assert got.data.tags[tracking.ERROR_TAG] == "RuntimeError: boom"
+    assert got.data.metrics["partial"] == 1.0
+
+
+def test_parent_and_children_are_linked(cfg, store_uri):
+    parent = tracking.start_parent_run(cfg, "sweep", params={"sweep": {"grid": [2, 4]}})
+    for k in (2, 4):
+        with tracking.tracked_run(cfg, f"k={k}", {"model": {"n_components": k}}, parent_run_id=parent) as child:
+            child.log_fold_metrics({"r2": [k / 10, k / 10 + 0.01]})
+    tracking.mark_failed(parent, "one config crashed", cfg)
+
+    client = _client(store_uri)
+    assert client.get_run(parent).info.status == "FAILED"
+    assert client.get_run(parent).data.tags[tracking.ROLE_TAG] == "sweep-parent"
+    df = tracking.list_child_runs(parent, cfg)
+    assert list(df["run_name"]) == ["k=2", "k=4"]
+    assert list(df["params.model.n_components"]) == ["2", "4"]
+    assert df["metrics.r2"].tolist() == pytest.approx([0.21, 0.41])
+    assert (df["status"] == "FINISHED").all()
+    for rid in df["run_id"]:
+        assert client.get_run(rid).data.tags["mlflow.parentRunId"] == parent
+
+
+def test_nested_uses_enclosing_run(cfg, store_uri):
+    with tracking.tracked_run(cfg, "outer", {}) as outer:
+        with tracking.tracked_run(cfg, "inner", {}, nested=True) as inner:
+            pass
+        with tracking.tracked_run(cfg, "independent", {}) as independent:
+            pass
+    client = _client(store_uri)
+    assert client.get_run(inner.run_id).data.tags["mlflow.parentRunId"] == outer.run_id
+    assert "mlflow.parentRunId" not in client.get_run(independent.run_id).data.tags
+    assert list(tracking.list_child_runs(outer.run_id, cfg)["run_id"]) == [inner.run_id]
+
+
+def test_disabled_tracking_is_a_noop(workspace):
+    with tracking.tracked_run({"enabled": False}, "x", {"a": 1}) as run:
+        run.log_metrics({"m": 1.0})
+        run.log_fold_metrics({"r2": [1.0]})
+    assert run.run_id is None and not run.enabled
+    assert tracking.start_parent_run({"enabled": False}, "sweep") is None
+    assert not (workspace / "mlflow.db").exists()
+
+
+# ------------------------------------------------------------------- URI resolution
+def test_resolve_tracking_uri_from_subdirectory(workspace, monkeypatch):
+    sub = workspace / "src" / "deep"
+    sub.mkdir(parents=True)
+    monkeypatch.chdir(sub)
+    assert tracking.resolve_tracking_uri(None) == f"sqlite:///{workspace}/mlflow.db"
+    assert tracking.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
+    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:///runs/t.db"}) == f"sqlite:///{workspace}/runs/t.db"
+    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:////abs/t.db"}) == "sqlite:////abs/t.db"
+    assert tracking.resolve_tracking_uri({"tracking_uri": "http://127.0.0.1:5000"}) == "http://127.0.0.1:5000"
+
+
+@pytest.mark.parametrize("copy", [".dvc/tmp/exps/tmpabc", ".dvc/tmp/exps/standalone/tmpxyz"])
+def test_resolve_tracking_uri_from_dvc_temp_copy(workspace, monkeypatch, copy):
+    tmp_copy = workspace / copy
+    (tmp_copy / "src").mkdir(parents=True)
+    (tmp_copy / "dvc.yaml").write_text("stages: {}\n")  # the copy looks like a repo of its own
+    (tmp_copy / ".git").mkdir()
+    monkeypatch.chdir(tmp_copy / "src")
+    assert provenance.repo_root() == workspace
+    assert tracking.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
+    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:///mlflow.db"}) == f"sqlite:///{workspace}/mlflow.db"
+    assert provenance.in_dvc_temp_copy()
+
+
+def test_env_var_wins(workspace, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")
+    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:///other.db"}) == "http://127.0.0.1:9"
+
+
+def test_repo_root_errors_clearly_outside_a_workspace(tmp_path, monkeypatch):
+    monkeypatch.delenv("DVC_ROOT", raising=False)
+    lonely = tmp_path / "lonely"
+    lonely.mkdir()
+    if any((d / ".git").exists() or (d / "dvc.yaml").exists() for d in (lonely, *lonely.parents)):
+        pytest.skip("tmp dir is inside a repository")
+    with pytest.raises(FileNotFoundError, match="dvc.yaml"):
+        provenance.repo_root(lonely)
+
+
+# ------------------------------------------------------------------------ provenance
+def test_data_digest_reads_dvc_file(workspace):
+    d = provenance.data_digest(workspace)
+    assert d["md5"] == MD5 and d["size"] == 12345 and d["nfiles"] == 7 and d["path"] == "data"
+    assert d["dvc_file"] == str(workspace / "data.dvc")
+
+
+def test_data_digest_errors_clearly(workspace):
+    with pytest.raises(FileNotFoundError) as err:
+        provenance.data_digest(workspace, "missing.dvc")
+    assert "missing.dvc" in str(err.value) and "dvc add data" in str(err.value)
+    (workspace / "bad.dvc").write_text("outs:\n- path: data\n")
+    with pytest.raises(ValueError, match=r"outs\[0\]\.md5"):
+        provenance.data_digest(workspace, "bad.dvc")
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="git not installed")
+def test_git_commit_reports_dvc_baseline_and_dirty(workspace, monkeypatch):
+    info = provenance.git_commit(workspace)
+    assert info["commit"] == _git(workspace, "rev-parse", "HEAD") and info["dirty"] is False
+    (workspace / "dvc.yaml").write_text("stages: {a: {cmd: echo}}\n")
+    assert provenance.git_commit(workspace)["dirty"] is True
+    monkeypatch.setenv("DVC_EXP_BASELINE_REV", "f" * 40)
+    monkeypatch.setenv("DVC_EXP_NAME", "brisk-lynx")
+    info = provenance.git_commit(workspace)
+    assert info["commit"] == "f" * 40 and info["dvc_exp_name"] == "brisk-lynx" and info["source"] == "dvc-experiment"
+
+
+def test_git_commit_never_raises_without_git(tmp_path, monkeypatch):
+    monkeypatch.setenv("PATH", str(tmp_path))  # no git executable on PATH
+    monkeypatch.delenv("DVC_EXP_BASELINE_REV", raising=False)
+    info = provenance.git_commit(tmp_path)
+    assert info["commit"] is None and info["dirty"] is False and info["source"] == "unavailable"
+
+
+def test_flatten_and_library_versions():
+    flat = provenance.flatten({"a": {"b": {"c": 1}, "l": [1, 2]}, "e": {}, "n": None})
+    assert flat == {"a.b.c": 1, "a.l": "[1, 2]", "e": "{}", "n": None}
+    assert provenance.flatten({"a": {"b": 1}}, sep="/") == {"a/b": 1}
+    versions = provenance.library_versions()
+    assert set(versions) >= {"numpy", "scipy", "scikit-learn", "pandas", "pyarrow", "mlflow", "dvc",
+                             "hydra-core", "python", "aumesh"}
+    assert versions["mlflow"].startswith("3.")
