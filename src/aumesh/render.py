@@ -1,0 +1,492 @@
+"""The visual model card: figures rendered from a release NPZ alone.
+
+Input: a release NPZ in the card's format (``coef`` (23, 1434) axis-major rows in
+``input_columns`` order, ``intercept`` (1434,), ``au_columns``,
+``mean_aligned_mesh`` (478, 3), ...) and optionally a CV arrays NPZ with
+``r2_per_vertex`` (478,) and ``vertex_error`` (per-frame mean per-vertex
+Euclidean error, (n_frames,) or (n_frames, 478)), or a precomputed curve
+``cumulative_error_thresholds`` + ``cumulative_error_fraction``.
+
+Prediction follows the card exactly: ``flat = x @ coef + intercept`` with
+``x = [AU one-hot | pose 0]``, unflattened from ``[x_0..x_477 | y_.. | z_..]``.
+
+Orientation: the release mesh may be in any convention (py-feat pixel space with
+y down, MediaPipe canonical with y up, rotated...). Every figure is drawn in the
+face frame of :func:`aumesh.face.face_frame` computed from ``mean_aligned_mesh``
+(up = forehead 10 - chin 152, subject's left = 33 -> 263, toward the camera = the
+side of the nose tip 1), in inter-ocular units, frontal view with up at the top
+and the subject's left on the image right (as a photograph).
+
+The triangulation is the project's own (:func:`aumesh.face.triangulate`), not
+MediaPipe's ``FACEMESH_TESSELATION``. Matplotlib is used through
+``matplotlib.figure.Figure`` + the Agg canvas only (no pyplot, no global backend
+change); every file is written atomically (temp file, then ``os.replace``).
+
+Pose views use the card's render-time rotation
+``scipy.spatial.transform.Rotation.from_euler("xyz", [pitch, yaw, roll])`` applied
+in MediaPipe-canonical axes (x subject's left, y up, z out of the face) about the
+mesh centroid. Note: in SciPy, lowercase ``"xyz"`` is **extrinsic** (R = Rz Ry Rx),
+not intrinsic as the card states.
+
+Command line: ``main(["NPZ", "--out", "DIR", "--cv", "CVNPZ"])`` (``aumesh render``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aumesh import face
+from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES
+
+REQUIRED_KEYS: tuple[str, ...] = ("coef", "intercept", "input_columns", "au_columns", "mean_aligned_mesh")
+COMPARE_AUS: tuple[str, ...] = ("AU12", "AU26", "AU04", "AU01")
+POSES_DEG: tuple[tuple[float, float, float], ...] = (
+    (0.0, 0.0, 0.0), (0.0, 30.0, 0.0), (0.0, -30.0, 0.0), (20.0, 0.0, 0.0), (-20.0, 0.0, 0.0), (0.0, 0.0, 20.0),
+)
+DPI = 110
+SKIN = np.array([0.93, 0.78, 0.66])
+TINT = np.array([0.85, 0.15, 0.10])
+LIGHT = np.array([-0.35, -0.55, -1.0]) / np.linalg.norm([-0.35, -0.55, -1.0])  # face frame, toward the light
+TARGET_VISIBLE = 0.08  # inter-ocular units the largest AU displacement is scaled up to, if smaller
+FIGURE_NAMES: tuple[str, ...] = (
+    "au_solid_panels.png", "au_solid_neutral_vs_activated.png", "au_compare_overlay.png",
+    "au_effect_maps.png", "pose_views.png", "r2_per_vertex.png", "cumulative_vertex_error.png",
+)
+
+
+# --------------------------------------------------------------------------- loading
+def load_release(npz_path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Load and validate a release NPZ (card format).
+
+    Parameters
+    ----------
+    npz_path : path
+        The release file.
+
+    Returns
+    -------
+    dict of str -> np.ndarray
+        All arrays of the file; ``coef`` (n_inputs, 1434), ``intercept`` (1434,),
+        ``mean_aligned_mesh`` (478, 3) checked.
+
+    Raises
+    ------
+    FileNotFoundError, KeyError, ValueError
+        Naming the file and the missing / malformed key.
+    """
+    path = Path(npz_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"release NPZ not found: {path}")
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    validate_release(arrays, str(path))
+    return arrays
+
+
+def validate_release(arrays: Mapping[str, Any], where: str = "<arrays>") -> None:
+    """Raise a clear error if release arrays lack a key or have a wrong shape."""
+    for key in REQUIRED_KEYS:
+        if key not in arrays:
+            raise KeyError(
+                f"{where}: missing key {key!r}; a release NPZ needs {list(REQUIRED_KEYS)} "
+                f"(card 'File format'); it has {sorted(arrays)}"
+            )
+    coef, intercept = np.asarray(arrays["coef"]), np.asarray(arrays["intercept"])
+    cols = [str(c) for c in np.asarray(arrays["input_columns"]).tolist()]
+    if coef.ndim != 2 or coef.shape != (len(cols), N_TARGETS):
+        raise ValueError(f"{where}: 'coef' must be ({len(cols)}, {N_TARGETS}) (rows = input_columns), got {coef.shape}")
+    if intercept.shape != (N_TARGETS,):
+        raise ValueError(f"{where}: 'intercept' must be ({N_TARGETS},), got {intercept.shape}")
+    if np.asarray(arrays["mean_aligned_mesh"]).shape != (N_VERTICES, 3):
+        raise ValueError(f"{where}: 'mean_aligned_mesh' must be ({N_VERTICES}, 3)")
+    missing = [a for a in AU_COLUMNS if a not in cols]
+    if missing:
+        raise KeyError(f"{where}: 'input_columns' lacks {missing}")
+
+
+def load_cv(cv_path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Load CV arrays: ``r2_per_vertex`` and/or ``vertex_error`` or the cumulative curve."""
+    path = Path(cv_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"CV arrays file not found: {path}")
+    with np.load(path, allow_pickle=False) as z:
+        cv = {k: z[k] for k in z.files}
+    known = {"r2_per_vertex", "vertex_error", "cumulative_error_thresholds"}
+    if not known & set(cv):
+        raise KeyError(f"{path}: no CV key found; expected 'r2_per_vertex', 'vertex_error' or "
+                       f"'cumulative_error_thresholds' + 'cumulative_error_fraction'; has {sorted(cv)}")
+    if "r2_per_vertex" in cv and np.asarray(cv["r2_per_vertex"]).shape != (N_VERTICES,):
+        raise ValueError(f"{path}: 'r2_per_vertex' must be ({N_VERTICES},), got {cv['r2_per_vertex'].shape}")
+    if "cumulative_error_thresholds" in cv and "cumulative_error_fraction" not in cv:
+        raise KeyError(f"{path}: 'cumulative_error_thresholds' given without 'cumulative_error_fraction'")
+    return cv
+
+
+def predict_mesh(arrays: Mapping[str, Any], aus: Mapping[str, float] | None = None,
+                 pose: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Card inference: AU intensities (+ pose) -> mesh (478, 3) in the release's own frame."""
+    cols = [str(c) for c in np.asarray(arrays["input_columns"]).tolist()]
+    x = np.zeros(len(cols))
+    for name, value in (aus or {}).items():
+        x[cols.index(name)] = value
+    for name, value in zip(("Pitch", "Yaw", "Roll"), pose):
+        if name in cols:
+            x[cols.index(name)] = value
+    flat = x @ np.asarray(arrays["coef"], dtype=np.float64) + np.asarray(arrays["intercept"], dtype=np.float64)
+    return face.unflatten_axis_major(flat)
+
+
+def face_frame_meshes(arrays: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, float]:
+    """Neutral (AU=0, pose=0) mesh and per-AU displacements in the face frame.
+
+    Returns
+    -------
+    neutral : np.ndarray, shape (478, 3)
+        Prediction at x = 0, face frame of ``mean_aligned_mesh``, IOD units.
+    disp : np.ndarray, shape (20, 478, 3)
+        AU displacements at intensity 1 (``AU_COLUMNS`` order), same frame/units.
+    scale : float
+        Inter-ocular distance of ``mean_aligned_mesh`` in the release's units.
+    """
+    origin, axes, scale = face.face_frame(np.asarray(arrays["mean_aligned_mesh"], dtype=np.float64))
+    cols = [str(c) for c in np.asarray(arrays["input_columns"]).tolist()]
+    neutral = (predict_mesh(arrays) - origin) @ axes.T / scale
+    coef = np.asarray(arrays["coef"], dtype=np.float64)
+    disp = face.unflatten_axis_major(coef[[cols.index(a) for a in AU_COLUMNS]]) @ axes.T / scale
+    return neutral, disp, float(scale)
+
+
+def exaggeration_factor(disp: np.ndarray, target: float = TARGET_VISIBLE) -> float:
+    """1, or the smallest of 2, 5, 10, 20, 50, ... making the largest displacement >= ``target``."""
+    m = float(np.linalg.norm(disp, axis=-1).max()) if disp.size else 0.0
+    if m <= 0 or m >= 0.5 * target:
+        return 1.0
+    for f in (2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000, 10000):
+        if f * m >= target:
+            return float(f)
+    return 10000.0
+
+
+# --------------------------------------------------------------------------- drawing
+def _figure(w: float, h: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w, h), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig, path: Path) -> Path:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=DPI, format="png")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _limits(mesh: np.ndarray, pad: float = 0.12) -> tuple[tuple[float, float], tuple[float, float]]:
+    x, y = mesh[:, 0], -mesh[:, 1]
+    return (x.min() - pad, x.max() + pad), (y.min() - pad, y.max() + pad)
+
+
+def _prep_ax(ax, lims, title: str | None = None, fontsize: int = 9) -> None:
+    ax.set_xlim(*lims[0])
+    ax.set_ylim(*lims[1])
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    if title:
+        ax.set_title(title, fontsize=fontsize)
+
+
+def _normal_signs(neutral: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """+1/-1 per triangle so that sign * cross(b-a, c-a) faces the camera (-z) on the frontal neutral."""
+    n = np.cross(neutral[tri[:, 1]] - neutral[tri[:, 0]], neutral[tri[:, 2]] - neutral[tri[:, 0]])
+    return np.where(n[:, 2] <= 0, 1.0, -1.0)
+
+
+def _draw_solid(ax, mesh: np.ndarray, tri: np.ndarray, signs: np.ndarray,
+                tint: np.ndarray | None = None, cull: bool = False) -> None:
+    """Lambert-shaded solid face (face frame, viewed from -z) with optional per-triangle red tint in [0, 1]."""
+    from matplotlib.collections import PolyCollection
+
+    n = signs[:, None] * np.cross(mesh[tri[:, 1]] - mesh[tri[:, 0]], mesh[tri[:, 2]] - mesh[tri[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+    keep = n[:, 2] < 0.05 if cull else np.ones(len(tri), dtype=bool)
+    lam = np.clip(n @ LIGHT, 0.0, 1.0)
+    shade = 0.25 + 0.75 * lam
+    base = np.broadcast_to(SKIN, (len(tri), 3)).copy()
+    if tint is not None:
+        t = np.clip(tint, 0.0, 1.0)[:, None] * 0.85
+        base = (1 - t) * base + t * TINT
+    colors = np.clip(base * shade[:, None], 0, 1)
+    order = np.argsort(-mesh[tri, 2].mean(axis=1))  # far first (painter's algorithm)
+    order = order[keep[order]]
+    verts = np.stack([mesh[tri[order], 0], -mesh[tri[order], 1]], axis=-1)
+    pc = PolyCollection(verts, facecolors=colors[order], edgecolors=colors[order], linewidths=0.2)
+    ax.add_collection(pc)
+    # Irises are not triangulated (they sit in the eye openings): draw them as dots.
+    for c in (468, 473):
+        ax.plot(mesh[c, 0], -mesh[c, 1], "o", color="0.15", ms=3)
+
+
+def _draw_features(ax, mesh: np.ndarray, color: str = "0.2", lw: float = 0.6) -> None:
+    for contour in (face.EYE_CONTOUR_RIGHT, face.EYE_CONTOUR_LEFT, face.LIPS_OUTER, face.LIPS_INNER,
+                    face.BROW_UPPER_RIGHT, face.BROW_UPPER_LEFT, face.FACE_OVAL):
+        closed = contour not in (face.BROW_UPPER_RIGHT, face.BROW_UPPER_LEFT)
+        idx = list(contour) + ([contour[0]] if closed else [])
+        ax.plot(mesh[idx, 0], -mesh[idx, 1], color=color, lw=lw)
+
+
+def _au_title(au: str) -> str:
+    from aumesh.directions import FACS_EXPECTATIONS
+
+    return f"{au} {FACS_EXPECTATIONS[au]['name']}"
+
+
+def fig_solid_panels(neutral, disp, tri, factor):
+    """Grid of shaded solid faces, one per AU at intensity 1 (pose 0); red tint = displacement."""
+    signs = _normal_signs(neutral, tri)
+    mags = np.linalg.norm(disp, axis=2)
+    vmax = mags.max() or 1.0
+    lims = _limits(neutral + factor * disp.min(axis=0) * 0 , pad=0.2)
+    fig = _figure(13, 12.5)
+    axes = fig.subplots(4, 5)
+    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
+        mesh = neutral + factor * disp[k]
+        _draw_solid(ax, mesh, tri, signs, tint=mags[k][tri].mean(axis=1) / vmax)
+        _prep_ax(ax, lims, _au_title(au))
+    fig.suptitle(f"AU at intensity 1, pose 0 (frontal); red tint = displacement magnitude; "
+                 f"displacements x{factor:g}", fontsize=12)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
+    return fig
+
+
+def fig_neutral_vs_activated(neutral, disp, tri, factor, aus=COMPARE_AUS):
+    """Neutral (top row) vs activated (bottom row) solid faces for a few AUs."""
+    signs = _normal_signs(neutral, tri)
+    lims = _limits(neutral, pad=0.2)
+    fig = _figure(3.0 * len(aus), 6.6)
+    axes = fig.subplots(2, len(aus), squeeze=False)
+    for j, au in enumerate(aus):
+        k = AU_COLUMNS.index(au)
+        _draw_solid(axes[0, j], neutral, tri, signs)
+        _prep_ax(axes[0, j], lims, f"neutral (AU=0)")
+        _draw_solid(axes[1, j], neutral + factor * disp[k], tri, signs)
+        _prep_ax(axes[1, j], lims, f"{_au_title(au)} = 1")
+    fig.suptitle(f"Neutral vs activated (pose 0); displacements x{factor:g} for visibility", fontsize=12)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.88, wspace=0.02, hspace=0.1)
+    return fig
+
+
+def fig_compare_overlay(neutral, disp, tri, factor):
+    """Neutral (grey) and activated (blue) wireframes with displacement arrows, per AU."""
+    lims = _limits(neutral, pad=0.2)
+    fig = _figure(13, 12.5)
+    axes = fig.subplots(4, 5)
+    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
+        act = neutral + factor * disp[k]
+        ax.triplot(neutral[:, 0], -neutral[:, 1], tri, color="0.75", lw=0.3)
+        ax.triplot(act[:, 0], -act[:, 1], tri, color="tab:blue", lw=0.3, alpha=0.7)
+        mag = np.linalg.norm(disp[k], axis=1)
+        sel = np.flatnonzero(mag >= 0.25 * mag.max()) if mag.max() > 0 else np.array([], dtype=int)
+        d = factor * disp[k][sel]
+        ax.quiver(neutral[sel, 0], -neutral[sel, 1], d[:, 0], -d[:, 1], angles="xy", scale_units="xy",
+                  scale=1.0, color="tab:red", width=0.006, headwidth=3.5, headlength=4)
+        _prep_ax(ax, lims, _au_title(au))
+    fig.suptitle(f"Neutral (grey) vs activated (blue), arrows = displacement (>= 25% of the AU's max); "
+                 f"x{factor:g}", fontsize=12)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
+    return fig
+
+
+def fig_effect_maps(neutral, disp, tri, scale):
+    """Per-AU displacement magnitude (release units) as a colour map on the neutral mesh."""
+    mags = np.linalg.norm(disp, axis=2) * scale
+    vmax = float(mags.max()) or 1.0
+    lims = _limits(neutral, pad=0.1)
+    fig = _figure(13, 12.5)
+    axes = fig.subplots(4, 5)
+    im = None
+    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
+        im = ax.tripcolor(neutral[:, 0], -neutral[:, 1], tri, mags[k], shading="gouraud",
+                          cmap="magma", vmin=0.0, vmax=vmax)
+        _draw_features(ax, neutral, color="0.6", lw=0.4)
+        _prep_ax(ax, lims, _au_title(au))
+    fig.subplots_adjust(left=0.01, right=0.9, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
+    cax = fig.add_axes([0.92, 0.1, 0.015, 0.8])
+    fig.colorbar(im, cax=cax, label="|displacement| at intensity 1 (release units; px for real data)")
+    fig.suptitle("AU effect maps: displacement magnitude per vertex (shared colour scale)", fontsize=12)
+    return fig
+
+
+def fig_pose_views(neutral, disp, tri, factor, poses_deg=POSES_DEG):
+    """Neutral and AU12-activated face at a few render-time head poses."""
+    from scipy.spatial.transform import Rotation
+
+    signs = _normal_signs(neutral, tri)
+    flip = np.diag([1.0, -1.0, -1.0])  # face frame <-> MediaPipe canonical (x left, y up, z out of face)
+    rows = (("neutral", neutral), ("AU12 = 1", neutral + factor * disp[AU_COLUMNS.index("AU12")]))
+    r = float(np.abs(neutral).max()) + 0.15
+    lims = ((-r, r), (-r, r))
+    fig = _figure(2.4 * len(poses_deg), 5.6)
+    axes = fig.subplots(2, len(poses_deg), squeeze=False)
+    for i, (label, mesh) in enumerate(rows):
+        centre = mesh.mean(axis=0)
+        for j, (p, y, rl) in enumerate(poses_deg):
+            R = Rotation.from_euler("xyz", np.radians([p, y, rl])).as_matrix()
+            posed = ((mesh - centre) @ flip @ R.T) @ flip + centre
+            _draw_solid(axes[i, j], posed, tri, signs, cull=True)
+            _prep_ax(axes[i, j], lims, f"{label}\npitch {p:g} yaw {y:g} roll {rl:g} deg", fontsize=8)
+    fig.suptitle("Render-time pose: Rotation.from_euler('xyz', [pitch, yaw, roll]) in MP-canonical axes "
+                 "(x subject's left, y up, z out of face)", fontsize=10)
+    fig.text(0.5, 0.01, "SciPy lowercase 'xyz' is EXTRINSIC (R = Rz Ry Rx), whatever the card claims; "
+             f"pose inputs of the model kept at 0; AU12 x{factor:g}", ha="center", fontsize=8)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.06, top=0.82, wspace=0.02, hspace=0.3)
+    return fig
+
+
+def fig_r2_per_vertex(neutral, tri, r2):
+    """Per-vertex out-of-sample R^2 on the neutral mesh plus its histogram."""
+    fig = _figure(10, 5.5)
+    ax, axh = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.2, 1]})
+    r2 = np.asarray(r2, dtype=np.float64)
+    im = ax.tripcolor(neutral[:, 0], -neutral[:, 1], tri, r2, shading="gouraud", cmap="viridis",
+                      vmin=min(0.0, float(np.nanmin(r2))), vmax=max(float(np.nanmax(r2)), 1e-6))
+    _draw_features(ax, neutral, color="w", lw=0.4)
+    _prep_ax(ax, _limits(neutral, pad=0.1), "R² per vertex (mean over x, y, z)")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="R²")
+    axh.hist(r2[np.isfinite(r2)], bins=40, color="tab:green")
+    axh.axvline(float(np.nanmean(r2)), color="k", ls="--", label=f"mean {np.nanmean(r2):.3f}")
+    axh.set_xlabel("R² per vertex")
+    axh.set_ylabel("vertices")
+    axh.legend()
+    fig.suptitle("Out-of-sample R² per vertex", fontsize=12)
+    fig.subplots_adjust(left=0.02, right=0.97, bottom=0.1, top=0.88, wspace=0.25)
+    return fig
+
+
+def cumulative_curve(cv: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """(thresholds, fraction of frames with mean per-vertex error <= threshold)."""
+    if "cumulative_error_thresholds" in cv:
+        t = np.asarray(cv["cumulative_error_thresholds"], dtype=np.float64)
+        f = np.asarray(cv["cumulative_error_fraction"], dtype=np.float64)
+        if t.shape != f.shape or t.ndim != 1:
+            raise ValueError("cumulative_error_thresholds and cumulative_error_fraction must be equal-length 1-D")
+        return t, f
+    e = np.asarray(cv["vertex_error"], dtype=np.float64)
+    if e.ndim == 2:
+        e = e.mean(axis=1)
+    e = np.sort(e[np.isfinite(e)])
+    if e.size == 0:
+        raise ValueError("vertex_error has no finite values")
+    return e, np.arange(1, e.size + 1) / e.size
+
+
+def fig_cumulative_error(thresholds, fraction):
+    """Cumulative distribution of the per-frame mean per-vertex error."""
+    fig = _figure(7, 5)
+    ax = fig.subplots()
+    ax.plot(thresholds, fraction, color="tab:blue", lw=2)
+    for q in (0.5, 0.9):
+        i = int(np.searchsorted(fraction, q))
+        if i < len(thresholds):
+            ax.axvline(thresholds[i], color="0.5", ls="--", lw=1)
+            ax.text(thresholds[i], q, f" {int(q * 100)}%: {thresholds[i]:.3g}", va="bottom", fontsize=9)
+    ax.set_xlabel("mean per-vertex Euclidean error (release units; px for real data)")
+    ax.set_ylabel("fraction of frames with error <= x")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.set_title("Cumulative vertex error (out of sample)")
+    fig.tight_layout()
+    return fig
+
+
+# --------------------------------------------------------------------------- orchestration
+def render_release(npz_path: str | os.PathLike, out_dir: str | os.PathLike,
+                   cv_path: str | os.PathLike | None = None) -> list[Path]:
+    """Render the visual model card from a release NPZ (and optional CV arrays).
+
+    Parameters
+    ----------
+    npz_path : path
+        Release NPZ in the card's format.
+    out_dir : path
+        Output folder (created if missing). Files are written atomically.
+    cv_path : path, optional
+        CV arrays NPZ (``r2_per_vertex``, ``vertex_error`` or the cumulative curve).
+
+    Returns
+    -------
+    list of Path
+        The PNGs written: ``au_solid_panels``, ``au_solid_neutral_vs_activated``,
+        ``au_compare_overlay``, ``au_effect_maps``, ``pose_views`` and, with CV
+        data, ``r2_per_vertex`` / ``cumulative_vertex_error``.
+    """
+    arrays = load_release(npz_path)
+    cv = load_cv(cv_path) if cv_path is not None else None
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    neutral, disp, scale = face_frame_meshes(arrays)
+    tri = face.triangulate(neutral)
+    factor = exaggeration_factor(disp)
+    jobs = [
+        ("au_solid_panels.png", lambda: fig_solid_panels(neutral, disp, tri, factor)),
+        ("au_solid_neutral_vs_activated.png", lambda: fig_neutral_vs_activated(neutral, disp, tri, factor)),
+        ("au_compare_overlay.png", lambda: fig_compare_overlay(neutral, disp, tri, factor)),
+        ("au_effect_maps.png", lambda: fig_effect_maps(neutral, disp, tri, scale)),
+        ("pose_views.png", lambda: fig_pose_views(neutral, disp, tri, factor)),
+    ]
+    if cv is not None and "r2_per_vertex" in cv:
+        jobs.append(("r2_per_vertex.png", lambda: fig_r2_per_vertex(neutral, tri, cv["r2_per_vertex"])))
+    if cv is not None and ("vertex_error" in cv or "cumulative_error_thresholds" in cv):
+        jobs.append(("cumulative_vertex_error.png", lambda: fig_cumulative_error(*cumulative_curve(cv))))
+    written = []
+    for name, make in jobs:
+        written.append(_save(make(), out / name))
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``render NPZ --out DIR [--cv CVNPZ]``: figures + ``au_directions.json`` (+ ``.md``) into DIR."""
+    from aumesh.directions import au_direction_report, report_markdown_table, write_report
+
+    parser = argparse.ArgumentParser(prog="aumesh render", description="Render the visual model card of a release NPZ.")
+    parser.add_argument("npz", help="release NPZ (card format)")
+    parser.add_argument("--out", required=True, help="output folder for the PNGs and au_directions.json")
+    parser.add_argument("--cv", default=None, help="CV arrays NPZ (r2_per_vertex, vertex_error)")
+    args = parser.parse_args(argv)
+    try:
+        paths = render_release(args.npz, args.out, args.cv)
+        report = au_direction_report(args.npz)
+        paths.append(write_report(report, Path(args.out) / "au_directions.json"))
+        md = Path(args.out) / "au_directions.md"
+        fd, tmp = tempfile.mkstemp(prefix=".au_directions.", suffix=".md", dir=args.out)
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(report_markdown_table(report))
+        os.replace(tmp, md)
+        paths.append(md)
+    except (FileNotFoundError, KeyError, ValueError) as exc:
+        print(f"aumesh render: error: {exc}", file=sys.stderr)
+        return 2
+    for p in paths:
+        print(p)
+    s = report["summary"]
+    print(f"AU directions: {s['pass']} pass, {s['doubtful']} doubtful, {s['fail']} fail", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
