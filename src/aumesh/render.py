@@ -54,7 +54,7 @@ POSES_DEG: tuple[tuple[float, float, float], ...] = (
 DPI = 110
 SKIN = np.array([0.93, 0.78, 0.66])
 TINT = np.array([0.85, 0.15, 0.10])
-LIGHT = np.array([-0.35, -0.55, -1.0]) / np.linalg.norm([-0.35, -0.55, -1.0])  # face frame, toward the light
+LIGHT = np.array([-0.3, -0.35, -1.0]) / np.linalg.norm([-0.3, -0.35, -1.0])  # face frame, toward the light
 TARGET_VISIBLE = 0.08  # inter-ocular units the largest AU displacement is scaled up to, if smaller
 FIGURE_NAMES: tuple[str, ...] = (
     "au_solid_panels.png", "au_solid_neutral_vs_activated.png", "au_compare_overlay.png",
@@ -226,7 +226,7 @@ def _draw_solid(ax, mesh: np.ndarray, tri: np.ndarray, signs: np.ndarray,
     n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
     keep = n[:, 2] < 0.05 if cull else np.ones(len(tri), dtype=bool)
     lam = np.clip(n @ LIGHT, 0.0, 1.0)
-    shade = 0.25 + 0.75 * lam
+    shade = 0.35 + 0.65 * lam
     base = np.broadcast_to(SKIN, (len(tri), 3)).copy()
     if tint is not None:
         t = np.clip(tint, 0.0, 1.0)[:, None] * 0.85
@@ -237,9 +237,11 @@ def _draw_solid(ax, mesh: np.ndarray, tri: np.ndarray, signs: np.ndarray,
     verts = np.stack([mesh[tri[order], 0], -mesh[tri[order], 1]], axis=-1)
     pc = PolyCollection(verts, facecolors=colors[order], edgecolors=colors[order], linewidths=0.2)
     ax.add_collection(pc)
-    # Irises are not triangulated (they sit in the eye openings): draw them as dots.
-    for c in (468, 473):
-        ax.plot(mesh[c, 0], -mesh[c, 1], "o", color="0.15", ms=3)
+    # Irises are not triangulated (they sit in the eye openings): draw them as dots,
+    # unless the upper lid has come down past the iris centre (eye closed).
+    for c, lid in ((468, 159), (473, 386)):
+        if mesh[lid, 1] < mesh[c, 1]:
+            ax.plot(mesh[c, 0], -mesh[c, 1], "o", color="0.15", ms=3)
 
 
 def _draw_features(ax, mesh: np.ndarray, color: str = "0.2", lw: float = 0.6) -> None:
@@ -261,7 +263,7 @@ def fig_solid_panels(neutral, disp, tri, factor):
     signs = _normal_signs(neutral, tri)
     mags = np.linalg.norm(disp, axis=2)
     vmax = mags.max() or 1.0
-    lims = _limits(neutral + factor * disp.min(axis=0) * 0 , pad=0.2)
+    lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
     for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
@@ -277,23 +279,24 @@ def fig_solid_panels(neutral, disp, tri, factor):
 def fig_neutral_vs_activated(neutral, disp, tri, factor, aus=COMPARE_AUS):
     """Neutral (top row) vs activated (bottom row) solid faces for a few AUs."""
     signs = _normal_signs(neutral, tri)
-    lims = _limits(neutral, pad=0.2)
+    lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
     fig = _figure(3.0 * len(aus), 6.6)
     axes = fig.subplots(2, len(aus), squeeze=False)
     for j, au in enumerate(aus):
         k = AU_COLUMNS.index(au)
         _draw_solid(axes[0, j], neutral, tri, signs)
-        _prep_ax(axes[0, j], lims, f"neutral (AU=0)")
+        _prep_ax(axes[0, j], lims, "neutral (AU=0)")
         _draw_solid(axes[1, j], neutral + factor * disp[k], tri, signs)
         _prep_ax(axes[1, j], lims, f"{_au_title(au)} = 1")
-    fig.suptitle(f"Neutral vs activated (pose 0); displacements x{factor:g} for visibility", fontsize=12)
+    how = "true scale (x1)" if factor == 1 else f"displacements exaggerated x{factor:g} for visibility"
+    fig.suptitle(f"Neutral vs activated (intensity 1, pose 0); {how}", fontsize=12)
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.88, wspace=0.02, hspace=0.1)
     return fig
 
 
 def fig_compare_overlay(neutral, disp, tri, factor):
     """Neutral (grey) and activated (blue) wireframes with displacement arrows, per AU."""
-    lims = _limits(neutral, pad=0.2)
+    lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
     for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
