@@ -399,7 +399,7 @@ AU_FIELD_SPEC: dict[str, list[tuple[str, float, float, float, float, str | None]
              ("lower_lip", -0.05, 0.0, 0.0, 0.08, "below_mouth")],
     "AU28": [("upper_lip", 0.0, 0.0, 0.06, 0.05, "above_mouth"),
              ("lower_lip", 0.0, 0.0, 0.06, 0.05, "below_mouth")],
-    "AU43": [(f"upper_eyelid_{s}", -0.06, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
+    "AU43": [(f"upper_eyelid_{s}", -0.09, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
 }
 
 
@@ -434,7 +434,8 @@ def facs_displacement_fields(template: np.ndarray | None = None) -> np.ndarray:
         ``fields[k]`` is the displacement of every vertex for AU
         ``aumesh.schema.AU_COLUMNS[k]`` at intensity 1, in the template's own
         orientation and units (inter-ocular units times the template's scale).
-        Recipe: :data:`AU_FIELD_SPEC` (smooth Gaussian falloff from each region).
+        Recipe: :data:`AU_FIELD_SPEC` (smooth Gaussian falloff from each region);
+        the iris vertices 468-477 do not move.
     """
     if template is None:
         m = canonical_template()
@@ -455,6 +456,7 @@ def facs_displacement_fields(template: np.ndarray | None = None) -> np.ndarray:
             w = np.exp(-(d**2) / (2.0 * sigma**2)) * _gate(m, region, gate)
             w[idx] = 1.0
             out[k] += w[:, None] * vec[None, :]
+    out[:, list(IRIS_RIGHT + IRIS_LEFT)] = 0.0  # irises are not moved by facial AUs
     return out @ axes * scale
 
 
