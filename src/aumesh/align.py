@@ -1,0 +1,109 @@
+"""Similarity Procrustes alignment, batched over frames.
+
+Umeyama (1991), "Least-squares estimation of transformation parameters between two point
+patterns", eqs. (34)-(43): the rotation, uniform scale and translation (no reflection) that
+map source points onto target points in the least-squares sense. Card, "Training data":
+per-frame Umeyama similarity Procrustes onto a reference built on the 12 anchors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def umeyama_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Similarity transforms mapping each frame's ``source`` points onto ``target``.
+
+    Parameters
+    ----------
+    source : ndarray, shape (n_frames, n_points, 3)
+        Points to move (e.g. one frame's anchors).
+    target : ndarray, shape (n_points, 3) or (n_frames, n_points, 3)
+        Points to move them onto.
+
+    Returns
+    -------
+    rotation : ndarray, shape (n_frames, 3, 3)
+        Proper rotations (det = +1).
+    scale : ndarray, shape (n_frames,)
+    translation : ndarray, shape (n_frames, 3)
+        Such that ``scale * source @ rotation.T + translation`` best fits ``target``.
+    """
+    src = np.asarray(source, dtype=np.float64)
+    tgt = np.asarray(target, dtype=np.float64)
+    if tgt.ndim == 2:
+        tgt = np.broadcast_to(tgt, src.shape)
+    n_points = src.shape[1]
+    mu_src = src.mean(axis=1)
+    mu_tgt = tgt.mean(axis=1)
+    src_c = src - mu_src[:, None, :]
+    tgt_c = tgt - mu_tgt[:, None, :]
+    var_src = np.einsum("fpk,fpk->f", src_c, src_c) / n_points  # eq. (36)
+    cov = np.einsum("fpi,fpj->fij", tgt_c, src_c) / n_points  # eq. (38), Sigma_xy
+    u, d, vt = np.linalg.svd(cov)
+    # eq. (39)/(43): flip the smallest singular direction when the best orthogonal map is a reflection
+    sign = np.ones_like(d)
+    sign[:, -1] = np.where(np.linalg.det(u) * np.linalg.det(vt) < 0, -1.0, 1.0)
+    rotation = np.einsum("fij,fj,fjk->fik", u, sign, vt)  # eq. (40)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(var_src > 0, np.einsum("fj,fj->f", d, sign) / var_src, 1.0)  # eq. (42)
+    translation = mu_tgt - scale[:, None] * np.einsum("fij,fj->fi", rotation, mu_src)  # eq. (41)
+    return rotation, scale, translation
+
+
+def apply_similarity(points: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """``scale * points @ rotation.T + translation`` per frame; points shape (n_frames, n_points, 3)."""
+    return scale[:, None, None] * np.einsum("fpj,fij->fpi", points, rotation) + translation[:, None, :]
+
+
+def align_to_reference(anchors: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """Align each frame's anchors onto ``reference``; returns the per-frame max anchor residual and the transform.
+
+    Parameters
+    ----------
+    anchors : ndarray, shape (n_frames, n_anchors, 3)
+    reference : ndarray, shape (n_anchors, 3)
+
+    Returns
+    -------
+    max_residual : ndarray, shape (n_frames,)
+        Largest Euclidean distance between an aligned anchor and its reference point.
+    transform : tuple (rotation (n,3,3), scale (n,), translation (n,3))
+    """
+    transform = umeyama_batch(anchors, reference)
+    aligned = apply_similarity(np.asarray(anchors, dtype=np.float64), *transform)
+    residual = np.linalg.norm(aligned - reference[None], axis=2).max(axis=1)
+    return residual, transform
+
+
+def generalized_procrustes(anchors: np.ndarray, max_iter: int = 50, tol: float = 1e-10) -> np.ndarray:
+    """Reference shape by generalised Procrustes analysis (Gower 1975) on anchor sets.
+
+    Starts from the plain mean of the frames (near-frontal after the pose filter, so the
+    reference keeps the tables' orientation and pixel scale), then alternates: align every
+    frame onto the reference, re-average, and re-fix the average's pose and size to the
+    starting mean (GPA leaves those free; without the re-fix the reference would drift).
+
+    Parameters
+    ----------
+    anchors : ndarray, shape (n_frames, n_anchors, 3)
+
+    Returns
+    -------
+    reference : ndarray, shape (n_anchors, 3)
+    """
+    anchors = np.asarray(anchors, dtype=np.float64)
+    if anchors.ndim != 3 or anchors.shape[0] == 0:
+        raise ValueError(f"generalized_procrustes needs (n_frames, n_anchors, 3) with n_frames > 0, got {anchors.shape}")
+    start = anchors.mean(axis=0)
+    reference = start.copy()
+    for _ in range(max_iter):
+        aligned = apply_similarity(anchors, *umeyama_batch(anchors, reference))
+        mean = aligned.mean(axis=0)
+        rot, scale, trans = umeyama_batch(mean[None], start)
+        new_reference = apply_similarity(mean[None], rot, scale, trans)[0]
+        change = np.abs(new_reference - reference).max() / max(np.abs(reference).max(), 1e-12)
+        reference = new_reference
+        if change < tol:
+            break
+    return reference

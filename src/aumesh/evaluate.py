@@ -1,0 +1,305 @@
+"""Stage ``evaluate``: cross-validated PLS and the final fit, from streamed sufficient statistics.
+
+Card, "Method" and "Out-of-sample performance": ``PLSRegression(n_components, scale=True)``;
+3-fold GroupKFold by video_id; variance-weighted R² (as ``sklearn.metrics.r2_score(...,
+multioutput="variance_weighted")``), MAE; final fit on all kept frames.
+
+Two passes over the prepared meshes, whatever the number of configurations scored:
+
+* pass A accumulates per-fold cross-products (``aumesh.pls.CrossProducts``); a fold's
+  training statistics are the total minus the fold's, so each fold's model, and every smaller
+  ``n_components``, comes from statistics; R² is exact from the held-out fold's statistics;
+* pass B streams the held-out rows once through each fold's model for MAE and the per-vertex
+  Euclidean error.
+
+Besides R² in the run's own target space, every run gets ``r2_displacement``: R² of the
+AU-driven displacement from each test video's neutral, ``(y - n_v)`` vs ``B (x - x̄_v)``, where
+``n_v`` is the video's neutral mesh and ``x̄_v`` the mean design row of the same neutral frames.
+It depends only on the slope ``B``, so absolute and neutral-subtracted runs are scored in the
+same space and on the same information (see ``aumesh.promote``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from sklearn.model_selection import GroupKFold
+
+from aumesh.config import Config
+from aumesh.features import design_matrix
+from aumesh.pls import CrossProducts, PLSRegression, r2_path, r2_variance_weighted, residual_sums
+from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
+
+
+@dataclass
+class Prepared:
+    """The ``prepare`` stage's outputs, meshes memory-mapped (never loaded whole)."""
+
+    frames: pd.DataFrame
+    meshes: np.ndarray  # (n, 1434) float32 memmap, axis-major
+    video_ids: np.ndarray
+    neutral: dict[str, np.ndarray]  # method -> (n_videos, 1434) float32
+    reference: dict[str, np.ndarray]
+    summary: dict
+
+    @property
+    def au(self) -> np.ndarray:
+        return self.frames[list(AU_COLUMNS)].to_numpy(np.float64)
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self.frames[list(POSE_COLUMNS)].to_numpy(np.float64)
+
+
+def load_prepared(prepared_dir: str | Path) -> Prepared:
+    import json
+
+    d = Path(prepared_dir)
+    missing = [n for n in ("meshes.npy", "frames.parquet", "neutrals.npz", "reference.npz", "summary.json") if not (d / n).exists()]
+    if missing:
+        raise FileNotFoundError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
+    neutrals = np.load(d / "neutrals.npz")
+    with open(d / "summary.json") as fh:
+        summary = json.load(fh)
+    return Prepared(
+        frames=pd.read_parquet(d / "frames.parquet"),
+        meshes=np.load(d / "meshes.npy", mmap_mode="r"),
+        video_ids=neutrals["video_ids"],
+        neutral={"mean": neutrals["neutral_mean"], "low_au": neutrals["neutral_low_au"]},
+        reference=dict(np.load(d / "reference.npz")),
+        summary=summary,
+    )
+
+
+@dataclass
+class FoldStatistics:
+    """Per-fold statistics of one design (features x target) over all prepared frames."""
+
+    target: list[CrossProducts]  # (X, Y in the run's target space) per fold
+    displacement: list[CrossProducts]  # (X - x̄_v, Y_abs - n_v) per fold
+    fold: np.ndarray  # (n,) fold of each frame
+
+    @property
+    def total(self) -> CrossProducts:
+        out = self.target[0].copy()
+        for s in self.target[1:]:
+            out = out + s
+        return out
+
+
+@dataclass
+class CVResult:
+    n_components: int
+    feature_columns: list[str]
+    r2_folds: list[float]
+    r2_displacement_folds: list[float]
+    r2_path_folds: np.ndarray  # (n_splits, n_components): R² for k = 1..n_components
+    mae_folds: list[float]
+    vertex_error_folds: list[float]
+    r2_per_target: np.ndarray  # (1434,) pooled over folds
+    r2_per_vertex: np.ndarray  # (478,) pooled over folds and axes
+    frame_vertex_error: np.ndarray  # (n,) mean per-vertex Euclidean error of each frame (held out)
+    vertex_error_per_vertex: np.ndarray  # (478,) mean over held-out frames
+    n_frames_folds: list[int]
+    n_videos_folds: list[int]
+    extra: dict = field(default_factory=dict)
+
+    def metrics(self) -> dict:
+        def ms(values):
+            return float(np.mean(values)), float(np.std(values))
+
+        r2m, r2s = ms(self.r2_folds)
+        dm, ds = ms(self.r2_displacement_folds)
+        maem, maes = ms(self.mae_folds)
+        vem, ves = ms(self.vertex_error_folds)
+        return {
+            "r2_mean": r2m, "r2_std": r2s, "r2_folds": [float(v) for v in self.r2_folds],
+            "r2_displacement_mean": dm, "r2_displacement_std": ds,
+            "r2_displacement_folds": [float(v) for v in self.r2_displacement_folds],
+            "mae_mean": maem, "mae_std": maes, "mae_folds": [float(v) for v in self.mae_folds],
+            "vertex_error_mean": vem, "vertex_error_std": ves, "vertex_error_folds": [float(v) for v in self.vertex_error_folds],
+            "n_components": self.n_components,
+            "n_features": len(self.feature_columns),
+            "n_frames_folds": self.n_frames_folds, "n_videos_folds": self.n_videos_folds,
+        }
+
+
+def effective_n_components(cfg: Config) -> int:
+    """``model.n_components``, clipped to the number of features when ``model.clip_n_components``."""
+    p = len(cfg.features.columns)
+    if cfg.model.n_components > p:
+        if not cfg.model.clip_n_components:
+            raise ValueError(
+                f"model.n_components={cfg.model.n_components} exceeds the {p} features of features.pose="
+                f"{cfg.features.pose}, features.interactions={cfg.features.interactions}. Fix: lower it, or set "
+                f"model.clip_n_components=true."
+            )
+        return p
+    return cfg.model.n_components
+
+
+def assign_folds(video_index: np.ndarray, n_splits: int) -> np.ndarray:
+    """Fold of every frame, from scikit-learn's ``GroupKFold`` on the video index (fold ``f`` = f-th test split)."""
+    n_groups = len(np.unique(video_index))
+    if n_groups < n_splits:
+        raise ValueError(f"cv.n_splits={n_splits} but only {n_groups} videos are left after filtering. Fix: lower cv.n_splits.")
+    fold = np.empty(len(video_index), dtype=np.int8)
+    for f, (_, test) in enumerate(GroupKFold(n_splits=n_splits).split(np.zeros(len(video_index)), groups=video_index)):
+        fold[test] = f
+    return fold
+
+
+def neutral_design(X_au: np.ndarray, pose: np.ndarray, video_index: np.ndarray, neutral_rows: np.ndarray,
+                   n_videos: int, use_pose: bool, interactions: bool) -> np.ndarray:
+    """Mean design row of each video's neutral frames, shape (n_videos, n_features)."""
+    X = design_matrix(X_au[neutral_rows], pose[neutral_rows], use_pose, interactions)
+    counts = np.bincount(video_index[neutral_rows], minlength=n_videos).astype(np.float64)
+    sums = np.zeros((n_videos, X.shape[1]))
+    np.add.at(sums, video_index[neutral_rows], X)
+    return sums / np.maximum(counts, 1.0)[:, None]
+
+
+def _chunks(n: int, chunk_rows: int):
+    for start in range(0, n, chunk_rows):
+        yield slice(start, min(start + chunk_rows, n))
+
+
+def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: int | None = None) -> FoldStatistics:
+    """Pass A: per-fold cross-products of the design and the targets, streaming the meshes."""
+    chunk_rows = chunk_rows or cfg.data.chunk_rows
+    use_pose, inter = cfg.features.pose, cfg.features.interactions
+    n_splits = cfg.cv.n_splits
+    au, pose = prepared.au, prepared.pose
+    video_index = prepared.frames["video_index"].to_numpy()
+    method = cfg.preprocess.neutral.method
+    neutral = prepared.neutral[method]
+    neutral_rows = prepared.frames["low_au"].to_numpy() if method == "low_au" else np.ones(len(video_index), bool)
+    xbar_neutral = neutral_design(au, pose, video_index, neutral_rows, len(prepared.video_ids), use_pose, inter)
+    subtract = cfg.preprocess.target == "neutral"
+    p = len(feature_columns(use_pose, inter))
+    n = len(fold)
+    target = displacement = None
+    for rows in _chunks(n, chunk_rows):
+        X = design_matrix(au[rows], pose[rows], use_pose, inter)
+        Y = np.asarray(prepared.meshes[rows], dtype=np.float64)
+        v = video_index[rows]
+        Yn = Y - neutral[v]
+        Xn = X - xbar_neutral[v]
+        if target is None:  # one provisional shift shared by all folds (CrossProducts needs it to add/subtract)
+            ys = (Yn if subtract else Y).mean(0)
+            target = [CrossProducts(p, N_TARGETS, x_shift=X.mean(0), y_shift=ys) for _ in range(n_splits)]
+            displacement = [CrossProducts(p, N_TARGETS, x_shift=Xn.mean(0), y_shift=Yn.mean(0)) for _ in range(n_splits)]
+        f_chunk = fold[rows]
+        for f in range(n_splits):
+            m = f_chunk == f
+            if m.any():
+                target[f].update(X[m], Yn[m] if subtract else Y[m])
+                displacement[f].update(Xn[m], Yn[m])
+    return FoldStatistics(target=target, displacement=displacement, fold=fold)
+
+
+def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
+    """The engine's PLS fit from statistics (card: PLSRegression(n_components, scale=True))."""
+    return PLSRegression(n_components=n_components, scale=scale).fit_stats(stats)
+
+
+def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk_rows: int | None = None) -> tuple[CVResult, list[PLSRegression]]:
+    """Score each fold's model from statistics (R²) and one streaming pass (MAE, per-vertex error)."""
+    chunk_rows = chunk_rows or cfg.data.chunk_rows
+    A = effective_n_components(cfg)
+    n_splits = cfg.cv.n_splits
+    total = stats.total
+    models, r2_folds, r2d_folds, paths, sse_sum, sst_sum = [], [], [], [], np.zeros(N_TARGETS), np.zeros(N_TARGETS)
+    for f in range(n_splits):
+        model = fit(total - stats.target[f], A, cfg.model.scale)
+        models.append(model)
+        sse, sst = residual_sums(model.coef_, model.raw_intercept_, stats.target[f])
+        r2_folds.append(r2_variance_weighted(sse, sst))
+        sse_sum += sse
+        sst_sum += sst
+        sse_d, sst_d = residual_sums(model.coef_, np.zeros(N_TARGETS), stats.displacement[f])
+        r2d_folds.append(r2_variance_weighted(sse_d, sst_d))
+        paths.append(r2_path(model, stats.target[f]))
+
+    # pass B: held-out predictions, streamed
+    use_pose, inter = cfg.features.pose, cfg.features.interactions
+    au, pose = prepared.au, prepared.pose
+    video_index = prepared.frames["video_index"].to_numpy()
+    neutral = prepared.neutral[cfg.preprocess.neutral.method] if cfg.preprocess.target == "neutral" else None
+    n = len(stats.fold)
+    abs_sum = np.zeros(n_splits)
+    vertex_sum = np.zeros((n_splits, N_VERTICES))
+    count = np.bincount(stats.fold, minlength=n_splits)
+    frame_error = np.empty(n, dtype=np.float32)
+    for rows in _chunks(n, chunk_rows):
+        X = design_matrix(au[rows], pose[rows], use_pose, inter)
+        Y = np.asarray(prepared.meshes[rows], dtype=np.float64)
+        if neutral is not None:
+            Y -= neutral[video_index[rows]]
+        f_chunk = stats.fold[rows]
+        err = np.empty_like(Y)
+        for f in range(n_splits):
+            m = f_chunk == f
+            if m.any():
+                err[m] = Y[m] - (X[m] @ models[f].coef_.T + models[f].raw_intercept_)
+        per_vertex = np.sqrt((err.reshape(len(err), 3, N_VERTICES) ** 2).sum(axis=1))  # (m, 478) Euclidean
+        frame_error[rows] = per_vertex.mean(axis=1)
+        for f in range(n_splits):
+            m = f_chunk == f
+            abs_sum[f] += np.abs(err[m]).sum()
+            vertex_sum[f] += per_vertex[m].sum(axis=0)
+    fold_videos = [int(len(np.unique(video_index[stats.fold == f]))) for f in range(n_splits)]
+    per_target = 1.0 - sse_sum / np.where(sst_sum > 0, sst_sum, 1.0)
+    sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)
+    result = CVResult(
+        n_components=A,
+        feature_columns=feature_columns(use_pose, inter),
+        r2_folds=[float(r) for r in r2_folds],
+        r2_displacement_folds=[float(r) for r in r2d_folds],
+        r2_path_folds=np.vstack(paths),
+        mae_folds=list(abs_sum / (count * N_TARGETS)),
+        vertex_error_folds=list(vertex_sum.sum(axis=1) / (count * N_VERTICES)),
+        r2_per_target=per_target,
+        r2_per_vertex=1.0 - sse_v / np.where(sst_v > 0, sst_v, 1.0),
+        frame_vertex_error=frame_error,
+        vertex_error_per_vertex=vertex_sum.sum(axis=0) / count.sum(),
+        n_frames_folds=[int(c) for c in count],
+        n_videos_folds=fold_videos,
+    )
+    return result, models
+
+
+@dataclass
+class FinalModel:
+    coef: np.ndarray  # (1434, p) raw-input coefficients (scikit-learn's coef_ layout)
+    raw_intercept: np.ndarray  # (1434,) true intercept for raw inputs, in the target space
+    mesh_intercept: np.ndarray  # (1434,) intercept that yields a mesh (adds the mean neutral for target=neutral)
+    feature_columns: list[str]
+    n_components: int
+    model: PLSRegression
+
+
+def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> FinalModel:
+    """Card: final fit on all kept frames."""
+    A = effective_n_components(cfg)
+    model = fit(stats.total, A, cfg.model.scale)
+    mesh_intercept = model.raw_intercept_.copy()
+    if cfg.preprocess.target == "neutral":
+        # the model predicts displacement from the subject's neutral; released meshes add the
+        # population's mean neutral (frame-weighted), so `x @ coef + intercept` is a face
+        video_index = prepared.frames["video_index"].to_numpy()
+        weights = np.bincount(video_index, minlength=len(prepared.video_ids)).astype(np.float64)
+        mesh_intercept += weights @ prepared.neutral[cfg.preprocess.neutral.method].astype(np.float64) / weights.sum()
+    return FinalModel(coef=model.coef_.copy(), raw_intercept=model.raw_intercept_.copy(), mesh_intercept=mesh_intercept,
+                      feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions), n_components=A, model=model)
+
+
+def evaluate(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
+    """Cross-validation and the final fit for one configuration (the stage's one typed call)."""
+    fold = assign_folds(prepared.frames["video_index"].to_numpy(), cfg.cv.n_splits)
+    stats = accumulate(prepared, cfg, fold)
+    cv, _ = cross_validate(prepared, cfg, stats)
+    return cv, final_fit(prepared, cfg, stats)

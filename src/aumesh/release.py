@@ -1,0 +1,163 @@
+"""The release: the card's NPZ, ``model_card.json`` and ``MODEL_CARD.md`` (+ figures, AU directions).
+
+Card, "File format": ``coef`` (23, 1434) float32 with rows ``AU01..AU43, Pitch, Yaw, Roll``;
+``intercept`` (1434,) float32; axis-major layout; loads with ``np.load(path, allow_pickle=False)``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aumesh.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
+
+NPZ_NAME = "au_to_mesh_pls.npz"
+CARD_JSON = "model_card.json"
+CARD_MD = "MODEL_CARD.md"
+
+CARD_SUMMARY = (
+    "Linear PLS regression mapping 20 FACS AU intensities + 3 pose covariates (Pitch, Yaw, Roll) "
+    "to 478x3 = 1434 MediaPipe FaceMesh vertex coordinates in a pose-canonical (Procrustes-aligned) "
+    "frame. Deploy as 23-d input (AU + pose), pose = 0 for the canonical frontal view. "
+    "Layout is axis-major [all x | all y | all z]."
+)
+
+
+def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: list[str], n_components: int,
+                   reference: dict[str, np.ndarray], card_text: str, metadata: dict[str, Any]) -> dict[str, np.ndarray]:
+    """The NPZ's arrays, exactly the card's keys and dtypes (+ ``coef_full`` when trained with interactions).
+
+    Parameters
+    ----------
+    coef : ndarray, shape (1434, p)
+        Raw-input coefficients (scikit-learn ``coef_`` layout) for ``feature_columns``.
+    intercept : ndarray, shape (1434,)
+        True intercept for raw inputs, yielding a mesh.
+    feature_columns : list of str, length p
+        The training design's columns (20, 23 or 83).
+    reference : dict
+        ``reference_anchors`` (12, 3), ``anchor_indices`` (12,), ``mean_aligned_mesh`` and
+        ``mean_low_au_mesh`` (478, 3), from the prepare stage.
+    """
+    coef = np.asarray(coef, dtype=np.float64)
+    if coef.shape != (N_TARGETS, len(feature_columns)):
+        raise ValueError(f"coef has shape {coef.shape}, expected ({N_TARGETS}, {len(feature_columns)})")
+    by_name = {c: coef[:, j] for j, c in enumerate(feature_columns)}
+    # rows by name; a design without pose gets zero pose rows (the model ignores pose), so the format never changes
+    coef23 = np.stack([by_name.get(c, np.zeros(N_TARGETS)) for c in INPUT_COLUMNS])
+    arrays = {
+        "coef": coef23.astype(np.float32),
+        "intercept": np.asarray(intercept, dtype=np.float32),
+        "input_columns": np.array(INPUT_COLUMNS),
+        "au_columns": np.array(AU_COLUMNS),
+        "pose_columns": np.array(POSE_COLUMNS),
+        "mean_aligned_mesh": np.asarray(reference["mean_aligned_mesh"], dtype=np.float32),
+        "mean_low_au_mesh": np.asarray(reference["mean_low_au_mesh"], dtype=np.float32),
+        "reference_anchors": np.asarray(reference["reference_anchors"], dtype=np.float32),
+        "anchor_indices": np.asarray(reference["anchor_indices"], dtype=np.int32),
+        "n_components": np.array(n_components, dtype=np.int32),
+        "model_card": np.array(card_text),
+        "training_metadata": np.array(json.dumps(metadata, sort_keys=True, default=str)),
+    }
+    if len(feature_columns) > len(INPUT_COLUMNS):
+        # pose x AU interactions: the full design keeps pose-conditioned prediction exact:
+        # flat = x_full @ coef_full + intercept, x_full = [AU | pose | pose x AU] (pose-major products)
+        arrays["coef_full"] = coef.T.astype(np.float32)
+        arrays["input_columns_full"] = np.array(feature_columns)
+    return arrays
+
+
+def predict_mesh(npz: dict[str, np.ndarray], au: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
+    """The card's inference snippet as a function: (478, 3) mesh for one AU vector (and pose).
+
+    With ``coef_full`` present and a non-zero pose, the pose x AU terms are included (exact
+    pose-conditioned prediction); at pose 0 both paths agree.
+    """
+    au = np.asarray(au, dtype=np.float64)
+    pose = np.zeros(3) if pose is None else np.asarray(pose, dtype=np.float64)
+    if "coef_full" in npz and np.any(pose):
+        x = np.concatenate([au, pose, (pose[:, None] * au[None, :]).ravel()])
+        flat = x @ npz["coef_full"] + npz["intercept"]
+    else:
+        flat = np.concatenate([au, pose]) @ npz["coef"] + npz["intercept"]
+    return np.stack([flat[:478], flat[478:956], flat[956:]], axis=1)
+
+
+def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:
+    """The human-readable card, generated from ``model_card.json``."""
+    cv, data, cfg = card["cv"], card["data"], card["config"]
+    pre, feats, model = cfg["preprocess"], cfg["features"], cfg["model"]
+    folds = ", ".join(f"{v:.4f}" for v in cv["r2_folds"])
+    counts = data["counts"]
+    inputs = "20 AU" + (" + 3 pose (Pitch, Yaw, Roll)" if feats["pose"] else "") + (" + 60 pose x AU" if feats["interactions"] else "")
+    lines = [
+        f"# {card['name']}",
+        "",
+        CARD_SUMMARY,
+        "",
+        "## Training data",
+        "",
+        f"- {data['n_frames']:,} frames from {data['n_videos']:,} videos (data digest `{data['digest'].get('md5')}`)",
+        f"- Input: {counts['frames_in']:,} frames / {counts['videos_in']:,} videos",
+        f"- Pose-filtered to |yaw| <= {pre['pose_filter']['max_abs_yaw_deg']} deg, |pitch| <= {pre['pose_filter']['max_abs_pitch_deg']} deg: "
+        f"{counts['dropped_pose']:,} frames dropped",
+        f"- Per-frame Umeyama similarity Procrustes onto a GPA reference of anchors {list(pre['alignment']['anchor_indices'])}; "
+        f"frames above the {pre['alignment']['outlier_quantile']:.0%} quantile of max anchor residual dropped: "
+        f"{counts['dropped_alignment_outliers']:,} (threshold {counts['alignment_residual_threshold']:.3g})",
+        f"- Videos with no frames left: {counts['videos_dropped_no_frames_left']}",
+        f"- Target: **{pre['target']}** aligned coordinates"
+        + (f" minus each video's neutral ({pre['neutral']['method']})" if pre["target"] == "neutral" else ""),
+        "",
+        "## Method",
+        "",
+        f"- `PLSRegression(n_components={card['model']['n_components']}, scale={model['scale']})` (aumesh's exact kernel-PLS engine)",
+        f"- Inputs for training: {inputs} = {card['model']['n_features']} features; released `coef`: 23 rows (AU + pose)"
+        + ("; full design in `coef_full` / `input_columns_full`" if feats["interactions"] else ""),
+        "",
+        f"## Out-of-sample performance ({cfg['cv']['n_splits']}-fold GroupKFold by {cfg['cv']['group']})",
+        "",
+        "| metric | mean | std | folds |",
+        "|---|---|---|---|",
+        f"| variance-weighted R² ({pre['target']} target) | {cv['r2_mean']:.4f} | {cv['r2_std']:.4f} | {folds} |",
+        f"| R² of AU-driven displacement from neutral | {cv['r2_displacement_mean']:.4f} | {cv['r2_displacement_std']:.4f} | "
+        + ", ".join(f"{v:.4f}" for v in cv["r2_displacement_folds"]) + " |",
+        f"| MAE (px) | {cv['mae_mean']:.4f} | {cv['mae_std']:.4f} | " + ", ".join(f"{v:.4f}" for v in cv["mae_folds"]) + " |",
+        f"| mean per-vertex Euclidean error (px) | {cv['vertex_error_mean']:.4f} | {cv['vertex_error_std']:.4f} | "
+        + ", ".join(f"{v:.4f}" for v in cv["vertex_error_folds"]) + " |",
+        "",
+    ]
+    if card.get("promotion"):
+        p = card["promotion"]
+        lines += ["## Promotion", "", f"- Promoted run `{p.get('run_id')}` of sweep `{p.get('parent_run_id')}`",
+                  f"- Criterion: {p.get('criterion')}", f"- Compared: {p.get('compared', '')}", ""]
+    if directions_table:
+        lines += ["## AU directions (FACS check)", "", directions_table, ""]
+    if figures:
+        lines += ["## Figures", ""] + [f"![{Path(f).stem}](figures/{Path(f).name})" for f in figures] + [""]
+    lines += [
+        "## Inference",
+        "",
+        "```python",
+        "import numpy as np",
+        f'm = np.load("{NPZ_NAME}", allow_pickle=False)',
+        'au = np.zeros(20); au[m["au_columns"].tolist().index("AU12")] = 1.0  # smile',
+        "x = np.concatenate([au, np.zeros(3)])            # (23,) AU + pose (pitch, yaw, roll)",
+        'flat = x @ m["coef"] + m["intercept"]            # (1434,)',
+        "mesh = np.stack([flat[:478], flat[478:956], flat[956:]], axis=1)  # axis-major -> (478, 3)",
+        "```",
+        "",
+        "Pose at render time: `Rotation.from_euler(\"xyz\", [pitch, yaw, roll])` (SciPy lowercase = extrinsic axes). "
+        "The mesh is in the frame of the Procrustes reference (the tables' image orientation: y down for py-feat pixels).",
+        "",
+        "## Provenance",
+        "",
+        f"- code: git `{card['provenance'].get('git_commit')}`" + (" (dirty)" if card["provenance"].get("dirty") else ""),
+        f"- data: `{data['digest'].get('md5')}`",
+        f"- MLflow run: `{card['mlflow'].get('run_id')}` ({card['mlflow'].get('tracking_uri')})",
+        f"- libraries: " + ", ".join(f"{k} {v}" for k, v in card["libraries"].items() if v),
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,142 @@
+"""The DVC stages' entry points: load params.yaml, call one typed function, write outputs.
+
+``dvc.yaml`` runs ``aumesh prepare``, ``aumesh evaluate`` and ``aumesh release`` from the
+repo root; paths come from ``cfg.paths`` (relative to the stage's working directory, so a
+DVC queued experiment writes into its own temporary copy). Only MLflow goes to the workspace.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aumesh import evaluate as ev
+from aumesh import prepare as prep
+from aumesh import provenance, tables
+from aumesh.config import Config
+from aumesh.io_utils import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text
+from aumesh.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
+
+log = logging.getLogger(__name__)
+
+MODEL_NPZ = "model.npz"
+CV_NPZ = "cv.npz"
+TRACKING_JSON = "tracking.json"
+METRICS_JSON = "metrics.json"
+
+
+def data_digest(dvc_file: str = "data.dvc") -> dict[str, Any]:
+    """The DVC hash of the frame tables; outside a DVC workspace, a marked placeholder (never silently absent)."""
+    try:
+        return provenance.data_digest(Path.cwd(), dvc_file)
+    except FileNotFoundError as err:
+        log.warning("%s", err)
+        return {"md5": None, "note": f"{dvc_file} not found: data not tracked by DVC"}
+
+
+def prepare_stage(cfg: Config) -> dict:
+    found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy)
+    summary = prep.run(found, cfg, cfg.paths.prepared_dir)
+    log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
+    return summary
+
+
+def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVResult, ev.FinalModel]:
+    """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
+    timings = {}
+    t0 = time.perf_counter()
+    cv, final = ev.evaluate(prepared, cfg)
+    timings["evaluate_seconds"] = time.perf_counter() - t0
+    metrics = cv.metrics()
+    handle.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
+                             "r2_displacement": cv.r2_displacement_folds})
+    handle.log_metrics({k: v for k, v in metrics.items() if isinstance(v, float)} | timings)
+    mean_path = cv.r2_path_folds.mean(axis=0)
+    for k, r2 in enumerate(mean_path, start=1):  # the R²-vs-n_components curve, step = n_components
+        handle.log_metrics({"r2_by_n_components": float(r2)}, step=k)
+    return cv, final
+
+
+def evaluate_stage(cfg: Config) -> dict:
+    from aumesh import tracking
+
+    prepared = ev.load_prepared(cfg.paths.prepared_dir)
+    digest = data_digest()
+    out = Path(cfg.paths.model_dir)
+    params = cfg.to_dict()
+    with tracking.tracked_run(cfg.tracking.__dict__, run_name="evaluate", params=params,
+                              tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
+        run.log_config(params)
+        run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
+        cv, final = run_evaluation(prepared, cfg, run)
+        metrics = cv.metrics()
+        run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
+                    "tracking_uri": tracking.resolve_tracking_uri(cfg.tracking.__dict__) if cfg.tracking.enabled else None}
+        with atomic_directory(out) as tmp:
+            np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,
+                     feature_columns=np.array(final.feature_columns), n_components=np.array(final.n_components, dtype=np.int32))
+            np.savez(tmp / CV_NPZ, r2_per_vertex=cv.r2_per_vertex, r2_per_target=cv.r2_per_target,
+                     r2_path_folds=cv.r2_path_folds, vertex_error=cv.frame_vertex_error,
+                     vertex_error_per_vertex=cv.vertex_error_per_vertex)
+            atomic_write_json(tmp / TRACKING_JSON, run_info | {"data_digest": digest})
+            atomic_write_json(tmp / METRICS_JSON, metrics)
+        run.log_artifact(out / METRICS_JSON)
+    return metrics
+
+
+def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict | None) -> dict:
+    """``model_card.json``: CV results, data (counts per filter, digest), config, provenance, MLflow run."""
+    with open(model_dir / METRICS_JSON) as fh:
+        metrics = json.load(fh)
+    with open(model_dir / TRACKING_JSON) as fh:
+        run_info = json.load(fh)
+    summary = prep.load_summary(prepared_dir)
+    git = provenance.git_commit(Path.cwd())
+    return {
+        "name": "AU+pose -> MediaPipe mesh PLS (aumesh)",
+        "format_version": 2,
+        "cv": {k: v for k, v in metrics.items() if k not in ("n_components", "n_features")},
+        "model": {"n_components": metrics["n_components"], "n_features": metrics["n_features"],
+                  "estimator": "aumesh.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)"},
+        "data": {"n_frames": summary["n_frames"], "n_videos": summary["n_videos"], "digest": run_info.get("data_digest"),
+                 "counts": summary["counts"], "n_low_au_frames": summary["n_low_au_population"]},
+        "config": cfg.to_dict(),
+        "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
+        "mlflow": {k: run_info.get(k) for k in ("run_id", "experiment_id", "tracking_uri")},
+        "libraries": provenance.library_versions(),
+        "promotion": promotion,
+    }
+
+
+def release_stage(cfg: Config, promotion_file: str | Path = "promotion.json") -> Path:
+    """Write the release folder atomically: a failure leaves the previous release as it was."""
+    from aumesh import directions, render
+
+    model_dir, prepared_dir = Path(cfg.paths.model_dir), Path(cfg.paths.prepared_dir)
+    promotion = None
+    if Path(promotion_file).exists():
+        promotion = json.loads(Path(promotion_file).read_text()).get("promoted") or None
+    card = build_card(cfg, model_dir, prepared_dir, promotion)
+    model = np.load(model_dir / MODEL_NPZ)
+    reference = dict(np.load(prepared_dir / "reference.npz"))
+    with atomic_directory(cfg.paths.release_dir) as tmp:
+        arrays = release_arrays(model["coef"], model["mesh_intercept"], model["feature_columns"].tolist(),
+                                int(model["n_components"]), reference, card_text="", metadata=card)
+        npz_path = tmp / NPZ_NAME
+        atomic_savez(npz_path, **arrays)  # figures are rendered from the NPZ alone
+        figures = render.render_release(npz_path, tmp / "figures", cv_path=model_dir / CV_NPZ)
+        report = directions.au_direction_report(npz_path)
+        directions.write_report(report, tmp / "au_directions.json")
+        card["au_directions"] = {au: r.get("verdict") for au, r in report.get("aus", report).items()} if isinstance(report, dict) else None
+        markdown = model_card_markdown(card, directions.report_markdown_table(report), [str(f) for f in figures])
+        arrays["model_card"] = np.array(markdown)
+        arrays["training_metadata"] = np.array(json.dumps(card, sort_keys=True, default=str))
+        atomic_savez(npz_path, **arrays)
+        atomic_write_json(tmp / CARD_JSON, card)
+        atomic_write_text(tmp / CARD_MD, markdown)
+    return Path(cfg.paths.release_dir)

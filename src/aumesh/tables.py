@@ -1,0 +1,240 @@
+"""Reading and validating frame tables (py-feat's Fex convention). All table I/O lives here.
+
+Two layouts are accepted:
+
+* one parquet with the metadata columns and mesh columns ``x_i, y_i, z_i`` (i = 0..477) in any
+  order (py-feat stores them interleaved; we always select by name);
+* py-feat's own split layout: an AU/pose parquet without mesh columns plus an ``[N, 478, 3]``
+  mesh ``.npy`` beside it (float16, float32 or float64), named by ``data.mesh_npy``.
+
+Every error names the file, the column and the fix.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+
+from aumesh.schema import (
+    AU_COLUMNS,
+    FRAME_COLUMN,
+    INPUT_PATH_COLUMN,
+    N_VERTICES,
+    POSE_COLUMNS,
+    VIDEO_COLUMN,
+)
+
+_MESH_COLUMN = re.compile(r"^([xyz])_(\d+)$")
+META_COLUMNS = (VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS)
+
+
+class TableError(ValueError):
+    """A frame table that cannot be used as it is; the message says which file, which column and the fix."""
+
+
+@dataclass(frozen=True)
+class FrameTable:
+    """One input table: a parquet file and, in py-feat's split layout, its mesh ``.npy``."""
+
+    path: Path
+    n_rows: int
+    mesh_npy: Path | None  # None: mesh columns are inside the parquet
+    video_from_input: bool  # video_id derived from py-feat's `input` column
+
+
+def _suggest(name: str, candidates: Sequence[str]) -> str:
+    close = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.6)
+    if not close:
+        close = [c for c in candidates if c.lower() == name.lower()]
+    return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
+
+
+def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str) -> list[FrameTable]:
+    """Find and schema-check every frame table under ``data_dir``.
+
+    Raises
+    ------
+    TableError
+        No tables, a missing or misnamed column, a wrong vertex count, or a mesh .npy whose
+        shape does not match its table.
+    """
+    data_dir = Path(data_dir)
+    paths = sorted(p for p in data_dir.glob(pattern) if p.is_file())
+    if not paths:
+        raise TableError(
+            f"{data_dir}/{pattern}: no frame tables found (empty input). Fix: put py-feat frame tables "
+            f"(parquet) under {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull` for the demo data."
+        )
+    tables = [_check_schema(p, mesh_npy_pattern) for p in paths]
+    if sum(t.n_rows for t in tables) == 0:
+        raise TableError(f"{data_dir}/{pattern}: every table has 0 rows (empty input). Fix: export frames with py-feat first.")
+    return tables
+
+
+def _check_schema(path: Path, mesh_npy_pattern: str) -> FrameTable:
+    try:
+        pf = pq.ParquetFile(path)
+    except Exception as err:  # pyarrow raises several types for a bad file
+        raise TableError(f"{path}: not a readable parquet file ({err}). Fix: re-export it with pandas.DataFrame.to_parquet.") from err
+    names = pf.schema_arrow.names
+    n_rows = pf.metadata.num_rows
+    present = set(names)
+    video_from_input = False
+    if VIDEO_COLUMN not in present:
+        if INPUT_PATH_COLUMN in present:
+            video_from_input = True
+        else:
+            raise TableError(
+                f"{path}: column {VIDEO_COLUMN!r} is missing{_suggest(VIDEO_COLUMN, names)}. Fix: add a "
+                f"{VIDEO_COLUMN!r} column, or keep py-feat's {INPUT_PATH_COLUMN!r} column (video path) to derive it."
+            )
+    for col in (FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS):
+        if col not in present:
+            raise TableError(
+                f"{path}: column {col!r} is missing{_suggest(col, names)}. Fix: the table needs py-feat's Fex "
+                f"columns {FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians)."
+            )
+    vertices: dict[str, set[int]] = {"x": set(), "y": set(), "z": set()}
+    for name in names:
+        m = _MESH_COLUMN.match(name)
+        if m:
+            vertices[m.group(1)].add(int(m.group(2)))
+    mesh_npy = None
+    if any(vertices.values()):
+        expected = set(range(N_VERTICES))
+        for axis, found in vertices.items():
+            if found != expected:
+                missing = sorted(expected - found)
+                extra = sorted(found - expected)
+                detail = []
+                if missing:
+                    detail.append(f"missing {axis}_{missing[0]}" + (f" and {len(missing) - 1} more" if len(missing) > 1 else ""))
+                if extra:
+                    detail.append(f"unexpected {axis}_{extra[0]}" + (f" and {len(extra) - 1} more" if len(extra) > 1 else ""))
+                raise TableError(
+                    f"{path}: wrong vertex count in column {axis}_i: found {len(found)} vertices, need "
+                    f"{N_VERTICES} ({'; '.join(detail)}). Fix: export the 478-vertex MediaPipe FaceMesh "
+                    f"(with irises, py-feat's mp_facemesh_v2), columns x_0..x_477, y_0..y_477, z_0..z_477."
+                )
+    else:
+        mesh_npy = path.with_name(mesh_npy_pattern.format(stem=path.stem))
+        if not mesh_npy.exists():
+            raise TableError(
+                f"{path}: no mesh columns (x_0..z_477) and no mesh file {mesh_npy}. Fix: add the mesh columns, "
+                f"or save py-feat's [N, 478, 3] landmarks as {mesh_npy.name} (pattern data.mesh_npy)."
+            )
+        arr = np.load(mesh_npy, mmap_mode="r")
+        if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] != N_VERTICES:
+            raise TableError(
+                f"{mesh_npy}: wrong vertex count: mesh array has shape {arr.shape}, need (N, {N_VERTICES}, 3). "
+                f"Fix: save the 478-vertex MediaPipe FaceMesh (with irises) as float16/float32 [N, 478, 3]."
+            )
+        if arr.shape[0] != n_rows:
+            raise TableError(
+                f"{mesh_npy}: {arr.shape[0]} meshes but {path} has {n_rows} rows. Fix: one mesh per table row, same order."
+            )
+        if arr.dtype.kind != "f":
+            raise TableError(f"{mesh_npy}: dtype {arr.dtype}; need float16, float32 or float64.")
+    return FrameTable(path=path, n_rows=n_rows, mesh_npy=mesh_npy, video_from_input=video_from_input)
+
+
+def read_metadata(table: FrameTable) -> pd.DataFrame:
+    """``video_id``, ``frame``, the 20 AUs and pose (model order Pitch, Yaw, Roll) of every row, validated.
+
+    Raises
+    ------
+    TableError
+        NaN/inf in an AU or pose column, or pose that looks like degrees.
+    """
+    cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]
+    cols.insert(0, INPUT_PATH_COLUMN if table.video_from_input else VIDEO_COLUMN)
+    df = pq.read_table(table.path, columns=cols).to_pandas()
+    if table.video_from_input:
+        df[VIDEO_COLUMN] = df.pop(INPUT_PATH_COLUMN).map(lambda s: Path(str(s)).stem)
+    df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
+    for col in (*AU_COLUMNS, *POSE_COLUMNS):
+        values = df[col].to_numpy(dtype=np.float64)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise TableError(
+                f"{table.path}: column {col!r} has {int(bad.sum())} NaN/inf value(s) (first at row {row}). "
+                f"Fix: drop frames where py-feat found no face (e.g. fex.dropna()) before `dvc add data`."
+            )
+        df[col] = values
+    for col in POSE_COLUMNS:
+        biggest = float(np.abs(df[col].to_numpy()).max()) if len(df) else 0.0
+        if biggest > np.pi:
+            raise TableError(
+                f"{table.path}: column {col!r} reaches {biggest:.1f}, more than pi: pose looks like degrees. "
+                f"Fix: convert {', '.join(POSE_COLUMNS)} to radians (np.deg2rad) before `dvc add data`."
+            )
+    return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]]
+
+
+def check_unique_frames(meta: pd.DataFrame, files: Sequence[Path], file_index: np.ndarray) -> None:
+    """Every (video_id, frame) pair once across all tables."""
+    dup = meta.duplicated(subset=[VIDEO_COLUMN, FRAME_COLUMN], keep=False).to_numpy()
+    if dup.any():
+        rows = np.flatnonzero(dup)
+        first = meta.iloc[rows[0]]
+        where = sorted({str(files[i]) for i in file_index[rows]})
+        raise TableError(
+            f"{', '.join(where[:3])}: {len(rows)} rows share a ({VIDEO_COLUMN}, {FRAME_COLUMN}) pair, e.g. "
+            f"({first[VIDEO_COLUMN]!r}, {first[FRAME_COLUMN]}). Fix: drop duplicate frames (or give each video "
+            f"a distinct {VIDEO_COLUMN}) before `dvc add data`."
+        )
+
+
+def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """Stream mesh vertices in bounded chunks (parquet row batches or slices of a memory-mapped .npy).
+
+    Yields
+    ------
+    start : int
+        Row index of the chunk's first row within the table.
+    vertices : ndarray, shape (chunk, n_selected, 3), float64
+        Selected vertices (all 478 by default), selected by column name, never by position.
+
+    Raises
+    ------
+    TableError
+        NaN/inf in a mesh coordinate.
+    """
+    idx = list(range(N_VERTICES)) if vertex_indices is None else [int(i) for i in vertex_indices]
+    if table.mesh_npy is not None:
+        arr = np.load(table.mesh_npy, mmap_mode="r")
+        for start in range(0, table.n_rows, chunk_rows):
+            block = np.asarray(arr[start : start + chunk_rows][:, idx, :], dtype=np.float64)
+            _check_finite_mesh(table.mesh_npy, block, start, idx)
+            yield start, block
+        return
+    columns = [f"{axis}_{i}" for axis in "xyz" for i in idx]
+    pf = pq.ParquetFile(table.path)
+    start = 0
+    k = len(idx)
+    for batch in pf.iter_batches(batch_size=chunk_rows, columns=columns):
+        block = np.empty((batch.num_rows, 3, k), dtype=np.float64)
+        for j, name in enumerate(columns):
+            block[:, j // k, j % k] = batch.column(batch.schema.get_field_index(name)).to_numpy(zero_copy_only=False)
+        block = block.transpose(0, 2, 1)
+        _check_finite_mesh(table.path, block, start, idx)
+        yield start, block
+        start += batch.num_rows
+
+
+def _check_finite_mesh(path: Path, block: np.ndarray, start: int, idx: Sequence[int]) -> None:
+    finite = np.isfinite(block)
+    if not finite.all():
+        f, v, a = (int(i[0]) for i in np.nonzero(~finite))
+        raise TableError(
+            f"{path}: mesh column {'xyz'[a]}_{idx[v]} is NaN/inf at row {start + f}. "
+            f"Fix: drop frames where the face mesh failed (rows with NaN landmarks) before `dvc add data`."
+        )
