@@ -28,6 +28,12 @@ in MediaPipe-canonical axes (x subject's left, y up, z out of the face) about th
 mesh centroid. Note: in SciPy, lowercase ``"xyz"`` is **extrinsic** (R = Rz Ry Rx),
 not intrinsic as the card states.
 
+Figure builders ``fig_*`` are pure: they take ``neutral`` (478, 3) and ``disp``
+(20, 478, 3, ``AU_COLUMNS`` order) in the face frame (inter-ocular units), ``tri``
+(T, 3) from :func:`aumesh.face.triangulate`, ``factor`` (display exaggeration,
+stated in the figure title) and return a ``matplotlib.figure.Figure``;
+:func:`render_release` does the I/O.
+
 Command line: ``main(["NPZ", "--out", "DIR", "--cv", "CVNPZ"])`` (``aumesh render``).
 """
 
@@ -190,6 +196,18 @@ def _save(fig, path: Path) -> Path:
     os.close(fd)
     try:
         fig.savefig(tmp, dpi=DPI, format="png")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _write_text(text: str, path: Path) -> Path:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -475,12 +493,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         paths = render_release(args.npz, args.out, args.cv)
         report = au_direction_report(args.npz)
         paths.append(write_report(report, Path(args.out) / "au_directions.json"))
-        md = Path(args.out) / "au_directions.md"
-        fd, tmp = tempfile.mkstemp(prefix=".au_directions.", suffix=".md", dir=args.out)
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(report_markdown_table(report))
-        os.replace(tmp, md)
-        paths.append(md)
+        paths.append(_write_text(report_markdown_table(report), Path(args.out) / "au_directions.md"))
     except (FileNotFoundError, KeyError, ValueError) as exc:
         print(f"aumesh render: error: {exc}", file=sys.stderr)
         return 2
