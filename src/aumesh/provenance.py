@@ -34,6 +34,15 @@ Environment variables set for stage commands
   for plain ``dvc repro`` it is the repo root as well.
 * ``DVC_STAGE`` -- the stage address, set for every stage command.
 
+Checked end to end with DVC 3.67.1 on a scratch repo (``dvc exp run --temp -S``
+and ``dvc exp run --queue -S`` + ``dvc queue start``): the stage ran in
+``<ws>/.dvc/tmp/exps/standalone/tmpenfb26ty`` resp. ``<ws>/.dvc/tmp/exps/tmpqx_n7hh8``
+with ``DVC_ROOT=<ws>``, ``DVC_EXP_BASELINE_REV=<HEAD sha>``, ``DVC_EXP_NAME`` and
+``DVC_STAGE`` set; ``git rev-parse HEAD`` in the copy gave the baseline and
+``git status --porcelain`` showed ``M params.yaml``, ``A dvc.lock``,
+``?? .gitignore``; :func:`repo_root` returned ``<ws>`` and the MLflow run landed in
+``<ws>/mlflow.db``.
+
 These variables are only present inside stage commands run by DVC, and the
 queue does not forward arbitrary variables from the calling shell (DVC issue
 #10464), so code must not rely on e.g. ``MLFLOW_TRACKING_URI`` being inherited by
@@ -66,7 +75,7 @@ _LIBRARIES = (
     "hydra-core",
 )
 
-_GIT_TIMEOUT_S = 10.0
+_GIT_TIMEOUT_S = 30.0  # git status in a fresh DVC temp copy can be slow on a loaded box
 
 
 def _workspace_from_temp_copy(path: Path) -> Path | None:
@@ -189,7 +198,8 @@ def git_commit(root: Path | str) -> dict[str, Any]:
             Uncommitted changes (tracked or untracked, ``git status --porcelain``)
             in the tree the code actually runs from: the DVC temp copy when the
             current directory is one (dirty whenever the experiment changed
-            params, by design), else *root*. False when git is unavailable.
+            params, by design), else *root*. True when the tree exists but its
+            status could not be read; False when git is unavailable.
         ``branch`` : str or None
             Current branch of *root*; None when detached or unknown.
         ``dvc_exp_name`` : str or None
@@ -210,6 +220,9 @@ def git_commit(root: Path | str) -> dict[str, Any]:
         branch = None
 
     commit = baseline or head
+    # A repository whose status could not be read (timeout, ...) is reported dirty:
+    # claiming a clean tree we did not see would be wrong provenance.
+    dirty = bool(status) if status is not None else head is not None
     if baseline:
         source = "dvc-experiment"
     elif head:
@@ -218,7 +231,7 @@ def git_commit(root: Path | str) -> dict[str, Any]:
         source = "unavailable"
     return {
         "commit": commit,
-        "dirty": bool(status),
+        "dirty": dirty,
         "branch": branch or None,
         "dvc_exp_name": os.environ.get("DVC_EXP_NAME") or None,
         "source": source,
