@@ -54,7 +54,7 @@ def _cmd_evaluate(args) -> int:
 def _cmd_release(args) -> int:
     from aumesh.stages import release_stage
 
-    print(f"release written to {release_stage(_params(args), args.promotion).resolve()}")
+    print(f"release written to {release_stage(_params(args)).resolve()}")
     return 0
 
 
@@ -90,8 +90,6 @@ def build_parser() -> argparse.ArgumentParser:
                              ("release", _cmd_release, "stage: write the release (NPZ, model card, figures)")):
         p = sub.add_parser(name, help=text)
         p.add_argument("--params", default="params.yaml")
-        if name == "release":
-            p.add_argument("--promotion", default="promotion.json")
         p.set_defaults(func=func)
 
     p = sub.add_parser("render", help="render a release NPZ's figures and AU-direction report")

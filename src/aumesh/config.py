@@ -26,6 +26,8 @@ class PathsConfig:
     prepared_dir: str = "build/prepared"
     model_dir: str = "build/model"
     release_dir: str = "release"
+    metrics_file: str = "build/metrics.json"
+    promotion_file: str = "promotion.json"
 
 
 @dataclass(frozen=True)

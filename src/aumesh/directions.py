@@ -32,15 +32,14 @@ Verdicts (per check; the AU's verdict is its worst check)
 
 from __future__ import annotations
 
-import json
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from aumesh.io_utils import atomic_write_json
 from aumesh import face
 from aumesh.schema import AU_COLUMNS, N_TARGETS
 
@@ -267,18 +266,7 @@ def au_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any
 
 def write_report(report: Mapping[str, Any], path: str | os.PathLike) -> Path:
     """Write a report as JSON atomically (temp file in the same folder, then ``os.replace``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(report, fh, indent=2, sort_keys=False)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write_json(path, report)
 
 
 def report_markdown_table(report: Mapping[str, Any]) -> str:

@@ -31,7 +31,7 @@ import scipy.sparse as sp
 from aumesh.align import align_to_reference, apply_similarity, generalized_procrustes, umeyama_batch
 from aumesh.config import Config, PreprocessConfig
 from aumesh.io_utils import atomic_directory, atomic_write_json
-from aumesh.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, VIDEO_COLUMN
+from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
 from aumesh.tables import FrameTable, TableError, check_unique_frames, iter_vertices, read_metadata
 
 log = logging.getLogger(__name__)
@@ -125,8 +125,9 @@ def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.
             f"outlier cut ({len(dropped_videos)} such videos). Fix: remove it from the tables, widen "
             f"preprocess.pose_filter, or set preprocess.empty_video=drop to skip such videos."
         )
-    for v in dropped_videos[:20]:
-        log.warning("video %s has no frames left after filtering; dropped", v)
+    if dropped_videos:
+        log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
+                    len(dropped_videos), ", ".join(dropped_videos[:5]))
     counts = {
         "frames_in": int(n_rows),
         "videos_in": int(len(videos_before)),

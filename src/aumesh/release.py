@@ -157,7 +157,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         f"- code: git `{card['provenance'].get('git_commit')}`" + (" (dirty)" if card["provenance"].get("dirty") else ""),
         f"- data: `{data['digest'].get('md5')}`",
         f"- MLflow run: `{card['mlflow'].get('run_id')}` ({card['mlflow'].get('tracking_uri')})",
-        f"- libraries: " + ", ".join(f"{k} {v}" for k, v in card["libraries"].items() if v),
+        "- libraries: " + ", ".join(f"{k} {v}" for k, v in card["libraries"].items() if v),
         "",
     ]
     return "\n".join(lines)

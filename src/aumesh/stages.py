@@ -85,6 +85,7 @@ def evaluate_stage(cfg: Config) -> dict:
                      vertex_error_per_vertex=cv.vertex_error_per_vertex)
             atomic_write_json(tmp / TRACKING_JSON, run_info | {"data_digest": digest})
             atomic_write_json(tmp / METRICS_JSON, metrics)
+        atomic_write_json(cfg.paths.metrics_file, metrics)  # DVC metrics file (`dvc metrics show`)
         run.log_artifact(out / METRICS_JSON)
     return metrics
 
@@ -113,14 +114,14 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
     }
 
 
-def release_stage(cfg: Config, promotion_file: str | Path = "promotion.json") -> Path:
+def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
     from aumesh import directions, render
 
     model_dir, prepared_dir = Path(cfg.paths.model_dir), Path(cfg.paths.prepared_dir)
     promotion = None
-    if Path(promotion_file).exists():
-        promotion = json.loads(Path(promotion_file).read_text()).get("promoted") or None
+    if Path(cfg.paths.promotion_file).exists():
+        promotion = json.loads(Path(cfg.paths.promotion_file).read_text()).get("promoted") or None
     card = build_card(cfg, model_dir, prepared_dir, promotion)
     model = np.load(model_dir / MODEL_NPZ)
     reference = dict(np.load(prepared_dir / "reference.npz"))

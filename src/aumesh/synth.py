@@ -20,7 +20,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.spatial.transform import Rotation
@@ -37,8 +36,8 @@ class SynthSpec:
     n_videos: int = 100
     seed: int = 0
     px_per_iod: float = 60.0  # canonical face size in pixels
-    identity_scale: float = 0.008  # per-video shape differences
-    unexplained_scale: float = 0.02  # per-frame expression the AUs do not capture
+    identity_scale: float = 0.005  # per-video shape differences
+    unexplained_scale: float = 0.006  # per-frame expression the AUs do not capture
     noise_px: float = 0.25  # landmark jitter per coordinate
     pose_effect: float = 0.03  # non-rigid pose-correlated deformation per radian
     interaction_gain: tuple[float, float, float] = (0.3, -0.25, 0.15)  # AU effect change per radian of Pitch, Yaw, Roll
