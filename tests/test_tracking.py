@@ -247,3 +247,25 @@ def test_flatten_and_library_versions():
     assert set(versions) >= {"numpy", "scipy", "scikit-learn", "pandas", "pyarrow", "mlflow", "dvc",
                              "hydra-core", "python", "aumesh"}
     assert versions["mlflow"].startswith("3.")
+
+
+@pytest.mark.slow
+def test_concurrent_first_use_of_a_fresh_sqlite_store(tmp_path, workspace):
+    """Parallel jobs creating the same new store must not race on MLflow's schema migrations."""
+    import os
+    import sys
+
+    uri = f"sqlite:///{tmp_path / 'fresh.db'}"
+    script = (
+        "import sys\nfrom aumesh import tracking\n"
+        "with tracking.tracked_run({'experiment': 'conc'}, 'w' + sys.argv[1], {'i': sys.argv[1]}) as r:\n"
+        "    r.log_fold_metrics({'r2': [0.1, 0.2]})\n"
+    )
+    env = dict(os.environ, MLFLOW_TRACKING_URI=uri)
+    procs = [subprocess.Popen([sys.executable, "-c", script, str(i)], env=env, cwd=workspace,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(4)]
+    outs = [p.communicate(timeout=120)[0] for p in procs]
+    assert all(p.returncode == 0 for p in procs), "\n".join(outs)
+    client = _client(uri)
+    runs = client.search_runs([client.get_experiment_by_name("conc").experiment_id])
+    assert len(runs) == 4 and {r.info.status for r in runs} == {"FINISHED"}

@@ -180,7 +180,45 @@ def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
     _quiet_mlflow()
     from mlflow import MlflowClient
 
-    return MlflowClient(tracking_uri=resolve_tracking_uri(tracking_cfg))
+    uri = resolve_tracking_uri(tracking_cfg)
+    with _store_init_lock(uri):
+        # MlflowClient() builds the store right away: schema creation + migrations
+        # for a new SQLite file.
+        return MlflowClient(tracking_uri=uri)
+
+
+@contextlib.contextmanager
+def _store_init_lock(uri: str) -> Iterator[None]:
+    """Serialise MLflow store creation for a SQLite URI across processes.
+
+    MLflow creates the schema (alembic) when a client is built on a new SQLite
+    file; several processes doing that at once (parallel sweep jobs, ``dvc queue
+    start -j N``) fail with ``alembic.util.exc.CommandError: Online migration
+    expected to match one row``. The lock file lives in the system temp dir
+    (keyed by the database path) so it never dirties the Git workspace. Later
+    writes are safe: MLflow sets ``PRAGMA busy_timeout = 20000`` on every SQLite
+    session. No-op for other URIs and where ``fcntl`` is unavailable.
+    """
+    if not uri.startswith("sqlite:///"):
+        yield
+        return
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    import hashlib
+    import tempfile
+
+    db_path = os.path.abspath(uri[len("sqlite:///"):].partition("?")[0])
+    key = hashlib.sha1(db_path.encode()).hexdigest()[:16]
+    lock_path = Path(tempfile.gettempdir()) / f"aumesh-mlflow-{key}.lock"
+    with open(lock_path, "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def ensure_experiment(client: MlflowClient, name: str, artifact_location: str | None = None) -> str:
