@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from sklearn.cross_decomposition import PLSRegression as SkPLS
 from sklearn.metrics import r2_score
+from sklearn.utils.estimator_checks import check_estimator
 
 from aumesh.pls import (
     CrossProducts,
@@ -99,6 +100,9 @@ def test_matches_sklearn_exact_svd_variant_to_rounding(k, scale):
     assert max_rel(model.x_weights_, ref.x_weights_) < 1e-10
     assert max_rel(model.x_rotations_, ref.x_rotations_) < 1e-10
     assert max_rel(model.y_loadings_, ref.y_loadings_) < 1e-10
+    xs, ys = model.transform(X, Y)
+    xs_ref, ys_ref = ref.transform(X, Y)
+    assert max_rel(xs, xs_ref) < 1e-10 and max_rel(ys, ys_ref) < 1e-10
 
 
 @pytest.mark.parametrize("k", [5, 20])
@@ -332,3 +336,9 @@ def test_mismatched_rows_and_columns_raise():
     model = PLSRegression(n_components=2).fit(X, Y)
     with pytest.raises(ValueError, match="features"):
         model.predict(X[:, :5])
+
+
+@pytest.mark.filterwarnings("ignore::sklearn.exceptions.SkipTestWarning")
+def test_passes_sklearn_estimator_checks():
+    # drop-in guarantee: params-only __init__, validation in fit, clone/get_params, tags
+    check_estimator(PLSRegression(n_components=1))

@@ -34,7 +34,13 @@ import warnings
 
 import numpy as np
 from scipy.linalg import pinv
-from sklearn.base import BaseEstimator, MultiOutputMixin, RegressorMixin
+from sklearn.base import (
+    BaseEstimator,
+    ClassNamePrefixFeaturesOutMixin,
+    MultiOutputMixin,
+    RegressorMixin,
+    TransformerMixin,
+)
 from sklearn.utils.validation import check_array, check_is_fitted, validate_data
 
 __all__ = [
@@ -59,7 +65,8 @@ class CrossProducts:
 
     All sums are of the *shifted* data ``Xs = X - x_shift`` and
     ``Ys = Y - y_shift`` and are accumulated in float64. Shifting by a
-    provisional mean (by default the mean of the first non-empty chunk) keeps
+    provisional mean (by default the mean of the first ``block_rows`` rows of
+    the first non-empty chunk; a column constant there is shifted by its value) keeps
     the centered sums precise when the data sit far from zero (mesh
     coordinates of 100-1000 px with a spread of ~1 px): the centered sums are
     recovered as ``Xs^T Xs - sum(Xs) sum(Xs)^T / n`` with little cancellation.
@@ -72,7 +79,8 @@ class CrossProducts:
         Number of columns ``q`` of ``Y``.
     x_shift : array-like of shape (n_features,), default=None
         Value subtracted from every row of ``X`` before accumulation. ``None``:
-        taken from the first non-empty chunk passed to :meth:`update`.
+        taken from the first non-empty chunk passed to :meth:`update` (the
+        mean of its first ``block_rows`` rows).
     y_shift : array-like of shape (n_targets,), default=None
         Same for ``Y``.
 
@@ -394,7 +402,9 @@ def _as_2d_pair(X, Y):
 # --------------------------------------------------------------------------- #
 # PLS estimator
 # --------------------------------------------------------------------------- #
-class PLSRegression(RegressorMixin, MultiOutputMixin, BaseEstimator):
+class PLSRegression(
+    ClassNamePrefixFeaturesOutMixin, TransformerMixin, RegressorMixin, MultiOutputMixin, BaseEstimator
+):
     """PLS regression (PLS2) fitted exactly from sufficient statistics.
 
     Drop-in for :class:`sklearn.cross_decomposition.PLSRegression` (NIPALS,
@@ -457,26 +467,26 @@ class PLSRegression(RegressorMixin, MultiOutputMixin, BaseEstimator):
         self.scale = scale
 
     # ------------------------------------------------------------------- fit
-    def fit(self, X, Y):
+    def fit(self, X, y):
         """Fit the model to arrays (one pass to build the statistics, then :meth:`fit_stats`).
 
         Parameters
         ----------
         X : array-like of shape (n_samples, n_features)
-        Y : array-like of shape (n_samples,) or (n_samples, n_targets)
-            float32 input is kept as float32 until converted block-wise.
+        y : array-like of shape (n_samples,) or (n_samples, n_targets)
+            Targets (named ``y`` as in sklearn). float32 input stays float32
+            until converted block-wise to float64.
 
         Returns
         -------
         self : PLSRegression
         """
-        if hasattr(X, "shape") and hasattr(Y, "shape") and len(X.shape) >= 1 and len(Y.shape) >= 1:
-            if X.shape[0] != Y.shape[0]:
-                raise ValueError(f"X and Y have different numbers of rows: {X.shape[0]} != {Y.shape[0]}.")
+        if y is None:
+            raise ValueError(f"{type(self).__name__} requires y to be passed, but the target y is None.")
         X = validate_data(self, X, dtype=[np.float64, np.float32], ensure_min_samples=2)
-        Y = check_array(Y, input_name="Y", dtype=[np.float64, np.float32], ensure_2d=False, ensure_min_samples=2)
+        Y = check_array(y, input_name="y", dtype=[np.float64, np.float32], ensure_2d=False, ensure_min_samples=2)
         if X.shape[0] != Y.shape[0]:
-            raise ValueError(f"X and Y have different numbers of rows: {X.shape[0]} != {Y.shape[0]}.")
+            raise ValueError(f"X and y have different numbers of rows: {X.shape[0]} != {Y.shape[0]}.")
         predict_1d = Y.ndim == 1
         # Check n_components before the (long) statistics pass.
         _check_n_components(self.n_components, X.shape[0], X.shape[1])
@@ -678,20 +688,37 @@ class PLSRegression(RegressorMixin, MultiOutputMixin, BaseEstimator):
         Y_pred = (np.asarray(X, dtype=np.float64) - self._x_mean) @ coef.T + self.intercept_
         return Y_pred.ravel() if self._predict_1d else Y_pred
 
-    def transform(self, X):
-        """X scores ``((X - x_mean_) / x_std_) @ x_rotations_``.
+    def transform(self, X, y=None):
+        """Scores: ``((X - x_mean_) / x_std_) @ x_rotations_`` (and the same for ``y``).
 
         Parameters
         ----------
         X : array-like of shape (n_samples, n_features)
+        y : array-like of shape (n_samples,) or (n_samples, n_targets), default=None
 
         Returns
         -------
         x_scores : ndarray of shape (n_samples, n_components)
+            Or ``(x_scores, y_scores)`` if ``y`` is given, as sklearn.
         """
         check_is_fitted(self)
         X = validate_data(self, X, dtype=[np.float64, np.float32], reset=False)
-        return ((np.asarray(X, dtype=np.float64) - self._x_mean) / self._x_std) @ self.x_rotations_
+        x_scores = ((np.asarray(X, dtype=np.float64) - self._x_mean) / self._x_std) @ self.x_rotations_
+        if y is None:
+            return x_scores
+        Y = check_array(y, input_name="y", dtype=[np.float64, np.float32], ensure_2d=False)
+        Y = np.asarray(Y, dtype=np.float64).reshape(Y.shape[0], -1)
+        y_scores = ((Y - self._y_mean) / self._y_std) @ self.y_rotations_
+        return x_scores, y_scores
+
+    def fit_transform(self, X, y=None):
+        """Fit, then :meth:`transform` the training data (as sklearn: a tuple when ``y`` is given).
+
+        Returns
+        -------
+        x_scores : ndarray of shape (n_samples, n_components), or ``(x_scores, y_scores)``
+        """
+        return self.fit(X, y).transform(X, y)
 
     def __sklearn_tags__(self):
         tags = super().__sklearn_tags__()
