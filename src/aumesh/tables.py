@@ -50,9 +50,10 @@ class FrameTable:
 
 
 def _suggest(name: str, candidates: Sequence[str]) -> str:
-    close = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.6)
-    if not close:
-        close = [c for c in candidates if c.lower() == name.lower()]
+    """A likely misspelling of ``name`` among the table's columns (case first, then similar spelling)."""
+    required = {VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS}
+    loose = [c for c in candidates if c not in required]
+    close = [c for c in loose if c.lower() == name.lower()] or difflib.get_close_matches(name, loose, n=1, cutoff=0.6)
     return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
 
 

@@ -1,0 +1,128 @@
+"""The recipe end to end on synthetic tables with a known truth, checked against independent references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.cross_decomposition import PLSRegression as SkPLS
+from sklearn.metrics import mean_absolute_error, r2_score
+
+from aumesh import evaluate as ev
+from aumesh.align import umeyama_batch
+from aumesh.features import design_matrix
+from aumesh.schema import AU_COLUMNS, N_VERTICES
+from conftest import default_config
+
+
+def _arrays(prepared, target="absolute", method="low_au"):
+    X = design_matrix(prepared.au, prepared.pose, True, True)
+    Y = np.asarray(prepared.meshes, dtype=np.float64)
+    if target == "neutral":
+        Y = Y - prepared.neutral[method][prepared.frames["video_index"].to_numpy()]
+    return X, Y
+
+
+def test_fold_r2_and_mae_equal_sklearn_pls_on_the_same_split(recovery_prepared):
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    cfg = default_config(**{"model.n_components": 10})
+    cv, _ = ev.evaluate(prepared, cfg)
+    X, Y = _arrays(prepared)
+    fold = ev.assign_folds(prepared.frames["video_index"].to_numpy(), 3)
+    for f in (0, 2):
+        train, test = fold != f, fold == f
+        ref = SkPLS(n_components=10, scale=True, tol=1e-13, max_iter=10000).fit(X[train], Y[train])
+        pred = ref.predict(X[test])
+        assert cv.r2_folds[f] == pytest.approx(r2_score(Y[test], pred, multioutput="variance_weighted"), abs=1e-7)
+        assert cv.mae_folds[f] == pytest.approx(mean_absolute_error(Y[test], pred), rel=1e-6)
+        err = np.sqrt(((Y[test] - pred).reshape(-1, 3, N_VERTICES) ** 2).sum(1)).mean()
+        assert cv.vertex_error_folds[f] == pytest.approx(err, rel=1e-6)
+
+
+def test_full_rank_final_fit_is_ordinary_least_squares(default_evaluation):
+    prepared, _, final = default_evaluation
+    assert final.n_components == 83
+    X, Y = _arrays(prepared)
+    beta, *_ = np.linalg.lstsq(np.column_stack([X, np.ones(len(X))]), Y, rcond=None)
+    np.testing.assert_allclose(final.coef, beta[:-1].T, rtol=1e-6, atol=1e-6 * np.abs(beta[:-1]).max())
+    np.testing.assert_allclose(final.raw_intercept, beta[-1], rtol=1e-9, atol=1e-6)
+
+
+def _truth_in_reference_frame(truth_npz, prepared):
+    """Map the generator's canonical-frame truth into the aligned frame with the anchors' similarity."""
+    truth = np.load(truth_npz)
+    anchors = truth["template_px"][truth["anchor_indices"]]
+    R, s, _ = umeyama_batch(anchors[None], prepared.reference["reference_anchors"].astype(np.float64))
+    fields = truth["coef"].reshape(-1, 3, N_VERTICES).transpose(0, 2, 1)  # (83, 478, 3)
+    mapped = s[0] * fields @ R[0].T
+    return mapped.transpose(0, 2, 1).reshape(len(fields), -1)  # (83, 1434) axis-major
+
+
+@pytest.fixture(scope="module")
+def default_evaluation(recovery_prepared):
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    return prepared, *ev.evaluate(prepared, default_config())
+
+
+def test_recovered_au_displacement_fields_match_the_truth(recovery_tables, default_evaluation):
+    prepared, _, final = default_evaluation
+    true_rows = _truth_in_reference_frame(recovery_tables[0] / "truth.npz", prepared)
+    cosines = []
+    for a, au in enumerate(AU_COLUMNS):
+        est, true = final.coef[:, a], true_rows[a]
+        cosine = est @ true / (np.linalg.norm(est) * np.linalg.norm(true))
+        cosines.append(cosine)
+        assert cosine > 0.95, f"{au}: recovered field points elsewhere (cosine {cosine:.3f})"
+        assert np.linalg.norm(est) / np.linalg.norm(true) == pytest.approx(1.0, abs=0.15), au
+    assert np.median(cosines) > 0.99
+
+
+def test_cv_r2_is_close_to_what_the_true_model_achieves(recovery_tables, default_evaluation):
+    prepared, cv, _ = default_evaluation
+    X, Y = _arrays(prepared)
+    true_rows = _truth_in_reference_frame(recovery_tables[0] / "truth.npz", prepared)
+    pred = X @ true_rows
+    pred += (Y - pred).mean(axis=0)  # the truth's intercept in the aligned frame
+    true_r2 = r2_score(Y, pred, multioutput="variance_weighted")
+    assert 0.3 < true_r2 < 0.99  # the synthetic problem is neither trivial nor hopeless
+    assert np.mean(cv.r2_folds) == pytest.approx(true_r2, abs=0.03)
+
+
+def test_neutral_target_equals_explicit_subtraction(recovery_prepared):
+    from aumesh.pls import PLSRegression
+
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    cfg = default_config(**{"preprocess.target": "neutral", "model.n_components": 12})
+    cv, final = ev.evaluate(prepared, cfg)
+    X, Y = _arrays(prepared, target="neutral")
+    fold = ev.assign_folds(prepared.frames["video_index"].to_numpy(), 3)
+    model = PLSRegression(n_components=12).fit(X[fold != 1], Y[fold != 1])
+    assert cv.r2_folds[1] == pytest.approx(r2_score(Y[fold == 1], model.predict(X[fold == 1]), multioutput="variance_weighted"), abs=1e-9)
+    full = PLSRegression(n_components=12).fit(X, Y)
+    np.testing.assert_allclose(final.coef, full.coef_, rtol=1e-9, atol=1e-12)
+    # released meshes add the population's mean neutral, so `x @ coef + intercept` is a face, not a displacement
+    weights = np.bincount(prepared.frames["video_index"].to_numpy())
+    mean_neutral = weights @ prepared.neutral["low_au"] / weights.sum()
+    np.testing.assert_allclose(final.mesh_intercept, full.raw_intercept_ + mean_neutral, rtol=1e-6)
+
+
+def test_n_components_above_feature_count_is_clipped_or_rejected(recovery_prepared):
+    cfg = default_config(**{"features.pose": "false", "features.interactions": "false"})
+    assert ev.effective_n_components(cfg) == 20
+    strict = default_config(**{"features.pose": "false", "features.interactions": "false", "model.clip_n_components": "false"})
+    with pytest.raises(ValueError, match=r"model.n_components=83 exceeds the 20 features"):
+        ev.effective_n_components(strict)
+
+
+def test_same_inputs_give_identical_coefficients_twice(recovery_tables, tmp_path):
+    from aumesh import prepare, tables
+
+    out = recovery_tables[0]
+    cfg = default_config(**{"model.n_components": 20})
+    coefs = []
+    for run in range(2):
+        found = tables.discover(out / "data", cfg.data.tables, cfg.data.mesh_npy)
+        prepare.run(found, cfg, tmp_path / f"prepared{run}")
+        _, final = ev.evaluate(ev.load_prepared(tmp_path / f"prepared{run}"), cfg)
+        coefs.append(final.coef)
+    assert np.array_equal(coefs[0], coefs[1])
+    assert np.array_equal(np.load(tmp_path / "prepared0" / "meshes.npy"), np.load(tmp_path / "prepared1" / "meshes.npy"))

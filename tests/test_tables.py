@@ -1,0 +1,142 @@
+"""Bad frame tables fail with an error naming the file, the column and the fix; good ones in any layout pass."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from aumesh import prepare, tables
+from aumesh.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
+from aumesh.synth import SynthSpec, write_tables
+from conftest import default_config
+
+PATTERN, NPY = "**/*.parquet", "{stem}.npy"
+
+
+def _frame(small_tables):
+    path = sorted(small_tables.glob("*.parquet"))[0]
+    return path, pd.read_parquet(path)
+
+
+def _discover_and_read(data_dir):
+    found = tables.discover(data_dir, PATTERN, NPY)
+    for t in found:
+        tables.read_metadata(t)
+        for _ in tables.iter_vertices(t, 128):
+            pass
+    return found
+
+
+def test_valid_columns_layout_is_read_by_name_in_any_column_order(small_tables):
+    path, df = _frame(small_tables)
+    shuffled = df[list(np.random.default_rng(0).permutation(df.columns))]
+    shuffled.to_parquet(path)
+    (found,) = tables.discover(small_tables, PATTERN, NPY)
+    meta = tables.read_metadata(found)
+    np.testing.assert_array_equal(meta["Yaw"].to_numpy(), df["Yaw"].to_numpy())
+    np.testing.assert_array_equal(meta.columns[-3:], list(POSE_COLUMNS))  # model order Pitch, Yaw, Roll
+    _, block = next(tables.iter_vertices(found, 1000, [10, 263]))
+    np.testing.assert_allclose(block[:, 1, 0], df["x_263"].to_numpy())
+    np.testing.assert_allclose(block[:, 0, 2], df["z_10"].to_numpy())
+
+
+def test_pyfeat_split_layout_with_float16_npy_and_input_column(tmp_path):
+    write_tables(tmp_path / "data", SynthSpec(n_frames=200, n_videos=20, seed=2, layout="pyfeat"))
+    npy = sorted((tmp_path / "data").glob("*.npy"))[0]
+    mesh = np.load(npy)
+    np.save(npy, mesh.astype(np.float16))
+    (found,) = tables.discover(tmp_path / "data", PATTERN, NPY)
+    assert found.mesh_npy == npy and found.video_from_input
+    meta = tables.read_metadata(found)
+    assert meta["video_id"].iloc[0] == "vid000000"  # derived from py-feat's `input` path
+    _, block = next(tables.iter_vertices(found, 64))
+    np.testing.assert_allclose(block, mesh[:64].astype(np.float16).astype(np.float64))
+
+
+def test_missing_au_column_names_file_column_and_suggests_rename(small_tables):
+    path, df = _frame(small_tables)
+    df.rename(columns={"AU12": "au12"}).to_parquet(path)
+    with pytest.raises(tables.TableError, match=r"frames_0000.parquet: column 'AU12' is missing \(found 'au12'"):
+        _discover_and_read(small_tables)
+
+
+def test_missing_video_id_and_input_is_an_error(small_tables):
+    path, df = _frame(small_tables)
+    df.drop(columns=["video_id", "input"]).to_parquet(path)
+    with pytest.raises(tables.TableError, match="column 'video_id' is missing"):
+        _discover_and_read(small_tables)
+
+
+def test_468_vertex_mesh_is_a_wrong_vertex_count(small_tables):
+    path, df = _frame(small_tables)
+    drop = [f"{a}_{i}" for a in "xyz" for i in range(468, N_VERTICES)]
+    df.drop(columns=drop).to_parquet(path)
+    with pytest.raises(tables.TableError, match=r"wrong vertex count in column x_i: found 468 vertices, need 478"):
+        _discover_and_read(small_tables)
+
+
+def test_npy_with_wrong_vertex_count_is_rejected(tmp_path):
+    write_tables(tmp_path / "data", SynthSpec(n_frames=100, n_videos=10, seed=2, layout="pyfeat"))
+    npy = sorted((tmp_path / "data").glob("*.npy"))[0]
+    np.save(npy, np.load(npy)[:, :468])
+    with pytest.raises(tables.TableError, match=r"frames_0000.npy: wrong vertex count.*\(100, 468, 3\)"):
+        _discover_and_read(tmp_path / "data")
+
+
+@pytest.mark.parametrize("column,value", [("AU04", np.nan), ("Yaw", np.inf), ("y_33", np.nan)])
+def test_nan_or_inf_names_the_column_and_row(small_tables, column, value):
+    path, df = _frame(small_tables)
+    df.loc[5, column] = value
+    df.to_parquet(path)
+    with pytest.raises(tables.TableError, match=rf"{column}.*NaN/inf.*row 5"):
+        _discover_and_read(small_tables)
+
+
+def test_pose_in_degrees_is_detected(small_tables):
+    path, df = _frame(small_tables)
+    df["Yaw"] = np.rad2deg(df["Yaw"])
+    df.to_parquet(path)
+    with pytest.raises(tables.TableError, match=r"column 'Yaw'.*looks like degrees.*np.deg2rad"):
+        _discover_and_read(small_tables)
+
+
+def test_duplicate_video_frame_rows_across_files(small_tables, tmp_path):
+    path, df = _frame(small_tables)
+    df.iloc[:10].to_parquet(small_tables / "copy.parquet")
+    cfg = default_config(**{"paths.data_dir": str(small_tables)})
+    with pytest.raises(tables.TableError, match=r"rows share a \(video_id, frame\) pair"):
+        prepare.run(tables.discover(small_tables, PATTERN, NPY), cfg, tmp_path / "prepared")
+
+
+def test_video_with_no_frames_left_after_filtering(small_tables, tmp_path):
+    path, df = _frame(small_tables)
+    df.loc[df["video_id"] == "vid000001", "Yaw"] = np.deg2rad(60.0)
+    df.to_parquet(path)
+    found = tables.discover(small_tables, PATTERN, NPY)
+    strict = default_config(**{"preprocess.empty_video": "error"})
+    with pytest.raises(tables.TableError, match=r"video 'vid000001' \(column 'video_id'\) has no frames left.*empty_video=drop"):
+        prepare.run(found, strict, tmp_path / "strict")
+    summary = prepare.run(found, default_config(), tmp_path / "lenient")
+    assert "vid000001" in summary["dropped_videos"]
+    assert summary["counts"]["videos_dropped_no_frames_left"] >= 1
+
+
+def test_empty_input_folder_and_zero_row_tables(tmp_path):
+    (tmp_path / "data").mkdir()
+    with pytest.raises(tables.TableError, match=r"no frame tables found \(empty input\).*dvc add"):
+        tables.discover(tmp_path / "data", PATTERN, NPY)
+    cols = {c: pd.Series([], dtype=float) for c in ["frame", *AU_COLUMNS, *POSE_COLUMNS]}
+    cols["video_id"] = pd.Series([], dtype=str)
+    cols.update({f"{a}_{i}": pd.Series([], dtype=float) for i in range(N_VERTICES) for a in "xyz"})
+    pd.DataFrame(cols).to_parquet(tmp_path / "data" / "empty.parquet")
+    with pytest.raises(tables.TableError, match="every table has 0 rows"):
+        tables.discover(tmp_path / "data", PATTERN, NPY)
+
+
+def test_no_frame_passes_pose_filter(small_tables, tmp_path):
+    path, df = _frame(small_tables)
+    df["Pitch"] = np.deg2rad(45.0)
+    df.to_parquet(path)
+    with pytest.raises(tables.TableError, match="no frame passes the pose filter"):
+        prepare.run(tables.discover(small_tables, PATTERN, NPY), default_config(), tmp_path / "p")
