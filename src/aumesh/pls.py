@@ -53,8 +53,8 @@ __all__ = [
 ]
 
 #: Rows converted to float64 at a time inside :meth:`CrossProducts.update`
-#: (bounds the temporary copy of a Y block to ~ 32768 * q * 8 bytes).
-DEFAULT_BLOCK_ROWS = 32768
+#: (bounds the temporary shifted copy of a Y block to 8192 * q * 8 bytes, ~94 MB for q=1434).
+DEFAULT_BLOCK_ROWS = 8192
 
 
 # --------------------------------------------------------------------------- #
@@ -205,14 +205,14 @@ class CrossProducts:
         if n_rows == 0:
             return self
         block_rows = _check_positive_int(block_rows, "block_rows")
-        if self.x_shift is None:
-            self.x_shift = _provisional_shift(X[:block_rows])
-        if self.y_shift is None:
-            self.y_shift = _provisional_shift(Y[:block_rows])
+        x_shift = _provisional_shift(X[:block_rows]) if self.x_shift is None else self.x_shift
+        y_shift = _provisional_shift(Y[:block_rows]) if self.y_shift is None else self.y_shift
+        self.x_shift, self.y_shift = x_shift, y_shift
         for start in range(0, n_rows, block_rows):
             stop = min(start + block_rows, n_rows)
-            xs = np.asarray(X[start:stop], dtype=np.float64) - self.x_shift
-            ys = np.asarray(Y[start:stop], dtype=np.float64) - self.y_shift
+            # one float64 temporary per block, whatever the input dtype
+            xs = np.subtract(X[start:stop], x_shift, dtype=np.float64)
+            ys = np.subtract(Y[start:stop], y_shift, dtype=np.float64)
             sum_x = xs.sum(axis=0)
             sum_y = ys.sum(axis=0)
             xtx = xs.T @ xs
