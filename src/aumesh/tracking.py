@@ -416,6 +416,20 @@ class TrackedRun:
         for i in range(0, len(items), MAX_METRICS_BATCH):
             self.client.log_batch(self.run_id, metrics=items[i : i + MAX_METRICS_BATCH])
 
+    def log_metric_history(self, name: str, values: Any, first_step: int = 0) -> None:
+        """Log a whole metric history in one batch: ``values[i]`` at step ``first_step + i``.
+
+        E.g. the R²-vs-n_components curve with ``first_step=1`` (step = number of components);
+        one database transaction instead of one per step.
+        """
+        from mlflow.entities import Metric
+
+        ts = int(time.time() * 1000)
+        key = _clean_key(name)
+        items = [Metric(key, _metric_value(v), ts, first_step + i) for i, v in enumerate(values)]
+        for i in range(0, len(items), MAX_METRICS_BATCH):
+            self.client.log_batch(self.run_id, metrics=items[i : i + MAX_METRICS_BATCH])
+
     def log_fold_metrics(self, name_to_list: Mapping[str, Any], summary: bool = False) -> None:
         """Log per-fold values: ``{"r2": [f0, f1, f2]}`` -> metric ``r2`` at steps 0, 1, 2.
 
@@ -787,3 +801,145 @@ def list_child_runs(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None =
     if rows:
         df = df.sort_values("start_time", kind="stable").reset_index(drop=True)
     return df
+
+
+# ------------------------------------------------------- sweep queries, registry
+SWEEP_PARENT_ROLE = "sweep-parent"
+CHAMPION_ALIAS = "champion"
+
+
+def latest_parent_run(tracking_cfg: Mapping[str, Any] | None = None) -> str | None:
+    """Id of the most recently started sweep parent run of the configured experiment.
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping, optional
+        The ``tracking`` config group (``experiment`` names the experiment).
+
+    Returns
+    -------
+    str or None
+        None when the experiment or a sweep parent does not exist.
+    """
+    client = get_client(tracking_cfg)
+    exp = client.get_experiment_by_name(str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT))
+    if exp is None:
+        return None
+    runs = client.search_runs(
+        [exp.experiment_id],
+        filter_string=f"tags.`{ROLE_TAG}` = '{SWEEP_PARENT_ROLE}'",
+        order_by=["attributes.start_time DESC"],
+        max_results=1,
+    )
+    return runs[0].info.run_id if runs else None
+
+
+def run_record(run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """A plain-dict view of one run: ``run_id``, ``status``, ``experiment_id``, ``artifact_uri``,
+    ``start_time`` (ms), ``params``, ``metrics`` (latest values), ``tags``."""
+    run = get_client(tracking_cfg).get_run(run_id)
+    return {
+        "run_id": run.info.run_id,
+        "run_name": run.info.run_name,
+        "status": run.info.status,
+        "experiment_id": run.info.experiment_id,
+        "artifact_uri": run.info.artifact_uri,
+        "start_time": run.info.start_time,
+        "params": dict(run.data.params),
+        "metrics": dict(run.data.metrics),
+        "tags": dict(run.data.tags),
+    }
+
+
+def set_run_tags(run_id: str, tags: Mapping[str, Any], tracking_cfg: Mapping[str, Any] | None = None) -> None:
+    """Set tags on an existing run (e.g. a sweep parent's child counts)."""
+    run_handle(run_id, tracking_cfg).set_tags(tags)
+
+
+def register_model_version(
+    run_id: str,
+    artifact_path: str,
+    name: str,
+    tracking_cfg: Mapping[str, Any] | None = None,
+    alias: str | None = CHAMPION_ALIAS,
+    tags: Mapping[str, Any] | None = None,
+    description: str | None = None,
+) -> dict[str, Any]:
+    """Register a run's artifact directory as a new version of registered model *name*.
+
+    The source is ``<run artifact_uri>/<artifact_path>``: a ``file://`` URI inside the
+    run's artifact directory for a local store, an ``mlflow-artifacts:/`` URI for a
+    tracking server; both pass MLflow's source-in-run validation and need no network
+    beyond the tracking URI. No MLflow "flavor" is required: the version points at the
+    run's release-format NPZ.
+
+    Parameters
+    ----------
+    run_id : str
+        The run that produced the artifact.
+    artifact_path : str
+        Artifact directory of the run (e.g. ``"model"``); must exist.
+    name : str
+        Registered model name (created if missing).
+    tracking_cfg : Mapping, optional
+    alias : str or None, default "champion"
+        Alias to point at the new version; None sets none.
+    tags : Mapping, optional
+        Model version tags.
+    description : str, optional
+        Model version description.
+
+    Returns
+    -------
+    dict
+        ``name``, ``version`` (str), ``source``, ``alias``, ``run_id``.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the run has no artifact at *artifact_path*.
+    """
+    from mlflow.exceptions import MlflowException
+
+    client = get_client(tracking_cfg)
+    run = client.get_run(run_id)
+    if not client.list_artifacts(run_id, artifact_path):
+        raise FileNotFoundError(
+            f"run {run_id} has no artifacts under {artifact_path!r} ({run.info.artifact_uri}); "
+            "only sweep children (aumesh sweep) log a model to register."
+        )
+    try:
+        client.get_registered_model(name)
+    except MlflowException:
+        try:
+            client.create_registered_model(name, description="aumesh AU(+pose) -> 478-vertex mesh PLS (release-format NPZ)")
+        except MlflowException:
+            client.get_registered_model(name)  # created concurrently; re-raise if it still does not exist
+    source = f"{run.info.artifact_uri.rstrip('/')}/{artifact_path.strip('/')}"
+    clean_tags = {str(k): _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in (tags or {}).items()}
+    mv = client.create_model_version(name, source, run_id=run_id, tags=clean_tags or None, description=description)
+    if alias:
+        client.set_registered_model_alias(name, alias, mv.version)
+    return {"name": name, "version": str(mv.version), "source": source, "alias": alias, "run_id": run_id}
+
+
+def model_version_by_alias(
+    name: str, alias: str = CHAMPION_ALIAS, tracking_cfg: Mapping[str, Any] | None = None
+) -> dict[str, Any] | None:
+    """``{"name", "version", "run_id", "source"}`` of the version *alias* points to, or None."""
+    from mlflow.exceptions import MlflowException
+
+    client = get_client(tracking_cfg)
+    try:
+        mv = client.get_model_version_by_alias(name, alias)
+    except MlflowException:
+        return None
+    return {"name": name, "version": str(mv.version), "run_id": mv.run_id, "source": mv.source}
+
+
+def download_run_artifacts(
+    run_id: str, artifact_path: str, dst_dir: str | Path, tracking_cfg: Mapping[str, Any] | None = None
+) -> Path:
+    """Download a run's artifact (file or directory) into *dst_dir*; return the local path."""
+    Path(dst_dir).mkdir(parents=True, exist_ok=True)
+    return Path(get_client(tracking_cfg).download_artifacts(run_id, artifact_path, str(dst_dir)))

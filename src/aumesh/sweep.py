@@ -1,0 +1,829 @@
+"""In-process sweeps with Hydra's syntax, logged to MLflow as one parent run and one child per configuration.
+
+``aumesh sweep -m preprocess.target=absolute,neutral features.pose=true,false \\
+features.interactions=true,false model.n_components=10,23,40,83`` runs :func:`main`: a Hydra app
+on the repo's ``conf/`` (the same configuration ``dvc exp run`` composes into ``params.yaml``)
+whose task function evaluates one configuration on the prepared data. Not a DVC stage: a sweep
+is exploration; ``aumesh promote`` turns its best run into ``conf/`` so ``dvc repro`` rebuilds it.
+
+Reuse between configurations (per process; every joblib worker keeps its own):
+
+* the loaded :class:`aumesh.evaluate.Prepared` (memory-mapped meshes), keyed by its directory;
+* the fold of every frame, keyed by (prepared data, ``cv.n_splits``);
+* the per-fold :class:`aumesh.evaluate.FoldStatistics`, keyed by (prepared data,
+  ``preprocess.target``, ``preprocess.neutral.method``, ``features.pose``,
+  ``features.interactions``, ``cv.n_splits``): a new ``model.*`` value costs fits from
+  statistics and one prediction pass, never a new pass of accumulation.
+
+Prepared data. The prepare-relevant keys are the ``prepare`` stage's params in ``dvc.yaml``
+(:data:`PREPARE_KEYS`). When a configuration's values equal those of the workspace's
+``params.yaml`` the sweep reads ``paths.prepared_dir`` (the DVC output; ``dvc repro prepare``
+first). When they differ, the sweep prepares once into ``build/sweeps/prepared/<key>/`` (or into
+``paths.prepared_dir`` if that was overridden too), stamps the directory with the values it was
+prepared from and reuses it across sweeps; a stamped directory with other values is an error.
+
+MLflow layout. A Hydra callback (:class:`SweepCallback`, configured in ``conf/hydra/default.yaml``)
+opens the parent run when the (multi)run starts and writes its id to ``<sweep dir>/mlflow_parent.json``,
+where every job (in this process, a joblib worker or a cluster node) finds it. Each job opens a
+child run (``aumesh.tracking.tracked_run``): flattened params, provenance tags (git commit, data
+digest), per-fold ``r2``/``mae``/``vertex_error``/``r2_displacement`` (step = fold) and their means,
+the R²-vs-n_components curve (metric ``r2_by_n_components``, step = k, and the figure
+``plots/r2_vs_n_components.png``) and the release-format NPZ under ``model/`` (what ``aumesh
+promote`` registers). A configuration that raises (e.g. ``features.interactions=true`` with
+``features.pose=false``, invalid by design) is recorded as a FAILED child with the error and
+the sweep goes on. When the sweep ends the parent is FINISHED with tags counting its children.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import sys
+import time
+from collections import OrderedDict
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from aumesh.io_utils import atomic_write_json
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
+    import pandas as pd
+    from matplotlib.figure import Figure
+
+    from aumesh.config import Config
+    from aumesh.evaluate import CVResult, FinalModel, FoldStatistics, Prepared
+
+log = logging.getLogger(__name__)
+
+PARENT_FILE = "mlflow_parent.json"
+RESULT_FILE = "result.json"
+SWEEPS_DIR = "build/sweeps"
+PREPARED_CACHE_DIR = "build/sweeps/prepared"
+PREPARE_STAMP = "aumesh_sweep_prepare.json"
+MODEL_ARTIFACT_DIR = "model"
+FIGURE_ARTIFACT = "plots/r2_vs_n_components.png"
+CHILD_ROLE = "sweep-child"
+PARENT_ENV = "AUMESH_SWEEP_PARENT_RUN_ID"
+# BLAS threads per job: a sweep parallelises over configurations (hydra/launcher=joblib), not inside
+# the small (p x p, p x 1434) products of one fit, where extra threads only contend (10x slower on
+# a busy 2-core box). Set AUMESH_SWEEP_BLAS_THREADS=0 to leave the BLAS default.
+BLAS_THREADS_ENV = "AUMESH_SWEEP_BLAS_THREADS"
+
+# The prepare stage's params (dvc.yaml), minus data.chunk_rows (memory, not results).
+PREPARE_KEYS = (
+    "paths.data_dir",
+    "data.tables",
+    "data.mesh_npy",
+    "preprocess.pose_filter",
+    "preprocess.alignment",
+    "preprocess.neutral.low_au_quantile",
+    "preprocess.empty_video",
+    "seed",
+)
+MAX_CACHED_STATISTICS = 8  # FoldStatistics kept per process (a few MB each: X'X, X'Y, diag(Y'Y) per fold)
+
+
+# ------------------------------------------------------------------ pure helpers
+def _flat(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_flat(value, path + "."))
+        else:
+            out[path] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def prepare_signature(cfg: Config) -> dict[str, Any]:
+    """The values of :data:`PREPARE_KEYS` in *cfg*, flattened (what the prepared data depend on).
+
+    Parameters
+    ----------
+    cfg : aumesh.config.Config
+
+    Returns
+    -------
+    dict
+        ``{dotted key: value}``, sorted by key.
+    """
+    flat = _flat(cfg.to_dict())
+    return {k: v for k, v in sorted(flat.items()) if any(k == p or k.startswith(p + ".") for p in PREPARE_KEYS)}
+
+
+def prepare_key(signature: Mapping[str, Any]) -> str:
+    """Short content hash of a :func:`prepare_signature` (names the prepared-data cache dir)."""
+    text = json.dumps(signature, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def statistics_key(prepared_id: str, cfg: Config) -> tuple:
+    """Cache key of the per-fold statistics: everything :func:`aumesh.evaluate.accumulate` depends on."""
+    return (prepared_id, cfg.preprocess.target, cfg.preprocess.neutral.method,
+            bool(cfg.features.pose), bool(cfg.features.interactions), int(cfg.cv.n_splits))
+
+
+def run_name(overrides: Sequence[str]) -> str:
+    """Compact child run name from a job's overrides: ``target=neutral,pose=true,n_components=10``."""
+    parts = []
+    for ov in overrides:
+        key, sep, value = ov.partition("=")
+        if not sep or key.startswith("hydra"):
+            continue
+        parts.append(f"{key.lstrip('+~').rsplit('.', 1)[-1]}={value}")
+    return ",".join(parts) or "base"
+
+
+@dataclass(frozen=True)
+class PreparedSource:
+    """Where a configuration's prepared data live and whether the sweep has to prepare them."""
+
+    path: Path
+    managed_by_dvc: bool
+    signature: dict[str, Any]
+    key: str
+
+
+def resolve_prepared(cfg: Config, workspace: Config | None, root: Path) -> PreparedSource:
+    """Decide which prepared directory serves *cfg* (see the module docstring).
+
+    Parameters
+    ----------
+    cfg : Config
+        The configuration of one job.
+    workspace : Config or None
+        The workspace's ``params.yaml`` (what ``dvc repro`` prepared from), None if absent.
+    root : Path
+        Workspace root; relative paths are resolved against it.
+
+    Returns
+    -------
+    PreparedSource
+    """
+    signature = prepare_signature(cfg)
+    key = prepare_key(signature)
+    own = (root / cfg.paths.prepared_dir).resolve()
+    if workspace is not None and signature == prepare_signature(workspace) and \
+            own == (root / workspace.paths.prepared_dir).resolve():
+        return PreparedSource(own, True, signature, key)
+    if workspace is not None and own != (root / workspace.paths.prepared_dir).resolve():
+        return PreparedSource(own, False, signature, key)  # the user named the directory
+    return PreparedSource((root / PREPARED_CACHE_DIR / key).resolve(), False, signature, key)
+
+
+def r2_curve_figure(r2_path_folds: np.ndarray, title: str) -> Figure:
+    """The R²-vs-n_components curve of one configuration: each fold and the mean.
+
+    Parameters
+    ----------
+    r2_path_folds : ndarray, shape (n_splits, A)
+        Held-out R² of the fold's model truncated to k = 1..A components.
+    title : str
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Agg-backed figure (no pyplot state).
+    """
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    paths = np.atleast_2d(np.asarray(r2_path_folds, dtype=float))
+    k = np.arange(1, paths.shape[1] + 1)
+    fig = Figure(figsize=(6.0, 3.8), dpi=90)
+    ax = fig.add_subplot()
+    for f, path in enumerate(paths):
+        ax.plot(k, path, lw=0.9, alpha=0.55, label=f"fold {f}")
+    mean = paths.mean(axis=0)
+    ax.plot(k, mean, color="black", lw=2.0, label="mean")
+    best = int(np.argmax(mean))
+    ax.scatter([k[best]], [mean[best]], color="crimson", zorder=3, label=f"max mean R² at k={k[best]}")
+    ax.set_xlabel("n_components (k)")
+    ax.set_ylabel("held-out R² (variance-weighted)")
+    ax.set_title(title, fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.subplots_adjust(left=0.12, right=0.97, bottom=0.14, top=0.9)
+    return fig
+
+
+# ------------------------------------------------------------------ the cache
+@dataclass
+class SweepCache:
+    """Per-process reuse of prepared data, folds and per-fold statistics across configurations."""
+
+    prepared: dict[str, Prepared] = field(default_factory=dict)
+    folds: dict[tuple, np.ndarray] = field(default_factory=dict)
+    statistics: OrderedDict = field(default_factory=OrderedDict)
+    workspace: dict[str, Any] = field(default_factory=dict)
+    hits: int = 0
+    misses: int = 0
+
+    def workspace_params(self, root: Path) -> Config | None:
+        """The workspace's ``params.yaml`` as a Config (cached by mtime), None if absent."""
+        from aumesh.config import load_params
+
+        path = root / "params.yaml"
+        if not path.exists():
+            return None
+        stamp = (str(path), path.stat().st_mtime_ns)
+        if self.workspace.get("stamp") != stamp:
+            self.workspace = {"stamp": stamp, "cfg": load_params(path)}
+        return self.workspace["cfg"]
+
+    def load(self, source: PreparedSource, cfg: Config) -> tuple[Prepared, str]:
+        """The prepared data for *source* (preparing them first if needed); returns (data, cache id)."""
+        from aumesh import evaluate as ev
+
+        ensure_prepared(source, cfg)
+        summary = source.path / "summary.json"
+        pid = f"{source.path}@{summary.stat().st_mtime_ns}"
+        if pid not in self.prepared:
+            self.prepared = {pid: ev.load_prepared(source.path)}  # one prepared set at a time
+            self.folds.clear()
+            self.statistics.clear()
+        return self.prepared[pid], pid
+
+    def fold_of(self, prepared: Prepared, pid: str, n_splits: int) -> np.ndarray:
+        from aumesh import evaluate as ev
+
+        key = (pid, n_splits)
+        if key not in self.folds:
+            self.folds[key] = ev.assign_folds(prepared.frames["video_index"].to_numpy(), n_splits)
+        return self.folds[key]
+
+    def statistics_for(self, prepared: Prepared, pid: str, cfg: Config) -> tuple[FoldStatistics, bool]:
+        """Per-fold statistics of *cfg*'s design and target; (stats, True if reused)."""
+        from aumesh import evaluate as ev
+
+        key = statistics_key(pid, cfg)
+        if key in self.statistics:
+            self.statistics.move_to_end(key)
+            self.hits += 1
+            return self.statistics[key], True
+        stats = ev.accumulate(prepared, cfg, self.fold_of(prepared, pid, cfg.cv.n_splits))
+        self.statistics[key] = stats
+        while len(self.statistics) > MAX_CACHED_STATISTICS:
+            self.statistics.popitem(last=False)
+        self.misses += 1
+        return stats, False
+
+
+_CACHE: SweepCache | None = None
+
+
+def process_cache() -> SweepCache:
+    """The cache shared by all jobs that run in this process."""
+    global _CACHE
+    if _CACHE is None:
+        _CACHE = SweepCache()
+    return _CACHE
+
+
+@contextlib.contextmanager
+def _file_lock(path: Path) -> Iterator[None]:
+    """Exclusive inter-process lock (parallel jobs preparing the same data wait for one another)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows: no locking
+        yield
+        return
+    with open(path, "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
+    """Make sure *source* holds prepared data for *cfg*; prepare into it when absent.
+
+    Raises
+    ------
+    FileNotFoundError
+        A DVC-managed directory that does not exist (fix: ``dvc repro prepare``).
+    ValueError
+        A directory stamped with other prepare values (fix: delete it or override
+        ``paths.prepared_dir``).
+    """
+    from aumesh import prepare as prep
+    from aumesh import tables
+
+    complete = all((source.path / n).exists() for n in ("meshes.npy", "frames.parquet", "neutrals.npz",
+                                                           "reference.npz", "summary.json"))
+    if source.managed_by_dvc:
+        if not complete:
+            raise FileNotFoundError(
+                f"{source.path}: prepared data missing. It is the prepare stage's output for the workspace's "
+                "params.yaml; run `dvc repro prepare` (or `make demo`) first.")
+        return source.path
+    stamp_path = source.path / PREPARE_STAMP
+    with _file_lock(source.path.with_name(source.path.name + ".lock")):
+        if complete and stamp_path.exists():
+            stamp = json.loads(stamp_path.read_text())
+            if stamp.get("signature") != json.loads(json.dumps(source.signature, default=str)):
+                raise ValueError(
+                    f"{source.path} was prepared by a sweep with other values of {', '.join(PREPARE_KEYS)}: "
+                    f"{stamp.get('signature')}. Fix: delete it, or override paths.prepared_dir with a new directory.")
+            return source.path
+        if complete:
+            log.warning("%s: prepared data without a sweep stamp; using them as they are (not verified against "
+                        "%s)", source.path, ", ".join(PREPARE_KEYS))
+            return source.path
+        log.info("preparing %s from %s (prepare values differ from params.yaml's)", source.path, cfg.paths.data_dir)
+        found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy)
+        prep.run(found, cfg, source.path)
+        atomic_write_json(stamp_path, {"signature": source.signature, "key": source.key})
+    return source.path
+
+
+# ------------------------------------------------------------------ one configuration
+@contextlib.contextmanager
+def blas_threads(default: int = 1) -> Iterator[None]:
+    """Limit BLAS/OpenMP threads for the duration of a job (``$AUMESH_SWEEP_BLAS_THREADS``, 0 = no limit)."""
+    try:
+        n = int(os.environ.get(BLAS_THREADS_ENV, default))
+    except ValueError:
+        raise ValueError(f"{BLAS_THREADS_ENV}={os.environ[BLAS_THREADS_ENV]!r}: use a thread count (0 = BLAS default)") from None
+    if n <= 0:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=n):
+        yield
+
+
+def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> tuple[CVResult, FinalModel]:
+    """Cross-validation and final fit of one configuration from (possibly shared) statistics."""
+    from aumesh import evaluate as ev
+
+    cv, _ = ev.cross_validate(prepared, cfg, stats)
+    return cv, ev.final_fit(prepared, cfg, stats)
+
+
+def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, root: Path,
+               cv: CVResult, final: FinalModel, timings: Mapping[str, float], reused: bool) -> dict[str, Any]:
+    """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
+    import tempfile
+
+    from aumesh import provenance
+    from aumesh.io_utils import atomic_savez
+    from aumesh.release import NPZ_NAME, release_arrays
+
+    metrics = cv.metrics()
+    run.log_config(cfg.to_dict())
+    tags = {"aumesh.prepared_dir": str(source.path), "aumesh.prepared.key": source.key,
+            "aumesh.cache.statistics": "reused" if reused else "computed",
+            "aumesh.n_components.effective": final.n_components}
+    data_dir = (root / cfg.paths.data_dir).resolve()
+    digest = None
+    with contextlib.suppress(FileNotFoundError, ValueError):
+        digest = provenance.data_digest(root, "data.dvc")
+    if digest and digest.get("md5") and data_dir == (root / str(digest.get("path") or "data")).resolve():
+        run.log_dataset(digest, source=str(data_dir), name="frame_tables")
+    else:
+        tags["aumesh.data.note"] = (f"paths.data_dir={cfg.paths.data_dir} is not the DVC-tracked data of data.dvc; "
+                                    "aumesh.data.* tags describe data.dvc, not this run's data")
+    run.set_tags(tags)
+    run.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
+                          "r2_displacement": cv.r2_displacement_folds})
+    scalars = {k: v for k, v in metrics.items() if isinstance(v, float)}
+    scalars |= {"n_components": float(final.n_components), "n_features": float(len(final.feature_columns)),
+                "n_frames": float(sum(cv.n_frames_folds))} | dict(timings)
+    run.log_metrics(scalars)
+    # the curve as a metric history, step = n_components (one batch)
+    run.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
+    title = (f"target={cfg.preprocess.target} neutral={cfg.preprocess.neutral.method} pose={cfg.features.pose} "
+             f"interactions={cfg.features.interactions} n_components={final.n_components}")
+    run.log_figure(r2_curve_figure(cv.r2_path_folds, title), FIGURE_ARTIFACT)
+    metadata = {"mlflow_run_id": run.run_id, "config": cfg.to_dict(), "cv": {k: v for k, v in metrics.items()}}
+    arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
+                            prepared.reference, card_text="", metadata=metadata)
+    with tempfile.TemporaryDirectory(prefix="aumesh-sweep-") as tmp:
+        atomic_savez(Path(tmp) / NPZ_NAME, **arrays)
+        run.log_artifact(Path(tmp) / NPZ_NAME, MODEL_ARTIFACT_DIR)
+    return {k: scalars[k] for k in ("r2_mean", "r2_std", "r2_displacement_mean", "mae_mean", "n_components")}
+
+
+def run_configuration(raw: Mapping[str, Any], overrides: Sequence[str] = (), parent_run_id: str | None = None,
+                      cache: SweepCache | None = None, root: Path | None = None) -> dict[str, Any]:
+    """Evaluate and log one configuration as a child run; never raises for a bad configuration.
+
+    Parameters
+    ----------
+    raw : Mapping
+        The composed configuration (plain dict, as Hydra gives it; validated here, inside the run,
+        so an invalid configuration becomes a FAILED child).
+    overrides : sequence of str
+        The job's Hydra overrides (run name and tag).
+    parent_run_id : str, optional
+        The sweep's parent run.
+    cache : SweepCache, optional
+        Defaults to :func:`process_cache`.
+    root : Path, optional
+        Workspace root; defaults to :func:`aumesh.provenance.repo_root`.
+
+    Returns
+    -------
+    dict
+        ``run_id``, ``run_name``, ``status`` (``FINISHED``/``FAILED``), ``error`` and summary metrics.
+    """
+    from aumesh import provenance, tracking
+    from aumesh.config import from_dict
+
+    cache = cache or process_cache()
+    root = Path(root) if root is not None else provenance.repo_root()
+    raw = dict(raw)
+    tracking_cfg = dict(raw.get("tracking") or {})
+    name = run_name(overrides)
+    tags = {tracking.ROLE_TAG: CHILD_ROLE, "aumesh.stage": "sweep",
+            "aumesh.target": str((raw.get("preprocess") or {}).get("target")),
+            "aumesh.sweep.overrides": " ".join(overrides)}
+    handle = None
+    t_start = time.perf_counter()
+    try:
+        with tracking.tracked_run(tracking_cfg, run_name=name, params=raw, tags=tags,
+                                  parent_run_id=parent_run_id) as run:
+            handle = run
+            cfg = from_dict(raw)
+            with blas_threads():
+                summary, reused = _evaluate_in_run(run, cfg, cache, root)
+            run.log_metrics({"seconds_job": time.perf_counter() - t_start})
+    except Exception as exc:  # recorded as FAILED by tracked_run; the sweep goes on
+        log.error("configuration %s failed: %s: %s", name, type(exc).__name__, exc)
+        return {"run_id": getattr(handle, "run_id", None), "run_name": name, "status": "FAILED",
+                "error": f"{type(exc).__name__}: {exc}"}
+    log.info("configuration %s: r2_mean=%.4f r2_displacement_mean=%.4f (%s statistics, %.2f s)", name,
+             summary["r2_mean"], summary["r2_displacement_mean"], "reused" if reused else "computed",
+             time.perf_counter() - t_start)
+    return {"run_id": getattr(handle, "run_id", None), "run_name": name, "status": "FINISHED", "error": None} | summary
+
+
+def _evaluate_in_run(run, cfg: Config, cache: SweepCache, root: Path) -> tuple[dict[str, Any], bool]:
+    """Load (or reuse) the data and statistics, evaluate, log; returns (summary metrics, statistics reused)."""
+    source = resolve_prepared(cfg, cache.workspace_params(root), root)
+    t0 = time.perf_counter()
+    prepared, pid = cache.load(source, cfg)
+    t1 = time.perf_counter()
+    stats, reused = cache.statistics_for(prepared, pid, cfg)
+    t2 = time.perf_counter()
+    cv, final = evaluate_configuration(prepared, cfg, stats)
+    t3 = time.perf_counter()
+    summary = _log_child(run, cfg, prepared, source, root, cv, final,
+                         {"seconds_load": t1 - t0, "seconds_statistics": t2 - t1, "seconds_cv_fit": t3 - t2}, reused)
+    return summary, reused
+
+
+# ------------------------------------------------------------------ Hydra glue
+def read_parent(directory: str | Path) -> str | None:
+    """The parent run id the callback wrote into a sweep (or run) directory, else ``$AUMESH_SWEEP_PARENT_RUN_ID``."""
+    path = Path(directory) / PARENT_FILE
+    if path.exists():
+        return json.loads(path.read_text()).get("run_id")
+    return os.environ.get(PARENT_ENV) or None
+
+
+def _plain_config(config) -> dict[str, Any]:
+    """A composed Hydra config without its ``hydra`` node, interpolations resolved."""
+    from omegaconf import OmegaConf
+
+    data = OmegaConf.to_container(config, resolve=False)
+    data.pop("hydra", None)
+    return OmegaConf.to_container(OmegaConf.create(data), resolve=True)
+
+
+class SweepCallback:
+    """Hydra callback: one MLflow parent run per sweep (``hydra.callbacks.aumesh_mlflow`` in conf/hydra/).
+
+    Implements Hydra's callback protocol (``hydra.experimental.callback.Callback``) without
+    importing Hydra at module import. Hydra turns callback exceptions into warnings; a job that
+    finds no parent file logs its run without a parent (``aumesh.sweep.parent_missing`` tag).
+    """
+
+    def __init__(self, **_: Any) -> None:
+        self._t0: float | None = None
+
+    # -- Hydra hooks
+    def on_run_start(self, config, **kwargs: Any) -> None:
+        self._start(config, Path(str(config.hydra.run.dir)), list(config.hydra.overrides.task), "run")
+
+    def on_run_end(self, config, **kwargs: Any) -> None:
+        self._end(config, Path(str(config.hydra.run.dir)))
+
+    def on_multirun_start(self, config, **kwargs: Any) -> None:
+        self._start(config, Path(str(config.hydra.sweep.dir)), list(config.hydra.overrides.task), "multirun")
+
+    def on_multirun_end(self, config, **kwargs: Any) -> None:
+        self._end(config, Path(str(config.hydra.sweep.dir)))
+
+    def on_job_start(self, config, **kwargs: Any) -> None:
+        pass
+
+    def on_job_end(self, config, job_return=None, **kwargs: Any) -> None:
+        pass
+
+    # -- implementation
+    def _start(self, config, directory: Path, overrides: list[str], mode: str) -> None:
+        from aumesh import tracking
+
+        self._t0 = time.perf_counter()
+        plain = _plain_config(config)
+        tracking_cfg = dict(plain.get("tracking") or {})
+        launcher = str(config.hydra.launcher.get("_target_", "")) if "launcher" in config.hydra else ""
+        parent = tracking.start_parent_run(
+            tracking_cfg, run_name=f"sweep {directory.name}", params=plain,
+            tags={"aumesh.sweep.dir": str(directory.resolve()), "aumesh.sweep.overrides": " ".join(overrides),
+                  "aumesh.sweep.mode": mode, "aumesh.sweep.launcher": launcher})
+        directory.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": tracking.resolve_tracking_uri(tracking_cfg)
+                                                    if parent else None, "overrides": overrides})
+        if parent:
+            os.environ[PARENT_ENV] = parent
+            log.info("sweep parent run %s (%s)", parent, directory)
+
+    def _end(self, config, directory: Path) -> None:
+        from aumesh import tracking
+
+        parent = read_parent(directory)
+        os.environ.pop(PARENT_ENV, None)
+        if not parent:
+            return
+        tracking_cfg = dict(_plain_config(config).get("tracking") or {})
+        wall = time.perf_counter() - self._t0 if self._t0 else None
+        children = None
+        tags: dict[str, Any] = {}
+        try:
+            children = tracking.list_child_runs(parent, tracking_cfg)
+            statuses = children["status"].value_counts().to_dict() if len(children) else {}
+            tags = {"aumesh.sweep.n_children": len(children), "aumesh.sweep.n_finished": statuses.get("FINISHED", 0),
+                    "aumesh.sweep.n_failed": len(children) - statuses.get("FINISHED", 0)}
+            if wall is not None:
+                tags["aumesh.sweep.wall_seconds"] = f"{wall:.2f}"
+            tracking.set_run_tags(parent, tags, tracking_cfg)
+            if wall is not None:
+                tracking.run_handle(parent, tracking_cfg).log_metrics({"sweep_wall_seconds": wall})
+        finally:
+            tracking.end_run(parent, tracking_cfg, "FINISHED")
+        if children is None:
+            return
+        print(f"\nsweep parent {parent}: {tags['aumesh.sweep.n_children']} configurations, "
+              f"{tags['aumesh.sweep.n_failed']} not finished" + (f", {wall:.1f} s" if wall is not None else ""))
+        if len(children):
+            print(format_runs_table(runs_table(children)))
+        print(f"(`aumesh runs --parent {parent}`; `aumesh promote --parent {parent}`)")
+
+
+def _task(config) -> dict[str, Any]:
+    """Hydra task function: one configuration."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hc = HydraConfig.get()
+    multirun = hc.mode == RunMode.MULTIRUN
+    parent = read_parent(hc.sweep.dir if multirun else hc.run.dir)
+    overrides = list(hc.overrides.task)
+    if parent is None:
+        log.warning("no sweep parent run found in %s: is the aumesh SweepCallback configured "
+                    "(conf/hydra/default.yaml)? Logging this configuration without a parent.",
+                    hc.sweep.dir if multirun else hc.run.dir)
+    result = run_configuration(_plain_config(config), overrides, parent)
+    atomic_write_json(Path(hc.runtime.output_dir) / RESULT_FILE, result)
+    return result
+
+
+def conf_dir(root: Path | None = None) -> Path:
+    """The repo's ``conf/`` (absolute)."""
+    from aumesh import provenance
+
+    path = (root or provenance.repo_root()) / "conf"
+    if not (path / "config.yaml").exists():
+        raise FileNotFoundError(f"{path}/config.yaml not found: run `aumesh sweep` inside the aumesh checkout.")
+    return path.resolve()
+
+
+def sweep_overrides(argv: Sequence[str], stamp: str | None = None) -> list[str]:
+    """The user's Hydra arguments plus literal ``hydra.sweep.dir``/``hydra.run.dir`` under build/sweeps/.
+
+    A literal directory (not ``${now:...}``) is the same in every process of the sweep, so jobs
+    in joblib workers or on cluster nodes find the parent file. User-given values win.
+    """
+    args = list(argv)
+    stamp = stamp or datetime.now().strftime("%Y-%m-%d_%H-%M-%S_%f")
+    if not any(a.lstrip("+").startswith("hydra.sweep.dir=") for a in args):
+        args.append(f"hydra.sweep.dir={SWEEPS_DIR}/{stamp}")
+    if not any(a.lstrip("+").startswith("hydra.run.dir=") for a in args):
+        args.append(f"hydra.run.dir={SWEEPS_DIR}/{stamp}")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``aumesh sweep [-m] key=v1,v2 ...``: run the Hydra app on the repo's conf/ from the repo root.
+
+    The working directory becomes the workspace root (``conf/paths`` are relative to it).
+    """
+    import hydra
+
+    from aumesh import provenance
+
+    root = provenance.repo_root()
+    conf = conf_dir(root)
+    if Path.cwd().resolve() != root.resolve():
+        log.info("running from the workspace root %s (conf/paths are relative to it)", root)
+        os.chdir(root)
+    args = sweep_overrides(sys.argv[1:] if argv is None else argv)
+    app = hydra.main(config_path=str(conf), config_name="config", version_base=None)(_task)
+    saved = sys.argv
+    sys.argv = ["aumesh-sweep", *args]
+    try:
+        app()
+    finally:
+        sys.argv = saved
+    return 0
+
+
+# ------------------------------------------------------------------ runs table
+def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFrame:
+    """A sweep's children as a table, best first by the promotion criterion (see :mod:`aumesh.promote`).
+
+    Parameters
+    ----------
+    children : DataFrame
+        :func:`aumesh.tracking.list_child_runs` output.
+    metric : str, optional
+        Ranking metric; default: :func:`aumesh.promote.default_metric` of the finished runs' targets.
+
+    Returns
+    -------
+    DataFrame
+        ``rank``, ``run_id``, ``status``, config keys, ``r2_mean``, ``r2_std``,
+        ``r2_displacement_mean``, ``mae_mean``, ``n_components`` (effective), ``error``;
+        FINISHED runs ranked first, then the others. ``attrs["metric"]`` names the ranking metric.
+    """
+    import pandas as pd
+
+    from aumesh import promote
+
+    candidates = promote.candidates_from_frame(children)
+    finished = [c for c in candidates if c.status == "FINISHED"]
+    metric = metric or promote.default_metric({c.target for c in finished})
+    ranked = promote.rank([c for c in finished if metric in c.metrics], metric) if finished else []
+    order = [c.run_id for c in ranked] + [c.run_id for c in candidates if c.run_id not in {r.run_id for r in ranked}]
+    by_id = {c.run_id: c for c in candidates}
+    rows = []
+    for i, rid in enumerate(order):
+        c = by_id[rid]
+        m = c.metrics
+        rows.append({
+            "rank": i + 1 if i < len(ranked) else None,
+            "run_id": rid,
+            "status": c.status,
+            "target": c.params.get("preprocess.target"),
+            "neutral": c.params.get("preprocess.neutral.method"),
+            "pose": c.params.get("features.pose"),
+            "interactions": c.params.get("features.interactions"),
+            "n_components_requested": c.params.get("model.n_components"),
+            "n_components": int(m["n_components"]) if "n_components" in m else None,
+            "r2_mean": m.get("r2_mean"),
+            "r2_std": m.get("r2_std"),
+            "r2_displacement_mean": m.get("r2_displacement_mean"),
+            "mae_mean": m.get("mae_mean"),
+            "error": (c.error or "")[:90] or None,
+        })
+    table = pd.DataFrame(rows, dtype=object)  # object: missing values stay None, integers stay integers
+    table.attrs["metric"] = metric
+    return table
+
+
+def format_runs_table(table: pd.DataFrame) -> str:
+    """Fixed-width text of :func:`runs_table` (short run ids, R² as mean ± std, k as requested->effective)."""
+    if table.empty:
+        return "(no child runs)"
+
+    def missing(v) -> bool:
+        return v is None or (isinstance(v, float) and v != v)
+
+    def num(v, fmt: str = "{:.4f}") -> str:
+        return "" if missing(v) else fmt.format(float(v))
+
+    lines = [f"ranked by {table.attrs.get('metric', '?')} ({'desc' if not str(table.attrs.get('metric', '')).startswith('mae') else 'asc'}),"
+             " ties -> fewer components; FAILED runs last",
+             f"{'#':>3} {'run':8} {'status':8} {'target':8} {'neutral':7} {'pose':5} {'inter':5} "
+             f"{'k':>6} {'r2_mean ± std':>17} {'r2_disp':>8} {'mae':>8}  error"]
+    for r in table.to_dict(orient="records"):
+        k = "" if missing(r["n_components_requested"]) else str(r["n_components_requested"])
+        if not missing(r["n_components"]) and str(r["n_components"]) != k:
+            k += f"->{r['n_components']}"
+        r2 = "" if missing(r["r2_mean"]) else f"{num(r['r2_mean'])} ± {num(r['r2_std'])}"
+        rank = "" if missing(r["rank"]) else str(r["rank"])
+        lines.append(f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} {str(r['neutral']):7} "
+                     f"{str(r['pose']):5} {str(r['interactions']):5} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
+                     f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ CLI
+def _tracking_cfg(args) -> dict[str, Any]:
+    """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
+    from aumesh import provenance
+    from aumesh.config import load_params
+
+    cfg: dict[str, Any] = {}
+    with contextlib.suppress(FileNotFoundError, ValueError):
+        cfg = dict(load_params(provenance.repo_root() / "params.yaml").tracking.__dict__)
+    if getattr(args, "experiment", None):
+        cfg["experiment"] = args.experiment
+    return cfg
+
+
+def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
+    from aumesh import tracking
+
+    if args.parent:
+        return args.parent
+    parent = tracking.latest_parent_run(tracking_cfg)
+    if parent is None:
+        raise SystemExit(f"no sweep parent run in experiment {tracking_cfg.get('experiment') or 'aumesh'} of "
+                         f"{tracking.resolve_tracking_uri(tracking_cfg)}; run `aumesh sweep -m ...` first or pass --parent.")
+    return parent
+
+
+def _cmd_sweep(args) -> int:
+    return main(args.overrides)
+
+
+def _cmd_runs(args) -> int:
+    from aumesh import tracking
+
+    tracking_cfg = _tracking_cfg(args)
+    parent = _parent_id(args, tracking_cfg)
+    record = tracking.run_record(parent, tracking_cfg)
+    children = tracking.list_child_runs(parent, tracking_cfg)
+    table = runs_table(children, args.metric)
+    if args.json:
+        print(table.to_json(orient="records", indent=2))
+        return 0
+    tags = record["tags"]
+    n_failed = int((children["status"] != "FINISHED").sum()) if len(children) else 0
+    print(f"sweep {parent} ({record['status']}, {record['run_name']}): {len(children)} runs, {n_failed} not finished"
+          + (f", wall {tags['aumesh.sweep.wall_seconds']} s" if "aumesh.sweep.wall_seconds" in tags else ""))
+    if tags.get("aumesh.sweep.overrides"):
+        print(f"  overrides: {tags['aumesh.sweep.overrides']}")
+    print(format_runs_table(table))
+    return 0
+
+
+def _cmd_promote(args) -> int:
+    from aumesh import promote, provenance
+
+    tracking_cfg = _tracking_cfg(args)
+    parent = _parent_id(args, tracking_cfg)
+    record = promote.promote(parent, provenance.repo_root(), tracking_cfg, metric=args.metric, target=args.target,
+                             model_name=args.model_name, register=not args.no_register)
+    print(json.dumps(record, indent=2, default=str))
+    print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` "
+          "(PATH=$PWD/.venv/bin:$PATH dvc repro) rebuilds that release.")
+    return 0
+
+
+def add_commands(subparsers) -> None:
+    """Add ``sweep``, ``runs`` and ``promote`` to the ``aumesh`` command (called by aumesh.cli)."""
+    p = subparsers.add_parser(
+        "sweep", add_help=False, prefix_chars="\0",
+        help="Hydra sweep over conf/ in-process, one MLflow child run per configuration "
+             "(e.g. `aumesh sweep -m model.n_components=10,40`; `aumesh sweep --help` is Hydra's help)")
+    p.add_argument("overrides", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_cmd_sweep)
+
+    for name, func, text in (("runs", _cmd_runs, "table of a sweep's runs, best first"),
+                             ("promote", _cmd_promote, "promote a sweep's best run into conf/ (+ model registry alias)")):
+        p = subparsers.add_parser(name, help=text)
+        who = p.add_mutually_exclusive_group()
+        who.add_argument("--parent", help="the sweep's parent run id (default: the latest sweep)")
+        who.add_argument("--latest", action="store_true", help="the latest sweep (the default)")
+        p.add_argument("--metric", default=None,
+                       help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean)")
+        p.add_argument("--experiment", default=None, help="MLflow experiment (default: tracking.experiment)")
+        p.set_defaults(func=func)
+        if name == "runs":
+            p.add_argument("--json", action="store_true", help="print the table as JSON records")
+        else:
+            p.add_argument("--target", choices=["absolute", "neutral"], default=None,
+                           help="only consider runs with this preprocess.target")
+            p.add_argument("--model-name", default=None,
+                           help="registered model name (default: aumesh-au-to-mesh)")
+            p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
+
+
+if __name__ == "__main__":  # python -m aumesh.sweep -m key=v1,v2
+    sys.exit(main())
