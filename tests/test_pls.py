@@ -247,6 +247,12 @@ def test_constant_x_and_y_columns_behave_as_sklearn(scale):
         assert model.x_std_[2] == 1.0 and model.y_std_[4] == 1.0
     assert max_rel(model.coef_, ref.coef_) < 1e-10
     assert max_rel(model.predict(X), ref.predict(X)) < 1e-12
+    # shifted by something other than their values, constant columns still get zero variance
+    stats = CrossProducts.from_arrays(X, Y, x_shift=X.mean(0) + 0.37, y_shift=Y.mean(0) - 11.3)
+    assert stats.cxx[2].max() == stats.cxx[:, 2].max() == stats.cyy_diag[4] == 0.0
+    shifted = PLSRegression(n_components=3, scale=scale).fit_stats(stats)
+    assert np.all(shifted.coef_[:, 2] == 0.0) and np.all(shifted.coef_[4] == 0.0)
+    assert max_rel(shifted.coef_, model.coef_) < 1e-10
 
 
 # --------------------------------------------------------------------------- scoring

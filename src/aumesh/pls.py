@@ -325,27 +325,54 @@ class CrossProducts:
         self._require_rows()
         return self.y_shift + self.sum_y / self.n
 
+    # A centered sum of squares below this fraction of the shifted one is rounding noise
+    # (the column is constant, but was shifted by something other than its value).
+    _CONSTANT_RTOL = 1e-12
+
+    def _constant_x(self):
+        css = np.diagonal(self.xtx) - self.sum_x * self.sum_x / self.n
+        return css <= self._CONSTANT_RTOL * np.diagonal(self.xtx)
+
+    def _constant_y(self):
+        css = self.yty_diag - self.sum_y * self.sum_y / self.n
+        return css <= self._CONSTANT_RTOL * self.yty_diag
+
     @property
     def cxx(self):
-        """Centered sums ``(X - x̄)^T (X - x̄)``, shape (n_features, n_features)."""
+        """Centered sums ``(X - x̄)^T (X - x̄)``, shape (n_features, n_features).
+
+        Rows/columns of numerically constant X columns are exactly zero.
+        """
         self._require_rows()
         c = self.xtx - np.outer(self.sum_x, self.sum_x) / self.n
         c = 0.5 * (c + c.T)
-        d = np.diagonal(c).copy()
-        np.fill_diagonal(c, np.maximum(d, 0.0))  # rounding can make a zero variance negative
+        const = self._constant_x()
+        c[const, :] = 0.0
+        c[:, const] = 0.0
         return c
 
     @property
     def cxy(self):
-        """Centered sums ``(X - x̄)^T (Y - ȳ)``, shape (n_features, n_targets)."""
+        """Centered sums ``(X - x̄)^T (Y - ȳ)``, shape (n_features, n_targets).
+
+        Rows of constant X columns and columns of constant Y columns are exactly zero.
+        """
         self._require_rows()
-        return self.xty - np.outer(self.sum_x, self.sum_y) / self.n
+        c = self.xty - np.outer(self.sum_x, self.sum_y) / self.n
+        c[self._constant_x(), :] = 0.0
+        c[:, self._constant_y()] = 0.0
+        return c
 
     @property
     def cyy_diag(self):
-        """Centered sums of squares ``sum_i (y_ij - ȳ_j)^2``, shape (n_targets,)."""
+        """Centered sums of squares ``sum_i (y_ij - ȳ_j)^2``, shape (n_targets,).
+
+        Exactly zero for numerically constant Y columns.
+        """
         self._require_rows()
-        return np.maximum(self.yty_diag - self.sum_y * self.sum_y / self.n, 0.0)
+        c = self.yty_diag - self.sum_y * self.sum_y / self.n
+        c[self._constant_y()] = 0.0
+        return c
 
 
 def _raise_negative(n):
