@@ -649,6 +649,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         app()
     finally:
         sys.argv = saved
+        from hydra.core.global_hydra import GlobalHydra
+
+        GlobalHydra.instance().clear()  # so config.compose() works again in this process
     return 0
 
 

@@ -1,0 +1,199 @@
+"""aumesh sweep: a real Hydra multirun on a tiny synthetic workspace, logged to a temporary MLflow store.
+
+One module-scoped workspace (conf/ + dvc.yaml copied from the repo, 600 synthetic frames prepared
+into build/prepared, params.yaml composed) and one module-scoped store; the sweep runs once.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aumesh import config, prepare, synth, tables, tracking
+
+REPO = Path(__file__).resolve().parents[1]
+SPEC = synth.SynthSpec(n_frames=600, n_videos=60, seed=11)
+# 2 x 2 x 2 = 8 configurations; pose=false with interactions=true (2) is invalid by design
+GRID = ["-m", "model.n_components=2,5", "features.pose=true,false", "features.interactions=true,false"]
+
+
+def make_workspace(root: Path, spec: synth.SynthSpec = SPEC) -> Path:
+    """A throw-away aumesh workspace: conf/ (without a promoted experiment), dvc.yaml, data, prepared data, params.yaml."""
+    root.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(REPO / "conf", root / "conf", ignore=shutil.ignore_patterns("promoted.yaml"))
+    shutil.copy(REPO / "dvc.yaml", root / "dvc.yaml")
+    synth.write_tables(root / "data", spec)
+    data = config.compose(config_dir=root / "conf")
+    config.write_params(data, root / "params.yaml")
+    cfg = config.from_dict(data)
+    found = tables.discover(root / cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy)
+    prepare.run(found, cfg, root / cfg.paths.prepared_dir)
+    (root / "promotion.json").write_text('{"promoted": null}\n')
+    return root
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    ws = make_workspace(tmp_path_factory.mktemp("sweep-ws") / "ws")
+    store = tmp_path_factory.mktemp("aumesh-test-sweep-store") / "mlflow.db"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(ws)
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")  # "aumesh-test" in the path: conftest keeps it
+        for var in ("DVC_ROOT", "DVC_EXP_NAME", "AUMESH_SWEEP_PARENT_RUN_ID"):
+            mp.delenv(var, raising=False)
+        yield ws
+
+
+@pytest.fixture(scope="module")
+def swept(workspace):
+    """Run the grid through `aumesh sweep` (the CLI entry point, in-process Hydra multirun)."""
+    from aumesh import cli
+
+    assert cli.main(["sweep", *GRID]) == 0
+    parent = tracking.latest_parent_run({})
+    assert parent is not None
+    return parent, tracking.list_child_runs(parent, {})
+
+
+def test_sweep_one_parent_and_a_child_per_configuration(swept, workspace):
+    parent, children = swept
+    client = tracking.get_client({})
+    exp = client.get_experiment_by_name("aumesh")
+    parents = client.search_runs([exp.experiment_id], filter_string=f"tags.`{tracking.ROLE_TAG}` = 'sweep-parent'")
+    assert [r.info.run_id for r in parents] == [parent]
+    p = client.get_run(parent)
+    assert p.info.status == "FINISHED"
+    assert p.data.tags["aumesh.sweep.n_children"] == "8"
+    assert p.data.tags["aumesh.sweep.n_failed"] == "2"
+    assert Path(p.data.tags["aumesh.sweep.dir"]).parent == (workspace / "build" / "sweeps").resolve()
+    assert not (workspace / "multirun").exists()
+    assert len(children) == 8
+    assert sorted(children["status"]) == ["FAILED"] * 2 + ["FINISHED"] * 6
+
+
+def test_failed_configuration_is_recorded_and_sweep_continues(swept):
+    _, children = swept
+    failed = children[children["status"] == "FAILED"]
+    assert set(failed["params.features.pose"]) == {"False"}
+    assert set(failed["params.features.interactions"]) == {"True"}
+    assert all("features.interactions=true needs features.pose=true" in e for e in failed["error"])
+    # the jobs launched after the first failure still ran and finished
+    order = children.sort_values("start_time")["status"].tolist()
+    first_fail = order.index("FAILED")
+    assert "FINISHED" in order[first_fail + 1:]
+
+
+def test_children_log_per_fold_metrics_curve_figure_and_model(swept):
+    parent, children = swept
+    client = tracking.get_client({})
+    finished = children[children["status"] == "FINISHED"]
+    for row in finished.to_dict(orient="records"):
+        rid = row["run_id"]
+        run = client.get_run(rid)
+        assert run.data.tags["mlflow.parentRunId"] == parent
+        assert run.data.tags["aumesh.role"] == "sweep-child"
+        assert "aumesh.git.commit" in run.data.tags
+        assert run.data.params["preprocess.target"] == "absolute"  # flattened params
+        for name in ("r2", "mae", "vertex_error", "r2_displacement"):
+            hist = sorted(client.get_metric_history(rid, name), key=lambda m: m.step)
+            assert [m.step for m in hist] == [0, 1, 2], name
+            assert np.isclose(np.mean([m.value for m in hist]), run.data.metrics[f"{name}_mean"]), name
+        k = int(run.data.metrics["n_components"])
+        curve = client.get_metric_history(rid, "r2_by_n_components")
+        assert sorted(m.step for m in curve) == list(range(1, k + 1))
+        assert np.isclose(max(curve, key=lambda m: m.step).value, run.data.metrics["r2_mean"], atol=1e-9)
+        arts = {a.path for a in client.list_artifacts(rid, "plots")} | {a.path for a in client.list_artifacts(rid, "model")}
+        assert arts == {"plots/r2_vs_n_components.png", "model/au_to_mesh_pls.npz"}
+
+
+def test_statistics_are_reused_across_n_components(swept):
+    _, children = swept
+    client = tracking.get_client({})
+    finished = children[children["status"] == "FINISHED"]
+    reuse = [client.get_run(r).data.tags["aumesh.cache.statistics"] for r in finished["run_id"]]
+    # 3 valid designs (pose/interactions) x 1 target: computed once each, reused for the other n_components
+    assert sorted(reuse) == ["computed"] * 3 + ["reused"] * 3
+
+
+def test_child_equals_a_fresh_fit(swept, workspace):
+    """A sweep child's metrics and NPZ coefficients equal evaluate.evaluate of the same configuration."""
+    from aumesh import evaluate as ev
+    from aumesh import sweep
+
+    _, children = swept
+    row = children[(children["status"] == "FINISHED") & (children["params.features.interactions"] == "True")
+                   & (children["params.model.n_components"] == "5")].iloc[0]
+    cfg = config.from_dict(config.compose(["model.n_components=5", "features.interactions=true", "features.pose=true"],
+                                          config_dir=workspace / "conf"))
+    with sweep.blas_threads():
+        cv, final = ev.evaluate(ev.load_prepared(workspace / cfg.paths.prepared_dir), cfg)
+    assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
+    local = tracking.download_run_artifacts(row["run_id"], "model/au_to_mesh_pls.npz", workspace / "build" / "dl")
+    npz = np.load(local)
+    np.testing.assert_array_equal(npz["coef_full"], final.coef.T.astype(np.float32))
+    assert int(npz["n_components"]) == 5
+
+
+def test_runs_command_best_first(swept, capsys):
+    from aumesh import cli
+
+    parent, children = swept
+    assert cli.main(["runs", "--parent", parent]) == 0
+    out = capsys.readouterr().out
+    finished = children[children["status"] == "FINISHED"].copy()
+    finished["k"] = finished["metrics.n_components"]
+    best = finished.sort_values(["metrics.r2_mean", "k"], ascending=[False, True]).iloc[0]["run_id"]
+    lines = [ln for ln in out.splitlines() if ln.strip().startswith("1 ")]
+    assert lines and lines[0].split()[1] == best[:8]
+    assert sum(1 for ln in out.splitlines() if ln.split()[1:3] and "FAILED" in ln.split()[:3]) == 2
+    assert cli.main(["runs", "--latest"]) == 0  # the same sweep
+    assert best[:8] in capsys.readouterr().out
+
+
+def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
+    """A sweep value of a prepare key (pose filter) may not reuse build/prepared: prepared once, stamped, reused."""
+    from aumesh import sweep
+
+    cache = sweep.SweepCache()
+    raw = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=20", "model.n_components=3"], config_dir=workspace / "conf")
+    r1 = sweep.run_configuration(raw, ["preprocess.pose_filter.max_abs_yaw_deg=20"], cache=cache, root=workspace)
+    assert r1["status"] == "FINISHED", r1
+    run = tracking.get_client({}).get_run(r1["run_id"])
+    prepared_dir = Path(run.data.tags["aumesh.prepared_dir"])
+    assert prepared_dir.parent == (workspace / sweep.PREPARED_CACHE_DIR).resolve()
+    assert (prepared_dir / sweep.PREPARE_STAMP).exists()
+    summary = prepare.load_summary(prepared_dir)
+    assert summary["n_frames"] < prepare.load_summary(workspace / "build" / "prepared")["n_frames"]
+    raw2 = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=20", "model.n_components=4"], config_dir=workspace / "conf")
+    r2 = sweep.run_configuration(raw2, ["model.n_components=4"], cache=cache, root=workspace)
+    assert tracking.get_client({}).get_run(r2["run_id"]).data.tags["aumesh.cache.statistics"] == "reused"
+
+
+def test_runtime_failure_is_recorded(workspace, monkeypatch):
+    from aumesh import sweep
+
+    def boom(*a, **k):
+        raise RuntimeError("synthetic failure inside the fit")
+
+    monkeypatch.setattr(sweep, "evaluate_configuration", boom)
+    raw = config.compose(["model.n_components=3"], config_dir=workspace / "conf")
+    result = sweep.run_configuration(raw, ["model.n_components=3"], root=workspace)
+    assert result["status"] == "FAILED" and "synthetic failure" in result["error"]
+    run = tracking.get_client({}).get_run(result["run_id"])
+    assert run.info.status == "FAILED"
+    assert "synthetic failure" in run.data.tags[tracking.ERROR_TAG]
+
+
+@pytest.mark.slow
+def test_joblib_launcher_children_find_the_parent(workspace):
+    """Parallel jobs in loky worker processes attach to the parent the callback created."""
+    from aumesh import cli
+
+    assert cli.main(["sweep", "-m", "model.n_components=2,3", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2"]) == 0
+    parent = tracking.latest_parent_run({})
+    children = tracking.list_child_runs(parent, {})
+    assert len(children) == 2 and set(children["status"]) == {"FINISHED"}
+    assert tracking.get_client({}).get_run(parent).data.tags["aumesh.sweep.launcher"].endswith("JoblibLauncher")
