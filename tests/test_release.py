@@ -1,0 +1,107 @@
+"""The release NPZ is exactly the card's format; writes are atomic."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from aumesh.io_utils import atomic_directory, atomic_savez
+from aumesh.release import model_card_markdown, predict_mesh, release_arrays
+from aumesh.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
+
+CARD_KEYS = {"coef": ((23, 1434), np.float32), "intercept": ((1434,), np.float32), "input_columns": ((23,), None),
+             "au_columns": ((20,), None), "pose_columns": ((3,), None), "mean_aligned_mesh": ((478, 3), np.float32),
+             "mean_low_au_mesh": ((478, 3), np.float32), "reference_anchors": ((12, 3), np.float32),
+             "anchor_indices": ((12,), np.int32), "n_components": ((), np.int32), "model_card": ((), None),
+             "training_metadata": ((), None)}
+
+
+def _reference(rng):
+    return {"mean_aligned_mesh": rng.normal(size=(478, 3)), "mean_low_au_mesh": rng.normal(size=(478, 3)),
+            "reference_anchors": rng.normal(size=(12, 3)), "anchor_indices": np.arange(12)}
+
+
+def _arrays(columns, rng):
+    coef = rng.normal(size=(N_TARGETS, len(columns)))
+    intercept = rng.normal(size=N_TARGETS) + 300
+    return coef, intercept, release_arrays(coef, intercept, columns, len(columns), _reference(rng), "card", {"a": 1})
+
+
+def test_npz_has_the_cards_keys_shapes_dtypes_and_loads_without_pickle(tmp_path):
+    rng = np.random.default_rng(0)
+    _, _, arrays = _arrays(feature_columns(True, True), rng)
+    atomic_savez(tmp_path / "m.npz", **arrays)
+    m = np.load(tmp_path / "m.npz", allow_pickle=False)
+    for key, (shape, dtype) in CARD_KEYS.items():
+        assert m[key].shape == shape, key
+        if dtype is not None:
+            assert m[key].dtype == dtype, key
+        else:
+            assert m[key].dtype.kind == "U", key  # fixed-width unicode, no object arrays
+    assert m["input_columns"].tolist() == list(INPUT_COLUMNS)
+    assert json.loads(str(m["training_metadata"])) == {"a": 1}
+    # the card's inference snippet, unchanged
+    au = np.zeros(20); au[m["au_columns"].tolist().index("AU12")] = 1.0  # noqa: E702
+    x = np.concatenate([au, np.zeros(3)])
+    flat = x @ m["coef"] + m["intercept"]
+    mesh = np.stack([flat[:478], flat[478:956], flat[956:]], axis=1)
+    assert mesh.shape == (478, 3)
+
+
+def test_rows_are_selected_by_name_and_pose_rows_are_zero_without_pose():
+    rng = np.random.default_rng(1)
+    columns = list(reversed(feature_columns(False, False)))  # a design in another order
+    coef, _, arrays = _arrays(columns, rng)
+    np.testing.assert_allclose(arrays["coef"][AU_COLUMNS.index("AU12")], coef[:, columns.index("AU12")].astype(np.float32))
+    assert not arrays["coef"][20:].any()
+    assert "coef_full" not in arrays
+
+
+def test_coef_full_makes_pose_conditioned_prediction_exact():
+    rng = np.random.default_rng(2)
+    columns = feature_columns(True, True)
+    coef, intercept, arrays = _arrays(columns, rng)
+    au, pose = rng.random(20), np.array([0.1, -0.3, 0.05])
+    x_full = np.concatenate([au, pose, (pose[:, None] * au[None, :]).ravel()])
+    expected = (x_full @ coef.T + intercept).reshape(3, 478).T
+    np.testing.assert_allclose(predict_mesh(arrays, au, pose), expected, rtol=1e-5, atol=1e-3)
+    at_zero = predict_mesh(arrays, au)  # pose 0: the 23-row coef is exact
+    np.testing.assert_allclose(at_zero, (np.concatenate([au, np.zeros(63)]) @ coef.T + intercept).reshape(3, 478).T, rtol=1e-5, atol=1e-3)
+
+
+def test_wrong_coef_shape_is_rejected():
+    with pytest.raises(ValueError, match=r"coef has shape \(1434, 5\), expected \(1434, 23\)"):
+        release_arrays(np.zeros((1434, 5)), np.zeros(1434), feature_columns(True, False), 5, _reference(np.random.default_rng(0)), "", {})
+
+
+def test_failed_release_leaves_the_previous_release_untouched(tmp_path):
+    release = tmp_path / "release"
+    with atomic_directory(release) as tmp:
+        (tmp / "model.npz").write_text("v1")
+    with pytest.raises(RuntimeError):
+        with atomic_directory(release) as tmp:
+            (tmp / "model.npz").write_text("half-written v2")
+            raise RuntimeError("render failed")
+    assert (release / "model.npz").read_text() == "v1"
+    assert [p.name for p in tmp_path.iterdir()] == ["release"]  # no temp folder left behind
+
+
+def test_model_card_markdown_names_the_promoted_run():
+    card = {"name": "x", "cv": {"r2_mean": 0.2, "r2_std": 0.01, "r2_folds": [0.2, 0.21, 0.19], "r2_displacement_mean": 0.1,
+                                "r2_displacement_std": 0.0, "r2_displacement_folds": [0.1] * 3, "mae_mean": 0.2, "mae_std": 0.0,
+                                "mae_folds": [0.2] * 3, "vertex_error_mean": 0.4, "vertex_error_std": 0.0, "vertex_error_folds": [0.4] * 3},
+            "data": {"n_frames": 10, "n_videos": 2, "digest": {"md5": "abc.dir"},
+                     "counts": {"frames_in": 12, "videos_in": 2, "dropped_pose": 1, "dropped_alignment_outliers": 1,
+                                "alignment_residual_threshold": 1.0, "videos_dropped_no_frames_left": 0}},
+            "config": {"preprocess": {"pose_filter": {"max_abs_yaw_deg": 40, "max_abs_pitch_deg": 30},
+                                      "alignment": {"anchor_indices": [1, 2], "outlier_quantile": 0.99},
+                                      "target": "absolute", "neutral": {"method": "low_au"}},
+                       "features": {"pose": True, "interactions": True}, "model": {"scale": True},
+                       "cv": {"n_splits": 3, "group": "video_id"}},
+            "model": {"n_components": 83, "n_features": 83}, "provenance": {"git_commit": "deadbeef"},
+            "mlflow": {"run_id": "r1"}, "libraries": {"numpy": "2"},
+            "promotion": {"run_id": "child42", "parent_run_id": "sweep7", "criterion": "max r2_mean"}}
+    text = model_card_markdown(card, None, [])
+    assert "child42" in text and "sweep7" in text and "0.2000" in text and "abc.dir" in text
