@@ -34,7 +34,7 @@ params: $(STAMP)
 	$(BIN)/aumesh compose-params
 
 demo: $(STAMP)
-	$(BIN)/dvc pull --quiet
+	$(BIN)/dvc pull --quiet data.dvc
 	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/dvc repro
 	@echo
 	@echo "Release written to $(CURDIR)/release/:"
