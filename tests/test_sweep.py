@@ -32,6 +32,9 @@ def make_workspace(root: Path, spec: synth.SynthSpec = SPEC) -> Path:
     found = tables.discover(root / cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy)
     prepare.run(found, cfg, root / cfg.paths.prepared_dir)
     (root / "promotion.json").write_text('{"promoted": null}\n')
+    # what `dvc add data` records (a placeholder hash: these tests do not run DVC)
+    (root / "data.dvc").write_text("outs:\n- md5: 0123456789abcdef0123456789abcdef.dir\n  size: 1\n  nfiles: 1\n"
+                                   "  hash: md5\n  path: data\n")
     return root
 
 
