@@ -26,13 +26,15 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 import scipy.sparse as sp
 
-from aumesh.align import align_to_reference, apply_similarity, generalized_procrustes, umeyama_batch
+from aumesh.align import align_to_reference, generalized_procrustes, umeyama_batch
 from aumesh.config import Config, PreprocessConfig
 from aumesh.io_utils import atomic_directory, atomic_write_json
 from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
 from aumesh.tables import FrameTable, TableError, check_unique_frames, iter_vertices, read_metadata
+from aumesh.tables import _check_finite_mesh as check_finite_mesh
 
 log = logging.getLogger(__name__)
 
@@ -77,16 +79,19 @@ def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.
     """Pass 1: metadata + anchors of every row; the pose filter, GPA reference and outlier cut."""
     pre = cfg.preprocess
     anchor_idx = list(pre.alignment.anchor_indices)
-    metas, anchors = [], []
+    metas = []
+    # (n_rows, n_anchors, 3) float32: the only per-frame mesh data kept (144 bytes a frame), filled in place
+    anchors_all = np.empty((sum(t.n_rows for t in tables), len(anchor_idx), 3), np.float32)
+    offset = 0
     for i, table in enumerate(tables):
         meta = read_metadata(table)
         meta["file_index"] = i
         meta["row"] = np.arange(len(meta))
         metas.append(meta)
-        for _, block in iter_vertices(table, cfg.data.chunk_rows, anchor_idx):
-            anchors.append(block.astype(np.float32))
+        for start, block in iter_vertices(table, cfg.data.chunk_rows, anchor_idx):
+            anchors_all[offset + start : offset + start + len(block)] = block
+        offset += table.n_rows
     meta = pd.concat(metas, ignore_index=True)
-    anchors_all = np.concatenate(anchors) if anchors else np.zeros((0, len(anchor_idx), 3), np.float32)
     check_unique_frames(meta, [t.path for t in tables], meta["file_index"].to_numpy())
     n_rows = len(meta)
 
@@ -147,6 +152,48 @@ def _indicator(codes: np.ndarray, n_groups: int) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(n), (codes, np.arange(n))), shape=(n_groups, n))
 
 
+def _iter_axis_major(table: FrameTable, chunk_rows: int):
+    """Full meshes chunk by chunk as ``(start, coords)``, ``coords`` of shape (1434, m) float64, axis-major rows
+    ``[x_0..x_477 | y_.. | z_..]`` (one contiguous row per parquet column: no strided scatter)."""
+    if table.mesh_npy is not None:
+        for start, block in iter_vertices(table, chunk_rows):
+            yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
+        return
+    columns = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
+    pf = pq.ParquetFile(table.path)
+    start = 0
+    where = None
+    for batch in pf.iter_batches(batch_size=chunk_rows, columns=columns):
+        if where is None:
+            where = [batch.schema.get_field_index(name) for name in columns]
+        m = batch.num_rows
+        coords = np.empty((N_TARGETS, m), dtype=np.float64)
+        for j, k in enumerate(where):
+            coords[j] = batch.column(k).to_numpy(zero_copy_only=False)
+        if not np.isfinite(coords).all():
+            check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
+        yield start, coords
+        start += m
+
+
+def _align_rows(rows: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """``apply_similarity`` on axis-major mesh rows (m, 1434) -> (m, 1434) float64, same arithmetic per element
+    (``scale * (R[a,0] x + R[a,1] y + R[a,2] z) + t[a]``) without the (m, 478, 3) einsum."""
+    pts = rows.reshape(len(rows), 3, N_VERTICES)
+    out = np.empty((len(rows), 3, N_VERTICES))
+    tmp = np.empty((len(rows), N_VERTICES))
+    for a in range(3):
+        o = out[:, a]
+        np.multiply(pts[:, 0], rotation[:, a, 0, None], out=o)
+        np.multiply(pts[:, 1], rotation[:, a, 1, None], out=tmp)
+        o += tmp
+        np.multiply(pts[:, 2], rotation[:, a, 2, None], out=tmp)
+        o += tmp
+        o *= scale[:, None]
+        o += translation[:, a, None]
+    return out.reshape(len(rows), N_TARGETS)
+
+
 def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
     """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary."""
     pre = cfg.preprocess
@@ -169,26 +216,36 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
     video_sums = np.zeros((n_videos, N_TARGETS))
     video_low_sums = np.zeros((n_videos, N_TARGETS))
     with atomic_directory(out_dir) as tmp:
-        meshes = np.lib.format.open_memmap(tmp / "meshes.npy", mode="w+", dtype=np.float32, shape=(n_kept, N_TARGETS))
-        for i, table in enumerate(tables):
-            for start, block in iter_vertices(table, cfg.data.chunk_rows):
-                global_rows = file_offsets[i] + start + np.arange(len(block))
-                pos = position[global_rows]
-                sel = pos >= 0
-                if not sel.any():
-                    continue
-                pos = pos[sel]
-                transform = umeyama_batch(anchors_all[global_rows[sel]].astype(np.float64), selection.reference)
-                aligned = apply_similarity(block[sel], *transform)  # (m, 478, 3)
-                flat = aligned.transpose(0, 2, 1).reshape(len(pos), N_TARGETS)  # axis-major [x | y | z]
-                meshes[pos] = flat
-                sums[0] += flat.sum(axis=0)
-                sums[1] += flat[low_population[pos]].sum(axis=0)
-                ind = _indicator(video_index[pos], n_videos)
-                video_sums += ind @ flat
-                video_low_sums += ind @ (flat * low_video[pos, None])
-        meshes.flush()
-        del meshes
+        # the header via numpy; rows written with plain file I/O (kept rows arrive in output order), so the
+        # meshes never sit in this process's memory (a memmap would count every written page in its RSS)
+        header = np.lib.format.open_memmap(tmp / "meshes.npy", mode="w+", dtype=np.float32, shape=(n_kept, N_TARGETS))
+        data_offset = header.offset
+        del header
+        written = 0
+        with open(tmp / "meshes.npy", "r+b") as fh:
+            fh.seek(data_offset)
+            for i, table in enumerate(tables):
+                for start, coords in _iter_axis_major(table, cfg.data.chunk_rows):
+                    m = coords.shape[1]
+                    pos = position[file_offsets[i] + start : file_offsets[i] + start + m]
+                    sel = pos >= 0
+                    if not sel.any():
+                        continue
+                    pos = pos[sel]
+                    if pos[0] != written or pos[-1] != written + len(pos) - 1:  # pragma: no cover - by construction
+                        raise AssertionError("prepare: kept rows out of order")
+                    anchors = anchors_all[file_offsets[i] + start : file_offsets[i] + start + m][sel]
+                    transform = umeyama_batch(anchors.astype(np.float64), selection.reference)
+                    flat = _align_rows(coords.T[sel], *transform)  # (m, 1434) float64, axis-major [x | y | z]
+                    flat.astype(np.float32).tofile(fh)
+                    written += len(pos)
+                    sums[0] += flat.sum(axis=0)
+                    sums[1] += flat[low_population[pos]].sum(axis=0)
+                    ind = _indicator(video_index[pos], n_videos)
+                    video_sums += ind @ flat
+                    video_low_sums += ind @ (flat * low_video[pos, None])
+        if written != n_kept:  # pragma: no cover - by construction
+            raise AssertionError(f"prepare: wrote {written} of {n_kept} meshes")
         n_per_video = np.bincount(video_index, minlength=n_videos)
         n_low_per_video = np.bincount(video_index, weights=low_video, minlength=n_videos)
         kept.drop(columns=["file_index", "row"]).to_parquet(tmp / "frames.parquet", index=False)

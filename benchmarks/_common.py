@@ -1,0 +1,154 @@
+"""Shared helpers for the pipeline benchmarks: cached synthetic data, params, per-stage measurement.
+
+Each stage runs as its own subprocess (``aumesh prepare|evaluate|release --params FILE``).
+Wall time is measured around the subprocess; peak RSS is the child's own ``ru_maxrss``
+from ``os.wait4`` (the kernel's high-water mark of resident memory of that process,
+file-backed pages of memory maps included), plus a sampled peak of the RSS summed over the
+process tree (psutil, every 50 ms) as a cross-check.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+AUMESH = [str(BIN / "aumesh")] if (BIN / "aumesh").exists() else [sys.executable, "-m", "aumesh.cli"]
+DEFAULT_OUT = REPO / "benchmarks" / "out"
+FRAMES_PER_VIDEO = 344_418 / 9_978  # CelebV-HQ scale: ~34.5 frames per video
+STAGES = ("prepare", "evaluate", "release")
+
+
+def videos_for(n_frames: int) -> int:
+    return max(1, round(n_frames / FRAMES_PER_VIDEO))
+
+
+@dataclass
+class Measurement:
+    stage: str
+    wall_s: float
+    maxrss_mib: float  # ru_maxrss of the stage process (wait4)
+    tree_rss_mib: float  # sampled peak of the summed RSS of the process tree
+    returncode: int
+    cpu_s: float = 0.0  # user + system CPU seconds of the stage process (and its waited-for children)
+
+
+def _tree_rss(pid: int) -> int:
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        procs = [proc] + proc.children(recursive=True)
+    except psutil.Error:
+        return 0
+    total = 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            pass
+    return total
+
+
+def run_measured(cmd: list[str], cwd: Path, log_path: Path, env: dict | None = None, stage: str = "") -> Measurement:
+    """Run ``cmd``; wall time, the child's ru_maxrss (wait4) and a sampled tree-RSS peak."""
+    with open(log_path, "w") as log:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        peak = [0]
+        done = threading.Event()
+
+        def sample():
+            while not done.is_set():
+                peak[0] = max(peak[0], _tree_rss(proc.pid))
+                done.wait(0.05)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        done.set()
+        sampler.join()
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    return Measurement(stage, wall, usage.ru_maxrss / 1024.0, peak[0] / 2**20, proc.returncode,
+                       usage.ru_utime + usage.ru_stime)
+
+
+def ensure_data(workdir: Path, n_frames: int, n_videos: int, seed: int = 0) -> tuple[Path, float | None]:
+    """Synthetic tables for (n_frames, n_videos), generated once and cached under ``workdir``.
+
+    Returns the data folder and the generation time (None when reused).
+    """
+    data = workdir / f"data_{n_frames}_{n_videos}"
+    if data.exists():
+        return data, None
+    tmp = data.with_name(data.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    t0 = time.perf_counter()
+    subprocess.run(AUMESH + ["synth", "--out", str(tmp), "--frames", str(n_frames), "--videos", str(n_videos),
+                             "--seed", str(seed)], check=True, stdout=subprocess.DEVNULL)
+    tmp.rename(data)
+    return data, time.perf_counter() - t0
+
+
+def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = ()) -> Path:
+    """A params file whose paths all point into ``run_dir`` (tracking: a SQLite store there)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_data_dvc(run_dir, data_dir)
+    out = run_dir / "params.yaml"
+    subprocess.run(
+        AUMESH + ["compose-params", "--config-dir", str(REPO / "conf"), "--out", str(out),
+                  f"paths.data_dir={data_dir}", f"paths.prepared_dir={run_dir / 'prepared'}",
+                  f"paths.model_dir={run_dir / 'model'}", f"paths.release_dir={run_dir / 'release'}",
+                  f"paths.metrics_file={run_dir / 'metrics.json'}", f"paths.promotion_file={run_dir / 'promotion.json'}",
+                  f"tracking.tracking_uri=sqlite:///{run_dir / 'mlflow.db'}", *overrides],
+        check=True, stdout=subprocess.DEVNULL)
+    return out
+
+
+def write_data_dvc(run_dir: Path, data_dir: Path) -> None:
+    """A stand-in ``data.dvc`` in the stage's working directory (evaluate logs the data digest to MLflow
+    and refuses a digest without md5); the 'md5' names the synthetic set, it is not a real hash."""
+    (run_dir / "data.dvc").write_text(
+        f"outs:\n- md5: benchmark-{Path(data_dir).name}.dir\n  size: {dir_size(data_dir)}\n"
+        f"  nfiles: {sum(1 for _ in Path(data_dir).glob('*.parquet'))}\n  hash: md5\n  path: data\n")
+
+
+def run_stages(run_dir: Path, params: Path, env: dict | None = None, stages=STAGES) -> list[Measurement]:
+    """The pipeline's stages in order, each a measured subprocess (cwd = ``run_dir``)."""
+    out = []
+    for stage in stages:
+        m = run_measured(AUMESH + [stage, "--params", str(params)], run_dir, run_dir / f"{stage}.log", env, stage)
+        out.append(m)
+        if m.returncode != 0:
+            tail = (run_dir / f"{stage}.log").read_text()[-3000:]
+            raise RuntimeError(f"stage {stage} failed (exit {m.returncode}); log tail:\n{tail}")
+    return out
+
+
+def dir_size(path: Path) -> int:
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
+
+
+def environment_note() -> str:
+    import platform
+
+    blas = os.environ.get("OPENBLAS_CORETYPE")
+    return (f"{platform.node()} | {os.cpu_count()} cores | Python {platform.python_version()} | "
+            f"OPENBLAS_CORETYPE={blas if blas is not None else '(unset)'}")
+
+
+def fmt_table(headers: list[str], rows: list[list]) -> str:
+    cells = [[str(h) for h in headers]] + [[c if isinstance(c, str) else f"{c:,.1f}" if isinstance(c, float) else f"{c:,}"
+                                            for c in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = ["| " + " | ".join(c.rjust(w) for c, w in zip(r, widths)) + " |" for r in cells]
+    lines.insert(1, "|" + "|".join("-" * (w + 1) + ":" for w in widths) + "|")
+    return "\n".join(lines)
