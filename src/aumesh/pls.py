@@ -18,7 +18,19 @@ kernel algorithm of
 
 which, at convergence of sklearn's power iterations, gives the same weights,
 loadings, rotations and coefficients as sklearn's NIPALS, and in the same
-pass the coefficients for every smaller number of components.
+pass the coefficients for every smaller number of components. The steps, as
+numbered in the code comments (C = Xs^T Xs, S = Xs^T Ys of the centered,
+optionally standardized data)::
+
+    1. C, S from the statistics (no rows needed)
+    for a = 1..A:
+    2. w_a = dominant eigenvector of S S^T           (left singular vector of S)
+    3. r_a = w_a - sum_{j<a} (p_j^T w_a) r_j         (so X r_a = deflated X w_a)
+    4. tt_a = r_a^T C r_a                            (t_a^T t_a)
+    5. p_a = C r_a / tt_a                            (X loading)
+    6. q_a = S^T r_a / tt_a                          (Y loading)
+    7. S <- S - tt_a p_a q_a^T                       (deflation of X^T Y only)
+    8. B = R Q^T; B_k = R[:, :k] Q[:, :k]^T for every k <= A
 
 :func:`residual_sums`, :func:`r2_variance_weighted`, :func:`r2_per_target`
 and :func:`r2_path` score a model on held-out *statistics*, exactly and
@@ -565,7 +577,7 @@ class PLSRegression(
         else:
             x_std = np.ones(p)
             y_std = np.ones(q)
-        # Cross products of the standardized data Xs = (X - x̄)/x_std, Ys = (Y - ȳ)/y_std.
+        # Step 1: cross products of the standardized data Xs = (X - x̄)/x_std, Ys = (Y - ȳ)/y_std.
         zero_var_x = np.diagonal(cxx) == 0.0
         C = cxx / np.outer(x_std, x_std)  # Xs^T Xs, (p, p)
         S = cxy / np.outer(x_std, y_std)  # Xs^T Ys, (p, q); deflated in place below
@@ -588,7 +600,7 @@ class PLSRegression(
                     stacklevel=3,
                 )
                 break
-            # D&M Algorithm 1, step 2: w = dominant left singular vector of the current
+            # Step 2: w = dominant left singular vector of the current
             # X^T Y, i.e. the eigenvector of (X^T Y)(X^T Y)^T with the largest eigenvalue
             # (for q = 1 it is X^T y normalized).
             if q == 1:
