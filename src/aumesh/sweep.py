@@ -13,7 +13,10 @@ Reuse between configurations (per process; every joblib worker keeps its own):
 * the per-fold :class:`aumesh.evaluate.FoldStatistics`, keyed by (prepared data,
   ``preprocess.target``, ``preprocess.neutral.method``, ``features.pose``,
   ``features.interactions``, ``cv.n_splits``): a new ``model.*`` value costs fits from
-  statistics and one prediction pass, never a new pass of accumulation.
+  statistics and one prediction pass, never a new pass of accumulation;
+* the CV result and final fit, keyed by the statistics and the *effective* number of
+  components: ``model.n_components`` clipped to the number of features (40 or 83 on the
+  23-feature design) is the same model as an earlier configuration and is logged, not refitted.
 
 Prepared data. The prepare-relevant keys are the ``prepare`` stage's params in ``dvc.yaml``
 (:data:`PREPARE_KEYS`). When a configuration's values equal those of the workspace's
@@ -223,6 +226,7 @@ class SweepCache:
     prepared: dict[str, Prepared] = field(default_factory=dict)
     folds: dict[tuple, np.ndarray] = field(default_factory=dict)
     statistics: OrderedDict = field(default_factory=OrderedDict)
+    results: OrderedDict = field(default_factory=OrderedDict)
     workspace: dict[str, Any] = field(default_factory=dict)
     hits: int = 0
     misses: int = 0
@@ -250,6 +254,7 @@ class SweepCache:
             self.prepared = {pid: ev.load_prepared(source.path)}  # one prepared set at a time
             self.folds.clear()
             self.statistics.clear()
+            self.results.clear()
         return self.prepared[pid], pid
 
     def fold_of(self, prepared: Prepared, pid: str, n_splits: int) -> np.ndarray:
@@ -275,6 +280,22 @@ class SweepCache:
             self.statistics.popitem(last=False)
         self.misses += 1
         return stats, False
+
+    def evaluation_for(self, prepared: Prepared, pid: str, cfg: Config,
+                       stats: FoldStatistics) -> tuple[CVResult, FinalModel, bool]:
+        """CV result and final fit of *cfg*; reused when only a clipped ``model.n_components`` differs
+        (e.g. 40 and 83 on a 23-feature design are the same 23-component model)."""
+        from aumesh import evaluate as ev
+
+        key = statistics_key(pid, cfg) + (ev.effective_n_components(cfg), bool(cfg.model.scale))
+        if key in self.results:
+            self.results.move_to_end(key)
+            return (*self.results[key], True)
+        cv, final = evaluate_configuration(prepared, cfg, stats)
+        self.results[key] = (cv, final)
+        while len(self.results) > MAX_CACHED_STATISTICS:
+            self.results.popitem(last=False)
+        return cv, final, False
 
 
 _CACHE: SweepCache | None = None
@@ -478,8 +499,10 @@ def _evaluate_in_run(run, cfg: Config, cache: SweepCache, root: Path) -> tuple[d
     t1 = time.perf_counter()
     stats, reused = cache.statistics_for(prepared, pid, cfg)
     t2 = time.perf_counter()
-    cv, final = evaluate_configuration(prepared, cfg, stats)
+    cv, final, same_model = cache.evaluation_for(prepared, pid, cfg, stats)
     t3 = time.perf_counter()
+    if same_model:
+        run.set_tags({"aumesh.cache.result": "reused (clipped n_components: same model as an earlier configuration)"})
     summary = _log_child(run, cfg, prepared, source, root, cv, final,
                          {"seconds_load": t1 - t0, "seconds_statistics": t2 - t1, "seconds_cv_fit": t3 - t2}, reused)
     return summary, reused
