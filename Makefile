@@ -63,3 +63,16 @@ mlflow-server: $(STAMP)
 
 clean-build:
 	rm -rf build release
+
+# Sweeps (README "Sweeps and promotion"): the demo grid in-process, the latest sweep's table, promotion.
+.PHONY: sweep runs promote
+SWEEP_GRID ?= preprocess.target=absolute,neutral features.pose=true,false features.interactions=true,false model.n_components=10,23,40,83
+sweep: $(STAMP)
+	$(BIN)/aumesh sweep -m $(SWEEP_GRID)
+
+runs: $(STAMP)
+	$(BIN)/aumesh runs --latest
+
+promote: $(STAMP)
+	$(BIN)/aumesh promote --latest
+	@echo "now: make repro   (dvc repro rebuilds the promoted release)"
