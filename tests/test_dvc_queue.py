@@ -44,7 +44,7 @@ def clone(tmp_path) -> tuple[Path, dict]:
     env.update(PATH=f"{BIN}:{env.get('PATH', '')}", PYTHONPATH=str(ws / "src"),  # the clone's code, not the checkout's
                GIT_AUTHOR_NAME="t", GIT_AUTHOR_EMAIL="t@example.com", GIT_COMMITTER_NAME="t",
                GIT_COMMITTER_EMAIL="t@example.com", MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true")
-    _run(["dvc", "pull", "-q"], ws, env)
+    _run(["dvc", "pull", "-q", "data.dvc"], ws, env)  # the remote holds the data; build/ and release/ are rebuilt
     return ws, env
 
 
