@@ -14,6 +14,8 @@ import pytest
 
 from aumesh import config, prepare, synth, tables, tracking
 
+from test_mlflow_server import mlflow_server  # noqa: F401  (module-scoped real server fixture)
+
 REPO = Path(__file__).resolve().parents[1]
 SPEC = synth.SynthSpec(n_frames=600, n_videos=60, seed=11)
 # 2 x 2 x 2 = 8 configurations; pose=false with interactions=true (2) is invalid by design
@@ -200,3 +202,27 @@ def test_joblib_launcher_children_find_the_parent(workspace):
     children = tracking.list_child_runs(parent, {})
     assert len(children) == 2 and set(children["status"]) == {"FINISHED"}
     assert tracking.get_client({}).get_run(parent).data.tags["aumesh.sweep.launcher"].endswith("JoblibLauncher")
+
+
+@pytest.mark.slow
+@pytest.mark.server
+def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_server, monkeypatch):
+    """Over loopback HTTP: parent + children with artifacts, then promote registers the NPZ (the server checks
+    the source lies in the run's artifacts) and sets the champion alias."""
+    from aumesh import promote, sweep
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_server)
+    cfg = {"experiment": "server-sweep"}
+    parent = tracking.start_parent_run(cfg, "server sweep")
+    cache = sweep.SweepCache()
+    results = []
+    for ov in (["model.n_components=2"], ["model.n_components=4"], ["features.pose=false"]):
+        raw = config.compose(ov + ["tracking.experiment=server-sweep"], config_dir=workspace / "conf")
+        results.append(sweep.run_configuration(raw, ov, parent, cache=cache, root=workspace))
+    tracking.end_run(parent, cfg)
+    assert [r["status"] for r in results] == ["FINISHED", "FINISHED", "FAILED"]  # pose=false + interactions=true
+    children = tracking.list_child_runs(parent, cfg)
+    assert sorted(children["status"]) == ["FAILED", "FINISHED", "FINISHED"]
+    record = promote.promote(parent, workspace, cfg, model_name="aumesh-server-test")
+    champion = tracking.model_version_by_alias("aumesh-server-test", "champion", cfg)
+    assert champion["run_id"] == record["run_id"] and champion["source"].startswith("mlflow-artifacts:")
