@@ -255,6 +255,15 @@ def test_constant_x_and_y_columns_behave_as_sklearn(scale):
     assert max_rel(shifted.coef_, model.coef_) < 1e-10
 
 
+def test_all_constant_y_warns_and_predicts_the_mean():
+    X, _ = make_well_conditioned(n=100, p=5, q=3)
+    Y = np.tile([1.0, 2.0, 3.0], (100, 1))
+    with pytest.warns(RuntimeWarning, match="vanished after 0"):
+        model = PLSRegression(n_components=2).fit(X, Y)
+    assert model.n_components_ == 0 and np.all(model.coef_ == 0.0)
+    np.testing.assert_array_equal(model.predict(X[:4]), Y[:4])
+
+
 # --------------------------------------------------------------------------- scoring
 
 

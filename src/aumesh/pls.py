@@ -46,6 +46,7 @@ import warnings
 
 import numpy as np
 from scipy.linalg import pinv
+from threadpoolctl import threadpool_limits
 from sklearn.base import (
     BaseEstimator,
     ClassNamePrefixFeaturesOutMixin,
@@ -582,59 +583,10 @@ class PLSRegression(
         C = cxx / np.outer(x_std, x_std)  # Xs^T Xs, (p, p)
         S = cxy / np.outer(x_std, y_std)  # Xs^T Ys, (p, q); deflated in place below
 
-        W = np.zeros((p, A))
-        P = np.zeros((p, A))
-        Q = np.zeros((q, A))
-        R = np.zeros((p, A))
-        s0 = np.linalg.norm(S)
-        # Deflated X^T Y below this is rounding noise of the initial one: stop there.
-        s_tol = 64 * np.finfo(np.float64).eps * max(p, q) * s0
-        n_informative = 0
-        for a in range(A):
-            s_norm = np.linalg.norm(S)
-            if s0 == 0.0 or s_norm <= s_tol:
-                warnings.warn(
-                    f"Deflated X^T Y vanished after {a} component(s) (Y residual is orthogonal to X); "
-                    f"components {a + 1}..{A} are set to zero.",
-                    RuntimeWarning,
-                    stacklevel=3,
-                )
-                break
-            # Step 2: w = dominant left singular vector of the current
-            # X^T Y, i.e. the eigenvector of (X^T Y)(X^T Y)^T with the largest eigenvalue
-            # (for q = 1 it is X^T y normalized).
-            if q == 1:
-                w = S[:, 0] / s_norm
-            else:
-                _, vecs = np.linalg.eigh(S @ S.T)
-                w = vecs[:, -1].copy()
-            # A zero-variance column has an exactly zero row in X^T Y and X^T X; eigh leaves
-            # rounding noise there: zero it so the column gets an exactly zero coefficient.
-            if zero_var_x.any():
-                w[zero_var_x] = 0.0
-                w /= np.linalg.norm(w)
-            # sklearn's _svd_flip_1d: the largest |w_i| is positive.
-            w *= np.sign(w[np.argmax(np.abs(w))])
-            # Step 3: r_a = w_a - sum_{j<a} (p_j^T w_a) r_j, so that t_a = X r_a = X_a w_a
-            # (X_a the deflated X) without deflating X.
-            r = w - R[:, :a] @ (P[:, :a].T @ w)
-            # Step 4: t_a^T t_a = r_a^T X^T X r_a.
-            Cr = C @ r
-            tt = float(r @ Cr)
-            if not tt > 0.0:
-                warnings.warn(
-                    f"Score of component {a + 1} has zero norm; components {a + 1}..{A} are set to zero.",
-                    RuntimeWarning,
-                    stacklevel=3,
-                )
-                break
-            # Step 5: p_a = X^T X r_a / (t^T t).   Step 6: q_a = (r_a^T X^T Y)^T / (t^T t).
-            p_a = Cr / tt
-            q_a = (r @ S) / tt
-            # Step 7: (X^T Y)_{a+1} = (X^T Y)_a - (t^T t) p_a q_a^T.
-            S -= tt * np.outer(p_a, q_a)
-            W[:, a], P[:, a], Q[:, a], R[:, a] = w, p_a, q_a, r
-            n_informative = a + 1
+        # The per-component work is small (p x q) matrices: multi-threaded BLAS only adds
+        # synchronisation (10x slower on a busy machine), so run it on one thread.
+        with threadpool_limits(limits=1, user_api="blas"):
+            W, P, Q, R, n_informative = _kernel_pls(C, S, A, zero_var_x)
 
         # Step 8: B = R Q^T in standardized units; back to raw units as sklearn does:
         # coef_ = (B * y_std).T / x_std, shape (q, p). Cumulative sums over components give
@@ -763,6 +715,84 @@ class PLSRegression(
         tags = super().__sklearn_tags__()
         tags.regressor_tags.poor_score = True
         return tags
+
+
+def _kernel_pls(C, S, A, zero_var_x):
+    """D&M Algorithm 1, steps 2-7 (see the module docstring).
+
+    Parameters
+    ----------
+    C : ndarray of shape (p, p)
+        ``Xs^T Xs`` of the centered (optionally standardized) data.
+    S : ndarray of shape (p, q)
+        ``Xs^T Ys``; deflated in place.
+    A : int
+        Number of components.
+    zero_var_x : ndarray of shape (p,), bool
+        Zero-variance X columns (get exactly zero weight).
+
+    Returns
+    -------
+    W, P, R : ndarray of shape (p, A)
+    Q : ndarray of shape (q, A)
+    n_informative : int
+        Components computed before the deflated ``S`` vanished (the rest are zero).
+    """
+    p, q = S.shape
+    W = np.zeros((p, A))
+    P = np.zeros((p, A))
+    Q = np.zeros((q, A))
+    R = np.zeros((p, A))
+    s0 = np.linalg.norm(S)
+    # Deflated X^T Y below this is rounding noise of the initial one: stop there.
+    s_tol = 64 * np.finfo(np.float64).eps * max(p, q) * s0
+    n_informative = 0
+    for a in range(A):
+        s_norm = np.linalg.norm(S)
+        if s0 == 0.0 or s_norm <= s_tol:
+            warnings.warn(
+                f"Deflated X^T Y vanished after {a} component(s) (Y residual is orthogonal to X); "
+                f"components {a + 1}..{A} are set to zero.",
+                RuntimeWarning,
+                stacklevel=4,
+            )
+            break
+        # Step 2: w = dominant left singular vector of the current
+        # X^T Y, i.e. the eigenvector of (X^T Y)(X^T Y)^T with the largest eigenvalue
+        # (for q = 1 it is X^T y normalized).
+        if q == 1:
+            w = S[:, 0] / s_norm
+        else:
+            _, vecs = np.linalg.eigh(S @ S.T)
+            w = vecs[:, -1].copy()
+        # A zero-variance column has an exactly zero row in X^T Y and X^T X; eigh leaves
+        # rounding noise there: zero it so the column gets an exactly zero coefficient.
+        if zero_var_x.any():
+            w[zero_var_x] = 0.0
+            w /= np.linalg.norm(w)
+        # sklearn's _svd_flip_1d: the largest |w_i| is positive.
+        w *= np.sign(w[np.argmax(np.abs(w))])
+        # Step 3: r_a = w_a - sum_{j<a} (p_j^T w_a) r_j, so that t_a = X r_a = X_a w_a
+        # (X_a the deflated X) without deflating X.
+        r = w - R[:, :a] @ (P[:, :a].T @ w)
+        # Step 4: t_a^T t_a = r_a^T X^T X r_a.
+        Cr = C @ r
+        tt = float(r @ Cr)
+        if not tt > 0.0:
+            warnings.warn(
+                f"Score of component {a + 1} has zero norm; components {a + 1}..{A} are set to zero.",
+                RuntimeWarning,
+                stacklevel=4,
+            )
+            break
+        # Step 5: p_a = X^T X r_a / (t^T t).   Step 6: q_a = (r_a^T X^T Y)^T / (t^T t).
+        p_a = Cr / tt
+        q_a = (r @ S) / tt
+        # Step 7: (X^T Y)_{a+1} = (X^T Y)_a - (t^T t) p_a q_a^T.
+        S -= tt * np.outer(p_a, q_a)
+        W[:, a], P[:, a], Q[:, a], R[:, a] = w, p_a, q_a, r
+        n_informative = a + 1
+    return W, P, Q, R, n_informative
 
 
 def _check_n_components(n_components, n_samples, n_features):
