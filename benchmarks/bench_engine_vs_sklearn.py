@@ -83,7 +83,19 @@ def main(argv=None):
     )
     parser.add_argument("--sklearn-repeats", type=int, default=None, help="repeats for sklearn (default --repeats)")
     parser.add_argument("--tight", action="store_true", help="also time sklearn at tol=1e-14 (n <= 20000 only)")
+    parser.add_argument(
+        "--blas-threads", type=int, default=None, help="limit BLAS threads for both engines (default: library default)"
+    )
     args = parser.parse_args(argv)
+    if args.blas_threads is not None:
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=args.blas_threads, user_api="blas"):
+            return run(args)
+    return run(args)
+
+
+def run(args):
 
     from sklearn import __version__ as sk_version
     from sklearn.cross_decomposition import PLSRegression as SkPLS
