@@ -120,17 +120,17 @@ def run(args):
     for n in args.n:
         X, Y = make_data(n, args.targets)
         for k in args.components:
-            t_eng, eng = timed(lambda k=k: PLSRegression(n_components=k, scale=True).fit(X, Y), args.repeats)
+            t_eng, eng = timed(lambda k=k, X=X, Y=Y: PLSRegression(n_components=k, scale=True).fit(X, Y), args.repeats)
             row = f"{n:>7} {k:>5} {t_eng:>9.3f} "
             if args.skip_sklearn_above is not None and n > args.skip_sklearn_above:
                 row += f"{'skipped':>10} {'':>7} {'':>21}"
             else:
-                t_sk, sk = timed(lambda k=k: SkPLS(n_components=k, scale=True).fit(X, Y), sk_repeats)
+                t_sk, sk = timed(lambda k=k, X=X, Y=Y: SkPLS(n_components=k, scale=True).fit(X, Y), sk_repeats)
                 diff = np.abs(eng.coef_ - sk.coef_).max() / np.abs(sk.coef_).max()
                 row += f"{t_sk:>10.2f} {t_sk / t_eng:>7.1f} {diff:>21.2e}"
             if args.tight and n <= 20000:
                 t_tight, tight = timed(
-                    lambda k=k: SkPLS(n_components=k, scale=True, tol=1e-14, max_iter=10000).fit(X, Y), 1
+                    lambda k=k, X=X, Y=Y: SkPLS(n_components=k, scale=True, tol=1e-14, max_iter=10000).fit(X, Y), 1
                 )
                 diff_t = np.abs(eng.coef_ - tight.coef_).max() / np.abs(tight.coef_).max()
                 row += f" {t_tight:>15.2f} {diff_t:>17.2e}"

@@ -46,7 +46,6 @@ import warnings
 
 import numpy as np
 from scipy.linalg import pinv
-from threadpoolctl import threadpool_limits
 from sklearn.base import (
     BaseEstimator,
     ClassNamePrefixFeaturesOutMixin,
@@ -55,14 +54,15 @@ from sklearn.base import (
     TransformerMixin,
 )
 from sklearn.utils.validation import check_array, check_is_fitted, validate_data
+from threadpoolctl import threadpool_limits
 
 __all__ = [
     "CrossProducts",
     "PLSRegression",
-    "residual_sums",
-    "r2_variance_weighted",
-    "r2_per_target",
     "r2_path",
+    "r2_per_target",
+    "r2_variance_weighted",
+    "residual_sums",
 ]
 
 #: Rows converted to float64 at a time inside :meth:`CrossProducts.update`
@@ -558,7 +558,7 @@ class PLSRegression(
 
     def _fit_stats(self, stats):
         if not isinstance(self.scale, (bool, np.bool_)):
-            raise ValueError(f"scale must be a bool, got {self.scale!r}.")
+            raise ValueError(f"scale must be a bool, got {self.scale!r}.")  # noqa: TRY004 (sklearn raises ValueError)
         n, p, q = stats.n, stats.n_features, stats.n_targets
         if n < 2:
             raise ValueError(f"Found {n} sample(s) while a minimum of 2 is required.")
@@ -797,7 +797,7 @@ def _kernel_pls(C, S, A, zero_var_x):
 
 def _check_n_components(n_components, n_samples, n_features):
     if not isinstance(n_components, numbers.Integral) or isinstance(n_components, bool):
-        raise ValueError(f"n_components must be an integer, got {n_components!r}.")
+        raise ValueError(f"n_components must be an integer, got {n_components!r}.")  # noqa: TRY004 (as sklearn)
     if n_components < 1:
         raise ValueError(f"n_components must be >= 1, got {n_components}.")
     # As sklearn's PLSRegression: bounded by the rank of X^T X (Wegelin p. 25).
