@@ -290,11 +290,9 @@ class CrossProducts:
         if other.n == 0 and (other.x_shift is None or other.y_shift is None):
             return self.copy()
         if self.n == 0 and (self.x_shift is None or self.y_shift is None):
-            out = other.copy()
             if sign < 0:
-                out.n = -out.n  # caught below
-                _raise_negative(out.n)
-            return out
+                _raise_negative(-other.n)
+            return other.copy()
         if not (np.array_equal(self.x_shift, other.x_shift) and np.array_equal(self.y_shift, other.y_shift)):
             raise ValueError(
                 "Cannot combine CrossProducts with different shifts. Accumulate the parts with the "
