@@ -531,7 +531,8 @@ class SweepCallback:
 
     Implements Hydra's callback protocol (``hydra.experimental.callback.Callback``) without
     importing Hydra at module import. Hydra turns callback exceptions into warnings; a job that
-    finds no parent file logs its run without a parent (``aumesh.sweep.parent_missing`` tag).
+    finds no parent file warns and logs its run without a parent. The parent's params are the
+    sweep's base configuration; the swept values are in its ``aumesh.sweep.overrides`` tag.
     """
 
     def __init__(self, **_: Any) -> None:
