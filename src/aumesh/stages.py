@@ -72,7 +72,8 @@ def evaluate_stage(cfg: Config) -> dict:
     with tracking.tracked_run(cfg.tracking.__dict__, run_name="evaluate", params=params,
                               tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
         run.log_config(params)
-        run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
+        if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
+            run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
