@@ -54,7 +54,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from aumesh.io_utils import atomic_write_json
+from aumesh.io_utils import atomic_write_json, file_lock
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -309,23 +309,6 @@ def process_cache() -> SweepCache:
     return _CACHE
 
 
-@contextlib.contextmanager
-def _file_lock(path: Path) -> Iterator[None]:
-    """Exclusive inter-process lock (parallel jobs preparing the same data wait for one another)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - Windows: no locking
-        yield
-        return
-    with open(path, "a+") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-
-
 def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
     """Make sure *source* holds prepared data for *cfg*; prepare into it when absent.
 
@@ -349,7 +332,7 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
                 "params.yaml; run `dvc repro prepare` (or `make demo`) first.")
         return source.path
     stamp_path = source.path / PREPARE_STAMP
-    with _file_lock(source.path.with_name(source.path.name + ".lock")):
+    with file_lock(source.path.with_name(source.path.name + ".lock")):
         if complete and stamp_path.exists():
             stamp = json.loads(stamp_path.read_text())
             if stamp.get("signature") != json.loads(json.dumps(source.signature, default=str)):

@@ -202,23 +202,15 @@ def _store_init_lock(uri: str) -> Iterator[None]:
     if not uri.startswith("sqlite:///"):
         yield
         return
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - Windows
-        yield
-        return
     import hashlib
     import tempfile
 
+    from aumesh.io_utils import file_lock
+
     db_path = os.path.abspath(uri[len("sqlite:///"):].partition("?")[0])
     key = hashlib.sha1(db_path.encode()).hexdigest()[:16]
-    lock_path = Path(tempfile.gettempdir()) / f"aumesh-mlflow-{key}.lock"
-    with open(lock_path, "a+") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+    with file_lock(Path(tempfile.gettempdir()) / f"aumesh-mlflow-{key}.lock"):
+        yield
 
 
 def ensure_experiment(client: MlflowClient, name: str, artifact_location: str | None = None) -> str:
