@@ -32,6 +32,7 @@ from threadpoolctl import threadpool_limits
 from aumesh.config import Config
 from aumesh.features import design_matrix
 from aumesh.pls import CrossProducts, PLSRegression, r2_path, r2_variance_weighted, residual_sums
+from aumesh.statistics import DesignStatistics, accumulate_design, configuration_statistics, sort_chunk
 from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 
@@ -200,35 +201,29 @@ def _chunks(n: int, chunk_rows: int):
         yield slice(start, min(start + chunk_rows, n))
 
 
-def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: int | None = None) -> FoldStatistics:
-    """Pass A: per-fold cross-products of the design and the targets, streaming the meshes."""
-    chunk_rows = chunk_rows or cfg.data.chunk_rows
-    use_pose, inter = cfg.features.pose, cfg.features.interactions
-    n_splits = cfg.cv.n_splits
-    au, pose = prepared.au, prepared.pose
+def design_statistics(prepared: Prepared, fold: np.ndarray, n_splits: int, chunk_rows: int) -> DesignStatistics:
+    """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration)."""
+    return accumulate_design(prepared.au, prepared.pose, prepared.frames["video_index"].to_numpy(), len(prepared.video_ids),
+                             fold, n_splits, prepared.iter_meshes(chunk_rows))
+
+
+def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: int | None = None,
+               design: DesignStatistics | None = None) -> FoldStatistics:
+    """Per-fold (target, displacement) statistics of ``cfg``'s features and target.
+
+    ``design`` (from :func:`design_statistics` with the same folds) is reused when given: then no
+    pass over the meshes is needed (aumesh.statistics derives every configuration from it).
+    """
+    if design is None:
+        design = design_statistics(prepared, fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows)
+    elif not np.array_equal(design.fold, fold):
+        raise ValueError("accumulate: the design statistics were built with other folds")
     video_index = prepared.frames["video_index"].to_numpy()
     method = cfg.preprocess.neutral.method
-    neutral = prepared.neutral[method]
     neutral_rows = prepared.frames["low_au"].to_numpy() if method == "low_au" else np.ones(len(video_index), bool)
-    xbar_neutral = neutral_design(au, pose, video_index, neutral_rows, len(prepared.video_ids), use_pose, inter)
-    subtract = cfg.preprocess.target == "neutral"
-    p = len(feature_columns(use_pose, inter))
-    target = displacement = None
-    for rows, Y in prepared.iter_meshes(chunk_rows):
-        X = design_matrix(au[rows], pose[rows], use_pose, inter)
-        v = video_index[rows]
-        Yn = Y - neutral[v]
-        Xn = X - xbar_neutral[v]
-        if target is None:  # one provisional shift shared by all folds (CrossProducts needs it to add/subtract)
-            ys = (Yn if subtract else Y).mean(0)
-            target = [CrossProducts(p, N_TARGETS, x_shift=X.mean(0), y_shift=ys) for _ in range(n_splits)]
-            displacement = [CrossProducts(p, N_TARGETS, x_shift=Xn.mean(0), y_shift=Yn.mean(0)) for _ in range(n_splits)]
-        f_chunk = fold[rows]
-        for f in range(n_splits):
-            m = f_chunk == f
-            if m.any():
-                target[f].update(X[m], Yn[m] if subtract else Y[m])
-                displacement[f].update(Xn[m], Yn[m])
+    xbar_neutral = neutral_design(prepared.au, prepared.pose, video_index, neutral_rows, len(prepared.video_ids), True, True)
+    target, displacement = configuration_statistics(design, cfg.features.columns, cfg.preprocess.target,
+                                                    prepared.neutral[method], xbar_neutral)
     return FoldStatistics(target=target, displacement=displacement, fold=fold)
 
 
@@ -277,22 +272,29 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
     vertex_sum = np.zeros((n_splits, N_VERTICES))
     count = np.bincount(stats.fold, minlength=n_splits)
     frame_error = np.empty(n, dtype=np.float32)
+    buffer = None
     for rows, Y in prepared.iter_meshes(chunk_rows):
         X = design_matrix(au[rows], pose[rows], use_pose, inter)
+        v = video_index[rows]
+        order, bounds, _ = sort_chunk(stats.fold[rows], v)  # fold slices become views: no masked copies
+        if buffer is None or buffer.shape[0] < len(order):
+            buffer = np.empty((len(order), N_TARGETS))
+        err = np.take(Y, order, axis=0, out=buffer[: len(order)])
+        Xs = X[order]
         if neutral is not None:
-            Y -= neutral[video_index[rows]]
-        f_chunk = stats.fold[rows]
-        err = np.empty_like(Y)
+            err -= neutral[v[order]]
         for f in range(n_splits):
-            m = f_chunk == f
-            if m.any():
-                err[m] = Y[m] - (X[m] @ models[f].coef_.T + models[f].raw_intercept_)
-        per_vertex = np.sqrt((err.reshape(len(err), 3, N_VERTICES) ** 2).sum(axis=1))  # (m, 478) Euclidean
-        frame_error[rows] = per_vertex.mean(axis=1)
+            lo, hi = bounds[f], bounds[f + 1]
+            if hi > lo:  # residual in place: y - (x @ coef.T + raw_intercept)
+                err[lo:hi] -= Xs[lo:hi] @ models[f].coef_.T
+                err[lo:hi] -= models[f].raw_intercept_
+        e3 = err.reshape(len(err), 3, N_VERTICES)
+        per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
+        frame_error[rows.start + order] = per_vertex.mean(axis=1)
         for f in range(n_splits):
-            m = f_chunk == f
-            abs_sum[f] += np.abs(err[m]).sum()
-            vertex_sum[f] += per_vertex[m].sum(axis=0)
+            lo, hi = bounds[f], bounds[f + 1]
+            abs_sum[f] += np.abs(err[lo:hi]).sum()
+            vertex_sum[f] += per_vertex[lo:hi].sum(axis=0)
     fold_videos = [int(len(np.unique(video_index[stats.fold == f]))) for f in range(n_splits)]
     per_target = 1.0 - sse_sum / np.where(sst_sum > 0, sst_sum, 1.0)
     sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)
