@@ -225,6 +225,7 @@ class SweepCache:
 
     prepared: dict[str, Prepared] = field(default_factory=dict)
     folds: dict[tuple, np.ndarray] = field(default_factory=dict)
+    designs: dict[tuple, Any] = field(default_factory=dict)  # (prepared id, n_splits) -> evaluate.DesignStatistics
     statistics: OrderedDict = field(default_factory=OrderedDict)
     results: OrderedDict = field(default_factory=OrderedDict)
     workspace: dict[str, Any] = field(default_factory=dict)
@@ -253,6 +254,7 @@ class SweepCache:
         if pid not in self.prepared:
             self.prepared = {pid: ev.load_prepared(source.path)}  # one prepared set at a time
             self.folds.clear()
+            self.designs.clear()
             self.statistics.clear()
             self.results.clear()
         return self.prepared[pid], pid
@@ -274,7 +276,11 @@ class SweepCache:
             self.statistics.move_to_end(key)
             self.hits += 1
             return self.statistics[key], True
-        stats = ev.accumulate(prepared, cfg, self.fold_of(prepared, pid, cfg.cv.n_splits))
+        fold = self.fold_of(prepared, pid, cfg.cv.n_splits)
+        design_key = (pid, cfg.cv.n_splits)
+        if design_key not in self.designs:  # the one pass over the meshes; every target/feature set derives from it
+            self.designs[design_key] = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
+        stats = ev.accumulate(prepared, cfg, fold, design=self.designs[design_key])
         self.statistics[key] = stats
         while len(self.statistics) > MAX_CACHED_STATISTICS:
             self.statistics.popitem(last=False)
