@@ -8,7 +8,7 @@ import pytest
 from aumesh.features import design_matrix
 from aumesh.pls import CrossProducts
 from aumesh.schema import N_TARGETS, feature_columns
-from aumesh.statistics import accumulate_design, configuration_statistics, sort_chunk
+from aumesh.statistics import accumulate_design, configuration_statistics, fold_stacked, video_indicator
 
 
 @pytest.fixture(scope="module")
@@ -67,10 +67,20 @@ def test_chunking_does_not_change_the_statistics(frames):
                                many.video_sum_y + many.y_shift * many.video_count[:, None], rtol=1e-12)
 
 
-def test_sort_chunk_groups_rows_by_fold_then_video():
-    fold = np.array([2, 0, 1, 0, 2, 0])
-    video = np.array([9, 3, 5, 4, 9, 3])
-    order, bounds, starts = sort_chunk(fold, video)
-    assert fold[order].tolist() == [0, 0, 0, 1, 2, 2]
-    assert bounds.tolist() == [0, 3, 4, 6]
-    assert video[order][starts].tolist() == [3, 4, 5, 9]
+def test_fold_stacked_product_gives_each_folds_cross_products():
+    rng = np.random.default_rng(1)
+    X, Y = rng.normal(size=(50, 4)), rng.normal(size=(50, 6))
+    fold = rng.integers(0, 3, 50)
+    cross = Y.T @ fold_stacked(X, fold, 3)
+    for f in range(3):
+        m = fold == f
+        np.testing.assert_allclose(cross[:, 4 * f : 4 * f + 4].T, X[m].T @ Y[m], atol=1e-12)
+        np.testing.assert_allclose(cross[:, 12 + f], Y[m].sum(axis=0), atol=1e-12)
+
+
+def test_video_indicator_sums_rows_per_video():
+    video = np.array([7, 3, 7, 9, 3])
+    Y = np.arange(10.0).reshape(5, 2)
+    videos, indicator = video_indicator(video)
+    assert videos.tolist() == [3, 7, 9]
+    np.testing.assert_array_equal(indicator @ Y, [[2 + 8, 3 + 9], [0 + 4, 1 + 5], [6, 7]])

@@ -32,7 +32,7 @@ from threadpoolctl import threadpool_limits
 from aumesh.config import Config
 from aumesh.features import design_matrix
 from aumesh.pls import CrossProducts, PLSRegression, r2_path, r2_variance_weighted, residual_sums
-from aumesh.statistics import DesignStatistics, accumulate_design, configuration_statistics, sort_chunk
+from aumesh.statistics import DesignStatistics, accumulate_design, configuration_statistics, fold_stacked
 from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 
@@ -203,8 +203,9 @@ def _chunks(n: int, chunk_rows: int):
 
 def design_statistics(prepared: Prepared, fold: np.ndarray, n_splits: int, chunk_rows: int) -> DesignStatistics:
     """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration)."""
-    return accumulate_design(prepared.au, prepared.pose, prepared.frames["video_index"].to_numpy(), len(prepared.video_ids),
-                             fold, n_splits, prepared.iter_meshes(chunk_rows))
+    with _one_blas_thread():
+        return accumulate_design(prepared.au, prepared.pose, prepared.frames["video_index"].to_numpy(),
+                                 len(prepared.video_ids), fold, n_splits, prepared.iter_meshes(chunk_rows))
 
 
 def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: int | None = None,
@@ -228,13 +229,20 @@ def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: in
 
 
 def _one_blas_thread():
-    """Single-threaded BLAS/LAPACK for the work on statistics (83 x 83 eigh, 83 x 1434 products, per component).
+    """Single-threaded BLAS/LAPACK for the statistics passes and the fits.
 
-    Those calls are far too small to share between threads: on 2 cores, and worse on a busy machine, the
-    threaded OpenBLAS spends most of its time waking and spinning threads (measured 14-21 s vs 3 s for the
-    3 fold fits + scoring + final fit, identical coefficients). The streaming passes keep all threads.
+    On 2 cores shared with other work, threaded OpenBLAS spends its time waking and spinning
+    threads: measured on this machine under load, 83 x 83 products and 83 x 83 eigh per component
+    ran 5-60x slower with 2 threads than with 1 (fits: 14-21 s vs 3 s; a pass's X'X blocks: 6.6 s vs
+    0.1 s), while the wide GEMMs gain at most 2x on an idle machine. One thread is the robust choice.
     """
     return threadpool_limits(limits=1, user_api="blas")
+
+
+def _single_threaded(chunks):
+    """Iterate ``chunks`` with single-threaded BLAS for the loop body (see :func:`_one_blas_thread`)."""
+    with _one_blas_thread():
+        yield from chunks
 
 
 def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
@@ -272,29 +280,20 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
     vertex_sum = np.zeros((n_splits, N_VERTICES))
     count = np.bincount(stats.fold, minlength=n_splits)
     frame_error = np.empty(n, dtype=np.float32)
-    buffer = None
-    for rows, Y in prepared.iter_meshes(chunk_rows):
+    # every fold's model in one matrix: rows [coef_0.T | ... | coef_K-1.T | raw_intercept_0 .. K-1]
+    stacked_models = np.vstack([m.coef_.T for m in models] + [m.raw_intercept_[None] for m in models])
+    for rows, Y in _single_threaded(prepared.iter_meshes(chunk_rows)):
         X = design_matrix(au[rows], pose[rows], use_pose, inter)
-        v = video_index[rows]
-        order, bounds, _ = sort_chunk(stats.fold[rows], v)  # fold slices become views: no masked copies
-        if buffer is None or buffer.shape[0] < len(order):
-            buffer = np.empty((len(order), N_TARGETS))
-        err = np.take(Y, order, axis=0, out=buffer[: len(order)])
-        Xs = X[order]
+        stacked = fold_stacked(X, stats.fold[rows], n_splits)
         if neutral is not None:
-            err -= neutral[v[order]]
-        for f in range(n_splits):
-            lo, hi = bounds[f], bounds[f + 1]
-            if hi > lo:  # residual in place: y - (x @ coef.T + raw_intercept)
-                err[lo:hi] -= Xs[lo:hi] @ models[f].coef_.T
-                err[lo:hi] -= models[f].raw_intercept_
-        e3 = err.reshape(len(err), 3, N_VERTICES)
+            Y -= neutral[video_index[rows]]
+        Y -= stacked @ stacked_models  # residual: y - (x @ coef_f.T + raw_intercept_f), f the row's fold
+        e3 = Y.reshape(len(Y), 3, N_VERTICES)
         per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
-        frame_error[rows.start + order] = per_vertex.mean(axis=1)
-        for f in range(n_splits):
-            lo, hi = bounds[f], bounds[f + 1]
-            abs_sum[f] += np.abs(err[lo:hi]).sum()
-            vertex_sum[f] += per_vertex[lo:hi].sum(axis=0)
+        frame_error[rows] = per_vertex.mean(axis=1)
+        onehot = stacked[:, n_splits * X.shape[1]:]
+        abs_sum += np.abs(Y).sum(axis=1) @ onehot
+        vertex_sum += onehot.T @ per_vertex
     fold_videos = [int(len(np.unique(video_index[stats.fold == f]))) for f in range(n_splits)]
     per_target = 1.0 - sse_sum / np.where(sst_sum > 0, sst_sum, 1.0)
     sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)

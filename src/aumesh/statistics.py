@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from aumesh.features import design_matrix
 from aumesh.pls import CrossProducts
@@ -51,23 +52,23 @@ class DesignStatistics:
         return self.folds[0].y_shift
 
 
-def sort_chunk(fold: np.ndarray, video: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Order of a chunk's rows by (fold, video): fold slices become views and videos contiguous runs.
+def fold_stacked(X: np.ndarray, fold: np.ndarray, n_splits: int) -> np.ndarray:
+    """``[X * 1{fold=0} | ... | X * 1{fold=K-1} | onehot(fold)]``, shape (m, K * p + K).
 
-    Returns
-    -------
-    order : ndarray (m,)
-        Row permutation.
-    fold_bounds : ndarray (n_folds + 1,) int
-        ``order[fold_bounds[f]:fold_bounds[f + 1]]`` are the rows of fold ``f``.
-    video_starts : ndarray (k,) int
-        Start of each video run in sorted order (for ``np.add.reduceat``).
+    One GEMM with this matrix gives every fold's cross-products (and column sums) at once, with no
+    reordering or masked copies of the wide target chunk: ``Y.T @ fold_stacked(X)`` is
+    ``[X_0'Y_0 | ... | sum(Y_0) ...]`` transposed. (``Y.T @ M`` also keeps OpenBLAS on a kernel that
+    stays fast when the two cores are shared.)
     """
-    order = np.lexsort((video, fold))
-    f_sorted, v_sorted = fold[order], video[order]
-    fold_bounds = np.searchsorted(f_sorted, np.arange(int(fold.max(initial=0)) + 2))
-    video_starts = np.flatnonzero(np.r_[True, (v_sorted[1:] != v_sorted[:-1]) | (f_sorted[1:] != f_sorted[:-1])])
-    return order, fold_bounds, video_starts
+    onehot = (fold[:, None] == np.arange(n_splits)).astype(X.dtype)
+    return np.concatenate([X * onehot[:, [f]] for f in range(n_splits)] + [onehot], axis=1)
+
+
+def video_indicator(video: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+    """The chunk's distinct videos and a sparse (n_distinct, m) 0/1 matrix: per-video row sums as one product."""
+    videos, inverse = np.unique(video, return_inverse=True)
+    m = len(video)
+    return videos, sp.csr_matrix((np.ones(m), (inverse, np.arange(m))), shape=(len(videos), m))
 
 
 def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray, n_videos: int, fold: np.ndarray,
@@ -83,38 +84,39 @@ def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray,
     fold : ndarray (n,) int
         Cross-validation fold of each frame.
     """
-    p, q = len(FULL_DESIGN), N_TARGETS
-    folds: list[CrossProducts] = []
+    p, q, K = len(FULL_DESIGN), N_TARGETS, n_splits
     video_sum_x = np.zeros((n_videos, p))
     video_sum_y = np.zeros((n_videos, q))
+    cross = np.zeros((q, K * p + K))  # per fold: (Y'X)^T blocks, then column sums of Y
+    squares = np.zeros((q, K))  # per fold: diag(Y'Y)
+    xtx = np.zeros((K, p, p))
     a = b = None
-    buffer = None
     for rows, Y in mesh_chunks:
         X = design_matrix(au[rows], pose[rows], True, True)
         if a is None:  # one provisional shift for every fold, so fold statistics add and subtract
             a, b = X.mean(axis=0), Y.mean(axis=0)
-            folds = [CrossProducts(p, q, x_shift=a, y_shift=b) for _ in range(n_splits)]
         X -= a
         Y -= b
-        order, bounds, starts = sort_chunk(fold[rows], video_index[rows])
-        if buffer is None or buffer.shape[0] < len(order):
-            buffer = np.empty((len(order), q))
-        Ys = np.take(Y, order, axis=0, out=buffer[: len(order)])
-        Xs = X[order]
-        for f in range(n_splits):
-            lo, hi = bounds[f], bounds[f + 1]
-            if hi == lo:
-                continue
-            xf, yf, s = Xs[lo:hi], Ys[lo:hi], folds[f]
-            s.n += hi - lo
-            s.sum_x += xf.sum(axis=0)
-            s.sum_y += yf.sum(axis=0)
-            s.xtx += xf.T @ xf
-            s.xty += xf.T @ yf
-            s.yty_diag += np.einsum("ij,ij->j", yf, yf)
-        runs = video_index[rows][order][starts]
-        video_sum_x[runs] += np.add.reduceat(Xs, starts, axis=0)
-        video_sum_y[runs] += np.add.reduceat(Ys, starts, axis=0)
+        stacked = fold_stacked(X, fold[rows], K)
+        cross += Y.T @ stacked
+        for f in range(K):
+            xtx[f] += stacked[:, f * p : (f + 1) * p].T @ X
+        videos, indicator = video_indicator(video_index[rows])
+        video_sum_x[videos] += indicator @ X
+        video_sum_y[videos] += indicator @ Y
+        np.multiply(Y, Y, out=Y)
+        squares += Y.T @ stacked[:, K * p :]
+    folds = []
+    for f in range(K):
+        s = CrossProducts(p, q, x_shift=a, y_shift=b)
+        members = fold == f
+        s.n = int(members.sum())
+        s.sum_x = video_sum_x[np.unique(video_index[members])].sum(axis=0) if s.n else np.zeros(p)
+        s.xtx = xtx[f]
+        s.xty = cross[:, f * p : (f + 1) * p].T.copy()
+        s.sum_y = cross[:, K * p + f].copy()
+        s.yty_diag = squares[:, f].copy()
+        folds.append(s)
     video_fold = np.full(n_videos, -1, dtype=np.int64)
     video_fold[video_index] = fold
     return DesignStatistics(folds=folds, video_fold=video_fold, video_count=np.bincount(video_index, minlength=n_videos),
