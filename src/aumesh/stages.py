@@ -133,8 +133,9 @@ def release_stage(cfg: Config) -> Path:
         atomic_savez(npz_path, **arrays)  # figures are rendered from the NPZ alone
         figures = render.render_release(npz_path, tmp / "figures", cv_path=model_dir / CV_NPZ)
         report = directions.au_direction_report(npz_path)
+        report["source"] = NPZ_NAME  # not the temp folder it was read from
         directions.write_report(report, tmp / "au_directions.json")
-        card["au_directions"] = {au: r.get("verdict") for au, r in report.get("aus", report).items()} if isinstance(report, dict) else None
+        card["au_directions"] = {au: r["verdict"] for au, r in report["aus"].items()}
         markdown = model_card_markdown(card, directions.report_markdown_table(report), [str(f) for f in figures])
         arrays["model_card"] = np.array(markdown)
         arrays["training_metadata"] = np.array(json.dumps(card, sort_keys=True, default=str))
