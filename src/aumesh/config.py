@@ -34,7 +34,7 @@ class PathsConfig:
 class DataConfig:
     tables: str = "**/*.parquet"
     mesh_npy: str = "{stem}.npy"
-    chunk_rows: int = 16384
+    chunk_rows: int = 8192
 
 
 @dataclass(frozen=True)
