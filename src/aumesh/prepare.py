@@ -26,15 +26,13 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pyarrow.parquet as pq
 import scipy.sparse as sp
 
 from aumesh.align import align_to_reference, generalized_procrustes, umeyama_batch
 from aumesh.config import Config, PreprocessConfig
 from aumesh.io_utils import atomic_directory, atomic_write_json
 from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
-from aumesh.tables import FrameTable, TableError, check_unique_frames, iter_vertices, read_metadata
-from aumesh.tables import _check_finite_mesh as check_finite_mesh
+from aumesh.tables import FrameTable, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, read_metadata
 
 log = logging.getLogger(__name__)
 
@@ -152,30 +150,6 @@ def _indicator(codes: np.ndarray, n_groups: int) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(n), (codes, np.arange(n))), shape=(n_groups, n))
 
 
-def _iter_axis_major(table: FrameTable, chunk_rows: int):
-    """Full meshes chunk by chunk as ``(start, coords)``, ``coords`` of shape (1434, m) float64, axis-major rows
-    ``[x_0..x_477 | y_.. | z_..]`` (one contiguous row per parquet column: no strided scatter)."""
-    if table.mesh_npy is not None:
-        for start, block in iter_vertices(table, chunk_rows):
-            yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
-        return
-    columns = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
-    pf = pq.ParquetFile(table.path)
-    start = 0
-    where = None
-    for batch in pf.iter_batches(batch_size=chunk_rows, columns=columns):
-        if where is None:
-            where = [batch.schema.get_field_index(name) for name in columns]
-        m = batch.num_rows
-        coords = np.empty((N_TARGETS, m), dtype=np.float64)
-        for j, k in enumerate(where):
-            coords[j] = batch.column(k).to_numpy(zero_copy_only=False)
-        if not np.isfinite(coords).all():
-            check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
-        yield start, coords
-        start += m
-
-
 def _align_rows(rows: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
     """``apply_similarity`` on axis-major mesh rows (m, 1434) -> (m, 1434) float64, same arithmetic per element
     (``scale * (R[a,0] x + R[a,1] y + R[a,2] z) + t[a]``) without the (m, 478, 3) einsum."""
@@ -225,7 +199,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         with open(tmp / "meshes.npy", "r+b") as fh:
             fh.seek(data_offset)
             for i, table in enumerate(tables):
-                for start, coords in _iter_axis_major(table, cfg.data.chunk_rows):
+                for start, coords in iter_mesh_columns(table, cfg.data.chunk_rows):
                     m = coords.shape[1]
                     pos = position[file_offsets[i] + start : file_offsets[i] + start + m]
                     sel = pos >= 0

@@ -26,6 +26,7 @@ from aumesh.schema import (
     AU_COLUMNS,
     FRAME_COLUMN,
     INPUT_PATH_COLUMN,
+    N_TARGETS,
     N_VERTICES,
     POSE_COLUMNS,
     VIDEO_COLUMN,
@@ -229,6 +230,30 @@ def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[i
         _check_finite_mesh(table.path, block, start, idx)
         yield start, block
         start += batch.num_rows
+
+
+def iter_mesh_columns(table: FrameTable, chunk_rows: int) -> Iterator[tuple[int, np.ndarray]]:
+    """Full meshes chunk by chunk as ``(start, coords)``, ``coords`` of shape (1434, m) float64, axis-major rows
+    ``[x_0..x_477 | y_.. | z_..]`` (one contiguous row per parquet column: no strided scatter)."""
+    if table.mesh_npy is not None:
+        for start, block in iter_vertices(table, chunk_rows):
+            yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
+        return
+    columns = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
+    pf = pq.ParquetFile(table.path)
+    start = 0
+    where = None
+    for batch in pf.iter_batches(batch_size=chunk_rows, columns=columns):
+        if where is None:
+            where = [batch.schema.get_field_index(name) for name in columns]
+        m = batch.num_rows
+        coords = np.empty((N_TARGETS, m), dtype=np.float64)
+        for j, k in enumerate(where):
+            coords[j] = batch.column(k).to_numpy(zero_copy_only=False)
+        if not np.isfinite(coords).all():
+            _check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
+        yield start, coords
+        start += m
 
 
 def _check_finite_mesh(path: Path, block: np.ndarray, start: int, idx: Sequence[int]) -> None:
