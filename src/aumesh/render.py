@@ -373,15 +373,15 @@ def fig_r2_per_vertex(neutral, tri, r2):
     im = ax.tripcolor(neutral[:, 0], -neutral[:, 1], tri, r2, shading="gouraud", cmap="viridis",
                       vmin=min(0.0, float(np.nanmin(r2))), vmax=max(float(np.nanmax(r2)), 1e-6))
     _draw_features(ax, neutral, color="w", lw=0.4)
-    _prep_ax(ax, _limits(neutral, pad=0.1), "R² per vertex (mean over x, y, z)")
-    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="R²")
+    _prep_ax(ax, _limits(neutral, pad=0.1), "R² per vertex (x, y, z pooled; CV held-out folds)")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
     axh.hist(r2[np.isfinite(r2)], bins=40, color="tab:green")
     axh.axvline(float(np.nanmean(r2)), color="k", ls="--", label=f"mean {np.nanmean(r2):.3f}")
     axh.set_xlabel("R² per vertex")
     axh.set_ylabel("vertices")
     axh.legend()
     fig.suptitle("Out-of-sample R² per vertex", fontsize=12)
-    fig.subplots_adjust(left=0.02, right=0.97, bottom=0.1, top=0.88, wspace=0.25)
+    fig.subplots_adjust(left=0.02, right=0.97, bottom=0.1, top=0.88, wspace=0.35)
     return fig
 
 
