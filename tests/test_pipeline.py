@@ -126,3 +126,25 @@ def test_same_inputs_give_identical_coefficients_twice(recovery_tables, tmp_path
         coefs.append(final.coef)
     assert np.array_equal(coefs[0], coefs[1])
     assert np.array_equal(np.load(tmp_path / "prepared0" / "meshes.npy"), np.load(tmp_path / "prepared1" / "meshes.npy"))
+
+
+def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(tmp_path):
+    """Synthetic truth with AU12 reversed (corners pulled down): the trained release fails AU12 only."""
+    import dataclasses
+
+    from aumesh import directions, prepare, synth, tables
+    from aumesh.release import release_arrays
+    from conftest import RECOVERY_SPEC
+
+    spec = dataclasses.replace(RECOVERY_SPEC, n_frames=2000, n_videos=200, reversed_aus=("AU12",))
+    synth.write_tables(tmp_path / "data", spec)
+    cfg = default_config()
+    prepare.run(tables.discover(tmp_path / "data", cfg.data.tables, cfg.data.mesh_npy), cfg, tmp_path / "prepared")
+    prepared = ev.load_prepared(tmp_path / "prepared")
+    _, final = ev.evaluate(prepared, cfg)
+    arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
+                            prepared.reference, "", {})
+    report = directions.au_direction_report(arrays)
+    verdicts = {au: r["verdict"] for au, r in report["aus"].items()}
+    assert verdicts["AU12"] == "fail"
+    assert [au for au, v in verdicts.items() if v != "pass"] == ["AU12"], verdicts
