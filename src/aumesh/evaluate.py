@@ -21,7 +21,9 @@ same space and on the same information (see ``aumesh.promote``).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +45,7 @@ class Prepared:
     frames: pd.DataFrame
     meshes: np.ndarray  # (n, 1434) float32 memmap, axis-major
     video_ids: np.ndarray
-    neutral: dict[str, np.ndarray]  # method -> (n_videos, 1434) float32
+    neutral: Mapping[str, np.ndarray]  # method -> (n_videos, 1434) float32, loaded on first use
     reference: dict[str, np.ndarray]
     summary: dict
     mesh_path: Path | None = None  # meshes.npy: the streaming passes read it with plain file I/O
@@ -76,13 +78,34 @@ class Prepared:
                 np.copyto(out[:m], raw[:m])
                 yield rows, out[:m]
 
-    @property
+    @cached_property
     def au(self) -> np.ndarray:
+        """(n, 20) AU intensities, float64 (one copy, reused by every pass)."""
         return self.frames[list(AU_COLUMNS)].to_numpy(np.float64)
 
-    @property
+    @cached_property
     def pose(self) -> np.ndarray:
+        """(n, 3) Pitch, Yaw, Roll in radians, float64."""
         return self.frames[list(POSE_COLUMNS)].to_numpy(np.float64)
+
+
+class _LazyArrays(Mapping):
+    """Read-only mapping onto NPZ members, each loaded on first access (only the neutral method in use
+    is ever in memory: (n_videos, 1434) float32 each)."""
+
+    def __init__(self, npz, names: dict[str, str]):
+        self._npz, self._names, self._loaded = npz, names, {}
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        if key not in self._loaded:
+            self._loaded[key] = self._npz[self._names[key]]
+        return self._loaded[key]
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
 
 
 def load_prepared(prepared_dir: str | Path) -> Prepared:
@@ -100,7 +123,7 @@ def load_prepared(prepared_dir: str | Path) -> Prepared:
         meshes=np.load(d / "meshes.npy", mmap_mode="r"),
         mesh_path=d / "meshes.npy",
         video_ids=neutrals["video_ids"],
-        neutral={"mean": neutrals["neutral_mean"], "low_au": neutrals["neutral_low_au"]},
+        neutral=_LazyArrays(neutrals, {"mean": "neutral_mean", "low_au": "neutral_low_au"}),
         reference=dict(np.load(d / "reference.npz")),
         summary=summary,
     )
@@ -251,7 +274,7 @@ def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
         return PLSRegression(n_components=n_components, scale=scale).fit_stats(stats)
 
 
-def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk_rows: int | None = None) -> tuple[CVResult, list[PLSRegression]]:
+def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk_rows: int | None = None) -> CVResult:
     """Score each fold's model from statistics (R²) and one streaming pass (MAE, per-vertex error)."""
     chunk_rows = chunk_rows or cfg.data.chunk_rows
     A = effective_n_components(cfg)
@@ -261,7 +284,7 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
     with _one_blas_thread():
         for f in range(n_splits):
             model = fit(total - stats.target[f], A, cfg.model.scale)
-            models.append(model)
+            models.append((model.coef_.copy(), model.raw_intercept_.copy()))  # not the model: its coef path is 80 MB
             sse, sst = residual_sums(model.coef_, model.raw_intercept_, stats.target[f])
             r2_folds.append(r2_variance_weighted(sse, sst))
             sse_sum += sse
@@ -281,7 +304,7 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
     count = np.bincount(stats.fold, minlength=n_splits)
     frame_error = np.empty(n, dtype=np.float32)
     # every fold's model in one matrix: rows [coef_0.T | ... | coef_K-1.T | raw_intercept_0 .. K-1]
-    stacked_models = np.vstack([m.coef_.T for m in models] + [m.raw_intercept_[None] for m in models])
+    stacked_models = np.vstack([coef.T for coef, _ in models] + [intercept[None] for _, intercept in models])
     for rows, Y in _single_threaded(prepared.iter_meshes(chunk_rows)):
         X = design_matrix(au[rows], pose[rows], use_pose, inter)
         stacked = fold_stacked(X, stats.fold[rows], n_splits)
@@ -312,7 +335,7 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
         n_frames_folds=[int(c) for c in count],
         n_videos_folds=fold_videos,
     )
-    return result, models
+    return result
 
 
 @dataclass
@@ -344,5 +367,5 @@ def evaluate(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
     """Cross-validation and the final fit for one configuration (the stage's one typed call)."""
     fold = assign_folds(prepared.frames["video_index"].to_numpy(), cfg.cv.n_splits)
     stats = accumulate(prepared, cfg, fold)
-    cv, _ = cross_validate(prepared, cfg, stats)
+    cv = cross_validate(prepared, cfg, stats)
     return cv, final_fit(prepared, cfg, stats)

@@ -135,65 +135,84 @@ def subset(stats: CrossProducts, columns: np.ndarray) -> CrossProducts:
     return out
 
 
-def neutral_subtracted(stats: CrossProducts, count: np.ndarray, sum_x: np.ndarray, sum_y: np.ndarray,
-                       shifted_neutral: np.ndarray) -> CrossProducts:
-    """Statistics of ``(x, y - n_v)`` from those of ``(x, y)`` and per-video sums (videos of these rows only).
+@dataclass
+class VideoMoments:
+    """Sums over a set of videos of the terms that turn (x, y) statistics into neutral-relative ones.
 
-    Parameters
-    ----------
-    count : (k,) frames per video; sum_x : (k, p) sum of (x - a); sum_y : (k, q) sum of (y - b)
-    shifted_neutral : (k, q) ``d_v = n_v - b``.
-        The result is unshifted in y (``y - n_v`` is already a small displacement).
+    With ``c_v`` frames, ``u_v = sum (x - a)``, ``w_v = sum (y - b)`` per video, the shifted neutral
+    ``d_v = n_v - b`` and the shifted neutral design row ``e_v = xbar_v - a``.
     """
-    d = shifted_neutral
+
+    cd: np.ndarray  # (q,)   sum c_v d_v
+    ud: np.ndarray  # (p, q) sum u_v d_v^T
+    wd: np.ndarray  # (q,)   sum w_v * d_v
+    cdd: np.ndarray  # (q,)  sum c_v d_v^2
+    ce: np.ndarray  # (p,)   sum c_v e_v
+    ue: np.ndarray  # (p, p) sum u_v e_v^T
+    cee: np.ndarray  # (p, p) sum c_v e_v e_v^T
+    ew: np.ndarray  # (p, q) sum e_v w_v^T
+    ced: np.ndarray  # (p, q) sum c_v e_v d_v^T
+
+    @classmethod
+    def of(cls, count, sum_x, sum_y, d, e) -> "VideoMoments":
+        """Moments of a block of videos: count (k,), sum_x (k, p), sum_y (k, q), d (k, q), e (k, p)."""
+        ce_rows = count[:, None] * e
+        return cls(cd=count @ d, ud=sum_x.T @ d, wd=np.einsum("vj,vj->j", sum_y, d), cdd=np.einsum("v,vj,vj->j", count, d, d),
+                   ce=count @ e, ue=sum_x.T @ e, cee=e.T @ ce_rows, ew=e.T @ sum_y, ced=ce_rows.T @ d)
+
+    def __add__(self, other: "VideoMoments") -> "VideoMoments":
+        return VideoMoments(**{k: getattr(self, k) + getattr(other, k) for k in self.__dataclass_fields__})
+
+
+def neutral_subtracted(stats: CrossProducts, m: VideoMoments) -> CrossProducts:
+    """Statistics of ``(x, y - n_v)`` from those of ``(x, y)``; unshifted in y (a small displacement already)."""
     out = CrossProducts(stats.n_features, stats.n_targets, x_shift=stats.x_shift, y_shift=np.zeros(stats.n_targets))
     out.n = stats.n
     out.sum_x = stats.sum_x.copy()
     out.xtx = stats.xtx.copy()
-    out.sum_y = stats.sum_y - count @ d  # sum (y - b) - sum_v c_v d_v
-    out.xty = stats.xty - sum_x.T @ d  # sum (x - a)(y - b - d_v)^T
-    out.yty_diag = stats.yty_diag - 2.0 * np.einsum("vj,vj->j", sum_y, d) + np.einsum("v,vj,vj->j", count, d, d)
+    out.sum_y = stats.sum_y - m.cd  # sum (y - b) - sum_v c_v d_v
+    out.xty = stats.xty - m.ud  # sum (x - a)(y - b - d_v)^T
+    out.yty_diag = stats.yty_diag - 2.0 * m.wd + m.cdd  # sum (y - b - d_v)^2
     return out
 
 
-def displacement(stats: CrossProducts, count: np.ndarray, sum_x: np.ndarray, sum_y: np.ndarray,
-                 shifted_neutral: np.ndarray, shifted_neutral_design: np.ndarray) -> CrossProducts:
-    """Statistics of ``(x - xbar_v, y - n_v)``: the AU-driven displacement from each video's neutral.
-
-    ``shifted_neutral_design`` (k, p) is ``e_v = xbar_v - a``; both results are unshifted.
-    """
-    d, e = shifted_neutral, shifted_neutral_design
-    y_part = neutral_subtracted(stats, count, sum_x, sum_y, d)
+def displacement(stats: CrossProducts, m: VideoMoments) -> CrossProducts:
+    """Statistics of ``(x - xbar_v, y - n_v)``: the AU-driven displacement from each video's neutral (unshifted)."""
+    y_part = neutral_subtracted(stats, m)
     out = CrossProducts(stats.n_features, stats.n_targets, x_shift=np.zeros(stats.n_features), y_shift=np.zeros(stats.n_targets))
     out.n = stats.n
-    out.sum_x = stats.sum_x - count @ e
-    cross = sum_x.T @ e
-    out.xtx = stats.xtx - cross - cross.T + e.T @ (count[:, None] * e)
-    out.xty = y_part.xty - e.T @ sum_y + e.T @ (count[:, None] * d)
+    out.sum_x = stats.sum_x - m.ce
+    out.xtx = stats.xtx - m.ue - m.ue.T + m.cee  # sum (x - a - e_v)(x - a - e_v)^T
+    out.xty = y_part.xty - m.ew + m.ced  # sum (x - a - e_v)(y - b - d_v)^T
     out.sum_y = y_part.sum_y
     out.yty_diag = y_part.yty_diag
     return out
 
 
 def configuration_statistics(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,
-                             neutral_design_full: np.ndarray) -> tuple[list[CrossProducts], list[CrossProducts]]:
+                             neutral_design_full: np.ndarray, video_block: int = 2048) -> tuple[list[CrossProducts], list[CrossProducts]]:
     """Per-fold (target, displacement) statistics of one configuration, from the design statistics.
 
     Parameters
     ----------
     columns : the configuration's design columns (a subset of the full design, in its order)
     target : ``"absolute"`` or ``"neutral"``
-    neutral : (n_videos, 1434) the videos' neutral meshes (absolute coordinates)
+    neutral : (n_videos, 1434) the videos' neutral meshes (absolute coordinates; float32 is fine)
     neutral_design_full : (n_videos, 83) mean full-design row of each video's neutral frames
+    video_block : videos per block of the correction sums (bounds the float64 temporaries)
     """
     idx = np.array([FULL_DESIGN.index(c) for c in columns])
-    d_all = np.asarray(neutral, dtype=np.float64) - design.y_shift
-    e_all = (neutral_design_full - design.x_shift)[:, idx]
     targets, displacements = [], []
     for f, stats in enumerate(design.folds):
-        v = np.flatnonzero(design.video_fold == f)
-        c, sx, sy, d = design.video_count[v].astype(np.float64), design.video_sum_x[v][:, idx], design.video_sum_y[v], d_all[v]
+        videos = np.flatnonzero(design.video_fold == f)
+        moments = None
+        for lo in range(0, len(videos), video_block):
+            v = videos[lo : lo + video_block]
+            block = VideoMoments.of(design.video_count[v].astype(np.float64), design.video_sum_x[v][:, idx],
+                                    design.video_sum_y[v], np.asarray(neutral[v], dtype=np.float64) - design.y_shift,
+                                    neutral_design_full[v][:, idx] - design.x_shift[idx])
+            moments = block if moments is None else moments + block
         sub = subset(stats, idx)
-        targets.append(sub if target == "absolute" else neutral_subtracted(sub, c, sx, sy, d))
-        displacements.append(displacement(sub, c, sx, sy, d, e_all[v]))
+        targets.append(sub if target == "absolute" else neutral_subtracted(sub, moments))
+        displacements.append(displacement(sub, moments))
     return targets, displacements

@@ -378,7 +378,7 @@ def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistic
     """Cross-validation and final fit of one configuration from (possibly shared) statistics."""
     from aumesh import evaluate as ev
 
-    cv, _ = ev.cross_validate(prepared, cfg, stats)
+    cv = ev.cross_validate(prepared, cfg, stats)
     return cv, ev.final_fit(prepared, cfg, stats)
 
 
