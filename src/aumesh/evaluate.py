@@ -33,7 +33,7 @@ from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
 from aumesh.features import design_matrix
-from aumesh.pls import CrossProducts, PLSRegression, r2_path, r2_variance_weighted, residual_sums
+from aumesh.pls import CrossProducts, PLSRegression, r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.statistics import DesignStatistics, accumulate_design, configuration_statistics, fold_stacked
 from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
@@ -318,7 +318,6 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
         abs_sum += np.abs(Y).sum(axis=1) @ onehot
         vertex_sum += onehot.T @ per_vertex
     fold_videos = [int(len(np.unique(video_index[stats.fold == f]))) for f in range(n_splits)]
-    per_target = 1.0 - sse_sum / np.where(sst_sum > 0, sst_sum, 1.0)
     sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)
     result = CVResult(
         n_components=A,
@@ -328,8 +327,8 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
         r2_path_folds=np.vstack(paths),
         mae_folds=list(abs_sum / (count * N_TARGETS)),
         vertex_error_folds=list(vertex_sum.sum(axis=1) / (count * N_VERTICES)),
-        r2_per_target=per_target,
-        r2_per_vertex=1.0 - sse_v / np.where(sst_v > 0, sst_v, 1.0),
+        r2_per_target=r2_per_target(sse_sum, sst_sum),
+        r2_per_vertex=r2_per_target(sse_v, sst_v),  # x, y, z pooled per vertex
         frame_vertex_error=frame_error,
         vertex_error_per_vertex=vertex_sum.sum(axis=0) / count.sum(),
         n_frames_folds=[int(c) for c in count],
