@@ -52,7 +52,7 @@ def _digest(ws):
     return yaml.safe_load((ws / "data.dvc").read_text())["outs"][0]["md5"]
 
 
-def test_dvc_repro_builds_the_release_then_is_up_to_date_then_retrains_on_new_tables(workspace):
+def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and_new_tables(workspace):
     ws = workspace
     _run([BIN / "dvc", "repro"], ws)
     m = np.load(ws / "release" / "au_to_mesh_pls.npz", allow_pickle=False)
@@ -65,6 +65,13 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_retrains_on_new_ta
     assert (ws / "release" / "MODEL_CARD.md").read_text().count("figures/") >= 4
     assert "up to date" in _run([BIN / "dvc", "repro"], ws)
 
+    # `dvc exp run -S` recomposes params.yaml from conf/ (Hydra) and reruns what depends on it
+    out = _run([BIN / "dvc", "exp", "run", "-S", "model.n_components=7"], ws)
+    assert "Stage 'prepare' didn't change" in out
+    assert yaml.safe_load((ws / "params.yaml").read_text())["model"]["n_components"] == 7
+    assert json.loads((ws / "build" / "metrics.json").read_text())["n_components"] == 7
+    assert int(np.load(ws / "release" / "au_to_mesh_pls.npz")["n_components"]) == 7
+
     # the documented retraining path: new tables in the same schema, `dvc add data`, `dvc repro`
     shutil.rmtree(ws / "data")
     write_tables(ws / "data", SynthSpec(n_frames=500, n_videos=50, seed=12))
@@ -74,12 +81,3 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_retrains_on_new_ta
     assert card2["data"]["digest"]["md5"] == _digest(ws) != card["data"]["digest"]["md5"]
     assert card2["data"]["counts"]["frames_in"] == 500
     assert not np.array_equal(np.load(ws / "release" / "au_to_mesh_pls.npz")["coef"], m["coef"])
-
-
-def test_dvc_exp_run_set_param_recomposes_params_from_conf(workspace):
-    ws = workspace
-    _run([BIN / "dvc", "exp", "run", "-S", "model.n_components=7"], ws)
-    params = yaml.safe_load((ws / "params.yaml").read_text())
-    assert params["model"]["n_components"] == 7
-    metrics = json.loads((ws / "build" / "metrics.json").read_text())
-    assert metrics["n_components"] == 7
