@@ -69,7 +69,8 @@ def evaluate_stage(cfg: Config) -> dict:
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
     params = cfg.to_dict()
-    with tracking.tracked_run(cfg.tracking.__dict__, run_name="evaluate", params=params,
+    tracking_cfg = params["tracking"]
+    with tracking.tracked_run(tracking_cfg, run_name="evaluate", params=params,
                               tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
         run.log_config(params)
         if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
@@ -77,7 +78,7 @@ def evaluate_stage(cfg: Config) -> dict:
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
-                    "tracking_uri": tracking.resolve_tracking_uri(cfg.tracking.__dict__) if cfg.tracking.enabled else None}
+                    "tracking_uri": tracking.resolve_tracking_uri(tracking_cfg) if cfg.tracking.enabled else None}
         with atomic_directory(out) as tmp:
             np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,
                      feature_columns=np.array(final.feature_columns), n_components=np.array(final.n_components, dtype=np.int32))
