@@ -26,12 +26,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import scipy.sparse as sp
 
 from aumesh.align import align_to_reference, generalized_procrustes, umeyama_batch
 from aumesh.config import Config, PreprocessConfig
 from aumesh.io_utils import atomic_directory, atomic_write_json
 from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
+from aumesh.statistics import video_indicator
 from aumesh.tables import FrameTable, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, read_metadata
 
 log = logging.getLogger(__name__)
@@ -144,10 +144,35 @@ def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.
     return Selection(meta=meta, keep=keep_align, reference=reference, counts=counts, dropped_videos=dropped_videos), anchors_all
 
 
-def _indicator(codes: np.ndarray, n_groups: int) -> sp.csr_matrix:
-    """Sparse (n_groups, n_rows) 0/1 matrix: per-group sums of rows as one sparse matmul."""
-    n = len(codes)
-    return sp.csr_matrix((np.ones(n), (codes, np.arange(n))), shape=(n_groups, n))
+class _VideoMeans:
+    """Per-video means of mesh rows, summed in float64 only while a video still has frames to come.
+
+    Memory is the float32 result (n_videos, 1434) plus the videos open in the current chunks, instead of
+    float64 sums for every video (tables usually hold a video's frames together, so few are open at once).
+    """
+
+    def __init__(self, frames_per_video: np.ndarray):
+        self.count = frames_per_video.astype(np.float64)
+        self.remaining = frames_per_video.astype(np.int64).copy()
+        self.means = np.zeros((len(frames_per_video), N_TARGETS), dtype=np.float32)
+        self._open: dict[int, np.ndarray] = {}
+
+    def add(self, video: np.ndarray, rows: np.ndarray) -> None:
+        """Add ``rows`` (m, 1434) of videos ``video`` (m,)."""
+        if len(video) == 0:
+            return
+        videos, indicator = video_indicator(video)
+        sums = indicator @ rows
+        n_rows = np.asarray(indicator.sum(axis=1)).ravel().astype(np.int64)
+        for j, v in enumerate(videos.tolist()):
+            acc = self._open.get(v)
+            if acc is None:
+                acc = self._open[v] = np.zeros(N_TARGETS)
+            acc += sums[j]
+            self.remaining[v] -= n_rows[j]
+            if self.remaining[v] == 0:
+                self.means[v] = acc / self.count[v]
+                del self._open[v]
 
 
 def _align_rows(rows: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -182,13 +207,14 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
     n_kept, n_videos = len(kept), len(video_ids)
 
     # output position of each input row (-1: dropped)
-    position = np.full(len(meta), -1, dtype=np.int64)
+    position = np.full(len(keep), -1, dtype=np.int64)
     position[np.flatnonzero(keep)] = np.arange(n_kept)
     file_offsets = np.r_[0, np.cumsum([t.n_rows for t in tables])]
 
+    del meta, selection.meta  # per-row metadata of dropped rows is not needed any more
     sums = np.zeros((2, N_TARGETS))  # all kept frames, population low-AU frames
-    video_sums = np.zeros((n_videos, N_TARGETS))
-    video_low_sums = np.zeros((n_videos, N_TARGETS))
+    video_means = _VideoMeans(np.bincount(video_index, minlength=n_videos))
+    video_low_means = _VideoMeans(np.bincount(video_index[low_video], minlength=n_videos))
     with atomic_directory(out_dir) as tmp:
         # the header via numpy; rows written with plain file I/O (kept rows arrive in output order), so the
         # meshes never sit in this process's memory (a memmap would count every written page in its RSS)
@@ -215,19 +241,17 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
                     written += len(pos)
                     sums[0] += flat.sum(axis=0)
                     sums[1] += flat[low_population[pos]].sum(axis=0)
-                    ind = _indicator(video_index[pos], n_videos)
-                    video_sums += ind @ flat
-                    video_low_sums += ind @ (flat * low_video[pos, None])
+                    video_means.add(video_index[pos], flat)
+                    low = low_video[pos]
+                    video_low_means.add(video_index[pos][low], flat[low])
         if written != n_kept:  # pragma: no cover - by construction
             raise AssertionError(f"prepare: wrote {written} of {n_kept} meshes")
-        n_per_video = np.bincount(video_index, minlength=n_videos)
-        n_low_per_video = np.bincount(video_index, weights=low_video, minlength=n_videos)
         kept.drop(columns=["file_index", "row"]).to_parquet(tmp / "frames.parquet", index=False)
         np.savez(
             tmp / "neutrals.npz",
             video_ids=video_ids.astype(str),
-            neutral_mean=(video_sums / n_per_video[:, None]).astype(np.float32),
-            neutral_low_au=(video_low_sums / n_low_per_video[:, None]).astype(np.float32),
+            neutral_mean=video_means.means,
+            neutral_low_au=video_low_means.means,
         )
         mean_aligned = sums[0] / n_kept
         mean_low = sums[1] / max(int(low_population.sum()), 1)
