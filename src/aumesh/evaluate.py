@@ -4,13 +4,15 @@ Card, "Method" and "Out-of-sample performance": ``PLSRegression(n_components, sc
 3-fold GroupKFold by video_id; variance-weighted R² (as ``sklearn.metrics.r2_score(...,
 multioutput="variance_weighted")``), MAE; final fit on all kept frames.
 
-Two passes over the prepared meshes, whatever the number of configurations scored:
+Two passes over the prepared meshes:
 
-* pass A accumulates per-fold cross-products (``aumesh.pls.CrossProducts``); a fold's
-  training statistics are the total minus the fold's, so each fold's model, and every smaller
-  ``n_components``, comes from statistics; R² is exact from the held-out fold's statistics;
-* pass B streams the held-out rows once through each fold's model for MAE and the per-vertex
-  Euclidean error.
+* pass A (``aumesh.statistics``) accumulates per-fold cross-products of the full design with the
+  absolute coordinates, plus per-video sums; every feature set, target and neutral is derived from
+  them exactly, so a sweep needs this pass once. A fold's training statistics are the total minus
+  the fold's, so each fold's model, and every smaller ``n_components``, comes from statistics; R² is
+  exact from the held-out fold's statistics;
+* pass B streams the rows once through their fold's model (all folds in one product) for MAE and
+  the per-vertex Euclidean error; it runs once per configuration.
 
 Besides R² in the run's own target space, every run gets ``r2_displacement``: R² of the
 AU-driven displacement from each test video's neutral, ``(y - n_v)`` vs ``B (x - x̄_v)``, where
