@@ -178,11 +178,9 @@ def au_direction_from_displacement(disp: np.ndarray, au: str) -> dict[str, Any]:
 def _load_arrays(src: str | os.PathLike | Mapping[str, Any]) -> tuple[dict[str, Any], str]:
     if isinstance(src, Mapping):
         return dict(src), "<arrays>"
-    path = Path(src)
-    if not path.is_file():
-        raise FileNotFoundError(f"release NPZ not found: {path}")
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}, str(path)
+    from aumesh.release import load_npz
+
+    return load_npz(src), str(src)
 
 
 def _require(arrays: Mapping[str, Any], key: str, where: str) -> np.ndarray:

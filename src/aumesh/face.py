@@ -493,26 +493,13 @@ def synthetic_release_arrays(template: np.ndarray | None = None) -> dict[str, np
         (12,), ``n_components`` (), ``model_card`` (), ``training_metadata`` () JSON.
         Pass to ``np.savez(path, **arrays)`` to get a synthetic-truth release.
     """
-    import json
-
-    from aumesh.schema import ANCHOR_INDICES, INPUT_COLUMNS, POSE_COLUMNS
+    from aumesh.release import release_arrays
+    from aumesh.schema import ANCHOR_INDICES
 
     t = canonical_template() if template is None else np.asarray(template, dtype=np.float64)
     fields = facs_displacement_fields(None if template is None else t)
-    coef = np.zeros((len(INPUT_COLUMNS), 3 * N_VERTICES))
-    coef[: len(AU_COLUMNS)] = flatten_axis_major(fields)
     anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)
-    return {
-        "coef": coef.astype(np.float32),
-        "intercept": flatten_axis_major(t).astype(np.float32),
-        "input_columns": np.array(INPUT_COLUMNS),
-        "au_columns": np.array(AU_COLUMNS),
-        "pose_columns": np.array(POSE_COLUMNS),
-        "mean_aligned_mesh": t.astype(np.float32),
-        "mean_low_au_mesh": t.astype(np.float32),
-        "reference_anchors": t[anchors].astype(np.float32),
-        "anchor_indices": anchors,
-        "n_components": np.array(len(AU_COLUMNS), dtype=np.int32),
-        "model_card": np.array("aumesh synthetic-truth release: coef rows = aumesh.face.facs_displacement_fields"),
-        "training_metadata": np.array(json.dumps({"source": "aumesh.face.synthetic_release_arrays"})),
-    }
+    reference = {"mean_aligned_mesh": t, "mean_low_au_mesh": t, "reference_anchors": t[anchors], "anchor_indices": anchors}
+    return release_arrays(flatten_axis_major(fields).T, flatten_axis_major(t), list(AU_COLUMNS), len(AU_COLUMNS), reference,
+                          "aumesh synthetic-truth release: coef rows = aumesh.face.facs_displacement_fields",
+                          {"source": "aumesh.face.synthetic_release_arrays"})

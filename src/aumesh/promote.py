@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from aumesh.config import flatten as flatten_config
 from aumesh.io_utils import atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -227,16 +228,6 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
 
 
 # ------------------------------------------------------------------ configuration
-def _flat(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        if isinstance(value, Mapping):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
 def _param_string(value: Any) -> str:
     """A value as MLflow stores it in params (``aumesh.tracking.prepare_params``)."""
     from aumesh.tracking import prepare_params
@@ -286,7 +277,7 @@ def promoted_values(run_params: Mapping[str, str], base: Mapping[str, Any]) -> d
     ValueError
         The run used other data (``paths.data_dir``), or has keys ``conf/`` no longer has.
     """
-    flat = _flat(base)
+    flat = flatten_config(base)
     if "paths.data_dir" in run_params and run_params["paths.data_dir"] != _param_string(flat.get("paths.data_dir")):
         raise ValueError(
             f"the run used paths.data_dir={run_params['paths.data_dir']} but conf/ has {flat.get('paths.data_dir')}: "
@@ -377,7 +368,7 @@ def verify_composition(composed: Mapping[str, Any], run_params: Mapping[str, str
     ValueError
         Naming every key whose composed value differs.
     """
-    flat = {k: _param_string(v) for k, v in _flat(composed).items()}
+    flat = {k: _param_string(v) for k, v in flatten_config(composed).items()}
     wrong = [f"{k}: run {v!r}, composed {flat.get(k)!r}" for k, v in sorted(run_params.items())
              if _promotable(k) and flat.get(k) != v]
     if wrong:

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.face import unflatten_axis_major
 from aumesh.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 
 NPZ_NAME = "au_to_mesh_pls.npz"
@@ -24,6 +25,15 @@ CARD_SUMMARY = (
     "frame. Deploy as 23-d input (AU + pose), pose = 0 for the canonical frontal view. "
     "Layout is axis-major [all x | all y | all z]."
 )
+
+
+def load_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """All arrays of a release NPZ, read without pickle (the card's loader); no validation here."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"release NPZ not found: {path}")
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
 
 
 def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: list[str], n_components: int,
@@ -83,7 +93,7 @@ def predict_mesh(npz: dict[str, np.ndarray], au: np.ndarray, pose: np.ndarray | 
         flat = x @ npz["coef_full"] + npz["intercept"]
     else:
         flat = np.concatenate([au, pose]) @ npz["coef"] + npz["intercept"]
-    return np.stack([flat[:478], flat[478:956], flat[956:]], axis=1)
+    return unflatten_axis_major(flat)
 
 
 def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:

@@ -88,12 +88,10 @@ def load_release(npz_path: str | os.PathLike) -> dict[str, np.ndarray]:
     FileNotFoundError, KeyError, ValueError
         Naming the file and the missing / malformed key.
     """
-    path = Path(npz_path)
-    if not path.is_file():
-        raise FileNotFoundError(f"release NPZ not found: {path}")
-    with np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
-    validate_release(arrays, str(path))
+    from aumesh.release import load_npz
+
+    arrays = load_npz(npz_path)
+    validate_release(arrays, str(npz_path))
     return arrays
 
 
@@ -162,11 +160,11 @@ def face_frame_meshes(arrays: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray
     scale : float
         Inter-ocular distance of ``mean_aligned_mesh`` in the release's units.
     """
+    from aumesh.directions import au_displacements
+
+    disp, _, _ = au_displacements(arrays)
     origin, axes, scale = face.face_frame(np.asarray(arrays["mean_aligned_mesh"], dtype=np.float64))
-    cols = [str(c) for c in np.asarray(arrays["input_columns"]).tolist()]
     neutral = (predict_mesh(arrays) - origin) @ axes.T / scale
-    coef = np.asarray(arrays["coef"], dtype=np.float64)
-    disp = face.unflatten_axis_major(coef[[cols.index(a) for a in AU_COLUMNS]]) @ axes.T / scale
     return neutral, disp, float(scale)
 
 

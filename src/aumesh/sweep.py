@@ -54,6 +54,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from aumesh.config import flatten as flatten_config
 from aumesh.io_utils import atomic_write_json, file_lock
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -95,17 +96,6 @@ MAX_CACHED_STATISTICS = 8  # FoldStatistics kept per process (a few MB each: X'X
 
 
 # ------------------------------------------------------------------ pure helpers
-def _flat(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        path = f"{prefix}{key}"
-        if isinstance(value, Mapping):
-            out.update(_flat(value, path + "."))
-        else:
-            out[path] = list(value) if isinstance(value, tuple) else value
-    return out
-
-
 def prepare_signature(cfg: Config) -> dict[str, Any]:
     """The values of :data:`PREPARE_KEYS` in *cfg*, flattened (what the prepared data depend on).
 
@@ -118,7 +108,7 @@ def prepare_signature(cfg: Config) -> dict[str, Any]:
     dict
         ``{dotted key: value}``, sorted by key.
     """
-    flat = _flat(cfg.to_dict())
+    flat = flatten_config(cfg.to_dict())
     return {k: v for k, v in sorted(flat.items()) if any(k == p or k.startswith(p + ".") for p in PREPARE_KEYS)}
 
 

@@ -74,14 +74,9 @@ def true_coefficients(spec: SynthSpec) -> tuple[np.ndarray, np.ndarray, list[str
     gains = np.asarray(spec.interaction_gain)
     interaction = (gains[:, None, None, None] * fields[None]).reshape(60, N_VERTICES, 3)
     rows = np.concatenate([fields, pose_fields, interaction]) * spec.px_per_iod
-    coef = _axis_major(rows)
-    intercept = _axis_major(template[None] * spec.px_per_iod)[0]
+    coef = face.flatten_axis_major(rows)
+    intercept = face.flatten_axis_major(template[None] * spec.px_per_iod)[0]
     return coef, intercept, feature_columns(True, True)
-
-
-def _axis_major(meshes: np.ndarray) -> np.ndarray:
-    """(n, 478, 3) -> (n, 1434) as ``[x.. | y.. | z..]``."""
-    return np.ascontiguousarray(meshes.transpose(0, 2, 1).reshape(meshes.shape[0], -1))
 
 
 def _smooth_fields(template: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -163,8 +158,8 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     counts = _frames_per_video(spec, rng)
     coef, intercept, columns = true_coefficients(spec)
     template = face.canonical_template()
-    identity_basis = _axis_major(_smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
-    latent_basis = _axis_major(_smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
+    identity_basis = face.flatten_axis_major(_smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
+    latent_basis = face.flatten_axis_major(_smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
     latent_basis[:, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]] = 0.0
 
     files, failures, file_no, video = [], 0, 0, 0
