@@ -28,7 +28,7 @@ $(STAMP): requirements.lock pyproject.toml
 venv: $(STAMP)
 
 lock:
-	uv pip compile pyproject.toml --extra test --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
+	$(BIN)/uv pip compile pyproject.toml --extra test --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
 
 params: $(STAMP)
 	$(BIN)/aumesh compose-params
