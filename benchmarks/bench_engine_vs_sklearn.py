@@ -1,4 +1,4 @@
-"""Fit time and agreement: aumesh.pls engine vs sklearn's PLSRegression (NIPALS).
+"""Fit time and agreement: aumesh.model.pls engine vs sklearn's PLSRegression (NIPALS).
 
 Synthetic data shaped like the real problem: 20 AU-like nonnegative features,
 3 pose angles and their 60 pose x AU products (83 features); Y has 1434
@@ -100,7 +100,7 @@ def run(args):
     from sklearn import __version__ as sk_version
     from sklearn.cross_decomposition import PLSRegression as SkPLS
 
-    from aumesh.pls import PLSRegression
+    from aumesh.model.pls import PLSRegression
 
     sk_repeats = args.sklearn_repeats or args.repeats
     print(f"python {platform.python_version()}, numpy {np.__version__}, scikit-learn {sk_version}")

@@ -8,7 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aumesh import config, prepare, synth, tables
+from aumesh import config
+from aumesh.pipeline import prepare
+from aumesh.data import synth
+from aumesh.data import tables
 
 REPO = Path(__file__).resolve().parents[1]
 

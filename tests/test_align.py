@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from aumesh.align import align_to_reference, apply_similarity, generalized_procrustes, umeyama_batch
+from aumesh.geometry.align import align_to_reference, apply_similarity, generalized_procrustes, umeyama_batch
 
 
 def _points(rng, n=12):

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aumesh import directions, face
-from aumesh.schema import AU_COLUMNS
+from aumesh.card import directions
+from aumesh.data import schema, truth
+from aumesh.geometry import face
+from aumesh.data.schema import AU_COLUMNS
 
 
 def _verdicts(report):
@@ -19,7 +21,7 @@ def _verdicts(report):
 @pytest.fixture(scope="module")
 def truth_npz(tmp_path_factory):
     path = tmp_path_factory.mktemp("rel") / "truth.npz"
-    np.savez(path, **face.synthetic_release_arrays())
+    np.savez(path, **truth.synthetic_release_arrays())
     return path
 
 
@@ -32,7 +34,7 @@ def test_synthetic_truth_npz_all_20_aus_pass(truth_npz):
 
 
 def test_negated_au12_field_fails_only_au12():
-    arrays = face.synthetic_release_arrays()
+    arrays = truth.synthetic_release_arrays()
     k = AU_COLUMNS.index("AU12")
     arrays["coef"][k] *= -1
     v = _verdicts(directions.au_direction_report(arrays))
@@ -41,7 +43,7 @@ def test_negated_au12_field_fails_only_au12():
 
 
 def test_swapped_brow_raiser_and_lowerer_both_fail():
-    arrays = face.synthetic_release_arrays()
+    arrays = truth.synthetic_release_arrays()
     i, j = AU_COLUMNS.index("AU01"), AU_COLUMNS.index("AU04")
     arrays["coef"][[i, j]] = arrays["coef"][[j, i]]
     v = _verdicts(directions.au_direction_report(arrays))
@@ -49,7 +51,7 @@ def test_swapped_brow_raiser_and_lowerer_both_fail():
 
 
 def test_zero_field_fails_with_reason():
-    arrays = face.synthetic_release_arrays()
+    arrays = truth.synthetic_release_arrays()
     arrays["coef"][AU_COLUMNS.index("AU26")] = 0.0
     e = directions.au_direction_report(arrays)["aus"]["AU26"]
     assert e["verdict"] == "fail" and "no displacement" in e["reason"]
@@ -58,7 +60,7 @@ def test_zero_field_fails_with_reason():
 def test_rotated_scaled_translated_release_still_all_pass():
     R = Rotation.from_euler("xyz", [0.5, -0.9, 2.5]).as_matrix()
     tpl = 180.0 * face.canonical_template() @ R.T + np.array([320.0, 240.0, -15.0])
-    v = _verdicts(directions.au_direction_report(face.synthetic_release_arrays(tpl)))
+    v = _verdicts(directions.au_direction_report(truth.synthetic_release_arrays(tpl)))
     assert v == {au: "pass" for au in AU_COLUMNS}
 
 
@@ -70,16 +72,16 @@ def test_rotated_scaled_translated_release_still_all_pass():
 def test_y_up_convention_release_still_all_pass(flip):
     flip = np.array(flip)
     tpl = face.canonical_template() * flip
-    arrays = face.synthetic_release_arrays()
-    fields = face.facs_displacement_fields() * flip  # same physical motion in the flipped frame
+    arrays = truth.synthetic_release_arrays()
+    fields = truth.facs_displacement_fields() * flip  # same physical motion in the flipped frame
     arrays["mean_aligned_mesh"] = tpl.astype(np.float32)
-    arrays["coef"][: len(AU_COLUMNS)] = face.flatten_axis_major(fields)
+    arrays["coef"][: len(AU_COLUMNS)] = schema.flatten_axis_major(fields)
     v = _verdicts(directions.au_direction_report(arrays))
     assert v == {au: "pass" for au in AU_COLUMNS}
 
 
 def test_rows_are_selected_by_name_not_position():
-    arrays = face.synthetic_release_arrays()
+    arrays = truth.synthetic_release_arrays()
     order = np.r_[np.arange(20)[::-1], 20, 21, 22]
     arrays["coef"] = arrays["coef"][order]
     arrays["input_columns"] = arrays["input_columns"][order]
@@ -87,7 +89,7 @@ def test_rows_are_selected_by_name_not_position():
 
 
 def test_missing_key_error_names_the_key():
-    arrays = face.synthetic_release_arrays()
+    arrays = truth.synthetic_release_arrays()
     del arrays["mean_aligned_mesh"]
     with pytest.raises(KeyError, match="mean_aligned_mesh"):
         directions.au_direction_report(arrays)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from aumesh.synth import SynthSpec, write_tables
+from aumesh.data.synth import SynthSpec, write_tables
 from conftest import REPO
 
 BIN = Path(sys.executable).parent

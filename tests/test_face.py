@@ -1,4 +1,4 @@
-"""Template, landmark orientation, triangulation and synthetic AU fields of aumesh.face."""
+"""Template, landmark orientation, triangulation and synthetic AU fields of aumesh.geometry.face."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aumesh import face
-from aumesh.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES
+from aumesh.data import truth
+from aumesh.geometry import face
+from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +87,7 @@ def test_face_frame_recovers_template_from_rotated_scaled_y_up_mesh(tpl):
 
 
 def test_au_fields_shape_magnitude_and_key_directions(tpl):
-    f = face.facs_displacement_fields()
+    f = truth.facs_displacement_fields()
     assert f.shape == (len(AU_COLUMNS), N_VERTICES, 3)
     mags = np.linalg.norm(f, axis=2).max(axis=1)
     assert np.all((mags >= 0.02) & (mags <= 0.2)), dict(zip(AU_COLUMNS, mags.round(3)))
@@ -100,4 +101,4 @@ def test_au_fields_shape_magnitude_and_key_directions(tpl):
 def test_au_fields_follow_the_template_orientation(tpl):
     R = Rotation.from_euler("xyz", [0.1, 0.8, 0.3]).as_matrix()
     moved = 4.0 * tpl @ R.T - 1.0
-    assert np.allclose(face.facs_displacement_fields(moved), 4.0 * face.facs_displacement_fields() @ R.T)
+    assert np.allclose(truth.facs_displacement_fields(moved), 4.0 * truth.facs_displacement_fields() @ R.T)

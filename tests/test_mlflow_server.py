@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from aumesh import tracking
+from aumesh.experiments import mlflow_store, tracking
 
 pytestmark = pytest.mark.server
 
@@ -91,7 +91,7 @@ def test_parent_and_children_over_http(mlflow_server, tmp_path, monkeypatch):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_server)
     monkeypatch.chdir(Path(__file__).resolve().parents[1])  # provenance tags from the project checkout
     cfg = {"enabled": True, "experiment": "server-test"}
-    assert tracking.resolve_tracking_uri(cfg) == mlflow_server
+    assert mlflow_store.resolve_tracking_uri(cfg) == mlflow_server
 
     parent = tracking.start_parent_run(cfg, "sweep", params={"sweep": {"k": [2, 4]}})
     children = []

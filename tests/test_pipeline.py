@@ -7,10 +7,10 @@ import pytest
 from sklearn.cross_decomposition import PLSRegression as SkPLS
 from sklearn.metrics import mean_absolute_error, r2_score
 
-from aumesh import evaluate as ev
-from aumesh.align import umeyama_batch
-from aumesh.features import design_matrix
-from aumesh.schema import AU_COLUMNS, N_VERTICES
+from aumesh.pipeline import evaluate as ev
+from aumesh.geometry.align import umeyama_batch
+from aumesh.model.features import design_matrix
+from aumesh.data.schema import AU_COLUMNS, N_VERTICES
 from conftest import default_config
 
 
@@ -88,7 +88,7 @@ def test_cv_r2_is_close_to_what_the_true_model_achieves(recovery_tables, default
 
 
 def test_neutral_target_equals_explicit_subtraction(recovery_prepared):
-    from aumesh.pls import PLSRegression
+    from aumesh.model.pls import PLSRegression
 
     prepared = ev.load_prepared(recovery_prepared / "prepared")
     cfg = default_config(**{"preprocess.target": "neutral", "model.n_components": 12})
@@ -114,7 +114,8 @@ def test_n_components_above_feature_count_is_clipped_or_rejected(recovery_prepar
 
 
 def test_same_inputs_give_identical_coefficients_twice(recovery_tables, tmp_path):
-    from aumesh import prepare, tables
+    from aumesh.pipeline import prepare
+    from aumesh.data import tables
 
     out = recovery_tables[0]
     cfg = default_config(**{"model.n_components": 20})
@@ -132,8 +133,11 @@ def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(
     """Synthetic truth with AU12 reversed (corners pulled down): the trained release fails AU12 only."""
     import dataclasses
 
-    from aumesh import directions, prepare, synth, tables
-    from aumesh.release import release_arrays
+    from aumesh.card import directions
+    from aumesh.pipeline import prepare
+    from aumesh.data import synth
+    from aumesh.data import tables
+    from aumesh.model.release import release_arrays
     from conftest import RECOVERY_SPEC
 
     spec = dataclasses.replace(RECOVERY_SPEC, n_frames=2000, n_videos=200, reversed_aus=("AU12",))

@@ -1,4 +1,4 @@
-"""Tests of the sufficient-statistics PLS engine (aumesh.pls) against sklearn and OLS."""
+"""Tests of the sufficient-statistics PLS engine (aumesh.model.pls) against sklearn and OLS."""
 
 from __future__ import annotations
 
@@ -10,14 +10,9 @@ from sklearn.cross_decomposition import PLSRegression as SkPLS
 from sklearn.metrics import r2_score
 from sklearn.utils.estimator_checks import check_estimator
 
-from aumesh.pls import (
-    CrossProducts,
-    PLSRegression,
-    r2_path,
-    r2_per_target,
-    r2_variance_weighted,
-    residual_sums,
-)
+from aumesh.model.cross_products import CrossProducts
+from aumesh.model.pls import PLSRegression
+from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 
 
 def max_rel(a, b):

@@ -11,8 +11,11 @@ import numpy as np
 import pytest
 import yaml
 
-from aumesh import config, promote, provenance, tracking
-from aumesh.promote import Candidate
+from aumesh import config
+from aumesh.experiments import promote
+from aumesh.experiments import provenance
+from aumesh.experiments import registry, tracking
+from aumesh.experiments.promote import Candidate
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -145,7 +148,7 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
     assert params == composed
     assert json.loads((conf_ws / "promotion.json").read_text())["promoted"] == record
 
-    champion = tracking.model_version_by_alias("aumesh-au-to-mesh", "champion", {})
+    champion = registry.model_version_by_alias("aumesh-au-to-mesh", "champion", {})
     assert champion["run_id"] == ids[1] and champion["version"] == record["model_version"] == "1"
     assert champion["source"].endswith("/model")
 
@@ -155,7 +158,7 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
                                                        {"r2_mean": 0.7, "n_components": 5.0}, "FINISHED")])
     record2 = promote.promote(parent2, conf_ws, {})
     assert record2["model_version"] == "2"
-    assert tracking.model_version_by_alias("aumesh-au-to-mesh", "champion", {})["run_id"] == ids2[0]
+    assert registry.model_version_by_alias("aumesh-au-to-mesh", "champion", {})["run_id"] == ids2[0]
     # the new experiment file replaces the old one
     c = config.from_dict(config.compose(config_dir=conf))
     assert (c.model.n_components, c.features.interactions) == (5, True)
@@ -175,7 +178,8 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     registered NPZ, and the card built by the release stage names the promoted run."""
     from test_sweep import make_workspace
 
-    from aumesh import stages, sweep
+    from aumesh.pipeline import stages
+    from aumesh.experiments import sweep
 
     ws = make_workspace(tmp_path / "ws")
     monkeypatch.chdir(ws)
@@ -187,15 +191,15 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     tracking.end_run(parent)
     record = promote.promote(parent, ws, {})
     cfg = config.load_params(ws / "params.yaml")
-    assert record["run_id"] == tracking.model_version_by_alias("aumesh-au-to-mesh")["run_id"]
+    assert record["run_id"] == registry.model_version_by_alias("aumesh-au-to-mesh")["run_id"]
     with sweep.blas_threads():
         stages.evaluate_stage(cfg)
     model = np.load(ws / cfg.paths.model_dir / stages.MODEL_NPZ)
-    npz = np.load(tracking.download_run_artifacts(record["run_id"], "model/au_to_mesh_pls.npz", tmp_path / "dl"))
+    npz = np.load(registry.download_run_artifacts(record["run_id"], "model/au_to_mesh_pls.npz", tmp_path / "dl"))
     coef_full = npz["coef_full"] if "coef_full" in npz else None
     if coef_full is not None:
         np.testing.assert_array_equal(coef_full, model["coef"].T.astype(np.float32))
-    from aumesh.release import release_arrays
+    from aumesh.model.release import release_arrays
 
     ref = dict(np.load(ws / cfg.paths.prepared_dir / "reference.npz"))
     fresh = release_arrays(model["coef"], model["mesh_intercept"], model["feature_columns"].tolist(),

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from aumesh.io_utils import atomic_directory, atomic_savez
-from aumesh.release import model_card_markdown, predict_mesh, release_arrays
-from aumesh.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
+from aumesh.utils.io import atomic_directory, atomic_savez
+from aumesh.model.release import model_card_markdown, predict_mesh, release_arrays
+from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
 
 CARD_KEYS = {"coef": ((23, 1434), np.float32), "intercept": ((1434,), np.float32), "input_columns": ((23,), None),
              "au_columns": ((20,), None), "pose_columns": ((3,), None), "mean_aligned_mesh": ((478, 3), np.float32),

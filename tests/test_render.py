@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aumesh import face, render
+from aumesh.data import truth
+from aumesh.geometry import face
+from aumesh.card import render
 
 ALWAYS = ("au_solid_panels.png", "au_solid_neutral_vs_activated.png", "au_compare_overlay.png",
           "au_effect_maps.png", "pose_views.png")
@@ -27,7 +29,7 @@ def release(tmp_path_factory):
     R = Rotation.from_euler("xyz", [0.1, -0.2, 0.15]).as_matrix()
     tpl = 120.0 * face.canonical_template() @ R.T + np.array([320.0, 240.0, 0.0])
     npz = d / "release.npz"
-    np.savez(npz, **face.synthetic_release_arrays(tpl))
+    np.savez(npz, **truth.synthetic_release_arrays(tpl))
     rng = np.random.default_rng(0)
     cv = d / "cv.npz"
     np.savez(cv, r2_per_vertex=rng.uniform(0.0, 0.4, 478), vertex_error=rng.gamma(3.0, 0.1, (200, 478)))
@@ -60,7 +62,7 @@ def test_precomputed_cumulative_curve_accepted(release, tmp_path):
 def test_frontal_view_has_up_at_top_for_y_down_and_y_up_releases():
     tpl = face.canonical_template()
     for mesh in (tpl, tpl * np.array([1.0, -1.0, -1.0])):
-        arrays = face.synthetic_release_arrays(mesh)
+        arrays = truth.synthetic_release_arrays(mesh)
         neutral, disp, _ = render.face_frame_meshes(arrays)
         assert neutral[10, 1] < neutral[152, 1]  # forehead drawn above chin (plotted as -y)
         assert neutral[263, 0] > neutral[33, 0]  # subject's left on image right
@@ -77,7 +79,7 @@ def test_exaggeration_factor_only_for_small_effects():
 
 @pytest.mark.parametrize("key", ["coef", "intercept", "mean_aligned_mesh", "input_columns"])
 def test_missing_key_error_names_key_and_file(tmp_path, key):
-    arrays = face.synthetic_release_arrays()
+    arrays = truth.synthetic_release_arrays()
     del arrays[key]
     bad = tmp_path / "bad.npz"
     np.savez(bad, **arrays)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aumesh.features import design_matrix
-from aumesh.pls import CrossProducts
-from aumesh.schema import N_TARGETS, feature_columns
-from aumesh.statistics import accumulate_design, configuration_statistics, fold_stacked, video_indicator
+from aumesh.model.features import design_matrix
+from aumesh.model.cross_products import CrossProducts
+from aumesh.data.schema import N_TARGETS, feature_columns
+from aumesh.model.statistics import accumulate_design, configuration_statistics, fold_stacked, video_indicator
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aumesh import config, prepare, synth, tables, tracking
+from aumesh import config
+from aumesh.pipeline import prepare
+from aumesh.data import synth
+from aumesh.data import tables
+from aumesh.experiments import mlflow_store, registry, tracking
 
 from test_mlflow_server import mlflow_server  # noqa: F401  (module-scoped real server fixture)
 
@@ -65,7 +69,7 @@ def swept(workspace):
 
 def test_sweep_one_parent_and_a_child_per_configuration(swept, workspace):
     parent, children = swept
-    client = tracking.get_client({})
+    client = mlflow_store.get_client({})
     exp = client.get_experiment_by_name("aumesh")
     parents = client.search_runs([exp.experiment_id], filter_string=f"tags.`{tracking.ROLE_TAG}` = 'sweep-parent'")
     assert [r.info.run_id for r in parents] == [parent]
@@ -93,7 +97,7 @@ def test_failed_configuration_is_recorded_and_sweep_continues(swept):
 
 def test_children_log_per_fold_metrics_curve_figure_and_model(swept):
     parent, children = swept
-    client = tracking.get_client({})
+    client = mlflow_store.get_client({})
     finished = children[children["status"] == "FINISHED"]
     for row in finished.to_dict(orient="records"):
         rid = row["run_id"]
@@ -116,7 +120,7 @@ def test_children_log_per_fold_metrics_curve_figure_and_model(swept):
 
 def test_statistics_are_reused_across_n_components(swept):
     _, children = swept
-    client = tracking.get_client({})
+    client = mlflow_store.get_client({})
     finished = children[children["status"] == "FINISHED"]
     reuse = [client.get_run(r).data.tags["aumesh.cache.statistics"] for r in finished["run_id"]]
     # 3 valid designs (pose/interactions) x 1 target: computed once each, reused for the other n_components
@@ -125,8 +129,8 @@ def test_statistics_are_reused_across_n_components(swept):
 
 def test_child_equals_a_fresh_fit(swept, workspace):
     """A sweep child's metrics and NPZ coefficients equal evaluate.evaluate of the same configuration."""
-    from aumesh import evaluate as ev
-    from aumesh import sweep
+    from aumesh.pipeline import evaluate as ev
+    from aumesh.experiments import sweep
 
     _, children = swept
     row = children[(children["status"] == "FINISHED") & (children["params.features.interactions"] == "True")
@@ -136,7 +140,7 @@ def test_child_equals_a_fresh_fit(swept, workspace):
     with sweep.blas_threads():
         cv, final = ev.evaluate(ev.load_prepared(workspace / cfg.paths.prepared_dir), cfg)
     assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
-    local = tracking.download_run_artifacts(row["run_id"], "model/au_to_mesh_pls.npz", workspace / "build" / "dl")
+    local = registry.download_run_artifacts(row["run_id"], "model/au_to_mesh_pls.npz", workspace / "build" / "dl")
     npz = np.load(local)
     np.testing.assert_array_equal(npz["coef_full"], final.coef.T.astype(np.float32))
     assert int(npz["n_components"]) == 5
@@ -160,13 +164,13 @@ def test_runs_command_best_first(swept, capsys):
 
 def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     """A sweep value of a prepare key (pose filter) may not reuse build/prepared: prepared once, stamped, reused."""
-    from aumesh import sweep
+    from aumesh.experiments import sweep
 
     cache = sweep.SweepCache()
     raw = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=20", "model.n_components=3"], config_dir=workspace / "conf")
     r1 = sweep.run_configuration(raw, ["preprocess.pose_filter.max_abs_yaw_deg=20"], cache=cache, root=workspace)
     assert r1["status"] == "FINISHED", r1
-    run = tracking.get_client({}).get_run(r1["run_id"])
+    run = mlflow_store.get_client({}).get_run(r1["run_id"])
     prepared_dir = Path(run.data.tags["aumesh.prepared_dir"])
     assert prepared_dir.parent == (workspace / sweep.PREPARED_CACHE_DIR).resolve()
     assert (prepared_dir / sweep.PREPARE_STAMP).exists()
@@ -174,11 +178,11 @@ def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     assert summary["n_frames"] < prepare.load_summary(workspace / "build" / "prepared")["n_frames"]
     raw2 = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=20", "model.n_components=4"], config_dir=workspace / "conf")
     r2 = sweep.run_configuration(raw2, ["model.n_components=4"], cache=cache, root=workspace)
-    assert tracking.get_client({}).get_run(r2["run_id"]).data.tags["aumesh.cache.statistics"] == "reused"
+    assert mlflow_store.get_client({}).get_run(r2["run_id"]).data.tags["aumesh.cache.statistics"] == "reused"
 
 
 def test_runtime_failure_is_recorded(workspace, monkeypatch):
-    from aumesh import sweep
+    from aumesh.experiments import sweep
 
     def boom(*a, **k):
         raise RuntimeError("synthetic failure inside the fit")
@@ -187,7 +191,7 @@ def test_runtime_failure_is_recorded(workspace, monkeypatch):
     raw = config.compose(["model.n_components=3"], config_dir=workspace / "conf")
     result = sweep.run_configuration(raw, ["model.n_components=3"], root=workspace)
     assert result["status"] == "FAILED" and "synthetic failure" in result["error"]
-    run = tracking.get_client({}).get_run(result["run_id"])
+    run = mlflow_store.get_client({}).get_run(result["run_id"])
     assert run.info.status == "FAILED"
     assert "synthetic failure" in run.data.tags[tracking.ERROR_TAG]
 
@@ -201,7 +205,7 @@ def test_joblib_launcher_children_find_the_parent(workspace):
     parent = tracking.latest_parent_run({})
     children = tracking.list_child_runs(parent, {})
     assert len(children) == 2 and set(children["status"]) == {"FINISHED"}
-    assert tracking.get_client({}).get_run(parent).data.tags["aumesh.sweep.launcher"].endswith("JoblibLauncher")
+    assert mlflow_store.get_client({}).get_run(parent).data.tags["aumesh.sweep.launcher"].endswith("JoblibLauncher")
 
 
 @pytest.mark.slow
@@ -209,7 +213,8 @@ def test_joblib_launcher_children_find_the_parent(workspace):
 def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_server, monkeypatch):
     """Over loopback HTTP: parent + children with artifacts, then promote registers the NPZ (the server checks
     the source lies in the run's artifacts) and sets the champion alias."""
-    from aumesh import promote, sweep
+    from aumesh.experiments import promote
+    from aumesh.experiments import sweep
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_server)
     cfg = {"experiment": "server-sweep"}
@@ -224,5 +229,5 @@ def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_serve
     children = tracking.list_child_runs(parent, cfg)
     assert sorted(children["status"]) == ["FAILED", "FINISHED", "FINISHED"]
     record = promote.promote(parent, workspace, cfg, model_name="aumesh-server-test")
-    champion = tracking.model_version_by_alias("aumesh-server-test", "champion", cfg)
+    champion = registry.model_version_by_alias("aumesh-server-test", "champion", cfg)
     assert champion["run_id"] == record["run_id"] and champion["source"].startswith("mlflow-artifacts:")

@@ -6,9 +6,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from aumesh import prepare, tables
-from aumesh.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
-from aumesh.synth import SynthSpec, write_tables
+from aumesh.pipeline import prepare
+from aumesh.data import tables
+from aumesh.data.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
+from aumesh.data.synth import SynthSpec, write_tables
 from conftest import default_config
 
 PATTERN, NPY = "**/*.parquet", "{stem}.npy"

@@ -1,4 +1,4 @@
-"""Offline tests of aumesh.tracking / aumesh.provenance against a temporary SQLite store."""
+"""Offline tests of aumesh.experiments.tracking / aumesh.experiments.provenance against a temporary SQLite store."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from aumesh import provenance, tracking
+from aumesh.experiments import provenance
+from aumesh.experiments import mlflow_store, tracking
 
 MD5 = "0123456789abcdef0123456789abcdef.dir"
 DVC_FILE = f"""outs:
@@ -82,7 +83,7 @@ def test_run_logs_params_metrics_config_dataset_tags(cfg, store_uri, workspace):
     p = got.data.params
     assert p["model.n_components"] == "8" and p["model.scale"] == "True"
     assert p["anchors"] == "[10, 9, 8]"
-    assert len(p["long"]) == tracking.MAX_PARAM_VALUE_LENGTH and p["long"].endswith(tracking.TRUNCATION_MARK)
+    assert len(p["long"]) == mlflow_store.MAX_PARAM_VALUE_LENGTH and p["long"].endswith(mlflow_store.TRUNCATION_MARK)
 
     hist = client.get_metric_history(run.run_id, "r2")
     assert sorted((m.step, m.value) for m in hist) == [(0, 0.5), (1, 0.6), (2, 0.7)]
@@ -169,11 +170,11 @@ def test_resolve_tracking_uri_from_subdirectory(workspace, monkeypatch):
     sub = workspace / "src" / "deep"
     sub.mkdir(parents=True)
     monkeypatch.chdir(sub)
-    assert tracking.resolve_tracking_uri(None) == f"sqlite:///{workspace}/mlflow.db"
-    assert tracking.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
-    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:///runs/t.db"}) == f"sqlite:///{workspace}/runs/t.db"
-    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:////abs/t.db"}) == "sqlite:////abs/t.db"
-    assert tracking.resolve_tracking_uri({"tracking_uri": "http://127.0.0.1:5000"}) == "http://127.0.0.1:5000"
+    assert mlflow_store.resolve_tracking_uri(None) == f"sqlite:///{workspace}/mlflow.db"
+    assert mlflow_store.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
+    assert mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:///runs/t.db"}) == f"sqlite:///{workspace}/runs/t.db"
+    assert mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:////abs/t.db"}) == "sqlite:////abs/t.db"
+    assert mlflow_store.resolve_tracking_uri({"tracking_uri": "http://127.0.0.1:5000"}) == "http://127.0.0.1:5000"
 
 
 @pytest.mark.parametrize("copy", [".dvc/tmp/exps/tmpabc", ".dvc/tmp/exps/standalone/tmpxyz"])
@@ -184,14 +185,14 @@ def test_resolve_tracking_uri_from_dvc_temp_copy(workspace, monkeypatch, copy):
     (tmp_copy / ".git").mkdir()
     monkeypatch.chdir(tmp_copy / "src")
     assert provenance.repo_root() == workspace
-    assert tracking.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
-    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:///mlflow.db"}) == f"sqlite:///{workspace}/mlflow.db"
+    assert mlflow_store.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
+    assert mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:///mlflow.db"}) == f"sqlite:///{workspace}/mlflow.db"
     assert provenance.in_dvc_temp_copy()
 
 
 def test_env_var_wins(workspace, monkeypatch):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")
-    assert tracking.resolve_tracking_uri({"tracking_uri": "sqlite:///other.db"}) == "http://127.0.0.1:9"
+    assert mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:///other.db"}) == "http://127.0.0.1:9"
 
 
 def test_repo_root_errors_clearly_outside_a_workspace(tmp_path, monkeypatch):
@@ -257,7 +258,7 @@ def test_concurrent_first_use_of_a_fresh_sqlite_store(tmp_path, workspace):
 
     uri = f"sqlite:///{tmp_path / 'fresh.db'}"
     script = (
-        "import sys\nfrom aumesh import tracking\n"
+        "import sys\nfrom aumesh.experiments import tracking\n"
         "with tracking.tracked_run({'experiment': 'conc'}, 'w' + sys.argv[1], {'i': sys.argv[1]}) as r:\n"
         "    r.log_fold_metrics({'r2': [0.1, 0.2]})\n"
     )

@@ -1,3 +1,42 @@
-"""aumesh: AU(+pose) -> MediaPipe FaceMesh PLS, reproducible and fast."""
+"""aumesh: AU(+pose) -> MediaPipe FaceMesh PLS, reproducible and fast.
+
+The package is laid out by concern (see the README's "Development" section):
+``data`` (schema, tables, synthetic truth), ``geometry`` (alignment, the face template),
+``model`` (the PLS engine, sufficient statistics, features, the release format),
+``pipeline`` (the DVC stages), ``experiments`` (MLflow tracking, sweeps, promotion),
+``card`` (figures and the AU-direction check), ``utils``, and ``cli``.
+
+What a library user needs is exported here, imported on first use (nothing heavy at import time):
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
+
+# public name -> module that defines it
+_EXPORTS = {
+    "PLSRegression": "aumesh.model.pls",
+    "CrossProducts": "aumesh.model.cross_products",
+    "SynthSpec": "aumesh.data.synth",
+    "write_tables": "aumesh.data.synth",
+    "AU_COLUMNS": "aumesh.data.schema",
+    "POSE_COLUMNS": "aumesh.data.schema",
+    "INPUT_COLUMNS": "aumesh.data.schema",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:  # PEP 562: lazy exports
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'aumesh' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 
 def _params(args) -> "Config":  # noqa: F821
@@ -26,7 +29,7 @@ def _cmd_compose_params(args) -> int:
 
 
 def _cmd_synth(args) -> int:
-    from aumesh.synth import SynthSpec, write_tables
+    from aumesh.data.synth import SynthSpec, write_tables
 
     spec = SynthSpec(n_frames=args.frames, n_videos=args.videos, seed=args.seed, layout=args.layout,
                      reversed_aus=tuple(args.reverse or ()))
@@ -35,7 +38,7 @@ def _cmd_synth(args) -> int:
 
 
 def _cmd_prepare(args) -> int:
-    from aumesh.stages import prepare_stage
+    from aumesh.pipeline.stages import prepare_stage
 
     summary = prepare_stage(_params(args))
     print(json.dumps(summary["counts"], indent=2))
@@ -43,7 +46,7 @@ def _cmd_prepare(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from aumesh.stages import evaluate_stage
+    from aumesh.pipeline.stages import evaluate_stage
 
     metrics = evaluate_stage(_params(args))
     print(f"CV R2 = {metrics['r2_mean']:.4f} +/- {metrics['r2_std']:.4f}  folds {[round(v, 4) for v in metrics['r2_folds']]}  "
@@ -52,16 +55,112 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_release(args) -> int:
-    from aumesh.stages import release_stage
+    from aumesh.pipeline.stages import release_stage
 
     print(f"release written to {release_stage(_params(args)).resolve()}")
     return 0
 
 
 def _cmd_render(args) -> int:
-    from aumesh import render
+    from aumesh.card import render
 
     return render.main([str(args.npz), "--out", str(args.out)] + (["--cv", str(args.cv)] if args.cv else []))
+
+
+# ------------------------------------------------------------------ experiments: sweep, runs, promote
+def _tracking_cfg(args) -> dict[str, Any]:
+    """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
+    from aumesh.experiments import provenance
+    from aumesh.config import load_params
+
+    cfg: dict[str, Any] = {}
+    with contextlib.suppress(FileNotFoundError, ValueError):
+        cfg = dict(load_params(provenance.repo_root() / "params.yaml").tracking.__dict__)
+    if getattr(args, "experiment", None):
+        cfg["experiment"] = args.experiment
+    return cfg
+
+
+def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
+    from aumesh.experiments import mlflow_store, tracking
+
+    if args.parent:
+        return args.parent
+    parent = tracking.latest_parent_run(tracking_cfg)
+    if parent is None:
+        raise SystemExit(f"no sweep parent run in experiment {tracking_cfg.get('experiment') or 'aumesh'} of "
+                         f"{mlflow_store.resolve_tracking_uri(tracking_cfg)}; run `aumesh sweep -m ...` first or pass --parent.")
+    return parent
+
+
+def _cmd_sweep(args) -> int:
+    from aumesh.experiments import sweep
+
+    return sweep.main(args.overrides)
+
+
+def _cmd_runs(args) -> int:
+    from aumesh.experiments import leaderboard, tracking
+
+    tracking_cfg = _tracking_cfg(args)
+    parent = _parent_id(args, tracking_cfg)
+    record = tracking.run_record(parent, tracking_cfg)
+    children = tracking.list_child_runs(parent, tracking_cfg)
+    table = leaderboard.runs_table(children, args.metric)
+    if args.json:
+        print(table.to_json(orient="records", indent=2))
+        return 0
+    tags = record["tags"]
+    n_failed = int((children["status"] != "FINISHED").sum()) if len(children) else 0
+    print(f"sweep {parent} ({record['status']}, {record['run_name']}): {len(children)} runs, {n_failed} not finished"
+          + (f", wall {tags['aumesh.sweep.wall_seconds']} s" if "aumesh.sweep.wall_seconds" in tags else ""))
+    if tags.get("aumesh.sweep.overrides"):
+        print(f"  overrides: {tags['aumesh.sweep.overrides']}")
+    print(leaderboard.format_runs_table(table))
+    return 0
+
+
+def _cmd_promote(args) -> int:
+    from aumesh.experiments import promote
+    from aumesh.experiments import provenance
+
+    tracking_cfg = _tracking_cfg(args)
+    parent = _parent_id(args, tracking_cfg)
+    record = promote.promote(parent, provenance.repo_root(), tracking_cfg, metric=args.metric, target=args.target,
+                             model_name=args.model_name, register=not args.no_register)
+    print(json.dumps(record, indent=2, default=str))
+    print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` "
+          "(PATH=$PWD/.venv/bin:$PATH dvc repro) rebuilds that release.")
+    return 0
+
+
+def add_experiment_commands(subparsers) -> None:
+    """Add ``sweep``, ``runs`` and ``promote`` to the ``aumesh`` command."""
+    p = subparsers.add_parser(
+        "sweep", add_help=False, prefix_chars="\0",
+        help="Hydra sweep over conf/ in-process, one MLflow child run per configuration "
+             "(e.g. `aumesh sweep -m model.n_components=10,40`; `aumesh sweep --help` is Hydra's help)")
+    p.add_argument("overrides", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_cmd_sweep)
+
+    for name, func, text in (("runs", _cmd_runs, "table of a sweep's runs, best first"),
+                             ("promote", _cmd_promote, "promote a sweep's best run into conf/ (+ model registry alias)")):
+        p = subparsers.add_parser(name, help=text)
+        who = p.add_mutually_exclusive_group()
+        who.add_argument("--parent", help="the sweep's parent run id (default: the latest sweep)")
+        who.add_argument("--latest", action="store_true", help="the latest sweep (the default)")
+        p.add_argument("--metric", default=None,
+                       help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean)")
+        p.add_argument("--experiment", default=None, help="MLflow experiment (default: tracking.experiment)")
+        p.set_defaults(func=func)
+        if name == "runs":
+            p.add_argument("--json", action="store_true", help="print the table as JSON records")
+        else:
+            p.add_argument("--target", choices=["absolute", "neutral"], default=None,
+                           help="only consider runs with this preprocess.target")
+            p.add_argument("--model-name", default=None,
+                           help="registered model name (default: aumesh-au-to-mesh)")
+            p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -98,12 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cv", type=Path, default=None)
     p.set_defaults(func=_cmd_render)
 
-    try:  # sweeps, runs and promotion live in aumesh.sweep
-        from aumesh import sweep
-
-        sweep.add_commands(sub)
-    except ImportError:
-        pass
+    add_experiment_commands(sub)
     return parser
 
 

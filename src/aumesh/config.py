@@ -16,8 +16,8 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
-from aumesh.io_utils import atomic_write_text
-from aumesh.schema import ANCHOR_INDICES, feature_columns
+from aumesh.utils.io import atomic_write_text
+from aumesh.data.schema import ANCHOR_INDICES, feature_columns
 
 
 @dataclass(frozen=True)

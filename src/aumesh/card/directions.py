@@ -2,11 +2,11 @@
 
 For each AU the model's displacement at intensity 1 (pose 0) is the AU's ``coef``
 row, reshaped from the axis-major layout to (478, 3). It is expressed in the
-face frame of the release's ``mean_aligned_mesh`` (see :func:`aumesh.face.face_frame`:
+face frame of the release's ``mean_aligned_mesh`` (see :func:`aumesh.geometry.face.face_frame`:
 orientation recovered from the mesh itself, so pixel / y-down, y-up, rotated or
 scaled releases all give the same answer) in inter-ocular units, then:
 
-* each region of :data:`aumesh.face.REGIONS` gets its mean displacement vector
+* each region of :data:`aumesh.geometry.face.REGIONS` gets its mean displacement vector
   and mean displacement magnitude; the region with the largest mean magnitude
   is reported with its dominant direction;
 * the AU's rows of :data:`FACS_EXPECTATIONS` are checked: for each expected
@@ -39,9 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.io_utils import atomic_write_json
-from aumesh import face
-from aumesh.schema import AU_COLUMNS, N_TARGETS
+from aumesh.utils.io import atomic_write_json
+from aumesh.geometry import face
+from aumesh.data import schema
+from aumesh.data.schema import AU_COLUMNS, N_TARGETS
 
 PASS_COSINE = 0.6
 FAIL_COSINE = 0.0
@@ -178,7 +179,7 @@ def au_direction_from_displacement(disp: np.ndarray, au: str) -> dict[str, Any]:
 def _load_arrays(src: str | os.PathLike | Mapping[str, Any]) -> tuple[dict[str, Any], str]:
     if isinstance(src, Mapping):
         return dict(src), "<arrays>"
-    from aumesh.release import load_npz
+    from aumesh.model.release import load_npz
 
     return load_npz(src), str(src)
 
@@ -206,7 +207,7 @@ def au_displacements(arrays: Mapping[str, Any], where: str = "<arrays>") -> tupl
     Returns
     -------
     disp : np.ndarray, shape (20, 478, 3)
-        ``aumesh.schema.AU_COLUMNS`` order, face frame, inter-ocular units.
+        ``aumesh.data.schema.AU_COLUMNS`` order, face frame, inter-ocular units.
     mesh : np.ndarray, shape (478, 3)
         ``mean_aligned_mesh`` in the face frame.
     columns : list of str
@@ -227,7 +228,7 @@ def au_displacements(arrays: Mapping[str, Any], where: str = "<arrays>") -> tupl
     mean = _require(arrays, "mean_aligned_mesh", where).astype(np.float64)
     origin, axes, scale = face.face_frame(mean)
     rows = coef[[names.index(a) for a in AU_COLUMNS]]
-    disp = face.unflatten_axis_major(rows) @ axes.T / scale
+    disp = schema.unflatten_axis_major(rows) @ axes.T / scale
     return disp, (mean - origin) @ axes.T / scale, list(AU_COLUMNS)
 
 

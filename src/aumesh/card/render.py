@@ -12,12 +12,12 @@ Prediction follows the card exactly: ``flat = x @ coef + intercept`` with
 
 Orientation: the release mesh may be in any convention (py-feat pixel space with
 y down, MediaPipe canonical with y up, rotated...). Every figure is drawn in the
-face frame of :func:`aumesh.face.face_frame` computed from ``mean_aligned_mesh``
+face frame of :func:`aumesh.geometry.face.face_frame` computed from ``mean_aligned_mesh``
 (up = forehead 10 - chin 152, subject's left = 33 -> 263, toward the camera = the
 side of the nose tip 1), in inter-ocular units, frontal view with up at the top
 and the subject's left on the image right (as a photograph).
 
-The triangulation is the project's own (:func:`aumesh.face.triangulate`), not
+The triangulation is the project's own (:func:`aumesh.geometry.face.triangulate`), not
 MediaPipe's ``FACEMESH_TESSELATION``. Matplotlib is used through
 ``matplotlib.figure.Figure`` + the Agg canvas only (no pyplot, no global backend
 change); every file is written atomically (temp file, then ``os.replace``).
@@ -30,7 +30,7 @@ not intrinsic as the card states.
 
 Figure builders ``fig_*`` are pure: they take ``neutral`` (478, 3) and ``disp``
 (20, 478, 3, ``AU_COLUMNS`` order) in the face frame (inter-ocular units), ``tri``
-(T, 3) from :func:`aumesh.face.triangulate`, ``factor`` (display exaggeration,
+(T, 3) from :func:`aumesh.geometry.face.triangulate`, ``factor`` (display exaggeration,
 stated in the figure title) and return a ``matplotlib.figure.Figure``;
 :func:`render_release` does the I/O.
 
@@ -48,9 +48,10 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.io_utils import atomic_path, atomic_write_text
-from aumesh import face
-from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES
+from aumesh.utils.io import atomic_path, atomic_write_text
+from aumesh.geometry import face
+from aumesh.data import schema
+from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES
 
 REQUIRED_KEYS: tuple[str, ...] = ("coef", "intercept", "input_columns", "au_columns", "mean_aligned_mesh")
 COMPARE_AUS: tuple[str, ...] = ("AU12", "AU26", "AU04", "AU01")
@@ -88,7 +89,7 @@ def load_release(npz_path: str | os.PathLike) -> dict[str, np.ndarray]:
     FileNotFoundError, KeyError, ValueError
         Naming the file and the missing / malformed key.
     """
-    from aumesh.release import load_npz
+    from aumesh.model.release import load_npz
 
     arrays = load_npz(npz_path)
     validate_release(arrays, str(npz_path))
@@ -145,7 +146,7 @@ def predict_mesh(arrays: Mapping[str, Any], aus: Mapping[str, float] | None = No
         if name in cols:
             x[cols.index(name)] = value
     flat = x @ np.asarray(arrays["coef"], dtype=np.float64) + np.asarray(arrays["intercept"], dtype=np.float64)
-    return face.unflatten_axis_major(flat)
+    return schema.unflatten_axis_major(flat)
 
 
 def face_frame_meshes(arrays: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, float]:
@@ -160,7 +161,7 @@ def face_frame_meshes(arrays: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray
     scale : float
         Inter-ocular distance of ``mean_aligned_mesh`` in the release's units.
     """
-    from aumesh.directions import au_displacements
+    from aumesh.card.directions import au_displacements
 
     disp, _, _ = au_displacements(arrays)
     origin, axes, scale = face.face_frame(np.asarray(arrays["mean_aligned_mesh"], dtype=np.float64))
@@ -255,7 +256,7 @@ def _draw_features(ax, mesh: np.ndarray, color: str = "0.2", lw: float = 0.6) ->
 
 
 def _au_title(au: str) -> str:
-    from aumesh.directions import FACS_EXPECTATIONS
+    from aumesh.card.directions import FACS_EXPECTATIONS
 
     return f"{au} {FACS_EXPECTATIONS[au]['name']}"
 
@@ -466,7 +467,7 @@ def render_release(npz_path: str | os.PathLike, out_dir: str | os.PathLike,
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``render NPZ --out DIR [--cv CVNPZ]``: figures + ``au_directions.json`` (+ ``.md``) into DIR."""
-    from aumesh.directions import au_direction_report, report_markdown_table, write_report
+    from aumesh.card.directions import au_direction_report, report_markdown_table, write_report
 
     parser = argparse.ArgumentParser(prog="aumesh render", description="Render the visual model card of a release NPZ.")
     parser.add_argument("npz", help="release NPZ (card format)")

@@ -5,6 +5,8 @@ One place for every name the card fixes, so no module spells them again.
 
 from __future__ import annotations
 
+import numpy as np
+
 # Card, "File format": input_columns = AU01..AU43, Pitch, Yaw, Roll.
 AU_COLUMNS: tuple[str, ...] = (
     "AU01", "AU02", "AU04", "AU05", "AU06", "AU07", "AU09", "AU10", "AU11", "AU12",
@@ -45,3 +47,17 @@ def feature_columns(pose: bool, interactions: bool) -> list[str]:
     if interactions:
         cols += interaction_columns()
     return cols
+
+
+def flatten_axis_major(mesh: np.ndarray) -> np.ndarray:
+    """(..., 478, 3) -> (..., 1434) in the model's layout ``[x_0..x_477 | y_.. | z_..]``."""
+    m = np.asarray(mesh)
+    return np.swapaxes(m, -1, -2).reshape(*m.shape[:-2], 3 * m.shape[-2])
+
+
+def unflatten_axis_major(flat: np.ndarray, n_vertices: int = N_VERTICES) -> np.ndarray:
+    """(..., 1434) axis-major -> (..., 478, 3); inverse of :func:`flatten_axis_major`."""
+    f = np.asarray(flat)
+    if f.shape[-1] != 3 * n_vertices:
+        raise ValueError(f"expected last axis of length {3 * n_vertices}, got {f.shape}")
+    return np.swapaxes(f.reshape(*f.shape[:-1], 3, n_vertices), -1, -2)

@@ -3,7 +3,7 @@
 The generator is honest about what makes the real problem hard:
 
 * a known linear map  AU (+ pose, + pose x AU) -> canonical mesh, whose AU rows are
-  FACS-plausible displacement fields on the project's face template (``aumesh.face``);
+  FACS-plausible displacement fields on the project's face template (``aumesh.geometry.face``);
 * per-video identity shape differences and per-frame expression variation the AUs do not
   explain, plus coordinate noise;
 * random head rotation (the recorded Pitch, Yaw, Roll), scale and image-space translation,
@@ -24,8 +24,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.spatial.transform import Rotation
 
-from aumesh.io_utils import atomic_path, atomic_savez
-from aumesh.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, feature_columns
+from aumesh.utils.io import atomic_path, atomic_savez
+from aumesh.data.schema import flatten_axis_major, ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 
 @dataclass(frozen=True)
@@ -62,10 +62,11 @@ def true_coefficients(spec: SynthSpec) -> tuple[np.ndarray, np.ndarray, list[str
         Template mesh in pixels (the canonical face at AU = 0, pose = 0, mean identity).
     columns : list of str
     """
-    from aumesh import face
+    from aumesh.data import truth
+    from aumesh.geometry import face
 
     template = face.canonical_template()
-    fields = np.array(face.facs_displacement_fields(template), dtype=np.float64)  # (20, 478, 3)
+    fields = np.array(truth.facs_displacement_fields(template), dtype=np.float64)  # (20, 478, 3)
     fields[:, list(ANCHOR_INDICES), :] = 0.0  # anchors stay rigid so alignment is not AU-driven
     for au in spec.reversed_aus:
         fields[AU_COLUMNS.index(au)] *= -1.0
@@ -74,8 +75,8 @@ def true_coefficients(spec: SynthSpec) -> tuple[np.ndarray, np.ndarray, list[str
     gains = np.asarray(spec.interaction_gain)
     interaction = (gains[:, None, None, None] * fields[None]).reshape(60, N_VERTICES, 3)
     rows = np.concatenate([fields, pose_fields, interaction]) * spec.px_per_iod
-    coef = face.flatten_axis_major(rows)
-    intercept = face.flatten_axis_major(template[None] * spec.px_per_iod)[0]
+    coef = flatten_axis_major(rows)
+    intercept = flatten_axis_major(template[None] * spec.px_per_iod)[0]
     return coef, intercept, feature_columns(True, True)
 
 
@@ -148,7 +149,7 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
 
     Returns a summary (files, frames, videos, landmark failures).
     """
-    from aumesh import face
+    from aumesh.geometry import face
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -158,8 +159,8 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     counts = _frames_per_video(spec, rng)
     coef, intercept, columns = true_coefficients(spec)
     template = face.canonical_template()
-    identity_basis = face.flatten_axis_major(_smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
-    latent_basis = face.flatten_axis_major(_smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
+    identity_basis = flatten_axis_major(_smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
+    latent_basis = flatten_axis_major(_smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
     latent_basis[:, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]] = 0.0
 
     files, failures, file_no, video = [], 0, 0, 0

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 
-from aumesh.schema import (
+from aumesh.data.schema import (
     AU_COLUMNS,
     FRAME_COLUMN,
     INPUT_PATH_COLUMN,

@@ -7,7 +7,7 @@
    their ``r2_mean`` are in different spaces (absolute vs neutral-subtracted coordinates) and are
    not compared: the criterion becomes ``r2_displacement_mean``, R² of the AU-driven displacement
    from each test video's neutral, which depends only on the slope and is the same space and the
-   same information for both targets (see :mod:`aumesh.evaluate`). Asking for a target-space
+   same information for both targets (see :mod:`aumesh.pipeline.evaluate`). Asking for a target-space
    metric over mixed targets is an error (restrict with ``--target``). Values within
    :data:`TIE_TOLERANCE` tie; ties go to fewer (effective) components, then fewer requested
    components, then the earlier run;
@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from aumesh.config import flatten as flatten_config
-from aumesh.io_utils import atomic_write_json, atomic_write_text
+from aumesh.utils.io import atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -121,7 +121,7 @@ class Choice:
 
 
 def candidates_from_frame(children: pd.DataFrame) -> list[Candidate]:
-    """Candidates from :func:`aumesh.tracking.list_child_runs` output (``params.*``/``metrics.*`` columns)."""
+    """Candidates from :func:`aumesh.experiments.tracking.list_child_runs` output (``params.*``/``metrics.*`` columns)."""
     out = []
     for row in children.to_dict(orient="records"):
         params = {k[len("params."):]: v for k, v in row.items() if k.startswith("params.") and isinstance(v, str)}
@@ -229,8 +229,8 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
 
 # ------------------------------------------------------------------ configuration
 def _param_string(value: Any) -> str:
-    """A value as MLflow stores it in params (``aumesh.tracking.prepare_params``)."""
-    from aumesh.tracking import prepare_params
+    """A value as MLflow stores it in params (``aumesh.experiments.mlflow_store.prepare_params``)."""
+    from aumesh.experiments.mlflow_store import prepare_params
 
     return prepare_params({"v": value})["v"]
 
@@ -401,7 +401,7 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     dict
         The ``promoted`` record written to the promotion file.
     """
-    from aumesh import tracking
+    from aumesh.experiments import mlflow_store, registry, tracking
     from aumesh.config import from_dict, write_params
 
     root = Path(root).resolve()
@@ -421,10 +421,10 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     verify_composition(composed, winner.params)
     cfg = from_dict(composed)
 
-    registry = None
+    version = None
     name = model_name or DEFAULT_MODEL_NAME
     if register:
-        registry = tracking.register_model_version(
+        version = registry.register_model_version(
             winner.run_id, MODEL_ARTIFACT_DIR, name, tracking_cfg, alias=alias,
             tags={"aumesh.parent_run_id": parent_run_id, "aumesh.metric": choice.metric,
                   "aumesh.value": f"{choice.value:.6f}", "aumesh.config_overrides": " ".join(overrides)},
@@ -449,11 +449,11 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
                       if len(choice.ranking) > 1 else None),
         "config_overrides": overrides,
         "config_file": str(exp_path.relative_to(root)),
-        "registered_model": registry["name"] if registry else None,
-        "model_version": registry["version"] if registry else None,
-        "alias": alias if registry else None,
-        "model_source": registry["source"] if registry else None,
-        "tracking_uri": tracking.resolve_tracking_uri(tracking_cfg),
+        "registered_model": version["name"] if version else None,
+        "model_version": version["version"] if version else None,
+        "alias": alias if version else None,
+        "model_source": version["source"] if version else None,
+        "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg),
         "promoted_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
     atomic_write_json(root / cfg.paths.promotion_file, {"promoted": record})

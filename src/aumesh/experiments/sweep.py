@@ -8,9 +8,9 @@ is exploration; ``aumesh promote`` turns its best run into ``conf/`` so ``dvc re
 
 Reuse between configurations (per process; every joblib worker keeps its own):
 
-* the loaded :class:`aumesh.evaluate.Prepared` (memory-mapped meshes), keyed by its directory;
+* the loaded :class:`aumesh.pipeline.evaluate.Prepared` (memory-mapped meshes), keyed by its directory;
 * the fold of every frame, keyed by (prepared data, ``cv.n_splits``);
-* the per-fold :class:`aumesh.evaluate.FoldStatistics`, keyed by (prepared data,
+* the per-fold :class:`aumesh.pipeline.evaluate.FoldStatistics`, keyed by (prepared data,
   ``preprocess.target``, ``preprocess.neutral.method``, ``features.pose``,
   ``features.interactions``, ``cv.n_splits``): a new ``model.*`` value costs fits from
   statistics and one prediction pass, never a new pass of accumulation;
@@ -28,7 +28,7 @@ prepared from and reuses it across sweeps; a stamped directory with other values
 MLflow layout. A Hydra callback (:class:`SweepCallback`, configured in ``conf/hydra/default.yaml``)
 opens the parent run when the (multi)run starts and writes its id to ``<sweep dir>/mlflow_parent.json``,
 where every job (in this process, a joblib worker or a cluster node) finds it. Each job opens a
-child run (``aumesh.tracking.tracked_run``): flattened params, provenance tags (git commit, data
+child run (``aumesh.experiments.tracking.tracked_run``): flattened params, provenance tags (git commit, data
 digest), per-fold ``r2``/``mae``/``vertex_error``/``r2_displacement`` (step = fold) and their means,
 the R²-vs-n_components curve (metric ``r2_by_n_components``, step = k, and the figure
 ``plots/r2_vs_n_components.png``) and the release-format NPZ under ``model/`` (what ``aumesh
@@ -39,7 +39,6 @@ the sweep goes on. When the sweep ends the parent is FINISHED with tags counting
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import hashlib
 import json
@@ -55,15 +54,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.config import flatten as flatten_config
-from aumesh.io_utils import atomic_write_json, file_lock
+from aumesh.utils.io import atomic_write_json, file_lock
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
-    import pandas as pd
     from matplotlib.figure import Figure
 
     from aumesh.config import Config
-    from aumesh.evaluate import CVResult, FinalModel, FoldStatistics, Prepared
+    from aumesh.pipeline.evaluate import CVResult, FinalModel, FoldStatistics, Prepared
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +117,7 @@ def prepare_key(signature: Mapping[str, Any]) -> str:
 
 
 def statistics_key(prepared_id: str, cfg: Config) -> tuple:
-    """Cache key of the per-fold statistics: everything :func:`aumesh.evaluate.accumulate` depends on."""
+    """Cache key of the per-fold statistics: everything :func:`aumesh.pipeline.evaluate.accumulate` depends on."""
     return (prepared_id, cfg.preprocess.target, cfg.preprocess.neutral.method,
             bool(cfg.features.pose), bool(cfg.features.interactions), int(cfg.cv.n_splits))
 
@@ -236,7 +234,7 @@ class SweepCache:
 
     def load(self, source: PreparedSource, cfg: Config) -> tuple[Prepared, str]:
         """The prepared data for *source* (preparing them first if needed); returns (data, cache id)."""
-        from aumesh import evaluate as ev
+        from aumesh.pipeline import evaluate as ev
 
         ensure_prepared(source, cfg)
         summary = source.path / "summary.json"
@@ -250,7 +248,7 @@ class SweepCache:
         return self.prepared[pid], pid
 
     def fold_of(self, prepared: Prepared, pid: str, n_splits: int) -> np.ndarray:
-        from aumesh import evaluate as ev
+        from aumesh.pipeline import evaluate as ev
 
         key = (pid, n_splits)
         if key not in self.folds:
@@ -259,7 +257,7 @@ class SweepCache:
 
     def statistics_for(self, prepared: Prepared, pid: str, cfg: Config) -> tuple[FoldStatistics, bool]:
         """Per-fold statistics of *cfg*'s design and target; (stats, True if reused)."""
-        from aumesh import evaluate as ev
+        from aumesh.pipeline import evaluate as ev
 
         key = statistics_key(pid, cfg)
         if key in self.statistics:
@@ -281,7 +279,7 @@ class SweepCache:
                        stats: FoldStatistics) -> tuple[CVResult, FinalModel, bool]:
         """CV result and final fit of *cfg*; reused when only a clipped ``model.n_components`` differs
         (e.g. 40 and 83 on a 23-feature design are the same 23-component model)."""
-        from aumesh import evaluate as ev
+        from aumesh.pipeline import evaluate as ev
 
         key = statistics_key(pid, cfg) + (ev.effective_n_components(cfg), bool(cfg.model.scale))
         if key in self.results:
@@ -316,8 +314,8 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
         A directory stamped with other prepare values (fix: delete it or override
         ``paths.prepared_dir``).
     """
-    from aumesh import prepare as prep
-    from aumesh import tables
+    from aumesh.pipeline import prepare as prep
+    from aumesh.data import tables
 
     complete = all((source.path / n).exists() for n in ("meshes.npy", "frames.parquet", "neutrals.npz",
                                                            "reference.npz", "summary.json"))
@@ -366,7 +364,7 @@ def blas_threads(default: int = 1) -> Iterator[None]:
 
 def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> tuple[CVResult, FinalModel]:
     """Cross-validation and final fit of one configuration from (possibly shared) statistics."""
-    from aumesh import evaluate as ev
+    from aumesh.pipeline import evaluate as ev
 
     cv = ev.cross_validate(prepared, cfg, stats)
     return cv, ev.final_fit(prepared, cfg, stats)
@@ -377,9 +375,9 @@ def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, roo
     """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
     import tempfile
 
-    from aumesh import provenance
-    from aumesh.io_utils import atomic_savez
-    from aumesh.release import NPZ_NAME, release_arrays
+    from aumesh.experiments import provenance
+    from aumesh.utils.io import atomic_savez
+    from aumesh.model.release import NPZ_NAME, release_arrays
 
     metrics = cv.metrics()
     run.log_config(cfg.to_dict())
@@ -432,14 +430,15 @@ def run_configuration(raw: Mapping[str, Any], overrides: Sequence[str] = (), par
     cache : SweepCache, optional
         Defaults to :func:`process_cache`.
     root : Path, optional
-        Workspace root; defaults to :func:`aumesh.provenance.repo_root`.
+        Workspace root; defaults to :func:`aumesh.experiments.provenance.repo_root`.
 
     Returns
     -------
     dict
         ``run_id``, ``run_name``, ``status`` (``FINISHED``/``FAILED``), ``error`` and summary metrics.
     """
-    from aumesh import provenance, tracking
+    from aumesh.experiments import provenance
+    from aumesh.experiments import tracking
     from aumesh.config import from_dict
 
     cache = cache or process_cache()
@@ -538,7 +537,7 @@ class SweepCallback:
 
     # -- implementation
     def _start(self, config, directory: Path, overrides: list[str], mode: str) -> None:
-        from aumesh import tracking
+        from aumesh.experiments import mlflow_store, tracking
 
         self._t0 = time.perf_counter()
         plain = _plain_config(config)
@@ -549,14 +548,14 @@ class SweepCallback:
             tags={"aumesh.sweep.dir": str(directory.resolve()), "aumesh.sweep.overrides": " ".join(overrides),
                   "aumesh.sweep.mode": mode, "aumesh.sweep.launcher": launcher})
         directory.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": tracking.resolve_tracking_uri(tracking_cfg)
+        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg)
                                                     if parent else None, "overrides": overrides})
         if parent:
             os.environ[PARENT_ENV] = parent
             log.info("sweep parent run %s (%s)", parent, directory)
 
     def _end(self, config, directory: Path) -> None:
-        from aumesh import tracking
+        from aumesh.experiments import tracking
 
         parent = read_parent(directory)
         os.environ.pop(PARENT_ENV, None)
@@ -583,6 +582,8 @@ class SweepCallback:
         print(f"\nsweep parent {parent}: {tags['aumesh.sweep.n_children']} configurations, "
               f"{tags['aumesh.sweep.n_failed']} not finished" + (f", {wall:.1f} s" if wall is not None else ""))
         if len(children):
+            from aumesh.experiments.leaderboard import format_runs_table, runs_table
+
             print(format_runs_table(runs_table(children)))
         print(f"(`aumesh runs --parent {parent}`; `aumesh promote --parent {parent}`)")
 
@@ -607,7 +608,7 @@ def _task(config) -> dict[str, Any]:
 
 def conf_dir(root: Path | None = None) -> Path:
     """The repo's ``conf/`` (absolute)."""
-    from aumesh import provenance
+    from aumesh.experiments import provenance
 
     path = (root or provenance.repo_root()) / "conf"
     if not (path / "config.yaml").exists():
@@ -637,7 +638,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     import hydra
 
-    from aumesh import provenance
+    from aumesh.experiments import provenance
 
     root = provenance.repo_root()
     conf = conf_dir(root)
@@ -658,178 +659,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-# ------------------------------------------------------------------ runs table
-def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFrame:
-    """A sweep's children as a table, best first by the promotion criterion (see :mod:`aumesh.promote`).
-
-    Parameters
-    ----------
-    children : DataFrame
-        :func:`aumesh.tracking.list_child_runs` output.
-    metric : str, optional
-        Ranking metric; default: :func:`aumesh.promote.default_metric` of the finished runs' targets.
-
-    Returns
-    -------
-    DataFrame
-        ``rank``, ``run_id``, ``status``, config keys, ``r2_mean``, ``r2_std``,
-        ``r2_displacement_mean``, ``mae_mean``, ``n_components`` (effective), ``error``;
-        FINISHED runs ranked first, then the others. ``attrs["metric"]`` names the ranking metric.
-    """
-    import pandas as pd
-
-    from aumesh import promote
-
-    candidates = promote.candidates_from_frame(children)
-    finished = [c for c in candidates if c.status == "FINISHED"]
-    metric = metric or promote.default_metric({c.target for c in finished})
-    ranked = promote.rank([c for c in finished if metric in c.metrics], metric) if finished else []
-    order = [c.run_id for c in ranked] + [c.run_id for c in candidates if c.run_id not in {r.run_id for r in ranked}]
-    by_id = {c.run_id: c for c in candidates}
-    rows = []
-    for i, rid in enumerate(order):
-        c = by_id[rid]
-        m = c.metrics
-        rows.append({
-            "rank": i + 1 if i < len(ranked) else None,
-            "run_id": rid,
-            "status": c.status,
-            "target": c.params.get("preprocess.target"),
-            "neutral": c.params.get("preprocess.neutral.method"),
-            "pose": c.params.get("features.pose"),
-            "interactions": c.params.get("features.interactions"),
-            "n_components_requested": c.params.get("model.n_components"),
-            "n_components": int(m["n_components"]) if "n_components" in m else None,
-            "r2_mean": m.get("r2_mean"),
-            "r2_std": m.get("r2_std"),
-            "r2_displacement_mean": m.get("r2_displacement_mean"),
-            "mae_mean": m.get("mae_mean"),
-            "error": (c.error or "")[:90] or None,
-        })
-    table = pd.DataFrame(rows, dtype=object)  # object: missing values stay None, integers stay integers
-    table.attrs["metric"] = metric
-    return table
-
-
-def format_runs_table(table: pd.DataFrame) -> str:
-    """Fixed-width text of :func:`runs_table` (short run ids, R² as mean ± std, k as requested->effective)."""
-    if table.empty:
-        return "(no child runs)"
-
-    def missing(v) -> bool:
-        return v is None or (isinstance(v, float) and v != v)
-
-    def num(v, fmt: str = "{:.4f}") -> str:
-        return "" if missing(v) else fmt.format(float(v))
-
-    lines = [f"ranked by {table.attrs.get('metric', '?')} ({'desc' if not str(table.attrs.get('metric', '')).startswith('mae') else 'asc'}),"
-             " ties -> fewer components; FAILED runs last",
-             f"{'#':>3} {'run':8} {'status':8} {'target':8} {'neutral':7} {'pose':5} {'inter':5} "
-             f"{'k':>6} {'r2_mean ± std':>17} {'r2_disp':>8} {'mae':>8}  error"]
-    for r in table.to_dict(orient="records"):
-        k = "" if missing(r["n_components_requested"]) else str(r["n_components_requested"])
-        if not missing(r["n_components"]) and str(r["n_components"]) != k:
-            k += f"->{r['n_components']}"
-        r2 = "" if missing(r["r2_mean"]) else f"{num(r['r2_mean'])} ± {num(r['r2_std'])}"
-        rank = "" if missing(r["rank"]) else str(r["rank"])
-        lines.append(f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} {str(r['neutral']):7} "
-                     f"{str(r['pose']):5} {str(r['interactions']):5} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
-                     f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}")
-    return "\n".join(lines)
-
-
-# ------------------------------------------------------------------ CLI
-def _tracking_cfg(args) -> dict[str, Any]:
-    """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
-    from aumesh import provenance
-    from aumesh.config import load_params
-
-    cfg: dict[str, Any] = {}
-    with contextlib.suppress(FileNotFoundError, ValueError):
-        cfg = dict(load_params(provenance.repo_root() / "params.yaml").tracking.__dict__)
-    if getattr(args, "experiment", None):
-        cfg["experiment"] = args.experiment
-    return cfg
-
-
-def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
-    from aumesh import tracking
-
-    if args.parent:
-        return args.parent
-    parent = tracking.latest_parent_run(tracking_cfg)
-    if parent is None:
-        raise SystemExit(f"no sweep parent run in experiment {tracking_cfg.get('experiment') or 'aumesh'} of "
-                         f"{tracking.resolve_tracking_uri(tracking_cfg)}; run `aumesh sweep -m ...` first or pass --parent.")
-    return parent
-
-
-def _cmd_sweep(args) -> int:
-    return main(args.overrides)
-
-
-def _cmd_runs(args) -> int:
-    from aumesh import tracking
-
-    tracking_cfg = _tracking_cfg(args)
-    parent = _parent_id(args, tracking_cfg)
-    record = tracking.run_record(parent, tracking_cfg)
-    children = tracking.list_child_runs(parent, tracking_cfg)
-    table = runs_table(children, args.metric)
-    if args.json:
-        print(table.to_json(orient="records", indent=2))
-        return 0
-    tags = record["tags"]
-    n_failed = int((children["status"] != "FINISHED").sum()) if len(children) else 0
-    print(f"sweep {parent} ({record['status']}, {record['run_name']}): {len(children)} runs, {n_failed} not finished"
-          + (f", wall {tags['aumesh.sweep.wall_seconds']} s" if "aumesh.sweep.wall_seconds" in tags else ""))
-    if tags.get("aumesh.sweep.overrides"):
-        print(f"  overrides: {tags['aumesh.sweep.overrides']}")
-    print(format_runs_table(table))
-    return 0
-
-
-def _cmd_promote(args) -> int:
-    from aumesh import promote, provenance
-
-    tracking_cfg = _tracking_cfg(args)
-    parent = _parent_id(args, tracking_cfg)
-    record = promote.promote(parent, provenance.repo_root(), tracking_cfg, metric=args.metric, target=args.target,
-                             model_name=args.model_name, register=not args.no_register)
-    print(json.dumps(record, indent=2, default=str))
-    print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` "
-          "(PATH=$PWD/.venv/bin:$PATH dvc repro) rebuilds that release.")
-    return 0
-
-
-def add_commands(subparsers) -> None:
-    """Add ``sweep``, ``runs`` and ``promote`` to the ``aumesh`` command (called by aumesh.cli)."""
-    p = subparsers.add_parser(
-        "sweep", add_help=False, prefix_chars="\0",
-        help="Hydra sweep over conf/ in-process, one MLflow child run per configuration "
-             "(e.g. `aumesh sweep -m model.n_components=10,40`; `aumesh sweep --help` is Hydra's help)")
-    p.add_argument("overrides", nargs=argparse.REMAINDER)
-    p.set_defaults(func=_cmd_sweep)
-
-    for name, func, text in (("runs", _cmd_runs, "table of a sweep's runs, best first"),
-                             ("promote", _cmd_promote, "promote a sweep's best run into conf/ (+ model registry alias)")):
-        p = subparsers.add_parser(name, help=text)
-        who = p.add_mutually_exclusive_group()
-        who.add_argument("--parent", help="the sweep's parent run id (default: the latest sweep)")
-        who.add_argument("--latest", action="store_true", help="the latest sweep (the default)")
-        p.add_argument("--metric", default=None,
-                       help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean)")
-        p.add_argument("--experiment", default=None, help="MLflow experiment (default: tracking.experiment)")
-        p.set_defaults(func=func)
-        if name == "runs":
-            p.add_argument("--json", action="store_true", help="print the table as JSON records")
-        else:
-            p.add_argument("--target", choices=["absolute", "neutral"], default=None,
-                           help="only consider runs with this preprocess.target")
-            p.add_argument("--model-name", default=None,
-                           help="registered model name (default: aumesh-au-to-mesh)")
-            p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
-
-
-if __name__ == "__main__":  # python -m aumesh.sweep -m key=v1,v2
+if __name__ == "__main__":  # python -m aumesh.experiments.sweep -m key=v1,v2
     sys.exit(main())

@@ -2,11 +2,9 @@
 
 Design
 ------
-* Everything goes through an explicit :class:`mlflow.MlflowClient` bound to the
-  URI from :func:`resolve_tracking_uri`; no fluent "active run", no
-  ``mlflow.set_tracking_uri`` and nothing at import time (``mlflow`` itself is
-  imported lazily, it takes ~2 s). Use the handle yielded by
-  :func:`tracked_run` to log, not ``mlflow.log_*``.
+* The store, its client and its value limits are :mod:`aumesh.experiments.mlflow_store`;
+  the model registry is :mod:`aumesh.experiments.registry`. No fluent "active run", no
+  ``mlflow.set_tracking_uri``: use the handle yielded by :func:`tracked_run` to log.
 * The default store is ``sqlite:///<workspace>/mlflow.db`` with artifacts in
   ``<workspace>/mlartifacts``, both absolute so runs started from a
   subdirectory or from a DVC queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``,
@@ -29,7 +27,6 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import getpass
-import json
 import os
 import sys
 import time
@@ -38,25 +35,28 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from aumesh import provenance
+from aumesh.experiments import provenance
+from aumesh.experiments.mlflow_store import (
+    DEFAULT_EXPERIMENT,
+    MAX_BATCH,
+    MAX_KEY_LENGTH,
+    MAX_DATASET_DIGEST_LENGTH,
+    MAX_INPUT_TAG_VALUE_LENGTH,
+    MAX_METRICS_BATCH,
+    MAX_TAG_VALUE_LENGTH,
+    _clean_key,
+    _default_artifact_location,
+    _metric_value,
+    _str_value,
+    _truncate,
+    ensure_experiment,
+    get_client,
+    prepare_params,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
     from mlflow import MlflowClient
-
-DEFAULT_EXPERIMENT = "aumesh"
-DEFAULT_DB_NAME = "mlflow.db"
-DEFAULT_ARTIFACT_DIR = "mlartifacts"
-
-# MLflow limits (mlflow/utils/validation.py in 3.17).
-MAX_PARAM_VALUE_LENGTH = 6000
-MAX_TAG_VALUE_LENGTH = 8000
-MAX_KEY_LENGTH = 250
-MAX_BATCH = 100  # params/tags per log_batch call
-MAX_METRICS_BATCH = 1000
-MAX_DATASET_DIGEST_LENGTH = 36
-MAX_INPUT_TAG_VALUE_LENGTH = 500
-TRUNCATION_MARK = "...[truncated]"
 
 PARENT_TAG = "mlflow.parentRunId"
 ROLE_TAG = "aumesh.role"
@@ -66,237 +66,6 @@ ERROR_TAG = "aumesh.error"
 _ACTIVE_RUNS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar(
     "aumesh_active_runs", default=()
 )
-_QUIETED = False
-
-
-# --------------------------------------------------------------------------- setup
-def _quiet_mlflow() -> None:
-    """Disable MLflow telemetry and autologging (idempotent; env vars the user set win)."""
-    global _QUIETED
-    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
-    os.environ.setdefault("DO_NOT_TRACK", "true")
-    if _QUIETED:
-        return
-    import logging
-
-    import mlflow
-
-    for noisy in ("mlflow.store.db.utils", "alembic"):  # "Creating initial MLflow database tables..."
-        logging.getLogger(noisy).setLevel(logging.WARNING)
-
-    try:  # mlflow builds its telemetry client at import; drop it if it was created
-        from mlflow.telemetry import set_telemetry_client
-
-        set_telemetry_client()
-    except Exception:  # pragma: no cover - internal API moved
-        pass
-    try:
-        mlflow.autolog(disable=True, silent=True)
-    except Exception:  # pragma: no cover
-        pass
-    _QUIETED = True
-
-
-def _absolute_local_uri(uri: str, root: Path) -> str:
-    """Make a relative ``sqlite:///`` / ``file:`` / plain-path URI absolute against *root*."""
-    if uri.startswith("sqlite:///"):
-        rest = uri[len("sqlite:///"):]
-        path, sep, query = rest.partition("?")
-        if path and not path.startswith("/") and path != ":memory:":
-            return f"sqlite:///{(root / path).resolve().as_posix()}{sep}{query}"
-        return uri
-    if uri.startswith("file://"):
-        return uri  # file:///abs or file://host/... : already absolute
-    if uri.startswith("file:"):
-        path = uri[len("file:"):]
-        p = Path(path)
-        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
-    if "://" not in uri and ":" not in uri.split("/")[0]:
-        p = Path(uri).expanduser()
-        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
-    return uri
-
-
-def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
-    """Return the MLflow tracking URI to use.
-
-    Parameters
-    ----------
-    tracking_cfg : Mapping, optional
-        The ``tracking`` config group; only ``tracking_uri`` is read.
-
-    Returns
-    -------
-    str
-        1. ``MLFLOW_TRACKING_URI`` from the environment, verbatim, if set;
-        2. else ``tracking_cfg["tracking_uri"]`` if set, with relative
-           ``sqlite:///``, ``file:`` or plain paths made absolute against
-           :func:`aumesh.provenance.repo_root`;
-        3. else ``sqlite:///<repo_root()>/mlflow.db`` (absolute).
-    """
-    env = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
-    if env:
-        return env
-    cfg_uri = (tracking_cfg or {}).get("tracking_uri")
-    if cfg_uri:
-        cfg_uri = str(cfg_uri).strip()
-        if cfg_uri.startswith(("http://", "https://", "databricks")):
-            return cfg_uri
-        return _absolute_local_uri(cfg_uri, provenance.repo_root())
-    return f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}"
-
-
-def _default_artifact_location(uri: str, tracking_cfg: Mapping[str, Any] | None) -> str | None:
-    """Artifact root for a *new* experiment: explicit cfg, else ``<ws>/mlartifacts`` for local stores."""
-    cfg_loc = (tracking_cfg or {}).get("artifact_location")
-    if cfg_loc:
-        cfg_loc = str(cfg_loc)
-        if "://" in cfg_loc:
-            return cfg_loc
-        p = Path(cfg_loc).expanduser()
-        return (p if p.is_absolute() else provenance.repo_root() / p).resolve().as_uri()
-    if uri.startswith(("sqlite:", "file:")) or "://" not in uri:
-        # MLflow's default would be ./mlruns relative to the *current* directory,
-        # i.e. inside a DVC temp copy that is deleted after the run.
-        try:
-            return (provenance.repo_root() / DEFAULT_ARTIFACT_DIR).as_uri()
-        except FileNotFoundError:
-            return None
-    return None  # tracking server decides (e.g. mlflow-artifacts:/ proxy)
-
-
-def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
-    """An :class:`mlflow.MlflowClient` bound to :func:`resolve_tracking_uri` (telemetry off).
-
-    Parameters
-    ----------
-    tracking_cfg : Mapping, optional
-        The ``tracking`` config group.
-
-    Returns
-    -------
-    mlflow.MlflowClient
-    """
-    _quiet_mlflow()
-    from mlflow import MlflowClient
-
-    uri = resolve_tracking_uri(tracking_cfg)
-    with _store_init_lock(uri):
-        # MlflowClient() builds the store right away: schema creation + migrations
-        # for a new SQLite file.
-        return MlflowClient(tracking_uri=uri)
-
-
-@contextlib.contextmanager
-def _store_init_lock(uri: str) -> Iterator[None]:
-    """Serialise MLflow store creation for a SQLite URI across processes.
-
-    MLflow creates the schema (alembic) when a client is built on a new SQLite
-    file; several processes doing that at once (parallel sweep jobs, ``dvc queue
-    start -j N``) fail with ``alembic.util.exc.CommandError: Online migration
-    expected to match one row``. The lock file lives in the system temp dir
-    (keyed by the database path) so it never dirties the Git workspace. Later
-    writes are safe: MLflow sets ``PRAGMA busy_timeout = 20000`` on every SQLite
-    session. No-op for other URIs and where ``fcntl`` is unavailable.
-    """
-    if not uri.startswith("sqlite:///"):
-        yield
-        return
-    import hashlib
-    import tempfile
-
-    from aumesh.io_utils import file_lock
-
-    db_path = os.path.abspath(uri[len("sqlite:///"):].partition("?")[0])
-    key = hashlib.sha1(db_path.encode()).hexdigest()[:16]
-    with file_lock(Path(tempfile.gettempdir()) / f"aumesh-mlflow-{key}.lock"):
-        yield
-
-
-def ensure_experiment(client: MlflowClient, name: str, artifact_location: str | None = None) -> str:
-    """Return the id of experiment *name*, creating it if needed (safe under races).
-
-    Parameters
-    ----------
-    client : mlflow.MlflowClient
-    name : str
-        Experiment name.
-    artifact_location : str, optional
-        Used only when the experiment is created.
-
-    Returns
-    -------
-    str
-        The experiment id.
-
-    Raises
-    ------
-    RuntimeError
-        If the experiment exists but is deleted (fix: restore it or use another name).
-    """
-    from mlflow.exceptions import MlflowException
-
-    exp = client.get_experiment_by_name(name)
-    if exp is None:
-        try:
-            return client.create_experiment(name, artifact_location=artifact_location)
-        except MlflowException:
-            exp = client.get_experiment_by_name(name)  # created concurrently by another process
-            if exp is None:
-                raise
-    if exp.lifecycle_stage == "deleted":
-        raise RuntimeError(
-            f"MLflow experiment {name!r} (id {exp.experiment_id}) is deleted in {client.tracking_uri}. "
-            "Restore it (`mlflow experiments restore --experiment-id ...`) or set tracking.experiment "
-            "to another name."
-        )
-    return exp.experiment_id
-
-
-# ------------------------------------------------------------------ value hygiene
-def _truncate(value: str, limit: int) -> str:
-    if len(value) <= limit:
-        return value
-    return value[: limit - len(TRUNCATION_MARK)] + TRUNCATION_MARK
-
-
-def _clean_key(key: str) -> str:
-    """Make *key* a valid MLflow param/metric name (``[/\\w.\\- :]``, <= 250 chars)."""
-    out = "".join(c if (c.isalnum() or c in "_-. /:") else "_" for c in str(key))
-    return out[:MAX_KEY_LENGTH] or "_"
-
-
-def _str_value(value: Any, limit: int) -> str:
-    if isinstance(value, (dict, list, tuple)):
-        value = json.dumps(value, default=str)
-    return _truncate(str(value), limit)
-
-
-def prepare_params(params: Mapping[str, Any]) -> dict[str, str]:
-    """Flatten *params* and make every key/value MLflow-safe.
-
-    Parameters
-    ----------
-    params : Mapping
-        Nested config.
-
-    Returns
-    -------
-    dict
-        ``{dotted.key: str}`` with values truncated to 6000 characters (ending in
-        ``"...[truncated]"``) and invalid key characters replaced by ``_``.
-    """
-    return {
-        _clean_key(k): _str_value(v, MAX_PARAM_VALUE_LENGTH)
-        for k, v in provenance.flatten(params).items()
-    }
-
-
-def _metric_value(value: Any) -> float:
-    try:
-        return float(value)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"metric value {value!r} is not a number") from exc
 
 
 def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, str]:
@@ -508,7 +277,7 @@ class TrackedRun:
         Parameters
         ----------
         digest : Mapping
-            Output of :func:`aumesh.provenance.data_digest`.
+            Output of :func:`aumesh.experiments.provenance.data_digest`.
         source : str
             Where the data lives (e.g. the ``data`` directory).
         name : str, default "frame_tables"
@@ -518,7 +287,7 @@ class TrackedRun:
         from mlflow.data.meta_dataset import MetaDataset
 
         if not digest.get("md5"):
-            raise ValueError("log_dataset: digest has no 'md5' key; pass aumesh.provenance.data_digest(...)")
+            raise ValueError("log_dataset: digest has no 'md5' key; pass aumesh.experiments.provenance.data_digest(...)")
         md5 = str(digest["md5"])
         dataset = MetaDataset(_dataset_source(source), name=name, digest=md5[:MAX_DATASET_DIGEST_LENGTH])
         tags = [InputTag("mlflow.data.context", context)]
@@ -795,9 +564,8 @@ def list_child_runs(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None =
     return df
 
 
-# ------------------------------------------------------- sweep queries, registry
+# ------------------------------------------------------- sweep queries
 SWEEP_PARENT_ROLE = "sweep-parent"
-CHAMPION_ALIAS = "champion"
 
 
 def latest_parent_run(tracking_cfg: Mapping[str, Any] | None = None) -> str | None:
@@ -846,92 +614,3 @@ def run_record(run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> di
 def set_run_tags(run_id: str, tags: Mapping[str, Any], tracking_cfg: Mapping[str, Any] | None = None) -> None:
     """Set tags on an existing run (e.g. a sweep parent's child counts)."""
     run_handle(run_id, tracking_cfg).set_tags(tags)
-
-
-def register_model_version(
-    run_id: str,
-    artifact_path: str,
-    name: str,
-    tracking_cfg: Mapping[str, Any] | None = None,
-    alias: str | None = CHAMPION_ALIAS,
-    tags: Mapping[str, Any] | None = None,
-    description: str | None = None,
-) -> dict[str, Any]:
-    """Register a run's artifact directory as a new version of registered model *name*.
-
-    The source is ``<run artifact_uri>/<artifact_path>``: a ``file://`` URI inside the
-    run's artifact directory for a local store, an ``mlflow-artifacts:/`` URI for a
-    tracking server; both pass MLflow's source-in-run validation and need no network
-    beyond the tracking URI. No MLflow "flavor" is required: the version points at the
-    run's release-format NPZ.
-
-    Parameters
-    ----------
-    run_id : str
-        The run that produced the artifact.
-    artifact_path : str
-        Artifact directory of the run (e.g. ``"model"``); must exist.
-    name : str
-        Registered model name (created if missing).
-    tracking_cfg : Mapping, optional
-    alias : str or None, default "champion"
-        Alias to point at the new version; None sets none.
-    tags : Mapping, optional
-        Model version tags.
-    description : str, optional
-        Model version description.
-
-    Returns
-    -------
-    dict
-        ``name``, ``version`` (str), ``source``, ``alias``, ``run_id``.
-
-    Raises
-    ------
-    FileNotFoundError
-        If the run has no artifact at *artifact_path*.
-    """
-    from mlflow.exceptions import MlflowException
-
-    client = get_client(tracking_cfg)
-    run = client.get_run(run_id)
-    if not client.list_artifacts(run_id, artifact_path):
-        raise FileNotFoundError(
-            f"run {run_id} has no artifacts under {artifact_path!r} ({run.info.artifact_uri}); "
-            "only sweep children (aumesh sweep) log a model to register."
-        )
-    try:
-        client.get_registered_model(name)
-    except MlflowException:
-        try:
-            client.create_registered_model(name, description="aumesh AU(+pose) -> 478-vertex mesh PLS (release-format NPZ)")
-        except MlflowException:
-            client.get_registered_model(name)  # created concurrently; re-raise if it still does not exist
-    source = f"{run.info.artifact_uri.rstrip('/')}/{artifact_path.strip('/')}"
-    clean_tags = {str(k): _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in (tags or {}).items()}
-    mv = client.create_model_version(name, source, run_id=run_id, tags=clean_tags or None, description=description)
-    if alias:
-        client.set_registered_model_alias(name, alias, mv.version)
-    return {"name": name, "version": str(mv.version), "source": source, "alias": alias, "run_id": run_id}
-
-
-def model_version_by_alias(
-    name: str, alias: str = CHAMPION_ALIAS, tracking_cfg: Mapping[str, Any] | None = None
-) -> dict[str, Any] | None:
-    """``{"name", "version", "run_id", "source"}`` of the version *alias* points to, or None."""
-    from mlflow.exceptions import MlflowException
-
-    client = get_client(tracking_cfg)
-    try:
-        mv = client.get_model_version_by_alias(name, alias)
-    except MlflowException:
-        return None
-    return {"name": name, "version": str(mv.version), "run_id": mv.run_id, "source": mv.source}
-
-
-def download_run_artifacts(
-    run_id: str, artifact_path: str, dst_dir: str | Path, tracking_cfg: Mapping[str, Any] | None = None
-) -> Path:
-    """Download a run's artifact (file or directory) into *dst_dir*; return the local path."""
-    Path(dst_dir).mkdir(parents=True, exist_ok=True)
-    return Path(get_client(tracking_cfg).download_artifacts(run_id, artifact_path, str(dst_dir)))

@@ -33,8 +33,7 @@ Data in this module
                 **subject's** left / right.
 ``EYE_CONTOUR_RIGHT/LEFT``, ``LIPS_OUTER``, ``LIPS_INNER``, ``FACE_OVAL``:
                 closed contours (ordered) of the MediaPipe topology.
-``AU_FIELD_SPEC`` the synthetic FACS displacement recipe per AU (see
-                :func:`facs_displacement_fields`).
+(the synthetic FACS displacement fields live in ``aumesh.data.truth``)
 """
 
 from __future__ import annotations
@@ -43,7 +42,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from aumesh.schema import AU_COLUMNS, N_VERTICES
+from aumesh.data.schema import N_VERTICES
 
 # --------------------------------------------------------------------------- contours
 FOREHEAD_MIDLINE: tuple[int, ...] = (10, 151, 9, 8)  # top -> down
@@ -359,147 +358,3 @@ def triangulate(mesh: np.ndarray | None = None) -> np.ndarray:
     flip = cross < 0
     tri[flip] = tri[flip][:, [0, 2, 1]]
     return tri
-
-
-# --------------------------------------------------------------------------- AU fields
-# Synthetic FACS ground truth. Each AU is a list of components
-#   (region, d_up, d_out, d_away, sigma, gate)
-# in inter-ocular units at intensity 1: the region's vertices move by
-# (d_out * side, -d_up, d_away) in the face frame (x left, y down, z away), where
-# side = +1 for the subject's left region, -1 for right (d_out must be 0 for
-# midline regions); every other vertex gets that vector times
-# exp(-d^2 / (2 sigma^2)), d = frontal distance to the nearest region vertex.
-# gate restricts the falloff to one side of a horizontal line:
-#   "above_mouth"/"below_mouth" (mouth line = mean y of 13, 14),
-#   "above_eye"/"below_eye" (eye line = mean y of the region's eye corners).
-AU_FIELD_SPEC: dict[str, list[tuple[str, float, float, float, float, str | None]]] = {
-    "AU01": [(f"brow_inner_{s}", 0.08, 0.0, 0.0, 0.08, "above_eye") for s in ("left", "right")],
-    "AU02": [(f"brow_outer_{s}", 0.08, 0.01, 0.0, 0.08, "above_eye") for s in ("left", "right")],
-    "AU04": [(f"brow_inner_{s}", -0.06, -0.04, 0.0, 0.08, "above_eye") for s in ("left", "right")],
-    "AU05": [(f"upper_eyelid_{s}", 0.04, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
-    "AU06": [(f"cheek_{s}", 0.06, 0.01, -0.01, 0.10, "below_eye") for s in ("left", "right")]
-    + [(f"lower_eyelid_{s}", 0.02, 0.0, 0.0, 0.03, "below_eye") for s in ("left", "right")],
-    "AU07": [(f"lower_eyelid_{s}", 0.035, 0.0, 0.0, 0.04, "below_eye") for s in ("left", "right")]
-    + [(f"upper_eyelid_{s}", -0.01, 0.0, 0.0, 0.03, "above_eye") for s in ("left", "right")],
-    "AU09": [("nose", 0.05, 0.0, 0.0, 0.06, "above_mouth")]
-    + [(f"brow_inner_{s}", -0.02, 0.0, 0.0, 0.06, "above_eye") for s in ("left", "right")],
-    "AU10": [("upper_lip", 0.06, 0.0, -0.01, 0.06, "above_mouth")],
-    "AU11": [(f"nasolabial_{s}", 0.035, 0.02, 0.0, 0.06, "above_mouth") for s in ("left", "right")],
-    "AU12": [(f"lip_corner_{s}", 0.08, 0.06, 0.0, 0.12, None) for s in ("left", "right")],
-    "AU14": [(f"lip_corner_{s}", 0.0, -0.015, 0.05, 0.08, None) for s in ("left", "right")],
-    "AU15": [(f"lip_corner_{s}", -0.07, 0.0, 0.0, 0.10, None) for s in ("left", "right")],
-    "AU17": [("chin", 0.07, 0.0, -0.02, 0.12, "below_mouth")],
-    "AU20": [(f"lip_corner_{s}", -0.01, 0.09, 0.0, 0.10, None) for s in ("left", "right")],
-    "AU23": [(f"lip_corner_{s}", 0.0, -0.06, 0.0, 0.08, None) for s in ("left", "right")],
-    "AU24": [("upper_lip", -0.03, 0.0, 0.0, 0.05, "above_mouth"),
-             ("lower_lip", 0.03, 0.0, 0.0, 0.05, "below_mouth")],
-    "AU25": [("upper_lip", 0.015, 0.0, 0.0, 0.05, "above_mouth"),
-             ("lower_lip", -0.06, 0.0, 0.0, 0.07, "below_mouth")],
-    "AU26": [("jaw", -0.15, 0.0, 0.0, 0.30, "below_mouth"),
-             ("lower_lip", -0.05, 0.0, 0.0, 0.08, "below_mouth")],
-    "AU28": [("upper_lip", 0.0, 0.0, 0.06, 0.05, "above_mouth"),
-             ("lower_lip", 0.0, 0.0, 0.06, 0.05, "below_mouth")],
-    "AU43": [(f"upper_eyelid_{s}", -0.09, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
-}
-
-
-def _gate(m: np.ndarray, region: str, gate: str | None) -> np.ndarray:
-    if gate is None:
-        return np.ones(len(m))
-    width = 0.003  # steep: the gate line runs through an opening (mouth or eye)
-    if gate.endswith("mouth"):
-        line = 0.5 * (m[13, 1] + m[14, 1])
-    else:
-        side = region_side(region)
-        corners = (263, 362) if side > 0 else (33, 133) if side < 0 else (33, 263, 133, 362)
-        line = m[list(corners), 1].mean()
-    s = (m[:, 1] - line) / width  # > 0 below the line (y down)
-    s = np.clip(s, -50, 50)
-    below = 1.0 / (1.0 + np.exp(-s))
-    return below if gate.startswith("below") else 1.0 - below
-
-
-def facs_displacement_fields(template: np.ndarray | None = None) -> np.ndarray:
-    """Synthetic FACS-plausible displacement fields, one per AU, at intensity 1.
-
-    Parameters
-    ----------
-    template : array-like, shape (478, 3), optional
-        Mesh to build the fields on (any orientation/scale; the fields are built
-        in its face frame and mapped back). Defaults to :func:`canonical_template`.
-
-    Returns
-    -------
-    np.ndarray, shape (20, 478, 3), float64
-        ``fields[k]`` is the displacement of every vertex for AU
-        ``aumesh.schema.AU_COLUMNS[k]`` at intensity 1, in the template's own
-        orientation and units (inter-ocular units times the template's scale).
-        Recipe: :data:`AU_FIELD_SPEC` (smooth Gaussian falloff from each region);
-        the iris vertices 468-477 do not move.
-    """
-    if template is None:
-        m = canonical_template()
-        axes, scale = np.eye(3), 1.0
-    else:
-        _, axes, scale = face_frame(template)
-        m = to_face_frame(template)
-    xy = m[:, :2]
-    out = np.zeros((len(AU_COLUMNS), N_VERTICES, 3))
-    for k, au in enumerate(AU_COLUMNS):
-        for region, d_up, d_out, d_away, sigma, gate in AU_FIELD_SPEC[au]:
-            side = region_side(region)
-            if side == 0 and d_out != 0.0:
-                raise ValueError(f"{au}: midline region {region!r} cannot move outward")
-            vec = np.array([d_out * side, -d_up, d_away])
-            idx = REGIONS[region]
-            d = np.min(np.linalg.norm(xy[:, None, :] - xy[idx][None, :, :], axis=2), axis=1)
-            w = np.exp(-(d**2) / (2.0 * sigma**2)) * _gate(m, region, gate)
-            w[idx] = 1.0
-            out[k] += w[:, None] * vec[None, :]
-    out[:, list(IRIS_RIGHT + IRIS_LEFT)] = 0.0  # irises are not moved by facial AUs
-    return out @ axes * scale
-
-
-def flatten_axis_major(mesh: np.ndarray) -> np.ndarray:
-    """(..., 478, 3) -> (..., 1434) in the model's layout ``[x_0..x_477 | y_.. | z_..]``."""
-    m = np.asarray(mesh)
-    return np.swapaxes(m, -1, -2).reshape(*m.shape[:-2], 3 * m.shape[-2])
-
-
-def unflatten_axis_major(flat: np.ndarray, n_vertices: int = N_VERTICES) -> np.ndarray:
-    """(..., 1434) axis-major -> (..., 478, 3); inverse of :func:`flatten_axis_major`."""
-    f = np.asarray(flat)
-    if f.shape[-1] != 3 * n_vertices:
-        raise ValueError(f"expected last axis of length {3 * n_vertices}, got {f.shape}")
-    return np.swapaxes(f.reshape(*f.shape[:-1], 3, n_vertices), -1, -2)
-
-
-def synthetic_release_arrays(template: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """Release-NPZ-shaped arrays whose AU rows are exactly the synthetic FACS fields.
-
-    Parameters
-    ----------
-    template : array-like, shape (478, 3), optional
-        Neutral mesh (any orientation/units). Defaults to :func:`canonical_template`.
-
-    Returns
-    -------
-    dict
-        The card's keys: ``coef`` (23, 1434) float32 with rows
-        ``flatten_axis_major(facs_displacement_fields(template))`` for the AUs and
-        zeros for Pitch/Yaw/Roll; ``intercept`` (1434,) = the flattened template;
-        ``input_columns``, ``au_columns``, ``pose_columns``, ``mean_aligned_mesh``,
-        ``mean_low_au_mesh``, ``reference_anchors`` (12, 3), ``anchor_indices``
-        (12,), ``n_components`` (), ``model_card`` (), ``training_metadata`` () JSON.
-        Pass to ``np.savez(path, **arrays)`` to get a synthetic-truth release.
-    """
-    from aumesh.release import release_arrays
-    from aumesh.schema import ANCHOR_INDICES
-
-    t = canonical_template() if template is None else np.asarray(template, dtype=np.float64)
-    fields = facs_displacement_fields(None if template is None else t)
-    anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)
-    reference = {"mean_aligned_mesh": t, "mean_low_au_mesh": t, "reference_anchors": t[anchors], "anchor_indices": anchors}
-    return release_arrays(flatten_axis_major(fields).T, flatten_axis_major(t), list(AU_COLUMNS), len(AU_COLUMNS), reference,
-                          "aumesh synthetic-truth release: coef rows = aumesh.face.facs_displacement_fields",
-                          {"source": "aumesh.face.synthetic_release_arrays"})

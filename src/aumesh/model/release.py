@@ -12,8 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.face import unflatten_axis_major
-from aumesh.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
+from aumesh.data.schema import unflatten_axis_major, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 
 NPZ_NAME = "au_to_mesh_pls.npz"
 CARD_JSON = "model_card.json"

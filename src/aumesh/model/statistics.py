@@ -3,7 +3,7 @@ that turns them into the statistics of any feature subset, target and neutral.
 
 Pass A reads the prepared meshes once and accumulates, for each cross-validation fold, the shifted
 cross-products of the full 83-column design ``[20 AU | 3 pose | 60 pose x AU]`` with the absolute
-aligned coordinates (``aumesh.pls.CrossProducts``), plus per-video sums of the design and of the
+aligned coordinates (``aumesh.model.cross_products.CrossProducts``), plus per-video sums of the design and of the
 coordinates. Then, with no further pass:
 
 * a feature subset (20 or 23 columns) is a sub-block of ``X'X`` and rows of ``X'Y``;
@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from aumesh.features import design_matrix
-from aumesh.pls import CrossProducts
-from aumesh.schema import N_TARGETS, feature_columns
+from aumesh.model.features import design_matrix
+from aumesh.model.cross_products import CrossProducts
+from aumesh.data.schema import N_TARGETS, feature_columns
 
 FULL_DESIGN = feature_columns(True, True)
 

@@ -6,7 +6,7 @@ multioutput="variance_weighted")``), MAE; final fit on all kept frames.
 
 Two passes over the prepared meshes:
 
-* pass A (``aumesh.statistics``) accumulates per-fold cross-products of the full design with the
+* pass A (``aumesh.model.statistics``) accumulates per-fold cross-products of the full design with the
   absolute coordinates, plus per-video sums; every feature set, target and neutral is derived from
   them exactly, so a sweep needs this pass once. A fold's training statistics are the total minus
   the fold's, so each fold's model, and every smaller ``n_components``, comes from statistics; R² is
@@ -18,7 +18,7 @@ Besides R² in the run's own target space, every run gets ``r2_displacement``: R
 AU-driven displacement from each test video's neutral, ``(y - n_v)`` vs ``B (x - x̄_v)``, where
 ``n_v`` is the video's neutral mesh and ``x̄_v`` the mean design row of the same neutral frames.
 It depends only on the slope ``B``, so absolute and neutral-subtracted runs are scored in the
-same space and on the same information (see ``aumesh.promote``).
+same space and on the same information (see ``aumesh.experiments.promote``).
 """
 
 from __future__ import annotations
@@ -34,10 +34,12 @@ from sklearn.model_selection import GroupKFold
 from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
-from aumesh.features import design_matrix
-from aumesh.pls import CrossProducts, PLSRegression, r2_path, r2_per_target, r2_variance_weighted, residual_sums
-from aumesh.statistics import DesignStatistics, accumulate_design, configuration_statistics, fold_stacked
-from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
+from aumesh.model.features import design_matrix
+from aumesh.model.cross_products import CrossProducts
+from aumesh.model.pls import PLSRegression
+from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
+from aumesh.model.statistics import DesignStatistics, accumulate_design, configuration_statistics, fold_stacked
+from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 
 @dataclass
@@ -238,7 +240,7 @@ def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: in
     """Per-fold (target, displacement) statistics of ``cfg``'s features and target.
 
     ``design`` (from :func:`design_statistics` with the same folds) is reused when given: then no
-    pass over the meshes is needed (aumesh.statistics derives every configuration from it).
+    pass over the meshes is needed (aumesh.model.statistics derives every configuration from it).
     """
     if design is None:
         design = design_statistics(prepared, fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows)

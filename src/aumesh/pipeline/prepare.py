@@ -27,12 +27,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from aumesh.align import align_to_reference, generalized_procrustes, umeyama_batch
+from aumesh.geometry.align import align_to_reference, generalized_procrustes, umeyama_batch
 from aumesh.config import Config, PreprocessConfig
-from aumesh.io_utils import atomic_directory, atomic_write_json
-from aumesh.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
-from aumesh.statistics import video_indicator
-from aumesh.tables import FrameTable, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, read_metadata
+from aumesh.utils.io import atomic_directory, atomic_write_json
+from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
+from aumesh.model.statistics import video_indicator
+from aumesh.data.tables import FrameTable, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, read_metadata
 
 log = logging.getLogger(__name__)
 

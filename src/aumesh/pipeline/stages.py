@@ -15,12 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from aumesh import evaluate as ev
-from aumesh import prepare as prep
-from aumesh import provenance, tables
+from aumesh.pipeline import evaluate as ev
+from aumesh.pipeline import prepare as prep
+from aumesh.experiments import provenance
+from aumesh.data import tables
 from aumesh.config import Config
-from aumesh.io_utils import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text
-from aumesh.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
+from aumesh.utils.io import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text
+from aumesh.model.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
 
 
 def evaluate_stage(cfg: Config) -> dict:
-    from aumesh import tracking
+    from aumesh.experiments import mlflow_store, tracking
 
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
@@ -78,7 +79,7 @@ def evaluate_stage(cfg: Config) -> dict:
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
-                    "tracking_uri": tracking.resolve_tracking_uri(tracking_cfg) if cfg.tracking.enabled else None}
+                    "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg) if cfg.tracking.enabled else None}
         with atomic_directory(out) as tmp:
             np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,
                      feature_columns=np.array(final.feature_columns), n_components=np.array(final.n_components, dtype=np.int32))
@@ -105,7 +106,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         "format_version": 2,
         "cv": {k: v for k, v in metrics.items() if k not in ("n_components", "n_features")},
         "model": {"n_components": metrics["n_components"], "n_features": metrics["n_features"],
-                  "estimator": "aumesh.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)"},
+                  "estimator": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)"},
         "data": {"n_frames": summary["n_frames"], "n_videos": summary["n_videos"], "digest": run_info.get("data_digest"),
                  "counts": summary["counts"], "n_low_au_frames": summary["n_low_au_population"]},
         "config": cfg.to_dict(),
@@ -118,7 +119,8 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
 
 def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
-    from aumesh import directions, render
+    from aumesh.card import directions
+    from aumesh.card import render
 
     model_dir, prepared_dir = Path(cfg.paths.model_dir), Path(cfg.paths.prepared_dir)
     promotion = None

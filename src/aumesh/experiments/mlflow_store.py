@@ -1,0 +1,269 @@
+"""The MLflow store: which one, a client bound to it, the experiment, and values MLflow accepts.
+
+* Everything goes through an explicit :class:`mlflow.MlflowClient` bound to the URI from
+  :func:`resolve_tracking_uri`; nothing at import time (``mlflow`` is imported lazily, ~2 s).
+* The default store is ``sqlite:///<workspace>/mlflow.db`` with artifacts in
+  ``<workspace>/mlartifacts``, both absolute, so runs started from a subdirectory or from a DVC
+  queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``) land in the workspace store.
+* Before the first client is built, telemetry and autologging are switched off.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from aumesh.experiments import provenance
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mlflow import MlflowClient
+
+DEFAULT_EXPERIMENT = "aumesh"
+DEFAULT_DB_NAME = "mlflow.db"
+DEFAULT_ARTIFACT_DIR = "mlartifacts"
+
+# MLflow limits (mlflow/utils/validation.py in 3.17).
+MAX_PARAM_VALUE_LENGTH = 6000
+MAX_TAG_VALUE_LENGTH = 8000
+MAX_KEY_LENGTH = 250
+MAX_BATCH = 100  # params/tags per log_batch call
+MAX_METRICS_BATCH = 1000
+MAX_DATASET_DIGEST_LENGTH = 36
+MAX_INPUT_TAG_VALUE_LENGTH = 500
+TRUNCATION_MARK = "...[truncated]"
+
+_QUIETED = False
+
+
+# --------------------------------------------------------------------------- setup
+def _quiet_mlflow() -> None:
+    """Disable MLflow telemetry and autologging (idempotent; env vars the user set win)."""
+    global _QUIETED
+    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
+    os.environ.setdefault("DO_NOT_TRACK", "true")
+    if _QUIETED:
+        return
+    import logging
+
+    import mlflow
+
+    for noisy in ("mlflow.store.db.utils", "alembic"):  # "Creating initial MLflow database tables..."
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+    try:  # mlflow builds its telemetry client at import; drop it if it was created
+        from mlflow.telemetry import set_telemetry_client
+
+        set_telemetry_client()
+    except Exception:  # pragma: no cover - internal API moved
+        pass
+    try:
+        mlflow.autolog(disable=True, silent=True)
+    except Exception:  # pragma: no cover
+        pass
+    _QUIETED = True
+
+
+def _absolute_local_uri(uri: str, root: Path) -> str:
+    """Make a relative ``sqlite:///`` / ``file:`` / plain-path URI absolute against *root*."""
+    if uri.startswith("sqlite:///"):
+        rest = uri[len("sqlite:///"):]
+        path, sep, query = rest.partition("?")
+        if path and not path.startswith("/") and path != ":memory:":
+            return f"sqlite:///{(root / path).resolve().as_posix()}{sep}{query}"
+        return uri
+    if uri.startswith("file://"):
+        return uri  # file:///abs or file://host/... : already absolute
+    if uri.startswith("file:"):
+        path = uri[len("file:"):]
+        p = Path(path)
+        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
+    if "://" not in uri and ":" not in uri.split("/")[0]:
+        p = Path(uri).expanduser()
+        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
+    return uri
+
+
+def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
+    """Return the MLflow tracking URI to use.
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping, optional
+        The ``tracking`` config group; only ``tracking_uri`` is read.
+
+    Returns
+    -------
+    str
+        1. ``MLFLOW_TRACKING_URI`` from the environment, verbatim, if set;
+        2. else ``tracking_cfg["tracking_uri"]`` if set, with relative
+           ``sqlite:///``, ``file:`` or plain paths made absolute against
+           :func:`aumesh.experiments.provenance.repo_root`;
+        3. else ``sqlite:///<repo_root()>/mlflow.db`` (absolute).
+    """
+    env = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
+    if env:
+        return env
+    cfg_uri = (tracking_cfg or {}).get("tracking_uri")
+    if cfg_uri:
+        cfg_uri = str(cfg_uri).strip()
+        if cfg_uri.startswith(("http://", "https://", "databricks")):
+            return cfg_uri
+        return _absolute_local_uri(cfg_uri, provenance.repo_root())
+    return f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}"
+
+
+def _default_artifact_location(uri: str, tracking_cfg: Mapping[str, Any] | None) -> str | None:
+    """Artifact root for a *new* experiment: explicit cfg, else ``<ws>/mlartifacts`` for local stores."""
+    cfg_loc = (tracking_cfg or {}).get("artifact_location")
+    if cfg_loc:
+        cfg_loc = str(cfg_loc)
+        if "://" in cfg_loc:
+            return cfg_loc
+        p = Path(cfg_loc).expanduser()
+        return (p if p.is_absolute() else provenance.repo_root() / p).resolve().as_uri()
+    if uri.startswith(("sqlite:", "file:")) or "://" not in uri:
+        # MLflow's default would be ./mlruns relative to the *current* directory,
+        # i.e. inside a DVC temp copy that is deleted after the run.
+        try:
+            return (provenance.repo_root() / DEFAULT_ARTIFACT_DIR).as_uri()
+        except FileNotFoundError:
+            return None
+    return None  # tracking server decides (e.g. mlflow-artifacts:/ proxy)
+
+
+def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
+    """An :class:`mlflow.MlflowClient` bound to :func:`resolve_tracking_uri` (telemetry off).
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping, optional
+        The ``tracking`` config group.
+
+    Returns
+    -------
+    mlflow.MlflowClient
+    """
+    _quiet_mlflow()
+    from mlflow import MlflowClient
+
+    uri = resolve_tracking_uri(tracking_cfg)
+    with _store_init_lock(uri):
+        # MlflowClient() builds the store right away: schema creation + migrations
+        # for a new SQLite file.
+        return MlflowClient(tracking_uri=uri)
+
+
+@contextlib.contextmanager
+def _store_init_lock(uri: str) -> Iterator[None]:
+    """Serialise MLflow store creation for a SQLite URI across processes.
+
+    MLflow creates the schema (alembic) when a client is built on a new SQLite
+    file; several processes doing that at once (parallel sweep jobs, ``dvc queue
+    start -j N``) fail with ``alembic.util.exc.CommandError: Online migration
+    expected to match one row``. The lock file lives in the system temp dir
+    (keyed by the database path) so it never dirties the Git workspace. Later
+    writes are safe: MLflow sets ``PRAGMA busy_timeout = 20000`` on every SQLite
+    session. No-op for other URIs and where ``fcntl`` is unavailable.
+    """
+    if not uri.startswith("sqlite:///"):
+        yield
+        return
+    import hashlib
+    import tempfile
+
+    from aumesh.utils.io import file_lock
+
+    db_path = os.path.abspath(uri[len("sqlite:///"):].partition("?")[0])
+    key = hashlib.sha1(db_path.encode()).hexdigest()[:16]
+    with file_lock(Path(tempfile.gettempdir()) / f"aumesh-mlflow-{key}.lock"):
+        yield
+
+
+def ensure_experiment(client: MlflowClient, name: str, artifact_location: str | None = None) -> str:
+    """Return the id of experiment *name*, creating it if needed (safe under races).
+
+    Parameters
+    ----------
+    client : mlflow.MlflowClient
+    name : str
+        Experiment name.
+    artifact_location : str, optional
+        Used only when the experiment is created.
+
+    Returns
+    -------
+    str
+        The experiment id.
+
+    Raises
+    ------
+    RuntimeError
+        If the experiment exists but is deleted (fix: restore it or use another name).
+    """
+    from mlflow.exceptions import MlflowException
+
+    exp = client.get_experiment_by_name(name)
+    if exp is None:
+        try:
+            return client.create_experiment(name, artifact_location=artifact_location)
+        except MlflowException:
+            exp = client.get_experiment_by_name(name)  # created concurrently by another process
+            if exp is None:
+                raise
+    if exp.lifecycle_stage == "deleted":
+        raise RuntimeError(
+            f"MLflow experiment {name!r} (id {exp.experiment_id}) is deleted in {client.tracking_uri}. "
+            "Restore it (`mlflow experiments restore --experiment-id ...`) or set tracking.experiment "
+            "to another name."
+        )
+    return exp.experiment_id
+
+
+# ------------------------------------------------------------------ value hygiene
+def _truncate(value: str, limit: int) -> str:
+    if len(value) <= limit:
+        return value
+    return value[: limit - len(TRUNCATION_MARK)] + TRUNCATION_MARK
+
+
+def _clean_key(key: str) -> str:
+    """Make *key* a valid MLflow param/metric name (``[/\\w.\\- :]``, <= 250 chars)."""
+    out = "".join(c if (c.isalnum() or c in "_-. /:") else "_" for c in str(key))
+    return out[:MAX_KEY_LENGTH] or "_"
+
+
+def _str_value(value: Any, limit: int) -> str:
+    if isinstance(value, (dict, list, tuple)):
+        value = json.dumps(value, default=str)
+    return _truncate(str(value), limit)
+
+
+def prepare_params(params: Mapping[str, Any]) -> dict[str, str]:
+    """Flatten *params* and make every key/value MLflow-safe.
+
+    Parameters
+    ----------
+    params : Mapping
+        Nested config.
+
+    Returns
+    -------
+    dict
+        ``{dotted.key: str}`` with values truncated to 6000 characters (ending in
+        ``"...[truncated]"``) and invalid key characters replaced by ``_``.
+    """
+    return {
+        _clean_key(k): _str_value(v, MAX_PARAM_VALUE_LENGTH)
+        for k, v in provenance.flatten(params).items()
+    }
+
+
+def _metric_value(value: Any) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"metric value {value!r} is not a number") from exc

@@ -1,0 +1,100 @@
+"""The MLflow model registry: register a run's model as a version, point an alias at it, fetch artifacts."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from aumesh.experiments.mlflow_store import MAX_TAG_VALUE_LENGTH, _str_value, get_client
+
+CHAMPION_ALIAS = "champion"
+
+
+def register_model_version(
+    run_id: str,
+    artifact_path: str,
+    name: str,
+    tracking_cfg: Mapping[str, Any] | None = None,
+    alias: str | None = CHAMPION_ALIAS,
+    tags: Mapping[str, Any] | None = None,
+    description: str | None = None,
+) -> dict[str, Any]:
+    """Register a run's artifact directory as a new version of registered model *name*.
+
+    The source is ``<run artifact_uri>/<artifact_path>``: a ``file://`` URI inside the
+    run's artifact directory for a local store, an ``mlflow-artifacts:/`` URI for a
+    tracking server; both pass MLflow's source-in-run validation and need no network
+    beyond the tracking URI. No MLflow "flavor" is required: the version points at the
+    run's release-format NPZ.
+
+    Parameters
+    ----------
+    run_id : str
+        The run that produced the artifact.
+    artifact_path : str
+        Artifact directory of the run (e.g. ``"model"``); must exist.
+    name : str
+        Registered model name (created if missing).
+    tracking_cfg : Mapping, optional
+    alias : str or None, default "champion"
+        Alias to point at the new version; None sets none.
+    tags : Mapping, optional
+        Model version tags.
+    description : str, optional
+        Model version description.
+
+    Returns
+    -------
+    dict
+        ``name``, ``version`` (str), ``source``, ``alias``, ``run_id``.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the run has no artifact at *artifact_path*.
+    """
+    from mlflow.exceptions import MlflowException
+
+    client = get_client(tracking_cfg)
+    run = client.get_run(run_id)
+    if not client.list_artifacts(run_id, artifact_path):
+        raise FileNotFoundError(
+            f"run {run_id} has no artifacts under {artifact_path!r} ({run.info.artifact_uri}); "
+            "only sweep children (aumesh sweep) log a model to register."
+        )
+    try:
+        client.get_registered_model(name)
+    except MlflowException:
+        try:
+            client.create_registered_model(name, description="aumesh AU(+pose) -> 478-vertex mesh PLS (release-format NPZ)")
+        except MlflowException:
+            client.get_registered_model(name)  # created concurrently; re-raise if it still does not exist
+    source = f"{run.info.artifact_uri.rstrip('/')}/{artifact_path.strip('/')}"
+    clean_tags = {str(k): _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in (tags or {}).items()}
+    mv = client.create_model_version(name, source, run_id=run_id, tags=clean_tags or None, description=description)
+    if alias:
+        client.set_registered_model_alias(name, alias, mv.version)
+    return {"name": name, "version": str(mv.version), "source": source, "alias": alias, "run_id": run_id}
+
+
+def model_version_by_alias(
+    name: str, alias: str = CHAMPION_ALIAS, tracking_cfg: Mapping[str, Any] | None = None
+) -> dict[str, Any] | None:
+    """``{"name", "version", "run_id", "source"}`` of the version *alias* points to, or None."""
+    from mlflow.exceptions import MlflowException
+
+    client = get_client(tracking_cfg)
+    try:
+        mv = client.get_model_version_by_alias(name, alias)
+    except MlflowException:
+        return None
+    return {"name": name, "version": str(mv.version), "run_id": mv.run_id, "source": mv.source}
+
+
+def download_run_artifacts(
+    run_id: str, artifact_path: str, dst_dir: str | Path, tracking_cfg: Mapping[str, Any] | None = None
+) -> Path:
+    """Download a run's artifact (file or directory) into *dst_dir*; return the local path."""
+    Path(dst_dir).mkdir(parents=True, exist_ok=True)
+    return Path(get_client(tracking_cfg).download_artifacts(run_id, artifact_path, str(dst_dir)))

@@ -1,0 +1,135 @@
+"""Exact scores of a linear model on held-out sufficient statistics (no pass over rows).
+
+:func:`residual_sums` gives the residual and total sums of squares of ``Y ~ X @ coef.T + a`` on
+the rows a :class:`~aumesh.model.cross_products.CrossProducts` summarizes; :func:`r2_per_target`
+and :func:`r2_variance_weighted` follow scikit-learn's ``r2_score`` conventions exactly;
+:func:`r2_path` scores every number of components of a fitted :class:`~aumesh.model.pls.PLSRegression`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sklearn.utils.validation import check_is_fitted
+
+from aumesh.model.cross_products import CrossProducts
+
+__all__ = ["r2_path", "r2_per_target", "r2_variance_weighted", "residual_sums"]
+
+
+# --------------------------------------------------------------------------- #
+# Scoring from statistics
+# --------------------------------------------------------------------------- #
+def residual_sums(coef, raw_intercept, stats):
+    """Residual and total sums of squares of a linear model on held-out statistics.
+
+    For ``Ŷ = X @ coef.T + raw_intercept`` and the rows summarized by ``stats``,
+    with centered sums ``cxx, cxy, cyy`` and means ``x̄, ȳ`` of those rows::
+
+        sse_j = cyy_j - 2 b_j^T cxy[:, j] + b_j^T cxx b_j + n (ȳ_j - a_j - b_j^T x̄)^2
+        sst_j = cyy_j
+
+    (``b_j = coef[j]``, ``a_j = raw_intercept[j]``): exact, no pass over rows.
+
+    Parameters
+    ----------
+    coef : ndarray of shape (n_targets, n_features) or (n_models, n_targets, n_features)
+    raw_intercept : ndarray of shape (n_targets,) or (n_models, n_targets)
+    stats : CrossProducts
+        Statistics of the evaluation rows.
+
+    Returns
+    -------
+    sse : ndarray of shape (n_targets,) or (n_models, n_targets)
+        ``sum_i (y_ij - ŷ_ij)^2`` (clipped at 0 against rounding).
+    sst : ndarray of shape (n_targets,)
+        ``sum_i (y_ij - ȳ_j)^2``.
+    """
+    if not isinstance(stats, CrossProducts):
+        raise TypeError(f"stats must be a CrossProducts, got {type(stats).__name__}.")
+    coef = np.asarray(coef, dtype=np.float64)
+    raw_intercept = np.asarray(raw_intercept, dtype=np.float64)
+    p, q = stats.n_features, stats.n_targets
+    if coef.ndim not in (2, 3) or coef.shape[-2:] != (q, p):
+        raise ValueError(f"coef must have shape (n_targets={q}, n_features={p}) or (k, {q}, {p}); got {coef.shape}.")
+    if raw_intercept.shape != coef.shape[:-1]:
+        raise ValueError(f"raw_intercept must have shape {coef.shape[:-1]}, got {raw_intercept.shape}.")
+    cxx, cxy, cyy = stats.cxx, stats.cxy, stats.cyy_diag
+    x_mean, y_mean = stats.x_mean, stats.y_mean
+    cross = np.einsum("...qp,pq->...q", coef, cxy)  # b_j^T cxy[:, j]
+    quad = np.einsum("...qp,...qp->...q", coef @ cxx, coef)  # b_j^T cxx b_j
+    bias = y_mean - raw_intercept - coef @ x_mean  # ȳ_j - a_j - b_j^T x̄
+    sse = cyy - 2.0 * cross + quad + stats.n * bias * bias
+    return np.maximum(sse, 0.0), cyy.copy()
+
+
+def r2_per_target(sse, sst):
+    """Per-target R², as ``sklearn.metrics.r2_score(..., multioutput="raw_values")``.
+
+    ``1 - sse/sst``; where ``sst == 0``: 1.0 if ``sse == 0`` else 0.0 (sklearn's
+    ``force_finite=True``).
+
+    Parameters
+    ----------
+    sse : ndarray of shape (..., n_targets)
+    sst : ndarray of shape (n_targets,) or broadcastable to ``sse``
+
+    Returns
+    -------
+    r2 : ndarray of shape (..., n_targets)
+    """
+    sse = np.asarray(sse, dtype=np.float64)
+    sst = np.broadcast_to(np.asarray(sst, dtype=np.float64), sse.shape)
+    out = np.ones(sse.shape)
+    valid = (sst != 0) & (sse != 0)
+    out[valid] = 1.0 - sse[valid] / sst[valid]
+    out[(sse != 0) & (sst == 0)] = 0.0
+    return out
+
+
+def r2_variance_weighted(sse, sst):
+    """Variance-weighted R², as ``r2_score(..., multioutput="variance_weighted")``.
+
+    ``1 - sum_j sse_j / sum_j sst_j`` over targets with ``sst_j != 0`` (sklearn
+    gives constant targets zero weight); if every target is constant, the
+    uniform mean of :func:`r2_per_target`.
+
+    Parameters
+    ----------
+    sse : ndarray of shape (..., n_targets)
+    sst : ndarray of shape (n_targets,) or broadcastable to ``sse``
+
+    Returns
+    -------
+    r2 : float or ndarray of shape (...)
+    """
+    sse = np.asarray(sse, dtype=np.float64)
+    sst = np.broadcast_to(np.asarray(sst, dtype=np.float64), sse.shape)
+    nonzero = sst != 0
+    total = sst.sum(axis=-1)
+    if not nonzero.any():
+        out = r2_per_target(sse, sst).mean(axis=-1)
+    else:
+        out = 1.0 - np.where(nonzero, sse, 0.0).sum(axis=-1) / np.where(total == 0, 1.0, total)
+        if np.ndim(out) and (total == 0).any():  # a row of models with all-constant targets
+            out = np.where(total == 0, r2_per_target(sse, sst).mean(axis=-1), out)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def r2_path(model, test_stats):
+    """Variance-weighted R² on held-out statistics for every number of components.
+
+    Parameters
+    ----------
+    model : PLSRegression
+        Fitted engine model (uses ``coef_path_``).
+    test_stats : CrossProducts
+        Statistics of the evaluation rows.
+
+    Returns
+    -------
+    r2 : ndarray of shape (model.n_components,)
+        ``r2[k - 1]`` is the score of the model with ``k`` components.
+    """
+    check_is_fitted(model, "coef_path_")
+    sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
+    return r2_variance_weighted(sse, sst)
