@@ -24,7 +24,7 @@ def test_unknown_key_is_rejected_with_its_path():
 
 @pytest.mark.parametrize("override,message", [
     ("preprocess.target=relative", "preprocess.target='relative'"),
-    ("features.pose=false", "interactions=true needs features.pose=true"),
+    ("features.name=au_pose_inter", "features='au_pose_inter': use one of au, au_pose, au_pose_interactions"),
     ("preprocess.alignment.outlier_quantile=0", "outlier_quantile=0"),
     ("cv.n_splits=1", "cv.n_splits=1"),
 ])
@@ -40,3 +40,20 @@ def test_load_params_reports_the_file(tmp_path):
         config.load_params(tmp_path / "params.yaml")
     with pytest.raises(FileNotFoundError, match="make params"):
         config.load_params(tmp_path / "missing.yaml")
+
+
+@pytest.mark.parametrize("option,columns", [("au", 20), ("au_pose", 23), ("au_pose_interactions", 83)])
+def test_feature_sets_are_group_options(option, columns):
+    cfg = config.from_dict(config.compose([f"features={option}"], config_dir=REPO / "conf"))
+    assert cfg.features.name == option and len(cfg.features.columns) == columns
+
+
+def test_the_replaced_feature_switches_name_the_group():
+    # as a Hydra override (aumesh sweep, compose-params) ...
+    with pytest.raises(ValueError, match=r"features=au, features=au_pose or features=au_pose_interactions"):
+        config.compose(["features.pose=false"], config_dir=REPO / "conf")
+    # ... and in an old params.yaml, where the combination names its option
+    data = config.compose(config_dir=REPO / "conf")
+    data["features"] = {"pose": True, "interactions": "false"}
+    with pytest.raises(ValueError, match=r"is `features=au_pose`"):
+        config.from_dict(data)

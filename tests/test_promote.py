@@ -82,7 +82,7 @@ def conf_ws(tmp_path, monkeypatch):
 
 def test_promoted_experiment_overrides_groups_and_cli_overrides_win(conf_ws):
     promote.check_defaults_entry(conf_ws / "conf")
-    text = promote.experiment_yaml({"features.interactions": False, "model.n_components": 7,
+    text = promote.experiment_yaml({"features.name": "au_pose", "model.n_components": 7,
                                     "preprocess.target": "neutral"})
     assert text.startswith("# @package _global_")
     (conf_ws / "conf" / "experiment").mkdir(exist_ok=True)
@@ -128,7 +128,7 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
     conf = conf_ws / "conf"
     rows = [
         ({"model.n_components": 40}, {"r2_mean": 0.61, "r2_displacement_mean": 0.3, "n_components": 40.0}, "FINISHED"),
-        ({"model.n_components": 10, "features.interactions": "false"},
+        ({"model.n_components": 10, "features.name": "au_pose"},
          {"r2_mean": 0.64, "r2_displacement_mean": 0.2, "n_components": 10.0}, "FINISHED"),
         ({"model.n_components": 23}, {"r2_mean": 0.64, "r2_displacement_mean": 0.2, "n_components": 23.0}, "FINISHED"),
         ({"model.n_components": 83}, {"r2_mean": 0.99, "n_components": 83.0}, "FAILED"),
@@ -137,11 +137,11 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
     record = promote.promote(parent, conf_ws, {})
     assert record["run_id"] == ids[1]  # 0.64 tie -> 10 components; the FAILED 0.99 does not count
     assert record["parent_run_id"] == parent and record["metric"] == "r2_mean" and record["value"] == 0.64
-    assert "features.interactions=false" in record["config_overrides"]
+    assert "features.name=au_pose" in record["config_overrides"]
     assert "model.n_components=10" in record["config_overrides"]
 
     exp = yaml.safe_load((conf / "experiment" / "promoted.yaml").read_text())
-    assert exp["model"]["n_components"] == 10 and exp["features"]["interactions"] is False
+    assert exp["model"]["n_components"] == 10 and exp["features"]["name"] == "au_pose"
     composed = config.from_dict(config.compose(config_dir=conf))  # conf/ now builds the promoted run
     assert (composed.model.n_components, composed.features.interactions) == (10, False)
     params = config.load_params(conf_ws / "params.yaml")
@@ -154,7 +154,7 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
 
     # a second sweep's promotion adds version 2 and moves the alias
     # (composed from the promoted conf/, as a sweep after a promotion is)
-    parent2, ids2 = _log_fake_sweep(tmp_path, conf, [({"model.n_components": 5, "features.interactions": "true"},
+    parent2, ids2 = _log_fake_sweep(tmp_path, conf, [({"model.n_components": 5, "features.name": "au_pose_interactions"},
                                                        {"r2_mean": 0.7, "n_components": 5.0}, "FINISHED")])
     record2 = promote.promote(parent2, conf_ws, {})
     assert record2["model_version"] == "2"
@@ -185,7 +185,7 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     monkeypatch.chdir(ws)
     parent = tracking.start_parent_run({}, "small sweep")
     cache = sweep.SweepCache()
-    for ov in (["model.n_components=2"], ["model.n_components=6", "features.interactions=false"]):
+    for ov in (["model.n_components=2"], ["model.n_components=6", "features=au_pose"]):
         r = sweep.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws)
         assert r["status"] == "FINISHED", r
     tracking.end_run(parent)

@@ -98,7 +98,7 @@ def test_model_card_markdown_names_the_promoted_run():
             "config": {"preprocess": {"pose_filter": {"max_abs_yaw_deg": 40, "max_abs_pitch_deg": 30},
                                       "alignment": {"anchor_indices": [1, 2], "outlier_quantile": 0.99},
                                       "target": "absolute", "neutral": {"method": "low_au"}},
-                       "features": {"pose": True, "interactions": True}, "model": {"scale": True},
+                       "features": {"name": "au_pose_interactions"}, "model": {"scale": True},
                        "cv": {"n_splits": 3, "group": "video_id"}},
             "model": {"n_components": 83, "n_features": 83}, "provenance": {"git_commit": "deadbeef"},
             "mlflow": {"run_id": "r1"}, "libraries": {"numpy": "2"},

@@ -22,8 +22,9 @@ from test_mlflow_server import mlflow_server  # noqa: F401  (module-scoped real 
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = synth.SynthSpec(n_frames=600, n_videos=60, seed=11)
-# 2 x 2 x 2 = 8 configurations; pose=false with interactions=true (2) is invalid by design
-GRID = ["-m", "model.n_components=2,5", "features.pose=true,false", "features.interactions=true,false"]
+# 2 x 3 = 6 configurations over every feature set; without clipping, 25 components exceed the 20 and 23
+# features of `au` and `au_pose` (2 FAILED children), while every feature set itself is valid
+GRID = ["-m", "model.n_components=2,25", "features=au,au_pose,au_pose_interactions", "model.clip_n_components=false"]
 
 
 def make_workspace(root: Path, spec: synth.SynthSpec = SPEC) -> Path:
@@ -75,20 +76,24 @@ def test_sweep_one_parent_and_a_child_per_configuration(swept, workspace):
     assert [r.info.run_id for r in parents] == [parent]
     p = client.get_run(parent)
     assert p.info.status == "FINISHED"
-    assert p.data.tags["aumesh.sweep.n_children"] == "8"
+    assert p.data.tags["aumesh.sweep.n_children"] == "6"
     assert p.data.tags["aumesh.sweep.n_failed"] == "2"
     assert Path(p.data.tags["aumesh.sweep.dir"]).parent == (workspace / "build" / "sweeps").resolve()
     assert not (workspace / "multirun").exists()
-    assert len(children) == 8
-    assert sorted(children["status"]) == ["FAILED"] * 2 + ["FINISHED"] * 6
+    assert len(children) == 6
+    assert sorted(children["status"]) == ["FAILED"] * 2 + ["FINISHED"] * 4
 
 
 def test_failed_configuration_is_recorded_and_sweep_continues(swept):
     _, children = swept
     failed = children[children["status"] == "FAILED"]
-    assert set(failed["params.features.pose"]) == {"False"}
-    assert set(failed["params.features.interactions"]) == {"True"}
-    assert all("features.interactions=true needs features.pose=true" in e for e in failed["error"])
+    assert set(failed["params.features.name"]) == {"au", "au_pose"}
+    assert set(failed["params.model.n_components"]) == {"25"}
+    assert all("model.n_components=25 exceeds the" in e for e in failed["error"])
+    # no feature set is an invalid corner: every one of them trains
+    small = children[children["params.model.n_components"] == "2"]
+    assert sorted(small["params.features.name"]) == ["au", "au_pose", "au_pose_interactions"]
+    assert set(small["status"]) == {"FINISHED"}
     # the jobs launched after the first failure still ran and finished
     order = children.sort_values("start_time")["status"].tolist()
     first_fail = order.index("FAILED")
@@ -123,8 +128,8 @@ def test_statistics_are_reused_across_n_components(swept):
     client = mlflow_store.get_client({})
     finished = children[children["status"] == "FINISHED"]
     reuse = [client.get_run(r).data.tags["aumesh.cache.statistics"] for r in finished["run_id"]]
-    # 3 valid designs (pose/interactions) x 1 target: computed once each, reused for the other n_components
-    assert sorted(reuse) == ["computed"] * 3 + ["reused"] * 3
+    # 3 feature sets x 1 target: computed once each; au_pose_interactions reuses them for its second n_components
+    assert sorted(reuse) == ["computed"] * 3 + ["reused"]
 
 
 def test_child_equals_a_fresh_fit(swept, workspace):
@@ -133,17 +138,17 @@ def test_child_equals_a_fresh_fit(swept, workspace):
     from aumesh.experiments import sweep
 
     _, children = swept
-    row = children[(children["status"] == "FINISHED") & (children["params.features.interactions"] == "True")
-                   & (children["params.model.n_components"] == "5")].iloc[0]
-    cfg = config.from_dict(config.compose(["model.n_components=5", "features.interactions=true", "features.pose=true"],
-                                          config_dir=workspace / "conf"))
+    row = children[(children["status"] == "FINISHED") & (children["params.features.name"] == "au_pose_interactions")
+                   & (children["params.model.n_components"] == "25")].iloc[0]
+    cfg = config.from_dict(config.compose(["model.n_components=25", "features=au_pose_interactions",
+                                           "model.clip_n_components=false"], config_dir=workspace / "conf"))
     with sweep.blas_threads():
         cv, final = ev.evaluate(ev.load_prepared(workspace / cfg.paths.prepared_dir), cfg)
     assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
     local = registry.download_run_artifacts(row["run_id"], "model/au_to_mesh_pls.npz", workspace / "build" / "dl")
     npz = np.load(local)
     np.testing.assert_array_equal(npz["coef_full"], final.coef.T.astype(np.float32))
-    assert int(npz["n_components"]) == 5
+    assert int(npz["n_components"]) == 25
 
 
 def test_runs_command_best_first(swept, capsys):
@@ -221,11 +226,12 @@ def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_serve
     parent = tracking.start_parent_run(cfg, "server sweep")
     cache = sweep.SweepCache()
     results = []
-    for ov in (["model.n_components=2"], ["model.n_components=4"], ["features.pose=false"]):
+    for ov in (["model.n_components=2"], ["model.n_components=4"],
+               ["features=au", "model.n_components=30", "model.clip_n_components=false"]):
         raw = config.compose(ov + ["tracking.experiment=server-sweep"], config_dir=workspace / "conf")
         results.append(sweep.run_configuration(raw, ov, parent, cache=cache, root=workspace))
     tracking.end_run(parent, cfg)
-    assert [r["status"] for r in results] == ["FINISHED", "FINISHED", "FAILED"]  # pose=false + interactions=true
+    assert [r["status"] for r in results] == ["FINISHED", "FINISHED", "FAILED"]  # 30 components > 20 features
     children = tracking.list_child_runs(parent, cfg)
     assert sorted(children["status"]) == ["FAILED", "FINISHED", "FINISHED"]
     record = promote.promote(parent, workspace, cfg, model_name="aumesh-server-test")

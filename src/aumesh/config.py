@@ -17,7 +17,7 @@ from typing import Any, Mapping, Sequence
 import yaml
 
 from aumesh.utils.io import atomic_write_text
-from aumesh.data.schema import ANCHOR_INDICES, feature_columns
+from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, feature_set_columns
 
 
 @dataclass(frozen=True)
@@ -69,12 +69,39 @@ class PreprocessConfig:
 
 @dataclass(frozen=True)
 class FeaturesConfig:
-    pose: bool = True
-    interactions: bool = True
+    """The design, one option of the ``features`` group (``conf/features/<name>.yaml``)."""
+
+    name: str = "au_pose_interactions"
+
+    @property
+    def pose(self) -> bool:
+        """Pose covariates (Pitch, Yaw, Roll) in the design."""
+        return FEATURE_SETS[self.name][0]
+
+    @property
+    def interactions(self) -> bool:
+        """Pose x AU interactions in the design."""
+        return FEATURE_SETS[self.name][1]
 
     @property
     def columns(self) -> list[str]:
-        return feature_columns(self.pose, self.interactions)
+        return feature_set_columns(self.name)
+
+
+# The two switches the features group replaced, and the option each combination now is.
+_OLD_FEATURE_KEYS = ("pose", "interactions")
+
+
+def _old_features_message(data: Mapping[str, Any]) -> str:
+    def truthy(v: Any) -> bool:
+        return str(v).strip().lower() in ("true", "1", "yes")
+
+    pose, inter = truthy(data.get("pose", True)), truthy(data.get("interactions", True))
+    named = {v: k for k, v in FEATURE_SETS.items()}.get((pose, inter))
+    hint = f" (pose={pose}, interactions={inter} is `features={named}`)" if named else ""
+    return ("features.pose / features.interactions were replaced by the features config group: "
+            f"use features=au, features=au_pose or features=au_pose_interactions{hint}; "
+            "in params.yaml: `features: {name: au_pose}`")
 
 
 @dataclass(frozen=True)
@@ -137,6 +164,8 @@ def _build(cls: type, data: Any, where: str) -> Any:
     if not isinstance(data, dict):
         raise ValueError(f"config section '{where}' must be a mapping, got {type(data).__name__}")
     known = {f.name: f for f in dataclasses.fields(cls)}
+    if cls is FeaturesConfig and set(data) & set(_OLD_FEATURE_KEYS):
+        raise ValueError(_old_features_message(data))
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise ValueError(
@@ -175,7 +204,9 @@ def validate(cfg: Config) -> Config:
         raise ValueError(f"cv.n_splits={cfg.cv.n_splits}: must be >= 2")
     if cfg.data.chunk_rows < 1:
         raise ValueError(f"data.chunk_rows={cfg.data.chunk_rows}: must be >= 1")
-    cfg.features.columns  # raises on interactions without pose
+    if cfg.features.name not in FEATURE_SETS:
+        raise ValueError(f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} "
+                         "(conf/features/<name>.yaml)")
     return cfg
 
 
@@ -199,12 +230,21 @@ def load_params(path: str | Path = "params.yaml") -> Config:
         raise ValueError(f"{path}: {err}") from None
 
 
+def check_overrides(overrides: Sequence[str]) -> None:
+    """Refuse overrides of keys that no longer exist, naming the form that replaced them."""
+    for ov in overrides:
+        key = ov.lstrip("+~").split("=", 1)[0].strip()
+        if key in ("features.pose", "features.interactions"):
+            raise ValueError(f"override {ov!r}: " + _old_features_message({}).split(" (")[0])
+
+
 def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf", config_name: str = "config") -> dict:
     """Compose ``conf/`` with Hydra overrides into a plain dict (what DVC writes to params.yaml)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from omegaconf import OmegaConf
 
+    check_overrides(overrides)
     with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base=None):
         cfg = hydra_compose(config_name=config_name, overrides=list(overrides))
     return OmegaConf.to_container(cfg, resolve=True)

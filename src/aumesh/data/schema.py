@@ -37,6 +37,22 @@ def interaction_columns(au_columns=AU_COLUMNS, pose_columns=POSE_COLUMNS) -> lis
     return [f"{p}*{a}" for p in pose_columns for a in au_columns]
 
 
+# The feature sets (the ``features`` config group): name -> (pose covariates, pose x AU interactions).
+# One name per design, so no combination of switches can contradict another.
+FEATURE_SETS: dict[str, tuple[bool, bool]] = {
+    "au": (False, False),
+    "au_pose": (True, False),
+    "au_pose_interactions": (True, True),  # the card's v2 design
+}
+
+
+def feature_set_columns(name: str) -> list[str]:
+    """Design-matrix column names of a feature set (``features=au|au_pose|au_pose_interactions``)."""
+    if name not in FEATURE_SETS:
+        raise ValueError(f"features={name!r}: use one of {', '.join(FEATURE_SETS)}")
+    return feature_columns(*FEATURE_SETS[name])
+
+
 def feature_columns(pose: bool, interactions: bool) -> list[str]:
     """Design-matrix column names for a feature configuration (20, 23 or 83 columns)."""
     if interactions and not pose:

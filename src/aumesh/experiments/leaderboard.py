@@ -45,8 +45,7 @@ def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFram
             "status": c.status,
             "target": c.params.get("preprocess.target"),
             "neutral": c.params.get("preprocess.neutral.method"),
-            "pose": c.params.get("features.pose"),
-            "interactions": c.params.get("features.interactions"),
+            "features": c.params.get("features.name"),
             "n_components_requested": c.params.get("model.n_components"),
             "n_components": int(m["n_components"]) if "n_components" in m else None,
             "r2_mean": m.get("r2_mean"),
@@ -73,7 +72,7 @@ def format_runs_table(table: pd.DataFrame) -> str:
 
     lines = [f"ranked by {table.attrs.get('metric', '?')} ({'desc' if not str(table.attrs.get('metric', '')).startswith('mae') else 'asc'}),"
              " ties -> fewer components; FAILED runs last",
-             f"{'#':>3} {'run':8} {'status':8} {'target':8} {'neutral':7} {'pose':5} {'inter':5} "
+             f"{'#':>3} {'run':8} {'status':8} {'target':8} {'neutral':7} {'features':20} "
              f"{'k':>6} {'r2_mean ± std':>17} {'r2_disp':>8} {'mae':>8}  error"]
     for r in table.to_dict(orient="records"):
         k = "" if missing(r["n_components_requested"]) else str(r["n_components_requested"])
@@ -82,6 +81,6 @@ def format_runs_table(table: pd.DataFrame) -> str:
         r2 = "" if missing(r["r2_mean"]) else f"{num(r['r2_mean'])} ± {num(r['r2_std'])}"
         rank = "" if missing(r["rank"]) else str(r["rank"])
         lines.append(f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} {str(r['neutral']):7} "
-                     f"{str(r['pose']):5} {str(r['interactions']):5} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
+                     f"{str(r['features']):20} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
                      f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}")
     return "\n".join(lines)

@@ -58,8 +58,7 @@ CROSS_TARGET_METRICS = ("r2_displacement_mean",)
 MODEL_KEYS = (
     "preprocess.target",
     "preprocess.neutral.method",
-    "features.pose",
-    "features.interactions",
+    "features.name",
     "model.n_components",
     "model.scale",
     "model.clip_n_components",

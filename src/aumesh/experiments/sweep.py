@@ -1,7 +1,7 @@
 """In-process sweeps with Hydra's syntax, logged to MLflow as one parent run and one child per configuration.
 
-``aumesh sweep -m preprocess.target=absolute,neutral features.pose=true,false \\
-features.interactions=true,false model.n_components=10,23,40,83`` runs :func:`main`: a Hydra app
+``aumesh sweep -m preprocess.target=absolute,neutral features=au,au_pose,au_pose_interactions \\
+model.n_components=10,23,40,83`` runs :func:`main`: a Hydra app
 on the repo's ``conf/`` (the same configuration ``dvc exp run`` composes into ``params.yaml``)
 whose task function evaluates one configuration on the prepared data. Not a DVC stage: a sweep
 is exploration; ``aumesh promote`` turns its best run into ``conf/`` so ``dvc repro`` rebuilds it.
@@ -11,8 +11,7 @@ Reuse between configurations (per process; every joblib worker keeps its own):
 * the loaded :class:`aumesh.pipeline.evaluate.Prepared` (memory-mapped meshes), keyed by its directory;
 * the fold of every frame, keyed by (prepared data, ``cv.n_splits``);
 * the per-fold :class:`aumesh.pipeline.evaluate.FoldStatistics`, keyed by (prepared data,
-  ``preprocess.target``, ``preprocess.neutral.method``, ``features.pose``,
-  ``features.interactions``, ``cv.n_splits``): a new ``model.*`` value costs fits from
+  ``preprocess.target``, ``preprocess.neutral.method``, ``features``, ``cv.n_splits``): a new ``model.*`` value costs fits from
   statistics and one prediction pass, never a new pass of accumulation;
 * the CV result and final fit, keyed by the statistics and the *effective* number of
   components: ``model.n_components`` clipped to the number of features (40 or 83 on the
@@ -32,9 +31,8 @@ child run (``aumesh.experiments.tracking.tracked_run``): flattened params, prove
 digest), per-fold ``r2``/``mae``/``vertex_error``/``r2_displacement`` (step = fold) and their means,
 the R²-vs-n_components curve (metric ``r2_by_n_components``, step = k, and the figure
 ``plots/r2_vs_n_components.png``) and the release-format NPZ under ``model/`` (what ``aumesh
-promote`` registers). A configuration that raises (e.g. ``features.interactions=true`` with
-``features.pose=false``, invalid by design) is recorded as a FAILED child with the error and
-the sweep goes on. When the sweep ends the parent is FINISHED with tags counting its children.
+promote`` registers). A configuration that raises (e.g. a data or config error) is recorded as a
+FAILED child with the error and the sweep goes on. When the sweep ends the parent is FINISHED with tags counting its children.
 """
 
 from __future__ import annotations
@@ -119,7 +117,7 @@ def prepare_key(signature: Mapping[str, Any]) -> str:
 def statistics_key(prepared_id: str, cfg: Config) -> tuple:
     """Cache key of the per-fold statistics: everything :func:`aumesh.pipeline.evaluate.accumulate` depends on."""
     return (prepared_id, cfg.preprocess.target, cfg.preprocess.neutral.method,
-            bool(cfg.features.pose), bool(cfg.features.interactions), int(cfg.cv.n_splits))
+            cfg.features.name, int(cfg.cv.n_splits))
 
 
 def run_name(overrides: Sequence[str]) -> str:
@@ -402,8 +400,8 @@ def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, roo
     run.log_metrics(scalars)
     # the curve as a metric history, step = n_components (one batch)
     run.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
-    title = (f"target={cfg.preprocess.target} neutral={cfg.preprocess.neutral.method} pose={cfg.features.pose} "
-             f"interactions={cfg.features.interactions} n_components={final.n_components}")
+    title = (f"target={cfg.preprocess.target} neutral={cfg.preprocess.neutral.method} features={cfg.features.name} "
+             f"n_components={final.n_components}")
     run.log_figure(r2_curve_figure(cv.r2_path_folds, title), FIGURE_ARTIFACT)
     metadata = {"mlflow_run_id": run.run_id, "config": cfg.to_dict(), "cv": {k: v for k, v in metrics.items()}}
     arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
@@ -622,7 +620,10 @@ def sweep_overrides(argv: Sequence[str], stamp: str | None = None) -> list[str]:
     A literal directory (not ``${now:...}``) is the same in every process of the sweep, so jobs
     in joblib workers or on cluster nodes find the parent file. User-given values win.
     """
+    from aumesh.config import check_overrides
+
     args = list(argv)
+    check_overrides([a for a in args if "=" in a])
     stamp = stamp or datetime.now().strftime("%Y-%m-%d_%H-%M-%S_%f")
     if not any(a.lstrip("+").startswith("hydra.sweep.dir=") for a in args):
         args.append(f"hydra.sweep.dir={SWEEPS_DIR}/{stamp}")

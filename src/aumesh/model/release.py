@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import unflatten_axis_major, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
+from aumesh.data.schema import FEATURE_SETS, unflatten_axis_major, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 
 NPZ_NAME = "au_to_mesh_pls.npz"
 CARD_JSON = "model_card.json"
@@ -101,7 +101,8 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
     pre, feats, model = cfg["preprocess"], cfg["features"], cfg["model"]
     folds = ", ".join(f"{v:.4f}" for v in cv["r2_folds"])
     counts = data["counts"]
-    inputs = "20 AU" + (" + 3 pose (Pitch, Yaw, Roll)" if feats["pose"] else "") + (" + 60 pose x AU" if feats["interactions"] else "")
+    pose, interactions = FEATURE_SETS[feats["name"]]
+    inputs = "20 AU" + (" + 3 pose (Pitch, Yaw, Roll)" if pose else "") + (" + 60 pose x AU" if interactions else "")
     lines = [
         f"# {card['name']}",
         "",
@@ -124,7 +125,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         f"- `PLSRegression(n_components={card['model']['n_components']}, scale={model['scale']})` (aumesh's exact kernel-PLS engine)",
         f"- Inputs for training: {inputs} = {card['model']['n_features']} features; released `coef`: 23 rows (AU + pose)"
-        + ("; full design in `coef_full` / `input_columns_full`" if feats["interactions"] else ""),
+        + ("; full design in `coef_full` / `input_columns_full`" if interactions else ""),
         "",
         f"## Out-of-sample performance ({cfg['cv']['n_splits']}-fold GroupKFold by {cfg['cv']['group']})",
         "",

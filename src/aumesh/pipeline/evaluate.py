@@ -192,9 +192,8 @@ def effective_n_components(cfg: Config) -> int:
     if cfg.model.n_components > p:
         if not cfg.model.clip_n_components:
             raise ValueError(
-                f"model.n_components={cfg.model.n_components} exceeds the {p} features of features.pose="
-                f"{cfg.features.pose}, features.interactions={cfg.features.interactions}. Fix: lower it, or set "
-                f"model.clip_n_components=true."
+                f"model.n_components={cfg.model.n_components} exceeds the {p} features of "
+                f"features={cfg.features.name}. Fix: lower it, or set model.clip_n_components=true."
             )
         return p
     return cfg.model.n_components
