@@ -81,6 +81,9 @@ def test_sweep_one_parent_and_a_child_per_configuration(swept, workspace):
     assert Path(p.data.tags["aumesh.sweep.dir"]).parent == (workspace / "build" / "sweeps").resolve()
     assert not (workspace / "multirun").exists()
     assert len(children) == 6
+    from aumesh.experiments.sweep import count_jobs
+
+    assert count_jobs(GRID[1:]) == len(children)  # the progress bar's total is what Hydra launched
     assert sorted(children["status"]) == ["FAILED"] * 2 + ["FINISHED"] * 4
 
 

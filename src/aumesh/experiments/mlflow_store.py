@@ -164,22 +164,19 @@ def _store_init_lock(uri: str) -> Iterator[None]:
     MLflow creates the schema (alembic) when a client is built on a new SQLite
     file; several processes doing that at once (parallel sweep jobs, ``dvc queue
     start -j N``) fail with ``alembic.util.exc.CommandError: Online migration
-    expected to match one row``. The lock file lives in the system temp dir
-    (keyed by the database path) so it never dirties the Git workspace. Later
+    expected to match one row``. The lock (``filelock``) is ``<database>.lock`` beside
+    the store it guards (git-ignored next to the workspace's ``mlflow.db``). Later
     writes are safe: MLflow sets ``PRAGMA busy_timeout = 20000`` on every SQLite
-    session. No-op for other URIs and where ``fcntl`` is unavailable.
+    session. No-op for other URIs.
     """
     if not uri.startswith("sqlite:///"):
         yield
         return
-    import hashlib
-    import tempfile
+    from filelock import FileLock
 
-    from aumesh.utils.io import file_lock
-
-    db_path = os.path.abspath(uri[len("sqlite:///"):].partition("?")[0])
-    key = hashlib.sha1(db_path.encode()).hexdigest()[:16]
-    with file_lock(Path(tempfile.gettempdir()) / f"aumesh-mlflow-{key}.lock"):
+    db_path = Path(os.path.abspath(uri[len("sqlite:///"):].partition("?")[0]))
+    db_path.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(f"{db_path}.lock"):
         yield
 
 

@@ -52,7 +52,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.config import flatten as flatten_config
-from aumesh.utils.io import atomic_write_json, file_lock
+from aumesh.utils.io import atomic_write_json
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -324,7 +324,10 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
                 "params.yaml; run `dvc repro prepare` (or `make demo`) first.")
         return source.path
     stamp_path = source.path / PREPARE_STAMP
-    with file_lock(source.path.with_name(source.path.name + ".lock")):
+    from filelock import FileLock
+
+    source.path.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(source.path.with_name(source.path.name + ".lock")):
         if complete and stamp_path.exists():
             stamp = json.loads(stamp_path.read_text())
             if stamp.get("signature") != json.loads(json.dumps(source.signature, default=str)):
@@ -513,6 +516,7 @@ class SweepCallback:
 
     def __init__(self, **_: Any) -> None:
         self._t0: float | None = None
+        self._progress = None  # a tqdm bar over the jobs this process launches (quiet when not on a terminal)
 
     # -- Hydra hooks
     def on_run_start(self, config, **kwargs: Any) -> None:
@@ -522,16 +526,27 @@ class SweepCallback:
         self._end(config, Path(str(config.hydra.run.dir)))
 
     def on_multirun_start(self, config, **kwargs: Any) -> None:
-        self._start(config, Path(str(config.hydra.sweep.dir)), list(config.hydra.overrides.task), "multirun")
+        from tqdm.auto import tqdm
+
+        overrides = list(config.hydra.overrides.task)
+        self._start(config, Path(str(config.hydra.sweep.dir)), overrides, "multirun")
+        self._progress = tqdm(total=count_jobs(overrides), desc="sweep", unit="config",
+                              disable=not sys.stderr.isatty(), leave=False)
 
     def on_multirun_end(self, config, **kwargs: Any) -> None:
+        if self._progress is not None:
+            self._progress.close()
+            self._progress = None
         self._end(config, Path(str(config.hydra.sweep.dir)))
 
     def on_job_start(self, config, **kwargs: Any) -> None:
         pass
 
     def on_job_end(self, config, job_return=None, **kwargs: Any) -> None:
-        pass
+        # jobs run in this process (basic launcher) advance the bar; a joblib or cluster
+        # worker has its own callback instance and no bar
+        if self._progress is not None:
+            self._progress.update(1)
 
     # -- implementation
     def _start(self, config, directory: Path, overrides: list[str], mode: str) -> None:
@@ -584,6 +599,17 @@ class SweepCallback:
 
             print(format_runs_table(runs_table(children)))
         print(f"(`aumesh runs --parent {parent}`; `aumesh promote --parent {parent}`)")
+
+
+def count_jobs(overrides: Sequence[str]) -> int:
+    """Number of configurations Hydra's basic sweeper makes of ``overrides`` (the product of the sweeps)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    total = 1
+    for override in OverridesParser.create().parse_overrides(list(overrides)):
+        if override.is_sweep_override():
+            total *= len(list(override.sweep_string_iterator()))
+    return total
 
 
 def _task(config) -> dict[str, Any]:
