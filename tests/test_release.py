@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from aumesh.utils.io import atomic_directory, atomic_savez
-from aumesh.model.release import model_card_markdown, predict_mesh, release_arrays
+from aumesh.model.inference import predict_mesh
+from aumesh.model.release import model_card_markdown, release_arrays
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
 
 CARD_KEYS = {"coef": ((23, 1434), np.float32), "intercept": ((1434,), np.float32), "input_columns": ((23,), None),

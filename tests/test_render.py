@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from aumesh.data import truth
 from aumesh.geometry import face
 from aumesh.card import render
+from aumesh.model.inference import ReleaseError
 
 ALWAYS = ("au_solid_panels.png", "au_solid_neutral_vs_activated.png", "au_compare_overlay.png",
           "au_effect_maps.png", "pose_views.png")
@@ -83,7 +84,7 @@ def test_missing_key_error_names_key_and_file(tmp_path, key):
     del arrays[key]
     bad = tmp_path / "bad.npz"
     np.savez(bad, **arrays)
-    with pytest.raises(KeyError, match=key) as exc:
+    with pytest.raises(ReleaseError, match=key) as exc:
         render.render_release(bad, tmp_path / "out")
     assert "bad.npz" in str(exc.value)
 

@@ -18,6 +18,10 @@ __version__ = "0.1.0"
 
 # public name -> module that defines it
 _EXPORTS = {
+    "load_release": "aumesh.model.inference",
+    "predict_mesh": "aumesh.model.inference",
+    "PredictionInputError": "aumesh.model.inference",
+    "ReleaseError": "aumesh.model.inference",
     "PLSRegression": "aumesh.model.pls",
     "CrossProducts": "aumesh.model.cross_products",
     "SynthSpec": "aumesh.data.synth",

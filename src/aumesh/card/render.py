@@ -50,10 +50,9 @@ import numpy as np
 
 from aumesh.utils.io import atomic_path, atomic_write_text
 from aumesh.geometry import face
-from aumesh.data import schema
-from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES
+from aumesh.data.schema import AU_COLUMNS, N_VERTICES
+from aumesh.model.inference import load_release, predict_mesh
 
-REQUIRED_KEYS: tuple[str, ...] = ("coef", "intercept", "input_columns", "au_columns", "mean_aligned_mesh")
 COMPARE_AUS: tuple[str, ...] = ("AU12", "AU26", "AU04", "AU01")
 POSES_DEG: tuple[tuple[float, float, float], ...] = (
     (0.0, 0.0, 0.0), (0.0, 30.0, 0.0), (0.0, -30.0, 0.0), (20.0, 0.0, 0.0), (-20.0, 0.0, 0.0), (0.0, 0.0, 20.0),
@@ -70,53 +69,6 @@ FIGURE_NAMES: tuple[str, ...] = (
 
 
 # --------------------------------------------------------------------------- loading
-def load_release(npz_path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Load and validate a release NPZ (card format).
-
-    Parameters
-    ----------
-    npz_path : path
-        The release file.
-
-    Returns
-    -------
-    dict of str -> np.ndarray
-        All arrays of the file; ``coef`` (n_inputs, 1434), ``intercept`` (1434,),
-        ``mean_aligned_mesh`` (478, 3) checked.
-
-    Raises
-    ------
-    FileNotFoundError, KeyError, ValueError
-        Naming the file and the missing / malformed key.
-    """
-    from aumesh.model.release import load_npz
-
-    arrays = load_npz(npz_path)
-    validate_release(arrays, str(npz_path))
-    return arrays
-
-
-def validate_release(arrays: Mapping[str, Any], where: str = "<arrays>") -> None:
-    """Raise a clear error if release arrays lack a key or have a wrong shape."""
-    for key in REQUIRED_KEYS:
-        if key not in arrays:
-            raise KeyError(
-                f"{where}: missing key {key!r}; a release NPZ needs {list(REQUIRED_KEYS)} "
-                f"(card 'File format'); it has {sorted(arrays)}"
-            )
-    coef, intercept = np.asarray(arrays["coef"]), np.asarray(arrays["intercept"])
-    cols = [str(c) for c in np.asarray(arrays["input_columns"]).tolist()]
-    if coef.ndim != 2 or coef.shape != (len(cols), N_TARGETS):
-        raise ValueError(f"{where}: 'coef' must be ({len(cols)}, {N_TARGETS}) (rows = input_columns), got {coef.shape}")
-    if intercept.shape != (N_TARGETS,):
-        raise ValueError(f"{where}: 'intercept' must be ({N_TARGETS},), got {intercept.shape}")
-    if np.asarray(arrays["mean_aligned_mesh"]).shape != (N_VERTICES, 3):
-        raise ValueError(f"{where}: 'mean_aligned_mesh' must be ({N_VERTICES}, 3)")
-    missing = [a for a in AU_COLUMNS if a not in cols]
-    if missing:
-        raise KeyError(f"{where}: 'input_columns' lacks {missing}")
-
-
 def load_cv(cv_path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Load CV arrays: ``r2_per_vertex`` and/or ``vertex_error`` or the cumulative curve."""
     path = Path(cv_path)
@@ -133,20 +85,6 @@ def load_cv(cv_path: str | os.PathLike) -> dict[str, np.ndarray]:
     if "cumulative_error_thresholds" in cv and "cumulative_error_fraction" not in cv:
         raise KeyError(f"{path}: 'cumulative_error_thresholds' given without 'cumulative_error_fraction'")
     return cv
-
-
-def predict_mesh(arrays: Mapping[str, Any], aus: Mapping[str, float] | None = None,
-                 pose: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """Card inference: AU intensities (+ pose) -> mesh (478, 3) in the release's own frame."""
-    cols = [str(c) for c in np.asarray(arrays["input_columns"]).tolist()]
-    x = np.zeros(len(cols))
-    for name, value in (aus or {}).items():
-        x[cols.index(name)] = value
-    for name, value in zip(("Pitch", "Yaw", "Roll"), pose):
-        if name in cols:
-            x[cols.index(name)] = value
-    flat = x @ np.asarray(arrays["coef"], dtype=np.float64) + np.asarray(arrays["intercept"], dtype=np.float64)
-    return schema.unflatten_axis_major(flat)
 
 
 def face_frame_meshes(arrays: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, float]:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import FEATURE_SETS, unflatten_axis_major, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
+from aumesh.data.schema import FEATURE_SETS, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 
 NPZ_NAME = "au_to_mesh_pls.npz"
 CARD_JSON = "model_card.json"
@@ -77,22 +77,6 @@ def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: lis
         arrays["coef_full"] = coef.T.astype(np.float32)
         arrays["input_columns_full"] = np.array(feature_columns)
     return arrays
-
-
-def predict_mesh(npz: dict[str, np.ndarray], au: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
-    """The card's inference snippet as a function: (478, 3) mesh for one AU vector (and pose).
-
-    With ``coef_full`` present and a non-zero pose, the pose x AU terms are included (exact
-    pose-conditioned prediction); at pose 0 both paths agree.
-    """
-    au = np.asarray(au, dtype=np.float64)
-    pose = np.zeros(3) if pose is None else np.asarray(pose, dtype=np.float64)
-    if "coef_full" in npz and np.any(pose):
-        x = np.concatenate([au, pose, (pose[:, None] * au[None, :]).ravel()])
-        flat = x @ npz["coef_full"] + npz["intercept"]
-    else:
-        flat = np.concatenate([au, pose]) @ npz["coef"] + npz["intercept"]
-    return unflatten_axis_major(flat)
 
 
 def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:
