@@ -147,3 +147,67 @@ def test_radians_up_to_a_quarter_turn_are_accepted_and_pose_is_not_given_twice(c
     assert aumesh.predict_mesh(path, {"AU12": 1.0}, [1.5, -1.5, 0.7]).shape == (478, 3)
     with pytest.raises(PredictionInputError, match="pose given twice"):
         aumesh.predict_mesh(path, np.zeros(23), [0.1, 0.0, 0.0])
+
+
+# --------------------------------------------------------------------------- aumesh predict
+def test_cli_predict_writes_one_mesh_per_table_row(card_release, tmp_path, capsys):
+    from aumesh import cli
+
+    path, coef, intercept = card_release
+    rng = np.random.default_rng(4)
+    au, pose = rng.uniform(0, 2, size=(3, 20)), rng.uniform(-0.4, 0.4, size=(3, 3))
+    table = pd.DataFrame(au, columns=list(AU_COLUMNS)).assign(Pitch=pose[:, 0], Roll=pose[:, 2], Yaw=pose[:, 1],
+                                                            frame=[7, 8, 9])
+    table.to_csv(tmp_path / "rows.csv", index=False)
+    out = tmp_path / "meshes.npz"
+    assert cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out),
+                     "--ignore", "frame"]) == 0
+    assert "wrote 3 mesh(es)" in capsys.readouterr().out
+    x_full = np.stack([np.concatenate([a, p, np.outer(p, a).ravel()]) for a, p in zip(au, pose)])
+    expected = (x_full @ coef.T + intercept).reshape(3, 3, 478).transpose(0, 2, 1)
+    with np.load(out, allow_pickle=False) as z:
+        assert z["meshes"].shape == (3, 478, 3) and z["meshes"].dtype == np.float32
+        np.testing.assert_allclose(z["meshes"], expected, rtol=1e-5, atol=1e-2)
+        np.testing.assert_array_equal(z["pose"], pose)
+    # the table's own errors name the table; OBJ/PLY hold one mesh
+    with pytest.raises(PredictionInputError, match=r"rows\.csv: aus \(DataFrame\): unknown name\(s\) \['frame'\]"):
+        cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out)])
+    with pytest.raises(PredictionInputError, match=r"rows\.csv has 3 rows; \.obj holds one mesh"):
+        cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(tmp_path / "m.obj"),
+                  "--ignore", "frame"])
+    with pytest.raises(PredictionInputError, match=r"--ignore names column\(s\) \['video_id'\]"):
+        cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out), "--ignore", "video_id"])
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply"])
+def test_cli_predict_one_row_as_a_mesh_file_facing_out_of_the_face(tmp_path, suffix):
+    from aumesh import cli
+    from aumesh.data import truth
+    from aumesh.geometry import face
+
+    release = tmp_path / "face.npz"
+    np.savez(release, **truth.synthetic_release_arrays())
+    pd.DataFrame({"AU12": [1.0]}).to_parquet(tmp_path / "smile.parquet")
+    out = tmp_path / f"smile{suffix}"
+    assert cli.main(["predict", str(tmp_path / "smile.parquet"), "--release", str(release), "--out", str(out)]) == 0
+    lines = out.read_text().splitlines()
+    if suffix == ".obj":
+        verts = np.array([[float(v) for v in ln.split()[1:]] for ln in lines if ln.startswith("v ")])
+        tris = np.array([[int(v) - 1 for v in ln.split()[1:]] for ln in lines if ln.startswith("f ")])
+    else:
+        assert lines[:2] == ["ply", "format ascii 1.0"]
+        n_v = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
+        n_f = int(next(ln for ln in lines if ln.startswith("element face")).split()[-1])
+        body = lines[lines.index("end_header") + 1:]
+        assert len(body) == n_v + n_f
+        verts = np.array([[float(v) for v in ln.split()] for ln in body[:n_v]])
+        faces = np.array([[int(v) for v in ln.split()] for ln in body[n_v:]])
+        assert (faces[:, 0] == 3).all()
+        tris = faces[:, 1:]
+    expected = _card_snippet(release, np.eye(20)[AU_COLUMNS.index("AU12")])
+    np.testing.assert_allclose(verts, expected, atol=1e-5)
+    assert len(tris) == len(face.triangulate(expected)) and tris.min() >= 0 and tris.max() < 478
+    # front faces: normals point from the eyes toward the nose tip's side (out of the face)
+    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    outward = verts[1] - 0.5 * (verts[33] + verts[263])
+    assert (np.cross(b - a, c - a) @ outward > 0).mean() > 0.9

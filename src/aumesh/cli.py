@@ -67,6 +67,14 @@ def _cmd_render(args) -> int:
     return render.main([str(args.npz), "--out", str(args.out)] + (["--cv", str(args.cv)] if args.cv else []))
 
 
+def _cmd_predict(args) -> int:
+    from aumesh.pipeline.predict import predict_table
+
+    out, n = predict_table(args.release, args.table, args.out, args.ignore)
+    print(f"wrote {n} mesh(es) to {out}")
+    return 0
+
+
 # ------------------------------------------------------------------ experiments: sweep, runs, promote
 def _tracking_cfg(args) -> dict[str, Any]:
     """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
@@ -196,6 +204,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--cv", type=Path, default=None)
     p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("predict", help="meshes from a CSV/parquet table of AU (+ pose) rows, with a release NPZ")
+    p.add_argument("table", type=Path,
+                   help="CSV or parquet, one row per mesh: columns AU01..AU43 (missing AUs are 0) and optionally "
+                        "Pitch, Yaw, Roll in radians (absent: pose 0)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output file: .npz (meshes (N, 478, 3)), or .obj / .ply for a one-row table")
+    p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"),
+                   help="release NPZ (default: %(default)s)")
+    p.add_argument("--ignore", nargs="*", default=[], metavar="COLUMN",
+                   help="table columns that are not model inputs, e.g. video_id frame (default: none)")
+    p.set_defaults(func=_cmd_predict)
 
     add_experiment_commands(sub)
     return parser
