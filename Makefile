@@ -6,10 +6,15 @@ BIN := $(VENV)/bin
 UV_VERSION := 0.13.8
 STAMP := $(VENV)/.installed
 
-.PHONY: help venv demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui
+# Node tools (package.json / package-lock.json): three.js (inlined into release/viewer.html) and the Khronos
+# glTF-Validator (tests); `npm ci` installs the locked versions into ./node_modules (git-ignored).
+TOOLS_STAMP := node_modules/.package-lock.json
+
+.PHONY: help venv tools demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui
 
 help:
 	@echo "make demo        - create .venv from requirements.lock, pull the demo data, run the pipeline (dvc repro)"
+	@echo "make tools       - install the node tools (three.js for the viewer, glTF-Validator) into node_modules/"
 	@echo "make test        - run the test suite (fast tests)"
 	@echo "make test-slow   - run the slow end-to-end and scale tests"
 	@echo "make lock        - re-resolve requirements.lock from pyproject.toml"
@@ -27,13 +32,19 @@ $(STAMP): requirements.lock pyproject.toml
 
 venv: $(STAMP)
 
+$(TOOLS_STAMP): package.json package-lock.json
+	npm ci --no-audit --no-fund --loglevel=error
+	touch $(TOOLS_STAMP)
+
+tools: $(TOOLS_STAMP)
+
 lock:
 	$(BIN)/uv pip compile pyproject.toml --extra test --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
 
 params: $(STAMP)
 	$(BIN)/aumesh compose-params
 
-demo: $(STAMP)
+demo: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/dvc pull --quiet data.dvc
 	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/dvc repro
 	@echo
@@ -41,16 +52,16 @@ demo: $(STAMP)
 	@ls -1 release
 	@$(BIN)/python -c "import json; c=json.load(open('release/model_card.json')); print('CV R2 = %.4f +/- %.4f  (folds %s), MAE = %.4f' % (c['cv']['r2_mean'], c['cv']['r2_std'], c['cv']['r2_folds'], c['cv']['mae_mean']))"
 
-test: $(STAMP)
+test: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q
 
-test-slow: $(STAMP)
+test-slow: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
-test-all: $(STAMP)
+test-all: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
-repro: $(STAMP)
+repro: $(STAMP) $(TOOLS_STAMP)
 	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/dvc repro
 
 bench: $(STAMP)

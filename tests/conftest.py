@@ -60,3 +60,38 @@ def small_tables(tmp_path):
 
 def seeded_rng(seed: int = 0) -> np.random.Generator:
     return np.random.default_rng(seed)
+
+
+@pytest.fixture(scope="session")
+def node_tools():
+    """The project's node packages (package-lock.json: three, gltf-validator) in REPO/node_modules.
+
+    `make tools` installs them (`npm ci`); if they are missing, this runs the same install once and
+    skips, naming the reason, only when npm cannot install them (no npm, no registry access).
+    """
+    import shutil
+    import subprocess
+
+    wanted = [REPO / "node_modules" / "gltf-validator" / "package.json", REPO / "node_modules" / "three" / "package.json"]
+    if all(p.exists() for p in wanted):
+        return REPO / "node_modules"
+    if shutil.which("npm") is None or shutil.which("node") is None:
+        pytest.skip("node/npm not installed: cannot install the node tools (make tools)")
+    proc = subprocess.run(["npm", "ci", "--no-audit", "--no-fund"], cwd=REPO, capture_output=True, text=True)
+    if proc.returncode != 0 or not all(p.exists() for p in wanted):
+        pytest.skip(f"npm ci could not install the node tools: {proc.stderr.strip()[-500:]}")
+    return REPO / "node_modules"
+
+
+def upright_truth_release(path: Path) -> Path:
+    """A synthetic-truth release NPZ in the card's canonical frame (y up, z out of the face), pixel-like units.
+
+    The template's face frame (x to the subject's left, y down, z away) turned half a turn about x,
+    then scaled and moved: the AU rows are the known synthetic FACS fields (aumesh.data.truth).
+    """
+    from aumesh.data import truth
+    from aumesh.geometry import face
+
+    tpl = 120.0 * face.canonical_template() * np.array([1.0, -1.0, -1.0]) + np.array([320.0, 240.0, 10.0])
+    np.savez(path, **truth.synthetic_release_arrays(tpl))
+    return path

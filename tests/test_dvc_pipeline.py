@@ -63,6 +63,7 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert card["mlflow"]["run_id"] and len(card["cv"]["r2_folds"]) == 3
     assert card["data"]["counts"]["frames_in"] == 600
     assert (ws / "release" / "MODEL_CARD.md").read_text().count("figures/") >= 4
+    assert (ws / "release" / "au_to_mesh.glb").read_bytes()[:4] == b"glTF"  # the blendshape rig (tests/test_gltf.py)
     assert "up to date" in _run([BIN / "dvc", "repro"], ws)
 
     # `dvc exp run -S` recomposes params.yaml from conf/ (Hydra) and reruns what depends on it
