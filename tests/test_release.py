@@ -11,6 +11,8 @@ from aumesh.utils.io import atomic_directory, atomic_savez
 from aumesh.model.inference import predict_mesh
 from aumesh.model.release import model_card_markdown, release_arrays
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
+from aumesh.geometry.face import canonical_template
+from aumesh.geometry.frame import canonical_frame, rotate_axis_major
 
 CARD_KEYS = {"coef": ((23, 1434), np.float32), "intercept": ((1434,), np.float32), "input_columns": ((23,), None),
              "au_columns": ((20,), None), "pose_columns": ((3,), None), "mean_aligned_mesh": ((478, 3), np.float32),
@@ -20,14 +22,20 @@ CARD_KEYS = {"coef": ((23, 1434), np.float32), "intercept": ((1434,), np.float32
 
 
 def _reference(rng):
-    return {"mean_aligned_mesh": rng.normal(size=(478, 3)), "mean_low_au_mesh": rng.normal(size=(478, 3)),
-            "reference_anchors": rng.normal(size=(12, 3)), "anchor_indices": np.arange(12)}
+    """A face in image pixels (y down): the release turns it into the card's frame."""
+    face_px = canonical_template() * 60.0 + 300.0
+    return {"mean_aligned_mesh": face_px + rng.normal(scale=0.1, size=(478, 3)), "mean_low_au_mesh": face_px,
+            "reference_anchors": face_px[:12], "anchor_indices": np.arange(12)}
 
 
 def _arrays(columns, rng):
+    """Random coefficients, and their release; returned coef and intercept are in the card's frame too."""
     coef = rng.normal(size=(N_TARGETS, len(columns)))
     intercept = rng.normal(size=N_TARGETS) + 300
-    return coef, intercept, release_arrays(coef, intercept, columns, len(columns), _reference(rng), "card", {"a": 1})
+    reference = _reference(rng)
+    rotation, origin = canonical_frame(reference["mean_aligned_mesh"])
+    arrays = release_arrays(coef, intercept, columns, len(columns), reference, "card", {"a": 1})
+    return rotate_axis_major(coef.T, rotation).T, rotate_axis_major(intercept, rotation, origin), arrays
 
 
 def test_npz_has_the_cards_keys_shapes_dtypes_and_loads_without_pickle(tmp_path):

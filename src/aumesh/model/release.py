@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from aumesh.data.schema import FEATURE_SETS, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
+from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
 
 NPZ_NAME = "au_to_mesh_pls.npz"
 CARD_JSON = "model_card.json"
@@ -23,6 +24,22 @@ CARD_SUMMARY = (
     "to 478x3 = 1434 MediaPipe FaceMesh vertex coordinates in a pose-canonical (Procrustes-aligned) "
     "frame. Deploy as 23-d input (AU + pose), pose = 0 for the canonical frontal view. "
     "Layout is axis-major [all x | all y | all z]."
+)
+
+FRAME_TEXT = (
+    "The mesh is in the card's canonical frame: x toward the subject's left (canthus 263 has larger x than 33), "
+    "y up (forehead above chin), z out of the face (the nose tip in front); right-handed. It is a proper rotation "
+    "(no reflection) of the Procrustes-aligned frame, found from the anatomy of `mean_aligned_mesh` (the outer "
+    "canthi 33 -> 263 give x, chin 152 -> forehead 10 gives y, the nose tip 1 the side z points to), so the release "
+    "is the same whatever convention the tables use (image pixels with y down, or y up). Origin: the centroid of "
+    "`mean_aligned_mesh`. Scale: unchanged, the Procrustes reference's units (the tables' pixels at the frames' "
+    "mean face size)."
+)
+POSE_TEXT = (
+    "Pose at render time: `R = Rotation.from_euler(\"xyz\", [pitch, yaw, roll]).as_matrix(); posed = mesh @ R.T` "
+    "(SciPy's lowercase \"xyz\" is extrinsic: R = Rz Ry Rx). In this frame positive yaw turns the nose toward the "
+    "subject's left (+x), positive pitch tips the nose down (-y), positive roll raises the subject's left eye "
+    "(counter-clockwise as seen from the front)."
 )
 
 
@@ -39,17 +56,23 @@ def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: lis
                    reference: dict[str, np.ndarray], card_text: str, metadata: dict[str, Any]) -> dict[str, np.ndarray]:
     """The NPZ's arrays, exactly the card's keys and dtypes (+ ``coef_full`` when trained with interactions).
 
+    Every geometric array is expressed in the card's canonical frame (x subject's left, y up, z out of the
+    face; :func:`aumesh.geometry.frame.canonical_frame` of ``reference["mean_aligned_mesh"]``): a proper
+    rotation plus a translation of the aligned frame, applied here, at the one place every NPZ is made, so
+    training and CV metrics stay in the aligned frame and the released model predicts the rotated meshes
+    exactly (``x @ coef' + intercept' == ((x @ coef + intercept) - origin) @ R.T`` per vertex).
+
     Parameters
     ----------
     coef : ndarray, shape (1434, p)
         Raw-input coefficients (scikit-learn ``coef_`` layout) for ``feature_columns``.
     intercept : ndarray, shape (1434,)
-        True intercept for raw inputs, yielding a mesh.
+        True intercept for raw inputs, yielding a mesh (aligned frame).
     feature_columns : list of str, length p
         The training design's columns (20, 23 or 83).
     reference : dict
         ``reference_anchors`` (12, 3), ``anchor_indices`` (12,), ``mean_aligned_mesh`` and
-        ``mean_low_au_mesh`` (478, 3), from the prepare stage.
+        ``mean_low_au_mesh`` (478, 3), from the prepare stage (aligned frame).
     """
     coef = np.asarray(coef, dtype=np.float64)
     if coef.shape != (N_TARGETS, len(feature_columns)):
@@ -57,15 +80,20 @@ def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: lis
     by_name = {c: coef[:, j] for j, c in enumerate(feature_columns)}
     # rows by name; a design without pose gets zero pose rows (the model ignores pose), so the format never changes
     coef23 = np.stack([by_name.get(c, np.zeros(N_TARGETS)) for c in INPUT_COLUMNS])
+    rotation, origin = canonical_frame(reference["mean_aligned_mesh"])
+
+    def mesh(key: str) -> np.ndarray:
+        return to_canonical(reference[key], rotation, origin).astype(np.float32)
+
     arrays = {
-        "coef": coef23.astype(np.float32),
-        "intercept": np.asarray(intercept, dtype=np.float32),
+        "coef": rotate_axis_major(coef23, rotation).astype(np.float32),
+        "intercept": rotate_axis_major(intercept, rotation, origin).astype(np.float32),
         "input_columns": np.array(INPUT_COLUMNS),
         "au_columns": np.array(AU_COLUMNS),
         "pose_columns": np.array(POSE_COLUMNS),
-        "mean_aligned_mesh": np.asarray(reference["mean_aligned_mesh"], dtype=np.float32),
-        "mean_low_au_mesh": np.asarray(reference["mean_low_au_mesh"], dtype=np.float32),
-        "reference_anchors": np.asarray(reference["reference_anchors"], dtype=np.float32),
+        "mean_aligned_mesh": mesh("mean_aligned_mesh"),
+        "mean_low_au_mesh": mesh("mean_low_au_mesh"),
+        "reference_anchors": mesh("reference_anchors"),
         "anchor_indices": np.asarray(reference["anchor_indices"], dtype=np.int32),
         "n_components": np.array(n_components, dtype=np.int32),
         "model_card": np.array(card_text),
@@ -74,7 +102,7 @@ def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: lis
     if len(feature_columns) > len(INPUT_COLUMNS):
         # pose x AU interactions: the full design keeps pose-conditioned prediction exact:
         # flat = x_full @ coef_full + intercept, x_full = [AU | pose | pose x AU] (pose-major products)
-        arrays["coef_full"] = coef.T.astype(np.float32)
+        arrays["coef_full"] = rotate_axis_major(coef.T, rotation).astype(np.float32)
         arrays["input_columns_full"] = np.array(feature_columns)
     return arrays
 
@@ -143,8 +171,11 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "mesh = np.stack([flat[:478], flat[478:956], flat[956:]], axis=1)  # axis-major -> (478, 3)",
         "```",
         "",
-        "Pose at render time: `Rotation.from_euler(\"xyz\", [pitch, yaw, roll])` (SciPy lowercase = extrinsic axes). "
-        "The mesh is in the frame of the Procrustes reference (the tables' image orientation: y down for py-feat pixels).",
+        "## Frame",
+        "",
+        FRAME_TEXT,
+        "",
+        POSE_TEXT,
         "",
         "## Provenance",
         "",
