@@ -81,7 +81,7 @@ def test_release_predicts_the_aligned_model_rotated_exactly():
     coef, intercept = rng.normal(size=(3 * N_VERTICES, 23)), rng.normal(size=3 * N_VERTICES)
     arrays = release_arrays(coef, intercept, columns, 23, reference, "", {})
     rotation, origin = canonical_frame(tpl)
-    x = rng.normal(size=23)
+    x = np.concatenate([rng.normal(size=20), rng.uniform(-0.5, 0.5, size=3)])  # pose in radians
     aligned = unflatten_axis_major(x @ coef.T + intercept)
     np.testing.assert_allclose(predict_mesh(arrays, x[:20], x[20:]), to_canonical(aligned, rotation, origin),
                                rtol=1e-5, atol=1e-3)
