@@ -46,7 +46,7 @@ params: $(STAMP)
 
 demo: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/dvc pull --quiet data.dvc
-	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/dvc repro
+	$(BIN)/dvc repro
 	@echo
 	@echo "Release written to $(CURDIR)/release/:"
 	@ls -1 release
@@ -62,7 +62,7 @@ test-all: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
 repro: $(STAMP) $(TOOLS_STAMP)
-	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/dvc repro
+	$(BIN)/dvc repro
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_engine_vs_sklearn.py

@@ -95,3 +95,44 @@ def upright_truth_release(path: Path) -> Path:
     tpl = 120.0 * face.canonical_template() * np.array([1.0, -1.0, -1.0]) + np.array([320.0, 240.0, 10.0])
     np.savez(path, **truth.synthetic_release_arrays(tpl))
     return path
+
+
+# ------------------------------------------------------------------ a fresh `git clone` of this checkout
+VENV = REPO / ".venv"
+
+
+def link_venv(clone: Path) -> None:
+    """Give a clone this checkout's environment as its own ``.venv/`` (a directory of links, so git ignores
+    it, Python finds ``pyvenv.cfg`` beside ``bin/`` and the Makefile's venv stamp can be declared up to date)."""
+    (clone / ".venv").mkdir()
+    for name in ("bin", "lib", "lib64", "include", "share", "pyvenv.cfg", ".installed"):
+        if (VENV / name).exists():
+            (clone / ".venv" / name).symlink_to(VENV / name)
+
+
+def clean_env(clone: Path) -> dict:
+    """The environment of a user who did not activate the venv: the venv's bin is not on PATH; the clone's
+    committed code (PYTHONPATH) wins over this checkout's editable install."""
+    keep = [p for p in os.environ.get("PATH", "").split(os.pathsep) if p and Path(p).resolve() != (VENV / "bin").resolve()]
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("MLFLOW_", "DVC_", "AUMESH_")) and k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env.update(PATH=os.pathsep.join(keep), PYTHONPATH=str(clone / "src"), GIT_AUTHOR_NAME="t",
+               GIT_AUTHOR_EMAIL="t@example.com", GIT_COMMITTER_NAME="t", GIT_COMMITTER_EMAIL="t@example.com",
+               MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true")
+    return env
+
+
+@pytest.fixture
+def fresh_clone(tmp_path) -> tuple[Path, dict]:
+    """``git clone`` of this checkout's HEAD with the venv linked in; skipped without git, the venv or demo-remote/."""
+    import shutil
+    import subprocess
+
+    if shutil.which("git") is None or not (VENV / "bin" / "dvc").exists() or not (REPO / ".git").exists():
+        pytest.skip("needs git, .venv/bin/dvc and a git checkout")
+    if not (REPO / "demo-remote").is_dir():
+        pytest.skip("the committed demo DVC remote (demo-remote/) is missing")
+    ws = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", str(REPO), str(ws)], check=True, capture_output=True)
+    link_venv(ws)
+    return ws, clean_env(ws)

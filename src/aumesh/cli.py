@@ -137,8 +137,7 @@ def _cmd_promote(args) -> int:
     record = promote.promote(parent, provenance.repo_root(), tracking_cfg, metric=args.metric, target=args.target,
                              model_name=args.model_name, register=not args.no_register)
     print(json.dumps(record, indent=2, default=str))
-    print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` "
-          "(PATH=$PWD/.venv/bin:$PATH dvc repro) rebuilds that release.")
+    print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` rebuilds that release.")
     return 0
 
 
