@@ -58,6 +58,23 @@ def small_tables(tmp_path):
     return tmp_path / "data"
 
 
+def face_reference(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """A prepare-stage reference: the template as a face in image pixels (y down, z into the image), jittered."""
+    from aumesh.geometry.face import canonical_template
+
+    face_px = canonical_template() * 60.0 + 300.0
+    return {"mean_aligned_mesh": face_px + rng.normal(scale=0.1, size=face_px.shape), "mean_low_au_mesh": face_px,
+            "reference_anchors": face_px[:12], "anchor_indices": np.arange(12)}
+
+
+def in_card_frame(coef: np.ndarray, intercept: np.ndarray, reference: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Raw coefficients (1434, p) and intercept (1434,) of the aligned frame, turned as ``release_arrays`` turns them."""
+    from aumesh.geometry.frame import canonical_frame, rotate_axis_major
+
+    rotation, origin = canonical_frame(reference["mean_aligned_mesh"])
+    return rotate_axis_major(coef.T, rotation).T, rotate_axis_major(intercept, rotation, origin)
+
+
 def seeded_rng(seed: int = 0) -> np.random.Generator:
     return np.random.default_rng(seed)
 

@@ -13,19 +13,20 @@ from aumesh.data.schema import AU_COLUMNS, N_TARGETS, feature_set_columns
 from aumesh.model.inference import PredictionInputError, ReleaseError
 from aumesh.model.release import release_arrays
 from aumesh.utils.io import atomic_savez
+from conftest import face_reference, in_card_frame
 
 
 def _release(tmp_path, features: str, seed: int = 0):
-    """A release NPZ from a random raw coefficient matrix (sklearn layout (1434, p)) and intercept."""
+    """A release NPZ from a random raw coefficient matrix (sklearn layout (1434, p)) and intercept; both returned
+    in the card's frame, as the release holds them."""
     rng = np.random.default_rng(seed)
     columns = feature_set_columns(features)
     coef = rng.normal(size=(N_TARGETS, len(columns)))
     intercept = rng.normal(size=N_TARGETS) + 300.0
-    reference = {"mean_aligned_mesh": rng.normal(size=(478, 3)), "mean_low_au_mesh": rng.normal(size=(478, 3)),
-                 "reference_anchors": rng.normal(size=(12, 3)), "anchor_indices": np.arange(12)}
+    reference = face_reference(rng)
     path = tmp_path / f"{features}.npz"
     atomic_savez(path, **release_arrays(coef, intercept, columns, len(columns), reference, "card", {}))
-    return path, coef, intercept
+    return path, *in_card_frame(coef, intercept, reference)
 
 
 def _card_snippet(path, au: np.ndarray, pose=np.zeros(3)) -> np.ndarray:

@@ -11,8 +11,7 @@ from aumesh.utils.io import atomic_directory, atomic_savez
 from aumesh.model.inference import predict_mesh
 from aumesh.model.release import model_card_markdown, release_arrays
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
-from aumesh.geometry.face import canonical_template
-from aumesh.geometry.frame import canonical_frame, rotate_axis_major
+from conftest import face_reference, in_card_frame
 
 CARD_KEYS = {"coef": ((23, 1434), np.float32), "intercept": ((1434,), np.float32), "input_columns": ((23,), None),
              "au_columns": ((20,), None), "pose_columns": ((3,), None), "mean_aligned_mesh": ((478, 3), np.float32),
@@ -21,21 +20,13 @@ CARD_KEYS = {"coef": ((23, 1434), np.float32), "intercept": ((1434,), np.float32
              "training_metadata": ((), None)}
 
 
-def _reference(rng):
-    """A face in image pixels (y down): the release turns it into the card's frame."""
-    face_px = canonical_template() * 60.0 + 300.0
-    return {"mean_aligned_mesh": face_px + rng.normal(scale=0.1, size=(478, 3)), "mean_low_au_mesh": face_px,
-            "reference_anchors": face_px[:12], "anchor_indices": np.arange(12)}
-
-
 def _arrays(columns, rng):
     """Random coefficients, and their release; returned coef and intercept are in the card's frame too."""
     coef = rng.normal(size=(N_TARGETS, len(columns)))
     intercept = rng.normal(size=N_TARGETS) + 300
-    reference = _reference(rng)
-    rotation, origin = canonical_frame(reference["mean_aligned_mesh"])
+    reference = face_reference(rng)
     arrays = release_arrays(coef, intercept, columns, len(columns), reference, "card", {"a": 1})
-    return rotate_axis_major(coef.T, rotation).T, rotate_axis_major(intercept, rotation, origin), arrays
+    return *in_card_frame(coef, intercept, reference), arrays
 
 
 def test_npz_has_the_cards_keys_shapes_dtypes_and_loads_without_pickle(tmp_path):
@@ -82,7 +73,7 @@ def test_coef_full_makes_pose_conditioned_prediction_exact():
 
 def test_wrong_coef_shape_is_rejected():
     with pytest.raises(ValueError, match=r"coef has shape \(1434, 5\), expected \(1434, 23\)"):
-        release_arrays(np.zeros((1434, 5)), np.zeros(1434), feature_columns(True, False), 5, _reference(np.random.default_rng(0)), "", {})
+        release_arrays(np.zeros((1434, 5)), np.zeros(1434), feature_columns(True, False), 5, face_reference(np.random.default_rng(0)), "", {})
 
 
 def test_failed_release_leaves_the_previous_release_untouched(tmp_path):
