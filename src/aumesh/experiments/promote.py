@@ -400,7 +400,7 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     dict
         The ``promoted`` record written to the promotion file.
     """
-    from aumesh.experiments import mlflow_store, registry, tracking
+    from aumesh.experiments import mlflow_store, provenance, registry, tracking
     from aumesh.config import from_dict, write_params
 
     root = Path(root).resolve()
@@ -451,8 +451,9 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
         "registered_model": version["name"] if version else None,
         "model_version": version["version"] if version else None,
         "alias": alias if version else None,
-        "model_source": version["source"] if version else None,
-        "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg),
+        # promotion.json is committed: locations relative to the workspace, never its absolute path
+        "model_source": provenance.shareable_location(version["source"], [root]) if version else None,
+        "tracking_uri": provenance.shareable_location(mlflow_store.resolve_tracking_uri(tracking_cfg), [root]),
         "promoted_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
     atomic_write_json(root / cfg.paths.promotion_file, {"promoted": record})

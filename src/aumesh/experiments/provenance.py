@@ -51,6 +51,7 @@ queued runs.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -253,7 +254,7 @@ def data_digest(root: Path | str, dvc_file: str = "data.dvc") -> dict[str, Any]:
     dict
         ``md5`` (e.g. ``"3f2a...9c.dir"`` for a directory), ``size`` (bytes or
         None), ``nfiles`` (int or None), ``path`` (as recorded), ``hash`` (hash
-        algorithm name, e.g. ``"md5"``) and ``dvc_file`` (absolute path read).
+        algorithm name, e.g. ``"md5"``) and ``dvc_file`` (the file read, relative to *root* when inside it).
 
     Raises
     ------
@@ -292,7 +293,7 @@ def data_digest(root: Path | str, dvc_file: str = "data.dvc") -> dict[str, Any]:
         "nfiles": out.get("nfiles"),
         "path": out.get("path"),
         "hash": out.get("hash", "md5"),
-        "dvc_file": str(path.absolute()),
+        "dvc_file": shareable_location(str(path.absolute()), [Path(root)]),
     }
 
 
@@ -376,3 +377,61 @@ def flatten(cfg: Mapping[str, Any], sep: str = ".") -> dict[str, Any]:
         raise TypeError(f"flatten() needs a mapping, got {type(cfg).__name__}")
     walk("", cfg)
     return flat
+
+
+def shareable_location(value: str | None, roots: Sequence[Path | str] | None = None) -> str | None:
+    """A path or store URI as records meant to be shared hold it: never this machine's workspace path.
+
+    ``promotion.json`` (committed) and ``model_card.json`` / the NPZ's ``training_metadata`` (shared)
+    go to other machines, where the workspace's absolute path means nothing.
+
+    Parameters
+    ----------
+    value : str or None
+        A local path, a ``sqlite:///``, ``file:`` URI, or any other URI.
+    roots : sequence of Path, optional
+        Folders a local path is made relative to, the first that contains it wins. Default: the
+        current directory (a stage's workspace, also a DVC temporary copy) and :func:`repo_root`.
+
+    Returns
+    -------
+    str or None
+        Inside a root: the repo-relative form (``sqlite:///mlflow.db``, ``mlartifacts/1/<run>/artifacts/model``,
+        ``data.dvc``). A URL with a host (a tracking server): the same URL without user name and password.
+        Anything else (``runs:/``, ``models:/``, ``mlflow-artifacts:/`` URIs, paths outside every root) unchanged.
+    """
+    from urllib.parse import unquote, urlsplit, urlunsplit
+
+    if value is None:
+        return None
+    text = str(value)
+    if roots is None:
+        roots = [Path.cwd()]
+        with contextlib.suppress(FileNotFoundError):
+            roots.append(repo_root())
+
+    def relative(path: str) -> str | None:
+        p = Path(path)
+        if not p.is_absolute():
+            return None
+        for root in roots:
+            for base in (Path(root).absolute(), Path(root).resolve()):
+                with contextlib.suppress(ValueError):
+                    return p.relative_to(base).as_posix() or "."
+                with contextlib.suppress(ValueError):
+                    return p.resolve().relative_to(base).as_posix() or "."
+        return None
+
+    if text.startswith("sqlite:///"):
+        path, sep, query = text[len("sqlite:///"):].partition("?")
+        rel = relative(path)
+        return f"sqlite:///{rel}{sep}{query}" if rel else text
+    if text.startswith("file:"):
+        rel = relative(unquote(urlsplit(text).path))
+        return rel or text
+    parts = urlsplit(text)
+    if parts.scheme and parts.netloc and "@" in parts.netloc:  # a server: keep host and path, drop credentials
+        return urlunsplit(parts._replace(netloc=parts.netloc.rsplit("@", 1)[1]))
+    if not parts.scheme or len(parts.scheme) == 1:  # a plain path (or a Windows drive letter)
+        return relative(text) or text
+    return text

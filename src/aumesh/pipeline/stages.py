@@ -79,7 +79,9 @@ def evaluate_stage(cfg: Config) -> dict:
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
-                    "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg) if cfg.tracking.enabled else None}
+                    # repo-relative (sqlite:///mlflow.db): the card built from this is shared
+                    "tracking_uri": provenance.shareable_location(mlflow_store.resolve_tracking_uri(tracking_cfg))
+                    if cfg.tracking.enabled else None}
         with atomic_directory(out) as tmp:
             np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,
                      feature_columns=np.array(final.feature_columns), n_components=np.array(final.n_components, dtype=np.int32))
