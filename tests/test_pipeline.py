@@ -152,3 +152,66 @@ def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(
     verdicts = {au: r["verdict"] for au, r in report["aus"].items()}
     assert verdicts["AU12"] == "fail"
     assert [au for au, v in verdicts.items() if v != "pass"] == ["AU12"], verdicts
+
+
+def _per_video_demeaned(A, video):
+    sums = np.zeros((video.max() + 1, A.shape[1]))
+    np.add.at(sums, video, A)
+    return A - (sums / np.bincount(video)[:, None])[video]
+
+
+def test_within_target_is_ols_on_per_video_demeaned_data(recovery_prepared):
+    """Full rank: the within coefficients are numpy lstsq on demeaned design and mesh; the released intercept
+    is the population's (mean mesh - mean design @ slopes); CV demeans each held-out video by its own means."""
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    cv, final = ev.evaluate(prepared, default_config(**{"preprocess.target": "within"}))
+    X, Y = _arrays(prepared)
+    video = prepared.frames["video_index"].to_numpy()
+    Xd, Yd = _per_video_demeaned(X, video), _per_video_demeaned(Y, video)
+    beta, *_ = np.linalg.lstsq(Xd, Yd, rcond=None)
+    assert final.n_components == 83
+    np.testing.assert_allclose(final.coef, beta.T, rtol=1e-6, atol=1e-6 * np.abs(beta).max())
+    np.testing.assert_allclose(final.mesh_intercept, Y.mean(0) - X.mean(0) @ beta, rtol=1e-9, atol=1e-5)
+    # the card's inference snippet gives a face: x @ coef + intercept at the mean design is the mean mesh
+    np.testing.assert_allclose(X.mean(0) @ final.coef.T + final.mesh_intercept, Y.mean(0), atol=1e-5)
+    fold = ev.assign_folds(video, 3)
+    for f in (0, 2):
+        train, test = fold != f, fold == f
+        b, *_ = np.linalg.lstsq(_per_video_demeaned(X[train], np.unique(video[train], return_inverse=True)[1]),
+                                _per_video_demeaned(Y[train], np.unique(video[train], return_inverse=True)[1]), rcond=None)
+        vt = np.unique(video[test], return_inverse=True)[1]
+        Xt, Yt = _per_video_demeaned(X[test], vt), _per_video_demeaned(Y[test], vt)
+        pred = Xt @ b
+        assert cv.r2_folds[f] == pytest.approx(r2_score(Yt, pred, multioutput="variance_weighted"), abs=1e-7)
+        assert cv.mae_folds[f] == pytest.approx(mean_absolute_error(Yt, pred), rel=1e-6)
+
+
+def test_within_neutral_target_is_ols_on_both_sides_minus_the_neutral_frames(recovery_prepared):
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    _, final = ev.evaluate(prepared, default_config(**{"preprocess.target": "within_neutral"}))
+    X, Y = _arrays(prepared)
+    video = prepared.frames["video_index"].to_numpy()
+    low = prepared.frames["low_au"].to_numpy()
+    xbar = np.array([X[low & (video == v)].mean(0) for v in range(video.max() + 1)])
+    Xn, Yn = X - xbar[video], Y - prepared.neutral["low_au"][video]
+    beta, *_ = np.linalg.lstsq(np.column_stack([Xn, np.ones(len(Xn))]), Yn, rcond=None)
+    np.testing.assert_allclose(final.coef, beta[:-1].T, rtol=1e-6, atol=1e-6 * np.abs(beta[:-1]).max())
+    np.testing.assert_allclose(final.mesh_intercept, Y.mean(0) - X.mean(0) @ beta[:-1], rtol=1e-9, atol=1e-4)
+
+
+def test_au_field_reliability_is_the_cosine_between_fields_fitted_on_each_fold_alone(recovery_prepared):
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    cv, _ = ev.evaluate(prepared, default_config(**{"model.n_components": 30}))
+    X, Y = _arrays(prepared)
+    fold = ev.assign_folds(prepared.frames["video_index"].to_numpy(), 3)
+    fields = [SkPLS(n_components=30, scale=True, tol=1e-13, max_iter=10000).fit(X[fold == f], Y[fold == f]).coef_[:, :20]
+              for f in range(3)]
+    unit = [F / np.linalg.norm(F, axis=0) for F in fields]
+    expected = np.mean([(unit[a] * unit[b]).sum(0) for a, b in ((0, 1), (0, 2), (1, 2))], axis=0)
+    np.testing.assert_allclose(cv.au_reliability, expected, atol=1e-6)
+    metrics = cv.metrics()
+    assert metrics["au_reliability_min"] == pytest.approx(expected.min(), abs=1e-6)
+    assert metrics["au_reliability_median"] == pytest.approx(np.median(expected), abs=1e-6)
+    assert list(metrics["au_reliability"]) == list(AU_COLUMNS)
+    assert 0 <= metrics["n_aus_facs_pass"] <= 20 and metrics["n_aus_facs_pass"] >= 18  # clean synthetic truth
+    assert cv.scalar_metrics()["au_reliability_AU12"] == pytest.approx(expected[AU_COLUMNS.index("AU12")], abs=1e-6)

@@ -84,3 +84,76 @@ def test_video_indicator_sums_rows_per_video():
     videos, indicator = video_indicator(video)
     assert videos.tolist() == [3, 7, 9]
     np.testing.assert_array_equal(indicator @ Y, [[2 + 8, 3 + 9], [0 + 4, 1 + 5], [6, 7]])
+
+
+def _demeaned(A, video):
+    """Explicit per-video demeaning: each row minus its video's mean row."""
+    sums = np.zeros((video.max() + 1, A.shape[1]))
+    np.add.at(sums, video, A)
+    return A - (sums / np.bincount(video)[:, None])[video]
+
+
+def _close(a, b, rtol=1e-10):
+    np.testing.assert_allclose(a, b, rtol=rtol, atol=rtol * np.abs(b).max())
+
+
+@pytest.mark.parametrize("pose_on,interactions", [(True, True), (True, False), (False, False)])
+@pytest.mark.parametrize("video_block", [2048, 4])
+def test_within_statistics_equal_explicit_per_video_demeaned_accumulation(frames, pose_on, interactions, video_block):
+    au, pose, video, n_videos, fold, Y, neutral, xbar = frames
+    design = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 128))
+    columns = feature_columns(pose_on, interactions)
+    targets, _ = configuration_statistics(design, columns, "within", neutral, xbar, video_block=video_block)
+    X = design_matrix(au, pose, pose_on, interactions)
+    for f in range(3):
+        m = fold == f
+        # each held-out video demeaned by its own means (the fold's videos are whole videos)
+        Xd, Yd = _demeaned(X[m], np.unique(video[m], return_inverse=True)[1]), _demeaned(Y[m], np.unique(video[m], return_inverse=True)[1])
+        got, want = targets[f], CrossProducts.from_arrays(Xd, Yd, x_shift=np.zeros(X.shape[1]), y_shift=np.zeros(N_TARGETS))
+        assert got.n == want.n
+        _close(got.xtx, want.xtx)  # X'X_w = X'X - sum_v n_v xbar_v xbar_v^T
+        _close(got.xty, want.xty)
+        _close(got.yty_diag, want.yty_diag)
+        _close(got.cxx, want.cxx)
+        _close(got.cxy, want.cxy)
+        _close(got.cyy_diag, want.cyy_diag)
+        assert np.abs(got.sum_x).max() < 1e-9 * np.abs(X).sum() and np.abs(got.sum_y).max() < 1e-9 * np.abs(Y).sum()
+
+
+def test_within_neutral_is_both_sides_minus_the_neutral_frames_means(frames):
+    au, pose, video, n_videos, fold, Y, neutral, xbar = frames
+    design = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 128))
+    columns = feature_columns(True, True)
+    targets, _ = configuration_statistics(design, columns, "within_neutral", neutral, xbar)
+    X = design_matrix(au, pose, True, True)
+    for f in range(3):
+        m = fold == f
+        _assert_same(targets[f], CrossProducts.from_arrays(X[m] - xbar[video[m]], Y[m] - neutral[video[m]]))
+
+
+@pytest.mark.parametrize("target", ["absolute", "neutral", "within", "within_neutral"])
+def test_target_offsets_are_what_each_row_subtracts(frames, target):
+    from aumesh.model.statistics import target_offsets
+
+    au, pose, video, n_videos, fold, Y, neutral, xbar = frames
+    design = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 128))
+    columns = feature_columns(True, False)
+    x_off, y_off = target_offsets(design, columns, target, neutral, xbar)
+    X = design_matrix(au, pose, True, False)
+    if target == "within":
+        _close(X - x_off[video], _demeaned(X, video))
+        _close(Y - y_off[video], _demeaned(Y, video), rtol=1e-9)
+    else:
+        assert (x_off is None) == (target in ("absolute", "neutral"))
+        assert (y_off is None) == (target == "absolute")
+        if target == "within_neutral":
+            np.testing.assert_array_equal(x_off, xbar[:, :23])
+        if y_off is not None:
+            assert y_off is neutral
+
+
+def test_unknown_target_is_refused(frames):
+    au, pose, video, n_videos, fold, Y, neutral, xbar = frames
+    design = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 128))
+    with pytest.raises(ValueError, match="preprocess.target='fixed'.*within"):
+        configuration_statistics(design, feature_columns(True, True), "fixed", neutral, xbar)

@@ -18,6 +18,7 @@ import yaml
 
 from aumesh.utils.io import atomic_write_text
 from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, feature_set_columns
+from aumesh.model.statistics import TARGETS
 
 
 @dataclass(frozen=True)
@@ -187,8 +188,8 @@ def _build(cls: type, data: Any, where: str) -> Any:
 
 def validate(cfg: Config) -> Config:
     """Check values a typo or a bad sweep override could break; errors name the key and the fix."""
-    if cfg.preprocess.target not in ("absolute", "neutral"):
-        raise ValueError(f"preprocess.target={cfg.preprocess.target!r}: use 'absolute' or 'neutral'")
+    if cfg.preprocess.target not in TARGETS:
+        raise ValueError(f"preprocess.target={cfg.preprocess.target!r}: use one of {', '.join(map(repr, TARGETS))}")
     if cfg.preprocess.neutral.method not in ("low_au", "mean"):
         raise ValueError(f"preprocess.neutral.method={cfg.preprocess.neutral.method!r}: use 'low_au' or 'mean'")
     if cfg.preprocess.empty_video not in ("drop", "error"):

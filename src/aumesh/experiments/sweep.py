@@ -367,8 +367,7 @@ def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistic
     """Cross-validation and final fit of one configuration from (possibly shared) statistics."""
     from aumesh.pipeline import evaluate as ev
 
-    cv = ev.cross_validate(prepared, cfg, stats)
-    return cv, ev.final_fit(prepared, cfg, stats)
+    return ev.evaluate_statistics(prepared, cfg, stats)
 
 
 def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, root: Path,
@@ -397,7 +396,7 @@ def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, roo
     run.set_tags(tags)
     run.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
                           "r2_displacement": cv.r2_displacement_folds})
-    scalars = {k: v for k, v in metrics.items() if isinstance(v, float)}
+    scalars = cv.scalar_metrics()
     scalars |= {"n_components": float(final.n_components), "n_features": float(len(final.feature_columns)),
                 "n_frames": float(sum(cv.n_frames_folds))} | dict(timings)
     run.log_metrics(scalars)

@@ -11,7 +11,11 @@ coordinates. Then, with no further pass:
   ``sum (x - a)(y - n_v)^T = S_xy - sum_v u_v d_v^T`` with ``u_v`` the video's shifted design sum
   and ``d_v = n_v - b`` its shifted neutral, and likewise for ``sum (y - n_v)`` and the squares;
 * the displacement statistics ``(x - xbar_v, y - n_v)`` behind ``r2_displacement`` add the
-  symmetric terms in ``e_v = xbar_v - a``.
+  symmetric terms in ``e_v = xbar_v - a`` (``xbar_v`` the mean design row of the neutral frames);
+  they are also the statistics of the ``within_neutral`` target;
+* the ``within`` target (fixed effects: design and mesh demeaned per video) is the same algebra with
+  each video's own means, ``d_v = w_v / c_v`` and ``e_v = u_v / c_v``; it reduces to
+  ``X'X_w = X'X - sum_v c_v xbar_v xbar_v^T`` and likewise for ``X'Y`` and ``diag(Y'Y)``.
 
 So a sweep over targets, neutral methods and feature sets costs one pass over the meshes for R²
 (and one prediction pass per configuration for MAE). Results equal explicit accumulation up to
@@ -189,30 +193,91 @@ def displacement(stats: CrossProducts, m: VideoMoments) -> CrossProducts:
     return out
 
 
+#: ``preprocess.target`` values: what each video's rows have subtracted before the fit (design, mesh).
+TARGETS = {
+    "absolute": (None, None),  # the card's default: pooled absolute coordinates
+    "neutral": (None, "neutral"),  # the card's neutral subtraction: the video's neutral mesh, from the mesh only
+    "within": ("video_mean", "video_mean"),  # fixed effects: design and mesh demeaned per video
+    "within_neutral": ("neutral", "neutral"),  # the video's neutral frames' mean design and mesh, from both sides
+}
+
+
+def _moments(design: DesignStatistics, idx: np.ndarray, videos: np.ndarray, d_of, e_of, video_block: int) -> VideoMoments:
+    """:class:`VideoMoments` of ``videos`` in blocks; ``d_of(v)`` (k, q) and ``e_of(v)`` (k, p) give the shifted centres."""
+    moments = None
+    for lo in range(0, len(videos), video_block):
+        v = videos[lo : lo + video_block]
+        block = VideoMoments.of(design.video_count[v].astype(np.float64), design.video_sum_x[v][:, idx],
+                                design.video_sum_y[v], d_of(v), e_of(v))
+        moments = block if moments is None else moments + block
+    return moments
+
+
 def configuration_statistics(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,
                              neutral_design_full: np.ndarray, video_block: int = 2048) -> tuple[list[CrossProducts], list[CrossProducts]]:
     """Per-fold (target, displacement) statistics of one configuration, from the design statistics.
 
+    Every target's fold statistics use only that fold's videos (a held-out video is demeaned by its
+    own means), so training statistics are still the total minus the fold's.
+
     Parameters
     ----------
     columns : the configuration's design columns (a subset of the full design, in its order)
-    target : ``"absolute"`` or ``"neutral"``
+    target : one of :data:`TARGETS`
     neutral : (n_videos, 1434) the videos' neutral meshes (absolute coordinates; float32 is fine)
     neutral_design_full : (n_videos, 83) mean full-design row of each video's neutral frames
     video_block : videos per block of the correction sums (bounds the float64 temporaries)
     """
+    if target not in TARGETS:
+        raise ValueError(f"preprocess.target={target!r}: use one of {', '.join(TARGETS)}")
     idx = np.array([FULL_DESIGN.index(c) for c in columns])
     targets, displacements = [], []
     for f, stats in enumerate(design.folds):
         videos = np.flatnonzero(design.video_fold == f)
-        moments = None
-        for lo in range(0, len(videos), video_block):
-            v = videos[lo : lo + video_block]
-            block = VideoMoments.of(design.video_count[v].astype(np.float64), design.video_sum_x[v][:, idx],
-                                    design.video_sum_y[v], np.asarray(neutral[v], dtype=np.float64) - design.y_shift,
-                                    neutral_design_full[v][:, idx] - design.x_shift[idx])
-            moments = block if moments is None else moments + block
+        moments = _moments(design, idx, videos, lambda v: np.asarray(neutral[v], dtype=np.float64) - design.y_shift,
+                           lambda v: neutral_design_full[v][:, idx] - design.x_shift[idx], video_block)
         sub = subset(stats, idx)
-        targets.append(sub if target == "absolute" else neutral_subtracted(sub, moments))
-        displacements.append(displacement(sub, moments))
+        disp = displacement(sub, moments)
+        if target == "absolute":
+            targets.append(sub)
+        elif target == "neutral":
+            targets.append(neutral_subtracted(sub, moments))
+        elif target == "within_neutral":
+            targets.append(disp)
+        else:  # within: each video's own means, d_v = w_v / c_v, e_v = u_v / c_v
+            own = _moments(design, idx, videos, lambda v: design.video_sum_y[v] / _count(design, v),
+                           lambda v: design.video_sum_x[v][:, idx] / _count(design, v), video_block)
+            targets.append(displacement(sub, own))
+        displacements.append(disp)
     return targets, displacements
+
+
+def target_offsets(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,
+                   neutral_design_full: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """What each video's rows subtract in ``target``'s space: ``(x_offset, y_offset)``.
+
+    Returns
+    -------
+    x_offset : ndarray (n_videos, p) or None
+        Per-video design centre (``None``: the design is used as it is).
+    y_offset : ndarray (n_videos, 1434) or None
+        Per-video mesh centre (``neutral`` itself for the neutral targets, so their rows stay bit-identical).
+    """
+    x_kind, y_kind = TARGETS[target]
+    idx = np.array([FULL_DESIGN.index(c) for c in columns])
+    every = np.arange(len(design.video_count))
+    x_offset = y_offset = None
+    if x_kind == "neutral":
+        x_offset = neutral_design_full[:, idx]
+    elif x_kind == "video_mean":
+        x_offset = design.x_shift[idx] + design.video_sum_x[:, idx] / _count(design, every)
+    if y_kind == "neutral":
+        y_offset = neutral
+    elif y_kind == "video_mean":
+        y_offset = design.y_shift + design.video_sum_y / _count(design, every)
+    return x_offset, y_offset
+
+
+def _count(design: DesignStatistics, videos: np.ndarray) -> np.ndarray:
+    """Frames of each of ``videos`` as a float64 column (k, 1), at least 1."""
+    return np.maximum(design.video_count[videos], 1).astype(np.float64)[:, None]

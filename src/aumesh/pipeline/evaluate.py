@@ -36,9 +36,11 @@ from threadpoolctl import threadpool_limits
 from aumesh.config import Config
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
+from aumesh.model import reliability
 from aumesh.model.pls import PLSRegression
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
-from aumesh.model.statistics import DesignStatistics, accumulate_design, configuration_statistics, fold_stacked
+from aumesh.model.statistics import (DesignStatistics, accumulate_design, configuration_statistics, fold_stacked,
+                                     target_offsets)
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 
@@ -140,6 +142,8 @@ class FoldStatistics:
     target: list[CrossProducts]  # (X, Y in the run's target space) per fold
     displacement: list[CrossProducts]  # (X - x̄_v, Y_abs - n_v) per fold
     fold: np.ndarray  # (n,) fold of each frame
+    x_offset: np.ndarray | None = None  # (n_videos, p) per-video design centre of the target (None: none)
+    y_offset: np.ndarray | None = None  # (n_videos, 1434) per-video mesh centre of the target (None: none)
 
     @property
     def total(self) -> CrossProducts:
@@ -165,6 +169,8 @@ class CVResult:
     n_frames_folds: list[int]
     n_videos_folds: list[int]
     extra: dict = field(default_factory=dict)
+    au_reliability: np.ndarray | None = None  # (20,) mean cosine of each AU's field between folds fitted alone
+    n_aus_facs_pass: int | None = None  # AUs of the final model whose direction passes the FACS check
 
     def metrics(self) -> dict:
         def ms(values):
@@ -183,7 +189,23 @@ class CVResult:
             "n_components": self.n_components,
             "n_features": len(self.feature_columns),
             "n_frames_folds": self.n_frames_folds, "n_videos_folds": self.n_videos_folds,
-        }
+        } | self.field_metrics()
+
+    def field_metrics(self) -> dict:
+        """AU-field reliability (min, median, per AU) and the FACS direction count, when computed."""
+        out = {} if self.au_reliability is None else reliability.summarize(self.au_reliability, list(AU_COLUMNS))
+        if self.n_aus_facs_pass is not None:
+            out["n_aus_facs_pass"] = int(self.n_aus_facs_pass)
+        return out
+
+    def scalar_metrics(self) -> dict[str, float]:
+        """What a run logs to MLflow: every scalar of :meth:`metrics`, the per-AU reliability as ``au_reliability_<AU>``."""
+        metrics = self.metrics()
+        out = {k: v for k, v in metrics.items() if isinstance(v, float)}
+        out |= {f"au_reliability_{au}": v for au, v in metrics.get("au_reliability", {}).items()}
+        if "n_aus_facs_pass" in metrics:
+            out["n_aus_facs_pass"] = float(metrics["n_aus_facs_pass"])
+        return out
 
 
 def effective_n_components(cfg: Config) -> int:
@@ -251,7 +273,9 @@ def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: in
     xbar_neutral = neutral_design(prepared.au, prepared.pose, video_index, neutral_rows, len(prepared.video_ids), True, True)
     target, displacement = configuration_statistics(design, cfg.features.columns, cfg.preprocess.target,
                                                     prepared.neutral[method], xbar_neutral)
-    return FoldStatistics(target=target, displacement=displacement, fold=fold)
+    x_offset, y_offset = target_offsets(design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method],
+                                        xbar_neutral)
+    return FoldStatistics(target=target, displacement=displacement, fold=fold, x_offset=x_offset, y_offset=y_offset)
 
 
 def _one_blas_thread():
@@ -300,7 +324,6 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
     use_pose, inter = cfg.features.pose, cfg.features.interactions
     au, pose = prepared.au, prepared.pose
     video_index = prepared.frames["video_index"].to_numpy()
-    neutral = prepared.neutral[cfg.preprocess.neutral.method] if cfg.preprocess.target == "neutral" else None
     n = len(stats.fold)
     abs_sum = np.zeros(n_splits)
     vertex_sum = np.zeros((n_splits, N_VERTICES))
@@ -310,9 +333,11 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
     stacked_models = np.vstack([coef.T for coef, _ in models] + [intercept[None] for _, intercept in models])
     for rows, Y in _single_threaded(prepared.iter_meshes(chunk_rows)):
         X = design_matrix(au[rows], pose[rows], use_pose, inter)
+        if stats.x_offset is not None:  # the target's per-video centres (held-out videos: their own)
+            X -= stats.x_offset[video_index[rows]]
         stacked = fold_stacked(X, stats.fold[rows], n_splits)
-        if neutral is not None:
-            Y -= neutral[video_index[rows]]
+        if stats.y_offset is not None:
+            Y -= stats.y_offset[video_index[rows]]
         Y -= stacked @ stacked_models  # residual: y - (x @ coef_f.T + raw_intercept_f), f the row's fold
         e3 = Y.reshape(len(Y), 3, N_VERTICES)
         per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
@@ -355,19 +380,44 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> FinalMo
     A = effective_n_components(cfg)
     model = fit(stats.total, A, cfg.model.scale)
     mesh_intercept = model.raw_intercept_.copy()
-    if cfg.preprocess.target == "neutral":
-        # the model predicts displacement from the subject's neutral; released meshes add the
-        # population's mean neutral (frame-weighted), so `x @ coef + intercept` is a face
-        video_index = prepared.frames["video_index"].to_numpy()
-        weights = np.bincount(video_index, minlength=len(prepared.video_ids)).astype(np.float64)
-        mesh_intercept += weights @ prepared.neutral[cfg.preprocess.neutral.method].astype(np.float64) / weights.sum()
+    # a target relative to per-video centres predicts displacements from them; released meshes add the
+    # population's (frame-weighted) mean centre, so `x @ coef + intercept` is a face. For `within` that is
+    # the population intercept mean mesh - mean design @ slopes.
+    weights = np.bincount(prepared.frames["video_index"].to_numpy(), minlength=len(prepared.video_ids)).astype(np.float64)
+    if stats.y_offset is not None:
+        mesh_intercept += weights @ stats.y_offset.astype(np.float64) / weights.sum()
+    if stats.x_offset is not None:
+        mesh_intercept -= model.coef_ @ (weights @ stats.x_offset / weights.sum())
     return FinalModel(coef=model.coef_.copy(), raw_intercept=model.raw_intercept_.copy(), mesh_intercept=mesh_intercept,
                       feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions), n_components=A, model=model)
+
+
+def au_field_reliability(cfg: Config, stats: FoldStatistics) -> np.ndarray:
+    """Per-AU mean cosine between the AU fields of models fitted on each fold alone (disjoint videos), (20,)."""
+    A = effective_n_components(cfg)
+    coefs = np.stack([fit(s, A, cfg.model.scale).coef_ for s in stats.target])
+    return reliability.field_cosines(coefs, np.arange(len(AU_COLUMNS)))
+
+
+def facs_passes(prepared: Prepared, final: FinalModel) -> int:
+    """Number of AUs of the final model whose direction passes the FACS check (``aumesh.card.directions``)."""
+    from aumesh.card import directions
+
+    report = directions.au_direction_report({"coef": final.coef.T, "input_columns": np.array(final.feature_columns),
+                                              "mean_aligned_mesh": prepared.reference["mean_aligned_mesh"]})
+    return int(report["summary"]["pass"])
+
+
+def evaluate_statistics(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> tuple[CVResult, FinalModel]:
+    """Cross-validation, the final fit and the AU-field checks of one configuration from its statistics."""
+    cv = cross_validate(prepared, cfg, stats)
+    final = final_fit(prepared, cfg, stats)
+    cv.au_reliability = au_field_reliability(cfg, stats)
+    cv.n_aus_facs_pass = facs_passes(prepared, final)
+    return cv, final
 
 
 def evaluate(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
     """Cross-validation and the final fit for one configuration (the stage's one typed call)."""
     fold = assign_folds(prepared.frames["video_index"].to_numpy(), cfg.cv.n_splits)
-    stats = accumulate(prepared, cfg, fold)
-    cv = cross_validate(prepared, cfg, stats)
-    return cv, final_fit(prepared, cfg, stats)
+    return evaluate_statistics(prepared, cfg, accumulate(prepared, cfg, fold))

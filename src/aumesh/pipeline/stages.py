@@ -53,10 +53,9 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
     t0 = time.perf_counter()
     cv, final = ev.evaluate(prepared, cfg)
     timings["evaluate_seconds"] = time.perf_counter() - t0
-    metrics = cv.metrics()
     handle.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
                              "r2_displacement": cv.r2_displacement_folds})
-    handle.log_metrics({k: v for k, v in metrics.items() if isinstance(v, float)} | timings)
+    handle.log_metrics(cv.scalar_metrics() | timings)
     mean_path = cv.r2_path_folds.mean(axis=0)
     for k, r2 in enumerate(mean_path, start=1):  # the R²-vs-n_components curve, step = n_components
         handle.log_metrics({"r2_by_n_components": float(r2)}, step=k)
