@@ -58,6 +58,19 @@ def test_mixed_targets_are_compared_on_displacement_r2():
     assert "restricted to preprocess.target=absolute" in restricted.compared
 
 
+def test_mixed_targets_can_be_ranked_by_au_field_reliability():
+    runs = [cand("abs", 0.90, 83, "absolute", disp=0.30, au_reliability_median=0.70, au_reliability_min=0.2),
+            cand("neu", 0.40, 83, "neutral", disp=0.32, au_reliability_median=0.75, au_reliability_min=0.4),
+            cand("win", 0.50, 83, "within", disp=0.31, au_reliability_median=0.90, au_reliability_min=0.3)]
+    assert promote.choose(runs).run_id == "neu"  # default: r2_displacement_mean across targets
+    best = promote.choose(runs, metric="au_reliability_median")
+    assert best.run_id == "win" and "cosine between AU fields" in best.compared
+    assert best.targets == ("absolute", "neutral", "within")
+    assert promote.choose(runs, metric="au_reliability_min").run_id == "neu"
+    with pytest.raises(ValueError, match="au_reliability_median.*--target absolute\\|neutral\\|within"):
+        promote.choose(runs, metric="mae_mean")
+
+
 def test_error_metrics_are_minimised_and_nothing_to_promote_is_an_error():
     runs = [cand("a", 0.5, 10, mae_mean=1.2), cand("b", 0.4, 10, mae_mean=1.1)]
     assert promote.choose(runs, metric="mae_mean").run_id == "b"

@@ -88,8 +88,8 @@ def test_failed_release_leaves_the_previous_release_untouched(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["release"]  # no temp folder left behind
 
 
-def test_model_card_markdown_names_the_promoted_run():
-    card = {"name": "x", "cv": {"r2_mean": 0.2, "r2_std": 0.01, "r2_folds": [0.2, 0.21, 0.19], "r2_displacement_mean": 0.1,
+def _card() -> dict:
+    return {"name": "x", "cv": {"r2_mean": 0.2, "r2_std": 0.01, "r2_folds": [0.2, 0.21, 0.19], "r2_displacement_mean": 0.1,
                                 "r2_displacement_std": 0.0, "r2_displacement_folds": [0.1] * 3, "mae_mean": 0.2, "mae_std": 0.0,
                                 "mae_folds": [0.2] * 3, "vertex_error_mean": 0.4, "vertex_error_std": 0.0, "vertex_error_folds": [0.4] * 3},
             "data": {"n_frames": 10, "n_videos": 2, "digest": {"md5": "abc.dir"},
@@ -103,5 +103,26 @@ def test_model_card_markdown_names_the_promoted_run():
             "model": {"n_components": 83, "n_features": 83}, "provenance": {"git_commit": "deadbeef"},
             "mlflow": {"run_id": "r1"}, "libraries": {"numpy": "2"},
             "promotion": {"run_id": "child42", "parent_run_id": "sweep7", "criterion": "max r2_mean"}}
+
+
+def test_model_card_markdown_names_the_promoted_run():
+    card = _card()
     text = model_card_markdown(card, None, [])
     assert "child42" in text and "sweep7" in text and "0.2000" in text and "abc.dir" in text
+
+
+def test_model_card_markdown_explains_the_target_and_shows_the_au_field_reliability_table():
+    import copy
+
+    card = _card()
+    card["config"]["preprocess"]["target"] = "within"
+    card["cv"] |= {"au_reliability_min": 0.41, "au_reliability_median": 0.93, "n_aus_facs_pass": 19,
+                   "au_reliability": {au: 0.5 + i / 100 for i, au in enumerate(AU_COLUMNS)}}
+    text = model_card_markdown(card, None, [])
+    assert "Target: **within**: design and mesh demeaned per video" in text
+    assert "not comparable across targets" in text
+    assert "## AU-field reliability" in text and "median over AUs 0.930, worst 0.410; 19 of 20 AUs pass" in text
+    assert "| AU12 | 0.590 |" in text
+    plain = copy.deepcopy(card)
+    del plain["cv"]["au_reliability"]
+    assert "## AU-field reliability" not in model_card_markdown(plain, None, [])

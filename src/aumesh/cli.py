@@ -143,6 +143,8 @@ def _cmd_promote(args) -> int:
 
 def add_experiment_commands(subparsers) -> None:
     """Add ``sweep``, ``runs`` and ``promote`` to the ``aumesh`` command."""
+    from aumesh.model.statistics import TARGETS
+
     p = subparsers.add_parser(
         "sweep", add_help=False, prefix_chars="\0",
         help="Hydra sweep over conf/ in-process, one MLflow child run per configuration "
@@ -157,13 +159,14 @@ def add_experiment_commands(subparsers) -> None:
         who.add_argument("--parent", help="the sweep's parent run id (default: the latest sweep)")
         who.add_argument("--latest", action="store_true", help="the latest sweep (the default)")
         p.add_argument("--metric", default=None,
-                       help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean)")
+                       help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean; "
+                            "au_reliability_median / au_reliability_min / n_aus_facs_pass rank by AU-field reliability)")
         p.add_argument("--experiment", default=None, help="MLflow experiment (default: tracking.experiment)")
         p.set_defaults(func=func)
         if name == "runs":
             p.add_argument("--json", action="store_true", help="print the table as JSON records")
         else:
-            p.add_argument("--target", choices=["absolute", "neutral"], default=None,
+            p.add_argument("--target", choices=list(TARGETS), default=None,
                            help="only consider runs with this preprocess.target")
             p.add_argument("--model-name", default=None,
                            help="registered model name (default: aumesh-au-to-mesh)")

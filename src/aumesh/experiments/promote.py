@@ -7,8 +7,11 @@
    their ``r2_mean`` are in different spaces (absolute vs neutral-subtracted coordinates) and are
    not compared: the criterion becomes ``r2_displacement_mean``, R² of the AU-driven displacement
    from each test video's neutral, which depends only on the slope and is the same space and the
-   same information for both targets (see :mod:`aumesh.pipeline.evaluate`). Asking for a target-space
-   metric over mixed targets is an error (restrict with ``--target``). Values within
+   same information for every target (see :mod:`aumesh.pipeline.evaluate`). ``--metric`` can also rank by
+   AU-field reliability (``au_reliability_median``, ``au_reliability_min``, ``au_reliability_<AU>``: cosine
+   between each AU's fields fitted on different folds) or ``n_aus_facs_pass``, which depend only on the
+   slopes too. Asking for a target-space metric over mixed targets is an error (restrict with
+   ``--target``). Values within
    :data:`TIE_TOLERANCE` tie; ties go to fewer (effective) components, then fewer requested
    components, then the earlier run;
 2. writes the winner's configuration to ``conf/experiment/promoted.yaml`` (``# @package
@@ -52,8 +55,14 @@ EXPERIMENT_GROUP = "experiment"
 EXPERIMENT_NAME = "promoted"
 DEFAULTS_ENTRY = f"optional {EXPERIMENT_GROUP}: {EXPERIMENT_NAME}"
 MODEL_ARTIFACT_DIR = "model"
-# metrics in the same space for absolute and neutral-subtracted runs
-CROSS_TARGET_METRICS = ("r2_displacement_mean",)
+# metrics in the same space for every preprocess.target: they depend on the slopes only
+CROSS_TARGET_METRICS = ("r2_displacement_mean", "au_reliability_median", "au_reliability_min", "n_aus_facs_pass")
+_METRIC_WORDS = {
+    "r2_displacement_mean": "R² of the AU-driven displacement from each test video's neutral, which depends only "
+                            "on the slope and is the same space and the same information for every target",
+    "n_aus_facs_pass": "the number of AUs whose field's direction passes the FACS check (slopes only)",
+}
+_RELIABILITY_WORDS = "the cosine between AU fields fitted on different folds (slopes only, the same for every target)"
 # always written to the experiment file: what a sweep typically varies and what defines the model
 MODEL_KEYS = (
     "preprocess.target",
@@ -69,7 +78,18 @@ NOT_PROMOTED = ("paths.", "tracking.", "data.chunk_rows")
 _TARGET_SPACE = {
     "absolute": "absolute aligned coordinates",
     "neutral": "neutral-subtracted coordinates (mesh minus the video's neutral)",
+    "within": "per-video demeaned coordinates (within-video variation only)",
+    "within_neutral": "coordinates relative to the video's neutral frames (design and mesh)",
 }
+
+
+def cross_target(metric: str) -> bool:
+    """Whether *metric* means the same for every ``preprocess.target`` (see :data:`CROSS_TARGET_METRICS`)."""
+    return metric in CROSS_TARGET_METRICS or metric.startswith("au_reliability_")
+
+
+def _metric_words(metric: str) -> str:
+    return _RELIABILITY_WORDS if metric.startswith("au_reliability_") else _METRIC_WORDS.get(metric, metric)
 
 
 # ------------------------------------------------------------------ candidates and the criterion
@@ -190,12 +210,12 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
                          + "; nothing to promote (see `aumesh runs` for their errors).")
     targets = tuple(sorted({str(c.target) for c in pool}))
     chosen_metric = metric or default_metric(targets)
-    if len(targets) > 1 and chosen_metric not in CROSS_TARGET_METRICS:
+    if len(targets) > 1 and not cross_target(chosen_metric):
         raise ValueError(
             f"--metric {chosen_metric}: candidates differ in preprocess.target ({', '.join(targets)}) and "
             f"{chosen_metric} is measured in each run's own target space, so the values are not comparable. "
-            f"Fix: use --metric {CROSS_TARGET_METRICS[0]} (same space for both targets) or restrict with "
-            "--target absolute|neutral.")
+            f"Fix: use --metric {' or '.join(CROSS_TARGET_METRICS)} (the same for every target) or restrict with "
+            f"--target {'|'.join(_TARGET_SPACE)}.")
     ranked = rank(pool, chosen_metric, tie_tolerance)
     if not ranked:
         raise ValueError(f"metric {chosen_metric!r} is logged by none of the {len(pool)} finished runs; "
@@ -210,14 +230,12 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
         space = _TARGET_SPACE.get(targets[0], targets[0])
         compared = (f"all {len(ranked)} candidates have preprocess.target={targets[0]}: {chosen_metric} is in "
                     f"{space}, the same space for every candidate")
-        if chosen_metric == "r2_displacement_mean":
-            compared += " (R² of the AU-driven displacement from each test video's neutral)"
+        if cross_target(chosen_metric):
+            compared += f" ({_metric_words(chosen_metric)})"
     else:
         compared = (f"candidates differ in preprocess.target ({', '.join(f'{t}: {n}' for t, n in counts.items())}); "
                     f"their r2_mean are in different spaces ({' vs '.join(_TARGET_SPACE.get(t, t) for t in targets)}) "
-                    f"and were not compared. All were scored on {chosen_metric}: R² of the AU-driven displacement "
-                    "from each test video's neutral, which depends only on the slope and is the same space and "
-                    "the same information for both targets")
+                    f"and were not compared. All were scored on {chosen_metric}: {_metric_words(chosen_metric)}")
     if target is not None:
         compared += f"; restricted to preprocess.target={target}"
     excluded = len(candidates) - len(ranked)

@@ -107,6 +107,39 @@ def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: lis
     return arrays
 
 
+TARGET_WORDS = {
+    "absolute": "absolute aligned coordinates, pooled over all frames (the card's recipe)",
+    "neutral": "aligned coordinates minus each video's neutral mesh ({method}); the AUs stay absolute",
+    "within": "design and mesh demeaned per video (fixed effects: only how a face moves within its own video); "
+              "released with the population intercept, mean mesh - mean design @ coef",
+    "within_neutral": "design and mesh minus the mean of each video's neutral ({method}) frames; released with the "
+                      "population intercept, mean mesh - mean design @ coef",
+}
+
+TARGETS_NOTE = (
+    "Targets, in short: `absolute` regresses whole faces on AUs, so any link between a person's resting AU readings "
+    "and their face shape (detectors read a resting face as some expression) leaks identity into the AU fields. "
+    "`neutral` removes each person's neutral face from the mesh only, so their AU baselines are left unexplained. "
+    "`within` removes each video's mean from both sides and keeps only how a face moves when its AUs change: use it "
+    "when you want what each AU does (sliders, FACS); use `absolute` to reproduce the reference card. R² in each "
+    "target's own space measures different variance and is not comparable across targets; "
+    "R² of the AU-driven displacement and the AU-field reliability are the same for every target."
+)
+
+
+def reliability_section(cv: dict[str, Any]) -> list[str]:
+    """Card section: each AU's field reliability (cosine between fields fitted on different folds)."""
+    lines = ["## AU-field reliability", "",
+             "Cosine between each AU's displacement field fitted on each cross-validation fold alone (disjoint videos; "
+             "mean over fold pairs; 1 = every subset of videos agrees). No ground truth needed: it says how far to "
+             "trust each AU's field.", "",
+             f"- median over AUs {cv['au_reliability_median']:.3f}, worst {cv['au_reliability_min']:.3f}"
+             + (f"; {cv['n_aus_facs_pass']} of 20 AUs pass the FACS direction check" if "n_aus_facs_pass" in cv else ""),
+             "", "| AU | reliability |", "|---|---:|"]
+    lines += [f"| {au} | {value:.3f} |" for au, value in cv["au_reliability"].items()]
+    return lines + [""]
+
+
 def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:
     """The human-readable card, generated from ``model_card.json``."""
     cv, data, cfg = card["cv"], card["data"], card["config"]
@@ -130,8 +163,9 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         f"frames above the {pre['alignment']['outlier_quantile']:.0%} quantile of max anchor residual dropped: "
         f"{counts['dropped_alignment_outliers']:,} (threshold {counts['alignment_residual_threshold']:.3g})",
         f"- Videos with no frames left: {counts['videos_dropped_no_frames_left']}",
-        f"- Target: **{pre['target']}** aligned coordinates"
-        + (f" minus each video's neutral ({pre['neutral']['method']})" if pre["target"] == "neutral" else ""),
+        f"- Target: **{pre['target']}**: " + TARGET_WORDS[pre["target"]].format(method=pre["neutral"]["method"]),
+        "",
+        TARGETS_NOTE,
         "",
         "## Method",
         "",
@@ -151,6 +185,8 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         + ", ".join(f"{v:.4f}" for v in cv["vertex_error_folds"]) + " |",
         "",
     ]
+    if "au_reliability" in cv:
+        lines += reliability_section(cv)
     if card.get("promotion"):
         p = card["promotion"]
         lines += ["## Promotion", "", f"- Promoted run `{p.get('run_id')}` of sweep `{p.get('parent_run_id')}`",
