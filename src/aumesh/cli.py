@@ -149,7 +149,8 @@ def add_experiment_commands(subparsers) -> None:
         "sweep", add_help=False, prefix_chars="\0",
         help="Hydra sweep over conf/ in-process, one MLflow child run per configuration "
              "(e.g. `aumesh sweep -m model.n_components=10,40`; `aumesh sweep --help` is Hydra's help)")
-    p.add_argument("overrides", nargs=argparse.REMAINDER)
+    p.add_argument("overrides", nargs=argparse.REMAINDER,
+                   help="Hydra's arguments: -m and KEY=V1,V2 sweeps over conf/ (default: one run of conf/ as it is)")
     p.set_defaults(func=_cmd_sweep)
 
     for name, func, text in (("runs", _cmd_runs, "table of a sweep's runs, best first"),
@@ -157,7 +158,7 @@ def add_experiment_commands(subparsers) -> None:
         p = subparsers.add_parser(name, help=text)
         who = p.add_mutually_exclusive_group()
         who.add_argument("--parent", help="the sweep's parent run id (default: the latest sweep)")
-        who.add_argument("--latest", action="store_true", help="the latest sweep (the default)")
+        who.add_argument("--latest", action="store_true", help="the latest sweep (what happens without --parent)")
         p.add_argument("--metric", default=None,
                        help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean; "
                             "au_reliability_median / au_reliability_min / n_aus_facs_pass rank by AU-field reliability)")
@@ -167,44 +168,77 @@ def add_experiment_commands(subparsers) -> None:
             p.add_argument("--json", action="store_true", help="print the table as JSON records")
         else:
             p.add_argument("--target", choices=list(TARGETS), default=None,
-                           help="only consider runs with this preprocess.target")
+                           help="only consider runs with this preprocess.target (default: runs of every target)")
             p.add_argument("--model-name", default=None,
                            help="registered model name (default: aumesh-au-to-mesh)")
             p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Every option's help ends with its default, unless the text already says it (``default: ...``).
+
+    Flags (``store_true``) are off unless given, required options have none: both are left as written.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text or any(action.default is v for v in (None, False, argparse.SUPPRESS)) or action.required
+                or not (action.option_strings or action.nargs in ("?", "*"))):
+            return text
+        default = " ".join(map(str, action.default)) if isinstance(action.default, (list, tuple)) else "%(default)s"
+        return f"{text} (default: {default or 'none'})"
+
+
+class Parser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` with :class:`HelpFormatter`; sub-commands inherit it."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aumesh", description=__doc__)
-    parser.add_argument("-v", "--verbose", action="store_true")
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = Parser(prog="aumesh", description="aumesh: AU (+ head pose) -> MediaPipe FaceMesh, the pipeline's stages "
+                    "and tools. `aumesh COMMAND --help` lists a command's options and their defaults.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages too (default: info and above)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("compose-params", help="compose conf/ (+ Hydra overrides) into params.yaml, as `dvc exp run` does")
-    p.add_argument("overrides", nargs="*")
-    p.add_argument("--config-dir", default="conf")
-    p.add_argument("--out", default="params.yaml")
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                   help="Hydra overrides, e.g. model.n_components=40 features=au_pose (default: none, the conf/ defaults)")
+    p.add_argument("--config-dir", default="conf", help="the Hydra configuration folder")
+    p.add_argument("--out", default="params.yaml", help="the composed configuration file the DVC stages read")
     p.set_defaults(func=_cmd_compose_params)
 
     p = sub.add_parser("synth", help="write synthetic frame tables with a known ground truth")
-    p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--frames", type=int, default=4000)
-    p.add_argument("--videos", type=int, default=100)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--layout", choices=["columns", "pyfeat"], default="columns")
-    p.add_argument("--truth", type=Path, default=None, help="also save the ground-truth map (NPZ) here")
-    p.add_argument("--reverse", nargs="*", help="AUs whose true direction is deliberately reversed")
+    p.add_argument("--out", required=True, type=Path, help="folder for the parquet tables (created)")
+    p.add_argument("--frames", type=int, default=4000, help="number of frames (table rows) in all")
+    p.add_argument("--videos", type=int, default=100, help="number of videos (identities) the frames are spread over")
+    p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same tables")
+    p.add_argument("--layout", choices=["columns", "pyfeat"], default="columns",
+                   help="columns: mesh columns x_i, y_i, z_i inside the parquet; pyfeat: py-feat's split layout, "
+                        "an AU/pose parquet plus an [N, 478, 3] <stem>.npy beside it")
+    p.add_argument("--truth", type=Path, default=None,
+                   help="also save the ground-truth map (NPZ) here (default: not saved)")
+    p.add_argument("--reverse", nargs="*", default=[], metavar="AU",
+                   help="AUs whose true direction is deliberately reversed, to test the AU-direction check")
     p.set_defaults(func=_cmd_synth)
 
     for name, func, text in (("prepare", _cmd_prepare, "stage: filter and align the frame tables"),
                              ("evaluate", _cmd_evaluate, "stage: cross-validate and fit; log an MLflow run"),
                              ("release", _cmd_release, "stage: write the release (NPZ, model card, figures)")):
         p = sub.add_parser(name, help=text)
-        p.add_argument("--params", default="params.yaml")
+        p.add_argument("--params", default="params.yaml",
+                       help="the composed configuration to read (`aumesh compose-params` or `dvc exp run` write it)")
         p.set_defaults(func=func)
 
     p = sub.add_parser("render", help="render a release NPZ's figures and AU-direction report")
-    p.add_argument("npz", type=Path)
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--cv", type=Path, default=None)
+    p.add_argument("npz", type=Path, help="a release NPZ in the card's format (ours or another)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="folder for the PNGs, au_directions.json and au_directions.md (created)")
+    p.add_argument("--cv", type=Path, default=None,
+                   help="CV arrays NPZ with r2_per_vertex / vertex_error, e.g. build/model/cv.npz "
+                        "(default: none, so no R² and error figures)")
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser("predict", help="meshes from a CSV/parquet table of AU (+ pose) rows, with a release NPZ")
@@ -213,8 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "Pitch, Yaw, Roll in radians (absent: pose 0)")
     p.add_argument("--out", type=Path, required=True,
                    help="output file: .npz (meshes (N, 478, 3)), or .obj / .ply for a one-row table")
-    p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"),
-                   help="release NPZ (default: %(default)s)")
+    p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
     p.add_argument("--ignore", nargs="*", default=[], metavar="COLUMN",
                    help="table columns that are not model inputs, e.g. video_id frame (default: none)")
     p.set_defaults(func=_cmd_predict)
