@@ -38,7 +38,7 @@ def test_load_params_reports_the_file(tmp_path):
     (tmp_path / "params.yaml").write_text("model: {n_components: 0}\n")
     with pytest.raises(ValueError, match=r"params.yaml: model.n_components=0"):
         config.load_params(tmp_path / "params.yaml")
-    with pytest.raises(FileNotFoundError, match="make params"):
+    with pytest.raises(config.ConfigError, match="missing.yaml: no params file. Run `make params`"):
         config.load_params(tmp_path / "missing.yaml")
 
 

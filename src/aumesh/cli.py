@@ -6,10 +6,13 @@ import argparse
 import contextlib
 import json
 import logging
+import os
 import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+DEBUG_ENV = "AUMESH_DEBUG"
 
 
 def _params(args) -> "Config":  # noqa: F821
@@ -201,6 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="aumesh", description="aumesh: AU (+ head pose) -> MediaPipe FaceMesh, the pipeline's stages "
                     "and tools. `aumesh COMMAND --help` lists a command's options and their defaults.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages too (default: info and above)")
+    parser.add_argument("--debug", action="store_true",
+                        help=f"show the traceback of input and configuration errors too (or set {DEBUG_ENV}=1)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("compose-params", help="compose conf/ (+ Hydra overrides) into params.yaml, as `dvc exp run` does")
@@ -257,10 +262,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command. An input, configuration or path error (``UserError``) prints its message and
+    returns 2, with the traceback only under ``--debug`` or ``AUMESH_DEBUG=1``; other errors keep theirs."""
+    from aumesh.utils.errors import UserError
+
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return args.func(args)
+    try:
+        return args.func(args)
+    except UserError as err:
+        if args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0"):
+            raise
+        print(f"aumesh {args.command}: error: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

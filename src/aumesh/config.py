@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
+from aumesh.utils.errors import ConfigError
 from aumesh.utils.io import atomic_write_text
 from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, feature_set_columns
 from aumesh.model.statistics import TARGETS
@@ -36,6 +37,7 @@ class DataConfig:
     tables: str = "**/*.parquet"
     mesh_npy: str = "{stem}.npy"
     chunk_rows: int = 8192
+    coerce_numeric: bool = False
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,7 @@ class PreprocessConfig:
     neutral: NeutralConfig = field(default_factory=NeutralConfig)
     target: str = "absolute"
     empty_video: str = "drop"
+    max_drop_fraction: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -160,75 +163,138 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
-def _build(cls: type, data: Any, where: str) -> Any:
-    """Build dataclass ``cls`` from a mapping, rejecting unknown keys (typos must not pass silently)."""
-    if not isinstance(data, dict):
-        raise ValueError(f"config section '{where}' must be a mapping, got {type(data).__name__}")
+def _check_keys(cls: type, data: Any, where: str) -> None:
+    """Unknown keys (typos must not pass silently) and replaced keys, named with what replaced them."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"config section '{where}' must be a mapping, got {type(data).__name__} {data!r}")
     known = {f.name: f for f in dataclasses.fields(cls)}
     if cls is FeaturesConfig and set(data) & set(_OLD_FEATURE_KEYS):
-        raise ValueError(_old_features_message(data))
+        raise ConfigError(_old_features_message(data))
     unknown = sorted(set(data) - set(known))
     if unknown:
-        raise ValueError(
+        raise ConfigError(
             f"unknown config key(s) {', '.join(where + '.' + k if where else k for k in unknown)}; "
             f"known keys of '{where or 'root'}': {', '.join(sorted(known))}"
         )
-    kwargs = {}
     for name, value in data.items():
-        sub = known[name].default_factory if known[name].default_factory is not dataclasses.MISSING else None
-        path = f"{where}.{name}" if where else name
-        if sub is not None and dataclasses.is_dataclass(sub):
-            kwargs[name] = _build(sub, value, path)
-        elif isinstance(value, list):
-            kwargs[name] = tuple(value)
+        sub = known[name].default_factory
+        if sub is not dataclasses.MISSING and dataclasses.is_dataclass(sub):
+            _check_keys(sub, value, f"{where}.{name}" if where else name)
+
+
+def _schema():
+    """The dataclasses as an OmegaConf structured config (Hydra's structured-config machinery), writable."""
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    def unlock(node) -> None:  # frozen dataclasses make read-only nodes; the schema must accept a merge
+        node._set_flag("readonly", None)
+        if isinstance(node, DictConfig):
+            for key in node.keys():
+                unlock(node._get_node(key))
+        elif isinstance(node, ListConfig):
+            for i in range(len(node)):
+                unlock(node._get_node(i))
+
+    schema = OmegaConf.structured(Config)
+    unlock(schema)
+    return schema
+
+
+# OmegaConf's reason -> what the key allows
+_ALLOWED = {"to Integer": "an integer, e.g. 10", "valid bool": "true or false",
+            "to Float": "a number, e.g. 0.5", "Incompatible value 'None'": "a value (not null)"}
+
+
+def _typed(data: Mapping[str, Any]) -> dict[str, Any]:
+    """Values converted to the dataclasses' types by OmegaConf (``"10"`` -> 10, ``"false"`` -> False);
+    a value that does not convert (``"ten"``, ``10.5`` for an int, ``"nope"`` for a bool) is a ConfigError."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        merged = OmegaConf.merge(_schema(), dict(data))
+    except OmegaConfBaseException as err:
+        value = getattr(err, "value", None)
+        reason = str(getattr(err, "msg", err)).splitlines()[0]
+        allowed = next((a for k, a in _ALLOWED.items() if k in reason), None)
+        raise ConfigError(f"{err.full_key}={value!r}: " + (f"must be {allowed}" if allowed else reason)) from None
+    return OmegaConf.to_container(merged)
+
+
+def _build(cls: type, data: Mapping[str, Any]) -> Any:
+    """Build dataclass ``cls`` from checked, typed values (lists become tuples: the config is hashable)."""
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        value = data[f.name]
+        if f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(f.default_factory):
+            kwargs[f.name] = _build(f.default_factory, value)
         else:
-            kwargs[name] = value
+            kwargs[f.name] = tuple(value) if isinstance(value, list) else value
     return cls(**kwargs)
 
 
 def validate(cfg: Config) -> Config:
-    """Check values a typo or a bad sweep override could break; errors name the key and the fix."""
+    """Check values a typo or a bad sweep override could break; errors name the key, the value and what is allowed."""
     if cfg.preprocess.target not in TARGETS:
-        raise ValueError(f"preprocess.target={cfg.preprocess.target!r}: use one of {', '.join(map(repr, TARGETS))}")
+        raise ConfigError(f"preprocess.target={cfg.preprocess.target!r}: use one of {', '.join(map(repr, TARGETS))}")
     if cfg.preprocess.neutral.method not in ("low_au", "mean"):
-        raise ValueError(f"preprocess.neutral.method={cfg.preprocess.neutral.method!r}: use 'low_au' or 'mean'")
+        raise ConfigError(f"preprocess.neutral.method={cfg.preprocess.neutral.method!r}: use 'low_au' or 'mean'")
     if cfg.preprocess.empty_video not in ("drop", "error"):
-        raise ValueError(f"preprocess.empty_video={cfg.preprocess.empty_video!r}: use 'drop' or 'error'")
+        raise ConfigError(f"preprocess.empty_video={cfg.preprocess.empty_video!r}: use 'drop' or 'error'")
     q = cfg.preprocess.alignment.outlier_quantile
     if not 0.0 < q <= 1.0:
-        raise ValueError(f"preprocess.alignment.outlier_quantile={q}: must be in (0, 1]; 1.0 keeps every frame")
+        raise ConfigError(f"preprocess.alignment.outlier_quantile={q}: must be in (0, 1]; 1.0 keeps every frame")
+    if not 0.0 <= cfg.preprocess.max_drop_fraction <= 1.0:
+        raise ConfigError(f"preprocess.max_drop_fraction={cfg.preprocess.max_drop_fraction}: must be in [0, 1]; "
+                         "1.0 never stops a run")
     if len(cfg.preprocess.alignment.anchor_indices) < 3:
-        raise ValueError("preprocess.alignment.anchor_indices: need at least 3 anchors for a similarity fit")
+        raise ConfigError("preprocess.alignment.anchor_indices: need at least 3 anchors for a similarity fit")
     if cfg.model.n_components < 1:
-        raise ValueError(f"model.n_components={cfg.model.n_components}: must be >= 1")
+        raise ConfigError(f"model.n_components={cfg.model.n_components}: must be >= 1")
+    p = len(cfg.features.columns) if cfg.features.name in FEATURE_SETS else 0
+    if p and cfg.model.n_components > p and not cfg.model.clip_n_components:
+        raise ConfigError(f"model.n_components={cfg.model.n_components} exceeds the {p} features of "
+                          f"features={cfg.features.name}. Fix: lower it, or set model.clip_n_components=true.")
     if cfg.cv.n_splits < 2:
-        raise ValueError(f"cv.n_splits={cfg.cv.n_splits}: must be >= 2")
+        raise ConfigError(f"cv.n_splits={cfg.cv.n_splits}: must be >= 2")
     if cfg.data.chunk_rows < 1:
-        raise ValueError(f"data.chunk_rows={cfg.data.chunk_rows}: must be >= 1")
+        raise ConfigError(f"data.chunk_rows={cfg.data.chunk_rows}: must be >= 1")
     if cfg.features.name not in FEATURE_SETS:
-        raise ValueError(f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} "
+        raise ConfigError(f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} "
                          "(conf/features/<name>.yaml)")
     return cfg
 
 
 def from_dict(data: dict[str, Any]) -> Config:
-    """Typed, validated config from a plain mapping (a parsed params.yaml or a composed Hydra config)."""
-    return validate(_build(Config, dict(data), ""))
+    """Typed, validated config from a plain mapping (a parsed params.yaml or a composed Hydra config).
+
+    Raises
+    ------
+    ConfigError
+        An unknown or replaced key, a value of the wrong type, or a value outside what the key allows;
+        the message names the key, the value and what is allowed.
+    """
+    _check_keys(Config, data, "")
+    return validate(_build(Config, _typed(data)))
 
 
 def load_params(path: str | Path = "params.yaml") -> Config:
     """Read the DVC-composed ``params.yaml``."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(
+        raise ConfigError(
             f"{path}: no params file. Run `make params` (or `aumesh compose-params`) to compose it from conf/."
         )
-    with open(path) as fh:
-        data = yaml.safe_load(fh) or {}
+    try:
+        with open(path) as fh:
+            data = yaml.safe_load(fh) or {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML ({str(err).splitlines()[0]}). Fix: `make params` recomposes it "
+                          "from conf/.") from None
     try:
         return from_dict(data)
-    except ValueError as err:
-        raise ValueError(f"{path}: {err}") from None
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
 
 
 def check_overrides(overrides: Sequence[str]) -> None:
@@ -236,7 +302,7 @@ def check_overrides(overrides: Sequence[str]) -> None:
     for ov in overrides:
         key = ov.lstrip("+~").split("=", 1)[0].strip()
         if key in ("features.pose", "features.interactions"):
-            raise ValueError(f"override {ov!r}: " + _old_features_message({}).split(" (")[0])
+            raise ConfigError(f"override {ov!r}: " + _old_features_message({}).split(" (")[0])
 
 
 def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf", config_name: str = "config") -> dict:
@@ -245,9 +311,15 @@ def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf", conf
     from hydra import initialize_config_dir
     from omegaconf import OmegaConf
 
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
     check_overrides(overrides)
-    with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base=None):
-        cfg = hydra_compose(config_name=config_name, overrides=list(overrides))
+    try:
+        with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base=None):
+            cfg = hydra_compose(config_name=config_name, overrides=list(overrides))
+    except (HydraException, OmegaConfBaseException) as err:  # an unknown key or group option in an override
+        raise ConfigError(f"{config_dir}/ {' '.join(overrides)}: {str(err).splitlines()[0]}") from None
     return OmegaConf.to_container(cfg, resolve=True)
 
 

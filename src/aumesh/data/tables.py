@@ -20,8 +20,10 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 import pyarrow.parquet as pq
 
+from aumesh.data import contract
 from aumesh.data.schema import (
     AU_COLUMNS,
     FRAME_COLUMN,
@@ -31,13 +33,10 @@ from aumesh.data.schema import (
     POSE_COLUMNS,
     VIDEO_COLUMN,
 )
+from aumesh.utils.errors import TableError
 
 _MESH_COLUMN = re.compile(r"^([xyz])_(\d+)$")
 META_COLUMNS = (VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS)
-
-
-class TableError(ValueError):
-    """A frame table that cannot be used as it is; the message says which file, which column and the fix."""
 
 
 @dataclass(frozen=True)
@@ -48,6 +47,7 @@ class FrameTable:
     n_rows: int
     mesh_npy: Path | None  # None: mesh columns are inside the parquet
     video_from_input: bool  # video_id derived from py-feat's `input` column
+    text_columns: frozenset[str] = frozenset()  # mesh columns stored as text, converted (data.coerce_numeric)
 
 
 def _suggest(name: str, candidates: Sequence[str]) -> str:
@@ -58,7 +58,7 @@ def _suggest(name: str, candidates: Sequence[str]) -> str:
     return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
 
 
-def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str) -> list[FrameTable]:
+def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str, coerce_numeric: bool = False) -> list[FrameTable]:
     """Find and schema-check every frame table under ``data_dir``.
 
     Raises
@@ -68,23 +68,35 @@ def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str) -> list[
         shape does not match its table.
     """
     data_dir = Path(data_dir)
+    if not data_dir.is_dir():
+        raise TableError(
+            f"{data_dir}: the data folder does not exist (paths.data_dir). Fix: `dvc pull data.dvc` for the demo "
+            f"tables, or put py-feat frame tables (parquet) under {data_dir}/ and run `dvc add {data_dir}`."
+        )
     paths = sorted(p for p in data_dir.glob(pattern) if p.is_file())
     if not paths:
         raise TableError(
             f"{data_dir}/{pattern}: no frame tables found (empty input). Fix: put py-feat frame tables "
             f"(parquet) under {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull` for the demo data."
         )
-    tables = [_check_schema(p, mesh_npy_pattern) for p in paths]
+    tables = [_check_schema(p, mesh_npy_pattern, coerce_numeric) for p in paths]
     if sum(t.n_rows for t in tables) == 0:
         raise TableError(f"{data_dir}/{pattern}: every table has 0 rows (empty input). Fix: export frames with py-feat first.")
     return tables
 
 
-def _check_schema(path: Path, mesh_npy_pattern: str) -> FrameTable:
+def _corrupt(path: Path, err: BaseException, what: str = "") -> TableError:
+    return TableError(
+        f"{path}: corrupt or truncated parquet file{what} ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). "
+        f"Fix: restore it (`dvc checkout {path}` or `dvc pull`) or re-export it with pandas.DataFrame.to_parquet."
+    )
+
+
+def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = False) -> FrameTable:
     try:
         pf = pq.ParquetFile(path)
     except Exception as err:  # pyarrow raises several types for a bad file
-        raise TableError(f"{path}: not a readable parquet file ({err}). Fix: re-export it with pandas.DataFrame.to_parquet.") from err
+        raise _corrupt(path, err) from None
     names = pf.schema_arrow.names
     n_rows = pf.metadata.num_rows
     present = set(names)
@@ -109,6 +121,7 @@ def _check_schema(path: Path, mesh_npy_pattern: str) -> FrameTable:
         if m:
             vertices[m.group(1)].add(int(m.group(2)))
     mesh_npy = None
+    text_columns: set[str] = set()
     if any(vertices.values()):
         expected = set(range(N_VERTICES))
         for axis, found in vertices.items():
@@ -125,6 +138,13 @@ def _check_schema(path: Path, mesh_npy_pattern: str) -> FrameTable:
                     f"{N_VERTICES} ({'; '.join(detail)}). Fix: export the 478-vertex MediaPipe FaceMesh "
                     f"(with irises, py-feat's mp_facemesh_v2), columns x_0..x_477, y_0..y_477, z_0..z_477."
                 )
+        for field in pf.schema_arrow:
+            if _MESH_COLUMN.match(field.name) and not (pa.types.is_floating(field.type) or pa.types.is_integer(field.type)):
+                values = _read_columns(path, [field.name])[field.name].to_numpy(zero_copy_only=False)
+                contract.numeric_values(values, path, field.name)  # a value that is not a number: always an error
+                if not coerce_numeric:
+                    raise contract.text_error(path, field.name, values[0] if len(values) else None)
+                text_columns.add(field.name)
     else:
         mesh_npy = path.with_name(mesh_npy_pattern.format(stem=path.stem))
         if not mesh_npy.exists():
@@ -144,40 +164,47 @@ def _check_schema(path: Path, mesh_npy_pattern: str) -> FrameTable:
             )
         if arr.dtype.kind != "f":
             raise TableError(f"{mesh_npy}: dtype {arr.dtype}; need float16, float32 or float64.")
-    return FrameTable(path=path, n_rows=n_rows, mesh_npy=mesh_npy, video_from_input=video_from_input)
+    return FrameTable(path=path, n_rows=n_rows, mesh_npy=mesh_npy, video_from_input=video_from_input,
+                      text_columns=frozenset(text_columns))
 
 
-def read_metadata(table: FrameTable) -> pd.DataFrame:
+def _read_columns(path: Path, columns: list[str]) -> pa.Table:
+    try:
+        return pq.read_table(path, columns=columns)
+    except (pa.ArrowException, OSError) as err:
+        raise _corrupt(path, err, f" (reading {columns[0]}" + (f" and {len(columns) - 1} more columns)" if len(columns) > 1 else ")")) from None
+
+
+def _batches(table: FrameTable, chunk_rows: int, columns: list[str]) -> Iterator[pa.RecordBatch]:
+    """Parquet row batches of ``columns``; a page that cannot be decoded is a corrupt-file error."""
+    try:
+        for batch in pq.ParquetFile(table.path).iter_batches(batch_size=chunk_rows, columns=columns):
+            yield batch
+    except (pa.ArrowException, OSError) as err:
+        raise _corrupt(table.path, err, " (reading the mesh columns)") from None
+
+
+def _column(batch: pa.RecordBatch, k: int, name: str, table: FrameTable, start: int) -> np.ndarray:
+    values = batch.column(k).to_numpy(zero_copy_only=False)
+    return contract.numeric_values(values, table.path, name, start) if name in table.text_columns else values
+
+
+def read_metadata(table: FrameTable, coerce_numeric: bool = False) -> pd.DataFrame:
     """``video_id``, ``frame``, the 20 AUs and pose (model order Pitch, Yaw, Roll) of every row, validated.
 
     Raises
     ------
     TableError
-        NaN/inf in an AU or pose column, or pose that looks like degrees.
+        A broken data contract (:func:`aumesh.data.contract.validate_metadata`): text in a numeric column
+        (unless ``coerce_numeric``), NaN/inf, an all-NaN column, AUs outside 0-1, pose beyond ±pi.
     """
     cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]
     cols.insert(0, INPUT_PATH_COLUMN if table.video_from_input else VIDEO_COLUMN)
-    df = pq.read_table(table.path, columns=cols).to_pandas()
+    df = _read_columns(table.path, cols).to_pandas()
     if table.video_from_input:
         df[VIDEO_COLUMN] = df.pop(INPUT_PATH_COLUMN).map(lambda s: Path(str(s)).stem)
     df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
-    for col in (*AU_COLUMNS, *POSE_COLUMNS):
-        values = df[col].to_numpy(dtype=np.float64)
-        bad = ~np.isfinite(values)
-        if bad.any():
-            row = int(np.flatnonzero(bad)[0])
-            raise TableError(
-                f"{table.path}: column {col!r} has {int(bad.sum())} NaN/inf value(s) (first at row {row}). "
-                f"Fix: drop frames where py-feat found no face (e.g. fex.dropna()) before `dvc add data`."
-            )
-        df[col] = values
-    for col in POSE_COLUMNS:
-        biggest = float(np.abs(df[col].to_numpy()).max()) if len(df) else 0.0
-        if biggest > np.pi:
-            raise TableError(
-                f"{table.path}: column {col!r} reaches {biggest:.1f}, more than pi: pose looks like degrees. "
-                f"Fix: convert {', '.join(POSE_COLUMNS)} to radians (np.deg2rad) before `dvc add data`."
-            )
+    df = contract.validate_metadata(df, table.path, coerce=coerce_numeric)
     return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]]
 
 
@@ -219,13 +246,12 @@ def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[i
             yield start, block
         return
     columns = [f"{axis}_{i}" for axis in "xyz" for i in idx]
-    pf = pq.ParquetFile(table.path)
     start = 0
     k = len(idx)
-    for batch in pf.iter_batches(batch_size=chunk_rows, columns=columns):
+    for batch in _batches(table, chunk_rows, columns):
         block = np.empty((batch.num_rows, 3, k), dtype=np.float64)
         for j, name in enumerate(columns):
-            block[:, j // k, j % k] = batch.column(batch.schema.get_field_index(name)).to_numpy(zero_copy_only=False)
+            block[:, j // k, j % k] = _column(batch, batch.schema.get_field_index(name), name, table, start)
         block = block.transpose(0, 2, 1)
         _check_finite_mesh(table.path, block, start, idx)
         yield start, block
@@ -240,16 +266,15 @@ def iter_mesh_columns(table: FrameTable, chunk_rows: int) -> Iterator[tuple[int,
             yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
         return
     columns = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
-    pf = pq.ParquetFile(table.path)
     start = 0
     where = None
-    for batch in pf.iter_batches(batch_size=chunk_rows, columns=columns):
+    for batch in _batches(table, chunk_rows, columns):
         if where is None:
             where = [batch.schema.get_field_index(name) for name in columns]
         m = batch.num_rows
         coords = np.empty((N_TARGETS, m), dtype=np.float64)
         for j, k in enumerate(where):
-            coords[j] = batch.column(k).to_numpy(zero_copy_only=False)
+            coords[j] = _column(batch, k, columns[j], table, start)
         if not np.isfinite(coords).all():
             _check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
         yield start, coords

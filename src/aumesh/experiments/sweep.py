@@ -82,10 +82,12 @@ PREPARE_KEYS = (
     "paths.data_dir",
     "data.tables",
     "data.mesh_npy",
+    "data.coerce_numeric",
     "preprocess.pose_filter",
     "preprocess.alignment",
     "preprocess.neutral.low_au_quantile",
     "preprocess.empty_video",
+    "preprocess.max_drop_fraction",
     "seed",
 )
 MAX_CACHED_STATISTICS = 8  # FoldStatistics kept per process (a few MB each: X'X, X'Y, diag(Y'Y) per fold)
@@ -340,7 +342,7 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
                         "%s)", source.path, ", ".join(PREPARE_KEYS))
             return source.path
         log.info("preparing %s from %s (prepare values differ from params.yaml's)", source.path, cfg.paths.data_dir)
-        found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy)
+        found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy, cfg.data.coerce_numeric)
         prep.run(found, cfg, source.path)
         atomic_write_json(stamp_path, {"signature": source.signature, "key": source.key})
     return source.path

@@ -140,6 +140,11 @@ def reliability_section(cv: dict[str, Any]) -> list[str]:
     return lines + [""]
 
 
+def _share(counts: dict[str, Any], key: str) -> str:
+    """`` (1.2 %)``: the fraction a filter dropped, when the prepared summary records it."""
+    return f" ({counts[key + '_fraction']:.1%})" if key + "_fraction" in counts else ""
+
+
 def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:
     """The human-readable card, generated from ``model_card.json``."""
     cv, data, cfg = card["cv"], card["data"], card["config"]
@@ -158,11 +163,13 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         f"- {data['n_frames']:,} frames from {data['n_videos']:,} videos (data digest `{data['digest'].get('md5')}`)",
         f"- Input: {counts['frames_in']:,} frames / {counts['videos_in']:,} videos",
         f"- Pose-filtered to |yaw| <= {pre['pose_filter']['max_abs_yaw_deg']} deg, |pitch| <= {pre['pose_filter']['max_abs_pitch_deg']} deg: "
-        f"{counts['dropped_pose']:,} frames dropped",
+        f"{counts['dropped_pose']:,} frames dropped{_share(counts, 'dropped_pose')}",
         f"- Per-frame Umeyama similarity Procrustes onto a GPA reference of anchors {list(pre['alignment']['anchor_indices'])}; "
         f"frames above the {pre['alignment']['outlier_quantile']:.0%} quantile of max anchor residual dropped: "
-        f"{counts['dropped_alignment_outliers']:,} (threshold {counts['alignment_residual_threshold']:.3g})",
-        f"- Videos with no frames left: {counts['videos_dropped_no_frames_left']}",
+        f"{counts['dropped_alignment_outliers']:,}{_share(counts, 'dropped_alignment_outliers')} "
+        f"(threshold {counts['alignment_residual_threshold']:.3g})",
+        f"- Videos with no frames left (dropped): {counts['videos_dropped_no_frames_left']}"
+        f"{_share(counts, 'videos_dropped_no_frames_left')}",
         f"- Target: **{pre['target']}**: " + TARGET_WORDS[pre["target"]].format(method=pre["neutral"]["method"]),
         "",
         TARGETS_NOTE,

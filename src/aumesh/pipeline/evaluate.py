@@ -34,6 +34,7 @@ from sklearn.model_selection import GroupKFold
 from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
+from aumesh.utils.errors import ConfigError, UserError
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
@@ -120,7 +121,7 @@ def load_prepared(prepared_dir: str | Path) -> Prepared:
     d = Path(prepared_dir)
     missing = [n for n in ("meshes.npy", "frames.parquet", "neutrals.npz", "reference.npz", "summary.json") if not (d / n).exists()]
     if missing:
-        raise FileNotFoundError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
+        raise UserError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
     neutrals = np.load(d / "neutrals.npz")
     with open(d / "summary.json") as fh:
         summary = json.load(fh)
@@ -225,7 +226,7 @@ def assign_folds(video_index: np.ndarray, n_splits: int) -> np.ndarray:
     """Fold of every frame, from scikit-learn's ``GroupKFold`` on the video index (fold ``f`` = f-th test split)."""
     n_groups = len(np.unique(video_index))
     if n_groups < n_splits:
-        raise ValueError(f"cv.n_splits={n_splits} but only {n_groups} videos are left after filtering. Fix: lower cv.n_splits.")
+        raise ConfigError(f"cv.n_splits={n_splits} but only {n_groups} videos are left after filtering. Fix: lower cv.n_splits.")
     fold = np.empty(len(video_index), dtype=np.int8)
     for f, (_, test) in enumerate(GroupKFold(n_splits=n_splits).split(np.zeros(len(video_index)), groups=video_index)):
         fold[test] = f

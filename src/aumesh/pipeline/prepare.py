@@ -32,6 +32,7 @@ from aumesh.config import Config, PreprocessConfig
 from aumesh.utils.io import atomic_directory, atomic_write_json
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
 from aumesh.model.statistics import video_indicator
+from aumesh.data import contract
 from aumesh.data.tables import FrameTable, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, read_metadata
 
 log = logging.getLogger(__name__)
@@ -82,7 +83,7 @@ def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.
     anchors_all = np.empty((sum(t.n_rows for t in tables), len(anchor_idx), 3), np.float32)
     offset = 0
     for i, table in enumerate(tables):
-        meta = read_metadata(table)
+        meta = read_metadata(table, cfg.data.coerce_numeric)
         meta["file_index"] = i
         meta["row"] = np.arange(len(meta))
         metas.append(meta)
@@ -97,9 +98,12 @@ def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.
     if not keep_pose.any():
         raise TableError(
             f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
-            f"|pitch| <= {pre.pose_filter.max_abs_pitch_deg} deg). Fix: check that Pitch/Yaw are in radians, "
-            f"or widen preprocess.pose_filter."
+            f"|pitch| <= {pre.pose_filter.max_abs_pitch_deg} deg) of {n_rows}. Likely cause: Pitch/Yaw in degrees "
+            f"(convert with np.deg2rad), or preprocess.pose_filter narrower than the data."
         )
+    partial = {"frames_in": n_rows, "dropped_pose": int(n_rows - keep_pose.sum())}
+    contract.check_filter_shares(contract.filter_shares(partial), pre.max_drop_fraction, cfg.paths.data_dir)
+    contract.check_pose_units(meta[["Pitch", "Yaw", "Roll"]].to_numpy(), cfg.paths.data_dir)
     pose_rows = np.flatnonzero(keep_pose)
     rng = np.random.default_rng(cfg.seed)
     sample = pose_rows if len(pose_rows) <= pre.alignment.gpa_max_frames else np.sort(
@@ -128,9 +132,6 @@ def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.
             f"outlier cut ({len(dropped_videos)} such videos). Fix: remove it from the tables, widen "
             f"preprocess.pose_filter, or set preprocess.empty_video=drop to skip such videos."
         )
-    if dropped_videos:
-        log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
-                    len(dropped_videos), ", ".join(dropped_videos[:5]))
     counts = {
         "frames_in": int(n_rows),
         "videos_in": int(len(videos_before)),
@@ -141,6 +142,14 @@ def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.
         "frames_kept": int(keep_align.sum()),
         "videos_kept": int(len(kept_videos)),
     }
+    shares = contract.filter_shares(counts)
+    for name, share in shares.items():
+        log.info("%s: dropped %d of %d %s (%.1f%%)", name, share["dropped"], share["of"], share["unit"], 100 * share["fraction"])
+        counts[f"{contract.FILTER_KEYS[name]}_fraction"] = share["fraction"]
+    if dropped_videos:
+        log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
+                    len(dropped_videos), ", ".join(dropped_videos[:5]))
+    contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
     return Selection(meta=meta, keep=keep_align, reference=reference, counts=counts, dropped_videos=dropped_videos), anchors_all
 
 

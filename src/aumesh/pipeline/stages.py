@@ -41,7 +41,7 @@ def data_digest(dvc_file: str = "data.dvc") -> dict[str, Any]:
 
 
 def prepare_stage(cfg: Config) -> dict:
-    found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy)
+    found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy, cfg.data.coerce_numeric)
     summary = prep.run(found, cfg, cfg.paths.prepared_dir)
     log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
     return summary
@@ -50,12 +50,19 @@ def prepare_stage(cfg: Config) -> dict:
 def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVResult, ev.FinalModel]:
     """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
     timings = {}
+    n_features, k = len(cfg.features.columns), ev.effective_n_components(cfg)
+    if k != cfg.model.n_components:  # said on the console and in MLflow, not only in the card
+        log.warning("model.n_components=%d clipped to %d, the number of features of features=%s "
+                    "(model.clip_n_components=true)", cfg.model.n_components, k, cfg.features.name)
+        handle.set_tags({"aumesh.n_components_clipped": f"{cfg.model.n_components} -> {k} ({n_features} features)"})
     t0 = time.perf_counter()
     cv, final = ev.evaluate(prepared, cfg)
     timings["evaluate_seconds"] = time.perf_counter() - t0
     handle.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
                              "r2_displacement": cv.r2_displacement_folds})
     handle.log_metrics(cv.scalar_metrics() | timings)
+    counts = prepared.summary.get("counts", {})  # what the filters dropped, as counts and fractions
+    handle.log_metrics({f"data.{k}": float(v) for k, v in counts.items() if k.startswith(("dropped", "videos_dropped"))})
     mean_path = cv.r2_path_folds.mean(axis=0)
     for k, r2 in enumerate(mean_path, start=1):  # the R²-vs-n_components curve, step = n_components
         handle.log_metrics({"r2_by_n_components": float(r2)}, step=k)
