@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from aumesh import config
+from aumesh.data.schema import INPUT_COLUMNS
 from aumesh.experiments import promote
 from aumesh.experiments import provenance
 from aumesh.experiments import registry, tracking
@@ -208,7 +209,7 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     with sweep.blas_threads():
         stages.evaluate_stage(cfg)
     model = np.load(ws / cfg.paths.model_dir / stages.MODEL_NPZ)
-    npz = np.load(registry.download_run_artifacts(record["run_id"], "model/au_to_mesh_pls.npz", tmp_path / "dl"))
+    npz = np.load(registry.download_run_artifacts(record["run_id"], "model/artifacts/au_to_mesh_pls.npz", tmp_path / "dl"))
     coef_full = npz["coef_full"] if "coef_full" in npz else None
     if coef_full is not None:
         np.testing.assert_array_equal(coef_full, model["coef"].T.astype(np.float32))
@@ -225,3 +226,21 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     assert card["promotion"]["parent_run_id"] == parent
     assert card["promotion"]["criterion"] and card["promotion"]["compared"]
     assert provenance.repo_root() == ws
+    # the registered MLflow Model (MLflow's own loader, by alias) predicts the registered NPZ's meshes
+    import mlflow.pyfunc
+    import pandas as pd
+
+    df = pd.DataFrame(np.random.default_rng(0).uniform(0.0, 1.0, (5, 23)), columns=list(INPUT_COLUMNS))
+    df.loc[:1, ["Pitch", "Yaw", "Roll"]] = 0.0
+    df.loc[2:, ["Pitch", "Yaw", "Roll"]] *= 0.3  # radians
+    pred = mlflow.pyfunc.load_model("models:/aumesh-au-to-mesh@champion").predict(df)
+    assert pred.shape == (5, 1434)
+    names = npz["input_columns_full"].tolist() if "input_columns_full" in npz else list(INPUT_COLUMNS)
+    coef = npz["coef_full"] if "input_columns_full" in npz else npz["coef"]
+    # the design by hand: inputs by name, "Pitch*AU01" = product (the NPZ's own column names)
+    x = np.stack([np.prod([df[part].to_numpy() for part in n.split("*")], axis=0) for n in names], axis=1)
+    expected = x @ coef.astype(np.float64) + npz["intercept"].astype(np.float64)
+    np.testing.assert_allclose(pred, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    # at pose 0 that is the card's snippet with the 23-row coef
+    snippet = df.to_numpy()[:2] @ npz["coef"].astype(np.float64) + npz["intercept"].astype(np.float64)
+    np.testing.assert_allclose(pred[:2], snippet, rtol=0, atol=1e-9 * np.abs(snippet).max())

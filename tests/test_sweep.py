@@ -9,6 +9,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import mlflow.models
 import numpy as np
 import pytest
 
@@ -16,6 +17,7 @@ from aumesh import config
 from aumesh.pipeline import prepare
 from aumesh.data import synth
 from aumesh.data import tables
+from aumesh.data.schema import INPUT_COLUMNS
 from aumesh.experiments import mlflow_store, registry, tracking
 
 from test_mlflow_server import mlflow_server  # noqa: F401  (module-scoped real server fixture)
@@ -123,7 +125,13 @@ def test_children_log_per_fold_metrics_curve_figure_and_model(swept):
         assert sorted(m.step for m in curve) == list(range(1, k + 1))
         assert np.isclose(max(curve, key=lambda m: m.step).value, run.data.metrics["r2_mean"], atol=1e-9)
         arts = {a.path for a in client.list_artifacts(rid, "plots")} | {a.path for a in client.list_artifacts(rid, "model")}
-        assert arts == {"plots/r2_vs_n_components.png", "model/au_to_mesh_pls.npz"}
+        assert {"plots/r2_vs_n_components.png", "model/MLmodel", "model/input_example.json"} <= arts
+        # the model is an MLflow pyfunc model with the card's signature
+        info = mlflow.models.get_model_info(f"runs:/{rid}/model")
+        assert info.flavors.keys() >= {"python_function"}
+        assert info.signature.inputs.input_names() == list(INPUT_COLUMNS)
+        assert info.signature.outputs.inputs[0].shape == (-1, 1434)
+        assert run.data.metrics["seconds_log_model"] > 0
 
 
 def test_statistics_are_reused_across_n_components(swept):
@@ -148,7 +156,7 @@ def test_child_equals_a_fresh_fit(swept, workspace):
     with sweep.blas_threads():
         cv, final = ev.evaluate(ev.load_prepared(workspace / cfg.paths.prepared_dir), cfg)
     assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
-    local = registry.download_run_artifacts(row["run_id"], "model/au_to_mesh_pls.npz", workspace / "build" / "dl")
+    local = registry.download_run_artifacts(row["run_id"], "model/artifacts/au_to_mesh_pls.npz", workspace / "build" / "dl")
     npz = np.load(local)
     np.testing.assert_array_equal(npz["coef_full"], final.coef.T.astype(np.float32))
     assert int(npz["n_components"]) == 25

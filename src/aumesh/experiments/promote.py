@@ -21,7 +21,8 @@
    without the experiment. Before anything is written, a temporary copy of ``conf/`` with the new
    file is composed and every run parameter (except ``paths.*``, ``tracking.*``,
    ``data.chunk_rows``) must compose to the run's value;
-3. registers the run's release-format NPZ (artifact ``model/``) as a new version of the
+3. registers the run's MLflow pyfunc model (artifact ``model/``: the release-format NPZ with a
+   signature, :mod:`aumesh.experiments.pyfunc`) as a new version of the
    registered model (default ``aumesh-au-to-mesh``) and points the alias ``champion`` at it;
 4. recomposes ``params.yaml`` and writes ``promotion.json`` (``{"promoted": {...}}``, read by the
    release stage into ``model_card.json["promotion"]`` and the card's "Promotion" section).

@@ -25,8 +25,9 @@ def register_model_version(
     The source is ``<run artifact_uri>/<artifact_path>``: a ``file://`` URI inside the
     run's artifact directory for a local store, an ``mlflow-artifacts:/`` URI for a
     tracking server; both pass MLflow's source-in-run validation and need no network
-    beyond the tracking URI. No MLflow "flavor" is required: the version points at the
-    run's release-format NPZ.
+    beyond the tracking URI. aumesh runs log an MLflow pyfunc model there
+    (:mod:`aumesh.experiments.pyfunc`), so ``models:/<name>@<alias>`` loads with
+    ``mlflow.pyfunc.load_model``.
 
     Parameters
     ----------
@@ -61,7 +62,7 @@ def register_model_version(
     if not client.list_artifacts(run_id, artifact_path):
         raise FileNotFoundError(
             f"run {run_id} has no artifacts under {artifact_path!r} ({run.info.artifact_uri}); "
-            "only sweep children (aumesh sweep) log a model to register."
+            "evaluate runs and sweep children log their model there (aumesh.experiments.pyfunc)."
         )
     try:
         client.get_registered_model(name)

@@ -30,8 +30,9 @@ where every job (in this process, a joblib worker or a cluster node) finds it. E
 child run (``aumesh.experiments.tracking.tracked_run``): flattened params, provenance tags (git commit, data
 digest), per-fold ``r2``/``mae``/``vertex_error``/``r2_displacement`` (step = fold) and their means,
 the R²-vs-n_components curve (metric ``r2_by_n_components``, step = k, and the figure
-``plots/r2_vs_n_components.png``) and the release-format NPZ under ``model/`` (what ``aumesh
-promote`` registers). A configuration that raises (e.g. a data or config error) is recorded as a
+``plots/r2_vs_n_components.png``) and the model as an MLflow pyfunc model under ``model/`` (the
+release-format NPZ, signature and input example: :mod:`aumesh.experiments.pyfunc`; what ``aumesh
+promote`` registers; metric ``seconds_log_model``). A configuration that raises (e.g. a data or config error) is recorded as a
 FAILED child with the error and the sweep goes on. When the sweep ends the parent is FINISHED with tags counting its children.
 """
 
@@ -68,7 +69,6 @@ RESULT_FILE = "result.json"
 SWEEPS_DIR = "build/sweeps"
 PREPARED_CACHE_DIR = "build/sweeps/prepared"
 PREPARE_STAMP = "aumesh_sweep_prepare.json"
-MODEL_ARTIFACT_DIR = "model"
 FIGURE_ARTIFACT = "plots/r2_vs_n_components.png"
 CHILD_ROLE = "sweep-child"
 PARENT_ENV = "AUMESH_SWEEP_PARENT_RUN_ID"
@@ -375,11 +375,9 @@ def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistic
 def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, root: Path,
                cv: CVResult, final: FinalModel, timings: Mapping[str, float], reused: bool) -> dict[str, Any]:
     """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
-    import tempfile
-
     from aumesh.experiments import provenance
-    from aumesh.utils.io import atomic_savez
-    from aumesh.model.release import NPZ_NAME, release_arrays
+    from aumesh.experiments.pyfunc import log_release_model
+    from aumesh.model.release import release_arrays
 
     metrics = cv.metrics()
     run.log_config(cfg.to_dict())
@@ -410,9 +408,7 @@ def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, roo
     metadata = {"mlflow_run_id": run.run_id, "config": cfg.to_dict(), "cv": {k: v for k, v in metrics.items()}}
     arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
                             prepared.reference, card_text="", metadata=metadata)
-    with tempfile.TemporaryDirectory(prefix="aumesh-sweep-") as tmp:
-        atomic_savez(Path(tmp) / NPZ_NAME, **arrays)
-        run.log_artifact(Path(tmp) / NPZ_NAME, MODEL_ARTIFACT_DIR)
+    run.log_metrics({"seconds_log_model": log_release_model(run, arrays)})  # MLflow pyfunc model under model/
     return {k: scalars[k] for k in ("r2_mean", "r2_std", "r2_displacement_mean", "mae_mean", "n_components")}
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, unflatten_axis_major
 from aumesh.geometry import face
+from aumesh.geometry.export import outward_triangles
 
 GLB_NAME = "au_to_mesh.glb"
 
@@ -49,25 +50,9 @@ def rig_arrays(npz: Mapping[str, Any]) -> dict[str, np.ndarray]:
         raise ValueError(f"release 'input_columns' is {columns}, expected the card's {list(INPUT_COLUMNS)}")
     base = unflatten_axis_major(np.asarray(npz["intercept"], dtype=np.float32)).astype(np.float32)
     targets = np.stack([unflatten_axis_major(coef[columns.index(au)]) for au in AU_COLUMNS]).astype(np.float32)
-    triangles = outward_triangles(base.astype(np.float64))
+    triangles = outward_triangles(base, face.triangulate(base))
     return {"base": base, "targets": targets, "triangles": triangles.astype(np.uint16),
             "normals": vertex_normals(base.astype(np.float64), triangles).astype(np.float32)}
-
-
-def outward_triangles(mesh: np.ndarray) -> np.ndarray:
-    """The project's triangulation of ``mesh``, each wound counter-clockwise seen from in front of the face.
-
-    "In front" is the face frame's out-of-face direction (toward the nose tip,
-    :func:`aumesh.geometry.face.face_frame`), so the winding is right in any frame and handedness.
-    """
-    _, axes, _ = face.face_frame(mesh)
-    out = -axes[2]  # face_frame's z points away from the viewer
-    tri = face.triangulate(mesh)
-    n = np.cross(mesh[tri[:, 1]] - mesh[tri[:, 0]], mesh[tri[:, 2]] - mesh[tri[:, 0]])
-    flip = n @ out < 0
-    tri = tri.copy()
-    tri[flip] = tri[flip][:, [0, 2, 1]]
-    return tri
 
 
 def vertex_normals(mesh: np.ndarray, triangles: np.ndarray) -> np.ndarray:

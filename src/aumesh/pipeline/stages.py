@@ -70,7 +70,7 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
 
 
 def evaluate_stage(cfg: Config) -> dict:
-    from aumesh.experiments import mlflow_store, tracking
+    from aumesh.experiments import mlflow_store, pyfunc, tracking
 
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
@@ -84,6 +84,9 @@ def evaluate_stage(cfg: Config) -> dict:
             run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
+        arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
+                                prepared.reference, card_text="", metadata={"mlflow_run_id": run.run_id})
+        run.log_metrics({"seconds_log_model": pyfunc.log_release_model(run, arrays)})  # MLflow pyfunc model
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
                     # repo-relative (sqlite:///mlflow.db): the card built from this is shared
                     "tracking_uri": provenance.shareable_location(mlflow_store.resolve_tracking_uri(tracking_cfg))

@@ -1,0 +1,120 @@
+"""Every run's model is an MLflow pyfunc model: signature, input example, registry round trip, REST serving."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import upright_truth_release
+from test_mlflow_server import _free_port, _stop
+from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS
+from aumesh.experiments import registry, tracking
+from aumesh.model.release import load_npz
+
+MODEL = "aumesh-au-to-mesh"
+
+
+def _inputs(n: int = 4) -> pd.DataFrame:
+    rng = np.random.default_rng(1)
+    df = pd.DataFrame(rng.uniform(0.0, 2.0, (n, 23)), columns=list(INPUT_COLUMNS))
+    df[["Pitch", "Yaw", "Roll"]] = 0.0
+    return df
+
+
+def _card_snippet(npz_path: Path, df: pd.DataFrame) -> np.ndarray:
+    """The card's inference snippet, with raw numpy: (n, 1434) axis-major."""
+    m = np.load(npz_path, allow_pickle=False)
+    return df[list(INPUT_COLUMNS)].to_numpy() @ m["coef"].astype(np.float64) + m["intercept"].astype(np.float64)
+
+
+@pytest.fixture
+def champion(tmp_path):
+    """A run that logs a synthetic-truth release as its pyfunc model, registered with alias champion."""
+    from aumesh.experiments import pyfunc
+
+    npz = upright_truth_release(tmp_path / "release.npz")
+    with tracking.tracked_run({}, run_name="pyfunc-test", params=None) as run:
+        seconds = pyfunc.log_release_model(run, load_npz(npz))
+    version = registry.register_model_version(run.run_id, pyfunc.MODEL_ARTIFACT_DIR, MODEL, {})
+    return npz, run.run_id, version, seconds
+
+
+def test_registered_pyfunc_model_predicts_the_npz_meshes(champion):
+    import mlflow.models
+    import mlflow.pyfunc
+
+    npz, run_id, version, seconds = champion
+    assert version["alias"] == "champion" and seconds > 0
+    info = mlflow.models.get_model_info(f"models:/{MODEL}@champion")
+    assert registry.model_version_by_alias(MODEL, "champion", {})["run_id"] == run_id
+    assert info.signature.inputs.input_names() == list(INPUT_COLUMNS)
+    assert [s.type.name for s in info.signature.inputs.inputs] == ["double"] * 23
+    assert info.signature.outputs.inputs[0].shape == (-1, 1434)
+    assert info.saved_input_example_info["type"] == "dataframe"
+    model = mlflow.pyfunc.load_model(f"models:/{MODEL}@champion")
+    df = _inputs()
+    pred = model.predict(df)
+    np.testing.assert_allclose(pred, _card_snippet(npz, df), rtol=0, atol=1e-9 * 400)
+    # columns are taken by name: shuffled columns give the same meshes
+    np.testing.assert_allclose(model.predict(df[list(reversed(INPUT_COLUMNS))]), pred, rtol=0, atol=1e-12)
+    # a missing column is refused by the signature, naming it
+    with pytest.raises(Exception, match="AU12"):
+        model.predict(df.drop(columns=["AU12"]))
+
+
+def test_pyfunc_input_example_is_a_smile(champion):
+    import mlflow.models
+
+    npz, run_id, _, _ = champion
+    example = mlflow.models.Model.load(f"runs:/{run_id}/model").load_input_example(
+        mlflow.artifacts.download_artifacts(f"runs:/{run_id}/model"))
+    assert list(example.columns) == list(INPUT_COLUMNS)
+    assert example.loc[0, "AU12"] == 1.0 and example.drop(columns="AU12").to_numpy().sum() == 0.0
+    assert set(AU_COLUMNS) < set(example.columns)
+
+
+@pytest.mark.slow
+def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_path):
+    """`mlflow models serve -m models:/aumesh-au-to-mesh@champion --env-manager local`, a real REST request."""
+    npz, _, _, _ = champion
+    port = _free_port()
+    bin_dir = Path(sys.executable).parent  # the venv's bin: mlflow execs uvicorn from PATH, as in an activated venv
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
+    log = open(tmp_path / "serve.log", "w")
+    proc = subprocess.Popen([str(bin_dir / "mlflow"), "models", "serve", "-m", f"models:/{MODEL}@champion",
+                             "--env-manager", "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"],
+                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 180
+        while True:
+            try:
+                with urllib.request.urlopen(f"{url}/ping", timeout=2) as resp:
+                    if resp.status == 200:
+                        break
+            except (urllib.error.URLError, ConnectionError, OSError):
+                pass
+            assert proc.poll() is None, (tmp_path / "serve.log").read_text()[-3000:]
+            assert time.monotonic() < deadline, "mlflow models serve did not start: " + (tmp_path / "serve.log").read_text()[-3000:]
+            time.sleep(1)
+        df = _inputs(3)
+        body = json.dumps({"dataframe_split": df.to_dict(orient="split") | {"index": None}}).encode()
+        req = urllib.request.Request(f"{url}/invocations", data=body, headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(req, timeout=60) as resp:
+            answer = json.loads(resp.read())
+    finally:
+        _stop(proc)
+        log.close()
+    pred = np.asarray(answer["predictions"], dtype=np.float64)
+    assert pred.shape == (3, 1434)
+    np.testing.assert_allclose(pred, _card_snippet(npz, df), rtol=0, atol=1e-9 * 400)
