@@ -78,6 +78,15 @@ def _cmd_predict(args) -> int:
     return 0
 
 
+def _cmd_view(args) -> int:
+    from aumesh.export import viewer
+    from aumesh.model.inference import load_release
+
+    out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name)
+    print(f"wrote {out} (open it in a browser; works offline)")
+    return 0
+
+
 # ------------------------------------------------------------------ experiments: sweep, runs, promote
 def _tracking_cfg(args) -> dict[str, Any]:
     """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
@@ -256,6 +265,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ignore", nargs="*", default=[], metavar="COLUMN",
                    help="table columns that are not model inputs, e.g. video_id frame (default: none)")
     p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("view", help="write an offline interactive viewer (one HTML file) of a release NPZ")
+    p.add_argument("npz", type=Path, help="release NPZ, e.g. release/au_to_mesh_pls.npz")
+    p.add_argument("--out", type=Path, default=Path("viewer.html"),
+                   help="HTML file to write (default: %(default)s); needs three.js from `make tools`")
+    p.set_defaults(func=_cmd_view)
 
     add_experiment_commands(sub)
     return parser

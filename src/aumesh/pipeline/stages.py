@@ -132,7 +132,7 @@ def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
     from aumesh.card import directions
     from aumesh.card import render
-    from aumesh.export import gltf
+    from aumesh.export import gltf, viewer
 
     model_dir, prepared_dir = Path(cfg.paths.model_dir), Path(cfg.paths.prepared_dir)
     promotion = None
@@ -156,6 +156,7 @@ def release_stage(cfg: Config) -> Path:
         arrays["training_metadata"] = np.array(json.dumps(card, sort_keys=True, default=str))
         atomic_savez(npz_path, **arrays)
         gltf.write_glb(arrays, tmp / gltf.GLB_NAME, source=NPZ_NAME)
+        viewer.write_viewer(arrays, tmp / viewer.VIEWER_NAME, source=NPZ_NAME)
         atomic_write_json(tmp / CARD_JSON, card)
         atomic_write_text(tmp / CARD_MD, markdown)
     return Path(cfg.paths.release_dir)
