@@ -67,11 +67,70 @@ def test_triangulation_indices_valid_and_covers_face(tpl):
 
 
 @pytest.mark.parametrize("contour", ["EYE_CONTOUR_RIGHT", "EYE_CONTOUR_LEFT", "LIPS_INNER"])
-def test_no_triangle_inside_eye_or_mouth_opening(tpl, contour):
-    tri = face.triangulate()
+def test_no_triangle_spans_an_eye_or_mouth_opening(tpl, contour):
+    """Two vertices of one triangle on an opening's contour are neighbours along it (no chord across)."""
+    ring = list(getattr(face, contour))
+    pos = {v: k for k, v in enumerate(ring)}
+    for tri in (face.triangulate(), face.delaunay_triangles(tpl)):
+        for t in tri:
+            on = sorted(pos[v] for v in t if v in pos)
+            for a, b in zip(on, on[1:]):
+                assert min(b - a, len(ring) - (b - a)) == 1, t
+
+
+def test_project_triangulation_has_no_triangle_inside_an_opening(tpl):
+    tri = face.delaunay_triangles(tpl)
     cen = tpl[tri, :2].mean(axis=1)
-    poly = tpl[list(getattr(face, contour)), :2]
-    assert not face._points_in_polygon(cen, poly).any()
+    for contour in (face.EYE_CONTOUR_RIGHT, face.EYE_CONTOUR_LEFT, face.LIPS_INNER):
+        assert not face._points_in_polygon(cen, tpl[list(contour), :2]).any()
+
+
+# --------------------------------------------------------------------------- MediaPipe's topology
+def _imported_tessellation() -> np.ndarray:
+    """MediaPipe's tessellation through the package's public attribute (the independent reference)."""
+    mp = pytest.importorskip("mediapipe.tasks.python.vision.face_landmarker")
+    return np.array([(c.start, c.end) for c in mp.FaceLandmarksConnections.FACE_LANDMARKS_TESSELATION])
+
+
+def test_tessellation_read_from_the_installed_package_is_mediapipes():
+    edges = _imported_tessellation()
+    assert np.array_equal(face.mediapipe_triangles(), edges.reshape(-1, 3, 2)[:, :, 0])
+    assert face.template_source() == "mediapipe-topology"
+
+
+def test_no_mediapipe_tessellation_edge_longer_than_half_the_inter_ocular_distance(tpl):
+    edges = _imported_tessellation()
+    length = np.linalg.norm(tpl[edges[:, 0]] - tpl[edges[:, 1]], axis=1)
+    iod = np.linalg.norm(tpl[263] - tpl[33])
+    assert length.max() < 0.5 * iod, (edges[length.argmax()], length.max() / iod)
+    assert np.median(length) < 0.1 * iod  # dense like a face mesh, not a few long strands
+
+
+def test_figures_draw_mediapipes_triangles_where_installed(tpl):
+    edges = _imported_tessellation()
+    tri = face.triangulate()
+    assert {frozenset(t) for t in tri.tolist()} == {frozenset(t) for t in edges.reshape(-1, 3, 2)[:, :, 0].tolist()}
+
+
+@pytest.fixture
+def without_mediapipe(monkeypatch):
+    """The process as if ``mediapipe`` were not installed (the fallback)."""
+    monkeypatch.setattr(face, "mediapipe_triangles", lambda: None)
+    face._template_cached.cache_clear()
+    yield
+    face._template_cached.cache_clear()
+
+
+def test_fallback_without_mediapipe_keeps_the_landmarks_and_the_projects_triangles(tpl, without_mediapipe):
+    assert face.template_source() == "fallback"
+    fallback = face.canonical_template()
+    named = sorted(face._named_uv())
+    # same named layout (the frames differ only by centring, the mean of the other vertices)
+    shift = (fallback[named] - tpl[named]).mean(axis=0)
+    np.testing.assert_allclose(fallback[named], tpl[named] + shift, atol=1e-9)
+    assert np.array_equal(face.triangulate(), face.triangulate(fallback))
+    tri = face.triangulate()
+    assert len(tri) > 700 and tri.max() < 468
 
 
 def test_triangulation_is_orientation_agnostic(tpl):

@@ -1,11 +1,29 @@
 """aumesh's own face-like 478-vertex template, regions, triangulation and AU fields.
 
 Everything here is the project's own documented data, generated deterministically
-by code. Nothing is copied from MediaPipe's canonical model: only the *index
-numbers* of the MediaPipe FaceMesh topology are used, to say which vertex sits at
-which anatomical landmark (e.g. 1 = nose tip, 33/263 = outer eye corners). The
-other vertices ("filler") are spread evenly over the face by farthest-point
-sampling; their positions do not correspond to MediaPipe's.
+by code. Nothing is copied from MediaPipe's canonical model (no vertex position of
+``canonical_face_model.obj`` or any other MediaPipe data file): the *index numbers*
+of the MediaPipe FaceMesh topology say which vertex sits at which anatomical
+landmark (e.g. 1 = nose tip, 33/263 = outer eye corners; about 200 of them, with
+the eye, brow, lip and face-oval contours), and the other vertices are placed
+from the topology:
+
+* **with the ``mediapipe`` package installed** (extra ``mediapipe``; in the test
+  extra), its face tessellation (``FaceLandmarksConnections.
+  FACE_LANDMARKS_TESSELATION``: 852 triangles over vertices 0-467) is read from
+  the installed package and every vertex that is not a named landmark is put at
+  the average of its tessellation neighbours: the harmonic embedding of the mesh
+  graph (uniform weights, Tutte 1963) with the named landmarks as fixed
+  constraints, solved as one sparse linear system in the frontal (x, y) plane;
+  depth is the smooth face-depth function of this module. Every tessellation edge
+  is then short (max < 0.5 inter-ocular distances; ``tests/test_face.py``), so
+  MediaPipe's triangles and py-feat's drawings of them form a face;
+* **without it** (the documented fallback), the other vertices are spread evenly
+  over the face by farthest-point sampling; then MediaPipe's edges on the
+  template are long, and figures use the project's own triangulation.
+
+:func:`template_source` says which of the two a process uses; ``aumesh synth``
+tables depend on it (the demo data was made with ``mediapipe`` installed).
 
 Orientation convention (the "face frame", used by every function here)
 -----------------------------------------------------------------------
@@ -39,6 +57,7 @@ Data in this module
 from __future__ import annotations
 
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
@@ -211,9 +230,84 @@ def _depth(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return z
 
 
+# --------------------------------------------------------------------------- MediaPipe's topology
 @lru_cache(maxsize=1)
-def _template_cached() -> np.ndarray:
-    named = _named_uv()
+def mediapipe_triangles() -> np.ndarray | None:
+    """MediaPipe's face tessellation from the installed ``mediapipe`` package, or None without it.
+
+    Returns
+    -------
+    np.ndarray, shape (852, 3), int64, or None
+        Triangles over vertices 0-467 (the irises 468-477 are not part of it).
+
+    Notes
+    -----
+    ``FaceLandmarksConnections.FACE_LANDMARKS_TESSELATION`` (``mediapipe.tasks.python.vision.
+    face_landmarker``) lists each triangle as three consecutive edges ``a->b, b->c, c->a``. The list
+    is read from the installed module's source with :mod:`ast` instead of importing it: importing
+    ``mediapipe`` takes seconds and imports ``matplotlib.pyplot``. ``tests/test_face.py`` checks the
+    result against the imported attribute.
+    """
+    import ast
+    import importlib.util
+
+    spec = importlib.util.find_spec("mediapipe")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    path = Path(next(iter(spec.submodule_search_locations))) / "tasks" / "python" / "vision" / "face_landmarker.py"
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    edges = None
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                and node.target.id == "FACE_LANDMARKS_TESSELATION" and isinstance(node.value, ast.List)):
+            edges = np.array([[ast.literal_eval(a) for a in call.args] for call in node.value.elts], dtype=np.int64)
+    if edges is None or edges.ndim != 2 or edges.shape[1] != 2 or len(edges) % 3:
+        raise RuntimeError(f"{path}: FACE_LANDMARKS_TESSELATION not found as a list of Connection(start, end) triples; "
+                           f"this mediapipe version is not supported (uninstall it to use the fallback template)")
+    triples = edges.reshape(-1, 3, 2)
+    if not np.array_equal(triples[:, :, 1], np.roll(triples[:, :, 0], -1, axis=1)):
+        raise RuntimeError(f"{path}: FACE_LANDMARKS_TESSELATION is not a list of closed triangles")
+    return triples[:, :, 0].copy()
+
+
+def mediapipe_edges() -> np.ndarray | None:
+    """Unique undirected edges (E, 2) of :func:`mediapipe_triangles`, or None without ``mediapipe``."""
+    tri = mediapipe_triangles()
+    if tri is None:
+        return None
+    e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+def template_source() -> str:
+    """``"mediapipe-topology"`` (harmonic embedding of MediaPipe's tessellation) or ``"fallback"``."""
+    return "mediapipe-topology" if mediapipe_triangles() is not None else "fallback"
+
+
+def _harmonic_uv(named: dict[int, tuple[float, float]], edges: np.ndarray) -> np.ndarray:
+    """(478, 2): named vertices fixed, every other vertex the mean of its graph neighbours (sparse solve)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import spsolve
+
+    n = N_VERTICES
+    i, j = np.concatenate([edges[:, 0], edges[:, 1]]), np.concatenate([edges[:, 1], edges[:, 0]])
+    adjacency = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
+    laplacian = (coo_matrix((np.asarray(adjacency.sum(axis=1)).ravel(), (np.arange(n), np.arange(n))),
+                            shape=(n, n)) - adjacency).tocsr()
+    fixed = np.array(sorted(named))
+    free = np.setdiff1d(np.arange(n), fixed)
+    isolated = free[np.asarray(adjacency[free].sum(axis=1)).ravel() == 0]
+    if len(isolated):  # pragma: no cover - MediaPipe's tessellation reaches every non-iris vertex
+        raise RuntimeError(f"vertices {isolated[:10].tolist()} are neither named nor in the tessellation")
+    uv = np.zeros((n, 2))
+    uv[fixed] = [named[k] for k in fixed]
+    rhs = -laplacian[free][:, fixed] @ uv[fixed]
+    uv[free] = spsolve(laplacian[free][:, free].tocsc(), rhs).reshape(len(free), 2)
+    return uv
+
+
+def _farthest_point_uv(named: dict[int, tuple[float, float]]) -> np.ndarray:
+    """(478, 2): named vertices, the rest spread evenly over the face (no topology needed)."""
     n_fill = N_VERTICES - len(named)
     fixed = np.array(list(named.values()))
     # Candidate grid inside the (slightly shrunk) oval, outside eyes and mouth opening.
@@ -240,6 +334,14 @@ def _template_cached() -> np.ndarray:
     for i, (u, v) in named.items():
         uv[i] = (u, v)
     uv[free] = chosen
+    return uv
+
+
+@lru_cache(maxsize=1)
+def _template_cached() -> np.ndarray:
+    named = _named_uv()
+    edges = mediapipe_edges()
+    uv = _farthest_point_uv(named) if edges is None else _harmonic_uv(named, edges)
     mesh = np.column_stack([uv[:, 0], -uv[:, 1], _depth(uv[:, 0], uv[:, 1])])
     # Express the template exactly in its own face frame (so face_frame(T) is identity).
     mesh = to_face_frame(mesh)
@@ -318,20 +420,16 @@ def to_face_frame(mesh: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- triangulation
 def triangulate(mesh: np.ndarray | None = None) -> np.ndarray:
-    """The project's own triangulation of a 478-vertex mesh.
+    """Triangles to draw a 478-vertex mesh with: MediaPipe's where ``mediapipe`` is installed, else the project's.
 
-    Delaunay triangulation of the frontal (x, y) projection in the face frame
-    (see :func:`face_frame`, so any orientation works), dropping triangles whose
-    centroid lies inside an eye opening (eye contours), inside the mouth opening
-    (inner-lip contour) or outside the face oval, and over-long triangles
-    (longest edge > 4 x median edge). This is *not* MediaPipe's
-    ``FACEMESH_TESSELATION``; iris vertices 468-477 lie inside the eye openings
-    and are therefore not referenced.
+    With ``mediapipe`` installed: its face tessellation (:func:`mediapipe_triangles`, 852 triangles).
+    Without it: the project's own Delaunay triangulation (:func:`delaunay_triangles`). Either way the
+    iris vertices 468-477 lie inside the eye openings and are not referenced.
 
     Parameters
     ----------
     mesh : array-like, shape (478, 3), optional
-        Defaults to :func:`canonical_template`.
+        Defaults to :func:`canonical_template`; any orientation (found from the anatomy).
 
     Returns
     -------
@@ -339,10 +437,29 @@ def triangulate(mesh: np.ndarray | None = None) -> np.ndarray:
         Vertex indices, counter-clockwise in the displayed frontal view
         (x right, y down is drawn with y flipped).
     """
+    m = canonical_template() if mesh is None else to_face_frame(mesh)
+    tri = mediapipe_triangles()
+    tri = delaunay_triangles(m) if tri is None else tri.copy()
+    # Consistent winding: counter-clockwise as seen with y up on screen.
+    xy = m[:, :2]
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    cross = (b[:, 0] - a[:, 0]) * (-(c[:, 1] - a[:, 1])) - (-(b[:, 1] - a[:, 1])) * (c[:, 0] - a[:, 0])
+    flip = cross < 0
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    return tri
+
+
+def delaunay_triangles(mesh: np.ndarray) -> np.ndarray:
+    """The project's own triangulation of a mesh in the face frame (:func:`to_face_frame`), (T, 3) int64.
+
+    Delaunay triangulation of the frontal (x, y) projection, dropping triangles whose centroid lies
+    inside an eye opening (eye contours), inside the mouth opening (inner-lip contour) or outside
+    the face oval, and over-long triangles (longest edge > 4 x median edge). This is *not*
+    MediaPipe's tessellation; it needs no topology, so it works on any vertex layout.
+    """
     from scipy.spatial import Delaunay
 
-    m = canonical_template() if mesh is None else to_face_frame(mesh)
-    xy = m[:, :2]
+    xy = np.asarray(mesh, dtype=np.float64)[:, :2]
     tri = Delaunay(xy).simplices.astype(np.int64)
     cen = xy[tri].mean(axis=1)
     drop = np.zeros(len(tri), dtype=bool)
@@ -351,10 +468,4 @@ def triangulate(mesh: np.ndarray | None = None) -> np.ndarray:
     drop |= ~_points_in_polygon(cen, xy[list(FACE_OVAL)])
     edges = np.linalg.norm(xy[tri] - xy[np.roll(tri, -1, axis=1)], axis=2)
     drop |= edges.max(axis=1) > 4.0 * np.median(edges)
-    tri = tri[~drop]
-    # Consistent winding: counter-clockwise as seen with y up on screen.
-    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
-    cross = (b[:, 0] - a[:, 0]) * (-(c[:, 1] - a[:, 1])) - (-(b[:, 1] - a[:, 1])) * (c[:, 0] - a[:, 0])
-    flip = cross < 0
-    tri[flip] = tri[flip][:, [0, 2, 1]]
-    return tri
+    return tri[~drop]
