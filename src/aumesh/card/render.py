@@ -17,8 +17,8 @@ face frame of :func:`aumesh.geometry.face.face_frame` computed from ``mean_align
 side of the nose tip 1), in inter-ocular units, frontal view with up at the top
 and the subject's left on the image right (as a photograph).
 
-The triangulation is the project's own (:func:`aumesh.geometry.face.triangulate`), not
-MediaPipe's ``FACEMESH_TESSELATION``. Matplotlib is used through
+The triangles are :func:`aumesh.geometry.face.triangulate`'s: MediaPipe's tessellation where the
+``mediapipe`` package is installed, the project's own triangulation otherwise. Matplotlib is used through
 ``matplotlib.figure.Figure`` + the Agg canvas only (no pyplot, no global backend
 change); every file is written atomically (temp file, then ``os.replace``).
 
