@@ -35,7 +35,7 @@ def _cmd_synth(args) -> int:
     from aumesh.data.synth import SynthSpec, write_tables
 
     spec = SynthSpec(n_frames=args.frames, n_videos=args.videos, seed=args.seed, layout=args.layout,
-                     reversed_aus=tuple(args.reverse or ()))
+                     reversed_aus=tuple(args.reverse or ()), identity_au_coupling=args.identity_au_coupling)
     print(json.dumps(write_tables(args.out, spec, args.truth), indent=2))
     return 0
 
@@ -236,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also save the ground-truth map (NPZ) here (default: not saved)")
     p.add_argument("--reverse", nargs="*", default=[], metavar="AU",
                    help="AUs whose true direction is deliberately reversed, to test the AU-direction check")
+    p.add_argument("--identity-au-coupling", type=float, default=0.0, metavar="C",
+                   help="couple each video's AU baselines to the person's identity shape, as real detectors do "
+                        "(baseline = C * softplus(resemblance of the identity to the AU's field), e.g. 0.15; default: 0 = off)")
     p.set_defaults(func=_cmd_synth)
 
     for name, func, text in (("prepare", _cmd_prepare, "stage: filter and align the frame tables"),

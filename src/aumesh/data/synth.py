@@ -7,7 +7,12 @@ The generator is honest about what makes the real problem hard:
 * per-video identity shape differences and per-frame expression variation the AUs do not
   explain, plus coordinate noise;
 * random head rotation (the recorded Pitch, Yaw, Roll), scale and image-space translation,
-  some frames outside the card's pose limits, and a few landmark failures.
+  some frames outside the card's pose limits, and a few landmark failures;
+* optionally (``identity_au_coupling``), AU detectors that read a person's resting face as some
+  expression: each video's recorded AUs start from a baseline that rises with how much the person's
+  identity shape resembles the AU's field (a naturally upturned mouth corner reads as AU12). The mesh
+  follows the true AUs; the table records ``baseline + (1 - baseline) * true`` (still in [0, 1]).
+  Pooled (card) regression then leaks identity into the AU fields; within-video regression does not.
 
 Frames are generated and written video by video, file by file, so memory stays bounded at
 any size. Layouts: ``columns`` (mesh columns ``x_i, y_i, z_i`` interleaved, pose stored in
@@ -48,6 +53,8 @@ class SynthSpec:
     frames_per_file: int = 25000
     layout: str = "columns"  # or "pyfeat"
     reversed_aus: tuple[str, ...] = ()  # truth deliberately reversed (tests of the AU-direction check)
+    # AU baseline per unit softplus of the identity's standardized resemblance to the AU field (0 = off)
+    identity_au_coupling: float = 0.0
 
 
 def true_coefficients(spec: SynthSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -117,9 +124,27 @@ def _frames_per_video(spec: SynthSpec, rng: np.random.Generator) -> np.ndarray:
     return counts
 
 
+def identity_resemblance(coef: np.ndarray, identity_basis: np.ndarray) -> np.ndarray:
+    """Standardized resemblance of an identity shape to each AU field, as a map of the identity weights.
+
+    With identity ``i = identity_basis.T @ c``, ``c ~ N(0, s^2 I)``, and AU field ``f_k`` (row k of ``coef``),
+    the AU intensity that best explains ``i`` along ``f_k`` is ``r_k = f_k . i / |f_k|^2``;
+    ``z = G @ (c / s)`` is ``r`` in units of its population standard deviation.
+
+    Returns
+    -------
+    G : ndarray, shape (20, n_identity)
+        Unit rows ``g_k / |g_k|``, ``g_k = identity_basis @ f_k``.
+    """
+    g = coef[: len(AU_COLUMNS)] @ identity_basis.T
+    return g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
 def generate_video(spec: SynthSpec, video: int, n_frames: int, coef: np.ndarray, intercept: np.ndarray,
-                   identity_basis: np.ndarray, latent_basis: np.ndarray) -> dict[str, np.ndarray]:
-    """Frames of one video: AUs, pose (radians, model order), observed image-space meshes (n, 478, 3)."""
+                   identity_basis: np.ndarray, latent_basis: np.ndarray,
+                   resemblance: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Frames of one video: AUs as recorded, pose (radians, model order), observed image-space meshes (n, 478, 3)
+    and the video's AU baseline (zeros without coupling; ``resemblance`` from :func:`identity_resemblance`)."""
     rng = np.random.default_rng([spec.seed, video])
     propensity = rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS))
     au = _au_intensities(rng, n_frames, propensity)
@@ -127,7 +152,9 @@ def generate_video(spec: SynthSpec, video: int, n_frames: int, coef: np.ndarray,
     walk = np.cumsum(rng.normal(0, np.deg2rad(1.5), size=(n_frames, 3)), axis=0)
     pose = mean_pose + walk - walk.mean(0)  # (n, 3) Pitch, Yaw, Roll
     x = np.column_stack([au, pose, (pose[:, :, None] * au[:, None, :]).reshape(n_frames, -1)])
-    identity = identity_basis.T @ rng.normal(0, spec.identity_scale * spec.px_per_iod, size=identity_basis.shape[0])
+    identity_sd = spec.identity_scale * spec.px_per_iod
+    weights = rng.normal(0, identity_sd, size=identity_basis.shape[0])
+    identity = identity_basis.T @ weights
     latent = rng.normal(0, spec.unexplained_scale * spec.px_per_iod, size=(n_frames, latent_basis.shape[0])) @ latent_basis
     canonical = x @ coef + intercept + identity + latent  # (n, 1434) axis-major, pixels
     canonical = canonical.reshape(n_frames, 3, N_VERTICES).transpose(0, 2, 1)
@@ -141,11 +168,21 @@ def generate_video(spec: SynthSpec, video: int, n_frames: int, coef: np.ndarray,
     if failed.any():  # a tracking failure drags part of the face away
         k = int(failed.sum())
         observed[failed] += rng.normal(0, 0.25 * spec.px_per_iod, size=(k, 1, 3)) * (rng.random((k, N_VERTICES, 1)) < 0.4)
-    return {"au": au, "pose": pose, "mesh": observed, "landmark_failure": failed}
+    baseline = np.zeros(len(AU_COLUMNS))
+    if spec.identity_au_coupling:  # the detector reads the resting face as expression; the mesh follows the true AUs
+        baseline = spec.identity_au_coupling * np.logaddexp(0.0, resemblance @ weights / identity_sd)
+        baseline = np.minimum(baseline, 0.9)
+        au = baseline + (1.0 - baseline) * au
+    return {"au": au, "pose": pose, "mesh": observed, "landmark_failure": failed, "au_baseline": baseline}
 
 
 def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | None = None) -> dict:
     """Write synthetic frame tables under ``out_dir``; optionally save the ground truth as an NPZ.
+
+    The truth NPZ holds ``coef`` (83, 1434) and ``intercept`` of the true map in the canonical template
+    frame (px), ``au_fields`` (20, 1434) = its AU rows (the true AU displacement fields), ``au_columns``,
+    ``au_baseline`` (n_videos, 20) (each video's AU baseline; zeros without ``identity_au_coupling``),
+    ``template_px``, ``anchor_indices`` and ``spec``.
 
     Returns a summary (files, frames, videos, landmark failures).
     """
@@ -162,19 +199,23 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     identity_basis = flatten_axis_major(_smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
     latent_basis = flatten_axis_major(_smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
     latent_basis[:, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]] = 0.0
+    resemblance = identity_resemblance(coef, identity_basis)
 
-    files, failures, file_no, video = [], 0, 0, 0
+    files, failures, file_no, video, baselines = [], 0, 0, 0, []
     while video < spec.n_videos:
         parts, rows = [], 0
         while video < spec.n_videos and (rows == 0 or rows + counts[video] <= spec.frames_per_file):
-            parts.append((video, generate_video(spec, video, int(counts[video]), coef, intercept, identity_basis, latent_basis)))
+            parts.append((video, generate_video(spec, video, int(counts[video]), coef, intercept, identity_basis, latent_basis,
+                                                resemblance)))
             rows += int(counts[video])
             video += 1
         files.append(_write_file(out_dir / f"frames_{file_no:04d}.parquet", parts, spec.layout))
         failures += sum(int(p["landmark_failure"].sum()) for _, p in parts)
+        baselines += [p["au_baseline"] for _, p in parts]
         file_no += 1
     if truth_path is not None:
         atomic_savez(truth_path, coef=coef, intercept=intercept, feature_columns=np.array(columns),
+                     au_fields=coef[: len(AU_COLUMNS)], au_columns=np.array(AU_COLUMNS), au_baseline=np.array(baselines),
                      template_px=template * spec.px_per_iod, anchor_indices=np.array(ANCHOR_INDICES, dtype=np.int32),
                      spec=np.array(repr(asdict(spec))))
     return {"files": [str(f) for f in files], "n_frames": int(counts.sum()), "n_videos": spec.n_videos,

@@ -7,9 +7,11 @@ whose AU rows are exactly the truth), for tests of the figures and of the direct
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
-from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, flatten_axis_major
+from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, flatten_axis_major, unflatten_axis_major
 from aumesh.geometry.face import IRIS_LEFT, IRIS_RIGHT, REGIONS, canonical_template, face_frame, region_side, to_face_frame
 from aumesh.model.release import release_arrays
 
@@ -139,3 +141,33 @@ def synthetic_release_arrays(template: np.ndarray | None = None) -> dict[str, np
     return release_arrays(flatten_axis_major(fields).T, flatten_axis_major(t), list(AU_COLUMNS), len(AU_COLUMNS), reference,
                           "aumesh synthetic-truth release: coef rows = aumesh.geometry.face.facs_displacement_fields",
                           {"source": "aumesh.geometry.face.synthetic_release_arrays"})
+
+
+def au_field_cosines(coef: np.ndarray, feature_columns: list[str], truth: Mapping[str, np.ndarray],
+                     reference_anchors: np.ndarray) -> np.ndarray:
+    """Cosine between each fitted AU field and the true one (``aumesh synth --truth``), per AU.
+
+    The truth lives in the generator's canonical frame; it is mapped into the fitted model's aligned frame
+    by the similarity (Umeyama) that takes the template's anchors onto ``reference_anchors``.
+
+    Parameters
+    ----------
+    coef : ndarray, shape (1434, p)
+        Fitted coefficients (scikit-learn's layout), columns named by ``feature_columns``.
+    truth : mapping
+        The truth NPZ: ``au_fields`` (20, 1434) axis-major, ``template_px``, ``anchor_indices``.
+    reference_anchors : ndarray, shape (12, 3)
+        The prepared data's Procrustes reference anchors.
+
+    Returns
+    -------
+    ndarray, shape (20,)
+        ``aumesh.data.schema.AU_COLUMNS`` order.
+    """
+    from aumesh.geometry.align import umeyama_batch
+
+    anchors = np.asarray(truth["template_px"], dtype=np.float64)[np.asarray(truth["anchor_indices"])]
+    R, _, _ = umeyama_batch(anchors[None], np.asarray(reference_anchors, dtype=np.float64))
+    true = flatten_axis_major(unflatten_axis_major(np.asarray(truth["au_fields"], dtype=np.float64)) @ R[0].T)
+    est = np.asarray(coef, dtype=np.float64)[:, [list(feature_columns).index(a) for a in AU_COLUMNS]].T
+    return np.einsum("kj,kj->k", est, true) / (np.linalg.norm(est, axis=1) * np.linalg.norm(true, axis=1))
