@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 # glTF-Validator (tests); `npm ci` installs the locked versions into ./node_modules (git-ignored).
 TOOLS_STAMP := node_modules/.package-lock.json
 
-.PHONY: help venv tools demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui
+.PHONY: help venv tools demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui pyfeat-check
 
 help:
 	@echo "make demo        - create .venv from requirements.lock, pull the demo data, run the pipeline (dvc repro)"
@@ -21,6 +21,7 @@ help:
 	@echo "make params      - recompose params.yaml from conf/ (what dvc exp run does)"
 	@echo "make bench       - run the benchmarks under benchmarks/"
 	@echo "make mlflow-server - start an MLflow tracking server (SQLite backend) on 127.0.0.1:5000"
+	@echo "make pyfeat-check - py-feat's own client on release/ (throwaway venv with py-feat + torch, ~6.5 GB; PYFEAT_VENV=DIR keeps one)"
 
 # The environment: a fresh venv, exact pins from requirements.lock, then the package itself without deps.
 $(STAMP): requirements.lock pyproject.toml
@@ -87,3 +88,8 @@ runs: $(STAMP)
 promote: $(STAMP)
 	$(BIN)/aumesh promote --latest
 	@echo "now: make repro   (dvc repro rebuilds the promoted release)"
+
+# py-feat's own loader and plot_face_mesh on the release (optional, slow: py-feat pulls torch).
+pyfeat-check: $(STAMP)
+	$(BIN)/python scripts/check_pyfeat_client.py --release release/au_to_mesh_pls.npz --out build/pyfeat-check \
+		$(if $(PYFEAT_VENV),--venv $(PYFEAT_VENV))
