@@ -16,8 +16,12 @@ from the topology:
   graph (uniform weights, Tutte 1963) with the named landmarks as fixed
   constraints, solved as one sparse linear system in the frontal (x, y) plane;
   depth is the smooth face-depth function of this module. Every tessellation edge
-  is then short (max < 0.5 inter-ocular distances; ``tests/test_face.py``), so
-  MediaPipe's triangles and py-feat's drawings of them form a face;
+  is then short (median 0.07, max 0.42 inter-ocular distances, against 0.62 and
+  1.70 for the fallback; ``tests/test_face.py`` checks max < 0.5), so MediaPipe's
+  triangles and py-feat's drawings of them form a face. The embedding is not
+  guaranteed planar with fixed interior landmarks: 20 of the 852 triangles fold
+  over in the frontal projection, small ones at the eye and mouth corners and the
+  nostrils;
 * **without it** (the documented fallback), the other vertices are spread evenly
   over the face by farthest-point sampling; then MediaPipe's edges on the
   template are long, and figures use the project's own triangulation.
