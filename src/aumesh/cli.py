@@ -113,16 +113,37 @@ def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
     return parent
 
 
+ALLOW_FAILURES = "--allow-failures"
+
+
 def _cmd_sweep(args) -> int:
     from aumesh.experiments import sweep
 
-    return sweep.main(args.overrides)
+    allow = ALLOW_FAILURES in args.overrides
+    outcome = sweep.run_sweep([a for a in args.overrides if a != ALLOW_FAILURES])
+    if not outcome.n_failed:
+        return 0
+    print(f"{outcome.n_failed} of {outcome.n_jobs} configurations failed (errors: `aumesh runs --parent "
+          f"{outcome.parent_run_id}`); " + ("exit 0 (--allow-failures)" if allow else f"exit 1 ({ALLOW_FAILURES} keeps 0)"),
+          file=sys.stderr)
+    return 0 if allow else 1
+
+
+def _utc(ms: float) -> str:
+    from datetime import datetime, timezone
+
+    return datetime.fromtimestamp(ms / 1000, tz=timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
 def _cmd_runs(args) -> int:
     from aumesh.experiments import leaderboard, tracking
 
     tracking_cfg = _tracking_cfg(args)
+    if args.sweeps:
+        sweeps = leaderboard.sweeps_table(tracking_cfg, limit=args.limit)
+        print(sweeps.to_json(orient="records", indent=2, date_format="iso", double_precision=15) if args.json
+              else leaderboard.format_sweeps_table(sweeps))
+        return 0
     parent = _parent_id(args, tracking_cfg)
     record = tracking.run_record(parent, tracking_cfg)
     children = tracking.list_child_runs(parent, tracking_cfg)
@@ -144,10 +165,23 @@ def _cmd_promote(args) -> int:
     from aumesh.experiments import promote
     from aumesh.experiments import provenance
 
+    from aumesh.experiments import tracking
+
     tracking_cfg = _tracking_cfg(args)
     parent = _parent_id(args, tracking_cfg)
+    newer = None
+    if not args.parent:  # the latest sweep: say which, and do not silently overrule a newer pipeline run
+        sweep = tracking.run_record(parent, tracking_cfg)
+        n_runs = sweep["tags"].get("aumesh.sweep.n_children", "?")
+        print(f"the latest sweep: {parent} (started {_utc(sweep['start_time'])}, {n_runs} runs, "
+              f"swept {sweep['tags'].get('aumesh.sweep.overrides') or 'nothing'}); "
+              "--parent ID promotes another (`aumesh runs --sweeps` lists them)")
+        if not args.latest:
+            evaluate = tracking.latest_runs_tagged("aumesh.stage", "evaluate", tracking_cfg, max_results=1)
+            if evaluate and evaluate[0]["start_time"] > sweep["start_time"]:
+                newer = evaluate[0]
     record = promote.promote(parent, provenance.repo_root(), tracking_cfg, metric=args.metric, target=args.target,
-                             model_name=args.model_name, register=not args.no_register)
+                             model_name=args.model_name, register=not args.no_register, newer_run=newer)
     print(json.dumps(record, indent=2, default=str))
     print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` rebuilds that release.")
     return 0
@@ -159,18 +193,27 @@ def add_experiment_commands(subparsers) -> None:
 
     p = subparsers.add_parser(
         "sweep", add_help=False, prefix_chars="\0",
-        help="Hydra sweep over conf/ in-process, one MLflow child run per configuration "
+        help="Hydra sweep over conf/ in-process, one MLflow child run per configuration; exits 1 when a configuration "
+             "failed, after logging and ranking the rest (--allow-failures: exit 0) "
              "(e.g. `aumesh sweep -m model.n_components=10,40`; `aumesh sweep --help` is Hydra's help)")
     p.add_argument("overrides", nargs=argparse.REMAINDER,
                    help="Hydra's arguments: -m and KEY=V1,V2 sweeps over conf/ (default: one run of conf/ as it is)")
     p.set_defaults(func=_cmd_sweep)
 
-    for name, func, text in (("runs", _cmd_runs, "table of a sweep's runs, best first"),
+    for name, func, text in (("runs", _cmd_runs, "table of a sweep's runs, best first; --sweeps lists past sweeps"),
                              ("promote", _cmd_promote, "promote a sweep's best run into conf/ (+ model registry alias)")):
         p = subparsers.add_parser(name, help=text)
         who = p.add_mutually_exclusive_group()
         who.add_argument("--parent", help="the sweep's parent run id (default: the latest sweep)")
-        who.add_argument("--latest", action="store_true", help="the latest sweep (what happens without --parent)")
+        if name == "runs":
+            who.add_argument("--latest", action="store_true", help="the latest sweep (what happens without --parent)")
+            who.add_argument("--sweeps", action="store_true",
+                             help="list past sweeps instead: id, start, runs, failed, best run, what they swept")
+            p.add_argument("--limit", type=int, default=20, help="how many of the newest sweeps --sweeps lists")
+        else:
+            who.add_argument("--latest", action="store_true",
+                             help="promote the latest sweep even when a newer evaluate run evaluated another "
+                                  "configuration (without it, promote refuses to overrule that run)")
         p.add_argument("--metric", default=None,
                        help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean; "
                             "au_reliability_median / au_reliability_min / n_aus_facs_pass rank by AU-field reliability)")

@@ -1,8 +1,9 @@
-"""A sweep's runs as a table, best first by the promotion criterion (``aumesh runs``)."""
+"""A sweep's runs as a table, best first by the promotion criterion (``aumesh runs``); past sweeps (``aumesh runs --sweeps``)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -83,4 +84,60 @@ def format_runs_table(table: pd.DataFrame) -> str:
         lines.append(f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} {str(r['neutral']):7} "
                      f"{str(r['features']):20} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
                      f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}")
+    return "\n".join(lines)
+
+
+def sweeps_table(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20) -> pd.DataFrame:
+    """Past sweeps of the configured experiment, newest first, each with its size and best run (``aumesh runs --sweeps``).
+
+    Parameters
+    ----------
+    tracking_cfg : Mapping, optional
+        The ``tracking`` config group (store and experiment).
+    limit : int, default 20
+        How many of the newest sweeps.
+
+    Returns
+    -------
+    DataFrame
+        ``sweep`` (parent run id), ``started`` (UTC timestamp), ``status``, ``n_runs``, ``n_failed`` (children
+        not FINISHED), ``metric`` (the ranking metric, as :func:`runs_table`), ``best_value``, ``best_run``,
+        ``best`` (the best run's target, features and components), ``overrides`` (what the sweep varied).
+    """
+    import pandas as pd
+
+    from aumesh.experiments import tracking
+
+    rows = []
+    for parent in tracking.latest_runs_tagged(tracking.ROLE_TAG, tracking.SWEEP_PARENT_ROLE, tracking_cfg, limit):
+        children = tracking.list_child_runs(parent["run_id"], tracking_cfg)
+        table = runs_table(children) if len(children) else pd.DataFrame()
+        best = table.iloc[0].to_dict() if len(table) and table.iloc[0]["rank"] == 1 else None
+        metric = table.attrs.get("metric") if best else None
+        rows.append({
+            "sweep": parent["run_id"],
+            "started": pd.to_datetime(parent["start_time"], unit="ms", utc=True),
+            "status": parent["status"],
+            "n_runs": len(children),
+            "n_failed": int((children["status"] != "FINISHED").sum()) if len(children) else 0,
+            "metric": metric,
+            "best_value": best.get(metric) if best else None,
+            "best_run": best["run_id"] if best else None,
+            "best": (f"{best['target']} {best['features']} k={best['n_components_requested']}" if best else None),
+            "overrides": parent["tags"].get("aumesh.sweep.overrides", ""),
+        })
+    columns = ["sweep", "started", "status", "n_runs", "n_failed", "metric", "best_value", "best_run", "best", "overrides"]
+    return pd.DataFrame(rows, columns=columns, dtype=object)
+
+
+def format_sweeps_table(table: pd.DataFrame) -> str:
+    """Fixed-width text of :func:`sweeps_table` (full sweep ids: they are what ``--parent`` takes)."""
+    if table.empty:
+        return "(no sweeps: run `aumesh sweep -m ...`)"
+    lines = [f"{'sweep (--parent)':32}  {'started (UTC)':16}  {'status':8} {'runs':>4} {'failed':>6}  "
+             f"{'best':35} {'best run':38}  swept"]
+    for r in table.to_dict(orient="records"):
+        best = f"{r['metric']}={float(r['best_value']):.4f} ({str(r['best_run'])[:8]})" if r["best_value"] is not None else "-"
+        lines.append(f"{r['sweep']:32}  {r['started']:%Y-%m-%d %H:%M}  {r['status']:8} {r['n_runs']:>4} {r['n_failed']:>6}  "
+                     f"{best:35} {r['best'] or '-':38}  {r['overrides']}")
     return "\n".join(lines)

@@ -394,9 +394,44 @@ def verify_composition(composed: Mapping[str, Any], run_params: Mapping[str, str
 
 
 # ------------------------------------------------------------------ the command
+class OverruleError(ValueError):
+    """Promotion refused: a newer pipeline run evaluated another configuration than the sweep's best."""
+
+
+def check_not_overruled(values: Mapping[str, Any], parent_run_id: str, newer_run: Mapping[str, Any]) -> None:
+    """Refuse to promote over a pipeline run that started after the sweep and evaluated another configuration.
+
+    Parameters
+    ----------
+    values : Mapping
+        The dotted keys and values promotion would write (:func:`promoted_values`).
+    parent_run_id : str
+        The sweep.
+    newer_run : Mapping
+        A :func:`aumesh.experiments.tracking.run_record` of an evaluate run that started after the sweep.
+
+    Raises
+    ------
+    OverruleError
+        Some promoted value differs from the newer run's parameter; the message names them and the ways out.
+    """
+    params = newer_run.get("params", {})
+    differ = [f"{key}={params.get(key, '(absent)')} there, {_param_string(value)} in the sweep's best run"
+              for key, value in values.items() if params.get(key) != _param_string(value)]
+    if not differ:
+        return
+    started = datetime.fromtimestamp(newer_run["start_time"] / 1000, tz=timezone.utc).strftime("%Y-%m-%d %H:%M")
+    raise OverruleError(
+        f"sweep {parent_run_id} is older than evaluate run {newer_run['run_id']} ({newer_run.get('run_name')}, "
+        f"started {started} UTC), which evaluated another configuration ({'; '.join(differ)}): promoting the sweep "
+        "would overrule it. Fix: run a new sweep, name the sweep to promote with --parent ID (`aumesh runs --sweeps` "
+        "lists them), or pass --latest to promote the latest sweep anyway.")
+
+
 def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any] | None = None,
             metric: str | None = None, target: str | None = None, model_name: str | None = None,
-            register: bool = True, alias: str = CHAMPION_ALIAS) -> dict[str, Any]:
+            register: bool = True, alias: str = CHAMPION_ALIAS,
+            newer_run: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Promote the best child of sweep *parent_run_id* in workspace *root* (see the module docstring).
 
     Parameters
@@ -413,6 +448,9 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     register : bool, default True
         Register the run's NPZ and set *alias*; False leaves the registry alone.
     alias : str, default "champion"
+    newer_run : Mapping, optional
+        An evaluate run (:func:`aumesh.experiments.tracking.run_record`) that started after the sweep; if the
+        winner's configuration differs from it, nothing is written (:func:`check_not_overruled`).
 
     Returns
     -------
@@ -432,6 +470,8 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
 
     base = compose_with(conf_dir, None)
     values = promoted_values(winner.params, base)
+    if newer_run is not None:
+        check_not_overruled(values, parent_run_id, newer_run)
     overrides = [hydra_override(k, v) for k, v in values.items()]
     text = experiment_yaml(values, [f"run {winner.run_id} of sweep {parent_run_id}",
                                     f"criterion: {choice.metric} = {choice.value:.6f}"])

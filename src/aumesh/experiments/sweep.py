@@ -655,10 +655,37 @@ def sweep_overrides(argv: Sequence[str], stamp: str | None = None) -> list[str]:
     return args
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+@dataclass(frozen=True)
+class SweepOutcome:
+    """What a sweep ran: its folder, parent run, and how many configurations did not finish."""
+
+    directory: Path
+    parent_run_id: str | None
+    n_jobs: int
+    n_failed: int
+
+
+def outcome(directory: Path, expected_jobs: int) -> SweepOutcome:
+    """Count the jobs' ``result.json`` under a sweep folder; a job without one (it died) counts as failed.
+
+    Before any job started (Hydra's ``--help``, ``--cfg``) there is no parent file and nothing counts.
+    """
+    if not (directory / PARENT_FILE).is_file():
+        return SweepOutcome(directory, None, 0, 0)
+    results = [json.loads(p.read_text()) for p in sorted(directory.rglob(RESULT_FILE))]
+    failed = sum(1 for r in results if r.get("status") != "FINISHED") + max(0, expected_jobs - len(results))
+    return SweepOutcome(directory, read_parent(directory), max(expected_jobs, len(results)), failed)
+
+
+def _hydra_value(args: Sequence[str], key: str) -> str | None:
+    return next((a.split("=", 1)[1] for a in args if a.lstrip("+").startswith(f"{key}=")), None)
+
+
+def run_sweep(argv: Sequence[str]) -> SweepOutcome:
     """``aumesh sweep [-m] key=v1,v2 ...``: run the Hydra app on the repo's conf/ from the repo root.
 
-    The working directory becomes the workspace root (``conf/paths`` are relative to it).
+    The working directory becomes the workspace root (``conf/paths`` are relative to it). A configuration
+    that fails is a FAILED child and the sweep goes on; the returned :class:`SweepOutcome` counts them.
     """
     import hydra
 
@@ -669,7 +696,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if Path.cwd().resolve() != root.resolve():
         log.info("running from the workspace root %s (conf/paths are relative to it)", root)
         os.chdir(root)
-    args = sweep_overrides(sys.argv[1:] if argv is None else argv)
+    args = sweep_overrides(argv)
+    multirun = "-m" in args or "--multirun" in args
+    directory = Path(_hydra_value(args, "hydra.sweep.dir" if multirun else "hydra.run.dir") or ".")
+    expected = count_jobs([a for a in args if "=" in a and not a.startswith("-")]) if multirun else 1
     app = hydra.main(config_path=str(conf), config_name="config", version_base=None)(_task)
     saved = sys.argv
     sys.argv = ["aumesh-sweep", *args]
@@ -680,7 +710,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         from hydra.core.global_hydra import GlobalHydra
 
         GlobalHydra.instance().clear()  # so config.compose() works again in this process
-    return 0
+    return outcome(directory, expected)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m aumesh.experiments.sweep``: exit 1 when a configuration failed (``aumesh sweep`` adds ``--allow-failures``)."""
+    return 1 if run_sweep(sys.argv[1:] if argv is None else argv).n_failed else 0
 
 
 if __name__ == "__main__":  # python -m aumesh.experiments.sweep -m key=v1,v2

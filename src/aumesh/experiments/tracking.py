@@ -581,23 +581,47 @@ def latest_parent_run(tracking_cfg: Mapping[str, Any] | None = None) -> str | No
     str or None
         None when the experiment or a sweep parent does not exist.
     """
+    runs = latest_runs_tagged(ROLE_TAG, SWEEP_PARENT_ROLE, tracking_cfg, max_results=1)
+    return runs[0]["run_id"] if runs else None
+
+
+def latest_runs_tagged(tag: str, value: str, tracking_cfg: Mapping[str, Any] | None = None,
+                       max_results: int = 20) -> list[dict[str, Any]]:
+    """The newest runs of the configured experiment whose *tag* equals *value*, newest first.
+
+    Parameters
+    ----------
+    tag, value : str
+        E.g. ``("aumesh.role", "sweep-parent")`` (sweeps) or ``("aumesh.stage", "evaluate")`` (pipeline runs).
+    tracking_cfg : Mapping, optional
+        The ``tracking`` config group (``experiment`` names the experiment).
+    max_results : int, default 20
+
+    Returns
+    -------
+    list of dict
+        :func:`run_record` views (``start_time`` in ms since the epoch); empty when the experiment does not exist.
+    """
     client = get_client(tracking_cfg)
     exp = client.get_experiment_by_name(str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT))
     if exp is None:
-        return None
+        return []
     runs = client.search_runs(
         [exp.experiment_id],
-        filter_string=f"tags.`{ROLE_TAG}` = '{SWEEP_PARENT_ROLE}'",
+        filter_string=f"tags.`{tag}` = '{value}'",
         order_by=["attributes.start_time DESC"],
-        max_results=1,
+        max_results=max_results,
     )
-    return runs[0].info.run_id if runs else None
+    return [_record(run) for run in runs]
 
 
 def run_record(run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """A plain-dict view of one run: ``run_id``, ``status``, ``experiment_id``, ``artifact_uri``,
     ``start_time`` (ms), ``params``, ``metrics`` (latest values), ``tags``."""
-    run = get_client(tracking_cfg).get_run(run_id)
+    return _record(get_client(tracking_cfg).get_run(run_id))
+
+
+def _record(run) -> dict[str, Any]:
     return {
         "run_id": run.info.run_id,
         "run_name": run.info.run_name,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,21 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
     return cv, final
 
 
+def evaluate_run_name(cfg: Config) -> str:
+    """The MLflow run name of a pipeline evaluation: what tells it apart in the run list.
+
+    ``"<target> <features> k=<n_components>"`` (``neutral`` adds its neutral method), prefixed with the DVC
+    experiment's name when DVC runs the stage as an experiment (``DVC_EXP_NAME``, set by ``dvc exp run``
+    and queued runs), e.g. ``"bumpy-tods: absolute au_pose_interactions k=40"``.
+    """
+    target = cfg.preprocess.target
+    if target == "neutral":
+        target += f"({cfg.preprocess.neutral.method})"
+    name = f"{target} {cfg.features.name} k={cfg.model.n_components}"
+    exp = os.environ.get("DVC_EXP_NAME")
+    return f"{exp}: {name}" if exp else name
+
+
 def evaluate_stage(cfg: Config) -> dict:
     from aumesh.experiments import mlflow_store, pyfunc, tracking
 
@@ -77,7 +93,7 @@ def evaluate_stage(cfg: Config) -> dict:
     out = Path(cfg.paths.model_dir)
     params = cfg.to_dict()
     tracking_cfg = params["tracking"]
-    with tracking.tracked_run(tracking_cfg, run_name="evaluate", params=params,
+    with tracking.tracked_run(tracking_cfg, run_name=evaluate_run_name(cfg), params=params,
                               tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
         run.log_config(params)
         if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
