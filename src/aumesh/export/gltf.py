@@ -23,7 +23,6 @@ import numpy as np
 
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, unflatten_axis_major
 from aumesh.geometry import face
-from aumesh.geometry.export import outward_triangles
 
 GLB_NAME = "au_to_mesh.glb"
 
@@ -50,7 +49,7 @@ def rig_arrays(npz: Mapping[str, Any]) -> dict[str, np.ndarray]:
         raise ValueError(f"release 'input_columns' is {columns}, expected the card's {list(INPUT_COLUMNS)}")
     base = unflatten_axis_major(np.asarray(npz["intercept"], dtype=np.float32)).astype(np.float32)
     targets = np.stack([unflatten_axis_major(coef[columns.index(au)]) for au in AU_COLUMNS]).astype(np.float32)
-    triangles = outward_triangles(base, face.triangulate(base))
+    triangles = face.outward_triangles(base, face.triangulate(base))
     return {"base": base, "targets": targets, "triangles": triangles.astype(np.uint16),
             "normals": vertex_normals(base.astype(np.float64), triangles).astype(np.float32)}
 

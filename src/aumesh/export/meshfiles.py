@@ -1,39 +1,12 @@
-"""Triangle meshes as text files other tools open: Wavefront OBJ and ASCII PLY.
+"""Triangle meshes as text files other tools open: Wavefront OBJ and ASCII PLY (``aumesh predict``).
 
-Pure functions from arrays to text; the caller writes the file (atomically).
+Pure functions from arrays to text; the caller writes the file (atomically). Triangles come from
+:func:`aumesh.geometry.face.triangulate`, wound by :func:`aumesh.geometry.face.outward_triangles`.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-from aumesh.geometry import face
-
-
-def outward_triangles(mesh: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Triangles wound so their normals ``(b - a) x (c - a)`` point out of the face.
-
-    Parameters
-    ----------
-    mesh : array-like, shape (478, 3)
-        Vertices in any frame (the face frame is found from the anatomy, :func:`face.face_frame`).
-    triangles : array-like, shape (T, 3), int
-        Vertex indices, e.g. :func:`face.triangulate`.
-
-    Returns
-    -------
-    np.ndarray, shape (T, 3), int64
-        The same triangles, each counter-clockwise seen from in front of the face (the usual
-        front-face convention of OBJ, PLY and glTF viewers).
-    """
-    m = np.asarray(mesh, dtype=np.float64)
-    tri = np.array(triangles, dtype=np.int64, copy=True)
-    _, axes, _ = face.face_frame(m)
-    toward_viewer = -axes[2]  # axes[2] points away from the camera, behind the face
-    a, b, c = m[tri[:, 0]], m[tri[:, 1]], m[tri[:, 2]]
-    flip = np.cross(b - a, c - a) @ toward_viewer < 0
-    tri[flip] = tri[flip][:, [0, 2, 1]]
-    return tri
 
 
 def obj_text(vertices: np.ndarray, triangles: np.ndarray, comment: str = "") -> str:

@@ -27,7 +27,6 @@ import numpy as np
 
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, POSE_COLUMNS, N_VERTICES, unflatten_axis_major
 from aumesh.geometry import face
-from aumesh.geometry.export import outward_triangles
 
 VIEWER_NAME = "viewer.html"
 THREE_ENV = "AUMESH_NODE_MODULES"
@@ -139,7 +138,7 @@ def viewer_html(npz: Mapping[str, Any], source: str = "", three_urls: tuple[str,
         "input_columns": list(INPUT_COLUMNS), "au_columns": list(AU_COLUMNS), "pose_columns": list(POSE_COLUMNS),
         "au_max": 1.0, "pose_limits": limits,
         "intercept": _b64(intercept), "coef": _b64(npz["coef"]),
-        "triangles": outward_triangles(base, face.triangulate(base)).ravel().tolist(),
+        "triangles": face.outward_triangles(base, face.triangulate(base)).ravel().tolist(),
         "card": card_rows(metadata), "source": f"release: {source}" if source else "",
     }
     if "coef_full" in npz:

@@ -23,7 +23,8 @@ import numpy as np
 import pandas as pd
 
 from aumesh.data.schema import POSE_COLUMNS
-from aumesh.geometry import export, face
+from aumesh.export import meshfiles
+from aumesh.geometry import face
 from aumesh.model.inference import PredictionInputError, input_rows, load_release, predict_mesh
 from aumesh.utils.io import atomic_savez, atomic_write_text
 
@@ -93,9 +94,9 @@ def predict_table(release: str | os.PathLike, table: str | os.PathLike, out: str
                      au_columns=np.asarray(arrays["au_columns"]), pose_columns=np.array(POSE_COLUMNS))
     else:
         mesh = meshes[0]
-        tri = export.outward_triangles(mesh, face.triangulate(mesh))
+        tri = face.outward_triangles(mesh, face.triangulate(mesh))
         comment = f"aumesh predict: {Path(release).name}, row 0 of {Path(table).name}"
-        text = export.obj_text(mesh, tri, comment) if suffix == ".obj" else export.ply_text(mesh, tri, comment)
+        text = meshfiles.obj_text(mesh, tri, comment) if suffix == ".obj" else meshfiles.ply_text(mesh, tri, comment)
         atomic_write_text(out, text)
     log.info("predicted %d mesh(es) from %s with %s -> %s", len(meshes), table, release, out)
     return out, len(meshes)
