@@ -331,3 +331,221 @@ def test_clipped_n_components_is_said_on_the_console_and_in_mlflow(workspace, ca
     run_id = json.loads((workspace / "build/model/tracking.json").read_text())["run_id"]
     run = mlflow.MlflowClient(tracking_uri=f"sqlite:///{workspace / 'mlflow.db'}").get_run(run_id)
     assert run.data.tags["aumesh.n_components_clipped"].startswith("1000 -> 83")
+
+
+# ------------------------------------------------------------------------------ debris and orphaned runs
+def test_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
+    import socket
+    import subprocess
+    import sys
+
+    from aumesh.utils.io import atomic_directory, remove_stale_temporaries
+
+    host = socket.gethostname()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)
+    (tmp_path / f".release.tmp-{dead_pid}-{host}-abc").mkdir()
+    (tmp_path / f".release.old-{dead_pid}-{host}-x").mkdir()
+    (tmp_path / f".metrics.json.tmp-{dead_pid}-{host}-q1.tmp").write_text("{")
+    live = tmp_path / f".release.tmp-{os.getpid()}-{host}-def"
+    live.mkdir()
+    other_host = tmp_path / f".release.tmp-{dead_pid}-elsewhere-ghi"
+    other_host.mkdir()
+    removed = remove_stale_temporaries(tmp_path / "release") + remove_stale_temporaries(tmp_path / "metrics.json")
+    assert sorted(p.name for p in removed) == sorted([f".release.tmp-{dead_pid}-{host}-abc", f".release.old-{dead_pid}-{host}-x",
+                                                      f".metrics.json.tmp-{dead_pid}-{host}-q1.tmp"])
+    assert live.exists() and other_host.exists()
+    with atomic_directory(tmp_path / "release") as tmp:  # its own temporaries carry this process and host
+        assert tmp.name.startswith(f".release.tmp-{os.getpid()}-{host}-")
+
+
+def test_a_run_whose_process_is_gone_is_marked_killed_by_the_next_run(tmp_path, monkeypatch):
+    import signal
+    import subprocess
+    import sys
+
+    import mlflow
+
+    from aumesh.experiments import tracking
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    code = ("from aumesh.experiments import tracking; import os, time\n"
+            "with tracking.tracked_run({'experiment': 'e'}, 'victim', {'a': 1}) as run:\n"
+            "    print(run.run_id, flush=True); time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=os.environ)
+    victim = proc.stdout.readline().strip()
+    client = mlflow.MlflowClient(uri)
+    assert client.get_run(victim).info.status == "RUNNING"
+    with tracking.tracked_run({"experiment": "e"}, "alive-check", None):  # the victim still lives: untouched
+        assert client.get_run(victim).info.status == "RUNNING"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    with tracking.tracked_run({"experiment": "e"}, "next", None) as run:
+        pass
+    after = client.get_run(victim)
+    assert after.info.status == "KILLED" and "ended without closing" in after.data.tags[tracking.ERROR_TAG]
+    assert client.get_run(run.run_id).data.tags[tracking.PID_TAG] == str(os.getpid())
+
+
+# ------------------------------------------------------------------------- interrupted and failed dvc repro
+@pytest.fixture(scope="module")
+def dvc_workspace(tmp_path_factory):
+    """A git + DVC workspace (the repo's dvc.yaml, conf/, params) after one complete `dvc repro`."""
+    import subprocess
+
+    from conftest import REPO
+
+    from test_dvc_pipeline import BIN, _run
+
+    ws = tmp_path_factory.mktemp("dvcfaults") / "ws"
+    ws.mkdir()
+    for name in ("dvc.yaml", "params.yaml", "promotion.json", ".gitignore"):
+        shutil.copy(REPO / name, ws / name)
+    shutil.copytree(REPO / "conf", ws / "conf")
+    shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    for args in (["git", "init", "-q"], ["git", "config", "user.email", "t@example.com"], ["git", "config", "user.name", "t"],
+                 [BIN / "dvc", "init", "-q"]):
+        _run(args, ws)
+    shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
+    subprocess.run([BIN / "dvc", "remote", "remove", "demo"], cwd=ws, capture_output=True)
+    write_tables(ws / "data", SynthSpec(n_frames=600, n_videos=60, seed=11))
+    _run([BIN / "dvc", "add", "-q", "data"], ws)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
+        _run([BIN / "dvc", "repro"], ws)
+    _run(["git", "add", "-A"], ws)
+    _run(["git", "commit", "-qm", "good release"], ws)
+    return ws
+
+
+def _stale(ws: Path, stage: str) -> None:
+    """Make ``stage`` (and what follows) out of date."""
+    params = yaml.safe_load((ws / "params.yaml").read_text())
+    if stage == "prepare":
+        params["preprocess"]["alignment"]["gpa_tol"] = 1e-9
+    elif stage == "evaluate":
+        params["model"]["n_components"] = 40
+    if stage in ("prepare", "evaluate"):
+        (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    else:
+        (ws / "promotion.json").write_text('{"promoted": null, "note": "changed"}\n')
+
+
+def _interrupt_stage(ws: Path, stage: str, sig: int, delay: float) -> tuple[int, str]:
+    """Start `dvc repro`, wait until ``stage``'s process has run ``delay`` s, send ``sig`` to the whole process
+    group (what Ctrl-C in a terminal does; SIGKILL: what the OOM killer or `kill -9` of the group does)."""
+    import signal  # noqa: F401 - the caller passes signal.SIG*
+    import subprocess
+    import time
+
+    import psutil
+
+    from test_dvc_pipeline import BIN
+
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}"}
+    proc = subprocess.Popen([BIN / "dvc", "repro"], cwd=ws, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+    deadline = time.monotonic() + 600
+    started = None
+    while proc.poll() is None and time.monotonic() < deadline:
+        found = [p for p in psutil.Process(proc.pid).children(recursive=True)
+                 if f"aumesh {stage}" in " ".join(_cmdline(p))]
+        if found and started is None:
+            started = time.monotonic()
+        if started is not None and time.monotonic() - started >= delay:
+            os.killpg(proc.pid, sig)
+            break
+        time.sleep(0.05)
+    out, _ = proc.communicate(timeout=300)
+    assert started is not None, f"stage {stage} never started:\n{out}"
+    return proc.returncode, out
+
+
+def _cmdline(p) -> list[str]:
+    import psutil
+
+    try:
+        return p.cmdline()
+    except psutil.Error:
+        return []
+
+
+def _dvc(ws: Path, *args: str) -> str:
+    from test_dvc_pipeline import BIN, _run
+
+    return _run([BIN / "dvc", *args], ws)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGKILL"])
+@pytest.mark.parametrize("stage,delay", [("prepare", 2.0), ("evaluate", 3.0), ("release", 4.0)])
+def test_interrupted_dvc_repro_keeps_the_release_bit_for_bit(dvc_workspace, tmp_path, stage, delay, signame):
+    import signal
+
+    import mlflow
+
+    from aumesh.config import load_params
+    from aumesh.experiments import tracking
+    from aumesh.pipeline import stages
+
+    ws = tmp_path / "ws"
+    shutil.copytree(dvc_workspace, ws, symlinks=True)
+    release = tree_digest(ws / "release")
+    _stale(ws, stage)
+    code, out = _interrupt_stage(ws, stage, getattr(signal, signame), delay)
+    assert code != 0, out
+    assert tree_digest(ws / "release") == release, out  # the previous release, bit for bit
+    status = _dvc(ws, "status")
+    assert f"{stage}:" in status, status  # dvc status names what is stale
+    cfg = load_params(ws / "params.yaml")
+    os.chdir(ws)
+    try:
+        removed = [o for o in stages.stage_outputs(stage, cfg.paths) if not (ws / o).exists()]
+        if signame == "SIGINT" and removed:  # the stage said how to get DVC's removed outputs back
+            assert f"`dvc checkout {stage}` brings back the last good one" in out, out
+        debris = sorted(p.name for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*"))
+        if signame == "SIGINT":
+            assert not debris, debris  # cleaned up on the way out
+        stages.start_stage(stage, cfg)  # what the next run does first
+        assert not [p for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")]
+        client = mlflow.MlflowClient(f"sqlite:///{ws / 'mlflow.db'}")
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
+            with tracking.tracked_run(cfg.to_dict()["tracking"], "next run", None):
+                pass
+        runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
+        assert all(r.info.status in ("FINISHED", "KILLED") for r in runs), [(r.info.run_name, r.info.status) for r in runs]
+        if stage == "evaluate":
+            assert sum(r.info.status == "KILLED" for r in runs) == 1
+        if removed:
+            _dvc(ws, "checkout", stage)
+            assert all((ws / o).exists() for o in stages.stage_outputs(stage, cfg.paths)), _dvc(ws, "status")
+    finally:
+        os.chdir(Path(__file__).parent)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fault", ["bad table", "bad config"])
+def test_failed_dvc_repro_keeps_the_release_and_names_the_fault(dvc_workspace, tmp_path, fault):
+    import subprocess
+
+    from test_dvc_pipeline import BIN
+
+    ws = tmp_path / "ws"
+    shutil.copytree(dvc_workspace, ws, symlinks=True)
+    release = tree_digest(ws / "release")
+    if fault == "bad table":
+        all_nan("AU07")(ws)
+        stage, expected = "prepare", ["frames_0000.parquet", "'AU07' is empty", "dvc checkout prepare"]
+    else:
+        edit_params(model__n_components="ten")(ws)
+        stage, expected = "evaluate", ["model.n_components='ten'", "dvc checkout evaluate"]
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}"}
+    proc = subprocess.run([BIN / "dvc", "repro"], cwd=ws, env=env, capture_output=True, text=True)
+    assert proc.returncode != 0
+    for text in expected:
+        assert text in proc.stdout + proc.stderr, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert tree_digest(ws / "release") == release
+    assert f"{stage}:" in _dvc(ws, "status")

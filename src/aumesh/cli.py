@@ -330,13 +330,36 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    debug = args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0")
     try:
         return args.func(args)
     except UserError as err:
-        if args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0"):
+        note = _dvc_note(args)
+        if debug:
             raise
-        print(f"aumesh {args.command}: error: {err}", file=sys.stderr)
+        print(f"aumesh {args.command}: error: {err}" + (f"\n{note}" if note else ""), file=sys.stderr)
         return 2
+    except BaseException:  # a bug, Ctrl-C: the traceback stays; still say how to get DVC's removed outputs back
+        note = _dvc_note(args)
+        if note:
+            print(note, file=sys.stderr)
+        raise
+
+
+def _dvc_note(args) -> str | None:
+    """Under ``dvc repro``: the command that restores the outputs DVC removed before this stage (None otherwise)."""
+    if args.command not in ("prepare", "evaluate", "release") or not os.environ.get("DVC_STAGE"):
+        return None
+    import yaml
+
+    from aumesh.config import PathsConfig
+    from aumesh.pipeline.stages import removed_by_dvc
+
+    try:  # the paths even when the rest of params.yaml is invalid
+        paths = PathsConfig(**(yaml.safe_load(Path(args.params).read_text()) or {}).get("paths", {}))
+    except Exception:
+        paths = PathsConfig()
+    return removed_by_dvc(args.command, paths)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,9 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import getpass
+import logging
 import os
+import socket
 import sys
 import time
 import traceback
@@ -58,9 +60,12 @@ if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
     from mlflow import MlflowClient
 
+log = logging.getLogger(__name__)
+
 PARENT_TAG = "mlflow.parentRunId"
 ROLE_TAG = "aumesh.role"
 ERROR_TAG = "aumesh.error"
+HOST_TAG, PID_TAG = "aumesh.host", "aumesh.pid"  # the process that owns a RUNNING run
 
 # Innermost-last stack of runs opened by tracked_run in this context (for nested=True).
 _ACTIVE_RUNS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar(
@@ -84,7 +89,8 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, 
         ``.size``/``.nfiles``/``.path`` (or ``aumesh.data.error``),
         ``aumesh.version``, ``aumesh.lib.<dist>`` for each library,
         ``aumesh.workspace``, ``dvc.exp_name``/``dvc.stage``/``dvc.baseline_rev``
-        when DVC set them, ``mlflow.source.name``/``mlflow.source.type``/``mlflow.user``.
+        when DVC set them, ``aumesh.host``/``aumesh.pid`` (the process running it, see
+        :func:`close_orphaned_runs`), ``mlflow.source.name``/``mlflow.source.type``/``mlflow.user``.
     """
     tags: dict[str, str] = {}
     try:
@@ -117,6 +123,7 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, 
                      ("DVC_EXP_BASELINE_REV", "dvc.baseline_rev")):
         if os.environ.get(env):
             tags[tag] = os.environ[env]
+    tags[HOST_TAG], tags[PID_TAG] = socket.gethostname(), str(os.getpid())
     tags["mlflow.source.name"] = sys.argv[0] if sys.argv and sys.argv[0] else "python"
     tags["mlflow.source.type"] = "LOCAL"
     try:
@@ -355,12 +362,51 @@ def _open_run(
     name = str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT)
     exp_id = ensure_experiment(client, name, _default_artifact_location(uri, tracking_cfg))
     all_tags = provenance_tags(tracking_cfg)
+    close_orphaned_runs(client, exp_id, all_tags.get("aumesh.workspace"))
     if parent_run_id:
         all_tags[PARENT_TAG] = parent_run_id
     all_tags.update({str(k): v for k, v in (tags or {}).items()})
     clean = {str(k)[:MAX_KEY_LENGTH]: _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in all_tags.items()}
     run = client.create_run(exp_id, run_name=run_name, tags=clean)
     return TrackedRun(client, run.info.run_id, exp_id)
+
+
+def _process_gone(pid: int, run_start_ms: int) -> bool:
+    """No process ``pid`` on this host, a zombie, or one started after the run (the pid was reused)."""
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        return proc.status() == psutil.STATUS_ZOMBIE or proc.create_time() * 1000.0 > run_start_ms + 1000.0
+    except psutil.NoSuchProcess:
+        return True
+
+
+def close_orphaned_runs(client: MlflowClient, experiment_id: str, workspace: str | None) -> list[str]:
+    """Mark KILLED the RUNNING runs of this host (and workspace) whose process is gone (e.g. SIGKILL).
+
+    Returns
+    -------
+    list of str
+        The run ids marked KILLED (each also tagged ``aumesh.error``).
+    """
+    host = socket.gethostname()
+    runs = client.search_runs([experiment_id], filter_string=f"attributes.status = 'RUNNING' and tags.`{HOST_TAG}` = '{host}'",
+                              max_results=1000)
+    killed = []
+    for run in runs:
+        tags = run.data.tags
+        if workspace and tags.get("aumesh.workspace") not in (None, workspace):
+            continue
+        pid = tags.get(PID_TAG, "")
+        if not pid.isdigit() or not _process_gone(int(pid), run.info.start_time or 0):
+            continue
+        with contextlib.suppress(Exception):
+            client.set_tag(run.info.run_id, ERROR_TAG, f"process {pid} on {host} ended without closing the run (killed)")
+            client.set_terminated(run.info.run_id, "KILLED")
+            killed.append(run.info.run_id)
+            log.warning("MLflow run %s was left RUNNING by process %s, which is gone: marked KILLED", run.info.run_id, pid)
+    return killed
 
 
 def _fail(handle: TrackedRun, exc: BaseException) -> None:

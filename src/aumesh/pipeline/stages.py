@@ -20,8 +20,8 @@ from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare as prep
 from aumesh.experiments import provenance
 from aumesh.data import tables
-from aumesh.config import Config
-from aumesh.utils.io import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text
+from aumesh.config import Config, PathsConfig
+from aumesh.utils.io import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text, remove_stale_temporaries
 from aumesh.model.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
 
 log = logging.getLogger(__name__)
@@ -41,7 +41,32 @@ def data_digest(dvc_file: str = "data.dvc") -> dict[str, Any]:
         return {"md5": None, "note": f"{dvc_file} not found: data not tracked by DVC"}
 
 
+def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
+    """The outputs ``dvc.yaml`` declares for ``stage`` (prepare, evaluate, release)."""
+    return {"prepare": [paths.prepared_dir], "evaluate": [paths.model_dir, paths.metrics_file],
+            "release": [paths.release_dir]}.get(stage, [])
+
+
+def start_stage(stage: str, cfg: Config) -> None:
+    """Remove what a killed earlier run of ``stage`` left behind (temp folders and files of its outputs)."""
+    for out in stage_outputs(stage, cfg.paths):
+        for path in remove_stale_temporaries(out):
+            log.info("removed %s, left by a killed run", path)
+
+
+def removed_by_dvc(stage: str, paths: PathsConfig) -> str | None:
+    """When DVC runs ``stage`` (``DVC_STAGE``) and removed its outputs beforehand, the one command that brings the
+    last good ones back (DVC keeps them in its cache; ``release/`` is ``persist: true`` and never removed)."""
+    if os.environ.get("DVC_STAGE", "").rsplit(":", 1)[-1] != stage:
+        return None
+    missing = [out for out in stage_outputs(stage, paths) if not Path(out).exists()]
+    if not missing:
+        return None
+    return f"DVC removed {', '.join(missing)} before running {stage}: `dvc checkout {stage}` brings back the last good one."
+
+
 def prepare_stage(cfg: Config) -> dict:
+    start_stage("prepare", cfg)
     found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy, cfg.data.coerce_numeric)
     summary = prep.run(found, cfg, cfg.paths.prepared_dir)
     log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
@@ -88,6 +113,7 @@ def evaluate_run_name(cfg: Config) -> str:
 def evaluate_stage(cfg: Config) -> dict:
     from aumesh.experiments import mlflow_store, pyfunc, tracking
 
+    start_stage("evaluate", cfg)
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
@@ -146,6 +172,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
 
 def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
+    start_stage("release", cfg)
     from aumesh.card import directions
     from aumesh.card import render
     from aumesh.export import gltf, viewer
