@@ -350,17 +350,9 @@ def _dvc_note(args) -> str | None:
     """Under ``dvc repro``: the command that restores the outputs DVC removed before this stage (None otherwise)."""
     if args.command not in ("prepare", "evaluate", "release") or not os.environ.get("DVC_STAGE"):
         return None
-    import yaml
-
-    from aumesh.config import PathsConfig
     from aumesh.pipeline.stages import removed_by_dvc
 
-    try:  # the paths even when the rest of params.yaml is invalid
-        paths = PathsConfig(**(yaml.safe_load(Path(args.params).read_text()) or {}).get("paths", {}))
-    except Exception:
-        paths = PathsConfig()
-    return removed_by_dvc(args.command, paths)
-
+    return removed_by_dvc(args.command)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -469,6 +469,9 @@ def run_configuration(raw: Mapping[str, Any], overrides: Sequence[str] = (), par
 
 def _evaluate_in_run(run, cfg: Config, cache: SweepCache, root: Path) -> tuple[dict[str, Any], bool]:
     """Load (or reuse) the data and statistics, evaluate, log; returns (summary metrics, statistics reused)."""
+    from aumesh.pipeline import evaluate as ev
+
+    ev.log_clipping(cfg, run)
     source = resolve_prepared(cfg, cache.workspace_params(root), root)
     t0 = time.perf_counter()
     prepared, pid = cache.load(source, cfg)

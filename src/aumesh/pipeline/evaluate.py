@@ -23,6 +23,7 @@ same space and on the same information (see ``aumesh.experiments.promote``).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -43,6 +44,8 @@ from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, r
 from aumesh.model.statistics import (DesignStatistics, accumulate_design, configuration_statistics, fold_stacked,
                                      target_offsets)
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -220,6 +223,16 @@ def effective_n_components(cfg: Config) -> int:
             )
         return p
     return cfg.model.n_components
+
+
+def log_clipping(cfg: Config, handle) -> None:
+    """Say a clipped ``model.n_components`` on the console (warning) and in MLflow (tag on the open run ``handle``),
+    not only in the card."""
+    k = effective_n_components(cfg)
+    if k != cfg.model.n_components:
+        log.warning("model.n_components=%d clipped to %d, the number of features of features=%s "
+                    "(model.clip_n_components=true)", cfg.model.n_components, k, cfg.features.name)
+        handle.set_tags({"aumesh.n_components_clipped": f"{cfg.model.n_components} -> {k} (features={cfg.features.name})"})
 
 
 def assign_folds(video_index: np.ndarray, n_splits: int) -> np.ndarray:

@@ -54,12 +54,18 @@ def start_stage(stage: str, cfg: Config) -> None:
             log.info("removed %s, left by a killed run", path)
 
 
-def removed_by_dvc(stage: str, paths: PathsConfig) -> str | None:
-    """When DVC runs ``stage`` (``DVC_STAGE``) and removed its outputs beforehand, the one command that brings the
-    last good ones back (DVC keeps them in its cache; ``release/`` is ``persist: true`` and never removed)."""
-    if os.environ.get("DVC_STAGE", "").rsplit(":", 1)[-1] != stage:
+def removed_by_dvc(stage: str, lock_file: str | Path = "dvc.lock") -> str | None:
+    """When DVC runs ``stage`` (``DVC_STAGE``) and removed outputs that ``dvc.lock`` records (a last good version in
+    DVC's cache), the one command that brings them back. ``release/`` is ``persist: true``: DVC never removes it."""
+    import yaml
+
+    if os.environ.get("DVC_STAGE", "").rsplit(":", 1)[-1] != stage or not Path(lock_file).exists():
         return None
-    missing = [out for out in stage_outputs(stage, paths) if not Path(out).exists()]
+    try:
+        locked = yaml.safe_load(Path(lock_file).read_text())["stages"][stage]["outs"]
+    except (KeyError, TypeError, yaml.YAMLError):
+        return None
+    missing = [out["path"] for out in locked if not Path(out["path"]).exists()]
     if not missing:
         return None
     return f"DVC removed {', '.join(missing)} before running {stage}: `dvc checkout {stage}` brings back the last good one."
@@ -76,11 +82,7 @@ def prepare_stage(cfg: Config) -> dict:
 def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVResult, ev.FinalModel]:
     """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
     timings = {}
-    n_features, k = len(cfg.features.columns), ev.effective_n_components(cfg)
-    if k != cfg.model.n_components:  # said on the console and in MLflow, not only in the card
-        log.warning("model.n_components=%d clipped to %d, the number of features of features=%s "
-                    "(model.clip_n_components=true)", cfg.model.n_components, k, cfg.features.name)
-        handle.set_tags({"aumesh.n_components_clipped": f"{cfg.model.n_components} -> {k} ({n_features} features)"})
+    ev.log_clipping(cfg, handle)
     t0 = time.perf_counter()
     cv, final = ev.evaluate(prepared, cfg)
     timings["evaluate_seconds"] = time.perf_counter() - t0
