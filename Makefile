@@ -78,7 +78,7 @@ clean-build:
 
 # Sweeps (README "Sweeps and promotion"): the demo grid in-process, the latest sweep's table, promotion.
 .PHONY: sweep runs promote
-SWEEP_GRID ?= preprocess.target=absolute,neutral features=au,au_pose,au_pose_interactions model.n_components=10,23,40,83
+SWEEP_GRID ?= preprocess.target=absolute,neutral,within features=au,au_pose,au_pose_interactions model.n_components=10,23,40,83
 sweep: $(STAMP)
 	$(BIN)/aumesh sweep -m $(SWEEP_GRID)
 

@@ -1,6 +1,6 @@
 """In-process sweeps with Hydra's syntax, logged to MLflow as one parent run and one child per configuration.
 
-``aumesh sweep -m preprocess.target=absolute,neutral features=au,au_pose,au_pose_interactions \\
+``aumesh sweep -m preprocess.target=absolute,neutral,within features=au,au_pose,au_pose_interactions \\
 model.n_components=10,23,40,83`` runs :func:`main`: a Hydra app
 on the repo's ``conf/`` (the same configuration ``dvc exp run`` composes into ``params.yaml``)
 whose task function evaluates one configuration on the prepared data. Not a DVC stage: a sweep
