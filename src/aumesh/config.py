@@ -129,6 +129,19 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class ComputeConfig:
+    """Where the data passes run (Dask), one option of the ``compute`` group (``conf/compute/<name>.yaml``).
+
+    Never changes results beyond float64 summation order, so it is not a DVC stage parameter.
+    """
+
+    scheduler: str = "threads"  # synchronous | threads | processes | distributed
+    n_workers: int | None = None  # threads/processes; None: every core
+    address: str | None = None  # distributed: the scheduler's address
+    partition_rows: int = 65536
+
+
+@dataclass(frozen=True)
 class Config:
     paths: PathsConfig = field(default_factory=PathsConfig)
     data: DataConfig = field(default_factory=DataConfig)
@@ -137,6 +150,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     cv: CVConfig = field(default_factory=CVConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    compute: ComputeConfig = field(default_factory=ComputeConfig)
     seed: int = 0
 
     def to_dict(self) -> dict[str, Any]:
@@ -259,6 +273,13 @@ def validate(cfg: Config) -> Config:
         raise ConfigError(f"cv.n_splits={cfg.cv.n_splits}: must be >= 2")
     if cfg.data.chunk_rows < 1:
         raise ConfigError(f"data.chunk_rows={cfg.data.chunk_rows}: must be >= 1")
+    if cfg.compute.scheduler not in ("synchronous", "threads", "processes", "distributed"):
+        raise ConfigError(f"compute.scheduler={cfg.compute.scheduler!r}: use compute=local (threads), synchronous, "
+                         "processes or distributed (conf/compute/<name>.yaml)")
+    if cfg.compute.scheduler == "distributed" and not cfg.compute.address:
+        raise ConfigError("compute=distributed needs the scheduler's address: compute.address=tcp://host:8786")
+    if cfg.compute.partition_rows < 1:
+        raise ConfigError(f"compute.partition_rows={cfg.compute.partition_rows}: must be >= 1")
     if cfg.features.name not in FEATURE_SETS:
         raise ConfigError(f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} "
                          "(conf/features/<name>.yaml)")

@@ -1,0 +1,124 @@
+"""The engine of the data passes: Dask, on the scheduler the ``compute`` config group names.
+
+A pass maps a pure partition function over the partitions (``dask.bag``, one partition per bag
+partition) and either gathers the small per-partition results in order or sums them with a tree
+reduction (``Bag.fold``, ``split_every`` results at a time). The task graph depends only on the
+partitions, never on the scheduler, so every scheduler sums in the same order.
+
+``compute=local`` (default) runs the tasks on a thread per core of this machine (the partition
+functions spend their time in NumPy, BLAS and Arrow, which release the GIL); ``synchronous`` runs
+them one by one in the caller (debugging); ``processes`` on a local process pool; ``distributed``
+on a running ``dask.distributed`` scheduler (``compute.address``), e.g. a SLURM cluster started
+with ``dask-jobqueue`` (README, "Scale out").
+"""
+
+from __future__ import annotations
+
+import contextvars
+import logging
+import os
+from contextlib import contextmanager, nullcontext
+from typing import Any, Callable, Iterator, Sequence
+
+from aumesh.config import ComputeConfig
+
+log = logging.getLogger(__name__)
+
+#: Partial results combined per task of the tree reductions.
+SPLIT_EVERY = 8
+_BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+_ACTIVE: contextvars.ContextVar[bool] = contextvars.ContextVar("aumesh_compute_engine", default=False)
+
+
+def n_workers(cfg: ComputeConfig) -> int:
+    """Worker threads/processes of a local scheduler (``compute.n_workers``, default every core)."""
+    return int(cfg.n_workers or os.cpu_count() or 1)
+
+
+@contextmanager
+def engine(cfg: ComputeConfig) -> Iterator[None]:
+    """Run the enclosed passes on ``cfg``'s scheduler, with single-threaded BLAS in every worker.
+
+    The partitions already use every core; a BLAS thread pool per task would only oversubscribe
+    them (``dask.distributed`` workers set ``OPENBLAS_NUM_THREADS=1`` themselves).
+    """
+    import dask
+    from threadpoolctl import threadpool_limits
+
+    token = _ACTIVE.set(True)
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            yield from _scheduler(cfg, dask)
+    finally:
+        _ACTIVE.reset(token)
+
+
+def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
+    if cfg.scheduler == "distributed":
+        from distributed import Client
+
+        with Client(cfg.address, set_as_default=False) as client, dask.config.set(scheduler=client):
+            log.info("compute: dask.distributed scheduler at %s (%d workers)", cfg.address,
+                     len(client.scheduler_info().get("workers", {})))
+            yield
+        return
+    settings: dict[str, Any] = {"scheduler": cfg.scheduler}
+    if cfg.scheduler != "synchronous":
+        settings["num_workers"] = n_workers(cfg)
+    # a process pool's workers start fresh: single-threaded BLAS through their environment
+    blas_env = {k: "1" for k in _BLAS_THREADS} if cfg.scheduler == "processes" else {}
+    saved = {k: os.environ.get(k) for k in blas_env}
+    os.environ.update(blas_env)
+    try:
+        with dask.config.set(settings):
+            log.info("compute: dask %s scheduler%s", cfg.scheduler,
+                     f", {settings['num_workers']} workers" if "num_workers" in settings else "")
+            yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _current():
+    """The active engine, or the default one (``compute=local``) for a caller outside :func:`engine`."""
+    return nullcontext() if _ACTIVE.get() else engine(ComputeConfig())
+
+
+def _bag(partitions: Sequence[Any]):
+    import dask.bag as db
+
+    return db.from_sequence(list(partitions), npartitions=len(partitions))
+
+
+def map_gather(fn: Callable, partitions: Sequence[Any]) -> list:
+    """``[fn(p) for p in partitions]`` on the current scheduler, results in partition order."""
+    if not partitions:
+        return []
+    with _current():
+        return _bag(partitions).map(fn).compute()
+
+
+def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Sequence[Any]) -> Any:
+    """``combine``-tree of ``fn(p)`` over the partitions, in partition order (the same tree on every scheduler)."""
+    if not partitions:
+        raise ValueError("map_reduce: no partitions")
+    with _current():
+        return _bag(partitions).map(fn).reduction(_reduce_all(combine), _reduce_all(combine),
+                                                  split_every=SPLIT_EVERY).compute()
+
+
+class _reduce_all:
+    """``functools.reduce(combine, items)`` as a picklable callable (a task of the reduction tree)."""
+
+    def __init__(self, combine: Callable[[Any, Any], Any]):
+        self.combine = combine
+
+    def __call__(self, items) -> Any:
+        it = iter(items)
+        out = next(it)
+        for item in it:
+            out = self.combine(out, item)
+        return out
