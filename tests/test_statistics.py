@@ -8,7 +8,7 @@ import pytest
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.data.schema import N_TARGETS, feature_columns
-from aumesh.model.statistics import accumulate_design, configuration_statistics, fold_stacked, video_indicator
+from aumesh.model.statistics import DesignSums, accumulate_design, configuration_statistics, video_indicator
 
 
 @pytest.fixture(scope="module")
@@ -67,15 +67,23 @@ def test_chunking_does_not_change_the_statistics(frames):
                                many.video_sum_y + many.y_shift * many.video_count[:, None], rtol=1e-12)
 
 
-def test_fold_stacked_product_gives_each_folds_cross_products():
+def test_design_sums_give_each_folds_cross_products_and_add():
     rng = np.random.default_rng(1)
     X, Y = rng.normal(size=(50, 4)), rng.normal(size=(50, 6))
     fold = rng.integers(0, 3, 50)
-    cross = Y.T @ fold_stacked(X, fold, 3)
-    for f in range(3):
+    sums = DesignSums(4, 6, 3)
+    sums.add(X[:20], Y[:20].copy(), fold[:20])
+    rest = DesignSums(4, 6, 3)
+    rest.add(X[20:], Y[20:].copy(), fold[20:])
+    total = sums + rest
+    for f, s in enumerate(total.folds(np.zeros(4), np.zeros(6))):
         m = fold == f
-        np.testing.assert_allclose(cross[:, 4 * f : 4 * f + 4].T, X[m].T @ Y[m], atol=1e-12)
-        np.testing.assert_allclose(cross[:, 12 + f], Y[m].sum(axis=0), atol=1e-12)
+        assert s.n == m.sum()
+        np.testing.assert_allclose(s.xty, X[m].T @ Y[m], atol=1e-12)
+        np.testing.assert_allclose(s.xtx, X[m].T @ X[m], atol=1e-12)
+        np.testing.assert_allclose(s.sum_y, Y[m].sum(axis=0), atol=1e-12)
+        np.testing.assert_allclose(s.sum_x, X[m].sum(axis=0), atol=1e-12)
+        np.testing.assert_allclose(s.yty_diag, (Y[m] ** 2).sum(axis=0), atol=1e-12)
 
 
 def test_video_indicator_sums_rows_per_video():

@@ -175,10 +175,13 @@ def _read_columns(path: Path, columns: list[str]) -> pa.Table:
         raise _corrupt(path, err, f" (reading {columns[0]}" + (f" and {len(columns) - 1} more columns)" if len(columns) > 1 else ")")) from None
 
 
-def _batches(table: FrameTable, chunk_rows: int, columns: list[str]) -> Iterator[pa.RecordBatch]:
-    """Parquet row batches of ``columns``; a page that cannot be decoded is a corrupt-file error."""
+def _batches(table: FrameTable, chunk_rows: int, columns: list[str],
+             row_groups: Sequence[int] | None = None) -> Iterator[pa.RecordBatch]:
+    """Parquet row batches of ``columns`` (of ``row_groups`` only, if given); a page that cannot be decoded is a
+    corrupt-file error."""
     try:
-        for batch in pq.ParquetFile(table.path).iter_batches(batch_size=chunk_rows, columns=columns):
+        for batch in pq.ParquetFile(table.path).iter_batches(batch_size=chunk_rows, columns=columns,
+                                                              row_groups=None if row_groups is None else list(row_groups)):
             yield batch
     except (pa.ArrowException, OSError) as err:
         raise _corrupt(table.path, err, " (reading the mesh columns)") from None
@@ -189,8 +192,54 @@ def _column(batch: pa.RecordBatch, k: int, name: str, table: FrameTable, start: 
     return contract.numeric_values(values, table.path, name, start) if name in table.text_columns else values
 
 
-def read_metadata(table: FrameTable, coerce_numeric: bool = False) -> pd.DataFrame:
+@dataclass(frozen=True)
+class Piece:
+    """Consecutive parquet row groups of one table (rows ``start .. start + n_rows``): a unit of a partition."""
+
+    table: FrameTable
+    row_groups: tuple[int, ...]
+    start: int
+    n_rows: int
+
+
+def pieces(table: FrameTable) -> list[Piece]:
+    """One piece per parquet row group of ``table``."""
+    md = pq.ParquetFile(table.path).metadata
+    out, start = [], 0
+    for g in range(md.num_row_groups):
+        n = md.row_group(g).num_rows
+        out.append(Piece(table, (g,), start, n))
+        start += n
+    return out
+
+
+def partitions(tables: Sequence[FrameTable], partition_rows: int) -> list[tuple[Piece, ...]]:
+    """Whole row groups packed in table order into partitions of at least ``partition_rows`` rows.
+
+    A large table is split at row-group boundaries; small tables (e.g. one per video) are packed
+    together. The last partition may be smaller.
+    """
+    out: list[tuple[Piece, ...]] = []
+    current: list[Piece] = []
+    for table in tables:
+        for piece in pieces(table):
+            if current and current[-1].table == table:
+                last = current.pop()  # consecutive row groups of one table are read as one piece
+                piece = Piece(table, last.row_groups + piece.row_groups, last.start, last.n_rows + piece.n_rows)
+            current.append(piece)
+            if sum(p.n_rows for p in current) >= partition_rows:
+                out.append(tuple(current))
+                current = []
+    if current:
+        out.append(tuple(current))
+    return out
+
+
+def read_metadata(table: FrameTable, coerce_numeric: bool = False, row_groups: Sequence[int] | None = None) -> pd.DataFrame:
     """``video_id``, ``frame``, the 20 AUs and pose (model order Pitch, Yaw, Roll) of every row, validated.
+
+    ``row_groups``: only these consecutive parquet row groups (default: the whole table); errors still give
+    the row's index within the table.
 
     Raises
     ------
@@ -200,11 +249,19 @@ def read_metadata(table: FrameTable, coerce_numeric: bool = False) -> pd.DataFra
     """
     cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]
     cols.insert(0, INPUT_PATH_COLUMN if table.video_from_input else VIDEO_COLUMN)
-    df = _read_columns(table.path, cols).to_pandas()
+    if row_groups is None:
+        df, first = _read_columns(table.path, cols).to_pandas(), 0
+    else:
+        try:
+            pf = pq.ParquetFile(table.path)
+            df = pf.read_row_groups(list(row_groups), columns=cols).to_pandas()
+        except (pa.ArrowException, OSError) as err:
+            raise _corrupt(table.path, err, " (reading the metadata columns)") from None
+        first = _row_range(table, row_groups)[0]
     if table.video_from_input:
         df[VIDEO_COLUMN] = df.pop(INPUT_PATH_COLUMN).map(lambda s: Path(str(s)).stem)
     df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
-    df = contract.validate_metadata(df, table.path, coerce=coerce_numeric)
+    df = contract.validate_metadata(df, table.path, row_offset=first, coerce=coerce_numeric)
     return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]]
 
 
@@ -222,8 +279,19 @@ def check_unique_frames(meta: pd.DataFrame, files: Sequence[Path], file_index: n
         )
 
 
-def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+def _row_range(table: FrameTable, row_groups: Sequence[int] | None) -> tuple[int, int]:
+    if row_groups is None:
+        return 0, table.n_rows
+    md = pq.ParquetFile(table.path).metadata
+    first = sum(md.row_group(g).num_rows for g in range(min(row_groups)))
+    return first, first + sum(md.row_group(g).num_rows for g in row_groups)
+
+
+def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[int] | None = None,
+                  row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """Stream mesh vertices in bounded chunks (parquet row batches or slices of a memory-mapped .npy).
+
+    ``row_groups``: only the rows of these consecutive parquet row groups (default: the whole table).
 
     Yields
     ------
@@ -239,16 +307,18 @@ def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[i
     """
     idx = list(range(N_VERTICES)) if vertex_indices is None else [int(i) for i in vertex_indices]
     if table.mesh_npy is not None:
+        first, stop = _row_range(table, row_groups)
         arr = np.load(table.mesh_npy, mmap_mode="r")
-        for start in range(0, table.n_rows, chunk_rows):
-            block = np.asarray(arr[start : start + chunk_rows][:, idx, :], dtype=np.float64)
+        for start in range(first, stop, chunk_rows):
+            block = np.asarray(arr[start : min(start + chunk_rows, stop)][:, idx, :], dtype=np.float64)
             _check_finite_mesh(table.mesh_npy, block, start, idx)
             yield start, block
+        del arr
         return
     columns = [f"{axis}_{i}" for axis in "xyz" for i in idx]
-    start = 0
+    start = _row_range(table, row_groups)[0]
     k = len(idx)
-    for batch in _batches(table, chunk_rows, columns):
+    for batch in _batches(table, chunk_rows, columns, row_groups):
         block = np.empty((batch.num_rows, 3, k), dtype=np.float64)
         for j, name in enumerate(columns):
             block[:, j // k, j % k] = _column(batch, batch.schema.get_field_index(name), name, table, start)
@@ -258,17 +328,18 @@ def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[i
         start += batch.num_rows
 
 
-def iter_mesh_columns(table: FrameTable, chunk_rows: int) -> Iterator[tuple[int, np.ndarray]]:
+def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """Full meshes chunk by chunk as ``(start, coords)``, ``coords`` of shape (1434, m) float64, axis-major rows
-    ``[x_0..x_477 | y_.. | z_..]`` (one contiguous row per parquet column: no strided scatter)."""
+    ``[x_0..x_477 | y_.. | z_..]`` (one contiguous row per parquet column: no strided scatter).
+    ``row_groups`` as in :func:`iter_vertices`."""
     if table.mesh_npy is not None:
-        for start, block in iter_vertices(table, chunk_rows):
+        for start, block in iter_vertices(table, chunk_rows, row_groups=row_groups):
             yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
         return
     columns = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
-    start = 0
+    start = _row_range(table, row_groups)[0]
     where = None
-    for batch in _batches(table, chunk_rows, columns):
+    for batch in _batches(table, chunk_rows, columns, row_groups):
         if where is None:
             where = [batch.schema.get_field_index(name) for name in columns]
         m = batch.num_rows

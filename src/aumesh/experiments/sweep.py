@@ -252,7 +252,7 @@ class SweepCache:
 
         key = (pid, n_splits)
         if key not in self.folds:
-            self.folds[key] = ev.assign_folds(prepared.frames["video_index"].to_numpy(), n_splits)
+            self.folds[key] = ev.assign_folds(prepared.video_index, n_splits)
         return self.folds[key]
 
     def statistics_for(self, prepared: Prepared, pid: str, cfg: Config) -> tuple[FoldStatistics, bool]:
@@ -267,7 +267,10 @@ class SweepCache:
         fold = self.fold_of(prepared, pid, cfg.cv.n_splits)
         design_key = (pid, cfg.cv.n_splits)
         if design_key not in self.designs:  # the one pass over the meshes; every target/feature set derives from it
-            self.designs[design_key] = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
+            from aumesh.pipeline import compute
+
+            with compute.engine(cfg.compute):
+                self.designs[design_key] = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
         stats = ev.accumulate(prepared, cfg, fold, design=self.designs[design_key])
         self.statistics[key] = stats
         while len(self.statistics) > MAX_CACHED_STATISTICS:
@@ -317,8 +320,7 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
     from aumesh.pipeline import prepare as prep
     from aumesh.data import tables
 
-    complete = all((source.path / n).exists() for n in ("meshes.npy", "frames.parquet", "neutrals.npz",
-                                                           "reference.npz", "summary.json"))
+    complete = all((source.path / n).exists() for n in prep.PREPARED_FILES)
     if source.managed_by_dvc:
         if not complete:
             raise FileNotFoundError(
@@ -367,9 +369,11 @@ def blas_threads(default: int = 1) -> Iterator[None]:
 
 def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> tuple[CVResult, FinalModel]:
     """Cross-validation and final fit of one configuration from (possibly shared) statistics."""
+    from aumesh.pipeline import compute
     from aumesh.pipeline import evaluate as ev
 
-    return ev.evaluate_statistics(prepared, cfg, stats)
+    with compute.engine(cfg.compute):
+        return ev.evaluate_statistics(prepared, cfg, stats)
 
 
 def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, root: Path,

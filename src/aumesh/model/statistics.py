@@ -24,7 +24,7 @@ float64 rounding (tests/test_statistics.py).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -46,6 +46,7 @@ class DesignStatistics:
     video_sum_x: np.ndarray  # (n_videos, 83)  sum over the video's frames of (x - a)
     video_sum_y: np.ndarray  # (n_videos, 1434) sum over the video's frames of (y - b)
     fold: np.ndarray  # (n_frames,) fold of each frame
+    neutral_design: dict = field(default_factory=dict)  # neutral method -> (n_videos, 83) mean design row of its frames
 
     @property
     def x_shift(self) -> np.ndarray:
@@ -56,16 +57,13 @@ class DesignStatistics:
         return self.folds[0].y_shift
 
 
-def fold_stacked(X: np.ndarray, fold: np.ndarray, n_splits: int) -> np.ndarray:
-    """``[X * 1{fold=0} | ... | X * 1{fold=K-1} | onehot(fold)]``, shape (m, K * p + K).
-
-    One GEMM with this matrix gives every fold's cross-products (and column sums) at once, with no
-    reordering or masked copies of the wide target chunk: ``Y.T @ fold_stacked(X)`` is
-    ``[X_0'Y_0 | ... | sum(Y_0) ...]`` transposed. (``Y.T @ M`` also keeps OpenBLAS on a kernel that
-    stays fast when the two cores are shared.)
-    """
-    onehot = (fold[:, None] == np.arange(n_splits)).astype(X.dtype)
-    return np.concatenate([X * onehot[:, [f]] for f in range(n_splits)] + [onehot], axis=1)
+def fold_order(fold: np.ndarray, n_splits: int) -> tuple[np.ndarray | None, np.ndarray]:
+    """A stable order grouping rows by fold (None when they already are) and each fold's ``[lo, hi)`` in it."""
+    fold = np.asarray(fold)
+    grouped = bool(np.all(fold[1:] >= fold[:-1])) if len(fold) else True
+    order = None if grouped else np.argsort(fold, kind="stable")
+    bounds = np.searchsorted(fold if grouped else fold[order], np.arange(n_splits + 1))
+    return order, bounds
 
 
 def video_indicator(video: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
@@ -73,6 +71,66 @@ def video_indicator(video: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
     videos, inverse = np.unique(video, return_inverse=True)
     m = len(video)
     return videos, sp.csr_matrix((np.ones(m), (inverse, np.arange(m))), shape=(len(videos), m))
+
+
+class DesignSums:
+    """Per-fold sums of a pass over shifted rows: ``Y'[X_f | 1_f]``, ``X_f'X_f``, ``sum X_f`` and ``diag(Y_f'Y_f)``.
+
+    Sums of disjoint row sets add (``+``), so partitions of the rows are summed in any grouping.
+    """
+
+    def __init__(self, p: int, q: int, n_splits: int):
+        self.p, self.q, self.K = p, q, n_splits
+        self.cross = np.zeros((q, n_splits * p + n_splits))  # per fold: (Y'X)^T blocks, then column sums of Y
+        self.squares = np.zeros((q, n_splits))  # per fold: diag(Y'Y)
+        self.xtx = np.zeros((n_splits, p, p))
+        self.sum_x = np.zeros((n_splits, p))
+        self.n = np.zeros(n_splits, dtype=np.int64)
+
+    def add(self, X: np.ndarray, Y: np.ndarray, fold: np.ndarray) -> None:
+        """Add shifted rows ``X`` (m, p), ``Y`` (m, q) of folds ``fold`` (m,).
+
+        Rows are grouped by fold (one stable reordering copy), so each fold costs one GEMM of its own
+        rows, ``Y_f' [X_f | 1]``, instead of a GEMM of every row against every fold's zero-padded block.
+        """
+        K, p = self.K, self.p
+        order, bounds = fold_order(fold, K)
+        if order is not None:
+            X, Y = X[order], Y[order]
+        ones = np.ones((len(X), 1))
+        for f in range(K):
+            lo, hi = bounds[f], bounds[f + 1]
+            if lo == hi:
+                continue
+            Xf, Yf = X[lo:hi], Y[lo:hi]
+            xy = Yf.T @ np.hstack([Xf, ones[lo:hi]])  # (q, p + 1): Y_f'X_f and the column sums of Y_f
+            self.cross[:, f * p : (f + 1) * p] += xy[:, :p]
+            self.cross[:, K * p + f] += xy[:, p]
+            self.xtx[f] += Xf.T @ Xf
+            self.sum_x[f] += Xf.sum(axis=0)
+            self.squares[:, f] += np.einsum("ij,ij->j", Yf, Yf)
+            self.n[f] += hi - lo
+
+    def __add__(self, other: "DesignSums") -> "DesignSums":
+        out = DesignSums(self.p, self.q, self.K)
+        for name in ("cross", "squares", "xtx", "sum_x", "n"):
+            setattr(out, name, getattr(self, name) + getattr(other, name))
+        return out
+
+    def folds(self, a: np.ndarray, b: np.ndarray) -> list[CrossProducts]:
+        """Each fold's :class:`CrossProducts`, shifted by ``(a, b)``."""
+        K, p = self.K, self.p
+        out = []
+        for f in range(K):
+            s = CrossProducts(p, self.q, x_shift=a, y_shift=b)
+            s.n = int(self.n[f])
+            s.sum_x = self.sum_x[f].copy()
+            s.xtx = self.xtx[f].copy()
+            s.xty = self.cross[:, f * p : (f + 1) * p].T.copy()
+            s.sum_y = self.cross[:, K * p + f].copy()
+            s.yty_diag = self.squares[:, f].copy()
+            out.append(s)
+        return out
 
 
 def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray, n_videos: int, fold: np.ndarray,
@@ -91,9 +149,7 @@ def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray,
     p, q, K = len(FULL_DESIGN), N_TARGETS, n_splits
     video_sum_x = np.zeros((n_videos, p))
     video_sum_y = np.zeros((n_videos, q))
-    cross = np.zeros((q, K * p + K))  # per fold: (Y'X)^T blocks, then column sums of Y
-    squares = np.zeros((q, K))  # per fold: diag(Y'Y)
-    xtx = np.zeros((K, p, p))
+    sums = DesignSums(p, q, K)
     a = b = None
     for rows, Y in mesh_chunks:
         X = design_matrix(au[rows], pose[rows], True, True)
@@ -101,29 +157,14 @@ def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray,
             a, b = X.mean(axis=0), Y.mean(axis=0)
         X -= a
         Y -= b
-        stacked = fold_stacked(X, fold[rows], K)
-        cross += Y.T @ stacked
-        for f in range(K):
-            xtx[f] += stacked[:, f * p : (f + 1) * p].T @ X
         videos, indicator = video_indicator(video_index[rows])
         video_sum_x[videos] += indicator @ X
         video_sum_y[videos] += indicator @ Y
-        np.multiply(Y, Y, out=Y)
-        squares += Y.T @ stacked[:, K * p :]
-    folds = []
-    for f in range(K):
-        s = CrossProducts(p, q, x_shift=a, y_shift=b)
-        members = fold == f
-        s.n = int(members.sum())
-        s.sum_x = video_sum_x[np.unique(video_index[members])].sum(axis=0) if s.n else np.zeros(p)
-        s.xtx = xtx[f]
-        s.xty = cross[:, f * p : (f + 1) * p].T.copy()
-        s.sum_y = cross[:, K * p + f].copy()
-        s.yty_diag = squares[:, f].copy()
-        folds.append(s)
+        sums.add(X, Y, fold[rows])
     video_fold = np.full(n_videos, -1, dtype=np.int64)
     video_fold[video_index] = fold
-    return DesignStatistics(folds=folds, video_fold=video_fold, video_count=np.bincount(video_index, minlength=n_videos),
+    return DesignStatistics(folds=sums.folds(a, b), video_fold=video_fold,
+                            video_count=np.bincount(video_index, minlength=n_videos),
                             video_sum_x=video_sum_x, video_sum_y=video_sum_y, fold=fold)
 
 

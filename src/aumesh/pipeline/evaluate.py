@@ -24,25 +24,31 @@ same space and on the same information (see ``aumesh.experiments.promote``).
 from __future__ import annotations
 
 import logging
+import shutil
+import tempfile
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, partial
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 from sklearn.model_selection import GroupKFold
 from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
 from aumesh.utils.errors import ConfigError, UserError
+from aumesh.pipeline import compute
+from aumesh.utils.io import NpyRows, create_npy, read_rows, write_rows
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
 from aumesh.model.pls import PLSRegression
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
-from aumesh.model.statistics import (DesignStatistics, accumulate_design, configuration_statistics, fold_stacked,
-                                     target_offsets)
+from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, configuration_statistics, fold_order, \
+    target_offsets, video_indicator
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 log = logging.getLogger(__name__)
@@ -50,90 +56,103 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Prepared:
-    """The ``prepare`` stage's outputs, meshes memory-mapped (never loaded whole)."""
+    """The ``prepare`` stage's outputs. Nothing per frame or per video is loaded until asked for: the passes
+    read their own rows (``frames.parquet`` row group by row group, ``meshes.npy`` with file I/O)."""
 
-    frames: pd.DataFrame
+    directory: Path
     meshes: np.ndarray  # (n, 1434) float32 memmap, axis-major
     video_ids: np.ndarray
-    neutral: Mapping[str, np.ndarray]  # method -> (n_videos, 1434) float32, loaded on first use
+    neutral: Mapping[str, NpyRows]  # method -> (n_videos, 1434) float32 rows, read on demand
     reference: dict[str, np.ndarray]
     summary: dict
     mesh_path: Path | None = None  # meshes.npy: the streaming passes read it with plain file I/O
 
+    @cached_property
+    def frames(self) -> pd.DataFrame:
+        """Every prepared frame's metadata (whole: for tests and small data; the passes read row groups)."""
+        return pd.read_parquet(self.directory / FRAMES_FILE)
+
+    @cached_property
+    def video_index(self) -> np.ndarray:
+        """(n,) int32 video of each frame (the one per-frame column the stage process holds)."""
+        return pq.read_table(self.directory / FRAMES_FILE, columns=["video_index"]).column(0).to_numpy()
+
+    def row_groups(self) -> list[tuple[int, int, int]]:
+        """``(row_group, first_row, stop_row)`` of ``frames.parquet``: the partitions of the evaluate passes."""
+        md = pq.ParquetFile(self.directory / FRAMES_FILE).metadata
+        bounds = np.r_[0, np.cumsum([md.row_group(g).num_rows for g in range(md.num_row_groups)])]
+        return [(g, int(bounds[g]), int(bounds[g + 1])) for g in range(md.num_row_groups) if bounds[g + 1] > bounds[g]]
+
     def iter_meshes(self, chunk_rows: int):
         """``(rows, Y)`` over consecutive row slices, ``Y`` float64 of shape (len(rows), 1434).
 
-        Reads ``meshes.npy`` chunk by chunk into two reused buffers (float32 file rows, float64 copy), so
-        memory stays bounded: a memory map would leave every page read resident in this process.
         ``Y`` is overwritten by the next chunk: use it (or copy it) before advancing.
         """
         n = self.meshes.shape[0]
-        if self.mesh_path is None or n == 0:
-            for rows in _chunks(n, chunk_rows):
-                yield rows, np.asarray(self.meshes[rows], dtype=np.float64)
-            return
         raw = np.empty((min(chunk_rows, n), N_TARGETS), dtype=np.float32)
         out = np.empty(raw.shape, dtype=np.float64)
-        with open(self.mesh_path, "rb", buffering=0) as fh:
-            fh.seek(self.meshes.offset)
-            for rows in _chunks(n, chunk_rows):
-                m = rows.stop - rows.start
-                view = memoryview(raw[:m]).cast("B")
-                got = 0
-                while got < len(view):
-                    k = fh.readinto(view[got:])
-                    if not k:
-                        raise EOFError(f"{self.mesh_path}: truncated at row {rows.start + got // (4 * N_TARGETS)}")
-                    got += k
-                np.copyto(out[:m], raw[:m])
-                yield rows, out[:m]
+        for rows in _chunks(n, chunk_rows):
+            m = rows.stop - rows.start
+            read_rows(self.mesh_path, rows.start, rows.stop, raw)
+            np.copyto(out[:m], raw[:m])
+            yield rows, out[:m]
 
     @cached_property
     def au(self) -> np.ndarray:
-        """(n, 20) AU intensities, float64 (one copy, reused by every pass)."""
+        """(n, 20) AU intensities, float64 (whole)."""
         return self.frames[list(AU_COLUMNS)].to_numpy(np.float64)
 
     @cached_property
     def pose(self) -> np.ndarray:
-        """(n, 3) Pitch, Yaw, Roll in radians, float64."""
+        """(n, 3) Pitch, Yaw, Roll in radians, float64 (whole)."""
         return self.frames[list(POSE_COLUMNS)].to_numpy(np.float64)
 
 
+FRAMES_FILE = "frames.parquet"
+_PASS_COLUMNS = [*AU_COLUMNS, *POSE_COLUMNS, "video_index", "low_au"]
+
+
+def _read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """AU (m, 20), pose (m, 3), video index (m,) and low-AU flag (m,) of one row group of ``frames.parquet``."""
+    t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(group, columns=_PASS_COLUMNS)
+    au = np.column_stack([t.column(c).to_numpy() for c in AU_COLUMNS]).astype(np.float64)
+    pose = np.column_stack([t.column(c).to_numpy() for c in POSE_COLUMNS]).astype(np.float64)
+    return au, pose, t.column("video_index").to_numpy(), t.column("low_au").to_numpy(zero_copy_only=False)
+
+
 class _LazyArrays(Mapping):
-    """Read-only mapping onto NPZ members, each loaded on first access (only the neutral method in use
-    is ever in memory: (n_videos, 1434) float32 each)."""
+    """Read-only mapping onto per-video ``.npy`` arrays, rows read on demand (:class:`aumesh.utils.io.NpyRows`)."""
 
-    def __init__(self, npz, names: dict[str, str]):
-        self._npz, self._names, self._loaded = npz, names, {}
+    def __init__(self, paths: dict[str, Path]):
+        self._paths = paths
 
-    def __getitem__(self, key: str) -> np.ndarray:
-        if key not in self._loaded:
-            self._loaded[key] = self._npz[self._names[key]]
-        return self._loaded[key]
+    def __getitem__(self, key: str) -> NpyRows:
+        return NpyRows(self._paths[key])
 
     def __iter__(self):
-        return iter(self._names)
+        return iter(self._paths)
 
     def __len__(self) -> int:
-        return len(self._names)
+        return len(self._paths)
 
 
 def load_prepared(prepared_dir: str | Path) -> Prepared:
     import json
 
+    from aumesh.pipeline.prepare import NEUTRAL_FILES, PREPARED_FILES, VIDEO_IDS_FILE
+
     d = Path(prepared_dir)
-    missing = [n for n in ("meshes.npy", "frames.parquet", "neutrals.npz", "reference.npz", "summary.json") if not (d / n).exists()]
+    missing = [n for n in PREPARED_FILES if not (d / n).exists()]
     if missing:
         raise UserError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
-    neutrals = np.load(d / "neutrals.npz")
     with open(d / "summary.json") as fh:
         summary = json.load(fh)
     return Prepared(
-        frames=pd.read_parquet(d / "frames.parquet"),
+        directory=d,
         meshes=np.load(d / "meshes.npy", mmap_mode="r"),
         mesh_path=d / "meshes.npy",
-        video_ids=neutrals["video_ids"],
-        neutral=_LazyArrays(neutrals, {"mean": "neutral_mean", "low_au": "neutral_low_au"}),
+        video_ids=np.load(d / VIDEO_IDS_FILE),
+        neutral=_LazyArrays({method: d / name for method, name in NEUTRAL_FILES.items()}),
         reference=dict(np.load(d / "reference.npz")),
         summary=summary,
     )
@@ -246,28 +265,149 @@ def assign_folds(video_index: np.ndarray, n_splits: int) -> np.ndarray:
     return fold
 
 
-def neutral_design(X_au: np.ndarray, pose: np.ndarray, video_index: np.ndarray, neutral_rows: np.ndarray,
-                   n_videos: int, use_pose: bool, interactions: bool) -> np.ndarray:
-    """Mean design row of each video's neutral frames, shape (n_videos, n_features)."""
-    X = design_matrix(X_au[neutral_rows], pose[neutral_rows], use_pose, interactions)
-    v = video_index[neutral_rows]
-    counts = np.bincount(v, minlength=n_videos).astype(np.float64)
-    # per-video sums column by column (bincount adds in row order, as np.add.at did, ~100x faster)
-    sums = np.column_stack([np.bincount(v, weights=X[:, j], minlength=n_videos) for j in range(X.shape[1])]) \
-        if X.shape[1] else np.zeros((n_videos, 0))
-    return sums / np.maximum(counts, 1.0)[:, None]
-
-
 def _chunks(n: int, chunk_rows: int):
     for start in range(0, n, chunk_rows):
         yield slice(start, min(start + chunk_rows, n))
 
 
+@dataclass
+class DesignPart:
+    """Pass A of consecutive partitions: per-fold sums, and per-video sums of videos split across partitions."""
+
+    sums: DesignSums
+    split: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # video -> (sum x - a, sum y - b, low-AU sum x - a)
+
+    def __add__(self, other: "DesignPart") -> "DesignPart":
+        split = dict(self.split)
+        for v, parts in other.split.items():
+            split[v] = tuple(a + b for a, b in zip(split[v], parts)) if v in split else parts
+        return DesignPart(self.sums + other.sums, split)
+
+
+#: Per-video sums pass A writes (rows = video index), in a scratch folder beside the prepared data.
+VIDEO_SUMS = {"video_sum_x": len(FULL_DESIGN), "video_sum_y": N_TARGETS, "video_low_sum_x": len(FULL_DESIGN)}
+
+
+def design_partition(group: tuple[int, int, int], directory: Path, video_fold: np.ndarray, a: np.ndarray, b: np.ndarray,
+                     n_splits: int, chunk_rows: int, scratch: Path, split_video: np.ndarray) -> DesignPart:
+    """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
+    coordinates (shifted by ``a``, ``b``), and the per-video sums; those of videos held whole by this
+    partition are written to ``scratch``, those of videos split across partitions returned."""
+    g, start, stop = group
+    au, pose, video, low = _read_group(directory, g)
+    fold = video_fold[video]
+    videos, local = np.unique(video, return_inverse=True)
+    p, q = len(FULL_DESIGN), N_TARGETS
+    sums = DesignSums(p, q, n_splits)
+    per_video = {name: np.zeros((len(videos), width)) for name, width in VIDEO_SUMS.items()}
+    raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
+    for lo in range(start, stop, chunk_rows):
+        hi = min(lo + chunk_rows, stop)
+        rows = slice(lo - start, hi - start)
+        Y = read_rows(directory / "meshes.npy", lo, hi, raw).astype(np.float64)
+        X = design_matrix(au[rows], pose[rows], True, True)
+        X -= a
+        Y -= b
+        vids, indicator = video_indicator(local[rows])
+        per_video["video_sum_x"][vids] += indicator @ X
+        per_video["video_sum_y"][vids] += indicator @ Y
+        neutral = low[rows]
+        vids, indicator = video_indicator(local[rows][neutral])
+        per_video["video_low_sum_x"][vids] += indicator @ X[neutral]
+        sums.add(X, Y, fold[rows])
+    whole = ~split_video[videos]
+    for name, values in per_video.items():
+        values = values[whole]
+        for j, (lo_v, hi_v) in _runs(videos[whole]):
+            write_rows(scratch / f"{name}.npy", lo_v, values[j : j + hi_v - lo_v])
+    split = {int(v): tuple(per_video[name][j] for name in VIDEO_SUMS) for j, v in enumerate(videos) if split_video[v]}
+    return DesignPart(sums, split)
+
+
+def _runs(sorted_values: np.ndarray) -> list[tuple[int, tuple[int, int]]]:
+    """``(position, (first, stop))`` of each run of consecutive integers in ``sorted_values``."""
+    if len(sorted_values) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(sorted_values) != 1) + 1
+    return [(int(lo), (int(sorted_values[lo]), int(sorted_values[hi - 1]) + 1))
+            for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(sorted_values)])]
+
+
+class NeutralDesign:
+    """Mean full-design row of each video's neutral frames, ``(n_videos, 83)``, rows computed on demand from
+    the per-video sums pass A wrote (``sum / count + a``)."""
+
+    def __init__(self, sums: NpyRows, count: np.ndarray, shift: np.ndarray):
+        self.sums, self.count, self.shift = sums, count, shift
+        self.shape = (len(count), len(shift))
+
+    def __getitem__(self, key):
+        rest = ()
+        if isinstance(key, tuple):
+            key, rest = key[0], key[1:]
+        v = np.arange(self.shape[0])[key]
+        out = self.sums[v] / np.maximum(self.count[v], 1).astype(np.float64)[..., None] + self.shift
+        return out[(slice(None), *rest)] if rest else out
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+
 def design_statistics(prepared: Prepared, fold: np.ndarray, n_splits: int, chunk_rows: int) -> DesignStatistics:
-    """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration)."""
-    with _one_blas_thread():
-        return accumulate_design(prepared.au, prepared.pose, prepared.frames["video_index"].to_numpy(),
-                                 len(prepared.video_ids), fold, n_splits, prepared.iter_meshes(chunk_rows))
+    """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration).
+
+    The provisional shift ``(a, b)`` is the mean of the first ``chunk_rows`` rows, shared by every fold and
+    partition. The per-video sums stay on disk (:class:`aumesh.utils.io.NpyRows`) in a scratch folder beside
+    the prepared data, removed with the returned statistics.
+    """
+    video_index = prepared.video_index
+    n_videos = len(prepared.video_ids)
+    video_fold = np.full(n_videos, -1, dtype=np.int64)
+    video_fold[video_index] = fold
+    first = min(chunk_rows, len(video_index))
+    head = _head(prepared, first)
+    a = design_matrix(head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64),
+                      True, True).mean(axis=0)
+    b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
+    groups = prepared.row_groups()
+    group_of_row = np.repeat(np.arange(len(groups)), [stop - start for _, start, stop in groups])
+    first_group = np.full(n_videos, len(groups)); last_group = np.full(n_videos, -1)
+    np.minimum.at(first_group, video_index, group_of_row)
+    np.maximum.at(last_group, video_index, group_of_row)
+    split_video = first_group != last_group
+    del group_of_row, first_group, last_group
+    scratch = Path(tempfile.mkdtemp(prefix=".evaluate-scratch-", dir=prepared.directory.parent))
+    try:
+        for name, width in VIDEO_SUMS.items():
+            create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
+        part = compute.map_reduce(partial(design_partition, directory=prepared.directory, video_fold=video_fold, a=a, b=b,
+                                          n_splits=n_splits, chunk_rows=chunk_rows, scratch=scratch, split_video=split_video),
+                                  DesignPart.__add__, groups)
+        for v, values in part.split.items():
+            for name, row in zip(VIDEO_SUMS, values):
+                write_rows(scratch / f"{name}.npy", v, row[None])
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    low = pq.read_table(prepared.directory / FRAMES_FILE, columns=["low_au"]).column(0).to_numpy(zero_copy_only=False)
+    design = DesignStatistics(folds=part.sums.folds(a, b), video_fold=video_fold,
+                              video_count=np.bincount(video_index, minlength=n_videos),
+                              video_sum_x=NpyRows(scratch / "video_sum_x.npy"), video_sum_y=NpyRows(scratch / "video_sum_y.npy"),
+                              fold=fold)
+    design.neutral_design = {  # mean design row of each video's neutral frames, per neutral method
+        "low_au": NeutralDesign(NpyRows(scratch / "video_low_sum_x.npy"),
+                                np.bincount(video_index[low], minlength=n_videos), a),
+        "mean": NeutralDesign(design.video_sum_x, design.video_count, a),
+    }
+    weakref.finalize(design, shutil.rmtree, scratch, True)
+    return design
+
+
+def _head(prepared: Prepared, n: int) -> pd.DataFrame:
+    """The first ``n`` rows of ``frames.parquet`` (AU and pose columns)."""
+    batches = pq.ParquetFile(prepared.directory / FRAMES_FILE).iter_batches(batch_size=n, columns=[*AU_COLUMNS, *POSE_COLUMNS])
+    return next(batches).to_pandas().iloc[:n]
 
 
 def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: int | None = None,
@@ -281,14 +421,11 @@ def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: in
         design = design_statistics(prepared, fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows)
     elif not np.array_equal(design.fold, fold):
         raise ValueError("accumulate: the design statistics were built with other folds")
-    video_index = prepared.frames["video_index"].to_numpy()
     method = cfg.preprocess.neutral.method
-    neutral_rows = prepared.frames["low_au"].to_numpy() if method == "low_au" else np.ones(len(video_index), bool)
-    xbar_neutral = neutral_design(prepared.au, prepared.pose, video_index, neutral_rows, len(prepared.video_ids), True, True)
     target, displacement = configuration_statistics(design, cfg.features.columns, cfg.preprocess.target,
-                                                    prepared.neutral[method], xbar_neutral)
+                                                    prepared.neutral[method], design.neutral_design[method])
     x_offset, y_offset = target_offsets(design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method],
-                                        xbar_neutral)
+                                        design.neutral_design[method])
     return FoldStatistics(target=target, displacement=displacement, fold=fold, x_offset=x_offset, y_offset=y_offset)
 
 
@@ -301,12 +438,6 @@ def _one_blas_thread():
     0.1 s), while the wide GEMMs gain at most 2x on an idle machine. One thread is the robust choice.
     """
     return threadpool_limits(limits=1, user_api="blas")
-
-
-def _single_threaded(chunks):
-    """Iterate ``chunks`` with single-threaded BLAS for the loop body (see :func:`_one_blas_thread`)."""
-    with _one_blas_thread():
-        yield from chunks
 
 
 def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
@@ -334,32 +465,21 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
             r2d_folds.append(r2_variance_weighted(sse_d, sst_d))
             paths.append(r2_path(model, stats.target[f]))
 
-    # pass B: held-out predictions, streamed
+    # pass B: held-out predictions, streamed partition by partition
     use_pose, inter = cfg.features.pose, cfg.features.interactions
-    au, pose = prepared.au, prepared.pose
-    video_index = prepared.frames["video_index"].to_numpy()
-    n = len(stats.fold)
-    abs_sum = np.zeros(n_splits)
-    vertex_sum = np.zeros((n_splits, N_VERTICES))
+    video_index = prepared.video_index
+    video_fold = np.full(len(prepared.video_ids), -1, dtype=np.int64)
+    video_fold[video_index] = stats.fold
     count = np.bincount(stats.fold, minlength=n_splits)
-    frame_error = np.empty(n, dtype=np.float32)
-    # every fold's model in one matrix: rows [coef_0.T | ... | coef_K-1.T | raw_intercept_0 .. K-1]
-    stacked_models = np.vstack([coef.T for coef, _ in models] + [intercept[None] for _, intercept in models])
-    for rows, Y in _single_threaded(prepared.iter_meshes(chunk_rows)):
-        X = design_matrix(au[rows], pose[rows], use_pose, inter)
-        if stats.x_offset is not None:  # the target's per-video centres (held-out videos: their own)
-            X -= stats.x_offset[video_index[rows]]
-        stacked = fold_stacked(X, stats.fold[rows], n_splits)
-        if stats.y_offset is not None:
-            Y -= stats.y_offset[video_index[rows]]
-        Y -= stacked @ stacked_models  # residual: y - (x @ coef_f.T + raw_intercept_f), f the row's fold
-        e3 = Y.reshape(len(Y), 3, N_VERTICES)
-        per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
-        frame_error[rows] = per_vertex.mean(axis=1)
-        onehot = stacked[:, n_splits * X.shape[1]:]
-        abs_sum += np.abs(Y).sum(axis=1) @ onehot
-        vertex_sum += onehot.T @ per_vertex
-    fold_videos = [int(len(np.unique(video_index[stats.fold == f]))) for f in range(n_splits)]
+    errors = compute.map_reduce(partial(error_partition, directory=prepared.directory, video_fold=video_fold,
+                                        coefs=[np.ascontiguousarray(coef.T) for coef, _ in models],
+                                        intercepts=[intercept for _, intercept in models],
+                                        use_pose=use_pose, interactions=inter,
+                                        n_splits=n_splits, chunk_rows=chunk_rows,
+                                        x_offset=stats.x_offset, y_offset=stats.y_offset),
+                                ErrorPart.__add__, prepared.row_groups())
+    abs_sum, vertex_sum, frame_error = errors.abs_sum, errors.vertex_sum, np.concatenate(errors.frame_error)
+    fold_videos = [int((video_fold == f).sum()) for f in range(n_splits)]
     sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)
     result = CVResult(
         n_components=A,
@@ -380,6 +500,70 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
 
 
 @dataclass
+class ErrorPart:
+    """Pass B of consecutive partitions: absolute and per-vertex error sums per fold, each frame's error."""
+
+    abs_sum: np.ndarray  # (K,)
+    vertex_sum: np.ndarray  # (K, 478)
+    frame_error: list[np.ndarray]  # per partition, (m,) float32, in row order
+
+    def __add__(self, other: "ErrorPart") -> "ErrorPart":
+        return ErrorPart(self.abs_sum + other.abs_sum, self.vertex_sum + other.vertex_sum, self.frame_error + other.frame_error)
+
+
+def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np.ndarray, coefs: list[np.ndarray],
+                    intercepts: list[np.ndarray], use_pose: bool, interactions: bool, n_splits: int, chunk_rows: int,
+                    x_offset=None, y_offset=None) -> ErrorPart:
+    """Pass B on one row group: each frame's held-out residual under its fold's model (``coefs[f]`` (p, 1434),
+    ``intercepts[f]`` (1434,)), and the error sums per fold. ``x_offset`` (n_videos, p) and ``y_offset``
+    (n_videos, 1434), arrays or :class:`aumesh.utils.io.NpyRows`, are the target's per-video centres (None: none);
+    only the partition's videos' rows are read."""
+    g, start, stop = group
+    au, pose, video, _ = _read_group(directory, g)
+    fold = video_fold[video]
+    videos, local = np.unique(video, return_inverse=True)
+    x_rows = None if x_offset is None else np.asarray(x_offset[videos], dtype=np.float64)
+    y_rows = None if y_offset is None else np.asarray(y_offset[videos])
+    abs_sum, vertex_sum = np.zeros(n_splits), np.zeros((n_splits, N_VERTICES))
+    frame_error = np.empty(stop - start, dtype=np.float32)
+    raw = np.empty((min(chunk_rows, stop - start), N_TARGETS), dtype=np.float32)
+    for lo in range(start, stop, chunk_rows):
+        rows = slice(lo - start, min(lo + chunk_rows, stop) - start)
+        Y = read_rows(directory / "meshes.npy", lo, min(lo + chunk_rows, stop), raw).astype(np.float64)
+        X = design_matrix(au[rows], pose[rows], use_pose, interactions)
+        if x_rows is not None:  # the target's per-video centres (held-out videos: their own)
+            X -= x_rows[local[rows]]
+        if y_rows is not None:
+            Y -= y_rows[local[rows]]
+        order, bounds = fold_order(fold[rows], n_splits)
+        if order is not None:  # rows grouped by fold: one GEMM per fold's rows and model
+            X, Y = X[order], Y[order]
+        for f in range(n_splits):
+            lo_f, hi_f = bounds[f], bounds[f + 1]
+            Y[lo_f:hi_f] -= X[lo_f:hi_f] @ coefs[f]  # residual: y - (x @ coef_f.T + raw_intercept_f)
+            Y[lo_f:hi_f] -= intercepts[f]
+        e3 = Y.reshape(len(Y), 3, N_VERTICES)
+        per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
+        error = per_vertex.mean(axis=1)
+        frame_error[rows] = error if order is None else error[np.argsort(order)]
+        row_abs = np.abs(Y).sum(axis=1)
+        for f in range(n_splits):
+            lo_f, hi_f = bounds[f], bounds[f + 1]
+            abs_sum[f] += row_abs[lo_f:hi_f].sum()
+            vertex_sum[f] += per_vertex[lo_f:hi_f].sum(axis=0)
+    return ErrorPart(abs_sum, vertex_sum, [frame_error])
+
+
+def _weighted_mean(rows, weights: np.ndarray, block: int = 4096) -> np.ndarray:
+    """``weights @ rows / weights.sum()`` over per-video rows (an array or :class:`aumesh.utils.io.NpyRows`),
+    a block of videos at a time (the rows are never whole in memory)."""
+    total = 0.0
+    for lo in range(0, len(weights), block):
+        total = total + weights[lo : lo + block] @ np.asarray(rows[lo : lo + block], dtype=np.float64)
+    return total / weights.sum()
+
+
+@dataclass
 class FinalModel:
     coef: np.ndarray  # (1434, p) raw-input coefficients (scikit-learn's coef_ layout)
     raw_intercept: np.ndarray  # (1434,) true intercept for raw inputs, in the target space
@@ -397,11 +581,11 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> FinalMo
     # a target relative to per-video centres predicts displacements from them; released meshes add the
     # population's (frame-weighted) mean centre, so `x @ coef + intercept` is a face. For `within` that is
     # the population intercept mean mesh - mean design @ slopes.
-    weights = np.bincount(prepared.frames["video_index"].to_numpy(), minlength=len(prepared.video_ids)).astype(np.float64)
+    weights = np.bincount(prepared.video_index, minlength=len(prepared.video_ids)).astype(np.float64)
     if stats.y_offset is not None:
-        mesh_intercept += weights @ stats.y_offset.astype(np.float64) / weights.sum()
+        mesh_intercept += _weighted_mean(stats.y_offset, weights)
     if stats.x_offset is not None:
-        mesh_intercept -= model.coef_ @ (weights @ stats.x_offset / weights.sum())
+        mesh_intercept -= model.coef_ @ _weighted_mean(stats.x_offset, weights)
     return FinalModel(coef=model.coef_.copy(), raw_intercept=model.raw_intercept_.copy(), mesh_intercept=mesh_intercept,
                       feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions), n_components=A, model=model)
 
@@ -432,6 +616,8 @@ def evaluate_statistics(prepared: Prepared, cfg: Config, stats: FoldStatistics) 
 
 
 def evaluate(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
-    """Cross-validation and the final fit for one configuration (the stage's one typed call)."""
-    fold = assign_folds(prepared.frames["video_index"].to_numpy(), cfg.cv.n_splits)
-    return evaluate_statistics(prepared, cfg, accumulate(prepared, cfg, fold))
+    """Cross-validation and the final fit for one configuration (the stage's one typed call), the passes on
+    the ``compute`` group's scheduler."""
+    with compute.engine(cfg.compute):
+        fold = assign_folds(prepared.video_index, cfg.cv.n_splits)
+        return evaluate_statistics(prepared, cfg, accumulate(prepared, cfg, fold))

@@ -4,49 +4,61 @@ Card, "Training data": pose filter |yaw| <= 40 deg, |pitch| <= 30 deg; per-frame
 similarity Procrustes onto a reference built on the 12 anchors; top 1 % of frames by max
 anchor residual dropped.
 
-Two streaming passes, bounded memory at any number of frames:
+Three passes over the tables, each a pure function mapped over partitions (whole parquet row
+groups, ``aumesh.data.tables.partitions``) on the Dask scheduler of the ``compute`` group
+(``aumesh.pipeline.compute``); the stage process only holds small per-frame vectors, never a
+frame's mesh or a video's neutral:
 
-1. anchors only (36 of the 1434 mesh columns) + AU/pose: validation, pose filter, GPA
-   reference (on a seeded subsample), residuals, the outlier cut, low-AU frames;
-2. full meshes, chunk by chunk: align the kept frames and write them (float32, axis-major)
-   into a memory-mapped ``meshes.npy``; accumulate the population and per-video means.
+1. ``scan``: metadata + the 12 anchors (36 of the 1434 mesh columns): validation, pose filter and
+   the GPA candidates: the ``gpa_max_frames`` pose-passing frames of smallest seeded hash of
+   ``(video_id, frame)``, merged in a tree (so the subsample, and the reference, do not depend
+   on the partitioning);
+2. ``residuals``: anchors + AU/pose again: each pose-passing frame's max anchor residual to the
+   reference and its AU sum, gathered (16 bytes a frame): the outlier threshold is the exact
+   quantile of the gathered residuals, the low-AU thresholds exact per video and population;
+3. ``write``: full meshes, chunk by chunk: align the kept frames and write them (float32,
+   axis-major) into their rows of ``meshes.npy`` (``pwrite``: partitions write disjoint rows),
+   each partition's kept metadata, and the neutral meshes of the videos it holds whole; sums of
+   the population means and of videos split across partitions are reduced in a tree.
 
 Outputs (in ``paths.prepared_dir``, swapped in atomically as a whole folder):
 ``meshes.npy`` (n_kept, 1434) float32; ``frames.parquet`` (video_id, frame, AUs, pose,
-video_index, low_au per kept frame, same order); ``neutrals.npz`` (per-video neutral meshes);
-``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts per filter).
+video_index, low_au per kept frame, same order; a row group per partition); ``video_ids.npy``
+(n_videos,) and ``neutral_mean.npy`` / ``neutral_low_au.npy`` (n_videos, 1434) float32 (per-video
+neutral meshes); ``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts).
+On a cluster the output folder must be on a filesystem every worker sees at the same path.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
 
-from aumesh.geometry.align import align_to_reference, generalized_procrustes, umeyama_batch
 from aumesh.config import Config, PreprocessConfig
-from aumesh.utils.io import atomic_directory, atomic_write_json
-from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, VIDEO_COLUMN
-from aumesh.model.statistics import video_indicator
 from aumesh.data import contract
-from aumesh.data.tables import FrameTable, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, read_metadata
+from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, VIDEO_COLUMN
+from aumesh.data.tables import FrameTable, Piece, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, \
+    partitions, read_metadata
+from aumesh.geometry.align import align_to_reference, generalized_procrustes, umeyama_batch
+from aumesh.model.statistics import video_indicator
+from aumesh.pipeline import compute
+from aumesh.utils.io import atomic_directory, atomic_write_json, create_npy, write_rows
 
 log = logging.getLogger(__name__)
 
-
-@dataclass
-class Selection:
-    """Which rows survive each filter, and what pass 2 needs to align them."""
-
-    meta: pd.DataFrame  # all rows, with `file_index`, `row`
-    keep: np.ndarray  # (n_rows,) bool, final
-    reference: np.ndarray  # (n_anchors, 3)
-    counts: dict
-    dropped_videos: list[str]
+Partition = tuple[Piece, ...]
+NEUTRAL_FILES = {"mean": "neutral_mean.npy", "low_au": "neutral_low_au.npy"}
+VIDEO_IDS_FILE = "video_ids.npy"
+PREPARED_FILES = ("meshes.npy", "frames.parquet", VIDEO_IDS_FILE, *NEUTRAL_FILES.values(), "reference.npz", "summary.json")
 
 
 def pose_mask(pitch: np.ndarray, yaw: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
@@ -74,97 +86,158 @@ def low_au_masks(au_sum: np.ndarray, video_index: np.ndarray, quantile: float) -
     return per_video, population
 
 
-def select_frames(tables: list[FrameTable], cfg: Config) -> tuple[Selection, np.ndarray]:
-    """Pass 1: metadata + anchors of every row; the pose filter, GPA reference and outlier cut."""
-    pre = cfg.preprocess
-    anchor_idx = list(pre.alignment.anchor_indices)
-    metas = []
-    # (n_rows, n_anchors, 3) float32: the only per-frame mesh data kept (144 bytes a frame), filled in place
-    anchors_all = np.empty((sum(t.n_rows for t in tables), len(anchor_idx), 3), np.float32)
-    offset = 0
-    for i, table in enumerate(tables):
-        meta = read_metadata(table, cfg.data.coerce_numeric)
-        meta["file_index"] = i
-        meta["row"] = np.arange(len(meta))
-        metas.append(meta)
-        for start, block in iter_vertices(table, cfg.data.chunk_rows, anchor_idx):
-            anchors_all[offset + start : offset + start + len(block)] = block
-        offset += table.n_rows
-    meta = pd.concat(metas, ignore_index=True)
-    check_unique_frames(meta, [t.path for t in tables], meta["file_index"].to_numpy())
-    n_rows = len(meta)
+def gpa_hash(video: np.ndarray, frame: np.ndarray, seed: int) -> np.ndarray:
+    """Seeded 64-bit hash of each ``(video_id, frame)`` (pandas' SipHash: the same on every machine and run).
 
-    keep_pose = pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), pre)
-    if not keep_pose.any():
-        raise TableError(
-            f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
-            f"|pitch| <= {pre.pose_filter.max_abs_pitch_deg} deg) of {n_rows}. Likely cause: Pitch/Yaw in degrees "
-            f"(convert with np.deg2rad), or preprocess.pose_filter narrower than the data."
-        )
-    partial = {"frames_in": n_rows, "dropped_pose": int(n_rows - keep_pose.sum())}
-    contract.check_filter_shares(contract.filter_shares(partial), pre.max_drop_fraction, cfg.paths.data_dir)
-    contract.check_pose_units(meta[["Pitch", "Yaw", "Roll"]].to_numpy(), cfg.paths.data_dir)
-    pose_rows = np.flatnonzero(keep_pose)
-    rng = np.random.default_rng(cfg.seed)
-    sample = pose_rows if len(pose_rows) <= pre.alignment.gpa_max_frames else np.sort(
-        rng.choice(pose_rows, pre.alignment.gpa_max_frames, replace=False))
-    reference = generalized_procrustes(anchors_all[sample], pre.alignment.gpa_max_iter, pre.alignment.gpa_tol)
-
-    residual = np.full(n_rows, np.inf)
-    for start in range(0, len(pose_rows), 65536):
-        rows = pose_rows[start : start + 65536]
-        residual[rows], _ = align_to_reference(anchors_all[rows], reference)
-    if pre.alignment.outlier_quantile < 1.0:
-        threshold = float(np.quantile(residual[pose_rows], pre.alignment.outlier_quantile))
-        keep_align = keep_pose & (residual <= threshold)
-    else:
-        threshold = float(residual[pose_rows].max())
-        keep_align = keep_pose
-
-    videos_before = meta[VIDEO_COLUMN].unique()
-    kept_videos = set(meta.loc[keep_align, VIDEO_COLUMN].unique())
-    dropped_videos = sorted(set(videos_before) - kept_videos)
-    if dropped_videos and pre.empty_video == "error":
-        v = dropped_videos[0]
-        f = tables[int(meta.loc[meta[VIDEO_COLUMN] == v, "file_index"].iloc[0])].path
-        raise TableError(
-            f"{f}: video {v!r} (column {VIDEO_COLUMN!r}) has no frames left after the pose filter and the alignment "
-            f"outlier cut ({len(dropped_videos)} such videos). Fix: remove it from the tables, widen "
-            f"preprocess.pose_filter, or set preprocess.empty_video=drop to skip such videos."
-        )
-    counts = {
-        "frames_in": int(n_rows),
-        "videos_in": int(len(videos_before)),
-        "dropped_pose": int(n_rows - keep_pose.sum()),
-        "dropped_alignment_outliers": int(keep_pose.sum() - keep_align.sum()),
-        "alignment_residual_threshold": threshold,
-        "videos_dropped_no_frames_left": int(len(dropped_videos)),
-        "frames_kept": int(keep_align.sum()),
-        "videos_kept": int(len(kept_videos)),
-    }
-    shares = contract.filter_shares(counts)
-    for name, share in shares.items():
-        log.info("%s: dropped %d of %d %s (%.1f%%)", name, share["dropped"], share["of"], share["unit"], 100 * share["fraction"])
-        counts[f"{contract.FILTER_KEYS[name]}_fraction"] = share["fraction"]
-    if dropped_videos:
-        log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
-                    len(dropped_videos), ", ".join(dropped_videos[:5]))
-    contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
-    return Selection(meta=meta, keep=keep_align, reference=reference, counts=counts, dropped_videos=dropped_videos), anchors_all
-
-
-class _VideoMeans:
-    """Per-video means of mesh rows, summed in float64 only while a video still has frames to come.
-
-    Memory is the float32 result (n_videos, 1434) plus the videos open in the current chunks, instead of
-    float64 sums for every video (tables usually hold a video's frames together, so few are open at once).
+    The GPA subsample is the frames of smallest hash, so it depends on the data and the seed only.
     """
+    key = hashlib.sha256(f"aumesh-gpa-{seed}".encode()).hexdigest()[:16]
+    keys = pd.DataFrame({VIDEO_COLUMN: np.asarray(video, dtype=object), FRAME_COLUMN: np.asarray(frame, dtype=np.int64)})
+    return pd.util.hash_pandas_object(keys, index=False, hash_key=key).to_numpy(np.uint64)
 
-    def __init__(self, frames_per_video: np.ndarray):
-        self.count = frames_per_video.astype(np.float64)
-        self.remaining = frames_per_video.astype(np.int64).copy()
-        self.means = np.zeros((len(frames_per_video), N_TARGETS), dtype=np.float32)
-        self._open: dict[int, np.ndarray] = {}
+
+@dataclass
+class Candidates:
+    """GPA candidates: the frames of smallest ``(hash, video, frame)`` seen so far, at most ``k``."""
+
+    hash: np.ndarray  # (m,) uint64
+    video: np.ndarray  # (m,) object (str)
+    frame: np.ndarray  # (m,) int64
+    anchors: np.ndarray  # (m, n_anchors, 3) float32
+
+    def smallest(self, k: int) -> "Candidates":
+        order = np.lexsort((self.frame, self.video.astype(str), self.hash))[:k]
+        return Candidates(self.hash[order], self.video[order], self.frame[order], self.anchors[order])
+
+    def merge(self, other: "Candidates", k: int) -> "Candidates":
+        return Candidates(np.concatenate([self.hash, other.hash]), np.concatenate([self.video, other.video]),
+                          np.concatenate([self.frame, other.frame]),
+                          np.concatenate([self.anchors, other.anchors])).smallest(k)
+
+
+@dataclass
+class Scan:
+    """Pass 1 of consecutive partitions: rows and distinct videos of each, merged GPA candidates."""
+
+    n_rows: list[int]
+    videos: list[np.ndarray]  # per partition: sorted distinct video ids
+    n_pose: int
+    candidates: Candidates
+    k: int
+
+    def __add__(self, other: "Scan") -> "Scan":
+        return Scan(self.n_rows + other.n_rows, self.videos + other.videos, self.n_pose + other.n_pose,
+                    self.candidates.merge(other.candidates, self.k), self.k)
+
+
+def _read_meta(part: Partition, cfg: Config) -> tuple[pd.DataFrame, np.ndarray]:
+    """The partition's validated metadata (every row, table order) and the table index of each row."""
+    metas = [read_metadata(p.table, cfg.data.coerce_numeric, p.row_groups) for p in part]
+    meta = pd.concat(metas, ignore_index=True) if len(metas) > 1 else metas[0]
+    return meta, np.repeat(np.arange(len(part)), [len(m) for m in metas])
+
+
+def _read_anchors(part: Partition, cfg: Config) -> np.ndarray:
+    """(n_rows, n_anchors, 3) anchors of every row, float32 (the precision the alignment is defined at)."""
+    idx = list(cfg.preprocess.alignment.anchor_indices)
+    out = np.empty((sum(p.n_rows for p in part), len(idx), 3), np.float32)
+    offset = 0
+    for p in part:
+        for start, block in iter_vertices(p.table, cfg.data.chunk_rows, idx, p.row_groups):
+            out[offset + start - p.start : offset + start - p.start + len(block)] = block
+        offset += p.n_rows
+    return out
+
+
+def scan_partition(part: Partition, cfg: Config) -> Scan:
+    """Pass 1 on one partition: validation, the pose filter and the partition's GPA candidates."""
+    meta, file_index = _read_meta(part, cfg)
+    check_unique_frames(meta, [p.table.path for p in part], file_index)
+    pose = np.flatnonzero(pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess))
+    k = cfg.preprocess.alignment.gpa_max_frames
+    video = meta[VIDEO_COLUMN].to_numpy(dtype=object)[pose]
+    frame = meta[FRAME_COLUMN].to_numpy(dtype=np.int64)[pose]
+    h = gpa_hash(video, frame, cfg.seed)
+    order = np.lexsort((frame, video.astype(str), h))[:k]
+    anchors = _read_anchors(part, cfg)[pose[order]] if len(order) else \
+        np.empty((0, len(cfg.preprocess.alignment.anchor_indices), 3), np.float32)
+    candidates = Candidates(h[order], video[order], frame[order], anchors)
+    return Scan([len(meta)], [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))], len(pose), candidates, k)
+
+
+@dataclass
+class Residuals:
+    """Pass 2 of one partition: what the outlier cut and the low-AU frames need (16 bytes a pose-passing frame)."""
+
+    pose: np.ndarray  # (n_rows,) bool
+    residual: np.ndarray  # (n_pose,) max anchor residual
+    au_sum: np.ndarray  # (n_pose,) sum of the 20 AUs
+    videos: np.ndarray  # sorted distinct video ids of the partition
+    code: np.ndarray  # (n_pose,) int32 index into ``videos``
+    abs_pose: np.ndarray  # (n_rows, 3) float32 |Pitch|, |Yaw|, |Roll| of every row (the pose-units check)
+    split_rows: pd.DataFrame  # (video_id, frame, file) of rows of videos also in other partitions
+
+
+def residual_partition(part: Partition, cfg: Config, reference: np.ndarray, split_videos: np.ndarray) -> Residuals:
+    """Pass 2 on one partition: residuals of the pose-passing frames to the reference, and their AU sums."""
+    meta, file_index = _read_meta(part, cfg)
+    pose = pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess)
+    rows = np.flatnonzero(pose)
+    anchors = _read_anchors(part, cfg)[rows]
+    residual = np.empty(len(rows))
+    for lo in range(0, len(rows), 65536):
+        residual[lo : lo + 65536], _ = align_to_reference(anchors[lo : lo + 65536], reference)
+    au_sum = meta.loc[pose, list(AU_COLUMNS)].to_numpy().sum(axis=1)
+    videos, code = np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str), return_inverse=True)
+    split = np.isin(meta[VIDEO_COLUMN].to_numpy(dtype=str), split_videos)
+    split_rows = pd.DataFrame({VIDEO_COLUMN: meta.loc[split, VIDEO_COLUMN].to_numpy(),
+                               FRAME_COLUMN: meta.loc[split, FRAME_COLUMN].to_numpy(),
+                               "file": [str(part[i].table.path) for i in file_index[split]]})
+    abs_pose = np.abs(meta[["Pitch", "Yaw", "Roll"]].to_numpy()).astype(np.float32)
+    return Residuals(pose, residual, au_sum, videos, code[rows].astype(np.int32), abs_pose, split_rows)
+
+
+@dataclass
+class Plan:
+    """What pass 3 writes for one partition (from the gathered pass 2)."""
+
+    rows: np.ndarray  # (n_kept,) int32 kept rows of the partition, in order
+    video_index: np.ndarray  # (n_kept,) int32
+    low_video: np.ndarray  # (n_kept,) bool: low-AU within its video
+    low_population: np.ndarray  # (n_kept,) bool: low-AU in the population
+    offset: int  # output row of the first kept row
+    part_index: int
+
+
+@dataclass
+class Written:
+    """Pass 3 of consecutive partitions: population sums and the per-video sums of videos split across partitions."""
+
+    sums: np.ndarray  # (2, 1434): all kept frames, population low-AU frames
+    split: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2, 1434) sums (all, low-AU)
+    split_counts: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2,) frames
+
+    def __add__(self, other: "Written") -> "Written":
+        out = Written(self.sums + other.sums, dict(self.split), dict(self.split_counts))
+        for v, s in other.split.items():
+            if v in out.split:
+                out.split[v] = out.split[v] + s
+                out.split_counts[v] = out.split_counts[v] + other.split_counts[v]
+            else:
+                out.split[v], out.split_counts[v] = s, other.split_counts[v]
+        return out
+
+
+class _VideoSums:
+    """Per-video sums of mesh rows in float64, only while a video still has rows to come in this partition;
+    a finished video's mean is handed to ``done`` (memory: the videos open in the current chunk)."""
+
+    def __init__(self, video: np.ndarray, done):
+        videos, counts = np.unique(video, return_counts=True)
+        self.count = dict(zip(videos.tolist(), counts.tolist()))
+        self.remaining = dict(self.count)
+        self.open: dict[int, np.ndarray] = {}
+        self.done = done
 
     def add(self, video: np.ndarray, rows: np.ndarray) -> None:
         """Add ``rows`` (m, 1434) of videos ``video`` (m,)."""
@@ -174,14 +247,209 @@ class _VideoMeans:
         sums = indicator @ rows
         n_rows = np.asarray(indicator.sum(axis=1)).ravel().astype(np.int64)
         for j, v in enumerate(videos.tolist()):
-            acc = self._open.get(v)
+            acc = self.open.get(v)
             if acc is None:
-                acc = self._open[v] = np.zeros(N_TARGETS)
+                acc = self.open[v] = np.zeros(N_TARGETS)
             acc += sums[j]
-            self.remaining[v] -= n_rows[j]
+            self.remaining[v] -= int(n_rows[j])
             if self.remaining[v] == 0:
-                self.means[v] = acc / self.count[v]
-                del self._open[v]
+                self.done(v, self.open.pop(v), self.count[v])
+
+
+def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: Plan, out_dir: Path,
+                    split_video: np.ndarray) -> Written:
+    """Pass 3 on one partition: align and write its kept meshes, metadata and whole videos' neutrals.
+
+    ``split_video`` (n_videos,) bool marks videos with frames in other partitions too: their sums are
+    returned instead of written.
+    """
+    meta, _ = _read_meta(part, cfg)
+    kept = meta.iloc[plan.rows].reset_index(drop=True)
+    kept["video_index"] = plan.video_index
+    kept["low_au"] = plan.low_video
+    pq.write_table(pa.Table.from_pandas(kept, preserve_index=False), out_dir / "parts" / f"{plan.part_index:06d}.parquet")
+    del meta, kept
+    result = Written(np.zeros((2, N_TARGETS)))
+
+    def finished(name: str, slot: int):
+        def done(v: int, total: np.ndarray, count: int) -> None:
+            if split_video[v]:
+                result.split.setdefault(v, np.zeros((2, N_TARGETS)))[slot] += total
+                result.split_counts.setdefault(v, np.zeros(2, np.int64))[slot] += count
+            else:
+                write_rows(out_dir / NEUTRAL_FILES[name], v, (total / count).astype(np.float32)[None])
+        return done
+
+    all_frames = _VideoSums(plan.video_index, finished("mean", 0))
+    low_frames = _VideoSums(plan.video_index[plan.low_video], finished("low_au", 1))
+    position = np.full(sum(p.n_rows for p in part), -1, dtype=np.int64)
+    position[plan.rows] = np.arange(len(plan.rows))
+    anchor_columns = np.concatenate([np.asarray(cfg.preprocess.alignment.anchor_indices) + a * N_VERTICES for a in range(3)])
+    offset = 0
+    for p in part:
+        for start, coords in iter_mesh_columns(p.table, cfg.data.chunk_rows, p.row_groups):
+            m = coords.shape[1]
+            local = offset + start - p.start
+            pos = position[local : local + m]
+            sel = pos >= 0
+            if not sel.any():
+                continue
+            pos = pos[sel]
+            # anchors at float32, as pass 2 saw them: (m, 3, 12) -> (m, 12, 3)
+            anchors = coords[anchor_columns][:, sel].T.reshape(-1, 3, len(anchor_columns) // 3).transpose(0, 2, 1)
+            transform = umeyama_batch(anchors.astype(np.float32).astype(np.float64), reference)
+            flat = _align_rows(coords.T[sel], *transform)  # (m, 1434) float64, axis-major [x | y | z]
+            write_rows(out_dir / "meshes.npy", plan.offset + int(pos[0]), flat.astype(np.float32))
+            result.sums[0] += flat.sum(axis=0)
+            result.sums[1] += flat[plan.low_population[pos]].sum(axis=0)
+            all_frames.add(plan.video_index[pos], flat)
+            low = plan.low_video[pos]
+            low_frames.add(plan.video_index[pos][low], flat[low])
+        offset += p.n_rows
+    return result
+
+
+def _write_item(item: tuple[Partition, Plan], **kwargs) -> Written:
+    return write_partition(item[0], plan=item[1], **kwargs)
+
+
+def _plans(res: list[Residuals], threshold: float, quantile_cut: bool, video_ids: np.ndarray,
+           cfg: Config) -> tuple[list[Plan], int]:
+    """Kept rows, video index and low-AU flags of each partition; low-AU thresholds exact over all kept frames."""
+    rows, vidx, au = [], [], []
+    for r in res:
+        keep = r.residual <= threshold if quantile_cut else np.ones(len(r.residual), bool)
+        rows.append(np.flatnonzero(r.pose)[keep].astype(np.int32))
+        vidx.append(np.searchsorted(video_ids, r.videos).astype(np.int32)[r.code[keep]])
+        au.append(r.au_sum[keep])
+    counts = [len(x) for x in rows]
+    low_video, low_population = low_au_masks(np.concatenate(au), np.concatenate(vidx), cfg.preprocess.neutral.low_au_quantile)
+    bounds = np.r_[0, np.cumsum(counts)]
+    plans = [Plan(rows[i], vidx[i], low_video[bounds[i] : bounds[i + 1]], low_population[bounds[i] : bounds[i + 1]],
+                  int(bounds[i]), i) for i in range(len(res))]
+    return plans, int(low_population.sum())
+
+
+def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
+    """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary."""
+    pre = cfg.preprocess
+    parts = partitions(tables, cfg.compute.partition_rows)
+    with compute.engine(cfg.compute):
+        # pass 1: validation, pose filter, GPA candidates
+        scan = compute.map_reduce(partial(scan_partition, cfg=cfg), Scan.__add__, parts)
+        if scan.n_pose == 0:
+            raise TableError(
+                f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
+                f"|pitch| <= {pre.pose_filter.max_abs_pitch_deg} deg) of {sum(scan.n_rows)}. Likely cause: Pitch/Yaw in degrees "
+                f"(convert with np.deg2rad), or preprocess.pose_filter narrower than the data."
+            )
+        partial_counts = {"frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose)}
+        contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
+        reference = generalized_procrustes(scan.candidates.anchors, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol)
+        every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
+        split_names = every_video[in_parts > 1]
+
+        # pass 2: residuals and AU sums of the pose-passing frames, gathered
+        res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names), parts)
+        abs_pose = np.concatenate([r.abs_pose for r in res])
+        contract.check_pose_units(abs_pose, cfg.paths.data_dir)  # the median |angle| over every frame: exact
+        del abs_pose
+        split_rows = pd.concat([r.split_rows for r in res], ignore_index=True)
+        if len(split_rows):  # (video, frame) pairs across partitions (within one: checked in pass 1)
+            files = sorted(set(split_rows["file"]))
+            check_unique_frames(split_rows, [Path(f) for f in files], np.searchsorted(files, split_rows["file"]))
+        residual = np.concatenate([r.residual for r in res])
+        quantile_cut = pre.alignment.outlier_quantile < 1.0
+        # exact and independent of the partitioning: a quantile of the whole gathered vector
+        threshold = float(np.quantile(residual, pre.alignment.outlier_quantile)) if quantile_cut else float(residual.max())
+        n_kept_pose = int((residual <= threshold).sum()) if quantile_cut else len(residual)
+        del residual
+        kept_names = [r.videos[np.unique(r.code[r.residual <= threshold] if quantile_cut else r.code)] for r in res]
+        video_ids = np.unique(np.concatenate(kept_names))
+        dropped_videos = sorted(set(every_video.tolist()) - set(video_ids.tolist()))
+        n_rows = int(sum(scan.n_rows))
+        if dropped_videos and pre.empty_video == "error":
+            v = dropped_videos[0]
+            f = next(p.table.path for part, names in zip(parts, scan.videos) if v in set(names) for p in part)
+            raise TableError(
+                f"{f}: video {v!r} (column {VIDEO_COLUMN!r}) has no frames left after the pose filter and the alignment "
+                f"outlier cut ({len(dropped_videos)} such videos). Fix: remove it from the tables, widen "
+                f"preprocess.pose_filter, or set preprocess.empty_video=drop to skip such videos."
+            )
+        counts = {
+            "frames_in": n_rows,
+            "videos_in": int(len(every_video)),
+            "dropped_pose": int(n_rows - scan.n_pose),
+            "dropped_alignment_outliers": int(scan.n_pose - n_kept_pose),
+            "alignment_residual_threshold": threshold,
+            "videos_dropped_no_frames_left": int(len(dropped_videos)),
+            "frames_kept": n_kept_pose,
+            "videos_kept": int(len(video_ids)),
+        }
+        shares = contract.filter_shares(counts)
+        for name, share in shares.items():
+            log.info("%s: dropped %d of %d %s (%.1f%%)", name, share["dropped"], share["of"], share["unit"], 100 * share["fraction"])
+            counts[f"{contract.FILTER_KEYS[name]}_fraction"] = share["fraction"]
+        if dropped_videos:
+            log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
+                        len(dropped_videos), ", ".join(dropped_videos[:5]))
+        contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
+        plans, n_low_population = _plans(res, threshold, quantile_cut, video_ids, cfg)
+        del res
+        n_kept, n_videos = n_kept_pose, len(video_ids)
+        split_video = np.isin(video_ids, split_names)
+
+        with atomic_directory(out_dir) as tmp:
+            (tmp / "parts").mkdir()
+            create_npy(tmp / "meshes.npy", np.float32, (n_kept, N_TARGETS))
+            for name in NEUTRAL_FILES.values():
+                create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
+            # pass 3: align and write; population sums and split videos' sums reduced in a tree
+            written = compute.map_reduce(
+                partial(_write_item, cfg=cfg, reference=reference, out_dir=tmp, split_video=split_video),
+                Written.__add__, list(zip(parts, plans)))
+            del plans
+            for v, total in written.split.items():  # videos with frames in several partitions
+                for slot, name in enumerate(("mean", "low_au")):
+                    write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
+            _concatenate_parts(tmp / "parts", tmp / "frames.parquet")
+            np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
+            mean_aligned = written.sums[0] / n_kept
+            mean_low = written.sums[1] / max(n_low_population, 1)
+            np.savez(
+                tmp / "reference.npz",
+                reference_anchors=reference.astype(np.float32),
+                anchor_indices=np.asarray(pre.alignment.anchor_indices, dtype=np.int32),
+                mean_aligned_mesh=mean_aligned.reshape(3, N_VERTICES).T.astype(np.float32),
+                mean_low_au_mesh=mean_low.reshape(3, N_VERTICES).T.astype(np.float32),
+            )
+            summary = {
+                "counts": counts,
+                "n_frames": n_kept,
+                "n_videos": int(n_videos),
+                "n_low_au_population": n_low_population,
+                "dropped_videos": dropped_videos[:1000],
+                "tables": [str(t.path) for t in tables],
+            }
+            atomic_write_json(tmp / "summary.json", summary)
+    return summary
+
+
+def _concatenate_parts(parts_dir: Path, out: Path) -> None:
+    """One parquet of the partitions' kept metadata, in partition order (a row group per partition)."""
+    files = sorted(parts_dir.glob("*.parquet"))
+    writer = None
+    for f in files:
+        table = pq.read_table(f)
+        f.unlink()
+        if table.num_rows == 0:  # a partition with no frame kept (its columns may even lack a type)
+            continue
+        if writer is None:
+            writer = pq.ParquetWriter(out, table.schema)
+        writer.write_table(table.cast(writer.schema))
+    if writer is not None:
+        writer.close()
+    parts_dir.rmdir()
 
 
 def _align_rows(rows: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
@@ -200,87 +468,6 @@ def _align_rows(rows: np.ndarray, rotation: np.ndarray, scale: np.ndarray, trans
         o *= scale[:, None]
         o += translation[:, a, None]
     return out.reshape(len(rows), N_TARGETS)
-
-
-def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
-    """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary."""
-    pre = cfg.preprocess
-    selection, anchors_all = select_frames(tables, cfg)
-    meta, keep = selection.meta, selection.keep
-    kept = meta.loc[keep].reset_index(drop=True)
-    video_ids, video_index = np.unique(kept[VIDEO_COLUMN].to_numpy(), return_inverse=True)
-    kept["video_index"] = video_index.astype(np.int32)
-    au_sum = kept[list(AU_COLUMNS)].to_numpy().sum(axis=1)
-    low_video, low_population = low_au_masks(au_sum, video_index, pre.neutral.low_au_quantile)
-    kept["low_au"] = low_video
-    n_kept, n_videos = len(kept), len(video_ids)
-
-    # output position of each input row (-1: dropped)
-    position = np.full(len(keep), -1, dtype=np.int64)
-    position[np.flatnonzero(keep)] = np.arange(n_kept)
-    file_offsets = np.r_[0, np.cumsum([t.n_rows for t in tables])]
-
-    del meta, selection.meta  # per-row metadata of dropped rows is not needed any more
-    sums = np.zeros((2, N_TARGETS))  # all kept frames, population low-AU frames
-    video_means = _VideoMeans(np.bincount(video_index, minlength=n_videos))
-    video_low_means = _VideoMeans(np.bincount(video_index[low_video], minlength=n_videos))
-    with atomic_directory(out_dir) as tmp:
-        # the header via numpy; rows written with plain file I/O (kept rows arrive in output order), so the
-        # meshes never sit in this process's memory (a memmap would count every written page in its RSS)
-        header = np.lib.format.open_memmap(tmp / "meshes.npy", mode="w+", dtype=np.float32, shape=(n_kept, N_TARGETS))
-        data_offset = header.offset
-        del header
-        written = 0
-        with open(tmp / "meshes.npy", "r+b") as fh:
-            fh.seek(data_offset)
-            for i, table in enumerate(tables):
-                for start, coords in iter_mesh_columns(table, cfg.data.chunk_rows):
-                    m = coords.shape[1]
-                    pos = position[file_offsets[i] + start : file_offsets[i] + start + m]
-                    sel = pos >= 0
-                    if not sel.any():
-                        continue
-                    pos = pos[sel]
-                    if pos[0] != written or pos[-1] != written + len(pos) - 1:  # pragma: no cover - by construction
-                        raise AssertionError("prepare: kept rows out of order")
-                    anchors = anchors_all[file_offsets[i] + start : file_offsets[i] + start + m][sel]
-                    transform = umeyama_batch(anchors.astype(np.float64), selection.reference)
-                    flat = _align_rows(coords.T[sel], *transform)  # (m, 1434) float64, axis-major [x | y | z]
-                    flat.astype(np.float32).tofile(fh)
-                    written += len(pos)
-                    sums[0] += flat.sum(axis=0)
-                    sums[1] += flat[low_population[pos]].sum(axis=0)
-                    video_means.add(video_index[pos], flat)
-                    low = low_video[pos]
-                    video_low_means.add(video_index[pos][low], flat[low])
-        if written != n_kept:  # pragma: no cover - by construction
-            raise AssertionError(f"prepare: wrote {written} of {n_kept} meshes")
-        kept.drop(columns=["file_index", "row"]).to_parquet(tmp / "frames.parquet", index=False)
-        np.savez(
-            tmp / "neutrals.npz",
-            video_ids=video_ids.astype(str),
-            neutral_mean=video_means.means,
-            neutral_low_au=video_low_means.means,
-        )
-        mean_aligned = sums[0] / n_kept
-        mean_low = sums[1] / max(int(low_population.sum()), 1)
-        np.savez(
-            tmp / "reference.npz",
-            reference_anchors=selection.reference.astype(np.float32),
-            anchor_indices=np.asarray(pre.alignment.anchor_indices, dtype=np.int32),
-            mean_aligned_mesh=mean_aligned.reshape(3, N_VERTICES).T.astype(np.float32),
-            mean_low_au_mesh=mean_low.reshape(3, N_VERTICES).T.astype(np.float32),
-        )
-        summary = {
-            "counts": selection.counts,
-            "n_frames": n_kept,
-            "n_videos": int(n_videos),
-            "n_low_au_population": int(low_population.sum()),
-            "dropped_videos": selection.dropped_videos[:1000],
-            "tables": [str(t.path) for t in tables],
-        }
-        atomic_write_json(tmp / "summary.json", summary)
-    return summary
 
 
 def load_summary(prepared_dir: str | Path) -> dict:

@@ -112,3 +112,123 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def create_npy(path: str | Path, dtype, shape: tuple[int, ...]) -> int:
+    """An ``.npy`` of ``shape`` (zero-filled, sparse on disk) whose rows are written later with :func:`write_rows`.
+
+    Returns the byte offset of the data (after the header).
+    """
+    header = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)
+    offset = header.offset
+    del header
+    return offset
+
+
+def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
+    """``(data offset, dtype, shape)`` of a C-ordered ``.npy`` (read from its header only)."""
+    with open(path, "rb") as fh:
+        version = np.lib.format.read_magic(fh)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(fh)
+        if fortran:
+            raise ValueError(f"{path}: Fortran-ordered array; rows cannot be streamed")
+        return fh.tell(), dtype, shape
+
+
+def write_rows(path: str | Path, first_row: int, rows: np.ndarray, offset: int | None = None) -> None:
+    """Write ``rows`` (C-contiguous, the file's dtype) into an ``.npy`` from row ``first_row`` on (``pwrite``:
+    several processes may fill disjoint rows of one file at once; nothing is memory-mapped)."""
+    rows = np.ascontiguousarray(rows)
+    if offset is None:
+        offset = npy_layout(path)[0]
+    row_bytes = rows[0].nbytes if len(rows) else 0
+    fd = os.open(path, os.O_WRONLY)
+    try:
+        view = memoryview(rows).cast("B")
+        pos, done = offset + first_row * row_bytes, 0
+        while done < len(view):
+            done += os.pwrite(fd, view[done:], pos + done)
+    finally:
+        os.close(fd)
+
+
+def read_rows(path: str | Path, start: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Rows ``start:stop`` of an ``.npy`` read with plain file I/O (a memory map would keep every page
+    read resident in the process)."""
+    offset, dtype, shape = npy_layout(path)
+    row_shape = shape[1:]
+    n = max(0, min(stop, shape[0]) - start)
+    if out is None:
+        out = np.empty((n, *row_shape), dtype=dtype)
+    else:
+        out = out[:n]
+    view = memoryview(out).cast("B")
+    row_bytes = int(np.prod(row_shape, dtype=np.int64)) * dtype.itemsize
+    with open(path, "rb", buffering=0) as fh:
+        fh.seek(offset + start * row_bytes)
+        got = 0
+        while got < len(view):
+            k = fh.readinto(view[got:])
+            if not k:
+                raise EOFError(f"{path}: truncated at row {start + got // max(row_bytes, 1)}")
+            got += k
+    return out
+
+
+def read_row_set(path: str | Path, rows: np.ndarray) -> np.ndarray:
+    """Rows ``rows`` (any order, repeats allowed) of an ``.npy``, read run by run with plain file I/O."""
+    rows = np.asarray(rows, dtype=np.int64)
+    _, dtype, shape = npy_layout(path)
+    out = np.empty((len(rows), *shape[1:]), dtype=dtype)
+    if len(rows) == 0:
+        return out
+    order = np.argsort(rows, kind="stable")
+    sorted_rows = rows[order]
+    unique, first = np.unique(sorted_rows, return_index=True)
+    breaks = np.flatnonzero(np.diff(unique) != 1) + 1
+    block = np.empty((len(unique), *shape[1:]), dtype=dtype)
+    for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(unique)]):
+        read_rows(path, int(unique[lo]), int(unique[hi - 1]) + 1, block[lo:hi])
+    counts = np.diff(np.r_[first, len(sorted_rows)])
+    out[order] = np.repeat(block, counts, axis=0)
+    return out
+
+
+class NpyRows:
+    """Rows of an ``.npy`` on disk, read on demand with plain file I/O (never memory-mapped, never whole
+    unless asked): ``rows[v]``, ``rows[v, cols]``, ``rows[a:b]`` for row index arrays/slices; ``np.asarray(rows)``
+    reads it all. For per-video arrays too large to hold whole at many videos.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        _, self.dtype, self.shape = npy_layout(self.path)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __getitem__(self, key):
+        rest: tuple = ()
+        if isinstance(key, tuple):
+            key, rest = key[0], key[1:]
+        if isinstance(key, slice):
+            start, stop, step = key.indices(self.shape[0])
+            out = read_rows(self.path, start, stop)[::step] if step > 0 else read_row_set(self.path, np.arange(start, stop, step))
+        elif np.isscalar(key):
+            out = read_row_set(self.path, np.array([int(key)]))[0]
+        else:
+            key = np.asarray(key)
+            out = read_row_set(self.path, np.flatnonzero(key) if key.dtype == bool else key)
+        return out[(slice(None), *rest)] if rest and not np.isscalar(key) else (out[rest] if rest else out)
+
+    def __array__(self, dtype=None, copy=None):
+        out = read_rows(self.path, 0, self.shape[0])
+        return out if dtype is None else out.astype(dtype)
+
+    def astype(self, dtype) -> np.ndarray:
+        return np.asarray(self).astype(dtype)

@@ -1,0 +1,149 @@
+"""The Dask engine: the same prepared data and model from any partitioning and any scheduler.
+
+References are independent of the engine: the outlier threshold is recomputed with numpy from the
+released reference and the raw tables, the GPA subsample from the seeded hash over all frames;
+schedulers are compared with each other and with a real ``distributed.LocalCluster`` (2 worker
+processes over loopback).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from aumesh.data import synth, tables
+from aumesh.data.schema import VIDEO_COLUMN
+from aumesh.geometry.align import align_to_reference, generalized_procrustes
+from aumesh.pipeline import evaluate as ev
+from aumesh.pipeline import prepare
+from conftest import default_config
+
+ROW_GROUP = 97  # cuts videos across row groups, so across partitions
+
+
+@pytest.fixture(scope="module")
+def split_tables(tmp_path_factory):
+    """1,200 frames of 60 videos in two files with 97-row row groups: videos split across partitions."""
+    root = tmp_path_factory.mktemp("split")
+    synth.write_tables(root / "raw", synth.SynthSpec(n_frames=1200, n_videos=60, seed=11, frames_per_file=700))
+    (root / "data").mkdir()
+    for f in sorted((root / "raw").glob("*.parquet")):
+        pq.write_table(pq.read_table(f), root / "data" / f.name, row_group_size=ROW_GROUP)
+    return root
+
+
+def _prepare(root, name, **overrides):
+    cfg = default_config(**{"paths.data_dir": str(root / "data"), **overrides})
+    found = tables.discover(root / "data", cfg.data.tables, cfg.data.mesh_npy)
+    summary = prepare.run(found, cfg, root / name)
+    return root / name, summary
+
+
+def _assert_same_prepared(a, b, exact_meshes=True):
+    meshes_a, meshes_b = np.load(a / "meshes.npy"), np.load(b / "meshes.npy")
+    if exact_meshes:
+        np.testing.assert_array_equal(meshes_a, meshes_b)
+    pd.testing.assert_frame_equal(pd.read_parquet(a / "frames.parquet"), pd.read_parquet(b / "frames.parquet"))
+    np.testing.assert_array_equal(np.load(a / "video_ids.npy"), np.load(b / "video_ids.npy"))
+    for name in ("neutral_mean.npy", "neutral_low_au.npy"):
+        np.testing.assert_allclose(np.load(a / name), np.load(b / name), rtol=1e-6)  # float32, summation order
+    ra, rb = np.load(a / "reference.npz"), np.load(b / "reference.npz")
+    np.testing.assert_array_equal(ra["reference_anchors"], rb["reference_anchors"])
+    for k in ("mean_aligned_mesh", "mean_low_au_mesh"):
+        np.testing.assert_allclose(ra[k], rb[k], rtol=1e-6)
+
+
+def test_partitions_cover_every_row_group_once_in_order(split_tables):
+    cfg = default_config(**{"paths.data_dir": str(split_tables / "data")})
+    found = tables.discover(split_tables / "data", cfg.data.tables, cfg.data.mesh_npy)
+    for rows in (1, 250, 10**9):
+        parts = tables.partitions(found, rows)
+        pieces = [(p.table.path, g) for part in parts for p in part for g in p.row_groups]
+        expected = [(t.path, g) for t in found for g in range(pq.ParquetFile(t.path).metadata.num_row_groups)]
+        assert pieces == expected
+        assert all(sum(p.n_rows for p in part) >= min(rows, ROW_GROUP) for part in parts[:-1])
+    assert len(tables.partitions(found, 1)) == len(expected) and len(tables.partitions(found, 10**9)) == 1
+
+
+def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):
+    """GPA on a hashed subsample (gpa_max_frames < frames), outlier cut: same outputs from 1 to 13 partitions."""
+    sub = {"preprocess.alignment.gpa_max_frames": 300}
+    one, s1 = _prepare(split_tables, "one", **sub, **{"compute.partition_rows": 10**9, "compute": "synchronous"})
+    many, s2 = _prepare(split_tables, "many", **sub, **{"compute.partition_rows": 1})
+    some, s3 = _prepare(split_tables, "some", **sub, **{"compute.partition_rows": 300, "compute": "processes",
+                                                          "compute.n_workers": 2})
+    assert s1 == s2 == s3
+    _assert_same_prepared(one, many)
+    _assert_same_prepared(one, some)
+
+
+def test_outlier_threshold_and_gpa_subsample_follow_their_definitions(split_tables):
+    """Threshold = numpy quantile of every pose-passing frame's residual; subsample = smallest seeded hashes."""
+    k = 300
+    out, summary = _prepare(split_tables, "defs", **{"preprocess.alignment.gpa_max_frames": k, "compute.partition_rows": 200})
+    cfg = default_config()
+    frames = pd.concat([pq.read_table(f).to_pandas() for f in sorted((split_tables / "data").glob("*.parquet"))],
+                       ignore_index=True)
+    pose = prepare.pose_mask(frames["Pitch"].to_numpy(), frames["Yaw"].to_numpy(), cfg.preprocess)
+    idx = list(cfg.preprocess.alignment.anchor_indices)
+    anchors = np.stack([frames[[f"{a}_{i}" for i in idx]].to_numpy() for a in "xyz"], axis=2).astype(np.float32)
+    h = prepare.gpa_hash(frames.loc[pose, VIDEO_COLUMN].to_numpy(object), frames.loc[pose, "frame"].to_numpy(), cfg.seed)
+    chosen = np.argsort(h)[:k]
+    reference = generalized_procrustes(anchors[pose][chosen], cfg.preprocess.alignment.gpa_max_iter,
+                                       cfg.preprocess.alignment.gpa_tol)
+    np.testing.assert_allclose(np.load(out / "reference.npz")["reference_anchors"], reference, rtol=1e-6, atol=1e-4)
+    residual, _ = align_to_reference(anchors[pose].astype(np.float64), reference)
+    threshold = summary["counts"]["alignment_residual_threshold"]
+    assert threshold == pytest.approx(np.quantile(residual, 0.99), rel=1e-9)
+    assert summary["counts"]["frames_kept"] == int((residual <= threshold).sum())
+    # another seed draws another subsample
+    assert not np.array_equal(np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object),
+                                                          frames["frame"].to_numpy(), 1))[:k],
+                              np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object),
+                                                          frames["frame"].to_numpy(), 0))[:k])
+
+
+def _evaluate(prepared_dir, **overrides):
+    cfg = default_config(**{"model.n_components": 12, **overrides})
+    return ev.evaluate(ev.load_prepared(prepared_dir), cfg)
+
+
+def _assert_same_model(a, b, rtol=1e-12):
+    (cv_a, fit_a), (cv_b, fit_b) = a, b
+    for x, y in ((fit_a.coef, fit_b.coef), (fit_a.mesh_intercept, fit_b.mesh_intercept)):
+        assert np.abs(x - y).max() <= rtol * np.abs(y).max()
+    ma, mb = cv_a.metrics(), cv_b.metrics()
+    for key, value in mb.items():
+        np.testing.assert_allclose(ma[key], value, rtol=rtol, err_msg=key)
+    np.testing.assert_allclose(cv_a.frame_vertex_error, cv_b.frame_vertex_error, rtol=1e-6)  # float32
+
+
+@pytest.fixture(scope="module")
+def split_prepared(split_tables):
+    """The split set prepared once with every row group its own partition (13 partitions in evaluate too)."""
+    out, _ = _prepare(split_tables, "prepared-many", **{"compute.partition_rows": 1})
+    return out
+
+
+def test_models_agree_across_schedulers_and_partitionings(split_tables, split_prepared):
+    """1 thread, 2 threads, synchronous, 13 vs 1 partitions; neutral target too: coefficients and CV metrics to 1e-12."""
+    one_partition, _ = _prepare(split_tables, "prepared-one", **{"compute.partition_rows": 10**9})
+    for target in ("absolute", "neutral"):
+        ref = _evaluate(split_prepared, **{"compute": "synchronous", "preprocess.target": target})
+        _assert_same_model(_evaluate(split_prepared, **{"compute.n_workers": 1, "preprocess.target": target}), ref)
+        _assert_same_model(_evaluate(split_prepared, **{"compute.n_workers": 2, "preprocess.target": target}), ref)
+        _assert_same_model(_evaluate(one_partition, **{"compute": "synchronous", "preprocess.target": target}), ref)
+
+
+def test_local_cluster_of_two_worker_processes(split_tables, split_prepared):
+    """A real dask.distributed LocalCluster (2 processes, loopback): the same prepared data and model."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        remote = {"compute": "distributed", "compute.address": cluster.scheduler_address}
+        out, _ = _prepare(split_tables, "prepared-cluster", **remote, **{"compute.partition_rows": 1})
+        _assert_same_prepared(out, split_prepared)
+        _assert_same_model(_evaluate(out, **remote), _evaluate(split_prepared, **{"compute": "synchronous"}))
