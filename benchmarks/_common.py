@@ -98,18 +98,32 @@ def ensure_data(workdir: Path, n_frames: int, n_videos: int, seed: int = 0) -> t
     return data, time.perf_counter() - t0
 
 
-def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = ()) -> Path:
-    """A params file whose paths all point into ``run_dir`` (tracking: a SQLite store there)."""
+def source_env(src: str | Path | None) -> dict:
+    """The environment that runs the stages of the source tree ``src`` (``PYTHONPATH``; None: the installed aumesh)."""
+    env = dict(os.environ)
+    if src:
+        env["PYTHONPATH"] = str(src) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
+
+
+def conf_dir(src: str | Path | None) -> Path:
+    """The ``conf/`` beside a source tree ``<checkout>/src`` (this repo's for None)."""
+    return Path(src).resolve().parent / "conf" if src else REPO / "conf"
+
+
+def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = (), src: str | Path | None = None) -> Path:
+    """A params file whose paths all point into ``run_dir`` (tracking: a SQLite store there), composed from the
+    ``conf/`` of the source tree ``src`` by that tree's code (None: this checkout)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     write_data_dvc(run_dir, data_dir)
     out = run_dir / "params.yaml"
     subprocess.run(
-        AUMESH + ["compose-params", "--config-dir", str(REPO / "conf"), "--out", str(out),
+        AUMESH + ["compose-params", "--config-dir", str(conf_dir(src)), "--out", str(out),
                   f"paths.data_dir={data_dir}", f"paths.prepared_dir={run_dir / 'prepared'}",
                   f"paths.model_dir={run_dir / 'model'}", f"paths.release_dir={run_dir / 'release'}",
                   f"paths.metrics_file={run_dir / 'metrics.json'}", f"paths.promotion_file={run_dir / 'promotion.json'}",
                   f"tracking.tracking_uri=sqlite:///{run_dir / 'mlflow.db'}", *overrides],
-        check=True, stdout=subprocess.DEVNULL)
+        check=True, stdout=subprocess.DEVNULL, env=source_env(src))
     return out
 
 
@@ -122,7 +136,12 @@ def write_data_dvc(run_dir: Path, data_dir: Path) -> None:
 
 
 def run_stages(run_dir: Path, params: Path, env: dict | None = None, stages=STAGES) -> list[Measurement]:
-    """The pipeline's stages in order, each a measured subprocess (cwd = ``run_dir``)."""
+    """The pipeline's stages in order, each a measured subprocess (cwd = ``run_dir``).
+
+    The MLflow store is named by ``MLFLOW_TRACKING_URI`` (absolute), so a run folder outside the repository
+    works with any source tree (older ones look for the workspace root to resolve a configured URI).
+    """
+    env = dict(env if env is not None else os.environ, MLFLOW_TRACKING_URI=f"sqlite:///{run_dir.resolve() / 'mlflow.db'}")
     out = []
     for stage in stages:
         m = run_measured(AUMESH + [stage, "--params", str(params)], run_dir, run_dir / f"{stage}.log", env, stage)
@@ -133,8 +152,81 @@ def run_stages(run_dir: Path, params: Path, env: dict | None = None, stages=STAG
     return out
 
 
+def read_floor(data_dir: Path) -> tuple[float, float]:
+    """One pyarrow read of every table under ``data_dir`` (all columns; and the mesh ``.npy`` of py-feat's
+    layout): ``(wall s, GiB read)``, the least any pipeline over these tables must spend on I/O and decoding."""
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    t0 = time.perf_counter()
+    size = 0
+    for f in sorted(Path(data_dir).glob("*.parquet")):
+        table = pq.read_table(f)
+        size += table.nbytes
+        del table
+        npy = f.with_suffix(".npy")
+        if npy.exists():
+            arr = np.load(npy)
+            size += arr.nbytes
+            del arr
+    return time.perf_counter() - t0, size / 2**30
+
+
+def pyfeat_replicas(workdir: Path, columns_data: Path, copies: int, n_files: int | None = None) -> Path:
+    """A py-feat-layout set (AU/pose parquet + float16 ``[N, 478, 3]`` .npy) of ``copies`` copies of the first
+    ``n_files`` tables of ``columns_data`` (copy ``c`` renames its videos ``c<c>_...``). The meshes are converted
+    once (``<workdir>/pyfeat_base``); copies link to them, so 3M frames cost the disk of the base set only.
+    """
+    import numpy as np
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    base = workdir / "pyfeat_base"
+    files = sorted(Path(columns_data).glob("*.parquet"))
+    if not base.exists():
+        tmp = base.with_name(base.name + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        for f in files:
+            pf = pq.ParquetFile(f)
+            names = pf.schema_arrow.names
+            mesh = [c for c in names if c[:2] in ("x_", "y_", "z_") and c[2:].isdigit()]
+            meta = pq.read_table(f, columns=[c for c in names if c not in set(mesh) and c != "video_id"])
+            pq.write_table(meta, tmp / f.name, row_group_size=8192)
+            coords = pq.read_table(f, columns=[f"{a}_{i}" for i in range(478) for a in "xyz"])
+            arr = np.empty((coords.num_rows, 478 * 3), np.float16)
+            for j, col in enumerate(coords.columns):
+                arr[:, j] = col.to_numpy()
+            np.save(tmp / f.with_suffix(".npy").name, arr.reshape(-1, 478, 3))
+            del coords, arr
+        tmp.rename(base)
+    n_files = n_files or len(files)
+    out = workdir / f"pyfeat_{n_files}files_x{copies}"
+    if out.exists():
+        return out
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for c in range(copies):
+        for f in sorted(base.glob("*.parquet"))[:n_files]:
+            table = pq.read_table(f)
+            if c:
+                renamed = pc.replace_substring(table.column("input"), "videos/", f"videos/c{c}_")
+                table = table.set_column(table.schema.get_field_index("input"), "input", renamed)
+            name = f"c{c}_{f.stem}"
+            pq.write_table(table, tmp / f"{name}.parquet", row_group_size=8192)
+            os.symlink(f.with_suffix(".npy").resolve(), tmp / f"{name}.npy")
+    tmp.rename(out)
+    return out
+
+
 def dir_size(path: Path) -> int:
     return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
+
+
+def load() -> str:
+    """The 1-minute load average (other work on the machine slows wall times)."""
+    return f"{os.getloadavg()[0]:.1f}"
 
 
 def environment_note() -> str:

@@ -16,6 +16,7 @@ Examples
     python benchmarks/bench_pipeline.py --frames 20000 --videos 580 --repeats 3
     python benchmarks/bench_pipeline.py --dvc                   # also the `dvc repro` form
     python benchmarks/bench_pipeline.py --src /path/to/other/src  # benchmark another source tree
+    python benchmarks/bench_pipeline.py --baseline-src /tmp/old/src --workers 1 2 --dvc   # before/after, worker scaling
 """
 
 from __future__ import annotations
@@ -30,32 +31,27 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (AUMESH, DEFAULT_OUT, REPO, STAGES, compose_params, dir_size, ensure_data,  # noqa: E402
-                     environment_note, fmt_table, run_measured, run_stages,
+from _common import (AUMESH, DEFAULT_OUT, REPO, STAGES, compose_params, conf_dir, dir_size, ensure_data,  # noqa: E402
+                     environment_note, fmt_table, load, read_floor, run_measured, run_stages, source_env,
                      write_data_dvc)
 
 
-def stage_env(src: str | None) -> dict:
-    env = dict(os.environ)
-    if src:
-        env["PYTHONPATH"] = src + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    return env
-
-
-def run_dvc(workdir: Path, data_dir: Path, env: dict) -> dict:
-    """``dvc repro`` of this repo's dvc.yaml in a temporary DVC workspace; per-stage /usr/bin/time."""
+def run_dvc(workdir: Path, data_dir: Path, src: str | None) -> dict:
+    """``dvc repro`` of the source tree's dvc.yaml in a temporary DVC workspace; per-stage /usr/bin/time."""
+    env = source_env(src)
+    checkout = Path(src).resolve().parent if src else REPO
     ws = workdir / "dvc_ws"
     shutil.rmtree(ws, ignore_errors=True)
     ws.mkdir(parents=True)
     subprocess.run([str(Path(sys.executable).parent / "dvc"), "init", "--no-scm", "-q"], cwd=ws, check=True, env=env)
-    (ws / "src").symlink_to(REPO / "src")
+    (ws / "src").symlink_to(checkout / "src")
     write_data_dvc(ws, data_dir)
     (ws / "promotion.json").write_text(json.dumps({"promoted": None}))
-    text = (REPO / "dvc.yaml").read_text()
+    text = (checkout / "dvc.yaml").read_text()
     for stage in STAGES:
         text = text.replace(f"cmd: aumesh {stage} ", f"cmd: /usr/bin/time -f '%e %M' -o {stage}.time aumesh {stage} ")
     (ws / "dvc.yaml").write_text(text)
-    subprocess.run(AUMESH + ["compose-params", "--config-dir", str(REPO / "conf"), "--out", str(ws / "params.yaml"),
+    subprocess.run(AUMESH + ["compose-params", "--config-dir", str(conf_dir(src)), "--out", str(ws / "params.yaml"),
                              f"paths.data_dir={data_dir}", f"tracking.tracking_uri=sqlite:///{ws / 'mlflow.db'}"],
                    check=True, stdout=subprocess.DEVNULL, env=env)
     env = dict(env, PATH=str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", ""))
@@ -77,60 +73,73 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=1, help="runs of the three stages; medians are printed")
     ap.add_argument("--dvc", action="store_true", help="also run the `dvc repro` form in a temporary DVC workspace")
     ap.add_argument("--src", default=None, help="PYTHONPATH source tree to benchmark instead of the installed aumesh")
+    ap.add_argument("--baseline-src", default=None,
+                    help="also run this source tree (e.g. the code before a change), side by side in the same run")
+    ap.add_argument("--workers", type=int, nargs="+", default=None,
+                    help="also run with compute.n_workers=N for each N (worker scaling; not for --baseline-src)")
     ap.add_argument("--tag", default="", help="suffix of the run folder (keep runs of different sources apart)")
     ap.add_argument("--keep", action="store_true", help="keep the run folder (prepared meshes etc.) afterwards")
     ap.add_argument("--json", type=Path, default=None, help="also write the measurements here")
     args = ap.parse_args(argv)
 
-    env = stage_env(args.src)
     args.workdir.mkdir(parents=True, exist_ok=True)
     data, gen_s = ensure_data(args.workdir, args.frames, args.videos)
     print(environment_note())
     print(f"data: {data} ({dir_size(data) / 2**30:.2f} GiB parquet)" +
           (f", generated in {gen_s:.0f} s" if gen_s is not None else ", reused"))
-    run_dir = args.workdir / f"run_{args.frames}{'_' + args.tag if args.tag else ''}"
-    params = compose_params(run_dir, data)
+    floor_s, floor_gib = read_floor(data)
+    print(f"read floor: one pyarrow read of every table, all columns: {floor_s:.1f} s ({floor_gib:.2f} GiB in memory)", flush=True)
 
-    runs = []
-    for r in range(args.repeats):
-        ms = run_stages(run_dir, params, env)
-        runs.append(ms)
-        print(f"run {r + 1}: " + ", ".join(f"{m.stage} {m.wall_s:.1f} s / {m.maxrss_mib:,.0f} MiB" for m in ms), flush=True)
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    summary = json.loads((run_dir / "prepared" / "summary.json").read_text())
-    meshes_gib = (run_dir / "prepared" / "meshes.npy").stat().st_size / 2**30
-
-    rows, record = [], {"frames": args.frames, "videos": args.videos, "env": environment_note(), "stages": {}}
-    for i, stage in enumerate(STAGES):
-        wall = statistics.median(run[i].wall_s for run in runs)
-        rss = statistics.median(run[i].maxrss_mib for run in runs)
-        tree = statistics.median(run[i].tree_rss_mib for run in runs)
-        rows.append([stage, wall, rss, tree])
-        record["stages"][stage] = {"wall_s": wall, "maxrss_mib": rss, "tree_rss_mib": tree,
-                                   "wall_all": [run[i].wall_s for run in runs]}
-    totals = [sum(m.wall_s for m in run) for run in runs]
-    rows.append(["total (3 stages)", statistics.median(totals), max(r[2] for r in rows), max(r[3] for r in rows)])
+    variants = [("before", args.baseline_src, [])] if args.baseline_src else []
+    variants.append(("after", args.src, []))
+    variants += [(f"after, {w} worker(s)", args.src, [f"compute.n_workers={w}"]) for w in args.workers or []]
+    rows, record = [], {"frames": args.frames, "videos": args.videos, "env": environment_note(),
+                        "read_floor_s": floor_s, "variants": {}}
+    for name, src, overrides in variants:
+        run_dir = args.workdir / f"run_{args.frames}{'_' + args.tag if args.tag else ''}"
+        params = compose_params(run_dir, data, overrides, src=src)
+        runs = []
+        for r in range(args.repeats):
+            ms = run_stages(run_dir, params, source_env(src))
+            runs.append(ms)
+            print(f"{name} run {r + 1}: " + ", ".join(f"{m.stage} {m.wall_s:.1f} s ({m.cpu_s:.0f} s CPU) / "
+                                                      f"{m.maxrss_mib:,.0f} MiB" for m in ms) + f" | load {load()}", flush=True)
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+        summary = json.loads((run_dir / "prepared" / "summary.json").read_text())
+        rec = {"stages": {}, "metrics": {k: metrics[k] for k in ("r2_mean", "mae_mean", "vertex_error_mean",
+                                                                  "r2_displacement_mean")}, "kept": summary["n_frames"]}
+        for i, stage in enumerate(STAGES):
+            rec["stages"][stage] = {key: statistics.median(getattr(run[i], key) for run in runs)
+                                    for key in ("wall_s", "cpu_s", "maxrss_mib", "tree_rss_mib")}
+        total = statistics.median(sum(m.wall_s for m in run) for run in runs)
+        cpu = statistics.median(sum(m.cpu_s for m in run) for run in runs)
+        peak = max(v["maxrss_mib"] for v in rec["stages"].values())
+        tree = max(v["tree_rss_mib"] for v in rec["stages"].values())
+        rec |= {"total_wall_s": total, "total_cpu_s": cpu, "peak_rss_mib": peak}
+        rows.append([name, *(rec["stages"][s]["wall_s"] for s in STAGES), total, cpu, peak, tree, f"{total / floor_s:.1f}x",
+                     f"{metrics['r2_mean']:.6f}"])
+        record["variants"][name] = rec
+        if not args.keep:
+            shutil.rmtree(run_dir, ignore_errors=True)
     print()
-    print(f"{args.frames:,} frames, {args.videos:,} videos -> {summary['n_frames']:,} kept frames "
-          f"(meshes.npy {meshes_gib:.2f} GiB); median of {args.repeats} run(s)")
-    print(fmt_table(["stage", "wall s", "peak RSS MiB (ru_maxrss)", "peak tree RSS MiB (sampled)"], rows))
-    print(f"CV R2 = {metrics['r2_mean']:.4f}, MAE = {metrics['mae_mean']:.4f}")
-    record["total_wall_s"] = statistics.median(totals)
-    record["metrics"] = {k: metrics[k] for k in ("r2_mean", "mae_mean", "vertex_error_mean", "r2_displacement_mean")}
+    print(f"{args.frames:,} frames, {args.videos:,} videos; median of {args.repeats} run(s); "
+          f"read floor {floor_s:.1f} s; load average now {load()}")
+    print(fmt_table(["code", *(f"{s} s" for s in STAGES), "total s", "CPU s", "peak RSS MiB", "peak tree RSS MiB",
+                     "total / read floor", "CV R2"], rows))
 
     if args.dvc:
-        res = run_dvc(args.workdir, data, env)
+        drows = []
+        for name, src, _ in variants[: 1 + bool(args.baseline_src)]:
+            res = run_dvc(args.workdir, data, src)
+            drows.append([name, *(res["stages"][s][0] for s in STAGES), res["total"].wall_s,
+                          max(r for _, r in res["stages"].values())])
+            record["variants"][name]["dvc"] = {"total_wall_s": res["total"].wall_s, "stages": res["stages"]}
+            shutil.rmtree(res["workspace"], ignore_errors=True)
         print()
-        print("`dvc repro` in a temporary DVC workspace (stage commands under /usr/bin/time):")
-        drows = [[s, w, r] for s, (w, r) in res["stages"].items()]
-        drows.append(["dvc repro total", res["total"].wall_s, res["total"].maxrss_mib])
-        print(fmt_table(["stage", "wall s", "peak RSS MiB"], drows))
-        record["dvc"] = {"total_wall_s": res["total"].wall_s, "stages": res["stages"]}
-        shutil.rmtree(res["workspace"], ignore_errors=True)
+        print("`dvc repro` in a temporary DVC workspace (stage commands under /usr/bin/time; total includes DVC's hashing):")
+        print(fmt_table(["code", *(f"{s} s" for s in STAGES), "dvc repro total s", "peak RSS MiB"], drows))
     if args.json:
         args.json.write_text(json.dumps(record, indent=2))
-    if not args.keep:
-        shutil.rmtree(run_dir, ignore_errors=True)
     return 0
 
 

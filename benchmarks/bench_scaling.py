@@ -1,18 +1,23 @@
-"""Scaling benchmark: wall time, CPU time and peak RSS of each stage at 100k, 344,418 and 1,000,000 frames.
+"""Frames scaling: wall time, CPU time and peak RSS of each stage from ~100k to ~3M frames, before/after side by side.
 
-Videos scale with frames (~34.5 frames per video, CelebV-HQ's ratio). For every size the
-synthetic set is generated once and cached under ``--workdir`` (1M frames: ~7 GiB parquet;
-the run folder adds ~5.5 GiB of prepared meshes while it runs). Each stage runs as its own
-subprocess (see ``benchmarks/_common.py``); time per 100k frames shows linearity, and peak RSS
-should not grow with the number of frames (only per-frame metadata does: ~0.5 KB a frame).
+The sets are py-feat's layout (AU/pose parquet + float16 ``[N, 478, 3]`` .npy), built from the cached
+344,418-frame synthetic set (``aumesh synth``, seed 0, generated once under ``--workdir``): its meshes are
+converted once to float16 (~1 GiB), and a size is ``copies`` copies of its first ``files`` tables, copy ``c``
+renaming its videos (``c<c>_``) and linking the same .npy files. So 3M frames cost ~1 GiB of disk, and
+every size has the same per-video statistics (~34.5 frames a video):
+
+    4 files x 1  ~100k frames | 14 x 1  344,418 | 14 x 3  ~1.03M | 14 x 9  ~3.1M
+
+For every size: the read floor (one pyarrow read of the tables, all columns, and their .npy), then each
+source tree's three stages as subprocesses (``benchmarks/_common.py``): ``--baseline-src`` (e.g. the code
+before a change) and the installed aumesh (or ``--src``), alternating, so both see the same machine.
 
 Prints markdown tables; no assertions. Not a timed test.
 
 Examples
 --------
-    python benchmarks/bench_scaling.py                         # 100k, 344,418, 1M
-    python benchmarks/bench_scaling.py --sizes 20000 100000 --repeats 2
-    python benchmarks/bench_scaling.py --clean                 # delete the synthetic sets afterwards
+    python benchmarks/bench_scaling.py --workdir /work/bench --baseline-src /work/wt/base/src
+    python benchmarks/bench_scaling.py --sets 4x1 14x1                 # ~100k and 344k only
 """
 
 from __future__ import annotations
@@ -26,64 +31,77 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (DEFAULT_OUT, STAGES, compose_params, dir_size, ensure_data, environment_note,  # noqa: E402
-                     fmt_table, run_stages, videos_for)
+                     fmt_table, load, pyfeat_replicas, read_floor, run_stages, source_env)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 344_418, 1_000_000])
+    ap.add_argument("--sets", nargs="+", default=["4x1", "14x1", "14x3", "14x9"],
+                    help="FILESxCOPIES: copies of the first FILES tables of the 344,418-frame set")
     ap.add_argument("--workdir", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--src", default=None, help="source tree to benchmark (default: the installed aumesh)")
+    ap.add_argument("--baseline-src", default=None, help="also run this source tree, side by side")
     ap.add_argument("--repeats", type=int, default=1, help="runs per size; medians are printed")
-    ap.add_argument("--clean", action="store_true", help="delete each synthetic set after its runs")
+    ap.add_argument("--clean", action="store_true", help="delete each size's set after its runs")
     ap.add_argument("--json", type=Path, default=None, help="also write the measurements here")
     args = ap.parse_args(argv)
 
     print(environment_note())
+    columns, _ = ensure_data(args.workdir, 344_418, 9_978)
+    variants = ([("before", args.baseline_src)] if args.baseline_src else []) + [("after", args.src)]
     results = []
-    for n in args.sizes:
-        v = 9_978 if n == 344_418 else videos_for(n)
-        data, gen_s = ensure_data(args.workdir, n, v)
-        print(f"{n:,} frames / {v:,} videos: {data} ({dir_size(data) / 2**30:.2f} GiB)"
-              + (f", generated in {gen_s:.0f} s" if gen_s is not None else ", reused"), flush=True)
-        run_dir = args.workdir / f"scaling_{n}"
-        params = compose_params(run_dir, data)
-        runs = []
-        for r in range(args.repeats):
-            ms = run_stages(run_dir, params)
-            runs.append(ms)
-            print("  " + ", ".join(f"{m.stage} {m.wall_s:.1f} s ({m.cpu_s:.0f} s CPU) / {m.maxrss_mib:,.0f} MiB"
-                                   for m in ms), flush=True)
-        kept = json.loads((run_dir / "prepared" / "summary.json").read_text())["n_frames"]
-        rec = {"frames": n, "videos": v, "kept": kept, "stages": {}}
-        for i, stage in enumerate(STAGES):
-            rec["stages"][stage] = {key: statistics.median(getattr(run[i], key) for run in runs)
-                                    for key in ("wall_s", "cpu_s", "maxrss_mib")}
-        rec["total_wall_s"] = statistics.median(sum(m.wall_s for m in run) for run in runs)
-        rec["total_cpu_s"] = statistics.median(sum(m.cpu_s for m in run) for run in runs)
+    for spec in args.sets:
+        files, copies = (int(x) for x in spec.split("x"))
+        data = pyfeat_replicas(args.workdir, columns, copies, files)
+        floor_s, floor_gib = read_floor(data)
+        rec = {"set": spec, "read_floor_s": floor_s, "variants": {}}
+        print(f"{spec}: {data} ({dir_size(data) / 2**30:.2f} GiB of parquet + linked .npy); read floor {floor_s:.1f} s "
+              f"({floor_gib:.2f} GiB decoded) | load {load()}", flush=True)
+        for name, src in variants:
+            run_dir = args.workdir / f"scaling_{spec}_{name}"
+            params = compose_params(run_dir, data, src=src)
+            runs = []
+            for _ in range(args.repeats):
+                ms = run_stages(run_dir, params, source_env(src))
+                runs.append(ms)
+                print(f"  {name}: " + ", ".join(f"{m.stage} {m.wall_s:.1f} s ({m.cpu_s:.0f} s CPU) / {m.maxrss_mib:,.0f} MiB"
+                                                f" (tree {m.tree_rss_mib:,.0f})" for m in ms) + f" | load {load()}", flush=True)
+            summary = json.loads((run_dir / "prepared" / "summary.json").read_text())
+            rec["frames"] = summary["counts"]["frames_in"]
+            v = {"stages": {s: {k: statistics.median(getattr(run[i], k) for run in runs)
+                                for k in ("wall_s", "cpu_s", "maxrss_mib", "tree_rss_mib")} for i, s in enumerate(STAGES)}}
+            v["total_wall_s"] = statistics.median(sum(m.wall_s for m in run) for run in runs)
+            v["total_cpu_s"] = statistics.median(sum(m.cpu_s for m in run) for run in runs)
+            v["peak_rss_mib"] = max(st["maxrss_mib"] for st in v["stages"].values())
+            v["peak_tree_rss_mib"] = max(st["tree_rss_mib"] for st in v["stages"].values())
+            rec["variants"][name] = v
+            shutil.rmtree(run_dir, ignore_errors=True)
         results.append(rec)
-        shutil.rmtree(run_dir, ignore_errors=True)
         if args.clean:
             shutil.rmtree(data, ignore_errors=True)
 
     print()
-    head = ["frames"] + [f"{s} s" for s in STAGES] + ["total s", "total s / 100k frames", "total CPU s",
-                                                      "CPU s / 100k frames"]
-    rows = [[f"{r['frames']:,}"] + [r["stages"][s]["wall_s"] for s in STAGES]
-            + [r["total_wall_s"], r["total_wall_s"] / r["frames"] * 1e5, r["total_cpu_s"], r["total_cpu_s"] / r["frames"] * 1e5]
-            for r in results]
-    print("Wall time per stage (median of %d run(s))" % args.repeats)
+    print(f"Frames scaling (median of {args.repeats} run(s)); wall and CPU s of the three stages, peak RSS = max over "
+          f"stages of the stage process's ru_maxrss (tree: sampled sum over its processes); load average now {load()}")
+    head = ["frames", "read floor s"]
+    for name, _ in variants:
+        head += [f"{name}: total s", f"{name}: CPU s", f"{name}: peak RSS MiB", f"{name}: tree RSS MiB"]
+    rows = []
+    for r in results:
+        row = [f"{r['frames']:,}", r["read_floor_s"]]
+        for name, _ in variants:
+            v = r["variants"][name]
+            row += [v["total_wall_s"], v["total_cpu_s"], v["peak_rss_mib"], v["peak_tree_rss_mib"]]
+        rows.append(row)
     print(fmt_table(head, rows))
-    print()
-    print("Peak RSS per stage, MiB (ru_maxrss of the stage process)")
-    print(fmt_table(["frames"] + list(STAGES) + ["max"],
-                    [[f"{r['frames']:,}"] + [r["stages"][s]["maxrss_mib"] for s in STAGES]
-                     + [max(r["stages"][s]["maxrss_mib"] for s in STAGES)] for r in results]))
-    print()
-    print("Per-stage time per 100k frames (wall s; CPU s in brackets)")
-    print(fmt_table(["frames"] + list(STAGES),
-                    [[f"{r['frames']:,}"] + [f"{r['stages'][s]['wall_s'] / r['frames'] * 1e5:.1f} "
-                                             f"({r['stages'][s]['cpu_s'] / r['frames'] * 1e5:.1f})" for s in STAGES]
-                     for r in results]))
+    for name, _ in variants:
+        print()
+        print(f"{name}: per stage, wall s / CPU s / peak RSS MiB")
+        print(fmt_table(["frames", *STAGES],
+                        [[f"{r['frames']:,}"] + [f"{r['variants'][name]['stages'][s]['wall_s']:.1f} / "
+                                                 f"{r['variants'][name]['stages'][s]['cpu_s']:.1f} / "
+                                                 f"{r['variants'][name]['stages'][s]['maxrss_mib']:,.0f}" for s in STAGES]
+                         for r in results]))
     if args.json:
         args.json.write_text(json.dumps({"env": environment_note(), "results": results}, indent=2))
     return 0
