@@ -259,7 +259,8 @@ def read_metadata(table: FrameTable, coerce_numeric: bool = False, row_groups: S
             raise _corrupt(table.path, err, " (reading the metadata columns)") from None
         first = _row_range(table, row_groups)[0]
     if table.video_from_input:
-        df[VIDEO_COLUMN] = df.pop(INPUT_PATH_COLUMN).map(lambda s: Path(str(s)).stem)
+        codes, paths = pd.factorize(df.pop(INPUT_PATH_COLUMN), use_na_sentinel=False)  # one Path per distinct video, not per frame
+        df[VIDEO_COLUMN] = np.array([Path(str(p)).stem for p in paths], dtype=object)[codes]
     df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
     df = contract.validate_metadata(df, table.path, row_offset=first, coerce=coerce_numeric)
     return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]]

@@ -11,11 +11,12 @@ frame's mesh or a video's neutral:
 
 1. ``scan``: metadata + the 12 anchors (36 of the 1434 mesh columns): validation, pose filter and
    the GPA candidates: the ``gpa_max_frames`` pose-passing frames of smallest seeded hash of
-   ``(video_id, frame)``, merged in a tree (so the subsample, and the reference, do not depend
-   on the partitioning);
-2. ``residuals``: anchors + AU/pose again: each pose-passing frame's max anchor residual to the
-   reference and its AU sum, gathered (16 bytes a frame): the outlier threshold is the exact
-   quantile of the gathered residuals, the low-AU thresholds exact per video and population;
+   ``(video_id, frame)``, merged in a tree and averaged in the tables' order (so the subsample,
+   and the reference, do not depend on the partitioning). The validated metadata and anchors are
+   staged per partition in a scratch folder, so the tables are parsed once;
+2. ``residuals``: each pose-passing frame's max anchor residual to the reference and its AU sum,
+   gathered (~20 bytes a frame): the outlier threshold is the exact quantile of the gathered
+   residuals, the low-AU thresholds exact per video and over the population;
 3. ``write``: full meshes, chunk by chunk: align the kept frames and write them (float32,
    axis-major) into their rows of ``meshes.npy`` (``pwrite``: partitions write disjoint rows),
    each partition's kept metadata, and the neutral meshes of the videos it holds whole; sums of
@@ -34,6 +35,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import shutil
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -103,16 +105,22 @@ class Candidates:
     hash: np.ndarray  # (m,) uint64
     video: np.ndarray  # (m,) object (str)
     frame: np.ndarray  # (m,) int64
+    table: np.ndarray  # (m,) object (str): the table's path
+    row: np.ndarray  # (m,) int64: the row within its table
     anchors: np.ndarray  # (m, n_anchors, 3) float32
 
+    def take(self, order: np.ndarray) -> "Candidates":
+        return Candidates(*(getattr(self, f)[order] for f in self.__dataclass_fields__))
+
     def smallest(self, k: int) -> "Candidates":
-        order = np.lexsort((self.frame, self.video.astype(str), self.hash))[:k]
-        return Candidates(self.hash[order], self.video[order], self.frame[order], self.anchors[order])
+        return self.take(np.lexsort((self.frame, self.video.astype(str), self.hash))[:k])
 
     def merge(self, other: "Candidates", k: int) -> "Candidates":
-        return Candidates(np.concatenate([self.hash, other.hash]), np.concatenate([self.video, other.video]),
-                          np.concatenate([self.frame, other.frame]),
-                          np.concatenate([self.anchors, other.anchors])).smallest(k)
+        return Candidates(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__)).smallest(k)
+
+    def in_table_order(self) -> "Candidates":
+        """The same frames in the tables' order (what the GPA mean sums in: the order of the input)."""
+        return self.take(np.lexsort((self.row, self.table.astype(str))))
 
 
 @dataclass
@@ -149,19 +157,33 @@ def _read_anchors(part: Partition, cfg: Config) -> np.ndarray:
     return out
 
 
-def scan_partition(part: Partition, cfg: Config) -> Scan:
-    """Pass 1 on one partition: validation, the pose filter and the partition's GPA candidates."""
+def _staged(scratch: Path, i: int) -> tuple[pd.DataFrame, np.ndarray]:
+    """Partition ``i``'s validated metadata (with the ``piece`` of each row) and float32 anchors, as pass 1 staged them."""
+    return pq.read_table(scratch / f"{i:06d}.parquet").to_pandas(), np.load(scratch / f"{i:06d}.npy")
+
+
+def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> Scan:
+    """Pass 1 on one partition: validation, the pose filter and the partition's GPA candidates.
+
+    The validated metadata and the anchors (the only columns passes 2 and 3 need besides the meshes) are
+    staged in ``scratch`` (~350 bytes a frame), so the tables are parsed and validated once.
+    """
+    i, part = item
     meta, file_index = _read_meta(part, cfg)
     check_unique_frames(meta, [p.table.path for p in part], file_index)
+    anchors_all = _read_anchors(part, cfg)
+    pq.write_table(pa.Table.from_pandas(meta.assign(piece=file_index.astype(np.int32)), preserve_index=False),
+                   scratch / f"{i:06d}.parquet")
+    np.save(scratch / f"{i:06d}.npy", anchors_all)
     pose = np.flatnonzero(pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess))
     k = cfg.preprocess.alignment.gpa_max_frames
     video = meta[VIDEO_COLUMN].to_numpy(dtype=object)[pose]
     frame = meta[FRAME_COLUMN].to_numpy(dtype=np.int64)[pose]
     h = gpa_hash(video, frame, cfg.seed)
-    order = np.lexsort((frame, video.astype(str), h))[:k]
-    anchors = _read_anchors(part, cfg)[pose[order]] if len(order) else \
-        np.empty((0, len(cfg.preprocess.alignment.anchor_indices), 3), np.float32)
-    candidates = Candidates(h[order], video[order], frame[order], anchors)
+    order = np.lexsort((frame, video.astype(str), h))[:k]  # the k smallest hashes (as Candidates.smallest)
+    table = np.concatenate([np.full(p.n_rows, str(p.table.path), dtype=object) for p in part])[pose[order]]
+    row = np.concatenate([p.start + np.arange(p.n_rows) for p in part])[pose[order]]
+    candidates = Candidates(h[order], video[order], frame[order], table, row, anchors_all[pose[order]])
     return Scan([len(meta)], [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))], len(pose), candidates, k)
 
 
@@ -178,12 +200,15 @@ class Residuals:
     split_rows: pd.DataFrame  # (video_id, frame, file) of rows of videos also in other partitions
 
 
-def residual_partition(part: Partition, cfg: Config, reference: np.ndarray, split_videos: np.ndarray) -> Residuals:
+def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.ndarray, split_videos: np.ndarray,
+                       scratch: Path) -> Residuals:
     """Pass 2 on one partition: residuals of the pose-passing frames to the reference, and their AU sums."""
-    meta, file_index = _read_meta(part, cfg)
+    i, part = item
+    meta, anchors = _staged(scratch, i)
+    file_index = meta["piece"].to_numpy()
     pose = pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess)
     rows = np.flatnonzero(pose)
-    anchors = _read_anchors(part, cfg)[rows]
+    anchors = anchors[rows]
     residual = np.empty(len(rows))
     for lo in range(0, len(rows), 65536):
         residual[lo : lo + 65536], _ = align_to_reference(anchors[lo : lo + 65536], reference)
@@ -257,14 +282,14 @@ class _VideoSums:
 
 
 def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: Plan, out_dir: Path,
-                    split_video: np.ndarray) -> Written:
+                    split_video: np.ndarray, scratch: Path) -> Written:
     """Pass 3 on one partition: align and write its kept meshes, metadata and whole videos' neutrals.
 
     ``split_video`` (n_videos,) bool marks videos with frames in other partitions too: their sums are
     returned instead of written.
     """
-    meta, _ = _read_meta(part, cfg)
-    kept = meta.iloc[plan.rows].reset_index(drop=True)
+    meta, anchors_all = _staged(scratch, plan.part_index)
+    kept = meta.drop(columns="piece").iloc[plan.rows].reset_index(drop=True)
     kept["video_index"] = plan.video_index
     kept["low_au"] = plan.low_video
     pq.write_table(pa.Table.from_pandas(kept, preserve_index=False), out_dir / "parts" / f"{plan.part_index:06d}.parquet")
@@ -284,7 +309,6 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     low_frames = _VideoSums(plan.video_index[plan.low_video], finished("low_au", 1))
     position = np.full(sum(p.n_rows for p in part), -1, dtype=np.int64)
     position[plan.rows] = np.arange(len(plan.rows))
-    anchor_columns = np.concatenate([np.asarray(cfg.preprocess.alignment.anchor_indices) + a * N_VERTICES for a in range(3)])
     offset = 0
     for p in part:
         for start, coords in iter_mesh_columns(p.table, cfg.data.chunk_rows, p.row_groups):
@@ -295,9 +319,8 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
             if not sel.any():
                 continue
             pos = pos[sel]
-            # anchors at float32, as pass 2 saw them: (m, 3, 12) -> (m, 12, 3)
-            anchors = coords[anchor_columns][:, sel].T.reshape(-1, 3, len(anchor_columns) // 3).transpose(0, 2, 1)
-            transform = umeyama_batch(anchors.astype(np.float32).astype(np.float64), reference)
+            anchors = anchors_all[local : local + m][sel]  # float32, as pass 2 saw them
+            transform = umeyama_batch(anchors.astype(np.float64), reference)
             flat = _align_rows(coords.T[sel], *transform)  # (m, 1434) float64, axis-major [x | y | z]
             write_rows(out_dir / "meshes.npy", plan.offset + int(pos[0]), flat.astype(np.float32))
             result.sums[0] += flat.sum(axis=0)
@@ -334,9 +357,11 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
     """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary."""
     pre = cfg.preprocess
     parts = partitions(tables, cfg.compute.partition_rows)
-    with compute.engine(cfg.compute):
+    with compute.engine(cfg.compute), atomic_directory(out_dir) as tmp:
+        scratch = tmp / "scratch"  # per-partition validated metadata and anchors, staged by pass 1
+        scratch.mkdir()
         # pass 1: validation, pose filter, GPA candidates
-        scan = compute.map_reduce(partial(scan_partition, cfg=cfg), Scan.__add__, parts)
+        scan = compute.map_reduce(partial(scan_partition, cfg=cfg, scratch=scratch), Scan.__add__, list(enumerate(parts)))
         if scan.n_pose == 0:
             raise TableError(
                 f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
@@ -345,14 +370,16 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             )
         partial_counts = {"frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose)}
         contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
-        reference = generalized_procrustes(scan.candidates.anchors, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol)
+        sample = scan.candidates.in_table_order()
+        reference = generalized_procrustes(sample.anchors, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol)
         every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
         split_names = every_video[in_parts > 1]
 
         # pass 2: residuals and AU sums of the pose-passing frames, gathered
-        res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names), parts)
+        res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names,
+                                         scratch=scratch), list(enumerate(parts)))
         abs_pose = np.concatenate([r.abs_pose for r in res])
-        contract.check_pose_units(abs_pose, cfg.paths.data_dir)  # the median |angle| over every frame: exact
+        contract.check_pose_units(abs_pose, cfg.paths.data_dir)  # every frame (float32: compared with 1 rad)
         del abs_pose
         split_rows = pd.concat([r.split_rows for r in res], ignore_index=True)
         if len(split_rows):  # (video, frame) pairs across partitions (within one: checked in pass 1)
@@ -399,39 +426,39 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         n_kept, n_videos = n_kept_pose, len(video_ids)
         split_video = np.isin(video_ids, split_names)
 
-        with atomic_directory(out_dir) as tmp:
-            (tmp / "parts").mkdir()
-            create_npy(tmp / "meshes.npy", np.float32, (n_kept, N_TARGETS))
-            for name in NEUTRAL_FILES.values():
-                create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
-            # pass 3: align and write; population sums and split videos' sums reduced in a tree
-            written = compute.map_reduce(
-                partial(_write_item, cfg=cfg, reference=reference, out_dir=tmp, split_video=split_video),
-                Written.__add__, list(zip(parts, plans)))
-            del plans
-            for v, total in written.split.items():  # videos with frames in several partitions
-                for slot, name in enumerate(("mean", "low_au")):
-                    write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
-            _concatenate_parts(tmp / "parts", tmp / "frames.parquet")
-            np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
-            mean_aligned = written.sums[0] / n_kept
-            mean_low = written.sums[1] / max(n_low_population, 1)
-            np.savez(
-                tmp / "reference.npz",
-                reference_anchors=reference.astype(np.float32),
-                anchor_indices=np.asarray(pre.alignment.anchor_indices, dtype=np.int32),
-                mean_aligned_mesh=mean_aligned.reshape(3, N_VERTICES).T.astype(np.float32),
-                mean_low_au_mesh=mean_low.reshape(3, N_VERTICES).T.astype(np.float32),
-            )
-            summary = {
-                "counts": counts,
-                "n_frames": n_kept,
-                "n_videos": int(n_videos),
-                "n_low_au_population": n_low_population,
-                "dropped_videos": dropped_videos[:1000],
-                "tables": [str(t.path) for t in tables],
-            }
-            atomic_write_json(tmp / "summary.json", summary)
+        (tmp / "parts").mkdir()
+        create_npy(tmp / "meshes.npy", np.float32, (n_kept, N_TARGETS))
+        for name in NEUTRAL_FILES.values():
+            create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
+        # pass 3: align and write; population sums and split videos' sums reduced in a tree
+        written = compute.map_reduce(
+            partial(_write_item, cfg=cfg, reference=reference, out_dir=tmp, split_video=split_video, scratch=scratch),
+            Written.__add__, list(zip(parts, plans)))
+        del plans
+        for v, total in written.split.items():  # videos with frames in several partitions
+            for slot, name in enumerate(("mean", "low_au")):
+                write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
+        _concatenate_parts(tmp / "parts", tmp / "frames.parquet")
+        shutil.rmtree(scratch)
+        np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
+        mean_aligned = written.sums[0] / n_kept
+        mean_low = written.sums[1] / max(n_low_population, 1)
+        np.savez(
+            tmp / "reference.npz",
+            reference_anchors=reference.astype(np.float32),
+            anchor_indices=np.asarray(pre.alignment.anchor_indices, dtype=np.int32),
+            mean_aligned_mesh=mean_aligned.reshape(3, N_VERTICES).T.astype(np.float32),
+            mean_low_au_mesh=mean_low.reshape(3, N_VERTICES).T.astype(np.float32),
+        )
+        summary = {
+            "counts": counts,
+            "n_frames": n_kept,
+            "n_videos": int(n_videos),
+            "n_low_au_population": n_low_population,
+            "dropped_videos": dropped_videos[:1000],
+            "tables": [str(t.path) for t in tables],
+        }
+        atomic_write_json(tmp / "summary.json", summary)
     return summary
 
 
