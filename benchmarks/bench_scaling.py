@@ -41,6 +41,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workdir", type=Path, default=DEFAULT_OUT)
     ap.add_argument("--src", default=None, help="source tree to benchmark (default: the installed aumesh)")
     ap.add_argument("--baseline-src", default=None, help="also run this source tree, side by side")
+    ap.add_argument("--baseline-sets", nargs="+", default=None,
+                    help="run --baseline-src only on these sets (default: all)")
+    ap.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES,
+                    help="stages to run (release does not depend on the number of frames)")
     ap.add_argument("--repeats", type=int, default=1, help="runs per size; medians are printed")
     ap.add_argument("--clean", action="store_true", help="delete each size's set after its runs")
     ap.add_argument("--json", type=Path, default=None, help="also write the measurements here")
@@ -58,18 +62,20 @@ def main(argv=None) -> int:
         print(f"{spec}: {data} ({dir_size(data) / 2**30:.2f} GiB of parquet + linked .npy); read floor {floor_s:.1f} s "
               f"({floor_gib:.2f} GiB decoded) | load {load()}", flush=True)
         for name, src in variants:
+            if name == "before" and args.baseline_sets and spec not in args.baseline_sets:
+                continue
             run_dir = args.workdir / f"scaling_{spec}_{name}"
             params = compose_params(run_dir, data, src=src)
             runs = []
             for _ in range(args.repeats):
-                ms = run_stages(run_dir, params, source_env(src))
+                ms = run_stages(run_dir, params, source_env(src), stages=args.stages)
                 runs.append(ms)
                 print(f"  {name}: " + ", ".join(f"{m.stage} {m.wall_s:.1f} s ({m.cpu_s:.0f} s CPU) / {m.maxrss_mib:,.0f} MiB"
                                                 f" (tree {m.tree_rss_mib:,.0f})" for m in ms) + f" | load {load()}", flush=True)
             summary = json.loads((run_dir / "prepared" / "summary.json").read_text())
             rec["frames"] = summary["counts"]["frames_in"]
             v = {"stages": {s: {k: statistics.median(getattr(run[i], k) for run in runs)
-                                for k in ("wall_s", "cpu_s", "maxrss_mib", "tree_rss_mib")} for i, s in enumerate(STAGES)}}
+                                for k in ("wall_s", "cpu_s", "maxrss_mib", "tree_rss_mib")} for i, s in enumerate(args.stages)}}
             v["total_wall_s"] = statistics.median(sum(m.wall_s for m in run) for run in runs)
             v["total_cpu_s"] = statistics.median(sum(m.cpu_s for m in run) for run in runs)
             v["peak_rss_mib"] = max(st["maxrss_mib"] for st in v["stages"].values())
@@ -90,18 +96,19 @@ def main(argv=None) -> int:
     for r in results:
         row = [f"{r['frames']:,}", r["read_floor_s"]]
         for name, _ in variants:
-            v = r["variants"][name]
-            row += [v["total_wall_s"], v["total_cpu_s"], v["peak_rss_mib"], v["peak_tree_rss_mib"]]
+            v = r["variants"].get(name)
+            row += [v["total_wall_s"], v["total_cpu_s"], v["peak_rss_mib"], v["peak_tree_rss_mib"]] if v else ["-"] * 4
         rows.append(row)
+    print(f"stages: {', '.join(args.stages)}")
     print(fmt_table(head, rows))
     for name, _ in variants:
         print()
         print(f"{name}: per stage, wall s / CPU s / peak RSS MiB")
-        print(fmt_table(["frames", *STAGES],
+        print(fmt_table(["frames", *args.stages],
                         [[f"{r['frames']:,}"] + [f"{r['variants'][name]['stages'][s]['wall_s']:.1f} / "
                                                  f"{r['variants'][name]['stages'][s]['cpu_s']:.1f} / "
-                                                 f"{r['variants'][name]['stages'][s]['maxrss_mib']:,.0f}" for s in STAGES]
-                         for r in results]))
+                                                 f"{r['variants'][name]['stages'][s]['maxrss_mib']:,.0f}" for s in args.stages]
+                         for r in results if name in r["variants"]]))
     if args.json:
         args.json.write_text(json.dumps({"env": environment_note(), "results": results}, indent=2))
     return 0

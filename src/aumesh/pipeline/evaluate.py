@@ -65,7 +65,7 @@ class Prepared:
     neutral: Mapping[str, NpyRows]  # method -> (n_videos, 1434) float32 rows, read on demand
     reference: dict[str, np.ndarray]
     summary: dict
-    mesh_path: Path | None = None  # meshes.npy: the streaming passes read it with plain file I/O
+    mesh_path: Path | None = None  # meshes.npy: the passes read it with plain file I/O
 
     @cached_property
     def frames(self) -> pd.DataFrame:
@@ -82,20 +82,6 @@ class Prepared:
         md = pq.ParquetFile(self.directory / FRAMES_FILE).metadata
         bounds = np.r_[0, np.cumsum([md.row_group(g).num_rows for g in range(md.num_row_groups)])]
         return [(g, int(bounds[g]), int(bounds[g + 1])) for g in range(md.num_row_groups) if bounds[g + 1] > bounds[g]]
-
-    def iter_meshes(self, chunk_rows: int):
-        """``(rows, Y)`` over consecutive row slices, ``Y`` float64 of shape (len(rows), 1434).
-
-        ``Y`` is overwritten by the next chunk: use it (or copy it) before advancing.
-        """
-        n = self.meshes.shape[0]
-        raw = np.empty((min(chunk_rows, n), N_TARGETS), dtype=np.float32)
-        out = np.empty(raw.shape, dtype=np.float64)
-        for rows in _chunks(n, chunk_rows):
-            m = rows.stop - rows.start
-            read_rows(self.mesh_path, rows.start, rows.stop, raw)
-            np.copyto(out[:m], raw[:m])
-            yield rows, out[:m]
 
     @cached_property
     def au(self) -> np.ndarray:
@@ -265,11 +251,6 @@ def assign_folds(video_index: np.ndarray, n_splits: int) -> np.ndarray:
     return fold
 
 
-def _chunks(n: int, chunk_rows: int):
-    for start in range(0, n, chunk_rows):
-        yield slice(start, min(start + chunk_rows, n))
-
-
 @dataclass
 class DesignPart:
     """Pass A of consecutive partitions: per-fold sums, and per-video sums of videos split across partitions."""
@@ -372,7 +353,8 @@ def design_statistics(prepared: Prepared, fold: np.ndarray, n_splits: int, chunk
     b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
     groups = prepared.row_groups()
     group_of_row = np.repeat(np.arange(len(groups)), [stop - start for _, start, stop in groups])
-    first_group = np.full(n_videos, len(groups)); last_group = np.full(n_videos, -1)
+    first_group = np.full(n_videos, len(groups))
+    last_group = np.full(n_videos, -1)
     np.minimum.at(first_group, video_index, group_of_row)
     np.maximum.at(last_group, video_index, group_of_row)
     split_video = first_group != last_group
