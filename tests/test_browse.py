@@ -12,20 +12,14 @@ from aumesh import cli, config
 from aumesh.experiments import mlflow_store, promote, tracking
 from aumesh.pipeline import stages
 
-from test_sweep import make_workspace
+from test_sweep import workspace_with_store
 
 FAILING = ["features=au", "model.n_components=2,25", "model.clip_n_components=false"]  # 25 > 20 features: FAILED
 
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    ws = make_workspace(tmp_path_factory.mktemp("browse-ws") / "ws")
-    store = tmp_path_factory.mktemp("aumesh-test-browse-store") / "mlflow.db"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.chdir(ws)
-        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")  # "aumesh-test" in the path: conftest keeps it
-        for var in ("DVC_ROOT", "DVC_EXP_NAME", "AUMESH_SWEEP_PARENT_RUN_ID"):
-            mp.delenv(var, raising=False)
+    with workspace_with_store(tmp_path_factory, "browse") as ws:
         yield ws
 
 

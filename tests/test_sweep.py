@@ -6,7 +6,9 @@ into build/prepared, params.yaml composed) and one module-scoped store; the swee
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import mlflow.models
@@ -47,15 +49,22 @@ def make_workspace(root: Path, spec: synth.SynthSpec = SPEC) -> Path:
     return root
 
 
-@pytest.fixture(scope="module")
-def workspace(tmp_path_factory):
-    ws = make_workspace(tmp_path_factory.mktemp("sweep-ws") / "ws")
-    store = tmp_path_factory.mktemp("aumesh-test-sweep-store") / "mlflow.db"
+@contextlib.contextmanager
+def workspace_with_store(tmp_path_factory, name: str) -> Iterator[Path]:
+    """:func:`make_workspace` with its own SQLite store, as the current directory (for module-scoped fixtures)."""
+    ws = make_workspace(tmp_path_factory.mktemp(f"{name}-ws") / "ws")
+    store = tmp_path_factory.mktemp(f"aumesh-test-{name}-store") / "mlflow.db"
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(ws)
         mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")  # "aumesh-test" in the path: conftest keeps it
         for var in ("DVC_ROOT", "DVC_EXP_NAME", "AUMESH_SWEEP_PARENT_RUN_ID"):
             mp.delenv(var, raising=False)
+        yield ws
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    with workspace_with_store(tmp_path_factory, "sweep") as ws:
         yield ws
 
 
