@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         return v
 
     # ------------------------------------------------------------- draw, read the screen back
-    fig = plt.figure(figsize=(16, 4.6))
+    fig = plt.figure(figsize=(16, 5.2))
     panels = [(None, "neutral (AU = 0)")] + [(au, f"{au} = {args.intensity:g}") for au in AUS]
     neutral = fp.predict_face_mesh(au_vector(None, 0.0), model=model)
     screens = {}  # per panel: (neutral, drawn mesh) projected through that panel's own view
@@ -75,21 +75,24 @@ def main(argv=None) -> int:
         ax = fig.add_subplot(1, len(panels), k + 1, projection="3d")
         vec = au_vector(au, args.intensity)
         fp.plot_face_mesh(au=vec, model=model, ax=ax, mode="tesselation", linewidth=0.3)
-        ax.set_title(f"py-feat plot_face_mesh: {title}", fontsize=9)
+        fig.text((k + 0.5) / len(panels), 0.04, title, ha="center", fontsize=11)
         screens[au or "neutral"] = (screen_xy(ax, neutral), screen_xy(ax, fp.predict_face_mesh(vec, model=model)))
     fig.suptitle(f"aumesh release through py-feat {feat.__version__}'s own loader and plot_face_mesh "
                  "(default view, tessellation)", fontsize=11)
+    fig.subplots_adjust(left=-0.05, right=1.05, bottom=-0.2, top=1.1, wspace=-0.25)
     fig.savefig(out / "pyfeat_tesselation.png", dpi=110)
     plt.close(fig)
 
     # the same AUs exaggerated x3, contours over the neutral in grey, to see the direction by eye
-    fig = plt.figure(figsize=(12, 4.6))
+    fig = plt.figure(figsize=(12, 5.2))
     for k, au in enumerate(AUS):
         ax = fig.add_subplot(1, len(AUS), k + 1, projection="3d")
         fp.plot_face_mesh(au=au_vector(None, 0), model=model, ax=ax, mode="contours", color="0.6")
         fp.plot_face_mesh(au=au_vector(au, 3 * args.intensity), model=model, ax=ax, mode="contours", color="tab:red")
-        ax.set_title(f"{au} = {3 * args.intensity:g} (red) over neutral (grey)", fontsize=9)
+        fig.text((k + 0.5) / len(AUS), 0.04, f"{au} = {3 * args.intensity:g} (red) over neutral (grey)", ha="center",
+                 fontsize=11)
     fig.suptitle("py-feat plot_face_mesh, contours", fontsize=11)
+    fig.subplots_adjust(left=-0.05, right=1.05, bottom=-0.2, top=1.1, wspace=-0.25)
     fig.savefig(out / "pyfeat_contours.png", dpi=110)
     plt.close(fig)
 
