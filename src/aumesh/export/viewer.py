@@ -101,8 +101,8 @@ def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
     if "r2_displacement_mean" in cv:
         add("CV R² of AU displacement", (cv["r2_displacement_mean"], cv.get("r2_displacement_std", float("nan"))),
             "{:.4f} ± {:.4f}")
-    add("CV MAE", cv.get("mae_mean"), "{:.4f}")
-    add("CV per-vertex error", cv.get("vertex_error_mean"), "{:.4f}")
+    add("CV MAE (px)", cv.get("mae_mean"), "{:.4f}")
+    add("CV per-vertex error (px)", cv.get("vertex_error_mean"), "{:.4f}")
     add("folds", cv.get("r2_folds") and ", ".join(f"{v:.4f}" for v in cv["r2_folds"]))
     add("n_components", get("model", "n_components"))
     add("features", get("config", "features", "name"))
