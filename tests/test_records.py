@@ -83,7 +83,8 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     assert record["run_id"] in texts["promotion.json"] and parent in texts["promotion.json"]
     assert record["tracking_uri"] == "sqlite:///mlflow.db"
     assert record["model_source"].startswith("mlartifacts/") and record["model_source"].endswith("/model")
-    assert (ws / record["model_source"] / "au_to_mesh_pls.npz").is_file()
+    assert (ws / record["model_source"] / "MLmodel").is_file()  # an MLflow pyfunc model (aumesh.experiments.pyfunc)
+    assert (ws / record["model_source"] / "artifacts" / "au_to_mesh_pls.npz").is_file()
     assert card["mlflow"]["tracking_uri"] == "sqlite:///mlflow.db" and card["mlflow"]["run_id"]
     assert card["data"]["digest"]["dvc_file"] == "data.dvc"
     assert card["promotion"]["run_id"] == record["run_id"]

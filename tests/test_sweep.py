@@ -156,18 +156,24 @@ def test_child_equals_a_fresh_fit(swept, workspace):
     """A sweep child's metrics and NPZ coefficients equal evaluate.evaluate of the same configuration."""
     from aumesh.pipeline import evaluate as ev
     from aumesh.experiments import sweep
+    from aumesh.model.release import release_arrays
 
     _, children = swept
     row = children[(children["status"] == "FINISHED") & (children["params.features.name"] == "au_pose_interactions")
                    & (children["params.model.n_components"] == "25")].iloc[0]
     cfg = config.from_dict(config.compose(["model.n_components=25", "features=au_pose_interactions",
                                            "model.clip_n_components=false"], config_dir=workspace / "conf"))
+    prepared = ev.load_prepared(workspace / cfg.paths.prepared_dir)
     with sweep.blas_threads():
-        cv, final = ev.evaluate(ev.load_prepared(workspace / cfg.paths.prepared_dir), cfg)
+        cv, final = ev.evaluate(prepared, cfg)
     assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
     local = registry.download_run_artifacts(row["run_id"], "model/artifacts/au_to_mesh_pls.npz", workspace / "build" / "dl")
     npz = np.load(local)
-    np.testing.assert_array_equal(npz["coef_full"], final.coef.T.astype(np.float32))
+    # the fresh fit's release (in the card's frame, as every released NPZ)
+    fresh = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
+                           prepared.reference, card_text="", metadata={})
+    np.testing.assert_array_equal(npz["coef_full"], fresh["coef_full"])
+    np.testing.assert_array_equal(npz["intercept"], fresh["intercept"])
     assert int(npz["n_components"]) == 25
 
 
