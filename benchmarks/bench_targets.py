@@ -6,7 +6,8 @@
 
 The tables and the prepared data are cached in ``--workdir`` (keyed by size, seed and coupling). Time per target:
 ``statistics`` = deriving the target's per-fold statistics from the one shared pass (what a target adds);
-``evaluate`` = the whole evaluation of the configuration (pass, fits, scoring pass, reliability fits).
+``checks`` = the AU-field reliability (one fit per fold) and the FACS check, which every run now does;
+``evaluate`` = the whole evaluation of the configuration (pass, fits, scoring pass, checks).
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
           f"the shared statistics pass: {time.perf_counter() - t:.1f} s\n", flush=True)
 
     header = (f"{'target':15} {'cos median':>10} {'cos worst':>15} {'r2 (own)':>9} {'r2_disp':>8} "
-              f"{'rel median':>10} {'rel min':>8} {'FACS':>5} {'stats s':>8} {'eval s':>7}")
+              f"{'rel median':>10} {'rel min':>8} {'FACS':>5} {'stats s':>8} {'checks s':>8} {'eval s':>7}")
     print(header + "\n" + "-" * len(header))
     for target in args.targets:
         tcfg = config.from_dict(config.compose([f"paths.data_dir={data}", f"preprocess.target={target}"],
@@ -69,12 +70,16 @@ def main(argv: list[str] | None = None) -> None:
         t = time.perf_counter()
         cv, final = ev.evaluate(prepared, tcfg)
         t_eval = time.perf_counter() - t
+        t = time.perf_counter()
+        ev.au_field_reliability(tcfg, stats)
+        ev.facs_passes(prepared, final)
+        t_checks = time.perf_counter() - t
         cos = truth.au_field_cosines(final.coef, final.feature_columns, true, prepared.reference["reference_anchors"])
         m = cv.metrics()
         worst = int(np.argmin(cos))
         print(f"{target:15} {np.median(cos):10.4f} {cos[worst]:8.4f} ({AU_COLUMNS[worst]}) {m['r2_mean']:9.4f} "
               f"{m['r2_displacement_mean']:8.4f} {m['au_reliability_median']:10.4f} {m['au_reliability_min']:8.4f} "
-              f"{m['n_aus_facs_pass']:5d} {t_stats:8.2f} {t_eval:7.1f}", flush=True)
+              f"{m['n_aus_facs_pass']:5d} {t_stats:8.2f} {t_checks:8.2f} {t_eval:7.1f}", flush=True)
         del stats
 
 

@@ -67,10 +67,14 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert "up to date" in _run([BIN / "dvc", "repro"], ws)
 
     # `dvc exp run -S` recomposes params.yaml from conf/ (Hydra) and reruns what depends on it
-    out = _run([BIN / "dvc", "exp", "run", "-S", "model.n_components=7"], ws)
+    out = _run([BIN / "dvc", "exp", "run", "-S", "model.n_components=7", "-S", "preprocess.target=within"], ws)
     assert "Stage 'prepare' didn't change" in out
     assert yaml.safe_load((ws / "params.yaml").read_text())["model"]["n_components"] == 7
-    assert json.loads((ws / "build" / "metrics.json").read_text())["n_components"] == 7
+    metrics = json.loads((ws / "build" / "metrics.json").read_text())
+    assert metrics["n_components"] == 7
+    assert len(metrics["au_reliability"]) == 20 and -1 <= metrics["au_reliability_min"] <= metrics["au_reliability_median"] <= 1
+    assert json.loads((ws / "release" / "model_card.json").read_text())["config"]["preprocess"]["target"] == "within"
+    assert "## AU-field reliability" in (ws / "release" / "MODEL_CARD.md").read_text()
     assert int(np.load(ws / "release" / "au_to_mesh_pls.npz")["n_components"]) == 7
 
     # the documented retraining path: new tables in the same schema, `dvc add data`, `dvc repro`

@@ -129,6 +129,9 @@ def test_children_log_per_fold_metrics_curve_figure_and_model(swept):
             hist = sorted(client.get_metric_history(rid, name), key=lambda m: m.step)
             assert [m.step for m in hist] == [0, 1, 2], name
             assert np.isclose(np.mean([m.value for m in hist]), run.data.metrics[f"{name}_mean"]), name
+        reliability = {k: v for k, v in run.data.metrics.items() if k.startswith("au_reliability_")}
+        assert len(reliability) == 22 and 0 <= run.data.metrics["n_aus_facs_pass"] <= 20  # per AU + median + min
+        assert reliability["au_reliability_min"] == min(v for k, v in reliability.items() if k[-4:-2] == "AU")
         k = int(run.data.metrics["n_components"])
         curve = client.get_metric_history(rid, "r2_by_n_components")
         assert sorted(m.step for m in curve) == list(range(1, k + 1))

@@ -19,6 +19,10 @@ AU-driven displacement from each test video's neutral, ``(y - n_v)`` vs ``B (x -
 ``n_v`` is the video's neutral mesh and ``x̄_v`` the mean design row of the same neutral frames.
 It depends only on the slope ``B``, so absolute and neutral-subtracted runs are scored in the
 same space and on the same information (see ``aumesh.experiments.promote``).
+
+Every run also gets the AU-field reliability (:func:`au_field_reliability`: per AU, the cosine between
+its fields fitted on each fold alone, ``aumesh.model.reliability``) and the number of AUs whose
+direction passes the FACS check (:func:`facs_passes`, ``aumesh.card.directions``).
 """
 
 from __future__ import annotations
