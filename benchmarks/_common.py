@@ -122,6 +122,8 @@ def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = (), src
                   f"paths.data_dir={data_dir}", f"paths.prepared_dir={run_dir / 'prepared'}",
                   f"paths.model_dir={run_dir / 'model'}", f"paths.release_dir={run_dir / 'release'}",
                   f"paths.metrics_file={run_dir / 'metrics.json'}", f"paths.promotion_file={run_dir / 'promotion.json'}",
+                  f"paths.error_curve_file={run_dir / 'cumulative_vertex_error.csv'}",
+                  f"paths.r2_curve_file={run_dir / 'r2_by_n_components.csv'}",
                   f"tracking.tracking_uri=sqlite:///{run_dir / 'mlflow.db'}", *overrides],
         check=True, stdout=subprocess.DEVNULL, env=source_env(src))
     return out

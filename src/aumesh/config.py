@@ -28,7 +28,9 @@ class PathsConfig:
     prepared_dir: str = "build/prepared"
     model_dir: str = "build/model"
     release_dir: str = "release"
-    metrics_file: str = "build/metrics.json"
+    metrics_file: str = "metrics/metrics.json"
+    error_curve_file: str = "metrics/cumulative_vertex_error.csv"
+    r2_curve_file: str = "metrics/r2_by_n_components.csv"
     promotion_file: str = "promotion.json"
 
 

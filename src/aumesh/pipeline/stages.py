@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.pipeline import dvc_metrics
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare as prep
 from aumesh.experiments import provenance
@@ -143,7 +144,7 @@ def evaluate_stage(cfg: Config) -> dict:
                      vertex_error_per_vertex=cv.vertex_error_per_vertex)
             atomic_write_json(tmp / TRACKING_JSON, run_info | {"data_digest": digest})
             atomic_write_json(tmp / METRICS_JSON, metrics)
-        atomic_write_json(cfg.paths.metrics_file, metrics)  # DVC metrics file (`dvc metrics show`)
+        dvc_metrics.write(cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds)  # committed: `dvc metrics/plots diff`
         run.log_artifact(out / METRICS_JSON)
     return metrics
 

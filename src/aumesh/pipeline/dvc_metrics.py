@@ -1,0 +1,95 @@
+"""The metrics and plot data DVC compares across commits and experiments.
+
+``dvc exp show``, ``dvc metrics diff`` and ``dvc plots diff`` read these small files from every
+revision, so they are committed with git (``cache: false`` in ``dvc.yaml``, outside git-ignored
+folders; ``conf/paths`` names them): the evaluate stage's ``metrics.json``, the cumulative
+per-frame vertex error curve and the R²-vs-n_components curve (CSV with a header row, one x and
+one y column each, drawn by DVC's ``linear`` template).
+
+Floats are rounded to :data:`SIGNIFICANT_DIGITS` significant digits, far below any difference
+worth reading and far above last-bit floating-point differences between machines, so a rerun
+elsewhere does not show as a changed metric. MLflow and ``build/model/`` keep full precision.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from aumesh.utils.io import atomic_write_json, atomic_write_text
+
+#: Significant digits of every float in the committed metrics and plot files.
+SIGNIFICANT_DIGITS = 6
+#: Points of the cumulative error curve (the empirical CDF at the 0, 1, ..., 100 % quantiles).
+ERROR_CURVE_POINTS = 101
+
+ERROR_CURVE_COLUMNS = ("vertex_error", "fraction_of_frames")
+R2_CURVE_COLUMNS = ("n_components", "r2")
+
+
+def rounded(value: Any, digits: int = SIGNIFICANT_DIGITS) -> Any:
+    """``value`` with every float (also inside dicts and lists) rounded to ``digits`` significant digits."""
+    if isinstance(value, Mapping):
+        return {k: rounded(v, digits) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [rounded(v, digits) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(f"{float(value):.{digits}g}")
+    return value
+
+
+def error_curve(frame_vertex_error: np.ndarray, n_points: int = ERROR_CURVE_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """The empirical CDF of the held-out per-frame mean vertex error, at ``n_points`` quantiles.
+
+    Parameters
+    ----------
+    frame_vertex_error : ndarray of shape (n_frames,)
+        Mean per-vertex Euclidean error of each held-out frame (``CVResult.frame_vertex_error``).
+    n_points : int, default 101
+        Quantiles 0, 1/(n_points-1), ..., 1 of the errors (a curve of fixed size, whatever ``n_frames``).
+
+    Returns
+    -------
+    errors : ndarray of shape (n_points,)
+        Error values (frames' own values: the ``inverted_cdf`` quantiles), non-decreasing.
+    fraction : ndarray of shape (n_points,)
+        Fraction of frames whose error is <= ``errors[i]`` (the exact empirical CDF there).
+    """
+    e = np.asarray(frame_vertex_error, dtype=np.float64).ravel()
+    e = np.sort(e[np.isfinite(e)])
+    if e.size == 0:
+        raise ValueError("frame_vertex_error has no finite value: no held-out frame was scored")
+    errors = np.quantile(e, np.linspace(0.0, 1.0, n_points), method="inverted_cdf")
+    return errors, np.searchsorted(e, errors, side="right") / e.size
+
+
+def r2_curve(r2_path_folds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean over folds of the held-out R² for k = 1..n_components.
+
+    Parameters
+    ----------
+    r2_path_folds : ndarray of shape (n_splits, n_components)
+        ``CVResult.r2_path_folds``: row f is fold f's R² of the models with 1..n_components components.
+
+    Returns
+    -------
+    k : ndarray of shape (n_components,), int
+    r2 : ndarray of shape (n_components,)
+    """
+    path = np.atleast_2d(np.asarray(r2_path_folds, dtype=np.float64))
+    return np.arange(1, path.shape[1] + 1), path.mean(axis=0)
+
+
+def _csv(columns: tuple[str, str], x: np.ndarray, y: np.ndarray) -> str:
+    rows = [",".join(columns)]
+    rows += [f"{rounded(a) if isinstance(a, float) else a},{rounded(b)}" for a, b in zip(x.tolist(), y.tolist())]
+    return "\n".join(rows) + "\n"
+
+
+def write(paths, metrics: Mapping[str, Any], frame_vertex_error: np.ndarray, r2_path_folds: np.ndarray) -> None:
+    """Write the metrics JSON and the two plot CSVs where ``paths`` (the ``paths`` config group) says, atomically."""
+    atomic_write_json(paths.metrics_file, rounded(dict(metrics)))
+    atomic_write_text(paths.error_curve_file, _csv(ERROR_CURVE_COLUMNS, *error_curve(frame_vertex_error)))
+    atomic_write_text(paths.r2_curve_file, _csv(R2_CURVE_COLUMNS, *r2_curve(r2_path_folds)))
