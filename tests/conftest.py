@@ -24,10 +24,26 @@ def _isolated_mlflow(tmp_path_factory, monkeypatch):
         monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
 
 
+_FIXED_CONF: list[Path] = []  # set once per session by the fixed_conf fixture
+
+
+@pytest.fixture(scope="session", autouse=True)
+def fixed_conf(tmp_path_factory) -> Path:
+    """The configuration every test composes: the repo's conf/ groups (the card's defaults) copied to a
+    temporary folder without conf/experiment/, where `aumesh promote` writes promoted.yaml. Tests never
+    read the user's promotion, params.yaml or mlflow.db (see _isolated_mlflow)."""
+    import shutil
+
+    conf = tmp_path_factory.mktemp("fixed") / "conf"
+    shutil.copytree(REPO / "conf", conf, ignore=shutil.ignore_patterns("experiment"))
+    _FIXED_CONF[:] = [conf]
+    return conf
+
+
 def default_config(**overrides) -> config.Config:
-    """The repo's composed conf/ with Hydra-style overrides (``"model.n_components=10"``)."""
+    """The fixed configuration (:func:`fixed_conf`) with Hydra-style overrides (``"model.n_components=10"``)."""
     items = [f"{k}={v}" for k, v in overrides.items()]
-    return config.from_dict(config.compose(items, config_dir=REPO / "conf"))
+    return config.from_dict(config.compose(items, config_dir=_FIXED_CONF[0]))
 
 
 # a clean, well-identified problem: truth recovery needs signal, not the demo's realism

@@ -15,8 +15,8 @@ def test_committed_params_yaml_is_what_conf_composes_to():
     assert committed == config.compose(config_dir=REPO / "conf"), "params.yaml is stale: run `make params`"
 
 
-def test_unknown_key_is_rejected_with_its_path():
-    data = config.compose(config_dir=REPO / "conf")
+def test_unknown_key_is_rejected_with_its_path(fixed_conf):
+    data = config.compose(config_dir=fixed_conf)
     data["model"]["n_componets"] = 3
     with pytest.raises(ValueError, match=r"unknown config key\(s\) model.n_componets"):
         config.from_dict(data)
@@ -43,17 +43,17 @@ def test_load_params_reports_the_file(tmp_path):
 
 
 @pytest.mark.parametrize("option,columns", [("au", 20), ("au_pose", 23), ("au_pose_interactions", 83)])
-def test_feature_sets_are_group_options(option, columns):
-    cfg = config.from_dict(config.compose([f"features={option}"], config_dir=REPO / "conf"))
+def test_feature_sets_are_group_options(option, columns, fixed_conf):
+    cfg = config.from_dict(config.compose([f"features={option}"], config_dir=fixed_conf))
     assert cfg.features.name == option and len(cfg.features.columns) == columns
 
 
-def test_the_replaced_feature_switches_name_the_group():
+def test_the_replaced_feature_switches_name_the_group(fixed_conf):
     # as a Hydra override (aumesh sweep, compose-params) ...
     with pytest.raises(ValueError, match=r"features=au, features=au_pose or features=au_pose_interactions"):
-        config.compose(["features.pose=false"], config_dir=REPO / "conf")
+        config.compose(["features.pose=false"], config_dir=fixed_conf)
     # ... and in an old params.yaml, where the combination names its option
-    data = config.compose(config_dir=REPO / "conf")
+    data = config.compose(config_dir=fixed_conf)
     data["features"] = {"pose": True, "interactions": "false"}
     with pytest.raises(ValueError, match=r"is `features=au_pose`"):
         config.from_dict(data)

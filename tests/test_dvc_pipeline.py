@@ -13,27 +13,31 @@ import numpy as np
 import pytest
 import yaml
 
+from aumesh.config import compose, write_params
 from aumesh.data.synth import SynthSpec, write_tables
 from conftest import REPO
 
 BIN = Path(sys.executable).parent
 
 
-def _run(args, cwd, **kw):
+def _run(args, cwd, stdout_only=False, **kw):
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}"}
     proc = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, **kw)
     assert proc.returncode == 0, f"{' '.join(map(str, args))} failed:\n{proc.stdout}\n{proc.stderr}"
-    return proc.stdout + proc.stderr
+    return proc.stdout if stdout_only else proc.stdout + proc.stderr
 
 
 @pytest.fixture
-def workspace(tmp_path):
-    """A new git + DVC workspace with the repo's pipeline, conf/ and code, and small synthetic tables."""
+def workspace(tmp_path, fixed_conf):
+    """A new git + DVC workspace with the repo's pipeline and code, the fixed conf/ (the card's defaults, no
+    promotion) composed into params.yaml, and small synthetic tables."""
     ws = tmp_path / "ws"
     ws.mkdir()
-    for name in ("dvc.yaml", "params.yaml", "promotion.json", ".gitignore"):
+    for name in ("dvc.yaml", ".gitignore"):
         shutil.copy(REPO / name, ws / name)
-    shutil.copytree(REPO / "conf", ws / "conf")
+    shutil.copytree(fixed_conf, ws / "conf")
+    write_params(compose(config_dir=ws / "conf"), ws / "params.yaml")
+    (ws / "promotion.json").write_text('{"promoted": null}\n')
     shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     _run(["git", "init", "-q"], ws)
     _run(["git", "config", "user.email", "t@example.com"], ws)
@@ -66,11 +70,22 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert (ws / "release" / "au_to_mesh.glb").read_bytes()[:4] == b"glTF"  # the blendshape rig (tests/test_gltf.py)
     assert "up to date" in _run([BIN / "dvc", "repro"], ws)
 
+    # `dvc plots show` draws the two curves the evaluate stage writes (declared `plots:` in dvc.yaml)
+    paths = yaml.safe_load((ws / "params.yaml").read_text())["paths"]
+    plots = json.loads(_run([BIN / "dvc", "plots", "show", "--json"], ws, stdout_only=True))["data"]
+    err, r2 = plots[paths["error_curve_file"]][0]["content"], plots[paths["r2_curve_file"]][0]["content"]
+    assert [float(v["fraction_of_frames"]) for v in err["data"]["values"]][-1] == 1.0
+    assert [int(v["n_components"]) for v in r2["data"]["values"]] == list(range(1, 84))
+    assert err["encoding"]["x"]["field"] == "vertex_error" and r2["encoding"]["x"]["field"] == "n_components"
+    _run([BIN / "dvc", "plots", "show", "-o", "plots_html"], ws)
+    html = (ws / "plots_html" / "index.html").read_text()
+    assert "Cumulative vertex error" in html and "CV R2 vs n_components" in html
+
     # `dvc exp run -S` recomposes params.yaml from conf/ (Hydra) and reruns what depends on it
     out = _run([BIN / "dvc", "exp", "run", "-S", "model.n_components=7", "-S", "preprocess.target=within"], ws)
     assert "Stage 'prepare' didn't change" in out
     assert yaml.safe_load((ws / "params.yaml").read_text())["model"]["n_components"] == 7
-    metrics = json.loads((ws / "build" / "metrics.json").read_text())
+    metrics = json.loads((ws / paths["metrics_file"]).read_text())
     assert metrics["n_components"] == 7
     assert len(metrics["au_reliability"]) == 20 and -1 <= metrics["au_reliability_min"] <= metrics["au_reliability_median"] <= 1
     assert json.loads((ws / "release" / "model_card.json").read_text())["config"]["preprocess"]["target"] == "within"
