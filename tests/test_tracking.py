@@ -225,6 +225,17 @@ def test_data_digest_errors_clearly(workspace):
 def test_git_commit_reports_dvc_baseline_and_dirty(workspace, monkeypatch):
     info = provenance.git_commit(workspace)
     assert info["commit"] == _git(workspace, "rev-parse", "HEAD") and info["dirty"] is False
+    # what DVC itself rewrites (the lock file, the git-tracked metrics it lists) is not a dirty tree
+    (workspace / "metrics").mkdir()
+    (workspace / "metrics" / "m.json").write_text("{}")
+    (workspace / "dvc.lock").write_text("schema: '2.0'\nstages:\n  a:\n    cmd: echo\n    outs:\n"
+                                        "    - path: metrics/m.json\n      hash: md5\n      md5: 0\n")
+    _git(workspace, "add", "dvc.lock", "metrics/m.json")
+    _git(workspace, "commit", "-q", "-m", "lock")
+    (workspace / "metrics" / "m.json").write_text('{"r2": 0.5}')
+    (workspace / "dvc.lock").write_text((workspace / "dvc.lock").read_text().replace("md5: 0", "md5: 1"))
+    _git(workspace, "add", "dvc.lock")  # autostage
+    assert provenance.git_commit(workspace)["dirty"] is False
     (workspace / "dvc.yaml").write_text("stages: {a: {cmd: echo}}\n")
     assert provenance.git_commit(workspace)["dirty"] is True
     monkeypatch.setenv("DVC_EXP_BASELINE_REV", "f" * 40)

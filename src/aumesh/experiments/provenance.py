@@ -180,6 +180,39 @@ def _git(args: Sequence[str], cwd: Path) -> str | None:
     return out.stdout.strip()
 
 
+def dvc_written_paths(directory: Path | str) -> list[str]:
+    """What DVC itself rewrites in *directory*: ``dvc.lock`` and every stage output it records.
+
+    ``dvc repro`` rewrites ``dvc.lock`` (and with ``core.autostage`` stages it) and the git-tracked
+    outputs declared ``cache: false`` (the metrics and plot data); cached outputs are git-ignored
+    anyway. None of that is an uncommitted source, config or data change.
+
+    Parameters
+    ----------
+    directory : Path or str
+        The workspace (or DVC temp copy) whose ``dvc.lock`` is read.
+
+    Returns
+    -------
+    list of str
+        ``"dvc.lock"`` followed by the ``outs`` paths of every stage in ``dvc.lock`` (relative to
+        *directory*); just ``["dvc.lock"]`` when there is no readable lock file.
+    """
+    import yaml
+
+    paths = ["dvc.lock"]
+    try:
+        doc = yaml.safe_load((Path(directory) / "dvc.lock").read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return paths
+    stages = doc.get("stages") if isinstance(doc, Mapping) else None
+    for stage in (stages or {}).values():
+        for out in (stage or {}).get("outs") or []:
+            if isinstance(out, Mapping) and out.get("path"):
+                paths.append(str(out["path"]))
+    return paths
+
+
 def git_commit(root: Path | str) -> dict[str, Any]:
     """Describe the code version a run used; never raises.
 
@@ -196,10 +229,12 @@ def git_commit(root: Path | str) -> dict[str, Any]:
             DVC does for queued, temp and workspace ``dvc exp run``) this is the
             experiment's baseline commit, not whatever the workspace HEAD is now.
         ``dirty`` : bool
-            Uncommitted changes (tracked or untracked, ``git status --porcelain``)
-            in the tree the code actually runs from: the DVC temp copy when the
-            current directory is one (dirty whenever the experiment changed
-            params, by design), else *root*. True when the tree exists but its
+            Uncommitted source, config or data changes (tracked or untracked,
+            ``git status --porcelain``) in the tree the code actually runs from:
+            the DVC temp copy when the current directory is one (dirty whenever
+            the experiment changed params, by design), else *root*. What DVC
+            itself rewrites (:func:`dvc_written_paths`: ``dvc.lock``, the metrics
+            and plot files) does not count. True when the tree exists but its
             status could not be read; False when git is unavailable.
         ``branch`` : str or None
             Current branch of *root*; None when detached or unknown.
@@ -215,7 +250,8 @@ def git_commit(root: Path | str) -> dict[str, Any]:
     baseline = os.environ.get("DVC_EXP_BASELINE_REV") or None
 
     head = _git(["rev-parse", "HEAD"], exec_dir)
-    status = _git(["status", "--porcelain"], exec_dir)
+    status = _git(["status", "--porcelain", "--", ".", *(f":(exclude){p}" for p in dvc_written_paths(exec_dir))],
+                  exec_dir)
     branch = _git(["rev-parse", "--abbrev-ref", "HEAD"], root)
     if branch == "HEAD":
         branch = None
