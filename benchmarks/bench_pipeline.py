@@ -49,7 +49,8 @@ def run_dvc(workdir: Path, data_dir: Path, src: str | None) -> dict:
     (ws / "promotion.json").write_text(json.dumps({"promoted": None}))
     text = (checkout / "dvc.yaml").read_text()
     for stage in STAGES:
-        text = text.replace(f"cmd: aumesh {stage} ", f"cmd: /usr/bin/time -f '%e %M' -o {stage}.time aumesh {stage} ")
+        text = text.replace(f"cmd: ${{aumesh}} {stage} ",
+                            f"cmd: /usr/bin/time -f '%e %M' -o {stage}.time {sys.executable} -m aumesh {stage} ")
     (ws / "dvc.yaml").write_text(text)
     subprocess.run(AUMESH + ["compose-params", "--config-dir", str(conf_dir(src)), "--out", str(ws / "params.yaml"),
                              f"paths.data_dir={data_dir}", f"tracking.tracking_uri=sqlite:///{ws / 'mlflow.db'}"],

@@ -43,24 +43,30 @@ def _cmd_synth(args) -> int:
 def _cmd_prepare(args) -> int:
     from aumesh.pipeline.stages import prepare_stage
 
-    summary = prepare_stage(_params(args))
-    print(json.dumps(summary["counts"], indent=2))
+    cfg = _params(args)
+    c = prepare_stage(cfg)["counts"]
+    print(f"prepare: kept {c['frames_kept']:,} of {c['frames_in']:,} frames, {c['videos_kept']:,} of {c['videos_in']:,} videos "
+          f"(pose filter -{c['dropped_pose']:,}, alignment outliers -{c['dropped_alignment_outliers']:,}) "
+          f"-> {cfg.paths.prepared_dir}")
     return 0
 
 
 def _cmd_evaluate(args) -> int:
     from aumesh.pipeline.stages import evaluate_stage
 
-    metrics = evaluate_stage(_params(args))
-    print(f"CV R2 = {metrics['r2_mean']:.4f} +/- {metrics['r2_std']:.4f}  folds {[round(v, 4) for v in metrics['r2_folds']]}  "
-          f"MAE = {metrics['mae_mean']:.4f}")
+    cfg = _params(args)
+    m = evaluate_stage(cfg)
+    print(f"evaluate: CV R2 = {m['r2_mean']:.4f} +/- {m['r2_std']:.4f} (folds {' '.join(f'{v:.4f}' for v in m['r2_folds'])}), "
+          f"MAE = {m['mae_mean']:.4f}, n_components = {m['n_components']} -> {cfg.paths.model_dir}, {cfg.paths.metrics_file}")
     return 0
 
 
 def _cmd_release(args) -> int:
     from aumesh.pipeline.stages import release_stage
 
-    print(f"release written to {release_stage(_params(args)).resolve()}")
+    out = release_stage(_params(args))
+    files = [f for f in out.rglob("*") if f.is_file()]
+    print(f"release: {out} ({len(files)} files, {sum(f.suffix == '.png' for f in files)} figures)")
     return 0
 
 
@@ -255,7 +261,8 @@ class Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="aumesh", description="aumesh: AU (+ head pose) -> MediaPipe FaceMesh, the pipeline's stages "
                     "and tools. `aumesh COMMAND --help` lists a command's options and their defaults.")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages too (default: info and above)")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log the library's progress messages: -v info, -vv debug (default: warnings only)")
     parser.add_argument("--debug", action="store_true",
                         help=f"show the traceback of input and configuration errors too (or set {DEBUG_ENV}=1)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -328,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     from aumesh.utils.errors import UserError
 
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+    logging.basicConfig(level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     debug = args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0")
     try:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -67,23 +67,27 @@ def _quiet_mlflow() -> None:
     _QUIETED = True
 
 
-def _absolute_local_uri(uri: str, root: Path) -> str:
-    """Make a relative ``sqlite:///`` / ``file:`` / plain-path URI absolute against *root*."""
+def _absolute_local_uri(uri: str, root: Callable[[], Path]) -> str:
+    """Make a relative ``sqlite:///`` / ``file:`` / plain-path URI absolute against ``root()``.
+
+    ``root`` is only called for a relative path: an absolute store works outside any workspace
+    (``benchmarks/*.py --workdir /elsewhere``).
+    """
     if uri.startswith("sqlite:///"):
         rest = uri[len("sqlite:///"):]
         path, sep, query = rest.partition("?")
         if path and not path.startswith("/") and path != ":memory:":
-            return f"sqlite:///{(root / path).resolve().as_posix()}{sep}{query}"
+            return f"sqlite:///{(root() / path).resolve().as_posix()}{sep}{query}"
         return uri
     if uri.startswith("file://"):
         return uri  # file:///abs or file://host/... : already absolute
     if uri.startswith("file:"):
         path = uri[len("file:"):]
         p = Path(path)
-        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
+        return (p if p.is_absolute() else (root() / p).resolve()).as_uri()
     if "://" not in uri and ":" not in uri.split("/")[0]:
         p = Path(uri).expanduser()
-        return (p if p.is_absolute() else (root / p).resolve()).as_uri()
+        return (p if p.is_absolute() else (root() / p).resolve()).as_uri()
     return uri
 
 
@@ -112,7 +116,7 @@ def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
         cfg_uri = str(cfg_uri).strip()
         if cfg_uri.startswith(("http://", "https://", "databricks")):
             return cfg_uri
-        return _absolute_local_uri(cfg_uri, provenance.repo_root())
+        return _absolute_local_uri(cfg_uri, provenance.repo_root)
     return f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}"
 
 

@@ -530,12 +530,11 @@ class SweepCallback:
         self._end(config, Path(str(config.hydra.run.dir)))
 
     def on_multirun_start(self, config, **kwargs: Any) -> None:
-        from tqdm.auto import tqdm
+        from aumesh.utils import progress
 
         overrides = list(config.hydra.overrides.task)
         self._start(config, Path(str(config.hydra.sweep.dir)), overrides, "multirun")
-        self._progress = tqdm(total=count_jobs(overrides), desc="sweep", unit="config",
-                              disable=not sys.stderr.isatty(), leave=False)
+        self._progress = progress.bar(count_jobs(overrides), "sweep", unit="config")
 
     def on_multirun_end(self, config, **kwargs: Any) -> None:
         if self._progress is not None:
