@@ -45,13 +45,15 @@ def _quiet_mlflow() -> None:
     global _QUIETED
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     os.environ.setdefault("DO_NOT_TRACK", "true")
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # the stages' own bars show the long passes
     if _QUIETED:
         return
     import logging
 
     import mlflow
 
-    for noisy in ("mlflow.store.db.utils", "alembic"):  # "Creating initial MLflow database tables..."
+    # "Creating initial MLflow database tables...", "Validating input example against model signature"
+    for noisy in ("mlflow.store.db.utils", "alembic", "mlflow.pyfunc", "mlflow.models"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
 
     try:  # mlflow builds its telemetry client at import; drop it if it was created
