@@ -152,6 +152,8 @@ def clean_env(clone: Path) -> dict:
     env.update(PATH=os.pathsep.join(keep), PYTHONPATH=str(clone / "src"), GIT_AUTHOR_NAME="t",
                GIT_AUTHOR_EMAIL="t@example.com", GIT_COMMITTER_NAME="t", GIT_COMMITTER_EMAIL="t@example.com",
                MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true")
+    if (REPO / "node_modules").is_dir():  # the node tools `make tools` installed here (three.js for the viewer)
+        env["AUMESH_NODE_MODULES"] = str(REPO / "node_modules")
     return env
 
 
