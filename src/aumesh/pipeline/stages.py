@@ -44,7 +44,8 @@ def data_digest(dvc_file: str = "data.dvc") -> dict[str, Any]:
 
 def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
     """The outputs ``dvc.yaml`` declares for ``stage`` (prepare, evaluate, release)."""
-    return {"prepare": [paths.prepared_dir], "evaluate": [paths.model_dir, paths.metrics_file],
+    return {"prepare": [paths.prepared_dir],
+            "evaluate": [paths.model_dir, paths.metrics_file, paths.error_curve_file, paths.r2_curve_file],
             "release": [paths.release_dir]}.get(stage, [])
 
 
