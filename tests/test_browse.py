@@ -95,11 +95,15 @@ def test_promote_names_its_sweep_and_refuses_to_overrule_a_newer_evaluate_run(sw
     newer = newer_evaluate  # the pipeline's configuration (83 components, all features), after every sweep
     capsys.readouterr()
     with pytest.raises(promote.OverruleError) as exc:
-        cli.main(["promote", "--no-register"])
+        cli.main(["--debug", "promote", "--no-register"])
     message = str(exc.value)
+    assert cli.main(["promote", "--no-register"]) == 2  # a user error: one line on stderr, exit 2
+    err = capsys.readouterr().err
+    assert err.startswith("aumesh promote: error: sweep ") and message in err
     assert f"sweep {latest} is older than evaluate run {newer['run_id']}" in message
     assert "model.n_components=83 there, 2 in the sweep's best run" in message
     assert "--parent ID" in message and "--latest" in message
+    assert cli.main(["promote", "--no-register"]) == 2
     assert f"the latest sweep: {latest}" in capsys.readouterr().out  # it said which sweep it took
     assert not promoted.exists() and (workspace / "promotion.json").read_text() == before  # nothing written
 

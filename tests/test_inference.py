@@ -170,14 +170,14 @@ def test_cli_predict_writes_one_mesh_per_table_row(card_release, tmp_path, capsy
         assert z["meshes"].shape == (3, 478, 3) and z["meshes"].dtype == np.float32
         np.testing.assert_allclose(z["meshes"], expected, rtol=1e-5, atol=1e-2)
         np.testing.assert_array_equal(z["pose"], pose)
-    # the table's own errors name the table; OBJ/PLY hold one mesh
-    with pytest.raises(PredictionInputError, match=r"rows\.csv: aus \(DataFrame\): unknown name\(s\) \['frame'\]"):
-        cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out)])
-    with pytest.raises(PredictionInputError, match=r"rows\.csv has 3 rows; \.obj holds one mesh"):
-        cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(tmp_path / "m.obj"),
-                  "--ignore", "frame"])
-    with pytest.raises(PredictionInputError, match=r"--ignore names column\(s\) \['video_id'\]"):
-        cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out), "--ignore", "video_id"])
+    # the table's own errors name the table; OBJ/PLY hold one mesh; each is one line on stderr and exit 2
+    for extra, message in ([[], r"rows\.csv: aus \(DataFrame\): unknown name\(s\) \['frame'\]"],
+                           [["--out", str(tmp_path / "m.obj"), "--ignore", "frame"], r"rows\.csv has 3 rows; \.obj holds one mesh"],
+                           [["--ignore", "video_id"], r"--ignore names column\(s\) \['video_id'\]"],
+                           [["--release", str(tmp_path / "none.npz")], r"release NPZ not found: .*none\.npz"]):
+        assert cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out), *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("aumesh predict: error: ") and re.search(message, err), err
 
 
 @pytest.mark.parametrize("suffix", [".obj", ".ply"])

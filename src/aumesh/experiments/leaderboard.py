@@ -135,7 +135,7 @@ def format_sweeps_table(table: pd.DataFrame) -> str:
     if table.empty:
         return "(no sweeps: run `aumesh sweep -m ...`)"
     lines = [f"{'sweep (--parent)':32}  {'started (UTC)':16}  {'status':8} {'runs':>4} {'failed':>6}  "
-             f"{'best':35} {'best run':38}  swept"]
+             f"{'best (run)':35} {'best configuration':38}  swept"]
     for r in table.to_dict(orient="records"):
         best = f"{r['metric']}={float(r['best_value']):.4f} ({str(r['best_run'])[:8]})" if r["best_value"] is not None else "-"
         lines.append(f"{r['sweep']:32}  {r['started']:%Y-%m-%d %H:%M}  {r['status']:8} {r['n_runs']:>4} {r['n_failed']:>6}  "

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from aumesh.config import flatten as flatten_config
+from aumesh.utils.errors import UserError
 from aumesh.utils.io import atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -394,7 +395,7 @@ def verify_composition(composed: Mapping[str, Any], run_params: Mapping[str, str
 
 
 # ------------------------------------------------------------------ the command
-class OverruleError(ValueError):
+class OverruleError(UserError, ValueError):
     """Promotion refused: a newer pipeline run evaluated another configuration than the sweep's best."""
 
 

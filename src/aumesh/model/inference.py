@@ -24,6 +24,7 @@ from typing import Any, Union
 import numpy as np
 
 from aumesh.data.schema import N_TARGETS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
+from aumesh.utils.errors import MissingFileError, UserError
 
 # A head turned more than 90 degrees is no longer a face seen from the front: any pose value above
 # this (in radians) means the caller passed degrees. Training keeps |yaw| <= 40 deg, |pitch| <= 30 deg.
@@ -35,11 +36,11 @@ Release = Mapping[str, Any]
 ReleaseSource = Union[str, os.PathLike, Release]
 
 
-class ReleaseError(ValueError):
+class ReleaseError(UserError, ValueError):
     """A file or mapping that is not a usable release; the message names the key and what it should be."""
 
 
-class PredictionInputError(ValueError):
+class PredictionInputError(UserError, ValueError):
     """AU or pose input that the model cannot take as it is; the message names the column and the fix."""
 
 
@@ -64,8 +65,8 @@ def load_release(source: ReleaseSource) -> dict[str, np.ndarray]:
 
     Raises
     ------
-    FileNotFoundError
-        ``source`` is a path that does not exist.
+    MissingFileError
+        ``source`` is a path that does not exist (a ``FileNotFoundError``).
     ReleaseError
         The file is not an NPZ, or a key is missing or has the wrong shape.
     """
@@ -75,7 +76,7 @@ def load_release(source: ReleaseSource) -> dict[str, np.ndarray]:
         path = Path(source)
         where = str(path)
         if not path.is_file():
-            raise FileNotFoundError(
+            raise MissingFileError(
                 f"release NPZ not found: {path}. Fix: pass the path of a release NPZ "
                 f"(`dvc repro` writes release/au_to_mesh_pls.npz in the project)."
             )

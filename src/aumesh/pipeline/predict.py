@@ -26,6 +26,7 @@ from aumesh.data.schema import POSE_COLUMNS
 from aumesh.export import meshfiles
 from aumesh.geometry import face
 from aumesh.model.inference import PredictionInputError, input_rows, load_release, predict_mesh
+from aumesh.utils.errors import MissingFileError
 from aumesh.utils.io import atomic_savez, atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -49,7 +50,7 @@ def read_input_table(path: str | os.PathLike, ignore: Sequence[str] = ()) -> pd.
     if path.suffix.lower() not in TABLE_SUFFIXES:
         raise PredictionInputError(f"{path}: unsupported table type {path.suffix!r}; use {' or '.join(TABLE_SUFFIXES)}")
     if not path.is_file():
-        raise FileNotFoundError(f"input table not found: {path}")
+        raise MissingFileError(f"input table not found: {path}")
     df = pd.read_csv(path) if path.suffix.lower() == ".csv" else pd.read_parquet(path)
     absent = [c for c in ignore if c not in df.columns]
     if absent:

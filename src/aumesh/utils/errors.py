@@ -18,3 +18,7 @@ class ConfigError(UserError, ValueError):
 
 class TableError(UserError, ValueError):
     """A frame table that cannot be used as it is; the message says which file, which column and the fix."""
+
+
+class MissingFileError(UserError, FileNotFoundError):
+    """A file the user named does not exist; the message names it and how to get it."""
