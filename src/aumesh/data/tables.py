@@ -88,7 +88,7 @@ def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str, coerce_n
 def _corrupt(path: Path, err: BaseException, what: str = "") -> TableError:
     return TableError(
         f"{path}: corrupt or truncated parquet file{what} ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). "
-        f"Fix: restore it (`dvc checkout {path}` or `dvc pull`) or re-export it with pandas.DataFrame.to_parquet."
+        f"Fix: restore the tracked copy (`dvc checkout --force`, or `dvc pull`) or re-export it with pandas.DataFrame.to_parquet."
     )
 
 
