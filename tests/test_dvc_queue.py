@@ -1,25 +1,28 @@
 """`dvc exp run --queue -S model.n_components=10,40` + `dvc queue start`: the queued runs (in DVC temp copies
-under .dvc/tmp/exps/) compose params.yaml from conf/ and log their `evaluate` runs to the workspace's mlflow.db.
+under .dvc/tmp/exps/) compose params.yaml from conf/, log their `evaluate` runs to the workspace's mlflow.db,
+and compare with the committed baseline in `dvc exp show`, `dvc metrics diff` and `dvc plots diff`.
 
 Slow (two full pipeline runs on the demo data): `make test-slow`. Runs in a temporary `git clone` of this
-checkout's HEAD (committed code only, via PYTHONPATH), never in the working tree; skipped when git, dvc or
-the demo remote are unavailable.
+checkout's HEAD (committed code only, via PYTHONPATH; the checkout's venv linked in as the clone's .venv/),
+never in the working tree; skipped when git, dvc or the demo remote are unavailable.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
+import json
 import sqlite3
 import subprocess
 import time
 from pathlib import Path
 
 import pytest
+import yaml
 
-REPO = Path(__file__).resolve().parents[1]
-BIN = REPO / ".venv" / "bin"
+from conftest import REPO
+
 QUEUE_TIMEOUT_S = 1500.0
+PATHS = yaml.safe_load((REPO / "conf" / "paths" / "default.yaml").read_text())
+METRICS, ERROR_CURVE, R2_CURVE = PATHS["metrics_file"], PATHS["error_curve_file"], PATHS["r2_curve_file"]
 
 pytestmark = pytest.mark.slow
 
@@ -29,23 +32,6 @@ def _run(args: list[str], cwd: Path, env: dict, timeout: float = 600.0) -> subpr
     if proc.returncode != 0:
         raise AssertionError(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
     return proc
-
-
-@pytest.fixture
-def clone(tmp_path) -> tuple[Path, dict]:
-    if shutil.which("git") is None or not (BIN / "dvc").exists() or not (REPO / ".git").exists():
-        pytest.skip("needs git, .venv/bin/dvc and a git checkout")
-    if not (REPO / "demo-remote").is_dir():
-        pytest.skip("the committed demo DVC remote (demo-remote/) is missing")
-    ws = tmp_path / "clone"
-    subprocess.run(["git", "clone", "-q", str(REPO), str(ws)], check=True, capture_output=True)
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("MLFLOW_", "DVC_", "AUMESH_")) and k not in ("PYTHONPATH", "VIRTUAL_ENV")}
-    env.update(PATH=f"{BIN}:{env.get('PATH', '')}", PYTHONPATH=str(ws / "src"),  # the clone's code, not the checkout's
-               GIT_AUTHOR_NAME="t", GIT_AUTHOR_EMAIL="t@example.com", GIT_COMMITTER_NAME="t",
-               GIT_COMMITTER_EMAIL="t@example.com", MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true")
-    _run(["dvc", "pull", "-q", "data.dvc"], ws, env)  # the remote holds the data; build/ and release/ are rebuilt
-    return ws, env
 
 
 def _evaluate_runs(db: Path) -> list[tuple[str, str, str]]:
@@ -59,14 +45,38 @@ def _evaluate_runs(db: Path) -> list[tuple[str, str, str]]:
             "JOIN params p ON p.run_uuid = r.run_uuid AND p.key = 'model.n_components'").fetchall()
 
 
-def test_queued_experiments_log_to_the_workspace_store(clone):
-    ws, env = clone
-    out = _run(["dvc", "exp", "run", "--queue", "-S", "model.n_components=10,40"], ws, env).stdout
+def _rows(shown: list) -> dict[str, dict]:
+    """``{rev: {"name", "metrics", "n_components"}}`` of every row (commits and experiments) of `dvc exp show --json`."""
+    rows: dict[str, dict] = {}
+
+    def visit(node):
+        if isinstance(node, list):
+            for item in node:
+                visit(item)
+        elif isinstance(node, dict):
+            data = node.get("data")
+            if "rev" in node and isinstance(data, dict) and "metrics" in data:
+                metrics = (data.get("metrics") or {}).get(METRICS, {}).get("data") or {}
+                params = (data.get("params") or {}).get("params.yaml", {}).get("data") or {}
+                rows[node["rev"]] = {"name": node.get("name"), "metrics": metrics,
+                                     "n_components": (params.get("model") or {}).get("n_components")}
+            for value in node.values():
+                visit(value)
+
+    visit(shown)
+    return rows
+
+
+def test_queued_experiments_compare_with_the_committed_baseline_and_log_to_the_workspace_store(fresh_clone):
+    ws, env = fresh_clone
+    dvc = str(ws / ".venv" / "bin" / "dvc")  # as a user who did not activate the venv
+    _run([dvc, "pull", "-q", "--allow-missing"], ws, env)  # what `make demo` pulls: the tables and the outputs
+    out = _run([dvc, "exp", "run", "--queue", "-S", "model.n_components=10,40"], ws, env).stdout
     assert out.count("Queued experiment") == 2, out
-    _run(["dvc", "queue", "start", "-j", "1"], ws, env)
+    _run([dvc, "queue", "start", "-j", "1"], ws, env)
     deadline = time.monotonic() + QUEUE_TIMEOUT_S
     while True:
-        status = _run(["dvc", "queue", "status"], ws, env).stdout
+        status = _run([dvc, "queue", "status"], ws, env).stdout
         if not any(s in status for s in ("Queued", "Running")):
             break
         if time.monotonic() > deadline:
@@ -76,6 +86,24 @@ def test_queued_experiments_log_to_the_workspace_store(clone):
     runs = _evaluate_runs(ws / "mlflow.db")  # the clone's (= workspace's) store, not the temp copies'
     assert sorted(v for _, s, v in runs if s == "FINISHED") == ["10", "40"], runs
     assert not list((ws / ".dvc" / "tmp" / "exps").glob("tmp*/mlflow.db"))
-    shown = _run(["dvc", "exp", "show", "--csv", "--no-pager"], ws, env).stdout
-    assert "model.n_components" in shown.splitlines()[0]
-    _run(["dvc", "exp", "remove", "--all-commits", "-q"], ws, env)
+
+    # the committed baseline and both experiments have numbers (metrics are committed with git, not cached)
+    head = _run(["git", "rev-parse", "HEAD"], ws, env).stdout.strip()
+    rows = _rows(json.loads(_run([dvc, "exp", "show", "--json"], ws, env).stdout))
+    exps = {r["n_components"]: rev for rev, r in rows.items() if rev not in (head, "workspace")}
+    assert set(exps) == {10, 40}, rows
+    r2 = {rev: rows[rev]["metrics"].get("r2_mean") for rev in (head, exps[10], exps[40])}
+    assert all(isinstance(v, float) and 0.0 < v < 1.0 for v in r2.values()), rows
+    # the baseline's committed R²-vs-n_components curve predicts each experiment's CV R² (same folds; kernel PLS
+    # gives every smaller n_components exactly): plot data and experiments agree to the committed precision
+    curve = dict(line.split(",") for line in (ws / R2_CURVE).read_text().splitlines()[1:])
+    for k in (10, 40):
+        assert abs(float(curve[str(k)]) - r2[exps[k]]) <= 2e-6 * abs(r2[exps[k]]), (k, curve[str(k)], r2[exps[k]])
+
+    diff = json.loads(_run([dvc, "metrics", "diff", head, exps[10], "--json"], ws, env).stdout)
+    assert diff[METRICS]["r2_mean"]["old"] == r2[head] and diff[METRICS]["r2_mean"]["new"] == r2[exps[10]], diff
+    plots = json.loads(_run([dvc, "plots", "diff", head, exps[10], "--json"], ws, env).stdout)
+    for name, n in ((ERROR_CURVE, 2 * 101), (R2_CURVE, 83 + 10)):
+        values = plots["data"][name][0]["content"]["data"]["values"]
+        assert len(values) == n and len({v["rev"] for v in values}) == 2, name
+    _run([dvc, "exp", "remove", "--all-commits", "-q"], ws, env)
