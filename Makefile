@@ -13,7 +13,7 @@ TOOLS_STAMP := node_modules/.package-lock.json
 .PHONY: help venv tools demo refresh-demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui pyfeat-check
 
 help:
-	@echo "make demo        - create .venv from requirements.lock, pull the demo data, run the pipeline (dvc repro)"
+	@echo "make demo        - create .venv from requirements.lock, pull the demo data and outputs, dvc repro (up to date)"
 	@echo "make refresh-demo - after a change to code, params or data: dvc repro, store the outputs in demo-remote/"
 	@echo "make tools       - install the node tools (three.js for the viewer, glTF-Validator) into node_modules/"
 	@echo "make test        - run the test suite (fast tests)"
@@ -45,7 +45,8 @@ lock:
 
 # After a change that reruns stages: rebuild, store the outputs in the committed demo remote, drop objects
 # the workspace no longer uses (older commits keep theirs in their own demo-remote/); then commit
-# dvc.lock, metrics/ and demo-remote/ together.
+# dvc.lock, metrics/ and demo-remote/ together. Run it on a committed tree: the release records the git
+# commit and whether the tree was dirty.
 refresh-demo: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/dvc repro
 	$(BIN)/dvc push --quiet --remote demo
