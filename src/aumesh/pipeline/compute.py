@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 #: Partial results combined per task of the tree reductions.
 SPLIT_EVERY = 8
 _BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-_ACTIVE: contextvars.ContextVar[bool] = contextvars.ContextVar("aumesh_compute_engine", default=False)
+_ACTIVE: contextvars.ContextVar[ComputeConfig | None] = contextvars.ContextVar("aumesh_compute_engine", default=None)
 
 
 def n_workers(cfg: ComputeConfig) -> int:
@@ -45,7 +45,7 @@ def engine(cfg: ComputeConfig) -> Iterator[None]:
     import dask
     from threadpoolctl import threadpool_limits
 
-    token = _ACTIVE.set(True)
+    token = _ACTIVE.set(cfg)
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             yield from _scheduler(cfg, dask)
@@ -84,7 +84,15 @@ def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
 
 def _current():
     """The active engine, or the default one (``compute=local``) for a caller outside :func:`engine`."""
-    return nullcontext() if _ACTIVE.get() else engine(ComputeConfig())
+    return nullcontext() if _ACTIVE.get() is not None else engine(ComputeConfig())
+
+
+def task_rows(chunk_rows: int) -> int:
+    """Rows a task streams at a time: ``data.chunk_rows`` shared by the tasks that run at once in one process
+    (the local threads: every worker; a process pool or a cluster: one per process), so a stage's rows in
+    flight, and its memory, are those of one ``chunk_rows`` chunk on any local scheduler."""
+    cfg = _ACTIVE.get() or ComputeConfig()
+    return max(1, chunk_rows // (n_workers(cfg) if cfg.scheduler == "threads" else 1))
 
 
 def _bag(partitions: Sequence[Any]):

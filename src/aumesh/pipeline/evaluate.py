@@ -368,7 +368,8 @@ def design_statistics(prepared: Prepared, fold: np.ndarray, n_splits: int, chunk
         for name, width in VIDEO_SUMS.items():
             create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
         part = compute.map_reduce(partial(design_partition, directory=prepared.directory, video_fold=video_fold, a=a, b=b,
-                                          n_splits=n_splits, chunk_rows=chunk_rows, scratch=scratch, split_video=split_video),
+                                          n_splits=n_splits, chunk_rows=compute.task_rows(chunk_rows), scratch=scratch,
+                                          split_video=split_video),
                                   DesignPart.__add__, groups)
         for v, values in part.split.items():
             for name, row in zip(VIDEO_SUMS, values):
@@ -461,7 +462,7 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
                                         coefs=[np.ascontiguousarray(coef.T) for coef, _ in models],
                                         intercepts=[intercept for _, intercept in models],
                                         use_pose=use_pose, interactions=inter,
-                                        n_splits=n_splits, chunk_rows=chunk_rows,
+                                        n_splits=n_splits, chunk_rows=compute.task_rows(chunk_rows),
                                         x_offset=stats.x_offset, y_offset=stats.y_offset),
                                 ErrorPart.__add__, prepared.row_groups())
     abs_sum, vertex_sum, frame_error = errors.abs_sum, errors.vertex_sum, np.concatenate(errors.frame_error)

@@ -282,7 +282,7 @@ class _VideoSums:
 
 
 def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: Plan, out_dir: Path,
-                    split_video: np.ndarray, scratch: Path) -> Written:
+                    split_video: np.ndarray, scratch: Path, chunk_rows: int) -> Written:
     """Pass 3 on one partition: align and write its kept meshes, metadata and whole videos' neutrals.
 
     ``split_video`` (n_videos,) bool marks videos with frames in other partitions too: their sums are
@@ -311,7 +311,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     position[plan.rows] = np.arange(len(plan.rows))
     offset = 0
     for p in part:
-        for start, coords in iter_mesh_columns(p.table, cfg.data.chunk_rows, p.row_groups):
+        for start, coords in iter_mesh_columns(p.table, chunk_rows, p.row_groups):
             m = coords.shape[1]
             local = offset + start - p.start
             pos = position[local : local + m]
@@ -432,7 +432,8 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
         # pass 3: align and write; population sums and split videos' sums reduced in a tree
         written = compute.map_reduce(
-            partial(_write_item, cfg=cfg, reference=reference, out_dir=tmp, split_video=split_video, scratch=scratch),
+            partial(_write_item, cfg=cfg, reference=reference, out_dir=tmp, split_video=split_video, scratch=scratch,
+                    chunk_rows=compute.task_rows(cfg.data.chunk_rows)),
             Written.__add__, list(zip(parts, plans)))
         del plans
         for v, total in written.split.items():  # videos with frames in several partitions
