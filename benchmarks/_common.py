@@ -103,6 +103,8 @@ def source_env(src: str | Path | None) -> dict:
     env = dict(os.environ)
     if src:
         env["PYTHONPATH"] = str(src) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    if (REPO / "node_modules").is_dir():  # the release's viewer inlines three.js (`make tools`), whichever tree runs
+        env.setdefault("AUMESH_NODE_MODULES", str(REPO / "node_modules"))
     return env
 
 
