@@ -201,8 +201,8 @@ def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     from aumesh.experiments import sweep
 
     cache = sweep.SweepCache()
-    raw = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=20", "model.n_components=3"], config_dir=workspace / "conf")
-    r1 = sweep.run_configuration(raw, ["preprocess.pose_filter.max_abs_yaw_deg=20"], cache=cache, root=workspace)
+    raw = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=3"], config_dir=workspace / "conf")
+    r1 = sweep.run_configuration(raw, ["preprocess.pose_filter.max_abs_yaw_deg=30"], cache=cache, root=workspace)
     assert r1["status"] == "FINISHED", r1
     run = mlflow_store.get_client({}).get_run(r1["run_id"])
     prepared_dir = Path(run.data.tags["aumesh.prepared_dir"])
@@ -210,7 +210,7 @@ def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     assert (prepared_dir / sweep.PREPARE_STAMP).exists()
     summary = prepare.load_summary(prepared_dir)
     assert summary["n_frames"] < prepare.load_summary(workspace / "build" / "prepared")["n_frames"]
-    raw2 = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=20", "model.n_components=4"], config_dir=workspace / "conf")
+    raw2 = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=4"], config_dir=workspace / "conf")
     r2 = sweep.run_configuration(raw2, ["model.n_components=4"], cache=cache, root=workspace)
     assert mlflow_store.get_client({}).get_run(r2["run_id"]).data.tags["aumesh.cache.statistics"] == "reused"
 
