@@ -80,3 +80,13 @@ def test_a_bar_on_a_terminal_none_in_a_pipe():
     assert "statistics pass" in err and "/1.00k" in err, err  # rows counted with SI prefixes
     _, err = _run([sys.executable, "-c", code], tty=False)
     assert err == ""
+
+
+def test_the_data_passes_show_a_bar_on_a_terminal(stage_ws):
+    """Every Dask pass of prepare and evaluate is named on a terminal (tqdm's Dask callback over its tasks)."""
+    _, err = _stage("prepare", stage_ws, tty=True)
+    for name in ("prepare: read + validate", "prepare: residuals", "prepare: align + write"):
+        assert name in err, err[-2000:]
+    _, err = _stage("evaluate", stage_ws, tty=True)
+    for name in ("evaluate: statistics", "evaluate: errors"):
+        assert name in err, err[-2000:]

@@ -101,19 +101,33 @@ def _bag(partitions: Sequence[Any]):
     return db.from_sequence(list(partitions), npartitions=len(partitions))
 
 
-def map_gather(fn: Callable, partitions: Sequence[Any]) -> list:
-    """``[fn(p) for p in partitions]`` on the current scheduler, results in partition order."""
+def _progress(desc: str):
+    """A bar over the pass's finished tasks (tqdm's Dask callback), on a terminal only; local schedulers report
+    their tasks to it, a ``dask.distributed`` cluster shows its own dashboard instead."""
+    import sys
+
+    if not desc or not sys.stderr.isatty() or (_ACTIVE.get() or ComputeConfig()).scheduler == "distributed":
+        return nullcontext()
+    from tqdm.dask import TqdmCallback
+
+    return TqdmCallback(desc=desc, unit="task", leave=False, dynamic_ncols=True)
+
+
+def map_gather(fn: Callable, partitions: Sequence[Any], desc: str = "") -> list:
+    """``[fn(p) for p in partitions]`` on the current scheduler, results in partition order; ``desc`` names the
+    progress bar."""
     if not partitions:
         return []
-    with _current():
+    with _current(), _progress(desc):
         return _bag(partitions).map(fn).compute()
 
 
-def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Sequence[Any]) -> Any:
-    """``combine``-tree of ``fn(p)`` over the partitions, in partition order (the same tree on every scheduler)."""
+def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Sequence[Any], desc: str = "") -> Any:
+    """``combine``-tree of ``fn(p)`` over the partitions, in partition order (the same tree on every scheduler);
+    ``desc`` names the progress bar."""
     if not partitions:
         raise ValueError("map_reduce: no partitions")
-    with _current():
+    with _current(), _progress(desc):
         return _bag(partitions).map(fn).reduction(_reduce_all(combine), _reduce_all(combine),
                                                   split_every=SPLIT_EVERY).compute()
 

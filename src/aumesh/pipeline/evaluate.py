@@ -370,7 +370,7 @@ def design_statistics(prepared: Prepared, fold: np.ndarray, n_splits: int, chunk
         part = compute.map_reduce(partial(design_partition, directory=prepared.directory, video_fold=video_fold, a=a, b=b,
                                           n_splits=n_splits, chunk_rows=compute.task_rows(chunk_rows), scratch=scratch,
                                           split_video=split_video),
-                                  DesignPart.__add__, groups)
+                                  DesignPart.__add__, groups, desc="evaluate: statistics")
         for v, values in part.split.items():
             for name, row in zip(VIDEO_SUMS, values):
                 write_rows(scratch / f"{name}.npy", v, row[None])
@@ -464,7 +464,7 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
                                         use_pose=use_pose, interactions=inter,
                                         n_splits=n_splits, chunk_rows=compute.task_rows(chunk_rows),
                                         x_offset=stats.x_offset, y_offset=stats.y_offset),
-                                ErrorPart.__add__, prepared.row_groups())
+                                ErrorPart.__add__, prepared.row_groups(), desc="evaluate: errors")
     abs_sum, vertex_sum, frame_error = errors.abs_sum, errors.vertex_sum, np.concatenate(errors.frame_error)
     fold_videos = [int((video_fold == f).sum()) for f in range(n_splits)]
     sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)

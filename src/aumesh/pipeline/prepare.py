@@ -361,7 +361,8 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         scratch = tmp / "scratch"  # per-partition validated metadata and anchors, staged by pass 1
         scratch.mkdir()
         # pass 1: validation, pose filter, GPA candidates
-        scan = compute.map_reduce(partial(scan_partition, cfg=cfg, scratch=scratch), Scan.__add__, list(enumerate(parts)))
+        scan = compute.map_reduce(partial(scan_partition, cfg=cfg, scratch=scratch), Scan.__add__, list(enumerate(parts)),
+                                  desc="prepare: read + validate")
         if scan.n_pose == 0:
             raise TableError(
                 f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
@@ -377,7 +378,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
 
         # pass 2: residuals and AU sums of the pose-passing frames, gathered
         res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names,
-                                         scratch=scratch), list(enumerate(parts)))
+                                         scratch=scratch), list(enumerate(parts)), desc="prepare: residuals")
         abs_pose = np.concatenate([r.abs_pose for r in res])
         contract.check_pose_units(abs_pose, cfg.paths.data_dir)  # every frame (float32: compared with 1 rad)
         del abs_pose
@@ -434,7 +435,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         written = compute.map_reduce(
             partial(_write_item, cfg=cfg, reference=reference, out_dir=tmp, split_video=split_video, scratch=scratch,
                     chunk_rows=compute.task_rows(cfg.data.chunk_rows)),
-            Written.__add__, list(zip(parts, plans)))
+            Written.__add__, list(zip(parts, plans)), desc="prepare: align + write")
         del plans
         for v, total in written.split.items():  # videos with frames in several partitions
             for slot, name in enumerate(("mean", "low_au")):
