@@ -10,6 +10,7 @@ never in the working tree; skipped when git, dvc or the demo remote are unavaila
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import subprocess
 import time
@@ -69,7 +70,9 @@ def _rows(shown: list) -> dict[str, dict]:
 
 def test_queued_experiments_compare_with_the_committed_baseline_and_log_to_the_workspace_store(fresh_clone):
     ws, env = fresh_clone
-    dvc = str(ws / ".venv" / "bin" / "dvc")  # as a user who did not activate the venv
+    # as a user who activated the venv: `dvc queue start` spawns its worker as `dvc` looked up on PATH
+    env = env | {"PATH": os.pathsep.join([str(ws / ".venv" / "bin"), env["PATH"]])}
+    dvc = str(ws / ".venv" / "bin" / "dvc")
     _run([dvc, "pull", "-q", "--allow-missing"], ws, env)  # what `make demo` pulls: the tables and the outputs
     out = _run([dvc, "exp", "run", "--queue", "-S", "model.n_components=10,40"], ws, env).stdout
     assert out.count("Queued experiment") == 2, out
