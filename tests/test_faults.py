@@ -562,3 +562,30 @@ def test_failed_dvc_repro_keeps_the_release_and_names_the_fault(dvc_workspace, t
     assert "Traceback" not in proc.stdout + proc.stderr
     assert tree_digest(ws / "release") == release
     assert f"{stage}:" in _dvc(ws, "status")
+
+
+def test_a_killed_unreaped_child_counts_as_gone():
+    """A SIGKILLed stage whose parent died too stays a zombie where nobody reaps it (containers): its pid still
+    "exists", but its temporaries and RUNNING run are debris. A live process is not gone; a pid created after the
+    temporary was written is a reused pid."""
+    import subprocess
+    import time
+
+    import psutil
+
+    from aumesh.utils.io import process_gone
+
+    child = subprocess.Popen(["sleep", "30"])
+    child.kill()
+    deadline = time.monotonic() + 10
+    while psutil.Process(child.pid).status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline:
+        time.sleep(0.05)
+    try:
+        assert psutil.pid_exists(child.pid)  # what the old check asked: the zombie looked alive
+        assert process_gone(child.pid, time.time() - 60)
+    finally:
+        child.wait()
+    assert process_gone(child.pid, time.time() - 60)  # reaped: no such process
+    me = psutil.Process()
+    assert not process_gone(me.pid, me.create_time() + 5)  # live, started before its temporary
+    assert process_gone(me.pid, me.create_time() - 60)  # a process newer than the temporary: the pid was reused

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.experiments import provenance
+from aumesh.utils.io import process_gone
 from aumesh.experiments.mlflow_store import (
     DEFAULT_EXPERIMENT,
     MAX_BATCH,
@@ -371,17 +372,6 @@ def _open_run(
     return TrackedRun(client, run.info.run_id, exp_id)
 
 
-def _process_gone(pid: int, run_start_ms: int) -> bool:
-    """No process ``pid`` on this host, a zombie, or one started after the run (the pid was reused)."""
-    import psutil
-
-    try:
-        proc = psutil.Process(pid)
-        return proc.status() == psutil.STATUS_ZOMBIE or proc.create_time() * 1000.0 > run_start_ms + 1000.0
-    except psutil.NoSuchProcess:
-        return True
-
-
 def close_orphaned_runs(client: MlflowClient, experiment_id: str, workspace: str | None) -> list[str]:
     """Mark KILLED the RUNNING runs of this host (and workspace) whose process is gone (e.g. SIGKILL).
 
@@ -399,7 +389,7 @@ def close_orphaned_runs(client: MlflowClient, experiment_id: str, workspace: str
         if workspace and tags.get("aumesh.workspace") not in (None, workspace):
             continue
         pid = tags.get(PID_TAG, "")
-        if not pid.isdigit() or not _process_gone(int(pid), run.info.start_time or 0):
+        if not pid.isdigit() or not process_gone(int(pid), (run.info.start_time or 0) / 1000.0):
             continue
         with contextlib.suppress(Exception):
             client.set_tag(run.info.run_id, ERROR_TAG, f"process {pid} on {host} ended without closing the run (killed)")

@@ -39,17 +39,27 @@ def _temp_prefix(path: Path, kind: str) -> str:
     return f".{path.name}.{kind}-{os.getpid()}-{socket.gethostname()}-"
 
 
+def process_gone(pid: int, started_s: float) -> bool:
+    """No process ``pid`` on this host, a zombie (a killed child that nobody reaped, common in containers) or a
+    process created after ``started_s`` (epoch seconds; the pid was reused)."""
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        return proc.status() == psutil.STATUS_ZOMBIE or proc.create_time() > started_s + 1.0
+    except psutil.NoSuchProcess:
+        return True
+
+
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
     """Delete the temporaries of ``path`` (``.<name>.tmp-*``, ``.<name>.old-*``) left by a killed process of this
     host; those of live processes (a concurrent run) stay. Returns what was removed."""
-    import psutil
-
     path = Path(path)
     pattern = re.compile(rf"^\.{re.escape(path.name)}\.(?:tmp|old)-(\d+)-(.+)-[^-]*$")
     removed = []
     for candidate in path.parent.glob(f".{glob.escape(path.name)}.*-*") if path.parent.is_dir() else ():
         m = pattern.match(candidate.name)
-        if not m or m.group(2) != socket.gethostname() or psutil.pid_exists(int(m.group(1))):
+        if not m or m.group(2) != socket.gethostname() or not process_gone(int(m.group(1)), candidate.lstat().st_mtime):
             continue
         if candidate.is_dir() and not candidate.is_symlink():
             shutil.rmtree(candidate, ignore_errors=True)
