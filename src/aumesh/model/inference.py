@@ -24,6 +24,7 @@ from typing import Any, Union
 import numpy as np
 
 from aumesh.data.schema import N_TARGETS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
+from aumesh.model.release import load_npz
 from aumesh.utils.errors import MissingFileError, UserError
 
 # A head turned more than 90 degrees is no longer a face seen from the front: any pose value above
@@ -81,8 +82,7 @@ def load_release(source: ReleaseSource) -> dict[str, np.ndarray]:
                 f"(`dvc repro` writes release/au_to_mesh_pls.npz in the project)."
             )
         try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
+            arrays = load_npz(path)
         except (OSError, ValueError) as exc:
             raise ReleaseError(f"{path}: not a release NPZ ({exc})") from exc
     check_release(arrays, where)
