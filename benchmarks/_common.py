@@ -119,13 +119,15 @@ def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = (), src
     run_dir.mkdir(parents=True, exist_ok=True)
     write_data_dvc(run_dir, data_dir)
     out = run_dir / "params.yaml"
+    paths = {"data_dir": data_dir, "prepared_dir": run_dir / "prepared", "model_dir": run_dir / "model",
+             "release_dir": run_dir / "release", "metrics_file": run_dir / "metrics.json",
+             "promotion_file": run_dir / "promotion.json", "error_curve_file": run_dir / "cumulative_vertex_error.csv",
+             "r2_curve_file": run_dir / "r2_by_n_components.csv"}
+    # an older tree's conf/ may lack some of today's keys (Hydra refuses to override a missing key)
+    known = (conf_dir(src) / "paths" / "default.yaml").read_text() if (conf_dir(src) / "paths" / "default.yaml").exists() else ""
+    path_overrides = [f"paths.{k}={v}" for k, v in paths.items() if not known or f"{k}:" in known]
     subprocess.run(
-        AUMESH + ["compose-params", "--config-dir", str(conf_dir(src)), "--out", str(out),
-                  f"paths.data_dir={data_dir}", f"paths.prepared_dir={run_dir / 'prepared'}",
-                  f"paths.model_dir={run_dir / 'model'}", f"paths.release_dir={run_dir / 'release'}",
-                  f"paths.metrics_file={run_dir / 'metrics.json'}", f"paths.promotion_file={run_dir / 'promotion.json'}",
-                  f"paths.error_curve_file={run_dir / 'cumulative_vertex_error.csv'}",
-                  f"paths.r2_curve_file={run_dir / 'r2_by_n_components.csv'}",
+        AUMESH + ["compose-params", "--config-dir", str(conf_dir(src)), "--out", str(out), *path_overrides,
                   f"tracking.tracking_uri=sqlite:///{run_dir / 'mlflow.db'}", *overrides],
         check=True, stdout=subprocess.DEVNULL, env=source_env(src))
     return out
