@@ -47,6 +47,18 @@ def test_render_release_writes_every_figure_non_blank(release, tmp_path):
     assert not list((tmp_path / "out").glob(".*"))  # no temp files left behind
 
 
+def test_figures_drawn_in_worker_processes_equal_those_drawn_in_process(release, tmp_path, monkeypatch):
+    """The figures are drawn on every core (forked workers); the bytes are those of drawing them one by one."""
+    npz, cv = release
+    monkeypatch.setattr(render.os, "cpu_count", lambda: 3)
+    parallel = render.render_release(npz, tmp_path / "parallel", cv_path=cv)
+    monkeypatch.setattr(render.os, "cpu_count", lambda: 1)
+    serial = render.render_release(npz, tmp_path / "serial", cv_path=cv)
+    assert [p.name for p in parallel] == [p.name for p in serial]
+    for a, b in zip(parallel, serial):
+        assert a.read_bytes() == b.read_bytes(), a.name
+
+
 def test_without_cv_no_cv_figures(release, tmp_path):
     paths = render.render_release(release[0], tmp_path)
     assert sorted(p.name for p in paths) == sorted(ALWAYS)

@@ -387,20 +387,37 @@ def render_release(npz_path: str | os.PathLike, out_dir: str | os.PathLike,
     tri = face.triangulate(neutral)
     factor = exaggeration_factor(disp)
     jobs = [
-        ("au_solid_panels.png", lambda: fig_solid_panels(neutral, disp, tri, factor)),
-        ("au_solid_neutral_vs_activated.png", lambda: fig_neutral_vs_activated(neutral, disp, tri, factor)),
-        ("au_compare_overlay.png", lambda: fig_compare_overlay(neutral, disp, tri, factor)),
-        ("au_effect_maps.png", lambda: fig_effect_maps(neutral, disp, tri, scale)),
-        ("pose_views.png", lambda: fig_pose_views(neutral, disp, tri, factor)),
+        ("au_solid_panels.png", fig_solid_panels, (neutral, disp, tri, factor)),
+        ("au_solid_neutral_vs_activated.png", fig_neutral_vs_activated, (neutral, disp, tri, factor)),
+        ("au_compare_overlay.png", fig_compare_overlay, (neutral, disp, tri, factor)),
+        ("au_effect_maps.png", fig_effect_maps, (neutral, disp, tri, scale)),
+        ("pose_views.png", fig_pose_views, (neutral, disp, tri, factor)),
     ]
     if cv is not None and "r2_per_vertex" in cv:
-        jobs.append(("r2_per_vertex.png", lambda: fig_r2_per_vertex(neutral, tri, cv["r2_per_vertex"])))
+        jobs.append(("r2_per_vertex.png", fig_r2_per_vertex, (neutral, tri, cv["r2_per_vertex"])))
     if cv is not None and ("vertex_error" in cv or "cumulative_error_thresholds" in cv):
-        jobs.append(("cumulative_vertex_error.png", lambda: fig_cumulative_error(*cumulative_curve(cv))))
-    written = []
-    for name, make in jobs:
-        written.append(_save(make(), out / name))
-    return written
+        jobs.append(("cumulative_vertex_error.png", fig_cumulative_error, cumulative_curve(cv)))
+    return _render_all([(out / name, make, args) for name, make, args in jobs])
+
+
+def _render(path: Path, make, args) -> Path:
+    return _save(make(*args), path)
+
+
+def _render_all(jobs: list[tuple[Path, Any, tuple]]) -> list[Path]:
+    """Draw and save each ``(path, figure function, args)``, on every core: Agg drawing is Python-bound (one
+    core per process), and the figures are independent. Worker processes are forked (they inherit the imported
+    matplotlib); where fork is unavailable or there is one core, they are drawn one by one here."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from matplotlib.figure import Figure  # noqa: F401  imported once, before the fork
+
+    workers = min(len(jobs), os.cpu_count() or 1)
+    if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        return [_render(*job) for job in jobs]
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        return list(pool.map(_render, *zip(*jobs)))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -16,14 +16,15 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.pipeline import dvc_metrics
-from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import prepare as prep
+from typing import TYPE_CHECKING
+
 from aumesh.experiments import provenance
-from aumesh.data import tables
 from aumesh.config import Config, PathsConfig
 from aumesh.utils.io import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text, remove_stale_temporaries
 from aumesh.model.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
+
+if TYPE_CHECKING:
+    from aumesh.pipeline import evaluate as ev
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +74,14 @@ def removed_by_dvc(stage: str, lock_file: str | Path = "dvc.lock") -> str | None
     return f"DVC removed {', '.join(missing)} before running {stage}: `dvc checkout {stage}` brings back the last good one."
 
 
+# Each stage imports only what it runs (a stage is a process of its own: scikit-learn, MLflow, pandera or
+# matplotlib imported for nothing cost seconds of every `dvc repro`).
+
+
 def prepare_stage(cfg: Config) -> dict:
+    from aumesh.data import tables
+    from aumesh.pipeline import prepare as prep
+
     start_stage("prepare", cfg)
     found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy, cfg.data.coerce_numeric)
     summary = prep.run(found, cfg, cfg.paths.prepared_dir)
@@ -83,6 +91,8 @@ def prepare_stage(cfg: Config) -> dict:
 
 def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVResult, ev.FinalModel]:
     """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
+    from aumesh.pipeline import evaluate as ev
+
     timings = {}
     ev.log_clipping(cfg, handle)
     t0 = time.perf_counter()
@@ -116,6 +126,8 @@ def evaluate_run_name(cfg: Config) -> str:
 
 def evaluate_stage(cfg: Config) -> dict:
     from aumesh.experiments import mlflow_store, pyfunc, tracking
+    from aumesh.pipeline import dvc_metrics
+    from aumesh.pipeline import evaluate as ev
 
     start_stage("evaluate", cfg)
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
@@ -156,7 +168,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         metrics = json.load(fh)
     with open(model_dir / TRACKING_JSON) as fh:
         run_info = json.load(fh)
-    summary = prep.load_summary(prepared_dir)
+    summary = json.loads((prepared_dir / "summary.json").read_text())  # prepare's counts (not its module: pandera, dask)
     git = provenance.git_commit(Path.cwd())
     return {
         "name": "AU+pose -> MediaPipe mesh PLS (aumesh)",

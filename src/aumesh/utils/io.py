@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import glob
+import io
 import json
 import os
 import re
@@ -136,14 +138,29 @@ def create_npy(path: str | Path, dtype, shape: tuple[int, ...]) -> int:
 
 
 def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
-    """``(data offset, dtype, shape)`` of a C-ordered ``.npy`` (read from its header only)."""
+    """``(data offset, dtype, shape)`` of a C-ordered ``.npy`` (read from its header only).
+
+    The header's bytes are read each call (a file may be replaced); parsing them (``ast.literal_eval``)
+    is cached by those bytes, since the streaming passes call this for every chunk they read or write.
+    """
     with open(path, "rb") as fh:
-        version = np.lib.format.read_magic(fh)
-        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, fortran, dtype = read_header(fh)
-        if fortran:
-            raise ValueError(f"{path}: Fortran-ordered array; rows cannot be streamed")
-        return fh.tell(), dtype, shape
+        prefix = fh.read(12)  # magic (6), version (2), header length (2 in v1.0, 4 in v2/v3)
+        if len(prefix) < 10 or prefix[:6] != b"\x93NUMPY":
+            raise ValueError(f"{path}: not an .npy file")
+        size = 10 + int.from_bytes(prefix[8:10], "little") if prefix[6] == 1 else 12 + int.from_bytes(prefix[8:12], "little")
+        header = prefix + fh.read(size - len(prefix))
+    return _parse_npy_header(header, str(path))
+
+
+@functools.lru_cache(maxsize=64)
+def _parse_npy_header(header: bytes, path: str) -> tuple[int, np.dtype, tuple[int, ...]]:
+    fh = io.BytesIO(header)
+    version = np.lib.format.read_magic(fh)
+    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, fortran, dtype = read_header(fh)
+    if fortran:
+        raise ValueError(f"{path}: Fortran-ordered array; rows cannot be streamed")
+    return len(header), dtype, shape
 
 
 def write_rows(path: str | Path, first_row: int, rows: np.ndarray, offset: int | None = None) -> None:
