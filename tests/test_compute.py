@@ -150,3 +150,77 @@ def test_local_cluster_of_two_worker_processes(split_tables, split_prepared):
         out, _ = _prepare(split_tables, "prepared-cluster", **remote, **{"compute.partition_rows": 1})
         _assert_same_prepared(out, split_prepared)
         _assert_same_model(_evaluate(out, **remote), _evaluate(split_prepared, **{"compute": "synchronous"}))
+
+
+def test_low_au_thresholds_are_the_lower_quantile_of_each_video():
+    """Rank floor(q (size - 1)) of each video's sorted AU sums = numpy's ``method="lower"`` quantile, ties included."""
+    rng = np.random.default_rng(5)
+    video = rng.integers(0, 40, size=900)
+    au_sum = np.round(rng.random(900) * 4, 1)  # many ties
+    for q in (0.0, 0.1, 0.37, 1.0):
+        videos, thresholds = prepare.low_au_thresholds(au_sum, video, q)
+        np.testing.assert_array_equal(videos, np.unique(video))
+        np.testing.assert_array_equal(thresholds, [np.quantile(au_sum[video == v], q, method="lower") for v in videos])
+
+
+def test_low_au_frames_of_videos_split_across_partitions_follow_the_whole_set(split_tables):
+    """Per-video and population low-AU frames from 13 partitions (videos cut at row groups) against numpy on the
+    whole kept set: the low_au column, the per-video low-AU neutrals, the population count and mesh."""
+    q = 0.37
+    out, summary = _prepare(split_tables, "low-au-split", **{"compute.partition_rows": 1,
+                                                             "preprocess.neutral.low_au_quantile": q})
+    frames = pd.read_parquet(out / "frames.parquet")
+    meshes = np.load(out / "meshes.npy").astype(np.float64)
+    video = frames["video_index"].to_numpy()
+    parquet = pq.ParquetFile(out / "frames.parquet")  # a row group per partition
+    groups = [set(parquet.read_row_group(g, columns=["video_index"]).column(0).to_pylist())
+              for g in range(parquet.num_row_groups)]
+    split = {v for g, a in enumerate(groups) for b in groups[g + 1 :] for v in a & b}
+    assert len(split) >= 5  # kept frames of these videos lie in two partitions
+    au_sum = frames[[c for c in frames.columns if c.startswith("AU")]].to_numpy().sum(axis=1)
+    low_video = np.zeros(len(frames), bool)
+    for v in np.unique(video):
+        mine = video == v
+        low_video[mine] = au_sum[mine] <= np.quantile(au_sum[mine], q, method="lower")
+    np.testing.assert_array_equal(frames["low_au"].to_numpy(), low_video)
+    neutral = np.load(out / "neutral_low_au.npy")
+    for v in sorted(split):
+        np.testing.assert_allclose(neutral[v], meshes[(video == v) & low_video].mean(axis=0), rtol=1e-6, atol=1e-4)
+    low_population = au_sum <= np.quantile(au_sum, q)
+    assert summary["n_low_au_population"] == int(low_population.sum())
+    mean_low = np.load(out / "reference.npz")["mean_low_au_mesh"]
+    np.testing.assert_allclose(mean_low.T.ravel(), meshes[low_population].mean(axis=0), rtol=1e-6, atol=1e-4)
+
+
+def _with_roll(split_tables, tmp_path, roll):
+    """The split tables (same row groups) with Roll replaced by ``roll`` (n_frames,) in the tables' order."""
+    (tmp_path / "data").mkdir(parents=True)
+    start = 0
+    for f in sorted((split_tables / "data").glob("*.parquet")):
+        df = pq.read_table(f).to_pandas()
+        df["Roll"] = roll[start : start + len(df)]
+        start += len(df)
+        df.to_parquet(tmp_path / "data" / f.name, index=False, row_group_size=ROW_GROUP)
+    return tmp_path
+
+
+def test_pose_units_check_fires_across_partitions_at_the_median(split_tables, tmp_path):
+    """Roll in degrees (every value below pi, not pose-filtered) stops the run over 13 partitions, with numpy's median
+    in the message; the check is on the median: half the frames at 0.5 and half at 1.5 rad (median 1.0) pass,
+    one frame more at 1.5 fails."""
+    n = sum(pq.ParquetFile(f).metadata.num_rows for f in (split_tables / "data").glob("*.parquet"))
+    roll = np.clip(np.rad2deg(np.random.default_rng(2).normal(0.0, 0.15, n)), -3.1, 3.1)
+    root = _with_roll(split_tables, tmp_path / "degrees", roll)
+    with pytest.raises(tables.TableError, match="Roll") as err:
+        _prepare(root, "out", **{"compute.partition_rows": 1})
+    median = np.median(np.abs(roll.astype(np.float32)).astype(np.float64))
+    assert f"median |Roll| = {median:.2f}" in str(err.value) and "degrees" in str(err.value)
+    assert median > 1.0
+
+    halves = np.where(np.random.default_rng(3).permutation(n) < n // 2, 0.5, 1.5)
+    assert n % 2 == 0 and (halves == 1.5).sum() == n // 2
+    _prepare(_with_roll(split_tables, tmp_path / "median-1", halves), "out", **{"compute.partition_rows": 1})
+    one_more = halves.copy()
+    one_more[np.flatnonzero(halves == 0.5)[0]] = 1.5
+    with pytest.raises(tables.TableError, match=r"median \|Roll\| = 1\.50"):
+        _prepare(_with_roll(split_tables, tmp_path / "median-1.5", one_more), "out", **{"compute.partition_rows": 1})

@@ -7,7 +7,8 @@ Every pass over the tables (pandas today, Dask partitions tomorrow) calls the sa
 * :func:`numeric_values` — one column of text converted to float, or an error naming the first bad
   row and value;
 * :func:`check_pose_units` — pose judged from its distribution (a still subject in degrees has every
-  value below π but a median far beyond any plausible head pose in radians);
+  value below π but a median far beyond any plausible head pose in radians); :func:`check_pose_medians`
+  the same check on medians computed elsewhere (the prepare stage's exact quantiles over partitions);
 * :func:`check_filter_shares` — a filter that drops more than ``preprocess.max_drop_fraction``
   of what it sees points at wrong units or scale, not at the data.
 
@@ -193,7 +194,12 @@ def check_pose_units(pose: np.ndarray, where: str | Path) -> None:
     """
     if len(pose) == 0:
         return
-    median = np.median(np.abs(np.asarray(pose, dtype=np.float64)), axis=0)
+    check_pose_medians(np.median(np.abs(np.asarray(pose, dtype=np.float64)), axis=0), where)
+
+
+def check_pose_medians(median, where: str | Path) -> None:
+    """:func:`check_pose_units` on the medians of |Pitch|, |Yaw|, |Roll| (3,) over the frames (computed elsewhere,
+    e.g. by exact quantiles of a vector held in partitions)."""
     for name, m in zip(POSE_COLUMNS, median):
         if m > MAX_MEDIAN_ABS_POSE_RAD:
             raise TableError(

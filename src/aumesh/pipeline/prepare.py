@@ -4,10 +4,10 @@ Card, "Training data": pose filter |yaw| <= 40 deg, |pitch| <= 30 deg; per-frame
 similarity Procrustes onto a reference built on the 12 anchors; top 1 % of frames by max
 anchor residual dropped.
 
-Three passes over the tables, each a pure function mapped over partitions (whole parquet row
-groups, ``aumesh.data.tables.partitions``) on the Dask scheduler of the ``compute`` group
-(``aumesh.pipeline.compute``); the stage process only holds small per-frame vectors, never a
-frame's mesh or a video's neutral:
+Passes over the tables, each a pure function mapped over partitions (whole parquet row groups,
+``aumesh.data.tables.partitions``) on the Dask scheduler of the ``compute`` group
+(``aumesh.pipeline.compute``). Per-frame results stay in the partitions' scratch files; the stage
+process holds per-partition and per-video summaries only (memory flat in frames):
 
 1. ``scan``: metadata + the 12 anchors (36 of the 1434 mesh columns): validation, pose filter and
    the GPA candidates: the ``gpa_max_frames`` pose-passing frames of smallest seeded hash of
@@ -15,12 +15,20 @@ frame's mesh or a video's neutral:
    and the reference, do not depend on the partitioning). The validated metadata and anchors are
    staged per partition in a scratch folder, so the tables are parsed once;
 2. ``residuals``: each pose-passing frame's max anchor residual to the reference and its AU sum,
-   gathered (~20 bytes a frame): the outlier threshold is the exact quantile of the gathered
-   residuals, the low-AU thresholds exact per video and over the population;
-3. ``write``: full meshes, chunk by chunk: align the kept frames and write them (float32,
-   axis-major) into their rows of ``meshes.npy`` (``pwrite``: partitions write disjoint rows),
-   each partition's kept metadata, and the neutral meshes of the videos it holds whole; sums of
-   the population means and of videos split across partitions are reduced in a tree.
+   staged per partition with |pose| (:func:`residual_partition`). The outlier threshold, the
+   population low-AU threshold and the pose-units check's medians are exact quantiles of these
+   files (:func:`aumesh.pipeline.quantiles.exact_quantiles`: ``np.quantile`` of the whole vector,
+   bit for bit, without gathering it);
+   ``keep``: each partition's kept count (the output offsets) and kept videos; the kept AU sums of
+   videos split across partitions are gathered for their per-video low-AU thresholds (a video held
+   whole by a partition gets its threshold there, in pass 3). Tables grouped by video split one or
+   two videos per partition boundary; tables whose videos are scattered over many partitions
+   gather those videos' AU sums (and their ``(video, frame)`` keys for the duplicate check);
+3. ``write``: full meshes, chunk by chunk: each partition derives its kept rows, video index and
+   low-AU flags from its scratch files and the thresholds, aligns the kept frames and writes them
+   (float32, axis-major) into its rows of ``meshes.npy`` (``pwrite``: partitions write disjoint
+   rows), its kept metadata, and the neutral meshes of the videos it holds whole; sums of the
+   population means and of videos split across partitions are reduced in a tree.
 
 Outputs (in ``paths.prepared_dir``, swapped in atomically as a whole folder):
 ``meshes.npy`` (n_kept, 1434) float32; ``frames.parquet`` (video_id, frame, AUs, pose,
@@ -53,6 +61,7 @@ from aumesh.data.tables import FrameTable, Piece, TableError, check_unique_frame
 from aumesh.geometry.align import align_to_reference, generalized_procrustes, umeyama_batch
 from aumesh.model.statistics import video_indicator
 from aumesh.pipeline import compute
+from aumesh.pipeline.quantiles import exact_quantiles
 from aumesh.utils.io import atomic_directory, atomic_write_json, create_npy, write_rows
 
 log = logging.getLogger(__name__)
@@ -69,23 +78,30 @@ def pose_mask(pitch: np.ndarray, yaw: np.ndarray, cfg: PreprocessConfig) -> np.n
     return (np.abs(yaw) <= np.deg2rad(f.max_abs_yaw_deg)) & (np.abs(pitch) <= np.deg2rad(f.max_abs_pitch_deg))
 
 
-def low_au_masks(au_sum: np.ndarray, video_index: np.ndarray, quantile: float) -> tuple[np.ndarray, np.ndarray]:
-    """Low-AU frames: AU sum at or below the ``quantile`` of its video (per-subject) and of all frames (population).
+def low_au_thresholds(au_sum: np.ndarray, video: np.ndarray, quantile: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-video low-AU thresholds: the AU sum at rank ``floor(quantile (size - 1))`` of the video's sorted AU sums
+    (at least the video's lowest frame). A frame is low-AU within its video when its AU sum is at or below it.
+
+    Parameters
+    ----------
+    au_sum : ndarray, shape (n_frames,)
+    video : ndarray, shape (n_frames,)
+        The video of each frame (any sortable labels).
 
     Returns
     -------
-    per_video, population : ndarray of bool, shape (n_frames,)
+    videos : ndarray, shape (n_videos,)
+        The distinct videos, sorted.
+    thresholds : ndarray, shape (n_videos,)
     """
-    order = np.lexsort((au_sum, video_index))
-    sorted_video = video_index[order]
+    if len(au_sum) == 0:
+        return video[:0], au_sum[:0]
+    order = np.lexsort((au_sum, video))
+    sorted_video = video[order]
     starts = np.flatnonzero(np.r_[True, sorted_video[1:] != sorted_video[:-1]])
     sizes = np.diff(np.r_[starts, len(order)])
-    # the rank of the per-video quantile, at least the video's lowest frame
     cut_rank = np.floor(quantile * (sizes - 1)).astype(int)
-    thresholds = au_sum[order][starts + cut_rank]
-    per_video = au_sum <= thresholds[np.searchsorted(np.unique(video_index), video_index)]
-    population = au_sum <= np.quantile(au_sum, quantile)
-    return per_video, population
+    return sorted_video[starts], au_sum[order][starts + cut_rank]
 
 
 def gpa_hash(video: np.ndarray, frame: np.ndarray, seed: int) -> np.ndarray:
@@ -189,20 +205,31 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> S
 
 @dataclass
 class Residuals:
-    """Pass 2 of one partition: what the outlier cut and the low-AU frames need (16 bytes a pose-passing frame)."""
+    """Pass 2 of one partition, as the stage process sees it (the per-frame results are in the scratch folder)."""
 
-    pose: np.ndarray  # (n_rows,) bool
-    residual: np.ndarray  # (n_pose,) max anchor residual
-    au_sum: np.ndarray  # (n_pose,) sum of the 20 AUs
-    videos: np.ndarray  # sorted distinct video ids of the partition
-    code: np.ndarray  # (n_pose,) int32 index into ``videos``
-    abs_pose: np.ndarray  # (n_rows, 3) float32 |Pitch|, |Yaw|, |Roll| of every row (the pose-units check)
+    residual_max: float  # largest residual of the partition's pose-passing frames (-inf if none)
     split_rows: pd.DataFrame  # (video_id, frame, file) of rows of videos also in other partitions
+
+
+def _pass2_file(scratch: Path, i: int) -> Path:
+    return scratch / f"{i:06d}.pass2.npz"
+
+
+def _pass2(item: tuple[Path, int], *keys: str) -> list[np.ndarray]:
+    """Arrays ``keys`` of partition ``item = (scratch, i)`` as pass 2 staged them (:func:`residual_partition`)."""
+    with np.load(_pass2_file(*item)) as staged:
+        return [staged[k] for k in keys]
 
 
 def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.ndarray, split_videos: np.ndarray,
                        scratch: Path) -> Residuals:
-    """Pass 2 on one partition: residuals of the pose-passing frames to the reference, and their AU sums."""
+    """Pass 2 on one partition: residuals of the pose-passing frames to the reference, and their AU sums.
+
+    Staged in ``scratch`` (``<i>.pass2.npz``): ``rows`` (n_pose,) the pose-passing rows, ``residual`` and
+    ``au_sum`` (n_pose,) float64, ``videos`` the partition's sorted distinct videos and ``code`` (n_pose,) int32
+    each frame's index into them, ``abs_pose`` (n_rows, 3) float32 |Pitch|, |Yaw|, |Roll| of every row
+    (the pose-units check): ~40 bytes a frame.
+    """
     i, part = item
     meta, anchors = _staged(scratch, i)
     file_index = meta["piece"].to_numpy()
@@ -219,19 +246,66 @@ def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.n
                                FRAME_COLUMN: meta.loc[split, FRAME_COLUMN].to_numpy(),
                                "file": [str(part[i].table.path) for i in file_index[split]]})
     abs_pose = np.abs(meta[["Pitch", "Yaw", "Roll"]].to_numpy()).astype(np.float32)
-    return Residuals(pose, residual, au_sum, videos, code[rows].astype(np.int32), abs_pose, split_rows)
+    np.savez(_pass2_file(scratch, i), rows=rows.astype(np.int32), residual=residual, au_sum=au_sum, videos=videos,
+             code=code[rows].astype(np.int32), abs_pose=abs_pose)
+    return Residuals(float(residual.max()) if len(residual) else -np.inf, split_rows)
+
+
+def _staged_residuals(item: tuple[Path, int]) -> np.ndarray:
+    return _pass2(item, "residual")[0]
+
+
+def _staged_abs_pose(column: int, item: tuple[Path, int]) -> np.ndarray:
+    return _pass2(item, "abs_pose")[0][:, column].astype(np.float64)
+
+
+def _keep(residual: np.ndarray, threshold: float | None) -> np.ndarray:
+    """Frames under the outlier threshold (``None``: no outlier cut)."""
+    return np.ones(len(residual), bool) if threshold is None else residual <= threshold
+
+
+def _kept_au_sums(threshold: float | None, item: tuple[Path, int]) -> np.ndarray:
+    residual, au_sum = _pass2(item, "residual", "au_sum")
+    return au_sum[_keep(residual, threshold)]
+
+
+@dataclass
+class Kept:
+    """The outlier cut on one partition: its kept frames' count and videos, and the kept AU sums of split videos."""
+
+    n_kept: int
+    videos: np.ndarray  # sorted distinct videos with kept frames
+    split_au: dict[str, np.ndarray]  # video -> AU sums of its kept frames here, for videos split across partitions
+
+
+def keep_partition(item: tuple[Path, int], threshold: float | None, split_videos: np.ndarray) -> Kept:
+    """The partition's frames kept by the outlier cut (``threshold``, ``None``: no cut), from pass 2's staged files."""
+    residual, au_sum, videos, code = _pass2(item, "residual", "au_sum", "videos", "code")
+    keep = _keep(residual, threshold)
+    kept_code = code[keep]
+    split = np.flatnonzero(np.isin(videos, split_videos))
+    return Kept(int(keep.sum()), videos[np.unique(kept_code)],
+                {str(videos[j]): au_sum[keep][kept_code == j] for j in split if (kept_code == j).any()})
+
+
+@dataclass(frozen=True)
+class Cuts:
+    """The thresholds every partition applies in pass 3."""
+
+    outlier: float | None  # max anchor residual kept (None: no outlier cut)
+    low_au_quantile: float  # per-video low-AU quantile (preprocess.neutral.low_au_quantile)
+    low_au_population: float  # AU sum at or below which a frame is low-AU in the population
 
 
 @dataclass
 class Plan:
-    """What pass 3 writes for one partition (from the gathered pass 2)."""
+    """What pass 3 needs of the stage for one partition (per partition and per video, nothing per frame)."""
 
-    rows: np.ndarray  # (n_kept,) int32 kept rows of the partition, in order
-    video_index: np.ndarray  # (n_kept,) int32
-    low_video: np.ndarray  # (n_kept,) bool: low-AU within its video
-    low_population: np.ndarray  # (n_kept,) bool: low-AU in the population
-    offset: int  # output row of the first kept row
     part_index: int
+    offset: int  # output row of the partition's first kept frame
+    video_index: np.ndarray  # (n_local,) int32 output index of each of the partition's kept videos (sorted)
+    split: np.ndarray  # (n_local,) bool: the video has kept frames in other partitions too
+    split_threshold: np.ndarray  # (n_local,) its low-AU threshold over all partitions (NaN for videos held whole)
 
 
 @dataclass
@@ -239,11 +313,13 @@ class Written:
     """Pass 3 of consecutive partitions: population sums and the per-video sums of videos split across partitions."""
 
     sums: np.ndarray  # (2, 1434): all kept frames, population low-AU frames
+    n_low_population: int = 0
     split: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2, 1434) sums (all, low-AU)
     split_counts: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2,) frames
 
     def __add__(self, other: "Written") -> "Written":
-        out = Written(self.sums + other.sums, dict(self.split), dict(self.split_counts))
+        out = Written(self.sums + other.sums, self.n_low_population + other.n_low_population, dict(self.split),
+                      dict(self.split_counts))
         for v, s in other.split.items():
             if v in out.split:
                 out.split[v] = out.split[v] + s
@@ -281,34 +357,55 @@ class _VideoSums:
                 self.done(v, self.open.pop(v), self.count[v])
 
 
-def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: Plan, out_dir: Path,
-                    split_video: np.ndarray, scratch: Path, chunk_rows: int) -> Written:
+def kept_frames(scratch: Path, plan: Plan, cuts: Cuts) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The partition's kept rows (in order), their video index and low-AU flags (within the video, in the
+    population), from pass 2's staged files; per-video thresholds of the videos the partition holds whole are
+    computed here, those of split videos come with the plan.
+
+    Returns
+    -------
+    rows : ndarray of int32, shape (n_kept,)
+    video_index : ndarray of int32, shape (n_kept,)
+    low_video, low_population : ndarray of bool, shape (n_kept,)
+    """
+    rows, residual, au_sum, code = _pass2((scratch, plan.part_index), "rows", "residual", "au_sum", "code")
+    keep = _keep(residual, cuts.outlier)
+    au_sum = au_sum[keep]
+    _, local = np.unique(code[keep], return_inverse=True)  # index into the partition's kept videos
+    _, whole = low_au_thresholds(au_sum, local, cuts.low_au_quantile)
+    thresholds = np.where(plan.split, plan.split_threshold, whole)
+    return rows[keep], plan.video_index[local], au_sum <= thresholds[local], au_sum <= cuts.low_au_population
+
+
+def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: Plan, cuts: Cuts, out_dir: Path,
+                    scratch: Path, chunk_rows: int) -> Written:
     """Pass 3 on one partition: align and write its kept meshes, metadata and whole videos' neutrals.
 
-    ``split_video`` (n_videos,) bool marks videos with frames in other partitions too: their sums are
-    returned instead of written.
+    Videos with kept frames in other partitions too (``plan.split``): their sums are returned instead of written.
     """
+    rows, video_index, low_video, low_population = kept_frames(scratch, plan, cuts)
     meta, anchors_all = _staged(scratch, plan.part_index)
-    kept = meta.drop(columns="piece").iloc[plan.rows].reset_index(drop=True)
-    kept["video_index"] = plan.video_index
-    kept["low_au"] = plan.low_video
+    kept = meta.drop(columns="piece").iloc[rows].reset_index(drop=True)
+    kept["video_index"] = video_index
+    kept["low_au"] = low_video
     pq.write_table(pa.Table.from_pandas(kept, preserve_index=False), out_dir / "parts" / f"{plan.part_index:06d}.parquet")
     del meta, kept
-    result = Written(np.zeros((2, N_TARGETS)))
+    result = Written(np.zeros((2, N_TARGETS)), int(low_population.sum()))
+    split_video = set(plan.video_index[plan.split].tolist())
 
     def finished(name: str, slot: int):
         def done(v: int, total: np.ndarray, count: int) -> None:
-            if split_video[v]:
+            if v in split_video:
                 result.split.setdefault(v, np.zeros((2, N_TARGETS)))[slot] += total
                 result.split_counts.setdefault(v, np.zeros(2, np.int64))[slot] += count
             else:
                 write_rows(out_dir / NEUTRAL_FILES[name], v, (total / count).astype(np.float32)[None])
         return done
 
-    all_frames = _VideoSums(plan.video_index, finished("mean", 0))
-    low_frames = _VideoSums(plan.video_index[plan.low_video], finished("low_au", 1))
+    all_frames = _VideoSums(video_index, finished("mean", 0))
+    low_frames = _VideoSums(video_index[low_video], finished("low_au", 1))
     position = np.full(sum(p.n_rows for p in part), -1, dtype=np.int64)
-    position[plan.rows] = np.arange(len(plan.rows))
+    position[rows] = np.arange(len(rows))
     offset = 0
     for p in part:
         for start, coords in iter_mesh_columns(p.table, chunk_rows, p.row_groups):
@@ -324,10 +421,10 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
             flat = _align_rows(coords.T[sel], *transform)  # (m, 1434) float64, axis-major [x | y | z]
             write_rows(out_dir / "meshes.npy", plan.offset + int(pos[0]), flat.astype(np.float32))
             result.sums[0] += flat.sum(axis=0)
-            result.sums[1] += flat[plan.low_population[pos]].sum(axis=0)
-            all_frames.add(plan.video_index[pos], flat)
-            low = plan.low_video[pos]
-            low_frames.add(plan.video_index[pos][low], flat[low])
+            result.sums[1] += flat[low_population[pos]].sum(axis=0)
+            all_frames.add(video_index[pos], flat)
+            low = low_video[pos]
+            low_frames.add(video_index[pos][low], flat[low])
         offset += p.n_rows
     return result
 
@@ -336,21 +433,25 @@ def _write_item(item: tuple[Partition, Plan], **kwargs) -> Written:
     return write_partition(item[0], plan=item[1], **kwargs)
 
 
-def _plans(res: list[Residuals], threshold: float, quantile_cut: bool, video_ids: np.ndarray,
-           cfg: Config) -> tuple[list[Plan], int]:
-    """Kept rows, video index and low-AU flags of each partition; low-AU thresholds exact over all kept frames."""
-    rows, vidx, au = [], [], []
-    for r in res:
-        keep = r.residual <= threshold if quantile_cut else np.ones(len(r.residual), bool)
-        rows.append(np.flatnonzero(r.pose)[keep].astype(np.int32))
-        vidx.append(np.searchsorted(video_ids, r.videos).astype(np.int32)[r.code[keep]])
-        au.append(r.au_sum[keep])
-    counts = [len(x) for x in rows]
-    low_video, low_population = low_au_masks(np.concatenate(au), np.concatenate(vidx), cfg.preprocess.neutral.low_au_quantile)
-    bounds = np.r_[0, np.cumsum(counts)]
-    plans = [Plan(rows[i], vidx[i], low_video[bounds[i] : bounds[i + 1]], low_population[bounds[i] : bounds[i + 1]],
-                  int(bounds[i]), i) for i in range(len(res))]
-    return plans, int(low_population.sum())
+def _plans(kept: list[Kept], video_ids: np.ndarray, split_names: np.ndarray, quantile: float) -> list[Plan]:
+    """Each partition's output offset (cumulative kept counts), its kept videos' output index, and the low-AU
+    thresholds of videos split across partitions (exact over their kept frames in every partition)."""
+    gathered: dict[str, list[np.ndarray]] = {}
+    for k in kept:
+        for v, au in k.split_au.items():
+            gathered.setdefault(v, []).append(au)
+    names = np.array(sorted(gathered), dtype=str)
+    au = [np.concatenate(gathered[v]) for v in names]
+    _, split_thresholds = low_au_thresholds(np.concatenate(au) if au else np.empty(0),
+                                            np.repeat(np.arange(len(au)), [len(a) for a in au]), quantile)
+    offsets = np.r_[0, np.cumsum([k.n_kept for k in kept])]
+    plans = []
+    for i, k in enumerate(kept):
+        split = np.isin(k.videos, split_names)
+        threshold = np.full(len(k.videos), np.nan)
+        threshold[split] = split_thresholds[np.searchsorted(names, k.videos[split])]
+        plans.append(Plan(i, int(offsets[i]), np.searchsorted(video_ids, k.videos).astype(np.int32), split, threshold))
+    return plans
 
 
 def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
@@ -358,8 +459,9 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
     pre = cfg.preprocess
     parts = partitions(tables, cfg.compute.partition_rows)
     with compute.engine(cfg.compute), atomic_directory(out_dir) as tmp:
-        scratch = tmp / "scratch"  # per-partition validated metadata and anchors, staged by pass 1
+        scratch = tmp / "scratch"  # per-partition validated metadata and anchors (pass 1), residuals (pass 2)
         scratch.mkdir()
+        staged = [(scratch, i) for i in range(len(parts))]
         # pass 1: validation, pose filter, GPA candidates
         scan = compute.map_reduce(partial(scan_partition, cfg=cfg, scratch=scratch), Scan.__add__, list(enumerate(parts)),
                                   desc="prepare: read + validate")
@@ -376,24 +478,26 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
         split_names = every_video[in_parts > 1]
 
-        # pass 2: residuals and AU sums of the pose-passing frames, gathered
+        # pass 2: residuals and AU sums of the pose-passing frames, staged per partition
         res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names,
                                          scratch=scratch), list(enumerate(parts)), desc="prepare: residuals")
-        abs_pose = np.concatenate([r.abs_pose for r in res])
-        contract.check_pose_units(abs_pose, cfg.paths.data_dir)  # every frame (float32: compared with 1 rad)
-        del abs_pose
+        # every frame (float32: compared with 1 rad); np.median is np.quantile(.., 0.5) here: the midpoint of two
+        # float32 values is exact in float64 either way
+        contract.check_pose_medians([exact_quantiles(partial(_staged_abs_pose, j), staged, 0.5) for j in range(3)],
+                                    cfg.paths.data_dir)
         split_rows = pd.concat([r.split_rows for r in res], ignore_index=True)
         if len(split_rows):  # (video, frame) pairs across partitions (within one: checked in pass 1)
             files = sorted(set(split_rows["file"]))
             check_unique_frames(split_rows, [Path(f) for f in files], np.searchsorted(files, split_rows["file"]))
-        residual = np.concatenate([r.residual for r in res])
         quantile_cut = pre.alignment.outlier_quantile < 1.0
-        # exact and independent of the partitioning: a quantile of the whole gathered vector
-        threshold = float(np.quantile(residual, pre.alignment.outlier_quantile)) if quantile_cut else float(residual.max())
-        n_kept_pose = int((residual <= threshold).sum()) if quantile_cut else len(residual)
-        del residual
-        kept_names = [r.videos[np.unique(r.code[r.residual <= threshold] if quantile_cut else r.code)] for r in res]
-        video_ids = np.unique(np.concatenate(kept_names))
+        # exact and independent of the partitioning: the quantile of the whole vector, which is never gathered
+        threshold = exact_quantiles(_staged_residuals, staged, pre.alignment.outlier_quantile) if quantile_cut \
+            else max(r.residual_max for r in res)
+        del res, split_rows
+        kept = compute.map_gather(partial(keep_partition, threshold=threshold if quantile_cut else None,
+                                          split_videos=split_names), staged, desc="prepare: outlier cut")
+        n_kept_pose = sum(k.n_kept for k in kept)
+        video_ids = np.unique(np.concatenate([k.videos for k in kept]))
         dropped_videos = sorted(set(every_video.tolist()) - set(video_ids.tolist()))
         n_rows = int(sum(scan.n_rows))
         if dropped_videos and pre.empty_video == "error":
@@ -422,10 +526,12 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
                         len(dropped_videos), ", ".join(dropped_videos[:5]))
         contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
-        plans, n_low_population = _plans(res, threshold, quantile_cut, video_ids, cfg)
-        del res
+        q = pre.neutral.low_au_quantile
+        cuts = Cuts(threshold if quantile_cut else None, q,
+                    exact_quantiles(partial(_kept_au_sums, threshold if quantile_cut else None), staged, q))
+        plans = _plans(kept, video_ids, split_names, q)
+        del kept
         n_kept, n_videos = n_kept_pose, len(video_ids)
-        split_video = np.isin(video_ids, split_names)
 
         (tmp / "parts").mkdir()
         create_npy(tmp / "meshes.npy", np.float32, (n_kept, N_TARGETS))
@@ -433,7 +539,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
         # pass 3: align and write; population sums and split videos' sums reduced in a tree
         written = compute.map_reduce(
-            partial(_write_item, cfg=cfg, reference=reference, out_dir=tmp, split_video=split_video, scratch=scratch,
+            partial(_write_item, cfg=cfg, reference=reference, cuts=cuts, out_dir=tmp, scratch=scratch,
                     chunk_rows=compute.task_rows(cfg.data.chunk_rows)),
             Written.__add__, list(zip(parts, plans)), desc="prepare: align + write")
         del plans
@@ -443,6 +549,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         _concatenate_parts(tmp / "parts", tmp / "frames.parquet")
         shutil.rmtree(scratch)
         np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
+        n_low_population = written.n_low_population
         mean_aligned = written.sums[0] / n_kept
         mean_low = written.sums[1] / max(n_low_population, 1)
         np.savez(
