@@ -52,10 +52,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"prepare: {time.perf_counter() - t:.1f} s", flush=True)
     prepared = ev.load_prepared(prepared_dir)
     true = dict(np.load(truth_path))
-    fold = ev.assign_folds(prepared.frames["video_index"].to_numpy(), cfg.cv.n_splits)
+    fold = ev.video_folds(prepared.videos.count, cfg.cv.n_splits)
     t = time.perf_counter()
     design = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
-    print(f"{len(fold):,} frames, {len(prepared.video_ids):,} videos, coupling {args.coupling:g}; "
+    print(f"{prepared.n_frames:,} frames, {len(prepared.video_ids):,} videos, coupling {args.coupling:g}; "
           f"the shared statistics pass: {time.perf_counter() - t:.1f} s\n", flush=True)
 
     header = (f"{'target':15} {'cos median':>10} {'cos worst':>15} {'r2 (own)':>9} {'r2_disp':>8} "

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from sklearn.cross_decomposition import PLSRegression as SkPLS
 from sklearn.metrics import mean_absolute_error, r2_score
+from sklearn.model_selection import GroupKFold
 
 from aumesh.pipeline import evaluate as ev
 from aumesh.geometry.align import umeyama_batch
@@ -22,12 +23,20 @@ def _arrays(prepared, target="absolute", method="low_au"):
     return X, Y
 
 
+def _group_kfold(video, n_splits=3):
+    """Fold of each frame: the f-th test split of scikit-learn's GroupKFold on the video index (the card's CV)."""
+    fold = np.empty(len(video), dtype=np.int64)
+    for f, (_, test) in enumerate(GroupKFold(n_splits=n_splits).split(np.zeros(len(video)), groups=video)):
+        fold[test] = f
+    return fold
+
+
 def test_fold_r2_and_mae_equal_sklearn_pls_on_the_same_split(recovery_prepared):
     prepared = ev.load_prepared(recovery_prepared / "prepared")
     cfg = default_config(**{"model.n_components": 10})
     cv, _ = ev.evaluate(prepared, cfg)
     X, Y = _arrays(prepared)
-    fold = ev.assign_folds(prepared.frames["video_index"].to_numpy(), 3)
+    fold = _group_kfold(prepared.frames["video_index"].to_numpy())
     for f in (0, 2):
         train, test = fold != f, fold == f
         ref = SkPLS(n_components=10, scale=True, tol=1e-13, max_iter=10000).fit(X[train], Y[train])
@@ -94,7 +103,7 @@ def test_neutral_target_equals_explicit_subtraction(recovery_prepared):
     cfg = default_config(**{"preprocess.target": "neutral", "model.n_components": 12})
     cv, final = ev.evaluate(prepared, cfg)
     X, Y = _arrays(prepared, target="neutral")
-    fold = ev.assign_folds(prepared.frames["video_index"].to_numpy(), 3)
+    fold = _group_kfold(prepared.frames["video_index"].to_numpy())
     model = PLSRegression(n_components=12).fit(X[fold != 1], Y[fold != 1])
     assert cv.r2_folds[1] == pytest.approx(r2_score(Y[fold == 1], model.predict(X[fold == 1]), multioutput="variance_weighted"), abs=1e-9)
     full = PLSRegression(n_components=12).fit(X, Y)
@@ -174,7 +183,7 @@ def test_within_target_is_ols_on_per_video_demeaned_data(recovery_prepared):
     np.testing.assert_allclose(final.mesh_intercept, Y.mean(0) - X.mean(0) @ beta, rtol=1e-9, atol=1e-5)
     # the card's inference snippet gives a face: x @ coef + intercept at the mean design is the mean mesh
     np.testing.assert_allclose(X.mean(0) @ final.coef.T + final.mesh_intercept, Y.mean(0), atol=1e-5)
-    fold = ev.assign_folds(video, 3)
+    fold = _group_kfold(video)
     for f in (0, 2):
         train, test = fold != f, fold == f
         b, *_ = np.linalg.lstsq(_per_video_demeaned(X[train], np.unique(video[train], return_inverse=True)[1]),
@@ -203,7 +212,7 @@ def test_au_field_reliability_is_the_cosine_between_fields_fitted_on_each_fold_a
     prepared = ev.load_prepared(recovery_prepared / "prepared")
     cv, _ = ev.evaluate(prepared, default_config(**{"model.n_components": 30}))
     X, Y = _arrays(prepared)
-    fold = ev.assign_folds(prepared.frames["video_index"].to_numpy(), 3)
+    fold = _group_kfold(prepared.frames["video_index"].to_numpy())
     fields = [SkPLS(n_components=30, scale=True, tol=1e-13, max_iter=10000).fit(X[fold == f], Y[fold == f]).coef_[:, :20]
               for f in range(3)]
     unit = [F / np.linalg.norm(F, axis=0) for F in fields]

@@ -252,7 +252,7 @@ class SweepCache:
 
         key = (pid, n_splits)
         if key not in self.folds:
-            self.folds[key] = ev.assign_folds(prepared.video_index, n_splits)
+            self.folds[key] = ev.video_folds(prepared.videos.count, n_splits)
         return self.folds[key]
 
     def statistics_for(self, prepared: Prepared, pid: str, cfg: Config) -> tuple[FoldStatistics, bool]:

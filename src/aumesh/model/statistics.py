@@ -45,7 +45,6 @@ class DesignStatistics:
     video_count: np.ndarray  # (n_videos,) frames per video
     video_sum_x: np.ndarray  # (n_videos, 83)  sum over the video's frames of (x - a)
     video_sum_y: np.ndarray  # (n_videos, 1434) sum over the video's frames of (y - b)
-    fold: np.ndarray  # (n_frames,) fold of each frame
     neutral_design: dict = field(default_factory=dict)  # neutral method -> (n_videos, 83) mean design row of its frames
 
     @property
@@ -144,7 +143,7 @@ def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray,
     video_index : ndarray (n,) int
         Video of each frame, 0..n_videos-1.
     fold : ndarray (n,) int
-        Cross-validation fold of each frame.
+        Cross-validation fold of each frame (all frames of a video in one fold).
     """
     p, q, K = len(FULL_DESIGN), N_TARGETS, n_splits
     video_sum_x = np.zeros((n_videos, p))
@@ -165,7 +164,7 @@ def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray,
     video_fold[video_index] = fold
     return DesignStatistics(folds=sums.folds(a, b), video_fold=video_fold,
                             video_count=np.bincount(video_index, minlength=n_videos),
-                            video_sum_x=video_sum_x, video_sum_y=video_sum_y, fold=fold)
+                            video_sum_x=video_sum_x, video_sum_y=video_sum_y)
 
 
 def subset(stats: CrossProducts, columns: np.ndarray) -> CrossProducts:

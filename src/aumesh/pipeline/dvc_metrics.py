@@ -14,16 +14,24 @@ elsewhere does not show as a changed metric. MLflow and ``build/model/`` keep fu
 from __future__ import annotations
 
 from collections.abc import Mapping
+import operator
+from functools import partial
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from aumesh.utils.io import atomic_write_json, atomic_write_text
+from aumesh.pipeline import compute
+from aumesh.pipeline.quantiles import exact_quantiles
+from aumesh.utils.io import NpyRows, atomic_write_json, atomic_write_text, read_rows
 
 #: Significant digits of every float in the committed metrics and plot files.
 SIGNIFICANT_DIGITS = 6
 #: Points of the cumulative error curve (the empirical CDF at the 0, 1, ..., 100 % quantiles).
 ERROR_CURVE_POINTS = 101
+
+#: Values of a per-frame error file one task reads at a time (4 MiB of float32).
+BLOCK_ROWS = 1 << 20
 
 ERROR_CURVE_COLUMNS = ("vertex_error", "fraction_of_frames")
 R2_CURVE_COLUMNS = ("n_components", "r2")
@@ -40,13 +48,43 @@ def rounded(value: Any, digits: int = SIGNIFICANT_DIGITS) -> Any:
     return value
 
 
-def error_curve(frame_vertex_error: np.ndarray, n_points: int = ERROR_CURVE_POINTS) -> tuple[np.ndarray, np.ndarray]:
+def _finite(block) -> np.ndarray:
+    """The finite values of one block, float64: an array, or ``(path, start, stop)`` rows of a 1-D ``.npy``."""
+    e = np.asarray(block if isinstance(block, np.ndarray) else read_rows(*block), dtype=np.float64).ravel()
+    return e[np.isfinite(e)]
+
+
+def _n_finite(block) -> int:
+    return len(_finite(block))
+
+
+def _count_at_most(thresholds: np.ndarray, block) -> np.ndarray:
+    """(len(thresholds) + 1,) values of the block ``<=`` each threshold, then the block's finite values."""
+    e = np.sort(_finite(block))
+    return np.r_[np.searchsorted(e, thresholds, side="right"), e.size]
+
+
+def _blocks(frame_vertex_error) -> list:
+    """Partitions of a per-frame error vector: row ranges of its ``.npy`` on disk, or slices of an array."""
+    if isinstance(frame_vertex_error, NpyRows):
+        n = len(frame_vertex_error)
+        return [(frame_vertex_error.path, lo, min(lo + BLOCK_ROWS, n)) for lo in range(0, n, BLOCK_ROWS)]
+    e = np.asarray(frame_vertex_error).ravel()
+    return [e[lo : lo + BLOCK_ROWS] for lo in range(0, len(e), BLOCK_ROWS)]
+
+
+def error_curve(frame_vertex_error, n_points: int = ERROR_CURVE_POINTS) -> tuple[np.ndarray, np.ndarray]:
     """The empirical CDF of the held-out per-frame mean vertex error, at ``n_points`` quantiles.
+
+    The vector is read block by block, never whole: the quantiles are
+    :func:`aumesh.pipeline.quantiles.exact_quantiles` (bit-equal to ``np.quantile`` of the whole), the
+    fractions a counting pass, on the current Dask scheduler.
 
     Parameters
     ----------
-    frame_vertex_error : ndarray of shape (n_frames,)
-        Mean per-vertex Euclidean error of each held-out frame (``CVResult.frame_vertex_error``).
+    frame_vertex_error : ndarray of shape (n_frames,), or :class:`aumesh.utils.io.NpyRows` of one on disk
+        Mean per-vertex Euclidean error of each held-out frame (``CVResult.frame_vertex_error``); frames
+        whose error is not finite are left out.
     n_points : int, default 101
         Quantiles 0, 1/(n_points-1), ..., 1 of the errors (a curve of fixed size, whatever ``n_frames``).
 
@@ -57,12 +95,12 @@ def error_curve(frame_vertex_error: np.ndarray, n_points: int = ERROR_CURVE_POIN
     fraction : ndarray of shape (n_points,)
         Fraction of frames whose error is <= ``errors[i]`` (the exact empirical CDF there).
     """
-    e = np.asarray(frame_vertex_error, dtype=np.float64).ravel()
-    e = np.sort(e[np.isfinite(e)])
-    if e.size == 0:
+    blocks = _blocks(frame_vertex_error)
+    if not blocks or compute.map_reduce(_n_finite, operator.add, blocks) == 0:
         raise ValueError("frame_vertex_error has no finite value: no held-out frame was scored")
-    errors = np.quantile(e, np.linspace(0.0, 1.0, n_points), method="inverted_cdf")
-    return errors, np.searchsorted(e, errors, side="right") / e.size
+    errors = exact_quantiles(_finite, blocks, np.linspace(0.0, 1.0, n_points), method="inverted_cdf")
+    counts = compute.map_reduce(partial(_count_at_most, errors), np.add, blocks)
+    return errors, counts[:-1] / counts[-1]
 
 
 def r2_curve(r2_path_folds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

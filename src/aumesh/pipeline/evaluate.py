@@ -27,6 +27,7 @@ direction passes the FACS check (:func:`facs_passes`, ``aumesh.card.directions``
 
 from __future__ import annotations
 
+import heapq
 import logging
 import shutil
 import tempfile
@@ -39,7 +40,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
-from sklearn.model_selection import GroupKFold
 from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
@@ -77,9 +77,14 @@ class Prepared:
         return pd.read_parquet(self.directory / FRAMES_FILE)
 
     @cached_property
-    def video_index(self) -> np.ndarray:
-        """(n,) int32 video of each frame (the one per-frame column the stage process holds)."""
-        return pq.read_table(self.directory / FRAMES_FILE, columns=["video_index"]).column(0).to_numpy()
+    def videos(self) -> "VideoFrames":
+        """Per-video frame counts and row groups (one pass over two columns of ``frames.parquet``)."""
+        return video_frames(self.directory, self.row_groups(), len(self.video_ids))
+
+    @property
+    def n_frames(self) -> int:
+        groups = self.row_groups()
+        return groups[-1][2] if groups else 0
 
     def row_groups(self) -> list[tuple[int, int, int]]:
         """``(row_group, first_row, stop_row)`` of ``frames.parquet``: the partitions of the evaluate passes."""
@@ -108,6 +113,44 @@ def _read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np
     au = np.column_stack([t.column(c).to_numpy() for c in AU_COLUMNS]).astype(np.float64)
     pose = np.column_stack([t.column(c).to_numpy() for c in POSE_COLUMNS]).astype(np.float64)
     return au, pose, t.column("video_index").to_numpy(), t.column("low_au").to_numpy(zero_copy_only=False)
+
+
+@dataclass(frozen=True)
+class VideoFrames:
+    """Where each video's frames are in ``frames.parquet``: per-video arrays (n_videos,), nothing per frame."""
+
+    count: np.ndarray  # frames of each video
+    low_count: np.ndarray  # low-AU frames of each video
+    first_group: np.ndarray  # first row group holding the video (the number of row groups: none)
+    last_group: np.ndarray  # last row group holding the video (-1: none)
+
+    @property
+    def split(self) -> np.ndarray:
+        """(n_videos,) bool: the video's frames are not all in one row group (or it has none)."""
+        return self.first_group != self.last_group
+
+
+def _video_frames_partition(group: tuple[int, int, int], directory: Path) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """``(row group, videos, frames, low-AU frames)`` of one row group of ``frames.parquet``."""
+    g = group[0]
+    t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(g, columns=["video_index", "low_au"])
+    video = t.column("video_index").to_numpy()
+    low = t.column("low_au").to_numpy(zero_copy_only=False)
+    videos, local, count = np.unique(video, return_inverse=True, return_counts=True)
+    return g, videos, count, np.bincount(local[low], minlength=len(videos))
+
+
+def video_frames(directory: Path, groups: list[tuple[int, int, int]], n_videos: int) -> VideoFrames:
+    """Per-video frame and low-AU frame counts and first/last row group, from one pass over the ``video_index``
+    and ``low_au`` columns of ``frames.parquet`` (row group by row group, on the current Dask scheduler)."""
+    count, low_count = np.zeros(n_videos, dtype=np.int64), np.zeros(n_videos, dtype=np.int64)
+    first, last = np.full(n_videos, len(groups), dtype=np.int64), np.full(n_videos, -1, dtype=np.int64)
+    for g, videos, c, low in compute.map_gather(partial(_video_frames_partition, directory=directory), groups):
+        count[videos] += c
+        low_count[videos] += low
+        first[videos] = np.minimum(first[videos], g)
+        last[videos] = np.maximum(last[videos], g)
+    return VideoFrames(count=count, low_count=low_count, first_group=first, last_group=last)
 
 
 class _LazyArrays(Mapping):
@@ -154,7 +197,7 @@ class FoldStatistics:
 
     target: list[CrossProducts]  # (X, Y in the run's target space) per fold
     displacement: list[CrossProducts]  # (X - x̄_v, Y_abs - n_v) per fold
-    fold: np.ndarray  # (n,) fold of each frame
+    video_fold: np.ndarray  # (n_videos,) fold of each video (-1: no frames)
     x_offset: np.ndarray | None = None  # (n_videos, p) per-video design centre of the target (None: none)
     y_offset: np.ndarray | None = None  # (n_videos, 1434) per-video mesh centre of the target (None: none)
 
@@ -177,7 +220,7 @@ class CVResult:
     vertex_error_folds: list[float]
     r2_per_target: np.ndarray  # (1434,) pooled over folds
     r2_per_vertex: np.ndarray  # (478,) pooled over folds and axes
-    frame_vertex_error: np.ndarray  # (n,) mean per-vertex Euclidean error of each frame (held out)
+    frame_vertex_error: NpyRows  # (n,) float32 mean per-vertex Euclidean error of each frame (held out), on disk
     vertex_error_per_vertex: np.ndarray  # (478,) mean over held-out frames
     n_frames_folds: list[int]
     n_videos_folds: list[int]
@@ -244,14 +287,37 @@ def log_clipping(cfg: Config, handle) -> None:
         handle.set_tags({"aumesh.n_components_clipped": f"{cfg.model.n_components} -> {k} (features={cfg.features.name})"})
 
 
-def assign_folds(video_index: np.ndarray, n_splits: int) -> np.ndarray:
-    """Fold of every frame, from scikit-learn's ``GroupKFold`` on the video index (fold ``f`` = f-th test split)."""
-    n_groups = len(np.unique(video_index))
-    if n_groups < n_splits:
-        raise ConfigError(f"cv.n_splits={n_splits} but only {n_groups} videos are left after filtering. Fix: lower cv.n_splits.")
-    fold = np.empty(len(video_index), dtype=np.int8)
-    for f, (_, test) in enumerate(GroupKFold(n_splits=n_splits).split(np.zeros(len(video_index)), groups=video_index)):
-        fold[test] = f
+def video_folds(video_count: np.ndarray, n_splits: int) -> np.ndarray:
+    """Fold of every video (fold ``f`` = the f-th test split of scikit-learn's ``GroupKFold(n_splits)`` on the
+    frames' video index), from the videos' frame counts alone.
+
+    ``GroupKFold`` (``sklearn/model_selection/_split.py``, no shuffle) takes the groups present in index order,
+    sorts their sizes with a stable argsort, reversed (largest first; among equal sizes the highest index first),
+    and gives each in turn to the lightest fold so far (the first of equally light ones). A heap of
+    ``(frames, fold)`` pops exactly that fold.
+
+    Parameters
+    ----------
+    video_count : ndarray (n_videos,) int
+        Frames of each video (0: the video has none and gets no fold).
+    n_splits : int
+
+    Returns
+    -------
+    ndarray (n_videos,) int64
+        Fold of each video, -1 for videos without frames.
+    """
+    present = np.flatnonzero(np.asarray(video_count) > 0)
+    if len(present) < n_splits:
+        raise ConfigError(f"cv.n_splits={n_splits} but only {len(present)} videos are left after filtering. "
+                          "Fix: lower cv.n_splits.")
+    sizes = np.asarray(video_count)[present]
+    fold = np.full(len(video_count), -1, dtype=np.int64)
+    heap = [(0, f) for f in range(n_splits)]
+    for i in np.argsort(sizes, kind="stable")[::-1].tolist():
+        load, f = heap[0]
+        heapq.heapreplace(heap, (load + int(sizes[i]), f))
+        fold[present[i]] = f
     return fold
 
 
@@ -339,52 +405,39 @@ class NeutralDesign:
         return out if dtype is None else out.astype(dtype)
 
 
-def design_statistics(prepared: Prepared, fold: np.ndarray, n_splits: int, chunk_rows: int) -> DesignStatistics:
+def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int, chunk_rows: int) -> DesignStatistics:
     """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration).
 
-    The provisional shift ``(a, b)`` is the mean of the first ``chunk_rows`` rows, shared by every fold and
-    partition. The per-video sums stay on disk (:class:`aumesh.utils.io.NpyRows`) in a scratch folder beside
-    the prepared data, removed with the returned statistics.
+    ``video_fold`` (n_videos,) is each video's fold (:func:`video_folds`). The provisional shift ``(a, b)`` is the
+    mean of the first ``chunk_rows`` rows, shared by every fold and partition. The per-video sums stay on disk
+    (:class:`aumesh.utils.io.NpyRows`) in a scratch folder beside the prepared data, removed with the returned
+    statistics.
     """
-    video_index = prepared.video_index
     n_videos = len(prepared.video_ids)
-    video_fold = np.full(n_videos, -1, dtype=np.int64)
-    video_fold[video_index] = fold
-    first = min(chunk_rows, len(video_index))
+    videos = prepared.videos
+    first = min(chunk_rows, prepared.n_frames)
     head = _head(prepared, first)
     a = design_matrix(head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64),
                       True, True).mean(axis=0)
     b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
-    groups = prepared.row_groups()
-    group_of_row = np.repeat(np.arange(len(groups)), [stop - start for _, start, stop in groups])
-    first_group = np.full(n_videos, len(groups))
-    last_group = np.full(n_videos, -1)
-    np.minimum.at(first_group, video_index, group_of_row)
-    np.maximum.at(last_group, video_index, group_of_row)
-    split_video = first_group != last_group
-    del group_of_row, first_group, last_group
     scratch = Path(tempfile.mkdtemp(prefix=".evaluate-scratch-", dir=prepared.directory.parent))
     try:
         for name, width in VIDEO_SUMS.items():
             create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
         part = compute.map_reduce(partial(design_partition, directory=prepared.directory, video_fold=video_fold, a=a, b=b,
                                           n_splits=n_splits, chunk_rows=compute.task_rows(chunk_rows), scratch=scratch,
-                                          split_video=split_video),
-                                  DesignPart.__add__, groups, desc="evaluate: statistics")
+                                          split_video=videos.split),
+                                  DesignPart.__add__, prepared.row_groups(), desc="evaluate: statistics")
         for v, values in part.split.items():
             for name, row in zip(VIDEO_SUMS, values):
                 write_rows(scratch / f"{name}.npy", v, row[None])
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
         raise
-    low = pq.read_table(prepared.directory / FRAMES_FILE, columns=["low_au"]).column(0).to_numpy(zero_copy_only=False)
-    design = DesignStatistics(folds=part.sums.folds(a, b), video_fold=video_fold,
-                              video_count=np.bincount(video_index, minlength=n_videos),
-                              video_sum_x=NpyRows(scratch / "video_sum_x.npy"), video_sum_y=NpyRows(scratch / "video_sum_y.npy"),
-                              fold=fold)
+    design = DesignStatistics(folds=part.sums.folds(a, b), video_fold=video_fold, video_count=videos.count,
+                              video_sum_x=NpyRows(scratch / "video_sum_x.npy"), video_sum_y=NpyRows(scratch / "video_sum_y.npy"))
     design.neutral_design = {  # mean design row of each video's neutral frames, per neutral method
-        "low_au": NeutralDesign(NpyRows(scratch / "video_low_sum_x.npy"),
-                                np.bincount(video_index[low], minlength=n_videos), a),
+        "low_au": NeutralDesign(NpyRows(scratch / "video_low_sum_x.npy"), videos.low_count, a),
         "mean": NeutralDesign(design.video_sum_x, design.video_count, a),
     }
     weakref.finalize(design, shutil.rmtree, scratch, True)
@@ -397,23 +450,25 @@ def _head(prepared: Prepared, n: int) -> pd.DataFrame:
     return next(batches).to_pandas().iloc[:n]
 
 
-def accumulate(prepared: Prepared, cfg: Config, fold: np.ndarray, chunk_rows: int | None = None,
+def accumulate(prepared: Prepared, cfg: Config, video_fold: np.ndarray, chunk_rows: int | None = None,
                design: DesignStatistics | None = None) -> FoldStatistics:
-    """Per-fold (target, displacement) statistics of ``cfg``'s features and target.
+    """Per-fold (target, displacement) statistics of ``cfg``'s features and target; ``video_fold`` (n_videos,)
+    is each video's fold (:func:`video_folds`).
 
     ``design`` (from :func:`design_statistics` with the same folds) is reused when given: then no
     pass over the meshes is needed (aumesh.model.statistics derives every configuration from it).
     """
     if design is None:
-        design = design_statistics(prepared, fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows)
-    elif not np.array_equal(design.fold, fold):
+        design = design_statistics(prepared, video_fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows)
+    elif not np.array_equal(design.video_fold, video_fold):
         raise ValueError("accumulate: the design statistics were built with other folds")
     method = cfg.preprocess.neutral.method
     target, displacement = configuration_statistics(design, cfg.features.columns, cfg.preprocess.target,
                                                     prepared.neutral[method], design.neutral_design[method])
     x_offset, y_offset = target_offsets(design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method],
                                         design.neutral_design[method])
-    return FoldStatistics(target=target, displacement=displacement, fold=fold, x_offset=x_offset, y_offset=y_offset)
+    return FoldStatistics(target=target, displacement=displacement, video_fold=video_fold, x_offset=x_offset,
+                          y_offset=y_offset)
 
 
 def _one_blas_thread():
@@ -452,21 +507,28 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
             r2d_folds.append(r2_variance_weighted(sse_d, sst_d))
             paths.append(r2_path(model, stats.target[f]))
 
-    # pass B: held-out predictions, streamed partition by partition
+    # pass B: held-out predictions, streamed partition by partition; each frame's error goes to rows of a scratch
+    # .npy beside the prepared data (removed with the result), never gathered
     use_pose, inter = cfg.features.pose, cfg.features.interactions
-    video_index = prepared.video_index
-    video_fold = np.full(len(prepared.video_ids), -1, dtype=np.int64)
-    video_fold[video_index] = stats.fold
-    count = np.bincount(stats.fold, minlength=n_splits)
-    errors = compute.map_reduce(partial(error_partition, directory=prepared.directory, video_fold=video_fold,
-                                        coefs=[np.ascontiguousarray(coef.T) for coef, _ in models],
-                                        intercepts=[intercept for _, intercept in models],
-                                        use_pose=use_pose, interactions=inter,
-                                        n_splits=n_splits, chunk_rows=compute.task_rows(chunk_rows),
-                                        x_offset=stats.x_offset, y_offset=stats.y_offset),
-                                ErrorPart.__add__, prepared.row_groups(), desc="evaluate: errors")
-    abs_sum, vertex_sum, frame_error = errors.abs_sum, errors.vertex_sum, np.concatenate(errors.frame_error)
-    fold_videos = [int((video_fold == f).sum()) for f in range(n_splits)]
+    video_fold, video_count = stats.video_fold, prepared.videos.count
+    has = video_fold >= 0
+    count = np.bincount(video_fold[has], weights=video_count[has], minlength=n_splits).astype(np.int64)
+    scratch = Path(tempfile.mkdtemp(prefix=".evaluate-scratch-", dir=prepared.directory.parent))
+    frame_error = scratch / FRAME_ERROR_FILE
+    try:
+        create_npy(frame_error, np.float32, (prepared.n_frames,))
+        errors = compute.map_reduce(partial(error_partition, directory=prepared.directory, video_fold=video_fold,
+                                            coefs=[np.ascontiguousarray(coef.T) for coef, _ in models],
+                                            intercepts=[intercept for _, intercept in models],
+                                            use_pose=use_pose, interactions=inter,
+                                            n_splits=n_splits, chunk_rows=compute.task_rows(chunk_rows),
+                                            frame_error=frame_error, x_offset=stats.x_offset, y_offset=stats.y_offset),
+                                    ErrorPart.__add__, prepared.row_groups(), desc="evaluate: errors")
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    abs_sum, vertex_sum = errors.abs_sum, errors.vertex_sum
+    fold_videos = np.bincount(video_fold[has], minlength=n_splits).tolist()
     sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)
     result = CVResult(
         n_components=A,
@@ -478,31 +540,36 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
         vertex_error_folds=list(vertex_sum.sum(axis=1) / (count * N_VERTICES)),
         r2_per_target=r2_per_target(sse_sum, sst_sum),
         r2_per_vertex=r2_per_target(sse_v, sst_v),  # x, y, z pooled per vertex
-        frame_vertex_error=frame_error,
+        frame_vertex_error=NpyRows(frame_error),
         vertex_error_per_vertex=vertex_sum.sum(axis=0) / count.sum(),
         n_frames_folds=[int(c) for c in count],
         n_videos_folds=fold_videos,
     )
+    weakref.finalize(result, shutil.rmtree, scratch, True)
     return result
+
+
+#: Each frame's held-out mean per-vertex error, (n_frames,) float32 in ``frames.parquet``'s row order.
+FRAME_ERROR_FILE = "frame_vertex_error.npy"
 
 
 @dataclass
 class ErrorPart:
-    """Pass B of consecutive partitions: absolute and per-vertex error sums per fold, each frame's error."""
+    """Pass B of consecutive partitions: absolute and per-vertex error sums per fold."""
 
     abs_sum: np.ndarray  # (K,)
     vertex_sum: np.ndarray  # (K, 478)
-    frame_error: list[np.ndarray]  # per partition, (m,) float32, in row order
 
     def __add__(self, other: "ErrorPart") -> "ErrorPart":
-        return ErrorPart(self.abs_sum + other.abs_sum, self.vertex_sum + other.vertex_sum, self.frame_error + other.frame_error)
+        return ErrorPart(self.abs_sum + other.abs_sum, self.vertex_sum + other.vertex_sum)
 
 
 def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np.ndarray, coefs: list[np.ndarray],
                     intercepts: list[np.ndarray], use_pose: bool, interactions: bool, n_splits: int, chunk_rows: int,
-                    x_offset=None, y_offset=None) -> ErrorPart:
+                    frame_error: Path, x_offset=None, y_offset=None) -> ErrorPart:
     """Pass B on one row group: each frame's held-out residual under its fold's model (``coefs[f]`` (p, 1434),
-    ``intercepts[f]`` (1434,)), and the error sums per fold. ``x_offset`` (n_videos, p) and ``y_offset``
+    ``intercepts[f]`` (1434,)), and the error sums per fold; each frame's mean per-vertex error is written to its
+    row of the ``.npy`` ``frame_error`` (n_frames,) float32. ``x_offset`` (n_videos, p) and ``y_offset``
     (n_videos, 1434), arrays or :class:`aumesh.utils.io.NpyRows`, are the target's per-video centres (None: none);
     only the partition's videos' rows are read."""
     g, start, stop = group
@@ -512,7 +579,6 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
     x_rows = None if x_offset is None else np.asarray(x_offset[videos], dtype=np.float64)
     y_rows = None if y_offset is None else np.asarray(y_offset[videos])
     abs_sum, vertex_sum = np.zeros(n_splits), np.zeros((n_splits, N_VERTICES))
-    frame_error = np.empty(stop - start, dtype=np.float32)
     raw = np.empty((min(chunk_rows, stop - start), N_TARGETS), dtype=np.float32)
     for lo in range(start, stop, chunk_rows):
         rows = slice(lo - start, min(lo + chunk_rows, stop) - start)
@@ -532,13 +598,13 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
         e3 = Y.reshape(len(Y), 3, N_VERTICES)
         per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
         error = per_vertex.mean(axis=1)
-        frame_error[rows] = error if order is None else error[np.argsort(order)]
+        write_rows(frame_error, lo, (error if order is None else error[np.argsort(order)]).astype(np.float32))
         row_abs = np.abs(Y).sum(axis=1)
         for f in range(n_splits):
             lo_f, hi_f = bounds[f], bounds[f + 1]
             abs_sum[f] += row_abs[lo_f:hi_f].sum()
             vertex_sum[f] += per_vertex[lo_f:hi_f].sum(axis=0)
-    return ErrorPart(abs_sum, vertex_sum, [frame_error])
+    return ErrorPart(abs_sum, vertex_sum)
 
 
 def _weighted_mean(rows, weights: np.ndarray, block: int = 4096) -> np.ndarray:
@@ -568,7 +634,7 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> FinalMo
     # a target relative to per-video centres predicts displacements from them; released meshes add the
     # population's (frame-weighted) mean centre, so `x @ coef + intercept` is a face. For `within` that is
     # the population intercept mean mesh - mean design @ slopes.
-    weights = np.bincount(prepared.video_index, minlength=len(prepared.video_ids)).astype(np.float64)
+    weights = prepared.videos.count.astype(np.float64)
     if stats.y_offset is not None:
         mesh_intercept += _weighted_mean(stats.y_offset, weights)
     if stats.x_offset is not None:
@@ -606,5 +672,5 @@ def evaluate(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
     """Cross-validation and the final fit for one configuration (the stage's one typed call), the passes on
     the ``compute`` group's scheduler."""
     with compute.engine(cfg.compute):
-        fold = assign_folds(prepared.video_index, cfg.cv.n_splits)
-        return evaluate_statistics(prepared, cfg, accumulate(prepared, cfg, fold))
+        video_fold = video_folds(prepared.videos.count, cfg.cv.n_splits)
+        return evaluate_statistics(prepared, cfg, accumulate(prepared, cfg, video_fold))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,9 @@ log = logging.getLogger(__name__)
 
 MODEL_NPZ = "model.npz"
 CV_NPZ = "cv.npz"
+#: Points of the cumulative vertex error curve ``cv.npz`` keeps for the card's figure (the empirical CDF at the
+#: 0, 0.1, ..., 100 % quantiles: finer than the figure's pixels, and a fixed size whatever the frames).
+CARD_ERROR_CURVE_POINTS = 1001
 TRACKING_JSON = "tracking.json"
 METRICS_JSON = "metrics.json"
 
@@ -152,9 +156,11 @@ def evaluate_stage(cfg: Config) -> dict:
         with atomic_directory(out) as tmp:
             np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,
                      feature_columns=np.array(final.feature_columns), n_components=np.array(final.n_components, dtype=np.int32))
+            thresholds, fraction = dvc_metrics.error_curve(cv.frame_vertex_error, CARD_ERROR_CURVE_POINTS)
             np.savez(tmp / CV_NPZ, r2_per_vertex=cv.r2_per_vertex, r2_per_target=cv.r2_per_target,
-                     r2_path_folds=cv.r2_path_folds, vertex_error=cv.frame_vertex_error,
-                     vertex_error_per_vertex=cv.vertex_error_per_vertex)
+                     r2_path_folds=cv.r2_path_folds, vertex_error_per_vertex=cv.vertex_error_per_vertex,
+                     cumulative_error_thresholds=thresholds, cumulative_error_fraction=fraction)
+            shutil.copyfile(cv.frame_vertex_error.path, tmp / ev.FRAME_ERROR_FILE)  # per frame, frames.parquet's order
             atomic_write_json(tmp / TRACKING_JSON, run_info | {"data_digest": digest})
             atomic_write_json(tmp / METRICS_JSON, metrics)
         dvc_metrics.write(cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds)  # committed: `dvc metrics/plots diff`
