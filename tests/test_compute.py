@@ -130,6 +130,23 @@ def split_prepared(split_tables):
     return out
 
 
+def test_per_video_counts_and_row_groups_equal_those_of_the_whole_columns(split_prepared):
+    """Row groups cutting videos: the per-video pass equals bincount / min / max of the whole video_index and low_au
+    columns and of each row's row group (from the file's metadata)."""
+    prepared = ev.load_prepared(split_prepared)
+    frames = pq.read_table(split_prepared / "frames.parquet", columns=["video_index", "low_au"]).to_pandas()
+    video, low, n_videos = frames["video_index"].to_numpy(), frames["low_au"].to_numpy(), len(prepared.video_ids)
+    md = pq.ParquetFile(split_prepared / "frames.parquet").metadata
+    group = np.repeat(np.arange(md.num_row_groups), [md.row_group(g).num_rows for g in range(md.num_row_groups)])
+    assert len(prepared.row_groups()) == md.num_row_groups > 10 and prepared.n_frames == len(video)
+    videos = prepared.videos
+    np.testing.assert_array_equal(videos.count, np.bincount(video, minlength=n_videos))
+    np.testing.assert_array_equal(videos.low_count, np.bincount(video[low], minlength=n_videos))
+    np.testing.assert_array_equal(videos.first_group, pd.Series(group).groupby(video).min().reindex(range(n_videos)))
+    np.testing.assert_array_equal(videos.last_group, pd.Series(group).groupby(video).max().reindex(range(n_videos)))
+    assert 0 < videos.split.sum() < n_videos
+
+
 def test_models_agree_across_schedulers_and_partitionings(split_tables, split_prepared):
     """1 thread, 2 threads, synchronous, 13 vs 1 partitions; neutral target too: coefficients and CV metrics to 1e-12."""
     one_partition, _ = _prepare(split_tables, "prepared-one", **{"compute.partition_rows": 10**9})

@@ -27,6 +27,28 @@ def test_error_curve_is_scipys_empirical_cdf_at_the_frames_own_errors():
         dvc_metrics.error_curve(np.full(3, np.nan))
 
 
+@pytest.mark.parametrize("scheduler", ["synchronous", "threads"])
+def test_error_curve_of_a_vector_on_disk_read_in_blocks_is_bit_equal_to_numpys(tmp_path, monkeypatch, scheduler):
+    """float32 errors on disk (ties: a coarse grid; unscored NaN frames), read 97 values at a time: the curve equals
+    np.quantile of the whole vector and the exact fraction <= each value, bit for bit."""
+    from aumesh.config import ComputeConfig
+    from aumesh.pipeline import compute
+    from aumesh.utils.io import NpyRows
+
+    rng = np.random.default_rng(5)
+    e = np.round(rng.gamma(2.0, 1.3, size=5003) * 20).astype(np.float32) / 20
+    e[[0, 900, 4000]] = np.nan
+    np.save(tmp_path / "err.npy", e)
+    monkeypatch.setattr(dvc_metrics, "BLOCK_ROWS", 97)
+    finite = np.sort(e[np.isfinite(e)].astype(np.float64))
+    for n_points in (101, 1001):
+        expected = np.quantile(finite, np.linspace(0, 1, n_points), method="inverted_cdf")
+        with compute.engine(ComputeConfig(scheduler=scheduler, n_workers=2)):
+            x, frac = dvc_metrics.error_curve(NpyRows(tmp_path / "err.npy"), n_points)
+        np.testing.assert_array_equal(x, expected)
+        np.testing.assert_array_equal(frac, np.searchsorted(finite, expected, side="right") / finite.size)
+
+
 def test_r2_curve_is_the_fold_mean_for_every_k():
     path = np.random.default_rng(1).uniform(0, 1, size=(3, 17))
     k, r2 = dvc_metrics.r2_curve(path)

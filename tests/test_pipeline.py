@@ -9,6 +9,7 @@ from sklearn.metrics import mean_absolute_error, r2_score
 from sklearn.model_selection import GroupKFold
 
 from aumesh.pipeline import evaluate as ev
+from aumesh.utils.errors import ConfigError
 from aumesh.geometry.align import umeyama_batch
 from aumesh.model.features import design_matrix
 from aumesh.data.schema import AU_COLUMNS, N_VERTICES
@@ -43,8 +44,34 @@ def test_fold_r2_and_mae_equal_sklearn_pls_on_the_same_split(recovery_prepared):
         pred = ref.predict(X[test])
         assert cv.r2_folds[f] == pytest.approx(r2_score(Y[test], pred, multioutput="variance_weighted"), abs=1e-7)
         assert cv.mae_folds[f] == pytest.approx(mean_absolute_error(Y[test], pred), rel=1e-6)
-        err = np.sqrt(((Y[test] - pred).reshape(-1, 3, N_VERTICES) ** 2).sum(1)).mean()
-        assert cv.vertex_error_folds[f] == pytest.approx(err, rel=1e-6)
+        frame_err = np.sqrt(((Y[test] - pred).reshape(-1, 3, N_VERTICES) ** 2).sum(1)).mean(1)
+        assert cv.vertex_error_folds[f] == pytest.approx(frame_err.mean(), rel=1e-6)
+        # each frame's error, in its row of the on-disk vector (float32)
+        np.testing.assert_allclose(np.asarray(cv.frame_vertex_error)[test], frame_err, rtol=2e-5)
+
+
+@pytest.mark.parametrize("n_splits", [2, 3, 4, 5])
+def test_video_folds_from_frame_counts_equal_group_kfold_on_the_frames(n_splits):
+    """Random video sizes with many ties (and videos without frames), frames in any order: the fold of every
+    frame equals scikit-learn's GroupKFold on the per-frame video index."""
+    rng = np.random.default_rng(n_splits)
+    for n_videos, high in ((7, 3), (60, 4), (500, 12), (3000, 40)):
+        count = rng.integers(0, high, n_videos)
+        count[: n_splits] = np.maximum(count[: n_splits], 1)
+        video = rng.permutation(np.repeat(np.arange(n_videos), count))
+        video_fold = ev.video_folds(count, n_splits)
+        np.testing.assert_array_equal(video_fold[video], _group_kfold(video, n_splits))
+        assert (video_fold[count == 0] == -1).all()
+
+
+def test_video_folds_of_the_prepared_data_equal_group_kfold(recovery_prepared):
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    video = prepared.frames["video_index"].to_numpy()
+    np.testing.assert_array_equal(prepared.videos.count, np.bincount(video, minlength=len(prepared.video_ids)))
+    for n_splits in (2, 3, 5):
+        np.testing.assert_array_equal(ev.video_folds(prepared.videos.count, n_splits)[video], _group_kfold(video, n_splits))
+    with pytest.raises(ConfigError, match="cv.n_splits=4 but only 3 videos"):
+        ev.video_folds(np.array([0, 5, 2, 0, 9]), 4)
 
 
 def test_full_rank_final_fit_is_ordinary_least_squares(default_evaluation):
@@ -224,3 +251,40 @@ def test_au_field_reliability_is_the_cosine_between_fields_fitted_on_each_fold_a
     assert list(metrics["au_reliability"]) == list(AU_COLUMNS)
     assert 0 <= metrics["n_aus_facs_pass"] <= 20 and metrics["n_aus_facs_pass"] >= 18  # clean synthetic truth
     assert cv.scalar_metrics()["au_reliability_AU12"] == pytest.approx(expected[AU_COLUMNS.index("AU12")], abs=1e-6)
+
+
+def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vector(tmp_path_factory):
+    """model/frame_vertex_error.npy: each frame's held-out error in frames.parquet's order (its fold means are the
+    metrics'); cv.npz: the 1001-point curve, NumPy's quantiles and the exact ECDF there, so the card's 50 % and
+    90 % marks are those of the whole vector; the committed 101-point CSV is the same curve's coarse version."""
+    import pandas as pd
+
+    from aumesh import config
+    from aumesh.card import render
+    from aumesh.pipeline import stages
+    from test_sweep import workspace_with_store
+
+    with workspace_with_store(tmp_path_factory, "frame-error") as ws:
+        cfg = config.load_params(ws / "params.yaml")
+        metrics = stages.evaluate_stage(cfg)
+        model = ws / cfg.paths.model_dir
+        errors = np.load(model / ev.FRAME_ERROR_FILE)
+        video = pd.read_parquet(ws / cfg.paths.prepared_dir / "frames.parquet", columns=["video_index"])["video_index"]
+        curve = pd.read_csv(ws / cfg.paths.error_curve_file)
+        with np.load(model / stages.CV_NPZ) as z:
+            assert "vertex_error" not in z.files  # no per-frame vector in cv.npz
+            cv = render.load_cv(model / stages.CV_NPZ)
+    assert errors.dtype == np.float32 and errors.shape == (len(video),)
+    fold = _group_kfold(video.to_numpy(), cfg.cv.n_splits)
+    for f in range(cfg.cv.n_splits):
+        assert errors[fold == f].astype(np.float64).mean() == pytest.approx(metrics["vertex_error_folds"][f], rel=1e-6)
+    e = np.sort(errors.astype(np.float64))
+    q = np.linspace(0, 1, stages.CARD_ERROR_CURVE_POINTS)
+    np.testing.assert_array_equal(cv["cumulative_error_thresholds"], np.quantile(e, q, method="inverted_cdf"))
+    np.testing.assert_array_equal(cv["cumulative_error_fraction"],
+                                  np.searchsorted(e, cv["cumulative_error_thresholds"], side="right") / e.size)
+    thresholds, fraction = render.cumulative_curve(cv)
+    for p in (0.5, 0.9):  # the figure's marks: first point at or above p, on the curve and on the whole ECDF
+        assert thresholds[np.searchsorted(fraction, p)] == e[np.searchsorted(np.arange(1, e.size + 1) / e.size, p)]
+    np.testing.assert_allclose(curve["vertex_error"], np.quantile(e, np.linspace(0, 1, 101), method="inverted_cdf"),
+                               rtol=1e-5)  # the committed CSV: 6 significant digits

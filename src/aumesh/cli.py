@@ -304,7 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True,
                    help="folder for the PNGs, au_directions.json and au_directions.md (created)")
     p.add_argument("--cv", type=Path, default=None,
-                   help="CV arrays NPZ with r2_per_vertex / vertex_error, e.g. build/model/cv.npz "
+                   help="CV arrays NPZ with r2_per_vertex and vertex_error or the cumulative error curve, "
+                        "e.g. build/model/cv.npz "
                         "(default: none, so no R² and error figures)")
     p.set_defaults(func=_cmd_render)
 

@@ -5,7 +5,8 @@ Input: a release NPZ in the card's format (``coef`` (23, 1434) axis-major rows i
 ``mean_aligned_mesh`` (478, 3), ...) and optionally a CV arrays NPZ with
 ``r2_per_vertex`` (478,) and ``vertex_error`` (per-frame mean per-vertex
 Euclidean error, (n_frames,) or (n_frames, 478)), or a precomputed curve
-``cumulative_error_thresholds`` + ``cumulative_error_fraction``.
+``cumulative_error_thresholds`` + ``cumulative_error_fraction`` (what the evaluate stage's
+``build/model/cv.npz`` holds: points of the empirical CDF, so no per-frame vector is loaded).
 
 Prediction follows the card exactly: ``flat = x @ coef + intercept`` with
 ``x = [AU one-hot | pose 0]``, unflattened from ``[x_0..x_477 | y_.. | z_..]``.
@@ -427,7 +428,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="aumesh render", description="Render the visual model card of a release NPZ.")
     parser.add_argument("npz", help="release NPZ (card format)")
     parser.add_argument("--out", required=True, help="output folder for the PNGs and au_directions.json")
-    parser.add_argument("--cv", default=None, help="CV arrays NPZ (r2_per_vertex, vertex_error)")
+    parser.add_argument("--cv", default=None, help="CV arrays NPZ (r2_per_vertex, vertex_error or the cumulative curve)")
     args = parser.parse_args(argv)
     try:
         paths = render_release(args.npz, args.out, args.cv)
