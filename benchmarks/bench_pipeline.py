@@ -43,7 +43,12 @@ def run_dvc(workdir: Path, data_dir: Path, src: str | None) -> dict:
     ws = workdir / "dvc_ws"
     shutil.rmtree(ws, ignore_errors=True)
     ws.mkdir(parents=True)
-    subprocess.run([str(Path(sys.executable).parent / "dvc"), "init", "--no-scm", "-q"], cwd=ws, check=True, env=env)
+    dvc = str(Path(sys.executable).parent / "dvc")
+    subprocess.run([dvc, "init", "--no-scm", "-q"], cwd=ws, check=True, env=env)
+    # the checkout's cache settings (link type: hardlinks instead of copying the prepared meshes into the cache)
+    cache_type = subprocess.run([dvc, "config", "cache.type"], cwd=checkout, capture_output=True, text=True, env=env).stdout.strip()
+    if cache_type:
+        subprocess.run([dvc, "config", "cache.type", cache_type], cwd=ws, check=True, env=env)
     (ws / "src").symlink_to(checkout / "src")
     write_data_dvc(ws, data_dir)
     (ws / "promotion.json").write_text(json.dumps({"promoted": None}))

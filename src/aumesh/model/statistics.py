@@ -27,7 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
@@ -65,8 +64,10 @@ def fold_order(fold: np.ndarray, n_splits: int) -> tuple[np.ndarray | None, np.n
     return order, bounds
 
 
-def video_indicator(video: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+def video_indicator(video: np.ndarray) -> tuple[np.ndarray, "scipy.sparse.csr_matrix"]:
     """The chunk's distinct videos and a sparse (n_distinct, m) 0/1 matrix: per-video row sums as one product."""
+    import scipy.sparse as sp  # here, not at import: config and the CLI import this module for TARGETS
+
     videos, inverse = np.unique(video, return_inverse=True)
     m = len(video)
     return videos, sp.csr_matrix((np.ones(m), (inverse, np.arange(m))), shape=(len(videos), m))

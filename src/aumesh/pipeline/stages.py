@@ -107,9 +107,8 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
     handle.log_metrics(cv.scalar_metrics() | timings)
     counts = prepared.summary.get("counts", {})  # what the filters dropped, as counts and fractions
     handle.log_metrics({f"data.{k}": float(v) for k, v in counts.items() if k.startswith(("dropped", "videos_dropped"))})
-    mean_path = cv.r2_path_folds.mean(axis=0)
-    for k, r2 in enumerate(mean_path, start=1):  # the R²-vs-n_components curve, step = n_components
-        handle.log_metrics({"r2_by_n_components": float(r2)}, step=k)
+    # the R²-vs-n_components curve, step = n_components, in one transaction
+    handle.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
     return cv, final
 
 
