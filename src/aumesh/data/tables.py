@@ -330,9 +330,12 @@ def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[i
 
 
 def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
-    """Full meshes chunk by chunk as ``(start, coords)``, ``coords`` of shape (1434, m) float64, axis-major rows
+    """Full meshes chunk by chunk as ``(start, coords)``, ``coords`` of shape (1434, m), axis-major rows
     ``[x_0..x_477 | y_.. | z_..]`` (one contiguous row per parquet column: no strided scatter).
-    ``row_groups`` as in :func:`iter_vertices`."""
+    ``row_groups`` as in :func:`iter_vertices`.
+
+    ``coords`` keeps the columns' precision: float32 when every mesh column is float32 (MediaPipe's own
+    precision; half the bytes to move), else float64. Widening to float64 later is exact."""
     if table.mesh_npy is not None:
         for start, block in iter_vertices(table, chunk_rows, row_groups=row_groups):
             yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
@@ -343,8 +346,10 @@ def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[i
     for batch in _batches(table, chunk_rows, columns, row_groups):
         if where is None:
             where = [batch.schema.get_field_index(name) for name in columns]
+            native = all(batch.schema.field(k).type == pa.float32() for k in where) and not table.text_columns
+            dtype = np.float32 if native else np.float64
         m = batch.num_rows
-        coords = np.empty((N_TARGETS, m), dtype=np.float64)
+        coords = np.empty((N_TARGETS, m), dtype=dtype)
         for j, k in enumerate(where):
             coords[j] = _column(batch, k, columns[j], table, start)
         if not np.isfinite(coords).all():
