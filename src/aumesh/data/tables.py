@@ -13,6 +13,8 @@ Every error names the file, the column and the fix.
 from __future__ import annotations
 
 import difflib
+import functools
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -168,6 +170,23 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
                       text_columns=frozenset(text_columns))
 
 
+def _footer(path: str | Path) -> pq.FileMetaData:
+    """The parquet footer of ``path``, parsed once per process and file version (a 1,500-column footer takes
+    ~30 ms to parse; every pass opens each table for each of its partitions)."""
+    st = os.stat(path)
+    return _parsed_footer(str(path), st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+@functools.lru_cache(maxsize=256)
+def _parsed_footer(path: str, mtime_ns: int, size: int, inode: int) -> pq.FileMetaData:
+    return pq.read_metadata(path)
+
+
+def _parquet(path: str | Path) -> pq.ParquetFile:
+    """A reader of ``path`` on its cached footer (:func:`_footer`); one per use (readers are not shared across threads)."""
+    return pq.ParquetFile(path, metadata=_footer(path))
+
+
 def _read_columns(path: Path, columns: list[str]) -> pa.Table:
     try:
         return pq.read_table(path, columns=columns)
@@ -180,7 +199,7 @@ def _batches(table: FrameTable, chunk_rows: int, columns: list[str],
     """Parquet row batches of ``columns`` (of ``row_groups`` only, if given); a page that cannot be decoded is a
     corrupt-file error."""
     try:
-        for batch in pq.ParquetFile(table.path).iter_batches(batch_size=chunk_rows, columns=columns,
+        for batch in _parquet(table.path).iter_batches(batch_size=chunk_rows, columns=columns,
                                                               row_groups=None if row_groups is None else list(row_groups)):
             yield batch
     except (pa.ArrowException, OSError) as err:
@@ -204,7 +223,7 @@ class Piece:
 
 def pieces(table: FrameTable) -> list[Piece]:
     """One piece per parquet row group of ``table``."""
-    md = pq.ParquetFile(table.path).metadata
+    md = _footer(table.path)
     out, start = [], 0
     for g in range(md.num_row_groups):
         n = md.row_group(g).num_rows
@@ -253,7 +272,7 @@ def read_metadata(table: FrameTable, coerce_numeric: bool = False, row_groups: S
         df, first = _read_columns(table.path, cols).to_pandas(), 0
     else:
         try:
-            pf = pq.ParquetFile(table.path)
+            pf = _parquet(table.path)
             df = pf.read_row_groups(list(row_groups), columns=cols).to_pandas()
         except (pa.ArrowException, OSError) as err:
             raise _corrupt(table.path, err, " (reading the metadata columns)") from None
@@ -283,7 +302,7 @@ def check_unique_frames(meta: pd.DataFrame, files: Sequence[Path], file_index: n
 def _row_range(table: FrameTable, row_groups: Sequence[int] | None) -> tuple[int, int]:
     if row_groups is None:
         return 0, table.n_rows
-    md = pq.ParquetFile(table.path).metadata
+    md = _footer(table.path)
     first = sum(md.row_group(g).num_rows for g in range(min(row_groups)))
     return first, first + sum(md.row_group(g).num_rows for g in row_groups)
 
