@@ -141,13 +141,26 @@ def write_data_dvc(run_dir: Path, data_dir: Path) -> None:
         f"  nfiles: {sum(1 for _ in Path(data_dir).glob('*.parquet'))}\n  hash: md5\n  path: data\n")
 
 
+def init_tracking_store(db: Path, env: dict | None = None) -> float:
+    """Create the SQLite MLflow store ``db`` (MLflow's schema migrations) as a workspace's first run does;
+    returns the wall seconds (a one-time cost per workspace, printed apart from the stages')."""
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "import sys; from mlflow import MlflowClient; "
+                    "MlflowClient(sys.argv[1]).search_experiments()", f"sqlite:///{Path(db).resolve()}"],
+                   check=True, capture_output=True, env=env)
+    return time.perf_counter() - t0
+
+
 def run_stages(run_dir: Path, params: Path, env: dict | None = None, stages=STAGES) -> list[Measurement]:
     """The pipeline's stages in order, each a measured subprocess (cwd = ``run_dir``).
 
     The MLflow store is named by ``MLFLOW_TRACKING_URI`` (absolute), so a run folder outside the repository
-    works with any source tree (older ones look for the workspace root to resolve a configured URI).
+    works with any source tree (older ones look for the workspace root to resolve a configured URI). It is
+    created before the stages (:func:`init_tracking_store`): a user's workspace has it after its first run.
     """
     env = dict(env if env is not None else os.environ, MLFLOW_TRACKING_URI=f"sqlite:///{run_dir.resolve() / 'mlflow.db'}")
+    if not (run_dir / "mlflow.db").exists():
+        init_tracking_store(run_dir / "mlflow.db", env)
     out = []
     for stage in stages:
         m = run_measured(AUMESH + [stage, "--params", str(params)], run_dir, run_dir / f"{stage}.log", env, stage)
