@@ -288,3 +288,35 @@ def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vect
         assert thresholds[np.searchsorted(fraction, p)] == e[np.searchsorted(np.arange(1, e.size + 1) / e.size, p)]
     np.testing.assert_allclose(curve["vertex_error"], np.quantile(e, np.linspace(0, 1, 101), method="inverted_cdf"),
                                rtol=1e-5)  # the committed CSV: 6 significant digits
+
+
+def test_the_passes_scratch_goes_with_its_result_or_with_the_next_stage_after_a_kill(recovery_prepared, tmp_path):
+    """The scratch folders (per-video sums, each frame's error) carry their process: removed with the statistics and
+    the result, or, when their process was killed, by the next evaluate stage's start; a live run's stay."""
+    import gc
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from aumesh.pipeline import stages
+
+    host = socket.gethostname()
+    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    cv, _ = ev.evaluate(prepared, default_config(**{"model.n_components": 5}))
+    scratch = cv.frame_vertex_error.path.parent
+    assert scratch.parent == (recovery_prepared / "prepared").parent
+    assert scratch.name.startswith(f".evaluate-scratch.tmp-{os.getpid()}-{host}-")
+    del cv
+    gc.collect()
+    assert not scratch.exists() and not list(scratch.parent.glob(".evaluate-scratch*"))  # pass A's went too
+
+    dead_pid = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                                  text=True).stdout)
+    build = tmp_path / "build"
+    killed, live = build / f".evaluate-scratch.tmp-{dead_pid}-{host}-abc", build / f".evaluate-scratch.tmp-{os.getpid()}-{host}-d"
+    for d in (killed, live):
+        d.mkdir(parents=True)
+    stages.start_stage("evaluate", default_config(**{"paths.prepared_dir": str(build / "prepared"),
+                                                     "paths.model_dir": str(build / "model")}))
+    assert not killed.exists() and live.exists()

@@ -30,7 +30,6 @@ from __future__ import annotations
 import heapq
 import logging
 import shutil
-import tempfile
 import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -45,7 +44,7 @@ from threadpoolctl import threadpool_limits
 from aumesh.config import Config
 from aumesh.utils.errors import ConfigError, UserError
 from aumesh.pipeline import compute
-from aumesh.utils.io import NpyRows, create_npy, read_rows, write_rows
+from aumesh.utils.io import NpyRows, create_npy, read_rows, scratch_directory, write_rows
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
@@ -104,6 +103,13 @@ class Prepared:
 
 
 FRAMES_FILE = "frames.parquet"
+
+
+def scratch_path(prepared_dir: str | Path) -> Path:
+    """What the passes' scratch folders (per-video sums, each frame's error) are the temporaries of: a sibling of the
+    prepared data (``.evaluate-scratch.tmp-<pid>-<host>-*``, :func:`aumesh.utils.io.scratch_directory`), so a killed
+    run's are removed when the next evaluate stage starts."""
+    return Path(prepared_dir).parent / "evaluate-scratch"
 _PASS_COLUMNS = [*AU_COLUMNS, *POSE_COLUMNS, "video_index", "low_au"]
 
 
@@ -420,7 +426,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     a = design_matrix(head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64),
                       True, True).mean(axis=0)
     b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
-    scratch = Path(tempfile.mkdtemp(prefix=".evaluate-scratch-", dir=prepared.directory.parent))
+    scratch = scratch_directory(scratch_path(prepared.directory))
     try:
         for name, width in VIDEO_SUMS.items():
             create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
@@ -513,7 +519,7 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk
     video_fold, video_count = stats.video_fold, prepared.videos.count
     has = video_fold >= 0
     count = np.bincount(video_fold[has], weights=video_count[has], minlength=n_splits).astype(np.int64)
-    scratch = Path(tempfile.mkdtemp(prefix=".evaluate-scratch-", dir=prepared.directory.parent))
+    scratch = scratch_directory(scratch_path(prepared.directory))
     frame_error = scratch / FRAME_ERROR_FILE
     try:
         create_npy(frame_error, np.float32, (prepared.n_frames,))

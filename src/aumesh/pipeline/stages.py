@@ -55,8 +55,14 @@ def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
 
 
 def start_stage(stage: str, cfg: Config) -> None:
-    """Remove what a killed earlier run of ``stage`` left behind (temp folders and files of its outputs)."""
-    for out in stage_outputs(stage, cfg.paths):
+    """Remove what a killed earlier run of ``stage`` left behind (temp folders and files of its outputs, and the
+    evaluate passes' scratch folders)."""
+    scratch = []
+    if stage == "evaluate":
+        from aumesh.pipeline import evaluate as ev
+
+        scratch.append(ev.scratch_path(cfg.paths.prepared_dir))
+    for out in [*stage_outputs(stage, cfg.paths), *scratch]:
         for path in remove_stale_temporaries(out):
             log.info("removed %s, left by a killed run", path)
 

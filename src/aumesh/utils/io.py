@@ -95,6 +95,13 @@ def atomic_savez(path: str | Path, **arrays: Any) -> Path:
     return Path(path)
 
 
+def scratch_directory(path: str | Path) -> Path:
+    """A new temporary folder beside ``path``, named as its temporaries (``.<name>.tmp-<pid>-<host>-*``): the caller
+    removes it, and if its process is killed first, :func:`remove_stale_temporaries` of ``path`` does."""
+    path = Path(path)
+    return Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
+
+
 @contextmanager
 def atomic_directory(path: str | Path) -> Iterator[Path]:
     """Build a whole folder in a temp sibling, then swap it in; a failure leaves the old folder as it was."""
