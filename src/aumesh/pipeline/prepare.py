@@ -316,7 +316,7 @@ class Plan:
     part_index: int
     offset: int  # output row of the partition's first kept frame
     video_index: np.ndarray  # (n_local,) int32 output index of each of the partition's kept videos (sorted)
-    split: np.ndarray  # (n_local,) bool: the video has kept frames in other partitions too
+    split: np.ndarray  # (n_local,) bool: the video has rows in other partitions too (split)
     split_threshold: np.ndarray  # (n_local,) its low-AU threshold over all partitions (NaN for videos held whole)
 
 
@@ -393,7 +393,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                     scratch: Path, chunk_rows: int) -> Written:
     """Pass 3 on one partition: align and write its kept meshes, metadata and whole videos' neutrals.
 
-    Videos with kept frames in other partitions too (``plan.split``): their sums are returned instead of written.
+    Videos with rows in other partitions too (``plan.split``): their sums are returned instead of written.
     """
     rows, video_index, low_video, low_population = kept_frames(scratch, plan, cuts)
     pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
