@@ -255,7 +255,7 @@ def _moments(design: DesignStatistics, idx: np.ndarray, videos: np.ndarray, d_of
 
 
 def configuration_statistics(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,
-                             neutral_design_full: np.ndarray, video_block: int = 2048) -> tuple[list[CrossProducts], list[CrossProducts]]:
+                             neutral_design_full: np.ndarray, video_block: int = 256) -> tuple[list[CrossProducts], list[CrossProducts]]:
     """Per-fold (target, displacement) statistics of one configuration, from the design statistics.
 
     Every target's fold statistics use only that fold's videos (a held-out video is demeaned by its
@@ -267,7 +267,9 @@ def configuration_statistics(design: DesignStatistics, columns: list[str], targe
     target : one of :data:`TARGETS`
     neutral : (n_videos, 1434) the videos' neutral meshes (absolute coordinates; float32 is fine)
     neutral_design_full : (n_videos, 83) mean full-design row of each video's neutral frames
-    video_block : videos per block of the correction sums (bounds the float64 temporaries)
+    video_block : videos per block of the correction sums (bounds the float64 temporaries: ~3 MiB an array
+        at 256; a block of 2,048 cost the evaluate stage ~110 MiB at 30k videos but ~50 at 2.9k, so its memory grew
+        with the frames until a fold held 2,048 videos)
     """
     if target not in TARGETS:
         raise ValueError(f"preprocess.target={target!r}: use one of {', '.join(TARGETS)}")
