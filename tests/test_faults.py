@@ -454,14 +454,18 @@ def _in_work(ws: Path, stage: str) -> bool:
 def _interrupt_stage(ws: Path, stage: str, sig: int) -> tuple[int, str]:
     """Start `dvc repro`, wait until ``stage`` is in the middle of its work, send ``sig`` to the whole process
     group (what Ctrl-C in a terminal does; SIGKILL: what `kill -9` of the group or the OOM killer does)."""
+    import signal
     import subprocess
     import time
 
     from test_dvc_pipeline import BIN
 
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}"}
+    # a user's terminal delivers Ctrl-C to processes with the default SIGINT action; a test run started in the
+    # background by a non-interactive shell (`cmd &`) inherits SIGINT ignored, which `dvc repro` would inherit too
     proc = subprocess.Popen([BIN / "dvc", "repro"], cwd=ws, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 900
     sent = False
     while proc.poll() is None and time.monotonic() < deadline:
