@@ -182,9 +182,14 @@ def _write_staged(table: pa.Table, path: Path) -> None:
     feather.write_feather(table, path, compression="uncompressed")
 
 
+def _staged_meta(scratch: Path, i: int) -> pd.DataFrame:
+    """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 staged it."""
+    return feather.read_table(scratch / f"{i:06d}.arrow").to_pandas()
+
+
 def _staged(scratch: Path, i: int) -> tuple[pd.DataFrame, np.ndarray]:
-    """Partition ``i``'s validated metadata (with the ``piece`` of each row) and float32 anchors, as pass 1 staged them."""
-    return feather.read_table(scratch / f"{i:06d}.arrow").to_pandas(), np.load(scratch / f"{i:06d}.npy")
+    """Partition ``i``'s validated metadata and float32 anchors, as pass 1 staged them."""
+    return _staged_meta(scratch, i), np.load(scratch / f"{i:06d}.npy")
 
 
 def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> Scan:
@@ -399,7 +404,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
     transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it
     rotation, scale, translation = rotation[transform], scale[transform], translation[transform]
-    meta = _staged(scratch, plan.part_index)[0]
+    meta = _staged_meta(scratch, plan.part_index)  # pass 2's transforms replace the anchors
     kept = meta.drop(columns="piece").iloc[rows].reset_index(drop=True)
     kept["video_index"] = video_index
     kept["low_au"] = low_video
@@ -511,8 +516,9 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         # exact and independent of the partitioning: the quantile of the whole vector, which is never gathered
         threshold = exact_quantiles(_staged_residuals, staged, pre.alignment.outlier_quantile) if quantile_cut \
             else max(r.residual_max for r in res)
+        outlier = threshold if quantile_cut else None  # what the partitions apply (None: no outlier cut)
         del res, split_rows
-        kept = compute.map_gather(partial(keep_partition, threshold=threshold if quantile_cut else None,
+        kept = compute.map_gather(partial(keep_partition, threshold=outlier,
                                           split_videos=split_names), staged, desc="prepare: outlier cut")
         n_kept_pose = sum(k.n_kept for k in kept)
         video_ids = np.unique(np.concatenate([k.videos for k in kept]))
@@ -545,8 +551,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
                         len(dropped_videos), ", ".join(dropped_videos[:5]))
         contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
         q = pre.neutral.low_au_quantile
-        cuts = Cuts(threshold if quantile_cut else None, q,
-                    exact_quantiles(partial(_kept_au_sums, threshold if quantile_cut else None), staged, q))
+        cuts = Cuts(outlier, q, exact_quantiles(partial(_kept_au_sums, outlier), staged, q))
         plans = _plans(kept, video_ids, split_names, q)
         del kept
         n_kept, n_videos = n_kept_pose, len(video_ids)
