@@ -170,48 +170,74 @@ def _parse_npy_header(header: bytes, path: str) -> tuple[int, np.dtype, tuple[in
     return len(header), dtype, shape
 
 
-def write_rows(path: str | Path, first_row: int, rows: np.ndarray, offset: int | None = None) -> None:
-    """Write ``rows`` (C-contiguous, the file's dtype) into an ``.npy`` from row ``first_row`` on (``pwrite``:
-    several processes may fill disjoint rows of one file at once; nothing is memory-mapped)."""
-    rows = np.ascontiguousarray(rows)
-    if offset is None:
-        offset = npy_layout(path)[0]
-    row_bytes = rows[0].nbytes if len(rows) else 0
-    fd = os.open(path, os.O_WRONLY)
-    try:
-        view = memoryview(rows).cast("B")
-        pos, done = offset + first_row * row_bytes, 0
+class NpyRowFile:
+    """An ``.npy`` opened once for reading and writing rows with plain file I/O (``pread``/``pwrite``; never
+    memory-mapped: a map would keep every page read resident in the process).
+
+    For a pass that reads or writes many blocks of one file: the header is parsed and the file opened once, not per
+    block. Several processes may write disjoint rows of one file at once. A context manager (closes the file).
+
+    Parameters
+    ----------
+    path : str or Path
+        A C-ordered ``.npy`` (:func:`create_npy` makes one to fill).
+    writable : bool, default False
+        Open for :meth:`write` too.
+    """
+
+    def __init__(self, path: str | Path, writable: bool = False):
+        self.path = Path(path)
+        self.offset, self.dtype, self.shape = npy_layout(self.path)
+        self.row_bytes = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
+        self._fd = os.open(self.path, os.O_RDWR if writable else os.O_RDONLY)
+
+    def read(self, start: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Rows ``start:stop`` (clipped to the file), into ``out`` (its first rows) when given."""
+        n = max(0, min(stop, self.shape[0]) - start)
+        out = np.empty((n, *self.shape[1:]), dtype=self.dtype) if out is None else out[:n]
+        view = memoryview(out).cast("B")
+        pos, got = self.offset + start * self.row_bytes, 0
+        while got < len(view):
+            k = os.preadv(self._fd, [view[got:]], pos + got)
+            if not k:
+                raise EOFError(f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)}")
+            got += k
+        return out
+
+    def write(self, first_row: int, rows: np.ndarray) -> None:
+        """Write ``rows`` (the file's dtype and row shape) from row ``first_row`` on."""
+        view = memoryview(np.ascontiguousarray(rows)).cast("B")
+        pos, done = self.offset + first_row * self.row_bytes, 0
         while done < len(view):
-            done += os.pwrite(fd, view[done:], pos + done)
-    finally:
-        os.close(fd)
+            done += os.pwrite(self._fd, view[done:], pos + done)
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self) -> "NpyRowFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def write_rows(path: str | Path, first_row: int, rows: np.ndarray) -> None:
+    """Write ``rows`` (C-contiguous, the file's dtype) into an ``.npy`` from row ``first_row`` on (one call;
+    a pass writing many blocks keeps an :class:`NpyRowFile` open instead)."""
+    with NpyRowFile(path, writable=True) as f:
+        f.write(first_row, rows)
 
 
 def read_rows(path: str | Path, start: int, stop: int, out: np.ndarray | None = None) -> np.ndarray:
-    """Rows ``start:stop`` of an ``.npy`` read with plain file I/O (a memory map would keep every page
-    read resident in the process)."""
-    offset, dtype, shape = npy_layout(path)
-    row_shape = shape[1:]
-    n = max(0, min(stop, shape[0]) - start)
-    if out is None:
-        out = np.empty((n, *row_shape), dtype=dtype)
-    else:
-        out = out[:n]
-    view = memoryview(out).cast("B")
-    row_bytes = int(np.prod(row_shape, dtype=np.int64)) * dtype.itemsize
-    with open(path, "rb", buffering=0) as fh:
-        fh.seek(offset + start * row_bytes)
-        got = 0
-        while got < len(view):
-            k = fh.readinto(view[got:])
-            if not k:
-                raise EOFError(f"{path}: truncated at row {start + got // max(row_bytes, 1)}")
-            got += k
-    return out
+    """Rows ``start:stop`` of an ``.npy`` (one call; a pass reading many blocks keeps an :class:`NpyRowFile` open)."""
+    with NpyRowFile(path) as f:
+        return f.read(start, stop, out)
 
 
 def read_row_set(path: str | Path, rows: np.ndarray) -> np.ndarray:
-    """Rows ``rows`` (any order, repeats allowed) of an ``.npy``, read run by run with plain file I/O."""
+    """Rows ``rows`` (any order, repeats allowed) of an ``.npy``, read run by run from one open file."""
     rows = np.asarray(rows, dtype=np.int64)
     _, dtype, shape = npy_layout(path)
     out = np.empty((len(rows), *shape[1:]), dtype=dtype)
@@ -222,8 +248,9 @@ def read_row_set(path: str | Path, rows: np.ndarray) -> np.ndarray:
     unique, first = np.unique(sorted_rows, return_index=True)
     breaks = np.flatnonzero(np.diff(unique) != 1) + 1
     block = np.empty((len(unique), *shape[1:]), dtype=dtype)
-    for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(unique)]):
-        read_rows(path, int(unique[lo]), int(unique[hi - 1]) + 1, block[lo:hi])
+    with NpyRowFile(path) as f:
+        for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(unique)]):
+            f.read(int(unique[lo]), int(unique[hi - 1]) + 1, block[lo:hi])
     counts = np.diff(np.r_[first, len(sorted_rows)])
     out[order] = np.repeat(block, counts, axis=0)
     return out

@@ -1,0 +1,46 @@
+"""Row I/O on .npy files (aumesh.utils.io), checked against NumPy's own reader and writer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_row_set, read_rows, write_rows
+
+
+@pytest.mark.parametrize("dtype, row_shape", [(np.float32, (1434,)), (np.float64, (3, 5)), (np.int64, ())])
+def test_row_file_writes_and_reads_what_numpy_does(tmp_path, dtype, row_shape):
+    rng = np.random.default_rng(0)
+    expected = (rng.normal(size=(37, *row_shape)) * 100).astype(dtype)
+    path = tmp_path / "rows.npy"
+    create_npy(path, dtype, expected.shape)
+    with NpyRowFile(path, writable=True) as f:  # blocks out of order, one open file
+        for lo in (20, 0, 7, 33):
+            hi = {0: 7, 7: 20, 20: 33, 33: 37}[lo]
+            f.write(lo, expected[lo:hi])
+    np.testing.assert_array_equal(np.load(path), expected)
+    with NpyRowFile(path) as f:
+        np.testing.assert_array_equal(f.read(5, 19), expected[5:19])
+        out = np.empty((40, *row_shape), dtype=dtype)
+        np.testing.assert_array_equal(f.read(30, 50, out), expected[30:])  # clipped to the file, into out's head
+    np.testing.assert_array_equal(read_rows(path, 3, 4), expected[3:4])
+    rows = np.array([9, 2, 2, 36, 10, 11, 0])
+    np.testing.assert_array_equal(read_row_set(path, rows), expected[rows])
+    np.testing.assert_array_equal(NpyRows(path)[rows], expected[rows])
+
+
+def test_write_rows_into_a_numpy_saved_file(tmp_path):
+    path = tmp_path / "saved.npy"
+    np.save(path, np.zeros((6, 4)))
+    write_rows(path, 2, np.full((2, 4), 7.0))
+    np.testing.assert_array_equal(np.load(path)[:, 0], [0, 0, 7, 7, 0, 0])
+
+
+def test_truncated_file_is_named(tmp_path):
+    path = tmp_path / "cut.npy"
+    np.save(path, np.arange(40.0).reshape(10, 4))
+    size = path.stat().st_size
+    with open(path, "r+b") as fh:
+        fh.truncate(size - 3 * 32)  # three rows short
+    with pytest.raises(EOFError, match=r"cut\.npy: truncated at row 7"):
+        read_rows(path, 0, 10)
