@@ -35,6 +35,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property, partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -44,15 +45,17 @@ from threadpoolctl import threadpool_limits
 from aumesh.config import Config
 from aumesh.utils.errors import ConfigError, UserError
 from aumesh.pipeline import compute
-from aumesh.utils.io import NpyRows, create_npy, read_rows, scratch_directory, write_rows
+from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, scratch_directory, write_rows
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
-from aumesh.model.pls import PLSRegression
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, configuration_statistics, fold_order, \
     target_offsets, video_indicator
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
+
+if TYPE_CHECKING:
+    from aumesh.model.pls import PLSRegression
 
 log = logging.getLogger(__name__)
 
@@ -369,25 +372,27 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
     sums = DesignSums(p, q, n_splits)
     per_video = {name: np.zeros((len(videos), width)) for name, width in VIDEO_SUMS.items()}
     raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
-    for lo in range(start, stop, chunk_rows):
-        hi = min(lo + chunk_rows, stop)
-        rows = slice(lo - start, hi - start)
-        Y = read_rows(directory / "meshes.npy", lo, hi, raw).astype(np.float64)
-        X = design_matrix(au[rows], pose[rows], True, True)
-        X -= a
-        Y -= b
-        vids, indicator = video_indicator(local[rows])
-        per_video["video_sum_x"][vids] += indicator @ X
-        per_video["video_sum_y"][vids] += indicator @ Y
-        neutral = low[rows]
-        vids, indicator = video_indicator(local[rows][neutral])
-        per_video["video_low_sum_x"][vids] += indicator @ X[neutral]
-        sums.add(X, Y, fold[rows])
+    with NpyRowFile(directory / "meshes.npy") as meshes:
+        for lo in range(start, stop, chunk_rows):
+            hi = min(lo + chunk_rows, stop)
+            rows = slice(lo - start, hi - start)
+            Y = meshes.read(lo, hi, raw).astype(np.float64)
+            X = design_matrix(au[rows], pose[rows], True, True)
+            X -= a
+            Y -= b
+            vids, indicator = video_indicator(local[rows])
+            per_video["video_sum_x"][vids] += indicator @ X
+            per_video["video_sum_y"][vids] += indicator @ Y
+            neutral = low[rows]
+            vids, indicator = video_indicator(local[rows][neutral])
+            per_video["video_low_sum_x"][vids] += indicator @ X[neutral]
+            sums.add(X, Y, fold[rows])
     whole = ~split_video[videos]
     for name, values in per_video.items():
         values = values[whole]
-        for j, (lo_v, hi_v) in _runs(videos[whole]):
-            write_rows(scratch / f"{name}.npy", lo_v, values[j : j + hi_v - lo_v])
+        with NpyRowFile(scratch / f"{name}.npy", writable=True) as sums_file:
+            for j, (lo_v, hi_v) in _runs(videos[whole]):
+                sums_file.write(lo_v, values[j : j + hi_v - lo_v])
     split = {int(v): tuple(per_video[name][j] for name in VIDEO_SUMS) for j, v in enumerate(videos) if split_video[v]}
     return DesignPart(sums, split)
 
@@ -501,6 +506,10 @@ def _one_blas_thread():
 
 def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
     """The engine's PLS fit from statistics (card: PLSRegression(n_components, scale=True))."""
+    # imported here, not with the module: scikit-learn takes ~1 s to import, which the evaluate stage spends on a
+    # background thread while pass A reads the meshes (aumesh.pipeline.stages.evaluate_stage)
+    from aumesh.model.pls import PLSRegression
+
     with _one_blas_thread():
         return PLSRegression(n_components=n_components, scale=scale).fit_stats(stats)
 
@@ -597,30 +606,31 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
     y_rows = None if y_offset is None else np.asarray(y_offset[videos])
     abs_sum, vertex_sum = np.zeros(n_splits), np.zeros((n_splits, N_VERTICES))
     raw = np.empty((min(chunk_rows, stop - start), N_TARGETS), dtype=np.float32)
-    for lo in range(start, stop, chunk_rows):
-        rows = slice(lo - start, min(lo + chunk_rows, stop) - start)
-        Y = read_rows(directory / "meshes.npy", lo, min(lo + chunk_rows, stop), raw).astype(np.float64)
-        X = design_matrix(au[rows], pose[rows], use_pose, interactions)
-        if x_rows is not None:  # the target's per-video centres (held-out videos: their own)
-            X -= x_rows[local[rows]]
-        if y_rows is not None:
-            Y -= y_rows[local[rows]]
-        order, bounds = fold_order(fold[rows], n_splits)
-        if order is not None:  # rows grouped by fold: one GEMM per fold's rows and model
-            X, Y = X[order], Y[order]
-        for f in range(n_splits):
-            lo_f, hi_f = bounds[f], bounds[f + 1]
-            Y[lo_f:hi_f] -= X[lo_f:hi_f] @ coefs[f]  # residual: y - (x @ coef_f.T + raw_intercept_f)
-            Y[lo_f:hi_f] -= intercepts[f]
-        e3 = Y.reshape(len(Y), 3, N_VERTICES)
-        per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
-        error = per_vertex.mean(axis=1)
-        write_rows(frame_error, lo, (error if order is None else error[np.argsort(order)]).astype(np.float32))
-        row_abs = np.abs(Y).sum(axis=1)
-        for f in range(n_splits):
-            lo_f, hi_f = bounds[f], bounds[f + 1]
-            abs_sum[f] += row_abs[lo_f:hi_f].sum()
-            vertex_sum[f] += per_vertex[lo_f:hi_f].sum(axis=0)
+    with NpyRowFile(directory / "meshes.npy") as meshes, NpyRowFile(frame_error, writable=True) as errors:
+        for lo in range(start, stop, chunk_rows):
+            rows = slice(lo - start, min(lo + chunk_rows, stop) - start)
+            Y = meshes.read(lo, min(lo + chunk_rows, stop), raw).astype(np.float64)
+            X = design_matrix(au[rows], pose[rows], use_pose, interactions)
+            if x_rows is not None:  # the target's per-video centres (held-out videos: their own)
+                X -= x_rows[local[rows]]
+            if y_rows is not None:
+                Y -= y_rows[local[rows]]
+            order, bounds = fold_order(fold[rows], n_splits)
+            if order is not None:  # rows grouped by fold: one GEMM per fold's rows and model
+                X, Y = X[order], Y[order]
+            for f in range(n_splits):
+                lo_f, hi_f = bounds[f], bounds[f + 1]
+                Y[lo_f:hi_f] -= X[lo_f:hi_f] @ coefs[f]  # residual: y - (x @ coef_f.T + raw_intercept_f)
+                Y[lo_f:hi_f] -= intercepts[f]
+            e3 = Y.reshape(len(Y), 3, N_VERTICES)
+            per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
+            error = per_vertex.mean(axis=1)
+            errors.write(lo, (error if order is None else error[np.argsort(order)]).astype(np.float32))
+            row_abs = np.abs(Y).sum(axis=1)
+            for f in range(n_splits):
+                lo_f, hi_f = bounds[f], bounds[f + 1]
+                abs_sum[f] += row_abs[lo_f:hi_f].sum()
+                vertex_sum[f] += per_vertex[lo_f:hi_f].sum(axis=0)
     return ErrorPart(abs_sum, vertex_sum)
 
 
