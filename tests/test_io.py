@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_row_set, read_rows, write_rows
+from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_row_set, read_rows, row_runs, write_rows
 
 
 @pytest.mark.parametrize("dtype, row_shape", [(np.float32, (1434,)), (np.float64, (3, 5)), (np.int64, ())])
@@ -44,3 +44,8 @@ def test_truncated_file_is_named(tmp_path):
         fh.truncate(size - 3 * 32)  # three rows short
     with pytest.raises(EOFError, match=r"cut\.npy: truncated at row 7"):
         read_rows(path, 0, 10)
+
+
+def test_row_runs_split_sorted_rows_at_gaps():
+    assert row_runs(np.array([], dtype=int)) == []
+    assert row_runs(np.array([3, 4, 5, 9, 11, 12])) == [(0, (3, 6)), (3, (9, 10)), (4, (11, 13))]

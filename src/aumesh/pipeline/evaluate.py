@@ -45,7 +45,7 @@ from threadpoolctl import threadpool_limits
 from aumesh.config import Config
 from aumesh.utils.errors import ConfigError, UserError
 from aumesh.pipeline import compute
-from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, scratch_directory, write_rows
+from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, row_runs, scratch_directory, write_rows
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
@@ -391,19 +391,10 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
     for name, values in per_video.items():
         values = values[whole]
         with NpyRowFile(scratch / f"{name}.npy", writable=True) as sums_file:
-            for j, (lo_v, hi_v) in _runs(videos[whole]):
+            for j, (lo_v, hi_v) in row_runs(videos[whole]):
                 sums_file.write(lo_v, values[j : j + hi_v - lo_v])
     split = {int(v): tuple(per_video[name][j] for name in VIDEO_SUMS) for j, v in enumerate(videos) if split_video[v]}
     return DesignPart(sums, split)
-
-
-def _runs(sorted_values: np.ndarray) -> list[tuple[int, tuple[int, int]]]:
-    """``(position, (first, stop))`` of each run of consecutive integers in ``sorted_values``."""
-    if len(sorted_values) == 0:
-        return []
-    breaks = np.flatnonzero(np.diff(sorted_values) != 1) + 1
-    return [(int(lo), (int(sorted_values[lo]), int(sorted_values[hi - 1]) + 1))
-            for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(sorted_values)])]
 
 
 class NeutralDesign:

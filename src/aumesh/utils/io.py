@@ -246,14 +246,23 @@ def read_row_set(path: str | Path, rows: np.ndarray) -> np.ndarray:
     order = np.argsort(rows, kind="stable")
     sorted_rows = rows[order]
     unique, first = np.unique(sorted_rows, return_index=True)
-    breaks = np.flatnonzero(np.diff(unique) != 1) + 1
     block = np.empty((len(unique), *shape[1:]), dtype=dtype)
     with NpyRowFile(path) as f:
-        for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(unique)]):
-            f.read(int(unique[lo]), int(unique[hi - 1]) + 1, block[lo:hi])
+        for j, (lo, hi) in row_runs(unique):
+            f.read(lo, hi, block[j : j + hi - lo])
     counts = np.diff(np.r_[first, len(sorted_rows)])
     out[order] = np.repeat(block, counts, axis=0)
     return out
+
+
+def row_runs(sorted_values: np.ndarray) -> list[tuple[int, tuple[int, int]]]:
+    """``(position, (first, stop))`` of each run of consecutive integers in ``sorted_values``: the row ranges
+    of a sorted set of rows that one :class:`NpyRowFile` read or write each can move."""
+    if len(sorted_values) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(sorted_values) != 1) + 1
+    return [(int(lo), (int(sorted_values[lo]), int(sorted_values[hi - 1]) + 1))
+            for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(sorted_values)])]
 
 
 class NpyRows:
