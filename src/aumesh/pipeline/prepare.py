@@ -44,6 +44,7 @@ import hashlib
 import json
 import logging
 import shutil
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -63,7 +64,7 @@ from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.model.statistics import video_indicator
 from aumesh.pipeline import compute
 from aumesh.pipeline.quantiles import exact_quantiles
-from aumesh.utils.io import atomic_directory, atomic_write_json, create_npy, write_rows
+from aumesh.utils.io import NpyRowFile, atomic_directory, atomic_write_json, create_npy, row_runs, write_rows
 
 log = logging.getLogger(__name__)
 
@@ -412,6 +413,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     del meta, kept
     result = Written(np.zeros((2, N_TARGETS)), int(low_population.sum()))
     split_video = set(plan.video_index[plan.split].tolist())
+    neutrals: dict[str, dict[int, np.ndarray]] = {name: {} for name in NEUTRAL_FILES.values()}
 
     def finished(name: str, slot: int):
         def done(v: int, total: np.ndarray, count: int) -> None:
@@ -419,36 +421,49 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 result.split.setdefault(v, np.zeros((2, N_TARGETS)))[slot] += total
                 result.split_counts.setdefault(v, np.zeros(2, np.int64))[slot] += count
             else:
-                write_rows(out_dir / NEUTRAL_FILES[name], v, (total / count).astype(np.float32)[None])
+                neutrals[NEUTRAL_FILES[name]][v] = (total / count).astype(np.float32)
         return done
+
+    def write_neutrals() -> None:
+        """The neutral rows of the videos finished so far, a run of consecutive videos per write (a partition's
+        videos are mostly consecutive: a write per video was ~20k small writes at 344k frames)."""
+        for name, finished_rows in neutrals.items():
+            videos = np.array(sorted(finished_rows), dtype=np.int64)
+            for j, (lo, hi) in row_runs(videos):
+                files[name].write(lo, np.stack([finished_rows[v] for v in videos[j : j + hi - lo]]))
+            finished_rows.clear()
 
     all_frames = _VideoSums(video_index, finished("mean", 0))
     low_frames = _VideoSums(video_index[low_video], finished("low_au", 1))
     position = np.full(sum(p.n_rows for p in part), -1, dtype=np.int64)
     position[rows] = np.arange(len(rows))
-    offset = 0
-    for p in part:
-        for start, coords in iter_mesh_columns(p.table, chunk_rows, p.row_groups):
-            m = coords.shape[1]
-            local = offset + start - p.start
-            pos = position[local : local + m]
-            sel = pos >= 0
-            if not sel.any():
-                continue
-            pos, columns = pos[sel], np.flatnonzero(sel)
-            # a block of rows at a time: the transposed gather, the alignment's temporaries and the sums stay in
-            # the CPU's cache instead of streaming a chunk-sized float64 array through memory for every step
-            for lo in range(0, len(pos), ALIGN_BLOCK):
-                rows_out = pos[lo : lo + ALIGN_BLOCK]
-                flat = _align_rows(coords[:, columns[lo : lo + ALIGN_BLOCK]].T, rotation[rows_out], scale[rows_out],
-                                   translation[rows_out])  # (k, 1434) float64, axis-major [x | y | z]
-                write_rows(out_dir / "meshes.npy", plan.offset + int(rows_out[0]), flat.astype(np.float32))
-                result.sums[0] += flat.sum(axis=0)
-                result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
-                all_frames.add(video_index[rows_out], flat)
-                low = low_video[rows_out]
-                low_frames.add(video_index[rows_out][low], flat[low])
-        offset += p.n_rows
+    with ExitStack() as stack:  # the output files opened once for the partition's writes
+        files = {name: stack.enter_context(NpyRowFile(out_dir / name, writable=True))
+                 for name in ("meshes.npy", *NEUTRAL_FILES.values())}
+        offset = 0
+        for p in part:
+            for start, coords in iter_mesh_columns(p.table, chunk_rows, p.row_groups):
+                m = coords.shape[1]
+                local = offset + start - p.start
+                pos = position[local : local + m]
+                sel = pos >= 0
+                if not sel.any():
+                    continue
+                pos, columns = pos[sel], np.flatnonzero(sel)
+                # a block of rows at a time: the transposed gather, the alignment's temporaries and the sums stay in
+                # the CPU's cache instead of streaming a chunk-sized float64 array through memory for every step
+                for lo in range(0, len(pos), ALIGN_BLOCK):
+                    rows_out = pos[lo : lo + ALIGN_BLOCK]
+                    flat = _align_rows(coords[:, columns[lo : lo + ALIGN_BLOCK]].T, rotation[rows_out], scale[rows_out],
+                                       translation[rows_out])  # (k, 1434) float64, axis-major [x | y | z]
+                    files["meshes.npy"].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
+                    result.sums[0] += flat.sum(axis=0)
+                    result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
+                    all_frames.add(video_index[rows_out], flat)
+                    low = low_video[rows_out]
+                    low_frames.add(video_index[rows_out][low], flat[low])
+                write_neutrals()
+            offset += p.n_rows
     return result
 
 
