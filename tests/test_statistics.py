@@ -8,7 +8,8 @@ import pytest
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.data.schema import N_TARGETS, feature_columns
-from aumesh.model.statistics import DesignSums, accumulate_design, configuration_statistics, video_indicator
+from aumesh.model.statistics import DesignSums, accumulate_design, configuration_statistics, video_indicator, \
+    video_row_sums
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +93,22 @@ def test_video_indicator_sums_rows_per_video():
     videos, indicator = video_indicator(video)
     assert videos.tolist() == [3, 7, 9]
     np.testing.assert_array_equal(indicator @ Y, [[2 + 8, 3 + 9], [0 + 4, 1 + 5], [6, 7]])
+
+
+@pytest.mark.parametrize("grouped", [True, False])
+def test_video_row_sums_equal_the_indicator_product_bit_for_bit(grouped):
+    """Rows grouped by video (the fast path) or not: the CSR product's sums exactly, bincount's counts."""
+    rng = np.random.default_rng(5)
+    video = rng.integers(0, 12, 300)
+    video = np.sort(video) if grouped else video
+    rows = rng.standard_normal((300, 50)) * 10.0 ** rng.uniform(-4, 4, 50)
+    videos, sums, counts = video_row_sums(video, rows)
+    expected_videos, indicator = video_indicator(video)
+    np.testing.assert_array_equal(videos, expected_videos)
+    np.testing.assert_array_equal(sums, indicator @ rows)
+    np.testing.assert_array_equal(counts, np.bincount(video)[videos])
+    empty = video_row_sums(video[:0], rows[:0])
+    assert [a.shape for a in empty] == [(0,), (0, 50), (0,)]
 
 
 def _demeaned(A, video):

@@ -73,6 +73,40 @@ def video_indicator(video: np.ndarray) -> tuple[np.ndarray, "scipy.sparse.csr_ma
     return videos, sp.csr_matrix((np.ones(m), (inverse, np.arange(m))), shape=(len(videos), m))
 
 
+def video_row_sums(video: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sums of ``rows`` per video, each video's rows added one after another in their order.
+
+    The same float64 sums, bit for bit, as ``video_indicator(video)[1] @ rows`` (whose CSR product adds a
+    row's entries in order), without building a sparse matrix: rows already grouped by video (frames of a
+    video are consecutive in the tables) are summed in place, others after a stable sort.
+    ``np.add.reduceat`` is not used: it adds a segment pairwise, which rounds differently.
+
+    Parameters
+    ----------
+    video : ndarray, shape (m,)
+        The video of each row (any sortable labels).
+    rows : ndarray, shape (m, n)
+
+    Returns
+    -------
+    videos : ndarray, shape (n_distinct,)
+        The distinct videos, sorted.
+    sums : ndarray of float64, shape (n_distinct, n)
+    counts : ndarray of int64, shape (n_distinct,)
+    """
+    if len(video) == 0:
+        return video[:0], np.zeros((0, rows.shape[1])), np.zeros(0, np.int64)
+    if not np.all(video[1:] >= video[:-1]):
+        order = np.argsort(video, kind="stable")
+        video, rows = video[order], rows[order]
+    starts = np.flatnonzero(np.r_[True, video[1:] != video[:-1]])
+    stops = np.r_[starts[1:], len(video)]
+    sums = np.empty((len(starts), rows.shape[1]))
+    for j, (lo, hi) in enumerate(zip(starts.tolist(), stops.tolist())):
+        np.sum(rows[lo:hi], axis=0, out=sums[j])  # along the rows: one row after another from 0
+    return video[starts], sums, (stops - starts).astype(np.int64)
+
+
 class DesignSums:
     """Per-fold sums of a pass over shifted rows: ``Y'[X_f | 1_f]``, ``X_f'X_f``, ``sum X_f`` and ``diag(Y_f'Y_f)``.
 

@@ -61,7 +61,7 @@ from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, 
 from aumesh.data.tables import FrameTable, Piece, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, \
     partitions, read_metadata
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
-from aumesh.model.statistics import video_indicator
+from aumesh.model.statistics import video_row_sums
 from aumesh.pipeline import compute
 from aumesh.pipeline.quantiles import exact_quantiles
 from aumesh.utils.io import NpyRowFile, atomic_directory, atomic_write_json, create_npy, row_runs, write_rows
@@ -362,9 +362,7 @@ class _VideoSums:
         """Add ``rows`` (m, 1434) of videos ``video`` (m,)."""
         if len(video) == 0:
             return
-        videos, indicator = video_indicator(video)
-        sums = indicator @ rows
-        n_rows = np.asarray(indicator.sum(axis=1)).ravel().astype(np.int64)
+        videos, sums, n_rows = video_row_sums(video, rows)
         for j, v in enumerate(videos.tolist()):
             acc = self.open.get(v)
             if acc is None:
