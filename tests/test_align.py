@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from aumesh.geometry.align import align_to_reference, apply_similarity, generalized_procrustes, umeyama_batch
+from aumesh.geometry.align import align_to_reference, apply_similarity, apply_similarity_columns, generalized_procrustes, \
+    umeyama_batch
 
 
 def _points(rng, n=12):
@@ -54,3 +55,18 @@ def test_gpa_reference_keeps_the_frames_mean_pose_and_size():
     assert residual.max() < 1e-6  # one shape under similarity: GPA must find it exactly
     _, s, _ = umeyama_batch(ref[None], frames.mean(0))
     assert abs(s[0] - 1.0) < 0.05
+
+
+def test_similarity_on_columns_moves_points_as_the_known_transform():
+    """Frames stored one per column (axis-major, float32 as the tables hold them) -> rows: scale R p + t per point."""
+    rng = np.random.default_rng(3)
+    points = (rng.normal(size=(5, 40, 3)) * 100).astype(np.float32)  # (frames, points, xyz)
+    rot = Rotation.random(5, random_state=4).as_matrix()
+    scale, shift = rng.uniform(0.5, 2.0, 5), rng.normal(size=(5, 3)) * 50
+    expected = scale[:, None, None] * (points.astype(np.float64) @ rot.transpose(0, 2, 1)) + shift[:, None]
+    columns = points.transpose(2, 1, 0).reshape(3 * 40, 5)  # [x_0..x_39 | y.. | z..] down, a frame per column
+    rows = apply_similarity_columns(columns, rot, scale, shift)
+    assert rows.shape == (5, 120) and rows.flags.c_contiguous and rows.dtype == np.float64
+    np.testing.assert_allclose(rows.reshape(5, 3, 40).transpose(0, 2, 1), expected, rtol=1e-13, atol=1e-11)
+    np.testing.assert_allclose(rows.reshape(5, 3, 40).transpose(0, 2, 1), apply_similarity(points, rot, scale, shift),
+                               rtol=1e-13, atol=1e-11)

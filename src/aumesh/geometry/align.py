@@ -56,6 +56,45 @@ def apply_similarity(points: np.ndarray, rotation: np.ndarray, scale: np.ndarray
     return scale[:, None, None] * np.einsum("fpj,fij->fpi", points, rotation) + translation[:, None, :]
 
 
+def apply_similarity_columns(columns: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
+                             translation: np.ndarray) -> np.ndarray:
+    """:func:`apply_similarity` on point sets stored one per column, axis-major, returned as rows.
+
+    ``scale * (R[a,0] x + R[a,1] y + R[a,2] z) + t[a]`` per coordinate in float64, added in that order
+    (the einsum of :func:`apply_similarity` may add in another: they agree to rounding). In the column
+    layout (how the streaming passes read mesh tables, one column per coordinate) every step runs over
+    contiguous memory with the frames' rotation, scale and translation broadcast along the rows; the result
+    is transposed once.
+
+    Parameters
+    ----------
+    columns : ndarray, shape (3 n_points, n_frames)
+        Axis-major points ``[x_0..x_{n-1} | y_.. | z_..]``, one frame per column (float32 or float64).
+    rotation : ndarray, shape (n_frames, 3, 3)
+    scale : ndarray, shape (n_frames,)
+    translation : ndarray, shape (n_frames, 3)
+
+    Returns
+    -------
+    ndarray of float64, shape (n_frames, 3 n_points)
+        The moved points, a frame per row, axis-major.
+    """
+    n_frames = columns.shape[1]
+    pts = columns.reshape(3, -1, n_frames)
+    out = np.empty(pts.shape)
+    tmp = np.empty(pts.shape[1:])
+    for a in range(3):
+        o = out[a]
+        np.multiply(pts[0], rotation[:, a, 0], out=o)
+        np.multiply(pts[1], rotation[:, a, 1], out=tmp)
+        o += tmp
+        np.multiply(pts[2], rotation[:, a, 2], out=tmp)
+        o += tmp
+        o *= scale
+        o += translation[:, a]
+    return np.ascontiguousarray(out.reshape(-1, n_frames).T)
+
+
 def align_to_reference(anchors: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, tuple]:
     """Align each frame's anchors onto ``reference``; returns the per-frame max anchor residual and the transform.
 

@@ -60,7 +60,7 @@ from aumesh.data import contract
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, VIDEO_COLUMN
 from aumesh.data.tables import FrameTable, Piece, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, \
     partitions, read_metadata
-from aumesh.geometry.align import align_to_reference, generalized_procrustes
+from aumesh.geometry.align import align_to_reference, apply_similarity_columns, generalized_procrustes
 from aumesh.model.statistics import video_row_sums
 from aumesh.pipeline import compute
 from aumesh.pipeline.quantiles import exact_quantiles
@@ -448,12 +448,13 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 if not sel.any():
                     continue
                 pos, columns = pos[sel], np.flatnonzero(sel)
-                # a block of rows at a time: the transposed gather, the alignment's temporaries and the sums stay in
-                # the CPU's cache instead of streaming a chunk-sized float64 array through memory for every step
+                # a block of rows at a time: the gather, the alignment's temporaries and the sums stay in the CPU's
+                # cache instead of streaming a chunk-sized float64 array through memory for every step
                 for lo in range(0, len(pos), ALIGN_BLOCK):
                     rows_out = pos[lo : lo + ALIGN_BLOCK]
-                    flat = _align_rows(coords[:, columns[lo : lo + ALIGN_BLOCK]].T, rotation[rows_out], scale[rows_out],
-                                       translation[rows_out])  # (k, 1434) float64, axis-major [x | y | z]
+                    # np.take copies along each coordinate's row (coords[:, idx] gathers element by element)
+                    block = np.take(coords, columns[lo : lo + ALIGN_BLOCK], axis=1)  # (1434, k)
+                    flat = apply_similarity_columns(block, rotation[rows_out], scale[rows_out], translation[rows_out])
                     files["meshes.npy"].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
                     result.sums[0] += flat.sum(axis=0)
                     result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
@@ -622,24 +623,6 @@ def _concatenate_parts(parts_dir: Path, out: Path) -> None:
     if writer is not None:
         writer.close()
     parts_dir.rmdir()
-
-
-def _align_rows(rows: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """``apply_similarity`` on axis-major mesh rows (m, 1434) -> (m, 1434) float64, same arithmetic per element
-    (``scale * (R[a,0] x + R[a,1] y + R[a,2] z) + t[a]``) without the (m, 478, 3) einsum."""
-    pts = rows.reshape(len(rows), 3, N_VERTICES)
-    out = np.empty((len(rows), 3, N_VERTICES))
-    tmp = np.empty((len(rows), N_VERTICES))
-    for a in range(3):
-        o = out[:, a]
-        np.multiply(pts[:, 0], rotation[:, a, 0, None], out=o)
-        np.multiply(pts[:, 1], rotation[:, a, 1, None], out=tmp)
-        o += tmp
-        np.multiply(pts[:, 2], rotation[:, a, 2, None], out=tmp)
-        o += tmp
-        o *= scale[:, None]
-        o += translation[:, a, None]
-    return out.reshape(len(rows), N_TARGETS)
 
 
 def load_summary(prepared_dir: str | Path) -> dict:
