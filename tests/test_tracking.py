@@ -125,58 +125,6 @@ def test_exception_marks_run_failed_and_reraises(cfg, store_uri):
     assert got.data.metrics["partial"] == 1.0
 
 
-def test_background_run_opens_while_the_body_computes_and_finishes(cfg, store_uri, monkeypatch):
-    import threading
-
-    opened_on = []
-    real_open = tracking._open_run
-
-    def spy(*args, **kwargs):
-        opened_on.append(threading.current_thread().name)
-        return real_open(*args, **kwargs)
-
-    monkeypatch.setattr(tracking, "_open_run", spy)
-    with tracking.background_run(cfg, "bg", {"model": {"n_components": 3}}, tags={"aumesh.stage": "evaluate"}) as opened:
-        computed = sum(range(1000))  # the body computes before it asks for the run
-        run = opened()
-        run.log_metrics({"r2_mean": 0.5, "computed": computed})
-    assert opened_on and opened_on[0] != threading.main_thread().name  # opened on another thread
-    got = _client(store_uri).get_run(run.run_id)
-    assert got.info.status == "FINISHED"
-    assert got.data.params["model.n_components"] == "3"
-    assert got.data.tags["aumesh.stage"] == "evaluate"
-    assert got.data.metrics["r2_mean"] == 0.5
-
-
-@pytest.mark.parametrize("ask_first", [True, False])
-def test_background_run_marks_a_failed_body_failed(cfg, store_uri, ask_first):
-    with pytest.raises(RuntimeError, match="pass A broke"):
-        with tracking.background_run(cfg, "bg-broken", {"a": 1}) as opened:
-            run = opened() if ask_first else None
-            raise RuntimeError("pass A broke")
-    client = _client(store_uri)
-    runs = client.search_runs([client.get_experiment_by_name(cfg["experiment"]).experiment_id])
-    assert [r.info.run_name for r in runs] == ["bg-broken"]  # opened although the body never asked for it
-    assert runs[0].info.status == "FAILED"
-    assert runs[0].data.tags[tracking.ERROR_TAG] == "RuntimeError: pass A broke"
-
-
-def test_background_run_reports_a_failed_opening(cfg, monkeypatch):
-    def broken_open(*args, **kwargs):
-        raise ConnectionError("store unreachable")
-
-    monkeypatch.setattr(tracking, "_open_run", broken_open)
-    with pytest.raises(ConnectionError, match="store unreachable"):  # when the body asks for the run
-        with tracking.background_run(cfg, "bg", None) as opened:
-            opened()
-    with pytest.raises(ValueError, match="the body's own error"):  # the body's error wins over the opening's
-        with tracking.background_run(cfg, "bg", None):
-            raise ValueError("the body's own error")
-    with pytest.raises(ConnectionError):  # a body that never asked still learns the run was not recorded
-        with tracking.background_run(cfg, "bg", None):
-            pass
-
-
 def test_parent_and_children_are_linked(cfg, store_uri):
     parent = tracking.start_parent_run(cfg, "sweep", params={"sweep": {"grid": [2, 4]}})
     for k in (2, 4):

@@ -33,7 +33,7 @@ import socket
 import sys
 import time
 import traceback
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -472,75 +472,6 @@ def tracked_run(
         handle.client.set_terminated(handle.run_id, "FINISHED")
     finally:
         _ACTIVE_RUNS.reset(token)
-
-
-def _open_with_params(tracking_cfg, run_name, tags, params) -> TrackedRun:
-    handle = _open_run(tracking_cfg, run_name, tags, None)
-    try:
-        if params:
-            handle.log_params(params)
-    except BaseException as exc:
-        _fail(handle, exc)
-        raise
-    return handle
-
-
-def _opened(opening) -> TrackedRun | None:
-    """The run a background opening made, or None (its error logged) when it failed."""
-    try:
-        return opening.result()
-    except Exception as err:
-        log.error("the MLflow run could not be opened either: %s: %s", type(err).__name__, err)
-        return None
-
-
-@contextlib.contextmanager
-def background_run(
-    tracking_cfg: Mapping[str, Any] | None,
-    run_name: str | None,
-    params: Mapping[str, Any] | None,
-    tags: Mapping[str, Any] | None = None,
-) -> Iterator[Callable[[], TrackedRun]]:
-    """:func:`tracked_run` for a stage that computes first and logs after: the run is opened on a background
-    thread while the body computes.
-
-    Opening a run costs seconds of one core that the stage would otherwise wait for before its passes start:
-    importing MLflow (~2 s), connecting to the store (SQLAlchemy, the schema check: ~1.5 s), creating the run and
-    logging its params. The body calls the yielded function when it has something to log; it returns the
-    :class:`TrackedRun` (waiting for the opening if needed) or raises the opening's error.
-
-    Parameters are those of :func:`tracked_run` (no parent: a background run is never a sweep's child).
-
-    Yields
-    ------
-    callable
-        ``handle()`` -> :class:`TrackedRun` (:class:`_NullRun` when ``tracking.enabled`` is false).
-
-    Notes
-    -----
-    The run ends as with :func:`tracked_run`: FINISHED, or FAILED (KILLED for ``KeyboardInterrupt``) with the
-    body's error once the opening is done. Should the opening fail as well, the body's error is raised and the
-    opening's is logged. An opening error is raised, at the latest, at the end of a body that never asked for the
-    handle.
-    """
-    if not _enabled(tracking_cfg):
-        null = _NullRun()
-        yield lambda: null
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(1, thread_name_prefix="aumesh-mlflow-open") as pool:
-        opening = pool.submit(_open_with_params, tracking_cfg, run_name, tags, params)
-        try:
-            yield opening.result
-        except BaseException as exc:
-            handle = _opened(opening)
-            if handle is not None:
-                _fail(handle, exc)
-            raise
-        else:
-            handle = opening.result()
-            handle.client.set_terminated(handle.run_id, "FINISHED")
 
 
 # ------------------------------------------------------------------------ sweeps

@@ -9,6 +9,7 @@ and :func:`r2_variance_weighted` follow scikit-learn's ``r2_score`` conventions 
 from __future__ import annotations
 
 import numpy as np
+from sklearn.utils.validation import check_is_fitted
 
 from aumesh.model.cross_products import CrossProducts
 
@@ -129,8 +130,6 @@ def r2_path(model, test_stats):
     r2 : ndarray of shape (model.n_components,)
         ``r2[k - 1]`` is the score of the model with ``k`` components.
     """
-    from sklearn.utils.validation import check_is_fitted  # here: the module is imported before scikit-learn is needed
-
     check_is_fitted(model, "coef_path_")
     sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
     return r2_variance_weighted(sse, sst)

@@ -35,7 +35,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property, partial
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -49,13 +48,11 @@ from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, row_runs
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
+from aumesh.model.pls import PLSRegression
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, configuration_statistics, fold_order, \
     target_offsets, video_indicator
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
-
-if TYPE_CHECKING:
-    from aumesh.model.pls import PLSRegression
 
 log = logging.getLogger(__name__)
 
@@ -497,10 +494,6 @@ def _one_blas_thread():
 
 def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
     """The engine's PLS fit from statistics (card: PLSRegression(n_components, scale=True))."""
-    # imported here, not with the module: scikit-learn takes ~1 s to import, which the evaluate stage spends on a
-    # background thread while pass A reads the meshes (aumesh.pipeline.stages.evaluate_stage)
-    from aumesh.model.pls import PLSRegression
-
     with _one_blas_thread():
         return PLSRegression(n_components=n_components, scale=scale).fit_stats(stats)
 

@@ -99,28 +99,23 @@ def prepare_stage(cfg: Config) -> dict:
     return summary
 
 
-def log_evaluation(handle, prepared: ev.Prepared, cfg: Config, cv: ev.CVResult, seconds: float) -> None:
-    """Log one evaluated configuration to its open MLflow run ``handle`` (tracking.TrackedRun)."""
+def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVResult, ev.FinalModel]:
+    """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
     from aumesh.pipeline import evaluate as ev
 
+    timings = {}
     ev.log_clipping(cfg, handle)
+    t0 = time.perf_counter()
+    cv, final = ev.evaluate(prepared, cfg)
+    timings["evaluate_seconds"] = time.perf_counter() - t0
     handle.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
                              "r2_displacement": cv.r2_displacement_folds})
-    handle.log_metrics(cv.scalar_metrics() | {"evaluate_seconds": seconds})
+    handle.log_metrics(cv.scalar_metrics() | timings)
     counts = prepared.summary.get("counts", {})  # what the filters dropped, as counts and fractions
     handle.log_metrics({f"data.{k}": float(v) for k, v in counts.items() if k.startswith(("dropped", "videos_dropped"))})
     # the R²-vs-n_components curve, step = n_components, in one transaction
     handle.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
-
-
-def _import_in_background(*modules: str) -> None:
-    """Import ``modules`` on a daemon thread: their import (seconds of one core) overlaps the stage's passes,
-    which spend their time in NumPy, BLAS and Arrow outside the GIL; a later ``import`` of them waits for it."""
-    import importlib
-    import threading
-
-    threading.Thread(target=lambda: [importlib.import_module(m) for m in modules], daemon=True,
-                     name="aumesh-import").start()
+    return cv, final
 
 
 def evaluate_run_name(cfg: Config) -> str:
@@ -139,33 +134,25 @@ def evaluate_run_name(cfg: Config) -> str:
 
 
 def evaluate_stage(cfg: Config) -> dict:
-    from aumesh.experiments import mlflow_store, tracking
+    from aumesh.experiments import mlflow_store, pyfunc, tracking
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
 
-    _import_in_background("aumesh.model.pls")  # scikit-learn, first needed by the fits after pass A
     start_stage("evaluate", cfg)
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
     params = cfg.to_dict()
     tracking_cfg = params["tracking"]
-    # the MLflow run opens (MLflow's import, the store) on a background thread while the passes compute
-    with tracking.background_run(tracking_cfg, run_name=evaluate_run_name(cfg), params=params,
-                                 tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as opened:
-        t0 = time.perf_counter()
-        cv, final = ev.evaluate(prepared, cfg)
-        seconds = time.perf_counter() - t0
-        run = opened()
+    with tracking.tracked_run(tracking_cfg, run_name=evaluate_run_name(cfg), params=params,
+                              tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
         run.log_config(params)
         if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
             run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
-        log_evaluation(run, prepared, cfg, cv, seconds)
+        cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
         arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
                                 prepared.reference, card_text="", metadata={"mlflow_run_id": run.run_id})
-        from aumesh.experiments import pyfunc  # MLflow's pyfunc flavour: MLflow is imported by now (the run's opening)
-
         run.log_metrics({"seconds_log_model": pyfunc.log_release_model(run, arrays)})  # MLflow pyfunc model
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
                     # repo-relative (sqlite:///mlflow.db): the card built from this is shared
