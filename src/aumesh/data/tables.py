@@ -354,7 +354,7 @@ def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[i
     ``row_groups`` as in :func:`iter_vertices`.
 
     ``coords`` keeps the columns' precision: float32 when every mesh column is float32 (MediaPipe's own
-    precision; half the bytes to move), else float64. Widening to float64 later is exact."""
+    precision; half the bytes to move), else float64. Widening to float64 later is exact. It may be read-only."""
     if table.mesh_npy is not None:
         for start, block in iter_vertices(table, chunk_rows, row_groups=row_groups):
             yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
@@ -368,9 +368,12 @@ def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[i
             native = all(batch.schema.field(k).type == pa.float32() for k in where) and not table.text_columns
             dtype = np.float32 if native else np.float64
         m = batch.num_rows
-        coords = np.empty((N_TARGETS, m), dtype=dtype)
-        for j, k in enumerate(where):
-            coords[j] = _column(batch, k, columns[j], table, start)
+        if native:  # every column copied at once by Arrow: column-major (m, 1434) is (1434, m) row-major
+            coords = np.asarray(batch.select(where).to_tensor(null_to_nan=True, row_major=False)).T
+        else:
+            coords = np.empty((N_TARGETS, m), dtype=dtype)
+            for j, k in enumerate(where):
+                coords[j] = _column(batch, k, columns[j], table, start)
         if not np.isfinite(coords).all():
             _check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
         yield start, coords
