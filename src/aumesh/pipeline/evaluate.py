@@ -51,7 +51,7 @@ from aumesh.model import reliability
 from aumesh.model.pls import PLSRegression
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, configuration_statistics, fold_order, \
-    target_offsets, video_indicator
+    target_offsets, video_row_sums
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 log = logging.getLogger(__name__)
@@ -377,12 +377,12 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
             X = design_matrix(au[rows], pose[rows], True, True)
             X -= a
             Y -= b
-            vids, indicator = video_indicator(local[rows])
-            per_video["video_sum_x"][vids] += indicator @ X
-            per_video["video_sum_y"][vids] += indicator @ Y
+            vids, sum_x, _ = video_row_sums(local[rows], X)
+            per_video["video_sum_x"][vids] += sum_x
+            per_video["video_sum_y"][vids] += video_row_sums(local[rows], Y)[1]
             neutral = low[rows]
-            vids, indicator = video_indicator(local[rows][neutral])
-            per_video["video_low_sum_x"][vids] += indicator @ X[neutral]
+            vids, sum_x, _ = video_row_sums(local[rows][neutral], X[neutral])
+            per_video["video_low_sum_x"][vids] += sum_x
             sums.add(X, Y, fold[rows])
     whole = ~split_video[videos]
     for name, values in per_video.items():
