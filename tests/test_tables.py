@@ -55,6 +55,31 @@ def test_pyfeat_split_layout_with_float16_npy_and_input_column(tmp_path):
     np.testing.assert_allclose(block, mesh[:64].astype(np.float16).astype(np.float64))
 
 
+def test_npy_mesh_columns_are_the_axis_major_rows_read_without_a_memory_map(tmp_path, monkeypatch):
+    write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=20, seed=3, layout="pyfeat"))
+    npy = sorted((tmp_path / "data").glob("*.npy"))[0]
+    mesh = np.load(npy).astype(np.float16)
+    np.save(npy, mesh)
+    (found,) = tables.discover(tmp_path / "data", PATTERN, NPY)
+    real_load = np.load
+    monkeypatch.setattr(np, "load", lambda *a, **k: pytest.fail("mesh rows read through np.load (a memory map)")
+                        if k.get("mmap_mode") else real_load(*a, **k))
+    blocks = list(tables.iter_mesh_columns(found, 64, row_groups=None))
+    assert [start for start, _ in blocks] == list(range(0, len(mesh), 64))
+    coords = np.concatenate([c for _, c in blocks], axis=1)
+    assert coords.dtype == np.float32  # float16 widened exactly, not to float64
+    # axis-major rows [x_0..x_477 | y_.. | z_..], one column per frame
+    np.testing.assert_array_equal(coords, mesh.astype(np.float32).transpose(2, 1, 0).reshape(3 * N_VERTICES, -1))
+
+
+def test_fortran_ordered_npy_is_rejected_with_the_fix(tmp_path):
+    write_tables(tmp_path / "data", SynthSpec(n_frames=100, n_videos=10, seed=2, layout="pyfeat"))
+    npy = sorted((tmp_path / "data").glob("*.npy"))[0]
+    np.save(npy, np.asfortranarray(np.load(npy)))
+    with pytest.raises(tables.TableError, match=r"frames_0000.npy: saved in Fortran order.*np.ascontiguousarray"):
+        _discover_and_read(tmp_path / "data")
+
+
 def test_missing_au_column_names_file_column_and_suggests_rename(small_tables):
     path, df = _frame(small_tables)
     df.rename(columns={"AU12": "au12"}).to_parquet(path)

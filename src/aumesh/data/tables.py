@@ -36,6 +36,7 @@ from aumesh.data.schema import (
     VIDEO_COLUMN,
 )
 from aumesh.utils.errors import TableError
+from aumesh.utils.io import NpyRowFile
 
 _MESH_COLUMN = re.compile(r"^([xyz])_(\d+)$")
 META_COLUMNS = (VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS)
@@ -166,6 +167,9 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
             )
         if arr.dtype.kind != "f":
             raise TableError(f"{mesh_npy}: dtype {arr.dtype}; need float16, float32 or float64.")
+        if not arr.flags.c_contiguous:  # the passes read rows with plain file I/O
+            raise TableError(f"{mesh_npy}: saved in Fortran order (a transposed array). "
+                             f"Fix: np.save(path, np.ascontiguousarray(landmarks)).")
     return FrameTable(path=path, n_rows=n_rows, mesh_npy=mesh_npy, video_from_input=video_from_input,
                       text_columns=frozenset(text_columns))
 
@@ -307,9 +311,18 @@ def _row_range(table: FrameTable, row_groups: Sequence[int] | None) -> tuple[int
     return first, first + sum(md.row_group(g).num_rows for g in row_groups)
 
 
+def _npy_blocks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None) -> Iterator[tuple[int, np.ndarray]]:
+    """``(start, rows)`` of the table's mesh ``.npy``, ``rows`` (m, 478, 3) in the file's dtype, read with ``pread``:
+    a memory map would keep every page of the file read so far resident in the process (~70 MiB a py-feat table)."""
+    first, stop = _row_range(table, row_groups)
+    with NpyRowFile(table.mesh_npy) as f:
+        for start in range(first, stop, chunk_rows):
+            yield start, f.read(start, min(start + chunk_rows, stop))
+
+
 def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[int] | None = None,
                   row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
-    """Stream mesh vertices in bounded chunks (parquet row batches or slices of a memory-mapped .npy).
+    """Stream mesh vertices in bounded chunks (parquet row batches or rows of the .npy).
 
     ``row_groups``: only the rows of these consecutive parquet row groups (default: the whole table).
 
@@ -327,13 +340,10 @@ def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[i
     """
     idx = list(range(N_VERTICES)) if vertex_indices is None else [int(i) for i in vertex_indices]
     if table.mesh_npy is not None:
-        first, stop = _row_range(table, row_groups)
-        arr = np.load(table.mesh_npy, mmap_mode="r")
-        for start in range(first, stop, chunk_rows):
-            block = np.asarray(arr[start : min(start + chunk_rows, stop)][:, idx, :], dtype=np.float64)
+        for start, rows in _npy_blocks(table, chunk_rows, row_groups):
+            block = np.asarray(rows[:, idx, :], dtype=np.float64)
             _check_finite_mesh(table.mesh_npy, block, start, idx)
             yield start, block
-        del arr
         return
     columns = [f"{axis}_{i}" for axis in "xyz" for i in idx]
     start = _row_range(table, row_groups)[0]
@@ -356,8 +366,13 @@ def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[i
     ``coords`` keeps the columns' precision: float32 when every mesh column is float32 (MediaPipe's own
     precision; half the bytes to move), else float64. Widening to float64 later is exact. It may be read-only."""
     if table.mesh_npy is not None:
-        for start, block in iter_vertices(table, chunk_rows, row_groups=row_groups):
-            yield start, block.transpose(2, 1, 0).reshape(N_TARGETS, len(block))
+        for start, rows in _npy_blocks(table, chunk_rows, row_groups):
+            # float16/float32 as stored (widening to float32 is exact), one transposing copy into (1434, m)
+            dtype = np.float32 if rows.dtype.itemsize <= 4 and rows.dtype.kind == "f" else np.float64
+            coords = np.ascontiguousarray(rows.transpose(2, 1, 0), dtype=dtype).reshape(N_TARGETS, len(rows))
+            if not np.isfinite(coords).all():
+                _check_finite_mesh(table.mesh_npy, rows, start, range(N_VERTICES))
+            yield start, coords
         return
     columns = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
     start = _row_range(table, row_groups)[0]
