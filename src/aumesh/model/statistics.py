@@ -78,7 +78,7 @@ def video_row_sums(video: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
 
     The same float64 sums, bit for bit, as ``video_indicator(video)[1] @ rows`` (whose CSR product adds a
     row's entries in order), without building a sparse matrix: rows already grouped by video (frames of a
-    video are consecutive in the tables) are summed in place, others after a stable sort.
+    video are consecutive in the tables) are summed where they are, others after a stable sort.
     ``np.add.reduceat`` is not used: it adds a segment pairwise, which rounds differently.
 
     Parameters

@@ -422,7 +422,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 neutrals[NEUTRAL_FILES[name]][v] = (total / count).astype(np.float32)
         return done
 
-    def write_neutrals() -> None:
+    def write_neutrals(files: dict[str, NpyRowFile]) -> None:
         """The neutral rows of the videos finished so far, a run of consecutive videos per write (a partition's
         videos are mostly consecutive: a write per video was ~20k small writes at 344k frames)."""
         for name, finished_rows in neutrals.items():
@@ -461,7 +461,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                     all_frames.add(video_index[rows_out], flat)
                     low = low_video[rows_out]
                     low_frames.add(video_index[rows_out][low], flat[low])
-                write_neutrals()
+                write_neutrals(files)
             offset += p.n_rows
     return result
 
