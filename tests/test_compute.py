@@ -18,6 +18,7 @@ from aumesh.data.schema import VIDEO_COLUMN
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
+from aumesh.utils.io import create_npy
 from conftest import default_config
 
 ROW_GROUP = 97  # cuts videos across row groups, so across partitions
@@ -145,6 +146,20 @@ def test_per_video_counts_and_row_groups_equal_those_of_the_whole_columns(split_
     np.testing.assert_array_equal(videos.first_group, pd.Series(group).groupby(video).min().reindex(range(n_videos)))
     np.testing.assert_array_equal(videos.last_group, pd.Series(group).groupby(video).max().reindex(range(n_videos)))
     assert 0 < videos.split.sum() < n_videos
+
+
+def test_pass_a_results_own_their_rows(split_prepared, tmp_path):
+    """A partition's result holds its split videos' sums as rows of their own, not views of the partition's
+    per-video arrays (a view keeps the whole array alive until the reduction adds the result)."""
+    prepared = ev.load_prepared(split_prepared)
+    videos = prepared.videos
+    for name, width in ev.VIDEO_SUMS.items():
+        create_npy(tmp_path / f"{name}.npy", np.float64, (len(prepared.video_ids), width))
+    fold = ev.video_folds(videos.count, 3)
+    parts = [ev.design_partition(group, prepared.directory, fold, np.zeros(83), np.zeros(1434), 3, 64, tmp_path,
+                                 videos.split) for group in prepared.row_groups()]
+    rows = [row for part in parts for values in part.split.values() for row in values]
+    assert rows and all(row.base is None for row in rows)
 
 
 def test_models_agree_across_schedulers_and_partitionings(split_tables, split_prepared):

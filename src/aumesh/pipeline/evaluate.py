@@ -390,7 +390,9 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
         with NpyRowFile(scratch / f"{name}.npy", writable=True) as sums_file:
             for j, (lo_v, hi_v) in row_runs(videos[whole]):
                 sums_file.write(lo_v, values[j : j + hi_v - lo_v])
-    split = {int(v): tuple(per_video[name][j] for name in VIDEO_SUMS) for j, v in enumerate(videos) if split_video[v]}
+    # copies: a row view would keep the partition's whole per-video sums (~25 MiB) alive in the result until the
+    # reduction tree adds it (up to compute.SPLIT_EVERY results at a time), so memory grew with the partitions
+    split = {int(v): tuple(per_video[name][j].copy() for name in VIDEO_SUMS) for j, v in enumerate(videos) if split_video[v]}
     return DesignPart(sums, split)
 
 
