@@ -368,8 +368,8 @@ def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[i
     if table.mesh_npy is not None:
         for start, rows in _npy_blocks(table, chunk_rows, row_groups):
             # float16/float32 as stored (widening to float32 is exact), one transposing copy into (1434, m)
-            dtype = np.float32 if rows.dtype.itemsize <= 4 and rows.dtype.kind == "f" else np.float64
-            coords = np.ascontiguousarray(rows.transpose(2, 1, 0), dtype=dtype).reshape(N_TARGETS, len(rows))
+            coords = np.ascontiguousarray(rows.transpose(2, 1, 0), dtype=np.promote_types(rows.dtype, np.float32))
+            coords = coords.reshape(N_TARGETS, len(rows))
             if not np.isfinite(coords).all():
                 _check_finite_mesh(table.mesh_npy, rows, start, range(N_VERTICES))
             yield start, coords

@@ -18,6 +18,7 @@ import contextvars
 import functools
 import logging
 import os
+import sys
 from contextlib import contextmanager, nullcontext
 from typing import Any, Callable, Iterator, Sequence
 
@@ -102,7 +103,7 @@ class _ReleasingFreedMemory:
     A task allocates and frees its partition's arrays; glibc keeps freed memory in per-thread arenas and Arrow's
     allocator keeps its own pool, so a long pass's resident memory creeps up with the number of partitions although
     nothing stays allocated. ``malloc_trim(0)`` (every arena) and the Arrow pool's ``release_unused`` once per task
-    (milliseconds) keep it flat; per allocation (``MALLOC_TRIM_THRESHOLD_``) costs far more time.
+    (milliseconds) return it; trimming per allocation (``MALLOC_TRIM_THRESHOLD_``) costs far more time.
     """
 
     def __init__(self, fn: Callable):
@@ -118,8 +119,6 @@ class _ReleasingFreedMemory:
 
 def release_freed_memory() -> None:
     """Return freed heap memory to the operating system (glibc's ``malloc_trim``, Arrow's pool); no-op elsewhere."""
-    import sys
-
     if "pyarrow" in sys.modules:
         sys.modules["pyarrow"].default_memory_pool().release_unused()
     libc = _libc()
@@ -148,8 +147,6 @@ def _bag(partitions: Sequence[Any]):
 def _progress(desc: str):
     """A bar over the pass's finished tasks (tqdm's Dask callback), on a terminal only; local schedulers report
     their tasks to it, a ``dask.distributed`` cluster shows its own dashboard instead."""
-    import sys
-
     if not desc or not sys.stderr.isatty() or (_ACTIVE.get() or ComputeConfig()).scheduler == "distributed":
         return nullcontext()
     from tqdm.dask import TqdmCallback

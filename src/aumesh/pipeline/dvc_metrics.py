@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from aumesh.pipeline import compute
-from aumesh.pipeline.quantiles import exact_quantiles
+from aumesh.pipeline.quantiles import NoValuesError, exact_quantiles
 from aumesh.utils.io import NpyRows, atomic_write_json, atomic_write_text, read_rows
 
 #: Significant digits of every float in the committed metrics and plot files.
@@ -93,10 +93,10 @@ def error_curve(frame_vertex_error, n_points: int = ERROR_CURVE_POINTS) -> tuple
     """
     blocks = _blocks(frame_vertex_error)
     try:  # its first pass counts the finite values: no pass of our own for that
+        if not blocks:
+            raise NoValuesError("no frames")
         errors = exact_quantiles(_finite, blocks, np.linspace(0.0, 1.0, n_points), method="inverted_cdf")
-    except ValueError as err:
-        if blocks and "no values" not in str(err):
-            raise
+    except NoValuesError:
         raise ValueError("frame_vertex_error has no finite value: no held-out frame was scored") from None
     counts = compute.map_reduce(partial(_count_at_most, errors), np.add, blocks)
     return errors, counts[:-1] / counts[-1]

@@ -114,6 +114,10 @@ def _lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.where(t >= 0.5, b - diff * (1 - t), out)
 
 
+class NoValuesError(ValueError):
+    """The partitions hold no value, so no quantile exists."""
+
+
 def exact_quantiles(values: Callable[[Any], np.ndarray], partitions: Sequence[Any], q, method: str = "linear",
                     max_gather: int = 1 << 18) -> np.ndarray:
     """``np.quantile`` of the concatenated ``values(p)`` for ``p`` in ``partitions``, without concatenating them.
@@ -142,7 +146,7 @@ def exact_quantiles(values: Callable[[Any], np.ndarray], partitions: Sequence[An
         raise ValueError("exact_quantiles: probabilities must lie in [0, 1]")
     n, lo, hi = compute.map_reduce(partial(_range, values), _merge_range, partitions)
     if n == 0:
-        raise ValueError("exact_quantiles: no values")
+        raise NoValuesError("exact_quantiles: no values")
     previous, nxt, gamma = needed_ranks(n, qs, method)
     ranks = np.unique(np.r_[previous, nxt])
     found: dict[int, float] = {}

@@ -239,15 +239,14 @@ def read_rows(path: str | Path, start: int, stop: int, out: np.ndarray | None = 
 def read_row_set(path: str | Path, rows: np.ndarray) -> np.ndarray:
     """Rows ``rows`` (any order, repeats allowed) of an ``.npy``, read run by run from one open file."""
     rows = np.asarray(rows, dtype=np.int64)
-    _, dtype, shape = npy_layout(path)
-    out = np.empty((len(rows), *shape[1:]), dtype=dtype)
-    if len(rows) == 0:
-        return out
-    order = np.argsort(rows, kind="stable")
-    sorted_rows = rows[order]
-    unique, first = np.unique(sorted_rows, return_index=True)
-    block = np.empty((len(unique), *shape[1:]), dtype=dtype)
     with NpyRowFile(path) as f:
+        out = np.empty((len(rows), *f.shape[1:]), dtype=f.dtype)
+        if len(rows) == 0:
+            return out
+        order = np.argsort(rows, kind="stable")
+        sorted_rows = rows[order]
+        unique, first = np.unique(sorted_rows, return_index=True)
+        block = np.empty((len(unique), *f.shape[1:]), dtype=f.dtype)
         for j, (lo, hi) in row_runs(unique):
             f.read(lo, hi, block[j : j + hi - lo])
     counts = np.diff(np.r_[first, len(sorted_rows)])
