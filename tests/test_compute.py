@@ -64,8 +64,19 @@ def test_partitions_cover_every_row_group_once_in_order(split_tables):
         pieces = [(p.table.path, g) for part in parts for p in part for g in p.row_groups]
         expected = [(t.path, g) for t in found for g in range(pq.ParquetFile(t.path).metadata.num_row_groups)]
         assert pieces == expected
-        assert all(sum(p.n_rows for p in part) >= min(rows, ROW_GROUP) for part in parts[:-1])
     assert len(tables.partitions(found, 1)) == len(expected) and len(tables.partitions(found, 10**9)) == 1
+
+
+@pytest.mark.parametrize("rows", [250, 400, 700])
+def test_partitions_are_balanced(split_tables, rows):
+    """ceil(n / partition_rows) partitions, each within a row group of n / count rows: no small remainder
+    partition left for the last round of tasks (the old packing, 'at least partition_rows', gave one)."""
+    cfg = default_config(**{"paths.data_dir": str(split_tables / "data")})
+    found = tables.discover(split_tables / "data", cfg.data.tables, cfg.data.mesh_npy)
+    sizes = [sum(p.n_rows for p in part) for part in tables.partitions(found, rows)]
+    total = sum(t.n_rows for t in found)
+    assert len(sizes) == -(-total // rows) and sum(sizes) == total
+    assert max(abs(s - total / len(sizes)) for s in sizes) <= ROW_GROUP, sizes
 
 
 def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):

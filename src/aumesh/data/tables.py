@@ -237,22 +237,33 @@ def pieces(table: FrameTable) -> list[Piece]:
 
 
 def partitions(tables: Sequence[FrameTable], partition_rows: int) -> list[tuple[Piece, ...]]:
-    """Whole row groups packed in table order into partitions of at least ``partition_rows`` rows.
+    """Whole row groups, in table order, packed into ``ceil(n_rows / partition_rows)`` partitions of about equal rows.
 
-    A large table is split at row-group boundaries; small tables (e.g. one per video) are packed
-    together. The last partition may be smaller.
+    A large table is split at row-group boundaries; small tables (e.g. one per video) are packed together. Each
+    partition ends at the row group whose middle is nearest its share of the rows, so partitions differ by at most
+    about a row group. Equal partitions keep every worker busy to the end of a pass: packing each to *at least*
+    ``partition_rows`` left a small remainder (5 x 66k + 11k rows at 344k frames), and the last round of tasks ran
+    on one core of two. The partitioning depends on the tables and ``partition_rows`` only (never the scheduler).
     """
+    every = [piece for table in tables for piece in pieces(table)]
+    total = sum(p.n_rows for p in every)
+    n_parts = max(1, -(-total // partition_rows))
     out: list[tuple[Piece, ...]] = []
     current: list[Piece] = []
-    for table in tables:
-        for piece in pieces(table):
-            if current and current[-1].table == table:
-                last = current.pop()  # consecutive row groups of one table are read as one piece
-                piece = Piece(table, last.row_groups + piece.row_groups, last.start, last.n_rows + piece.n_rows)
-            current.append(piece)
-            if sum(p.n_rows for p in current) >= partition_rows:
-                out.append(tuple(current))
-                current = []
+    done, k = 0, 1  # rows packed so far; the next partition ends near k * total / n_parts rows
+    for piece in every:
+        n_rows = piece.n_rows
+        middle = done + n_rows / 2
+        if current and k < n_parts and middle >= k * total / n_parts:
+            out.append(tuple(current))
+            current = []
+            while k < n_parts and k * total / n_parts <= middle:
+                k += 1
+        if current and current[-1].table == piece.table:
+            last = current.pop()  # consecutive row groups of one table are read as one piece
+            piece = Piece(piece.table, last.row_groups + piece.row_groups, last.start, last.n_rows + piece.n_rows)
+        current.append(piece)
+        done += n_rows
     if current:
         out.append(tuple(current))
     return out
