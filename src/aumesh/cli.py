@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import logging
 import os
@@ -354,6 +355,16 @@ def main(argv: list[str] | None = None) -> int:
         raise
 
 
+def run() -> None:
+    """The ``aumesh`` command (console script and ``python -m aumesh``): :func:`main`, then exit with its status."""
+    code = main()
+    # At exit the interpreter's last garbage collections walk every object of the ~2,900 modules the evaluate stage
+    # imports (MLflow, SQLAlchemy, scikit-learn): 0.6-0.8 s a stage at any data size. Frozen objects are skipped
+    # (gc.freeze); everything is still released by reference counting, atexit handlers run and files are flushed.
+    gc.freeze()
+    sys.exit(code)
+
+
 def _dvc_note(args) -> str | None:
     """Under ``dvc repro``: the command that restores the outputs DVC removed before this stage (None otherwise)."""
     if args.command not in ("prepare", "evaluate", "release") or not os.environ.get("DVC_STAGE"):
@@ -363,4 +374,4 @@ def _dvc_note(args) -> str | None:
     return removed_by_dvc(args.command)
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
