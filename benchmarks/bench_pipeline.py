@@ -6,7 +6,8 @@ then runs ``aumesh prepare``, ``aumesh evaluate`` and ``aumesh release`` as sepa
 subprocesses, measuring each (see ``benchmarks/_common.py``). With ``--dvc`` it also runs the
 same pipeline through ``dvc repro`` in a temporary DVC workspace (``dvc init --no-scm``, this
 repo's ``dvc.yaml``; data as an absolute external dependency), timing every stage command with
-``/usr/bin/time`` and the whole ``dvc repro`` (hashing, caching of outputs included).
+``/usr/bin/time`` and the whole ``dvc repro`` (hashing, caching of outputs included), after DVC has hashed
+the tables once (``dvc status``, as ``dvc add`` or a pull leaves a workspace; that first hash is printed apart).
 
 Prints a markdown table; no assertions. Not a timed test.
 
@@ -28,6 +29,7 @@ import shutil
 import statistics
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -62,6 +64,12 @@ def run_dvc(workdir: Path, data_dir: Path, src: str | None) -> dict:
                              f"paths.data_dir={data_dir}", f"tracking.tracking_uri=sqlite:///{ws / 'mlflow.db'}"],
                    check=True, stdout=subprocess.DEVNULL, env=env)
     env = dict(env, PATH=str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", ""))
+    # DVC's first hash of the tables (2.4 GB at 344k frames): a workspace pays it once per data version, when it
+    # `dvc add`s or pulls the data (DVC keeps the hashes in its state). Timed apart, so `dvc repro` is measured as in
+    # a workspace whose data is tracked; the sum of the two is a first `dvc repro` on untracked data.
+    t0 = time.perf_counter()
+    subprocess.run([dvc, "status", "-q"], cwd=ws, env=env, check=False, stdout=subprocess.DEVNULL)
+    data_hash_s = time.perf_counter() - t0
     m = run_measured([str(Path(sys.executable).parent / "dvc"), "repro"], ws, ws / "dvc_repro.log", env, "dvc repro")
     if m.returncode != 0:
         raise RuntimeError(f"dvc repro failed:\n{(ws / 'dvc_repro.log').read_text()[-3000:]}")
@@ -69,7 +77,7 @@ def run_dvc(workdir: Path, data_dir: Path, src: str | None) -> dict:
     for stage in STAGES:
         wall, kib = (ws / f"{stage}.time").read_text().split()[-2:]
         stages[stage] = (float(wall), int(kib) / 1024.0)
-    return {"total": m, "stages": stages, "workspace": ws}
+    return {"total": m, "stages": stages, "workspace": ws, "data_hash_s": data_hash_s}
 
 
 def main(argv=None) -> int:
@@ -143,12 +151,16 @@ def main(argv=None) -> int:
         for name, src, _ in variants[: 1 + bool(args.baseline_src)]:
             res = run_dvc(args.workdir, data, src)
             drows.append([name, *(res["stages"][s][0] for s in STAGES), res["total"].wall_s,
-                          max(r for _, r in res["stages"].values())])
-            record["variants"][name]["dvc"] = {"total_wall_s": res["total"].wall_s, "stages": res["stages"]}
+                          max(r for _, r in res["stages"].values()), res["data_hash_s"]])
+            record["variants"][name]["dvc"] = {"total_wall_s": res["total"].wall_s, "stages": res["stages"],
+                                               "data_hash_s": res["data_hash_s"]}
             shutil.rmtree(res["workspace"], ignore_errors=True)
         print()
-        print("`dvc repro` in a temporary DVC workspace (stage commands under /usr/bin/time; total includes DVC's hashing):")
-        print(fmt_table(["code", *(f"{s} s" for s in STAGES), "dvc repro total s", "peak RSS MiB"], drows))
+        print("`dvc repro` in a temporary DVC workspace whose tables DVC has hashed once (`dvc status`, as `dvc add` or a "
+              "pull leaves it; that first hash timed apart), stage commands under /usr/bin/time; the total includes "
+              "DVC's hashing and caching of the outputs:")
+        print(fmt_table(["code", *(f"{s} s" for s in STAGES), "dvc repro total s", "peak RSS MiB",
+                         "first hash of the tables s"], drows))
     if args.json:
         args.json.write_text(json.dumps(record, indent=2))
     return 0

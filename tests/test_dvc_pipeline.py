@@ -101,3 +101,22 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert card2["data"]["digest"]["md5"] == _digest(ws) != card["data"]["digest"]["md5"]
     assert card2["data"]["counts"]["frames_in"] == 500
     assert not np.array_equal(np.load(ws / "release" / "au_to_mesh_pls.npz")["coef"], m["coef"])
+
+
+def test_dvc_links_a_stage_output_into_its_cache_without_copying_it(tmp_path):
+    """The repo's ``cache.type``: DVC moves a new stage output into its cache by a link, the stage's own file
+    (``Output.commit`` links only when the first cache type is ``hardlink``; with ``reflink`` first, on a
+    filesystem without reflinks, it wrote a copy, 2 GB of prepared meshes at 344k frames, then linked that back)."""
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    _run(["git", "init", "-q"], ws)  # the repo's .dvc/config autostages in git
+    _run([BIN / "dvc", "init", "-q"], ws)
+    shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
+    _run([BIN / "dvc", "remote", "remove", "demo"], ws)
+    (ws / "make.py").write_text("import os\nos.makedirs('out')\nwith open('out/meshes.bin', 'wb') as f:\n"
+                                "    f.write(os.urandom(1 << 20))\nprint(os.stat('out/meshes.bin').st_ino, file=open('inode', 'w'))\n")
+    _run([BIN / "dvc", "stage", "add", "-q", "-n", "make", "-d", "make.py", "-o", "out", f"{sys.executable} make.py"], ws)
+    _run([BIN / "dvc", "repro", "-q"], ws)
+    written = ws / "out" / "meshes.bin"
+    assert written.stat().st_ino == int((ws / "inode").read_text())  # the stage's file itself, not a copy of it
+    assert written.stat().st_nlink == 2  # shared with the cache's object
