@@ -618,7 +618,9 @@ def _concatenate_parts(parts_dir: Path, out: Path) -> None:
         if table.num_rows == 0:  # a partition with no frame kept (its columns may even lack a type)
             continue
         if writer is None:
-            writer = pq.ParquetWriter(out, table.schema)
+            # dictionary pages for the video ids only: on continuous values (AUs, pose) Arrow builds a dictionary until
+            # it overflows and falls back to plain pages, 0.45 s of the stage at 344k frames and a 20 % larger file
+            writer = pq.ParquetWriter(out, table.schema, use_dictionary=[VIDEO_COLUMN])
         writer.write_table(table.cast(writer.schema))
     if writer is not None:
         writer.close()
