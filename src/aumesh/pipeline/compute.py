@@ -64,7 +64,9 @@ def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
                      len(client.scheduler_info().get("workers", {})))
             yield
         return
-    settings: dict[str, Any] = {"scheduler": cfg.scheduler}
+    # the scheduler's function, not its name: given a name, dask first imports dask.distributed to look for a
+    # client (0.2 s of every stage that runs a pass)
+    settings: dict[str, Any] = {"scheduler": _local_get(cfg.scheduler)}
     if cfg.scheduler != "synchronous":
         settings["num_workers"] = n_workers(cfg)
     # a process pool's workers start fresh: single-threaded BLAS through their environment
@@ -82,6 +84,23 @@ def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def _local_get(scheduler: str) -> Callable:
+    """Dask's ``get`` of a local scheduler (``synchronous``, ``threads``, ``processes``)."""
+    if scheduler == "synchronous":
+        from dask.local import get_sync
+
+        return get_sync
+    if scheduler == "threads":
+        from dask.threaded import get
+
+        return get
+    if scheduler == "processes":
+        from dask.multiprocessing import get
+
+        return get
+    raise ValueError(f"compute.scheduler={scheduler!r}: use synchronous, threads, processes or distributed")
 
 
 def _current():
