@@ -49,3 +49,17 @@ def test_truncated_file_is_named(tmp_path):
 def test_row_runs_split_sorted_rows_at_gaps():
     assert row_runs(np.array([], dtype=int)) == []
     assert row_runs(np.array([3, 4, 5, 9, 11, 12])) == [(0, (3, 6)), (3, (9, 10)), (4, (11, 13))]
+
+
+def test_take_reads_rows_in_the_order_asked(tmp_path):
+    """NpyRowFile.take: rows in any order (runs of consecutive rows, jumps back and forth, repeats), as numpy's
+    fancy indexing of the loaded array gives them, into a caller's buffer."""
+    data = np.random.default_rng(3).normal(size=(40, 7)).astype(np.float32)
+    np.save(tmp_path / "a.npy", data)
+    rows = np.r_[10:14, 0:3, 30:32, 5, 5, 39, 20:25]
+    out = np.full((len(rows) + 3, 7), np.nan, np.float32)
+    with NpyRowFile(tmp_path / "a.npy") as f:
+        got = f.take(rows, out)
+        np.testing.assert_array_equal(f.take(rows[::-1]), data[rows[::-1]])
+    np.testing.assert_array_equal(got, data[rows])
+    assert np.shares_memory(got, out) and np.isnan(out[len(rows):]).all()

