@@ -115,7 +115,8 @@ _PASS_COLUMNS = [*AU_COLUMNS, *POSE_COLUMNS, "video_index", "low_au"]
 
 def _read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """AU (m, 20), pose (m, 3), video index (m,) and low-AU flag (m,) of one row group of ``frames.parquet``."""
-    t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(group, columns=_PASS_COLUMNS)
+    # one thread: the partitions already run on every core (as aumesh.data.tables reads the tables)
+    t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(group, columns=_PASS_COLUMNS, use_threads=False)
     au = np.column_stack([t.column(c).to_numpy() for c in AU_COLUMNS]).astype(np.float64)
     pose = np.column_stack([t.column(c).to_numpy() for c in POSE_COLUMNS]).astype(np.float64)
     return au, pose, t.column("video_index").to_numpy(), t.column("low_au").to_numpy(zero_copy_only=False)
@@ -139,7 +140,7 @@ class VideoFrames:
 def _video_frames_partition(group: tuple[int, int, int], directory: Path) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     """``(row group, videos, frames, low-AU frames)`` of one row group of ``frames.parquet``."""
     g = group[0]
-    t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(g, columns=["video_index", "low_au"])
+    t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(g, columns=["video_index", "low_au"], use_threads=False)
     video = t.column("video_index").to_numpy()
     low = t.column("low_au").to_numpy(zero_copy_only=False)
     videos, local, count = np.unique(video, return_inverse=True, return_counts=True)
