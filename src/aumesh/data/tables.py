@@ -97,7 +97,7 @@ def _corrupt(path: Path, err: BaseException, what: str = "") -> TableError:
 
 def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = False) -> FrameTable:
     try:
-        pf = pq.ParquetFile(path)
+        pf = _parquet(path)  # its footer parsed once for the check and the partitioning (:func:`_footer`)
     except Exception as err:  # pyarrow raises several types for a bad file
         raise _corrupt(path, err) from None
     names = pf.schema_arrow.names
