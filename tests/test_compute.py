@@ -292,3 +292,21 @@ def test_local_schedulers_do_not_import_dask_distributed(scheduler):
             "print('distributed' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc arenas")
+def test_thread_passes_allocate_from_one_malloc_arena_per_worker(tmp_path):
+    """A pass on the local threads (2 workers) leaves at most 2 glibc malloc arenas (glibc's own count, ``malloc_info``),
+    not one per allocating thread: every arena keeps the holes of the partitions' freed arrays, so their number is
+    what made a stage's resident memory grow with the partitions it streamed."""
+    report = tmp_path / "malloc_info.xml"
+    code = ("import ctypes, numpy as np; from aumesh.config import ComputeConfig; from aumesh.pipeline import compute\n"
+            "def task(n):\n"
+            "    return sum(float(np.ones(k).sum()) for k in range(1000, 3000, 7))\n"
+            "with compute.engine(ComputeConfig(scheduler='threads', n_workers=2)):\n"
+            "    compute.map_gather(task, list(range(64)))\n"
+            "libc = ctypes.CDLL('libc.so.6'); libc.fopen.restype = ctypes.c_void_p\n"
+            f"fh = libc.fopen({str(report).encode()!r}, b'w'); libc.malloc_info(0, ctypes.c_void_p(fh)); libc.fclose(ctypes.c_void_p(fh))\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+    arenas = report.read_text().count("<heap nr=")
+    assert 1 <= arenas <= 2

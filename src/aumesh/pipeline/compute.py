@@ -49,10 +49,31 @@ def engine(cfg: ComputeConfig) -> Iterator[None]:
 
     token = _ACTIVE.set(cfg)
     try:
+        if cfg.scheduler == "threads":  # before the scheduler starts its threads
+            limit_malloc_arenas(n_workers(cfg))
         with threadpool_limits(limits=1, user_api="blas"):
             yield from _scheduler(cfg, dask)
     finally:
         _ACTIVE.reset(token)
+
+
+#: glibc's ``mallopt`` parameter of the most malloc arenas (``M_ARENA_MAX`` in malloc.h).
+_M_ARENA_MAX = -8
+
+
+def limit_malloc_arenas(n: int) -> bool:
+    """At most ``n`` glibc malloc arenas for the threads that allocate from now on (process-wide, not undone: glibc
+    fixes its limit the first time it needs one); False where the C library is not glibc.
+
+    Every thread that allocates gets an arena of its own up to glibc's limit (8 per core), and each arena keeps the
+    holes its freed partition arrays leave: with the threads scheduler (its workers, Arrow's and BLAS's pools)
+    a stage's resident memory grew with the partitions it streamed, e.g. evaluate at 2.95M frames retained
+    ~90 MiB after its statistics pass (~25 MiB at 1M) and peaked at 621 MiB; with one arena per worker 574 MiB.
+    """
+    libc = _libc()
+    if libc is None or not hasattr(libc, "mallopt"):
+        return False
+    return bool(libc.mallopt(_M_ARENA_MAX, max(1, int(n))))
 
 
 def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
