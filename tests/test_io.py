@@ -63,3 +63,71 @@ def test_take_reads_rows_in_the_order_asked(tmp_path):
         np.testing.assert_array_equal(f.take(rows[::-1]), data[rows[::-1]])
     np.testing.assert_array_equal(got, data[rows])
     assert np.shares_memory(got, out) and np.isnan(out[len(rows):]).all()
+
+
+@pytest.mark.parametrize("reader", ["load_npy", "load_npz", "npy_layout"])
+def test_npy_reads_in_threads_never_parse_two_headers_at_once(tmp_path, reader):
+    """numpy parses .npy headers with ast.literal_eval, and CPython 3.11 keeps the AST constructor's recursion
+    depth in interpreter-wide state (python/cpython#106905): a second thread's parse inside a first one's makes
+    the first raise "SystemError: AST constructor recursion depth mismatch" (a prepare on the threads scheduler
+    failed so in CI). Here the interleaving is forced: every collection inside thread A's parse (threshold 1)
+    hands over to thread B, which reads another file while A waits (up to 50 ms; B waits for the lock instead
+    when there is one). Without the lock, A's read fails."""
+    import gc
+    import sys
+    import threading
+
+    from aumesh.utils import io as aio
+
+    np.save(tmp_path / "a.npy", np.arange(3.0))
+    np.save(tmp_path / "b.npy", np.zeros((2, 5), np.float32))
+    np.savez(tmp_path / "a.npz", x=np.arange(3.0), y=np.ones((2, 2)))
+    np.savez(tmp_path / "b.npz", x=np.zeros(4), y=np.ones(1))
+
+    def read(name):
+        aio._parse_npy_header.cache_clear()  # parse the header every call
+        return {"load_npy": lambda: aio.load_npy(tmp_path / f"{name}.npy"),
+                "load_npz": lambda: aio.load_npz(tmp_path / f"{name}.npz", ["x", "y"]),
+                "npy_layout": lambda: aio.npy_layout(tmp_path / f"{name}.npy")}[reader]()
+
+    go, done, stop = threading.Event(), threading.Event(), threading.Event()
+    handovers, errors = [0], []
+
+    def thread_b():
+        while go.wait() and not stop.is_set():
+            go.clear()
+            read("b")
+            done.set()
+
+    def handover(phase, info):  # runs in whichever thread allocates when a collection starts
+        caller = sys._getframe(1).f_code
+        if (phase == "start" and threading.current_thread() is a and caller.co_name == "parse"
+                and caller.co_filename.endswith("ast.py") and handovers[0] < 20):
+            handovers[0] += 1
+            done.clear()
+            go.set()
+            done.wait(0.05)
+
+    def thread_a():
+        try:
+            return read("a")
+        except SystemError as e:
+            errors.append(e)
+
+    b = threading.Thread(target=thread_b)
+    a = threading.Thread(target=thread_a)
+    threshold = gc.get_threshold()
+    b.start()
+    gc.callbacks.append(handover)
+    gc.set_threshold(1)
+    try:
+        a.start()
+        a.join()
+    finally:
+        gc.set_threshold(*threshold)
+        gc.callbacks.remove(handover)
+        stop.set()
+        go.set()
+        b.join()
+    assert handovers[0] > 0, "no collection happened inside a header parse: the test forced nothing"
+    assert not errors, errors

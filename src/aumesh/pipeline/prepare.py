@@ -64,7 +64,8 @@ from aumesh.geometry.align import align_to_reference, apply_similarity_columns, 
 from aumesh.model.statistics import video_row_sums
 from aumesh.pipeline import compute
 from aumesh.pipeline.quantiles import exact_quantiles
-from aumesh.utils.io import NpyRowFile, atomic_directory, atomic_write_json, create_npy, row_runs, write_rows
+from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz,
+                             row_runs, write_rows)
 
 log = logging.getLogger(__name__)
 
@@ -190,7 +191,7 @@ def _staged_meta(scratch: Path, i: int) -> pd.DataFrame:
 
 def _staged(scratch: Path, i: int) -> tuple[pd.DataFrame, np.ndarray]:
     """Partition ``i``'s validated metadata and float32 anchors, as pass 1 staged them."""
-    return _staged_meta(scratch, i), np.load(scratch / f"{i:06d}.npy")
+    return _staged_meta(scratch, i), load_npy(scratch / f"{i:06d}.npy")
 
 
 def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> Scan:
@@ -232,8 +233,7 @@ def _pass2_file(scratch: Path, i: int) -> Path:
 
 def _pass2(item: tuple[Path, int], *keys: str) -> list[np.ndarray]:
     """Arrays ``keys`` of partition ``item = (scratch, i)`` as pass 2 staged them (:func:`residual_partition`)."""
-    with np.load(_pass2_file(*item)) as staged:
-        return [staged[k] for k in keys]
+    return load_npz(_pass2_file(*item), keys)
 
 
 def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.ndarray, split_videos: np.ndarray,

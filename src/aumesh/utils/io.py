@@ -11,6 +11,7 @@ import re
 import shutil
 import socket
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
@@ -144,6 +145,26 @@ def create_npy(path: str | Path, dtype, shape: tuple[int, ...]) -> int:
     return offset
 
 
+# CPython 3.11 keeps the AST constructor's recursion depth in interpreter-wide state, reset by every parse: numpy
+# parses each .npy header with ast.literal_eval, and when a garbage collection during one thread's parse lets
+# another thread parse, the first raises "SystemError: AST constructor recursion depth mismatch"
+# (python/cpython#106905; it failed a prepare on the threads scheduler in this project's CI). Every .npy or .npz
+# read inside a partition task goes through this lock (the arrays read whole under it are small).
+_NUMPY_HEADER_LOCK = threading.Lock()
+
+
+def load_npy(path: str | Path) -> np.ndarray:
+    """``np.load`` of an ``.npy``, safe in threads (one header parse at a time: see ``_NUMPY_HEADER_LOCK``)."""
+    with _NUMPY_HEADER_LOCK:
+        return np.load(path, allow_pickle=False)
+
+
+def load_npz(path: str | Path, keys: tuple[str, ...] | list[str]) -> list[np.ndarray]:
+    """Arrays ``keys`` of an ``.npz``, safe in threads (one header parse at a time: see ``_NUMPY_HEADER_LOCK``)."""
+    with _NUMPY_HEADER_LOCK, np.load(path, allow_pickle=False) as arrays:
+        return [arrays[k] for k in keys]
+
+
 def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
     """``(data offset, dtype, shape)`` of a C-ordered ``.npy`` (read from its header only).
 
@@ -164,7 +185,8 @@ def _parse_npy_header(header: bytes, path: str) -> tuple[int, np.dtype, tuple[in
     fh = io.BytesIO(header)
     version = np.lib.format.read_magic(fh)
     read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-    shape, fortran, dtype = read_header(fh)
+    with _NUMPY_HEADER_LOCK:
+        shape, fortran, dtype = read_header(fh)
     if fortran:
         raise ValueError(f"{path}: Fortran-ordered array; rows cannot be streamed")
     return len(header), dtype, shape
