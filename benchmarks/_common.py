@@ -19,8 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-BIN = Path(sys.executable).parent
-AUMESH = [str(BIN / "aumesh")] if (BIN / "aumesh").exists() else [sys.executable, "-m", "aumesh.cli"]
+# As dvc.yaml runs the stages; and the installed console script imports its entry point from the installed tree,
+# which another source tree (--baseline-src, by PYTHONPATH) need not have (aumesh.cli.run is newer than some).
+AUMESH = [sys.executable, "-m", "aumesh"]
 DEFAULT_OUT = REPO / "benchmarks" / "out"
 FRAMES_PER_VIDEO = 344_418 / 9_978  # CelebV-HQ scale: ~34.5 frames per video
 STAGES = ("prepare", "evaluate", "release")
