@@ -1,10 +1,14 @@
 """Shared helpers for the pipeline benchmarks: cached synthetic data, params, per-stage measurement.
 
 Each stage runs as its own subprocess (``aumesh prepare|evaluate|release --params FILE``).
-Wall time is measured around the subprocess; peak RSS is the child's own ``ru_maxrss``
-from ``os.wait4`` (the kernel's high-water mark of resident memory of that process,
-file-backed pages of memory maps included), plus a sampled peak of the RSS summed over the
-process tree (psutil, every 50 ms) as a cross-check.
+Wall time is measured around the subprocess; CPU time and peak RSS are the stage process's own
+``ru_utime + ru_stime`` and ``ru_maxrss`` (the kernel's high-water mark of resident memory of that
+process, file-backed pages of memory maps included), as ``/usr/bin/time`` reports them, plus a sampled
+peak of the RSS summed over the process tree (psutil, every 50 ms) as a cross-check.
+
+Not ``os.wait4`` in this process: Linux starts a child's ``ru_maxrss`` at its parent's high-water mark
+(the forked copy of the parent's memory counts until ``exec``), so every stage would report at least
+what the benchmark itself once held (~650 MiB after a read floor). ``/usr/bin/time`` is a small process.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -35,7 +40,7 @@ def videos_for(n_frames: int) -> int:
 class Measurement:
     stage: str
     wall_s: float
-    maxrss_mib: float  # ru_maxrss of the stage process (wait4)
+    maxrss_mib: float  # ru_maxrss of the stage process (/usr/bin/time)
     tree_rss_mib: float  # sampled peak of the summed RSS of the process tree
     returncode: int
     cpu_s: float = 0.0  # user + system CPU seconds of the stage process (and its waited-for children)
@@ -59,10 +64,11 @@ def _tree_rss(pid: int) -> int:
 
 
 def run_measured(cmd: list[str], cwd: Path, log_path: Path, env: dict | None = None, stage: str = "") -> Measurement:
-    """Run ``cmd``; wall time, the child's ru_maxrss (wait4) and a sampled tree-RSS peak."""
-    with open(log_path, "w") as log:
+    """Run ``cmd``; wall time, its CPU time and ru_maxrss (``/usr/bin/time``) and a sampled tree-RSS peak."""
+    with open(log_path, "w") as log, tempfile.NamedTemporaryFile("r", suffix=".time") as usage:
         t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, cwd=cwd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.Popen(["/usr/bin/time", "-f", "%U %S %M", "-o", usage.name, *cmd], cwd=cwd, stdout=log,
+                                stderr=subprocess.STDOUT, env=env)
         peak = [0]
         done = threading.Event()
 
@@ -73,13 +79,13 @@ def run_measured(cmd: list[str], cwd: Path, log_path: Path, env: dict | None = N
 
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
-        _, status, usage = os.wait4(proc.pid, 0)
+        proc.wait()
         wall = time.perf_counter() - t0
         done.set()
         sampler.join()
-        proc.returncode = os.waitstatus_to_exitcode(status)
-    return Measurement(stage, wall, usage.ru_maxrss / 1024.0, peak[0] / 2**20, proc.returncode,
-                       usage.ru_utime + usage.ru_stime)
+        user_s, system_s, maxrss_kib = usage.read().split()[-3:]  # after "Command exited with non-zero status N"
+    return Measurement(stage, wall, int(maxrss_kib) / 1024.0, peak[0] / 2**20, proc.returncode,
+                       float(user_s) + float(system_s))
 
 
 def ensure_data(workdir: Path, n_frames: int, n_videos: int, seed: int = 0) -> tuple[Path, float | None]:
