@@ -1,6 +1,6 @@
 """Shared helpers for the pipeline benchmarks: cached synthetic data, params, per-stage measurement.
 
-Each stage runs as its own subprocess (``aumesh prepare|evaluate|release --params FILE``).
+Each stage runs as its own subprocess (``python -m aumesh prepare|evaluate|release --params FILE``).
 Wall time is measured around the subprocess; CPU time and peak RSS are the stage process's own
 ``ru_utime + ru_stime`` and ``ru_maxrss`` (the kernel's high-water mark of resident memory of that
 process, file-backed pages of memory maps included), as ``/usr/bin/time`` reports them, plus a sampled

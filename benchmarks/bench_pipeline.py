@@ -114,8 +114,8 @@ def main(argv=None) -> int:
     variants = [("before", args.baseline_src, [])] if args.baseline_src else []
     variants.append(("after", args.src, []))
     variants += [(f"after, {w} worker(s)", args.src, [f"compute.n_workers={w}"]) for w in args.workers or []]
-    rows, record = [], {"frames": args.frames, "videos": args.videos, "env": environment_note(),
-                        "mlflow_store_creation_s": store_s, "variants": {}}
+    record = {"frames": args.frames, "videos": args.videos, "env": environment_note(),
+              "mlflow_store_creation_s": store_s, "variants": {}}
     for name, src, overrides in variants:
         run_dir = args.workdir / f"run_{args.frames}{'_' + args.tag if args.tag else ''}"
         params = compose_params(run_dir, data, overrides, src=src)
@@ -137,17 +137,16 @@ def main(argv=None) -> int:
         total = statistics.median(sum(m.wall_s for m in run) for run in runs)
         cpu = statistics.median(sum(m.cpu_s for m in run) for run in runs)
         peak = max(v["maxrss_mib"] for v in rec["stages"].values())
-        tree = max(v["tree_rss_mib"] for v in rec["stages"].values())
         rec |= {"total_wall_s": total, "total_cpu_s": cpu, "peak_rss_mib": peak}
-        rows.append([name, *(rec["stages"][s]["wall_s"] for s in STAGES), total, cpu, peak, tree, total,
-                     f"{metrics['r2_mean']:.6f}"])
         record["variants"][name] = rec
         if not args.keep:
             shutil.rmtree(run_dir, ignore_errors=True)
     floor_s = statistics.median(floors)
     record |= {"read_floor_s": floor_s, "read_floor_runs_s": floors}
-    for row in rows:
-        row[-2] = f"{row[-2] / floor_s:.1f}x"
+    rows = [[name, *(rec["stages"][s]["wall_s"] for s in STAGES), rec["total_wall_s"], rec["total_cpu_s"],
+             rec["peak_rss_mib"], max(v["tree_rss_mib"] for v in rec["stages"].values()),
+             f"{rec['total_wall_s'] / floor_s:.1f}x", f"{rec['metrics']['r2_mean']:.6f}"]
+            for name, rec in record["variants"].items()]
     print()
     print(f"{args.frames:,} frames, {args.videos:,} videos; median of {args.repeats} run(s); read floor {floor_s:.1f} s "
           f"(median of {len(floors)}, {min(floors):.1f}-{max(floors):.1f}); load average now {load()}")
