@@ -310,3 +310,26 @@ def test_thread_passes_allocate_from_one_malloc_arena_per_worker(tmp_path):
     subprocess.run([sys.executable, "-c", code], check=True)
     arenas = report.read_text().count("<heap nr=")
     assert 1 <= arenas <= 2
+
+
+def test_local_map_runs_on_the_local_threads_in_order_and_one_by_one_when_synchronous():
+    """The fits' map: results in the items' order; as many threads as workers at once (a barrier only opens
+    when both jobs run together); the caller's thread alone under the synchronous scheduler."""
+    import threading
+
+    from aumesh.config import ComputeConfig
+    from aumesh.pipeline import compute
+
+    both_running = threading.Barrier(2, timeout=10)
+
+    def job(x):
+        both_running.wait()  # BrokenBarrierError (after 10 s) if the two jobs ran one after the other
+        return x * x, threading.current_thread().name
+
+    with compute.engine(ComputeConfig(scheduler="threads", n_workers=2)):
+        out = compute.local_map(job, [3, 4])
+    assert [v for v, _ in out] == [9, 16]
+    assert len({name for _, name in out}) == 2
+    with compute.engine(ComputeConfig(scheduler="synchronous")):
+        out = compute.local_map(lambda x: (x, threading.current_thread().name), [1, 2, 3])
+    assert out == [(x, threading.current_thread().name) for x in (1, 2, 3)]

@@ -135,6 +135,10 @@ def test_coef_path_equals_separate_fits():
         assert max_rel(big.raw_intercept_for(k), small.raw_intercept_) < 1e-12
         assert max_rel(big.predict(X[:50], n_components=k), small.predict(X[:50])) < 1e-12
     assert np.array_equal(big.coef_path_[-1], big.coef_)
+    # the path is built on first use and kept: a refit must not keep the previous fit's
+    big.fit(X[:300], Y[:300])
+    assert np.array_equal(big.coef_path_[-1], big.coef_)
+    assert max_rel(big.coef_path_[0], PLSRegression(n_components=1).fit(X[:300], Y[:300]).coef_) < 1e-12
 
 
 def test_fit_stats_equals_fit_and_one_dimensional_y_ravel():
@@ -289,6 +293,22 @@ def test_r2_path_equals_r2_score_for_each_k():
     ]
     np.testing.assert_allclose(path, expected, rtol=1e-10)
     assert path.shape == (8,)
+
+
+@pytest.mark.parametrize("scale", [True, False])
+def test_r2_path_equals_scoring_each_model_of_the_coefficient_path(scale):
+    """The closed form over pairs of components against residual_sums of every model of ``coef_path_``, with a
+    constant target (zero weight), a held-out set whose means differ from the training set's, all components."""
+    X, Y = make_well_conditioned(n=900, p=10, q=25, seed=13)
+    Y[:, 3] = 7.0  # constant in training and test
+    model = PLSRegression(n_components=10, scale=scale).fit(X[:500], Y[:500])
+    X_test, Y_test = X[500:] + 0.3, Y[500:] - 2.0  # shifted: the intercept terms count
+    test_stats = CrossProducts.from_arrays(X_test, Y_test)
+    sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
+    np.testing.assert_allclose(r2_path(model, test_stats), r2_variance_weighted(sse, sst), rtol=1e-11)
+    expected = [r2_score(Y_test, model.predict(X_test, n_components=k), multioutput="variance_weighted")
+                for k in range(1, 11)]
+    np.testing.assert_allclose(r2_path(model, test_stats), expected, rtol=1e-9)
 
 
 def test_r2_edge_cases_follow_sklearn_force_finite():

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import numbers
 import warnings
+from functools import cached_property
 
 import numpy as np
 from scipy.linalg import pinv
@@ -210,12 +211,15 @@ class PLSRegression(
             W, P, Q, R, n_informative = _kernel_pls(C, S, A, zero_var_x)
 
         # Step 8: B = R Q^T in standardized units; back to raw units as sklearn does:
-        # coef_ = (B * y_std).T / x_std, shape (q, p). Cumulative sums over components give
-        # the coefficient of every k <= A (B_k = R_{:, :k} Q_{:, :k}^T).
+        # coef_ = (B * y_std).T / x_std, shape (q, p): one rank-one term per component, summed in component
+        # order, so coef_ is the last of the cumulative sums coef_path_ holds, bit for bit (the path itself,
+        # A times the size of coef_, is built when first asked for).
         Rr = R / x_std[:, None]  # (p, A)
         Qr = Q * y_std[:, None]  # (q, A)
-        path = np.einsum("qa,pa->aqp", Qr, Rr)
-        np.cumsum(path, axis=0, out=path)
+        coef = np.zeros((q, p))
+        for a in range(A):
+            coef += np.multiply.outer(Qr[:, a], Rr[:, a])
+        self.__dict__.pop("coef_path_", None)  # a refit's path is its own
 
         self.x_weights_ = W
         self.x_loadings_ = P
@@ -223,8 +227,7 @@ class PLSRegression(
         self.y_weights_ = Q.copy()
         self.x_rotations_ = R
         self.y_rotations_ = self.y_weights_ @ pinv(self.y_loadings_.T @ self.y_weights_, check_finite=False)
-        self.coef_path_ = path
-        self.coef_ = path[-1].copy()
+        self.coef_ = coef
         self.x_mean_ = self._x_mean = x_mean
         self.y_mean_ = self._y_mean = y_mean
         self.x_std_ = self._x_std = x_std
@@ -237,9 +240,21 @@ class PLSRegression(
         return self
 
     # --------------------------------------------------------- path access
+    @cached_property
+    def coef_path_(self):
+        """Coefficients of every ``k <= n_components``, shape (n_components, n_targets, n_features).
+
+        ``coef_path_[k - 1]`` is ``coef_`` of a fit with ``k`` components (B_k = R_{:, :k} Q_{:, :k}^T, in raw
+        units): cumulative sums of the components' rank-one terms, built on first use and kept.
+        """
+        check_is_fitted(self, "x_rotations_")
+        path = np.einsum("qa,pa->aqp", self.y_loadings_ * self.y_std_[:, None], self.x_rotations_ / self.x_std_[:, None])
+        np.cumsum(path, axis=0, out=path)
+        return path
+
     def _check_k(self, n_components):
         check_is_fitted(self)
-        A = self.coef_path_.shape[0]
+        A = self.x_rotations_.shape[1]
         if (
             not isinstance(n_components, numbers.Integral)
             or isinstance(n_components, bool)

@@ -118,10 +118,23 @@ def r2_variance_weighted(sse, sst):
 def r2_path(model, test_stats):
     """Variance-weighted R² on held-out statistics for every number of components.
 
+    The model with ``k`` components has ``coef = sum_{a<=k} qr_a rr_a^T`` (``rr = x_rotations_ / x_std_``,
+    ``qr = y_loadings_ * y_std_``; ``coef_path_[k - 1]``), so each term of :func:`residual_sums`, summed over the
+    targets, is a sum over pairs of components ``a, c <= k``:
+
+        sum_j sse_j(k) = sum_j cyy_j + n |dy|^2 - 2 sum_{a<=k} (u_a + n e_a r_a)
+                         + sum_{a,c<=k} G_ac (T_ac + n r_a r_c)
+
+    with ``G = qr^T qr``, ``T = rr^T cxx rr``, ``u_a = qr_a^T (cxy^T rr_a)``, ``r = rr^T dx``, ``e = qr^T dy``
+    (sums over the targets of nonzero variance; ``dx, dy``: test means minus training means). Every ``k`` costs
+    ``O(A^2)`` once the ``(A, A)`` products are formed, instead of scoring the ``(A, q, p)`` coefficient path
+    (0.25 s a fold at 83 features and 1434 targets). As :func:`residual_sums`, up to rounding; the sum of squares
+    is clipped at 0 as a whole, not per target.
+
     Parameters
     ----------
     model : PLSRegression
-        Fitted engine model (uses ``coef_path_``).
+        Fitted engine model (uses ``x_rotations_``, ``y_loadings_``, ``x_std_``, ``y_std_``, ``x_mean_``, ``y_mean_``).
     test_stats : CrossProducts
         Statistics of the evaluation rows.
 
@@ -130,6 +143,24 @@ def r2_path(model, test_stats):
     r2 : ndarray of shape (model.n_components,)
         ``r2[k - 1]`` is the score of the model with ``k`` components.
     """
-    check_is_fitted(model, "coef_path_")
-    sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
-    return r2_variance_weighted(sse, sst)
+    check_is_fitted(model, "x_rotations_")  # not coef_path_: built when first asked for, it is never needed here
+    if not isinstance(test_stats, CrossProducts):
+        raise TypeError(f"test_stats must be a CrossProducts, got {type(test_stats).__name__}.")
+    sst = test_stats.cyy_diag
+    varying = sst != 0  # sklearn's variance weighting: constant targets get zero weight
+    if not varying.any():  # every target constant: the uniform mean of per-target scores (sklearn), per k
+        sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
+        return r2_variance_weighted(sse, sst)
+    n = test_stats.n
+    rr = model.x_rotations_ / model.x_std_[:, None]  # (p, A)
+    qr = (model.y_loadings_ * model.y_std_[:, None])[varying]  # (q', A)
+    dx = test_stats.x_mean - model.x_mean_
+    dy = (test_stats.y_mean - model.y_mean_)[varying]
+    gram = qr.T @ qr  # G
+    r = rr.T @ dx
+    u = np.einsum("aj,ja->a", (rr.T @ test_stats.cxy)[:, varying], qr)
+    pairs = gram * (rr.T @ test_stats.cxx @ rr + n * np.outer(r, r))
+    quad = np.cumsum(np.cumsum(pairs, axis=0), axis=1).diagonal()  # sum over the leading k x k block
+    linear = np.cumsum(2.0 * (u + n * (qr.T @ dy) * r))
+    sse = np.maximum(sst[varying].sum() + n * (dy @ dy) - linear + quad, 0.0)
+    return 1.0 - sse / sst.sum()

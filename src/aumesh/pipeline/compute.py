@@ -194,6 +194,24 @@ def _progress(desc: str):
     return TqdmCallback(desc=desc, unit="task", leave=False, dynamic_ncols=True)
 
 
+def local_map(fn: Callable, items: Sequence[Any]) -> list:
+    """``[fn(x) for x in items]`` on threads of this process, one per core (one by one under the ``synchronous``
+    scheduler), results in order.
+
+    For a few independent jobs on data already in memory (the model fits from statistics), whose inputs and results
+    (fitted models) belong in the stage process whichever scheduler runs the data passes; NumPy and LAPACK run
+    them outside the GIL.
+    """
+    cfg = _ACTIVE.get() or ComputeConfig()
+    workers = 1 if cfg.scheduler == "synchronous" else min(len(items), n_workers(cfg))
+    if workers <= 1:
+        return [fn(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers, thread_name_prefix="aumesh-local") as pool:
+        return list(pool.map(fn, items))
+
+
 def map_gather(fn: Callable, partitions: Sequence[Any], desc: str = "") -> list:
     """``[fn(p) for p in partitions]`` on the current scheduler, results in partition order; ``desc`` names the
     progress bar."""

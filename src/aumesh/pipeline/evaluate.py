@@ -520,17 +520,39 @@ def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
         return PLSRegression(n_components=n_components, scale=scale).fit_stats(stats)
 
 
-def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, chunk_rows: int | None = None) -> CVResult:
-    """Score each fold's model from statistics (R²) and one streaming pass (MAE, per-vertex error)."""
+@dataclass
+class Fits:
+    """Every model of one configuration, fitted from its statistics (:func:`fit_models`)."""
+
+    folds: list[PLSRegression]  # fold f's model: trained on the other folds (cross-validation)
+    final: PLSRegression  # trained on every frame (card: final fit on all kept frames)
+    alone: list[PLSRegression]  # trained on fold f alone (the AU-field reliability)
+
+
+def fit_models(cfg: Config, stats: FoldStatistics) -> Fits:
+    """The ``2 n_splits + 1`` fits of a configuration: independent, from statistics, so they run at once on this
+    machine's cores (:func:`aumesh.pipeline.compute.local_map`; each on one BLAS thread, so each is the same to the
+    bit on any number of cores)."""
+    A = effective_n_components(cfg)
+    total = stats.total
+    training = [total - held_out for held_out in stats.target] + [total] + list(stats.target)
+    with _one_blas_thread():  # held across the threads: one fit's exit does not lift another's limit
+        models = compute.local_map(partial(fit, n_components=A, scale=cfg.model.scale), training)
+    k = len(stats.target)
+    return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
+
+
+def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, fold_models: list[PLSRegression],
+                   chunk_rows: int | None = None) -> CVResult:
+    """Score each fold's model (``fold_models[f]``, trained without fold ``f``: :func:`fit_models`) from statistics
+    (R²) and one streaming pass (MAE, per-vertex error)."""
     chunk_rows = chunk_rows or cfg.data.chunk_rows
     A = effective_n_components(cfg)
     n_splits = cfg.cv.n_splits
-    total = stats.total
-    models, r2_folds, r2d_folds, paths, sse_sum, sst_sum = [], [], [], [], np.zeros(N_TARGETS), np.zeros(N_TARGETS)
+    r2_folds, r2d_folds, paths, sse_sum, sst_sum = [], [], [], np.zeros(N_TARGETS), np.zeros(N_TARGETS)
+    models = [(model.coef_, model.raw_intercept_) for model in fold_models]
     with _one_blas_thread():
-        for f in range(n_splits):
-            model = fit(total - stats.target[f], A, cfg.model.scale)
-            models.append((model.coef_.copy(), model.raw_intercept_.copy()))  # not the model: its coef path is 80 MB
+        for f, model in enumerate(fold_models):
             sse, sst = residual_sums(model.coef_, model.raw_intercept_, stats.target[f])
             r2_folds.append(r2_variance_weighted(sse, sst))
             sse_sum += sse
@@ -655,10 +677,9 @@ class FinalModel:
     model: PLSRegression
 
 
-def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> FinalModel:
-    """Card: final fit on all kept frames."""
+def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLSRegression) -> FinalModel:
+    """Card: final fit on all kept frames (``model``, fitted on ``stats.total``: :func:`fit_models`), as released."""
     A = effective_n_components(cfg)
-    model = fit(stats.total, A, cfg.model.scale)
     mesh_intercept = model.raw_intercept_.copy()
     # a target relative to per-video centres predicts displacements from them; released meshes add the
     # population's (frame-weighted) mean centre, so `x @ coef + intercept` is a face. For `within` that is
@@ -672,11 +693,9 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> FinalMo
                       feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions), n_components=A, model=model)
 
 
-def au_field_reliability(cfg: Config, stats: FoldStatistics) -> np.ndarray:
-    """Per-AU mean cosine between the AU fields of models fitted on each fold alone (disjoint videos), (20,)."""
-    A = effective_n_components(cfg)
-    coefs = np.stack([fit(s, A, cfg.model.scale).coef_ for s in stats.target])
-    return reliability.field_cosines(coefs, np.arange(len(AU_COLUMNS)))
+def au_field_reliability(alone: list[PLSRegression]) -> np.ndarray:
+    """Per-AU mean cosine between the AU fields of the models fitted on each fold alone (disjoint videos), (20,)."""
+    return reliability.field_cosines(np.stack([model.coef_ for model in alone]), np.arange(len(AU_COLUMNS)))
 
 
 def facs_passes(prepared: Prepared, final: FinalModel) -> int:
@@ -690,9 +709,10 @@ def facs_passes(prepared: Prepared, final: FinalModel) -> int:
 
 def evaluate_statistics(prepared: Prepared, cfg: Config, stats: FoldStatistics) -> tuple[CVResult, FinalModel]:
     """Cross-validation, the final fit and the AU-field checks of one configuration from its statistics."""
-    cv = cross_validate(prepared, cfg, stats)
-    final = final_fit(prepared, cfg, stats)
-    cv.au_reliability = au_field_reliability(cfg, stats)
+    fits = fit_models(cfg, stats)
+    cv = cross_validate(prepared, cfg, stats, fits.folds)
+    final = final_fit(prepared, cfg, stats, fits.final)
+    cv.au_reliability = au_field_reliability(fits.alone)
     cv.n_aus_facs_pass = facs_passes(prepared, final)
     return cv, final
 
