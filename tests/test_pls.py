@@ -376,3 +376,33 @@ def test_mismatched_rows_and_columns_raise():
 def test_passes_sklearn_estimator_checks():
     # drop-in guarantee: params-only __init__, validation in fit, clone/get_params, tags
     check_estimator(PLSRegression(n_components=1))
+
+
+def test_the_evaluate_stage_fits_and_scores_without_importing_scikit_learn(tmp_path):
+    """The evaluate stage's modules fit from statistics and score on held-out statistics with NumPy alone
+    (importing scikit-learn, and SciPy's statistics with it, cost ~1 s of every evaluate); the same numbers as the
+    estimator."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from aumesh.experiments import mlflow_store, pyfunc, tracking\n"
+        "from aumesh.pipeline import dvc_metrics, stages, evaluate as ev\n"
+        "from aumesh.model.cross_products import CrossProducts\n"
+        "from aumesh.model.scoring import r2_path\n"
+        "rng = np.random.default_rng(0); X = rng.normal(size=(300, 6)); Y = X @ rng.normal(size=(6, 9)) + rng.normal(size=(300, 9))\n"
+        "fit = ev.fit(CrossProducts.from_arrays(X[:200], Y[:200]), 4, True)\n"
+        "path = r2_path(fit, CrossProducts.from_arrays(X[200:], Y[200:]))\n"
+        "print([m for m in sys.modules if m.split('.')[0] == 'sklearn' or m == 'scipy.stats'])\n"
+        "np.save(sys.argv[1], np.concatenate([fit.coef_.ravel(), path]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "out.npy")], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    values = np.load(tmp_path / "out.npy")
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(300, 6))
+    Y = X @ rng.normal(size=(6, 9)) + rng.normal(size=(300, 9))
+    model = PLSRegression(n_components=4).fit(X[:200], Y[:200])
+    assert np.array_equal(values[:54], model.coef_.ravel())
+    np.testing.assert_allclose(values[54:], r2_path(model, CrossProducts.from_arrays(X[200:], Y[200:])), rtol=1e-13)

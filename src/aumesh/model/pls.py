@@ -1,47 +1,14 @@
-"""Exact PLS regression from sufficient statistics.
+"""Exact PLS regression from sufficient statistics, as a scikit-learn estimator.
 
-A PLS2 fit (scikit-learn's ``PLSRegression``: NIPALS, regression deflation,
-mode A) depends on the data only through
-
-* the number of rows ``n``,
-* the column sums of ``X`` (n, p) and ``Y`` (n, q),
-* the cross-product matrices ``X^T X`` (p, p) and ``X^T Y`` (p, q),
-* the diagonal of ``Y^T Y`` (q,) -- needed only for ``scale=True`` and for scores.
-
-:class:`CrossProducts` accumulates these in float64, chunk by chunk, without
-ever storing rows. :class:`PLSRegression` fits from them with the improved
-kernel algorithm of
-
-    B. S. Dayal and J. F. MacGregor, "Improved PLS algorithms",
-    Journal of Chemometrics 11 (1997) 73-85 -- "modified kernel algorithm #1"
-    (referred to below as "D&M Algorithm 1"),
-
-which, at convergence of sklearn's power iterations, gives the same weights,
-loadings, rotations and coefficients as sklearn's NIPALS, and in the same
-pass the coefficients for every smaller number of components. The steps, as
-numbered in the code comments (C = Xs^T Xs, S = Xs^T Ys of the centered,
-optionally standardized data)::
-
-    1. C, S from the statistics (no rows needed)
-    for a = 1..A:
-    2. w_a = dominant eigenvector of S S^T           (left singular vector of S)
-    3. r_a = w_a - sum_{j<a} (p_j^T w_a) r_j         (so X r_a = deflated X w_a)
-    4. tt_a = r_a^T C r_a                            (t_a^T t_a)
-    5. p_a = C r_a / tt_a                            (X loading)
-    6. q_a = S^T r_a / tt_a                          (Y loading)
-    7. S <- S - tt_a p_a q_a^T                       (deflation of X^T Y only)
-    8. B = R Q^T; B_k = R[:, :k] Q[:, :k]^T for every k <= A
-
-The statistics are :class:`aumesh.model.cross_products.CrossProducts`; scoring a model on
-held-out statistics is :mod:`aumesh.model.scoring`.
-
-Notation: ``n`` rows, ``p`` features, ``q`` targets, ``A`` components.
+:class:`PLSRegression` is a drop-in for :class:`sklearn.cross_decomposition.PLSRegression` that fits
+from :class:`aumesh.model.cross_products.CrossProducts` (or arrays, through them) with the kernel
+algorithm of :mod:`aumesh.model.kernel_pls` (D&M Algorithm 1; the steps are numbered there), and
+yields the coefficients of every smaller number of components from the same fit.
 """
 
 from __future__ import annotations
 
 import numbers
-import warnings
 from functools import cached_property
 
 import numpy as np
@@ -54,9 +21,9 @@ from sklearn.base import (
     TransformerMixin,
 )
 from sklearn.utils.validation import check_array, check_is_fitted, validate_data
-from threadpoolctl import threadpool_limits
 
 from aumesh.model.cross_products import CrossProducts
+from aumesh.model.kernel_pls import check_n_components, coefficient_path, fit_statistics
 
 __all__ = ["PLSRegression"]
 
@@ -151,7 +118,7 @@ class PLSRegression(
             raise ValueError(f"X and y have different numbers of rows: {X.shape[0]} != {Y.shape[0]}.")
         predict_1d = Y.ndim == 1
         # Check n_components before the (long) statistics pass.
-        _check_n_components(self.n_components, X.shape[0], X.shape[1])
+        check_n_components(self.n_components, X.shape[0], X.shape[1])
         stats = CrossProducts.from_arrays(X, Y)
         self._fit_stats(stats)
         self._predict_1d = predict_1d
@@ -181,62 +148,14 @@ class PLSRegression(
     def _fit_stats(self, stats):
         if not isinstance(self.scale, (bool, np.bool_)):
             raise ValueError(f"scale must be a bool, got {self.scale!r}.")  # noqa: TRY004 (sklearn raises ValueError)
-        n, p, q = stats.n, stats.n_features, stats.n_targets
-        if n < 2:
-            raise ValueError(f"Found {n} sample(s) while a minimum of 2 is required.")
-        A = _check_n_components(self.n_components, n, p)
-        for name in ("sum_x", "sum_y", "xtx", "xty", "yty_diag"):
-            if not np.isfinite(getattr(stats, name)).all():
-                raise ValueError(f"Statistics contain NaN or infinity ({name}).")
-
-        x_mean, y_mean = stats.x_mean, stats.y_mean
-        cxx, cxy = stats.cxx, stats.cxy
-        if self.scale:
-            # sklearn's _center_scale_xy: std with ddof=1, exactly-zero std -> 1.
-            x_std = np.sqrt(np.diagonal(cxx) / (n - 1))
-            x_std[x_std == 0.0] = 1.0
-            y_std = np.sqrt(stats.cyy_diag / (n - 1))
-            y_std[y_std == 0.0] = 1.0
-        else:
-            x_std = np.ones(p)
-            y_std = np.ones(q)
-        # Step 1: cross products of the standardized data Xs = (X - x̄)/x_std, Ys = (Y - ȳ)/y_std.
-        zero_var_x = np.diagonal(cxx) == 0.0
-        C = cxx / np.outer(x_std, x_std)  # Xs^T Xs, (p, p)
-        S = cxy / np.outer(x_std, y_std)  # Xs^T Ys, (p, q); deflated in place below
-
-        # The per-component work is small (p x q) matrices: multi-threaded BLAS only adds
-        # synchronisation (10x slower on a busy machine), so run it on one thread.
-        with threadpool_limits(limits=1, user_api="blas"):
-            W, P, Q, R, n_informative = _kernel_pls(C, S, A, zero_var_x)
-
-        # Step 8: B = R Q^T in standardized units; back to raw units as sklearn does:
-        # coef_ = (B * y_std).T / x_std, shape (q, p): one rank-one term per component, summed in component
-        # order, so coef_ is the last of the cumulative sums coef_path_ holds, bit for bit (the path itself,
-        # A times the size of coef_, is built when first asked for).
-        Rr = R / x_std[:, None]  # (p, A)
-        Qr = Q * y_std[:, None]  # (q, A)
-        coef = np.zeros((q, p))
-        for a in range(A):
-            coef += np.multiply.outer(Qr[:, a], Rr[:, a])
+        fit = fit_statistics(stats, self.n_components, self.scale)
         self.__dict__.pop("coef_path_", None)  # a refit's path is its own
-
-        self.x_weights_ = W
-        self.x_loadings_ = P
-        self.y_loadings_ = Q
-        self.y_weights_ = Q.copy()
-        self.x_rotations_ = R
+        vars(self).update(vars(fit))  # the fitted attributes, under their scikit-learn names
+        self.y_weights_ = fit.y_loadings_.copy()
         self.y_rotations_ = self.y_weights_ @ pinv(self.y_loadings_.T @ self.y_weights_, check_finite=False)
-        self.coef_ = coef
-        self.x_mean_ = self._x_mean = x_mean
-        self.y_mean_ = self._y_mean = y_mean
-        self.x_std_ = self._x_std = x_std
-        self.y_std_ = self._y_std = y_std
-        self.intercept_ = y_mean.copy()
-        self.raw_intercept_ = y_mean - x_mean @ self.coef_.T
-        self.n_components_ = n_informative
-        self.n_samples_ = n
-        self._n_features_out = A
+        self._x_mean, self._y_mean, self._x_std, self._y_std = self.x_mean_, self.y_mean_, self.x_std_, self.y_std_
+        self.intercept_ = self.y_mean_.copy()
+        self._n_features_out = self.x_rotations_.shape[1]
         return self
 
     # --------------------------------------------------------- path access
@@ -244,13 +163,11 @@ class PLSRegression(
     def coef_path_(self):
         """Coefficients of every ``k <= n_components``, shape (n_components, n_targets, n_features).
 
-        ``coef_path_[k - 1]`` is ``coef_`` of a fit with ``k`` components (B_k = R_{:, :k} Q_{:, :k}^T, in raw
-        units): cumulative sums of the components' rank-one terms, built on first use and kept.
+        ``coef_path_[k - 1]`` is ``coef_`` of a fit with ``k`` components (:func:`aumesh.model.kernel_pls.coefficient_path`),
+        built on first use and kept.
         """
         check_is_fitted(self, "x_rotations_")
-        path = np.einsum("qa,pa->aqp", self.y_loadings_ * self.y_std_[:, None], self.x_rotations_ / self.x_std_[:, None])
-        np.cumsum(path, axis=0, out=path)
-        return path
+        return coefficient_path(self)
 
     def _check_k(self, n_components):
         check_is_fitted(self)
@@ -351,96 +268,3 @@ class PLSRegression(
         tags = super().__sklearn_tags__()
         tags.regressor_tags.poor_score = True
         return tags
-
-
-def _kernel_pls(C, S, A, zero_var_x):
-    """D&M Algorithm 1, steps 2-7 (see the module docstring).
-
-    Parameters
-    ----------
-    C : ndarray of shape (p, p)
-        ``Xs^T Xs`` of the centered (optionally standardized) data.
-    S : ndarray of shape (p, q)
-        ``Xs^T Ys``; deflated in place.
-    A : int
-        Number of components.
-    zero_var_x : ndarray of shape (p,), bool
-        Zero-variance X columns (get exactly zero weight).
-
-    Returns
-    -------
-    W, P, R : ndarray of shape (p, A)
-    Q : ndarray of shape (q, A)
-    n_informative : int
-        Components computed before the deflated ``S`` vanished (the rest are zero).
-    """
-    p, q = S.shape
-    W = np.zeros((p, A))
-    P = np.zeros((p, A))
-    Q = np.zeros((q, A))
-    R = np.zeros((p, A))
-    s0 = np.linalg.norm(S)
-    # Deflated X^T Y below this is rounding noise of the initial one: stop there.
-    s_tol = 64 * np.finfo(np.float64).eps * max(p, q) * s0
-    n_informative = 0
-    for a in range(A):
-        s_norm = np.linalg.norm(S)
-        if s0 == 0.0 or s_norm <= s_tol:
-            warnings.warn(
-                f"Deflated X^T Y vanished after {a} component(s) (Y residual is orthogonal to X); "
-                f"components {a + 1}..{A} are set to zero.",
-                RuntimeWarning,
-                stacklevel=4,
-            )
-            break
-        # Step 2: w = dominant left singular vector of the current
-        # X^T Y, i.e. the eigenvector of (X^T Y)(X^T Y)^T with the largest eigenvalue
-        # (for q = 1 it is X^T y normalized).
-        if q == 1:
-            w = S[:, 0] / s_norm
-        else:
-            _, vecs = np.linalg.eigh(S @ S.T)
-            w = vecs[:, -1].copy()
-        # A zero-variance column has an exactly zero row in X^T Y and X^T X; eigh leaves
-        # rounding noise there: zero it so the column gets an exactly zero coefficient.
-        if zero_var_x.any():
-            w[zero_var_x] = 0.0
-            w /= np.linalg.norm(w)
-        # sklearn's _svd_flip_1d: the largest |w_i| is positive.
-        w *= np.sign(w[np.argmax(np.abs(w))])
-        # Step 3: r_a = w_a - sum_{j<a} (p_j^T w_a) r_j, so that t_a = X r_a = X_a w_a
-        # (X_a the deflated X) without deflating X.
-        r = w - R[:, :a] @ (P[:, :a].T @ w)
-        # Step 4: t_a^T t_a = r_a^T X^T X r_a.
-        Cr = C @ r
-        tt = float(r @ Cr)
-        if not tt > 0.0:
-            warnings.warn(
-                f"Score of component {a + 1} has zero norm; components {a + 1}..{A} are set to zero.",
-                RuntimeWarning,
-                stacklevel=4,
-            )
-            break
-        # Step 5: p_a = X^T X r_a / (t^T t).   Step 6: q_a = (r_a^T X^T Y)^T / (t^T t).
-        p_a = Cr / tt
-        q_a = (r @ S) / tt
-        # Step 7: (X^T Y)_{a+1} = (X^T Y)_a - (t^T t) p_a q_a^T.
-        S -= tt * np.outer(p_a, q_a)
-        W[:, a], P[:, a], Q[:, a], R[:, a] = w, p_a, q_a, r
-        n_informative = a + 1
-    return W, P, Q, R, n_informative
-
-
-def _check_n_components(n_components, n_samples, n_features):
-    if not isinstance(n_components, numbers.Integral) or isinstance(n_components, bool):
-        raise ValueError(f"n_components must be an integer, got {n_components!r}.")  # noqa: TRY004 (as sklearn)
-    if n_components < 1:
-        raise ValueError(f"n_components must be >= 1, got {n_components}.")
-    # As sklearn's PLSRegression: bounded by the rank of X^T X (Wegelin p. 25).
-    upper = min(n_samples, n_features)
-    if n_components > upper:
-        raise ValueError(
-            f"`n_components` upper bound is {upper} (min(n_samples={n_samples}, n_features={n_features})). "
-            f"Got {n_components} instead. Reduce `n_components`."
-        )
-    return int(n_components)

@@ -3,13 +3,12 @@
 :func:`residual_sums` gives the residual and total sums of squares of ``Y ~ X @ coef.T + a`` on
 the rows a :class:`~aumesh.model.cross_products.CrossProducts` summarizes; :func:`r2_per_target`
 and :func:`r2_variance_weighted` follow scikit-learn's ``r2_score`` conventions exactly;
-:func:`r2_path` scores every number of components of a fitted :class:`~aumesh.model.pls.PLSRegression`.
+:func:`r2_path` scores every number of components of a PLS fit (:mod:`aumesh.model.kernel_pls`).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from sklearn.utils.validation import check_is_fitted
 
 from aumesh.model.cross_products import CrossProducts
 
@@ -133,8 +132,9 @@ def r2_path(model, test_stats):
 
     Parameters
     ----------
-    model : PLSRegression
-        Fitted engine model (uses ``x_rotations_``, ``y_loadings_``, ``x_std_``, ``y_std_``, ``x_mean_``, ``y_mean_``).
+    model : PLSRegression or PLSFit
+        Fitted engine model (:mod:`aumesh.model.pls`, :mod:`aumesh.model.kernel_pls`); uses ``x_rotations_``,
+        ``y_loadings_``, ``x_std_``, ``y_std_``, ``x_mean_``, ``y_mean_``.
     test_stats : CrossProducts
         Statistics of the evaluation rows.
 
@@ -143,13 +143,17 @@ def r2_path(model, test_stats):
     r2 : ndarray of shape (model.n_components,)
         ``r2[k - 1]`` is the score of the model with ``k`` components.
     """
-    check_is_fitted(model, "x_rotations_")  # not coef_path_: built when first asked for, it is never needed here
+    if not hasattr(model, "x_rotations_"):  # scikit-learn's check, without importing it for every fitted model
+        from sklearn.exceptions import NotFittedError
+
+        raise NotFittedError(f"This {type(model).__name__} instance is not fitted yet. Call 'fit' first.")
     if not isinstance(test_stats, CrossProducts):
         raise TypeError(f"test_stats must be a CrossProducts, got {type(test_stats).__name__}.")
     sst = test_stats.cyy_diag
     varying = sst != 0  # sklearn's variance weighting: constant targets get zero weight
     if not varying.any():  # every target constant: the uniform mean of per-target scores (sklearn), per k
-        sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
+        path = model.coef_path_
+        sse, sst = residual_sums(path, model.y_mean_[None, :] - path @ model.x_mean_, test_stats)
         return r2_variance_weighted(sse, sst)
     n = test_stats.n
     rr = model.x_rotations_ / model.x_std_[:, None]  # (p, A)

@@ -48,7 +48,7 @@ from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, row_runs
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
-from aumesh.model.pls import PLSRegression
+from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, configuration_statistics, fold_order, \
     target_offsets, video_row_sums
@@ -514,19 +514,20 @@ def _one_blas_thread():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSRegression:
-    """The engine's PLS fit from statistics (card: PLSRegression(n_components, scale=True))."""
+def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSFit:
+    """The engine's PLS fit from statistics (card: PLSRegression(n_components, scale=True); the fitted attributes
+    of :class:`aumesh.model.pls.PLSRegression`, without importing scikit-learn in the stage)."""
     with _one_blas_thread():
-        return PLSRegression(n_components=n_components, scale=scale).fit_stats(stats)
+        return fit_statistics(stats, n_components, scale)
 
 
 @dataclass
 class Fits:
     """Every model of one configuration, fitted from its statistics (:func:`fit_models`)."""
 
-    folds: list[PLSRegression]  # fold f's model: trained on the other folds (cross-validation)
-    final: PLSRegression  # trained on every frame (card: final fit on all kept frames)
-    alone: list[PLSRegression]  # trained on fold f alone (the AU-field reliability)
+    folds: list[PLSFit]  # fold f's model: trained on the other folds (cross-validation)
+    final: PLSFit  # trained on every frame (card: final fit on all kept frames)
+    alone: list[PLSFit]  # trained on fold f alone (the AU-field reliability)
 
 
 def fit_models(cfg: Config, stats: FoldStatistics) -> Fits:
@@ -542,7 +543,7 @@ def fit_models(cfg: Config, stats: FoldStatistics) -> Fits:
     return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
 
 
-def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, fold_models: list[PLSRegression],
+def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, fold_models: list[PLSFit],
                    chunk_rows: int | None = None) -> CVResult:
     """Score each fold's model (``fold_models[f]``, trained without fold ``f``: :func:`fit_models`) from statistics
     (R²) and one streaming pass (MAE, per-vertex error)."""
@@ -674,10 +675,10 @@ class FinalModel:
     mesh_intercept: np.ndarray  # (1434,) intercept that yields a mesh (adds the mean neutral for target=neutral)
     feature_columns: list[str]
     n_components: int
-    model: PLSRegression
+    model: PLSFit
 
 
-def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLSRegression) -> FinalModel:
+def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLSFit) -> FinalModel:
     """Card: final fit on all kept frames (``model``, fitted on ``stats.total``: :func:`fit_models`), as released."""
     A = effective_n_components(cfg)
     mesh_intercept = model.raw_intercept_.copy()
@@ -693,7 +694,7 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLS
                       feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions), n_components=A, model=model)
 
 
-def au_field_reliability(alone: list[PLSRegression]) -> np.ndarray:
+def au_field_reliability(alone: list[PLSFit]) -> np.ndarray:
     """Per-AU mean cosine between the AU fields of the models fitted on each fold alone (disjoint videos), (20,)."""
     return reliability.field_cosines(np.stack([model.coef_ for model in alone]), np.arange(len(AU_COLUMNS)))
 
