@@ -69,6 +69,11 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert (ws / "release" / "MODEL_CARD.md").read_text().count("figures/") >= 4
     assert (ws / "release" / "au_to_mesh.glb").read_bytes()[:4] == b"glTF"  # the blendshape rig (tests/test_gltf.py)
     assert "up to date" in _run([BIN / "dvc", "repro"], ws)
+    # bytecode a plain `python` run writes beside the stages' source deps is not part of them (.dvcignore)
+    shutil.copy(REPO / ".dvcignore", ws / ".dvcignore")
+    (ws / "src" / "aumesh" / "model" / "__pycache__").mkdir(exist_ok=True)
+    (ws / "src" / "aumesh" / "model" / "__pycache__" / "pls.cpython-311.pyc").write_bytes(b"bytecode")
+    assert "up to date" in _run([BIN / "dvc", "repro"], ws)
 
     # `dvc plots show` draws the two curves the evaluate stage writes (declared `plots:` in dvc.yaml)
     paths = yaml.safe_load((ws / "params.yaml").read_text())["paths"]
