@@ -94,6 +94,19 @@ def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):
     _assert_same_prepared(one, some)
 
 
+def test_alignment_block_size_changes_no_bit(split_tables, monkeypatch):
+    """Pass 2 aligns a partition's frames a block at a time (bounded temporaries): blocks of 7 frames, with a ragged
+    last block in every partition, give the prepared data of one block a partition, bit for bit."""
+    sync = {"compute": "synchronous", "compute.partition_rows": 300, "preprocess.alignment.gpa_max_frames": 300}
+    whole, s1 = _prepare(split_tables, "block-whole", **sync)
+    monkeypatch.setattr(prepare, "RESIDUAL_BLOCK", 7)
+    blocks, s2 = _prepare(split_tables, "block-7", **sync)
+    assert s1 == s2
+    _assert_same_prepared(whole, blocks)
+    for name in ("meshes.npy", "neutral_mean.npy", "neutral_low_au.npy"):
+        np.testing.assert_array_equal(np.load(whole / name), np.load(blocks / name))
+
+
 def test_outlier_threshold_and_gpa_subsample_follow_their_definitions(split_tables):
     """Threshold = numpy quantile of every pose-passing frame's residual; subsample = smallest seeded hashes."""
     k = 300

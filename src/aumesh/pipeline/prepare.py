@@ -64,14 +64,18 @@ from aumesh.geometry.align import align_to_reference, apply_similarity_columns, 
 from aumesh.model.statistics import video_row_sums
 from aumesh.pipeline import compute
 from aumesh.pipeline.quantiles import exact_quantiles
-from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz,
-                             row_runs, write_rows)
+from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz, npy_layout,
+                             read_row_set, row_runs, write_rows)
 
 log = logging.getLogger(__name__)
 
 Partition = tuple[Piece, ...]
 NEUTRAL_FILES = {"mean": "neutral_mean.npy", "low_au": "neutral_low_au.npy"}
 VIDEO_IDS_FILE = "video_ids.npy"
+#: Frames whose anchors pass 2 aligns at a time: the alignment's float64 temporaries (~7 arrays of 288 bytes a frame)
+#: are ~15 MiB at 8,192 frames, the same for any partition size (a whole 65,536-row partition at once: ~120 MiB a task).
+#: Each frame is solved on its own, so the block size does not change a bit of the results.
+RESIDUAL_BLOCK = 8192
 #: Rows aligned, summed and written at a time in pass 3 (a (256, 1434) float64 block is 2.9 MB: in cache).
 ALIGN_BLOCK = 256
 PREPARED_FILES = ("meshes.npy", "frames.parquet", VIDEO_IDS_FILE, *NEUTRAL_FILES.values(), "reference.npz", "summary.json")
@@ -121,14 +125,19 @@ def gpa_hash(video: np.ndarray, frame: np.ndarray, seed: int) -> np.ndarray:
 
 @dataclass
 class Candidates:
-    """GPA candidates: the frames of smallest ``(hash, video, frame)`` seen so far, at most ``k``."""
+    """GPA candidates: the frames of smallest ``(hash, video, frame)`` seen so far, at most ``k``.
+
+    A frame is named by its partition and row there, not carried with its anchors: pass 1 stages every partition's
+    anchors (:func:`candidate_anchors` reads the chosen ones back), so the ``SPLIT_EVERY`` results a reduction holds
+    at a time cost ~80 bytes a candidate, not ~450 (anchors and table paths: +100 MiB at the peak of pass 1 over
+    48 partitions, 3.1M frames).
+    """
 
     hash: np.ndarray  # (m,) uint64
-    video: np.ndarray  # (m,) str
+    video: np.ndarray  # (m,) str (fixed width)
     frame: np.ndarray  # (m,) int64
-    table: np.ndarray  # (m,) str: the table's path
-    row: np.ndarray  # (m,) int64: the row within its table
-    anchors: np.ndarray  # (m, n_anchors, 3) float32
+    part: np.ndarray  # (m,) int32: the partition
+    row: np.ndarray  # (m,) int64: the row within its partition
 
     def take(self, order: np.ndarray) -> "Candidates":
         return Candidates(*(getattr(self, f)[order] for f in self.__dataclass_fields__))
@@ -140,8 +149,18 @@ class Candidates:
         return Candidates(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__)).smallest(k)
 
     def in_table_order(self) -> "Candidates":
-        """The same frames in the tables' order (what the GPA mean sums in: the order of the input)."""
-        return self.take(np.lexsort((self.row, self.table.astype(str))))
+        """The same frames in the tables' order (what the GPA mean sums in: the order of the input). Partitions are
+        consecutive row groups of the tables in order, so (partition, row) is that order on any partitioning."""
+        return self.take(np.lexsort((self.row, self.part)))
+
+
+def candidate_anchors(scratch: Path, candidates: Candidates) -> np.ndarray:
+    """(m, n_anchors, 3) float32 anchors of ``candidates``, in their order, from the partitions' staged anchors."""
+    out = np.empty((len(candidates.row), *npy_layout(scratch / f"{0:06d}.npy")[2][1:]), np.float32)
+    for i in np.unique(candidates.part):
+        at = np.flatnonzero(candidates.part == i)
+        out[at] = read_row_set(scratch / f"{i:06d}.npy", candidates.row[at])
+    return out
 
 
 @dataclass
@@ -213,12 +232,11 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> S
     frame = meta[FRAME_COLUMN].to_numpy(dtype=np.int64)[pose]
     h = gpa_hash(video, frame, cfg.seed)
     order = np.lexsort((frame, video.astype(str), h))[:k]  # the k smallest hashes (as Candidates.smallest)
-    table = np.concatenate([np.full(p.n_rows, str(p.table.path)) for p in part])[pose[order]]
-    row = np.concatenate([p.start + np.arange(p.n_rows) for p in part])[pose[order]]
     # fixed-width strings, not the rows' str objects: candidates outlive their partition, and a few surviving
     # objects from each partition's millions kept Python's small-object arenas, and the stage's memory, growing
     # with the partitions (+90 MiB retained after this pass at 1M frames)
-    candidates = Candidates(h[order], video[order].astype(str), frame[order], table, row, anchors_all[pose[order]])
+    candidates = Candidates(h[order], video[order].astype(str), frame[order], np.full(len(order), i, np.int32),
+                            pose[order].astype(np.int64))
     return Scan([len(meta)], [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))], len(pose), candidates, k)
 
 
@@ -257,8 +275,8 @@ def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.n
     rows = np.flatnonzero(pose)
     anchors = anchors[rows]
     residual, rotation, scale, translation = (np.empty((len(rows), *shape)) for shape in ((), (3, 3), (), (3,)))
-    for lo in range(0, len(rows), 65536):
-        block = slice(lo, lo + 65536)
+    for lo in range(0, len(rows), RESIDUAL_BLOCK):
+        block = slice(lo, lo + RESIDUAL_BLOCK)
         residual[block], (rotation[block], scale[block], translation[block]) = align_to_reference(anchors[block], reference)
     au_sum = meta.loc[pose, list(AU_COLUMNS)].to_numpy().sum(axis=1)
     videos, code = np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str), return_inverse=True)
@@ -513,8 +531,8 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             )
         partial_counts = {"frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose)}
         contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
-        sample = scan.candidates.in_table_order()
-        reference = generalized_procrustes(sample.anchors, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol)
+        sample = candidate_anchors(scratch, scan.candidates.in_table_order())
+        reference = generalized_procrustes(sample, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol)
         every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
         split_names = every_video[in_parts > 1]
 
