@@ -51,7 +51,7 @@ from threadpoolctl import threadpool_limits
 
 from aumesh.model.cross_products import CrossProducts
 
-__all__ = ["PLSFit", "check_n_components", "coefficient_path", "fit_statistics", "kernel_pls"]
+__all__ = ["PLSFit", "check_n_components", "coefficient_path", "fit_statistics", "intercept_path", "kernel_pls"]
 
 
 class PLSFit:
@@ -82,6 +82,11 @@ class PLSFit:
     def coef_path_(self) -> np.ndarray:
         """(n_components, n_targets, n_features): :func:`coefficient_path`, built on first use."""
         return coefficient_path(self)
+
+    @property
+    def raw_intercept_path_(self) -> np.ndarray:
+        """(n_components, n_targets): :func:`intercept_path`."""
+        return intercept_path(self)
 
 
 def fit_statistics(stats: CrossProducts, n_components: int, scale: bool) -> PLSFit:
@@ -157,6 +162,12 @@ def coefficient_path(fit) -> np.ndarray:
     path = np.einsum("qa,pa->aqp", fit.y_loadings_ * fit.y_std_[:, None], fit.x_rotations_ / fit.x_std_[:, None])
     np.cumsum(path, axis=0, out=path)
     return path
+
+
+def intercept_path(fit) -> np.ndarray:
+    """Raw intercepts of every ``k <= A`` of a fit (a :class:`PLSFit` or a fitted ``PLSRegression``), shape
+    (A, n_targets): ``y_mean_ - x_mean_ @ B_k^T`` for the ``B_k`` of ``fit.coef_path_``."""
+    return fit.y_mean_[None, :] - np.einsum("aqp,p->aq", fit.coef_path_, fit.x_mean_)
 
 
 def kernel_pls(C, S, A, zero_var_x):

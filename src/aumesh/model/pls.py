@@ -23,7 +23,7 @@ from sklearn.base import (
 from sklearn.utils.validation import check_array, check_is_fitted, validate_data
 
 from aumesh.model.cross_products import CrossProducts
-from aumesh.model.kernel_pls import check_n_components, coefficient_path, fit_statistics
+from aumesh.model.kernel_pls import check_n_components, coefficient_path, fit_statistics, intercept_path
 
 __all__ = ["PLSRegression"]
 
@@ -208,7 +208,7 @@ class PLSRegression(
     def raw_intercept_path_(self):
         """Raw intercepts for every k, shape (n_components, n_targets)."""
         check_is_fitted(self)
-        return self.y_mean_[None, :] - np.einsum("aqp,p->aq", self.coef_path_, self.x_mean_)
+        return intercept_path(self)
 
     # ------------------------------------------------------------- predict
     def predict(self, X, n_components=None):

@@ -152,8 +152,7 @@ def r2_path(model, test_stats):
     sst = test_stats.cyy_diag
     varying = sst != 0  # sklearn's variance weighting: constant targets get zero weight
     if not varying.any():  # every target constant: the uniform mean of per-target scores (sklearn), per k
-        path = model.coef_path_
-        sse, sst = residual_sums(path, model.y_mean_[None, :] - path @ model.x_mean_, test_stats)
+        sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
         return r2_variance_weighted(sse, sst)
     n = test_stats.n
     rr = model.x_rotations_ / model.x_std_[:, None]  # (p, A)

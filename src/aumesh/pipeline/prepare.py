@@ -64,7 +64,7 @@ from aumesh.geometry.align import align_to_reference, apply_similarity_columns, 
 from aumesh.model.statistics import video_row_sums
 from aumesh.pipeline import compute
 from aumesh.pipeline.quantiles import exact_quantiles
-from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz, npy_layout,
+from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz,
                              read_row_set, row_runs, write_rows)
 
 log = logging.getLogger(__name__)
@@ -128,7 +128,7 @@ class Candidates:
     """GPA candidates: the frames of smallest ``(hash, video, frame)`` seen so far, at most ``k``.
 
     A frame is named by its partition and row there, not carried with its anchors: pass 1 stages every partition's
-    anchors (:func:`candidate_anchors` reads the chosen ones back), so the ``SPLIT_EVERY`` results a reduction holds
+    anchors (:func:`anchors_in_table_order` reads the chosen ones back), so the ``SPLIT_EVERY`` results a reduction holds
     at a time cost ~80 bytes a candidate, not ~450 (anchors and table paths: +100 MiB at the peak of pass 1 over
     48 partitions, 3.1M frames).
     """
@@ -154,13 +154,12 @@ class Candidates:
         return self.take(np.lexsort((self.row, self.part)))
 
 
-def candidate_anchors(scratch: Path, candidates: Candidates) -> np.ndarray:
-    """(m, n_anchors, 3) float32 anchors of ``candidates``, in their order, from the partitions' staged anchors."""
-    out = np.empty((len(candidates.row), *npy_layout(scratch / f"{0:06d}.npy")[2][1:]), np.float32)
-    for i in np.unique(candidates.part):
-        at = np.flatnonzero(candidates.part == i)
-        out[at] = read_row_set(scratch / f"{i:06d}.npy", candidates.row[at])
-    return out
+def anchors_in_table_order(scratch: Path, candidates: Candidates) -> np.ndarray:
+    """(m, n_anchors, 3) float32 anchors of ``candidates`` in the tables' order (:meth:`Candidates.in_table_order`:
+    partition by partition), read from the partitions' staged anchors."""
+    ordered = candidates.in_table_order()
+    return np.concatenate([read_row_set(_staged_anchors_file(scratch, i), ordered.row[ordered.part == i])
+                           for i in np.unique(ordered.part)])
 
 
 @dataclass
@@ -203,6 +202,11 @@ def _write_staged(table: pa.Table, path: Path) -> None:
     feather.write_feather(table, path, compression="uncompressed")
 
 
+def _staged_anchors_file(scratch: Path, i: int) -> Path:
+    """Partition ``i``'s float32 anchors of every row, (n_rows, n_anchors, 3), as pass 1 stages them."""
+    return scratch / f"{i:06d}.npy"
+
+
 def _staged_meta(scratch: Path, i: int) -> pd.DataFrame:
     """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 staged it."""
     return feather.read_table(scratch / f"{i:06d}.arrow").to_pandas()
@@ -210,7 +214,7 @@ def _staged_meta(scratch: Path, i: int) -> pd.DataFrame:
 
 def _staged(scratch: Path, i: int) -> tuple[pd.DataFrame, np.ndarray]:
     """Partition ``i``'s validated metadata and float32 anchors, as pass 1 staged them."""
-    return _staged_meta(scratch, i), load_npy(scratch / f"{i:06d}.npy")
+    return _staged_meta(scratch, i), load_npy(_staged_anchors_file(scratch, i))
 
 
 def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> Scan:
@@ -225,7 +229,7 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> S
     anchors_all = _read_anchors(part, cfg)
     _write_staged(pa.Table.from_pandas(meta.assign(piece=file_index.astype(np.int32)), preserve_index=False),
                   scratch / f"{i:06d}.arrow")
-    np.save(scratch / f"{i:06d}.npy", anchors_all)
+    np.save(_staged_anchors_file(scratch, i), anchors_all)
     pose = np.flatnonzero(pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess))
     k = cfg.preprocess.alignment.gpa_max_frames
     video = meta[VIDEO_COLUMN].to_numpy(dtype=object)[pose]
@@ -531,7 +535,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             )
         partial_counts = {"frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose)}
         contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
-        sample = candidate_anchors(scratch, scan.candidates.in_table_order())
+        sample = anchors_in_table_order(scratch, scan.candidates)
         reference = generalized_procrustes(sample, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol)
         every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
         split_names = every_video[in_parts > 1]
