@@ -346,3 +346,18 @@ def test_local_map_runs_on_the_local_threads_in_order_and_one_by_one_when_synchr
     with compute.engine(ComputeConfig(scheduler="synchronous")):
         out = compute.local_map(lambda x: (x, threading.current_thread().name), [1, 2, 3])
     assert out == [(x, threading.current_thread().name) for x in (1, 2, 3)]
+
+
+@pytest.mark.parametrize("preset, expected", [(None, "system"), ("mimalloc", "mimalloc")])
+def test_stage_processes_allocate_arrow_buffers_with_the_system_allocator(preset, expected):
+    """The ``aumesh`` entry point selects Arrow's system pool before pyarrow is imported (mimalloc, pyarrow's default,
+    kept freed partition buffers resident); a user's ``ARROW_DEFAULT_MEMORY_POOL`` stands."""
+    import os
+
+    code = ("import aumesh.cli as cli\ncli.main = lambda: 0\ntry:\n    cli.run()\nexcept SystemExit:\n    pass\n"
+            "import pyarrow as pa\nprint(pa.default_memory_pool().backend_name)")
+    env = {k: v for k, v in os.environ.items() if k != "ARROW_DEFAULT_MEMORY_POOL"}
+    if preset:
+        env["ARROW_DEFAULT_MEMORY_POOL"] = preset
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split()[-1] == expected

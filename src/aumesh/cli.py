@@ -357,6 +357,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def run() -> None:
     """The ``aumesh`` command (console script and ``python -m aumesh``): :func:`main`, then exit with its status."""
+    from aumesh.pipeline.compute import prefer_system_arrow_pool
+
+    prefer_system_arrow_pool()  # before anything imports pyarrow
     code = main()
     # At exit the interpreter's last garbage collections walk every object of the ~2,900 modules the evaluate stage
     # imports (MLflow, SQLAlchemy, scikit-learn): 0.6-0.8 s a stage at any data size. Frozen objects are skipped

@@ -140,7 +140,10 @@ class ComputeConfig:
     scheduler: str = "threads"  # synchronous | threads | processes | distributed
     n_workers: int | None = None  # threads/processes; None: every core
     address: str | None = None  # distributed: the scheduler's address
-    partition_rows: int = 65536
+    # rows in flight are about n_workers x partition_rows, and the passes' per-partition arrays (metadata, transforms,
+    # per-video sums) scale with them: 65,536 put 130k rows in flight from ~130k frames up but 100k at 100k frames
+    # (2 x 50k), so the peak grew with the data; 32,768 halves that step (benchmarks/README, issue 12's sixth round)
+    partition_rows: int = 32768
 
 
 @dataclass(frozen=True)
