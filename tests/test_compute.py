@@ -8,6 +8,7 @@ processes over loopback).
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -352,12 +353,12 @@ def test_local_map_runs_on_the_local_threads_in_order_and_one_by_one_when_synchr
 def test_stage_processes_allocate_arrow_buffers_with_the_system_allocator(preset, expected):
     """The ``aumesh`` entry point selects Arrow's system pool before pyarrow is imported (mimalloc, pyarrow's default,
     kept freed partition buffers resident); a user's ``ARROW_DEFAULT_MEMORY_POOL`` stands."""
-    import os
+    from aumesh.pipeline.compute import ARROW_POOL_ENV
 
     code = ("import aumesh.cli as cli\ncli.main = lambda: 0\ntry:\n    cli.run()\nexcept SystemExit:\n    pass\n"
             "import pyarrow as pa\nprint(pa.default_memory_pool().backend_name)")
-    env = {k: v for k, v in os.environ.items() if k != "ARROW_DEFAULT_MEMORY_POOL"}
+    env = {k: v for k, v in os.environ.items() if k != ARROW_POOL_ENV}
     if preset:
-        env["ARROW_DEFAULT_MEMORY_POOL"] = preset
+        env[ARROW_POOL_ENV] = preset
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     assert out.split()[-1] == expected
