@@ -349,6 +349,31 @@ def test_local_map_runs_on_the_local_threads_in_order_and_one_by_one_when_synchr
     assert out == [(x, threading.current_thread().name) for x in (1, 2, 3)]
 
 
+@pytest.mark.parametrize("scheduler", ["synchronous", "threads"])
+def test_a_pass_returns_its_freed_memory_once_when_it_ends(scheduler, monkeypatch):
+    """Freed memory goes back to the system after the pass's last task, not after each task (a task that finds its
+    predecessor's freed pages reuses them; returned pages were faulted in again by the next task)."""
+    import threading
+
+    from aumesh.config import ComputeConfig
+    from aumesh.pipeline import compute
+
+    events, lock = [], threading.Lock()
+
+    def task(x):
+        with lock:
+            events.append("task")
+        return x
+
+    monkeypatch.setattr(compute, "release_freed_memory", lambda: events.append("release"))
+    with compute.engine(ComputeConfig(scheduler=scheduler, n_workers=2)):
+        assert compute.map_gather(task, list(range(6))) == list(range(6))
+        assert events == ["task"] * 6 + ["release"]
+        events.clear()
+        assert compute.map_reduce(task, lambda a, b: a + b, list(range(6))) == 15
+        assert events == ["task"] * 6 + ["release"]
+
+
 @pytest.mark.parametrize("preset, expected", [(None, "system"), ("mimalloc", "mimalloc")])
 def test_stage_processes_allocate_arrow_buffers_with_the_system_allocator(preset, expected):
     """The ``aumesh`` entry point selects Arrow's system pool before pyarrow is imported (mimalloc, pyarrow's default,
