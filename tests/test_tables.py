@@ -83,19 +83,23 @@ def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tm
     interpreter, against the compressed size of the 8 row groups' mesh columns (what pre-buffering holds)."""
     import pyarrow.parquet as pq
 
+    from aumesh.data.schema import mesh_columns_axis_major
+    from aumesh.pipeline.compute import ARROW_POOL_ENV
+
     write_tables(tmp_path / "raw", SynthSpec(n_frames=8000, n_videos=40, seed=3, frames_per_file=8000))
     (tmp_path / "data").mkdir()
     (raw,) = sorted((tmp_path / "raw").glob("*.parquet"))
     pq.write_table(pq.read_table(raw), tmp_path / "data" / raw.name, row_group_size=1000)
     md = pq.read_metadata(tmp_path / "data" / raw.name)
-    mesh = [i for i in range(md.num_columns) if md.schema.column(i).name[:2] in ("x_", "y_", "z_")]
+    names = md.schema.names
+    mesh = [names.index(name) for name in mesh_columns_axis_major()]
     assert md.num_row_groups == 8 and len(mesh) == 3 * N_VERTICES
     compressed = sum(md.row_group(g).column(i).total_compressed_size for g in range(8) for i in mesh)
     code = ("import sys, pyarrow as pa\nfrom aumesh.data import tables\n"
             f"(t,) = tables.discover({str(tmp_path / 'data')!r}, '*.parquet', '{{stem}}.npy')\n"
             "n = sum(c.shape[1] for _, c in tables.iter_mesh_columns(t, 1000, range(8)))\n"
             "print(n, pa.default_memory_pool().max_memory())")
-    env = {k: v for k, v in os.environ.items() if k != "ARROW_DEFAULT_MEMORY_POOL"} | {"ARROW_DEFAULT_MEMORY_POOL": "system"}
+    env = {**os.environ, ARROW_POOL_ENV: "system"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
     assert int(out[0]) == 8000
     assert int(out[1]) < 0.8 * compressed  # pre-buffered: 1.5x (89 vs 58 MiB); a row group at a time: 0.65x
