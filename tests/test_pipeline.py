@@ -290,6 +290,43 @@ def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vect
                                rtol=1e-5)  # the committed CSV: 6 significant digits
 
 
+def test_the_evaluate_stage_never_imports_mlflow_its_run_is_logged_beside(tmp_path_factory):
+    """MLflow (its import alone ~4 s of CPU) is imported and the run logged by the tracking helper process while the
+    stage computes: the stage process never imports it, and the run is complete (params, metrics, the pyfunc model,
+    the stage's pid) and the one ``tracking.json`` names."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from mlflow import MlflowClient
+
+    from aumesh import config
+    from aumesh.experiments import tracking
+    from aumesh.pipeline import stages
+    from test_sweep import workspace_with_store
+
+    code = ("import json, os, sys\n"
+            "from aumesh import config\n"
+            "from aumesh.pipeline import stages\n"
+            "stages.evaluate_stage(config.load_params('params.yaml'))\n"
+            "print(json.dumps({'pid': os.getpid(), 'mlflow': sorted(m for m in sys.modules if m.split('.')[0] == 'mlflow')}))\n")
+    with workspace_with_store(tmp_path_factory, "beside") as ws:
+        out = subprocess.run([sys.executable, "-c", code], cwd=ws, env=os.environ, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        stage = json.loads(out.stdout.strip().splitlines()[-1])
+        cfg = config.load_params(ws / "params.yaml")
+        run_info = json.loads((ws / cfg.paths.model_dir / stages.TRACKING_JSON).read_text())
+        client = MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+        run = client.get_run(run_info["run_id"])
+        artifacts = {a.path for a in client.list_artifacts(run.info.run_id, "model")}
+    assert stage["mlflow"] == []
+    assert run.info.status == "FINISHED" and run.data.tags[tracking.PID_TAG] == str(stage["pid"])
+    assert run.data.params["model.n_components"] == str(cfg.model.n_components)
+    assert {"r2_mean", "mae_mean", "seconds_log_model"} <= set(run.data.metrics)
+    assert "model/MLmodel" in artifacts
+
+
 def test_the_passes_scratch_goes_with_its_result_or_with_the_next_stage_after_a_kill(recovery_prepared, tmp_path):
     """The scratch folders (per-video sums, each frame's error) carry their process: removed with the statistics and
     the result, or, when their process was killed, by the next evaluate stage's start; a live run's stay."""

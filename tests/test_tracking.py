@@ -165,6 +165,100 @@ def test_disabled_tracking_is_a_noop(workspace):
     assert not (workspace / "mlflow.db").exists()
 
 
+# ----------------------------------------------------------- a run held by a helper process
+def _pid(handle) -> int:  # what the helper runs, with its TrackedRun
+    import os
+
+    return os.getpid()
+
+
+def _broken(handle) -> None:
+    raise ValueError("the store refused it")
+
+
+def test_a_run_beside_is_the_same_run_logged_from_a_helper_process_in_order(cfg, store_uri, workspace):
+    import os
+
+    with tracking.tracked_run_beside(cfg, "beside", {"model": {"n_components": 8}}, tags={"stage": "evaluate"}) as run:
+        helper = run.call(_pid)
+        for step in range(5):  # queued in order: the history is the order of the calls
+            run.log_metrics({"m": float(step)}, step=step)
+        run.log_fold_metrics({"r2": [0.5, 0.6, 0.7]})
+        run.log_config({"model": {"n_components": 8}})
+        run.log_dataset(provenance.data_digest(workspace), source=str(workspace / "data"))
+    assert helper.result() != os.getpid()  # logged by another process
+    got = _client(store_uri).get_run(run.run_id)
+    assert got.info.status == "FINISHED" and got.info.run_name == "beside"
+    assert got.data.params["model.n_components"] == "8" and got.data.tags["stage"] == "evaluate"
+    assert got.data.tags[tracking.PID_TAG] == str(os.getpid())  # the process whose end ends the run: this one
+    assert got.data.tags["aumesh.data.md5"] == MD5 and got.inputs.dataset_inputs[0].dataset.digest == MD5
+    history = sorted(_client(store_uri).get_metric_history(run.run_id, "m"), key=lambda m: m.step)
+    assert [(m.step, m.value) for m in history] == [(s, float(s)) for s in range(5)]
+    assert {"config.yaml"} <= {a.path for a in _client(store_uri).list_artifacts(run.run_id)}
+
+
+@pytest.mark.parametrize("error, status", [(RuntimeError("boom"), "FAILED"), (KeyboardInterrupt(), "KILLED")])
+def test_a_run_beside_ends_failed_or_killed_with_the_callers_error(cfg, store_uri, error, status):
+    with pytest.raises(type(error)):
+        with tracking.tracked_run_beside(cfg, "broken", {"a": 1}) as run:
+            run.log_metrics({"partial": 1.0})
+            raise error
+    got = _client(store_uri).get_run(run.run_id)
+    assert got.info.status == status and got.data.metrics["partial"] == 1.0
+    assert got.data.tags[tracking.ERROR_TAG].startswith(type(error).__name__)
+    assert "error.txt" in {a.path for a in _client(store_uri).list_artifacts(run.run_id)}
+
+
+def test_a_failed_queued_call_fails_the_run_and_is_raised_here(cfg, store_uri):
+    with pytest.raises(ValueError, match="the store refused it"):
+        with tracking.tracked_run_beside(cfg, "refused", None) as run:
+            run.call(_broken)
+            run.log_metrics({"after": 1.0})  # queued behind the failure: still logged
+    got = _client(store_uri).get_run(run.run_id)
+    assert got.info.status == "FAILED" and "the store refused it" in got.data.tags[tracking.ERROR_TAG]
+
+
+def test_the_helper_ends_with_its_caller_and_the_next_run_marks_the_run_killed(cfg, store_uri, tmp_path):
+    """The stage process killed alone (the OOM killer picks the largest process): its helper does not outlive it,
+    and the run it left RUNNING is marked KILLED by the next run, as a run of the stage's own process would be."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from aumesh.utils.io import process_gone
+
+    code = ("import os, signal, sys\n"
+            "from aumesh.experiments import tracking\n"
+            "from test_tracking import _pid\n"
+            "with tracking.tracked_run_beside({'experiment': sys.argv[1]}, 'victim', {'a': 1}) as run:\n"
+            "    print(run.run_id, run.call(_pid).result(), flush=True)\n"
+            "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    with open(tmp_path / "out.txt", "w+") as out:  # a file, not a pipe: an orphaned helper would hold a pipe open
+        assert subprocess.run([sys.executable, "-c", code, cfg["experiment"]], stdout=out, env=env).returncode == -9
+        out.seek(0)
+        victim, helper = out.read().split()
+    now, deadline = time.time(), time.monotonic() + 20  # a process started after now is not the helper (pid reuse)
+    while not process_gone(int(helper), now) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert process_gone(int(helper), now), f"the helper {helper} outlived its caller"
+    client = _client(store_uri)
+    assert client.get_run(victim).info.status == "RUNNING"
+    with tracking.tracked_run(cfg, "next", None):
+        pass
+    after = client.get_run(victim)
+    assert after.info.status == "KILLED" and "ended without closing" in after.data.tags[tracking.ERROR_TAG]
+
+
+def test_a_disabled_run_beside_is_a_noop(workspace):
+    with tracking.tracked_run_beside({"enabled": False}, "x", {"a": 1}) as run:
+        run.log_metrics({"m": 1.0})
+        assert run.call(_broken) is None
+    assert run.run_id is None and not run.enabled
+    assert not (workspace / "mlflow.db").exists()
+
+
 # ------------------------------------------------------------------- URI resolution
 def test_resolve_tracking_uri_from_subdirectory(workspace, monkeypatch):
     sub = workspace / "src" / "deep"

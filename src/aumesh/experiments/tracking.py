@@ -5,6 +5,9 @@ Design
 * The store, its client and its value limits are :mod:`aumesh.experiments.mlflow_store`;
   the model registry is :mod:`aumesh.experiments.registry`. No fluent "active run", no
   ``mlflow.set_tracking_uri``: use the handle yielded by :func:`tracked_run` to log.
+* The evaluate stage logs through :func:`tracked_run_beside`: a helper process imports MLflow and holds
+  the run while the stage computes (the stage process never imports MLflow); sweeps, which log many
+  runs from one process, use :func:`tracked_run`.
 * The default store is ``sqlite:///<workspace>/mlflow.db`` with artifacts in
   ``<workspace>/mlartifacts``, both absolute so runs started from a
   subdirectory or from a DVC queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``,
@@ -58,6 +61,8 @@ from aumesh.experiments.mlflow_store import (
 )
 
 if TYPE_CHECKING:  # pragma: no cover
+    from concurrent.futures import Future, ProcessPoolExecutor
+
     import pandas as pd
     from mlflow import MlflowClient
 
@@ -74,13 +79,16 @@ _ACTIVE_RUNS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar(
 )
 
 
-def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, str]:
+def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: int | None = None) -> dict[str, str]:
     """Tags describing code, data and environment; never raises.
 
     Parameters
     ----------
     tracking_cfg : Mapping, optional
         ``dvc_file`` (default ``"data.dvc"``) names the DVC file to digest.
+    owner_pid : int, optional
+        The process whose end ends the run (``aumesh.pid``); default this one (:func:`tracked_run_beside` logs from a
+        helper process on behalf of the stage's).
 
     Returns
     -------
@@ -124,7 +132,7 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, 
                      ("DVC_EXP_BASELINE_REV", "dvc.baseline_rev")):
         if os.environ.get(env):
             tags[tag] = os.environ[env]
-    tags[HOST_TAG], tags[PID_TAG] = socket.gethostname(), str(os.getpid())
+    tags[HOST_TAG], tags[PID_TAG] = socket.gethostname(), str(owner_pid or os.getpid())
     tags["mlflow.source.name"] = sys.argv[0] if sys.argv and sys.argv[0] else "python"
     tags["mlflow.source.type"] = "LOCAL"
     try:
@@ -318,7 +326,7 @@ class _NullRun(TrackedRun):
         self.tracking_uri = None  # type: ignore[assignment]
 
     def __getattribute__(self, item: str) -> Any:
-        if item.startswith("log_") or item == "set_tags":
+        if item.startswith("log_") or item in ("set_tags", "call"):
             return lambda *a, **k: None
         return object.__getattribute__(self, item)
 
@@ -357,12 +365,13 @@ def _open_run(
     run_name: str | None,
     tags: Mapping[str, Any] | None,
     parent_run_id: str | None,
+    owner_pid: int | None = None,
 ) -> TrackedRun:
     client = get_client(tracking_cfg)
     uri = client.tracking_uri
     name = str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT)
     exp_id = ensure_experiment(client, name, _default_artifact_location(uri, tracking_cfg))
-    all_tags = provenance_tags(tracking_cfg)
+    all_tags = provenance_tags(tracking_cfg, owner_pid)
     close_orphaned_runs(client, exp_id, all_tags.get("aumesh.workspace"))
     if parent_run_id:
         all_tags[PARENT_TAG] = parent_run_id
@@ -399,12 +408,21 @@ def close_orphaned_runs(client: MlflowClient, experiment_id: str, workspace: str
     return killed
 
 
-def _fail(handle: TrackedRun, exc: BaseException) -> None:
+def _failure(exc: BaseException) -> tuple[str, str, str]:
+    """``(status, "Type: message", traceback)`` of the exception that ends a run (KILLED for ``KeyboardInterrupt``)."""
     status = "KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED"
+    return status, f"{type(exc).__name__}: {exc}", "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+
+
+def _fail(handle: TrackedRun, exc: BaseException) -> None:
+    _end_failed(handle, *_failure(exc))
+
+
+def _end_failed(handle: TrackedRun, status: str, error: str, tb: str) -> None:
+    """Tag the run with ``error`` (``aumesh.error``), log ``tb`` as ``error.txt`` and terminate it as ``status``."""
     with contextlib.suppress(Exception):
-        handle.client.set_tag(handle.run_id, ERROR_TAG, _truncate(f"{type(exc).__name__}: {exc}", MAX_TAG_VALUE_LENGTH))
+        handle.client.set_tag(handle.run_id, ERROR_TAG, _truncate(error, MAX_TAG_VALUE_LENGTH))
     with contextlib.suppress(Exception):
-        tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
         handle.client.log_text(handle.run_id, tb, "error.txt")
     with contextlib.suppress(Exception):
         handle.client.set_terminated(handle.run_id, status)
@@ -472,6 +490,143 @@ def tracked_run(
         handle.client.set_terminated(handle.run_id, "FINISHED")
     finally:
         _ACTIVE_RUNS.reset(token)
+
+
+# ------------------------------------------------------- a run beside the work
+class RunBeside:
+    """The handle of :func:`tracked_run_beside`: :class:`TrackedRun`'s ``log_*`` and ``set_tags`` methods, each
+    queued to the helper process that holds the run and run there in the order they were called; they return at once
+    (a :class:`concurrent.futures.Future`). ``run_id``, ``experiment_id`` and ``tracking_uri`` wait for the run to be
+    open."""
+
+    enabled = True
+
+    def __init__(self, helper: "ProcessPoolExecutor", opened: "Future") -> None:
+        self._helper = helper
+        self._opened = opened  # of (run_id, experiment_id, tracking_uri)
+        self._queued = [opened]
+
+    def __repr__(self) -> str:
+        return f"RunBeside(opened={self._opened.done()}, queued={len(self._queued)})"
+
+    run_id = property(lambda self: self._opened.result()[0])
+    experiment_id = property(lambda self: self._opened.result()[1])
+    tracking_uri = property(lambda self: self._opened.result()[2])
+
+    def call(self, fn, *args, **kwargs):
+        """Queue ``fn(handle, *args, **kwargs)`` with the helper's :class:`TrackedRun` ``handle`` (``fn`` and its
+        arguments are pickled: a module-level function); returns its Future."""
+        future = self._helper.submit(_call_beside, fn, args, kwargs)
+        self._queued.append(future)
+        return future
+
+    def __getattr__(self, name: str):
+        if name.startswith("log_") or name == "set_tags":
+            method = getattr(TrackedRun, name)
+            return lambda *args, **kwargs: self.call(method, *args, **kwargs)
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+    def wait(self) -> None:
+        """Wait for everything queued; raise the first error the helper met."""
+        for future in self._queued:
+            future.result()
+
+    def end(self, error: BaseException | None = None) -> None:
+        """End the run FINISHED, or with ``error`` as :func:`tracked_run` does (nothing to end if it never opened)."""
+        if error is None:
+            self._helper.submit(_end_beside, "FINISHED").result()
+        elif self._opened.exception() is None:
+            with contextlib.suppress(Exception):
+                self._helper.submit(_end_beside, *_failure(error)).result()
+
+
+_BESIDE: TrackedRun | None = None  # the helper process's open run
+
+
+def _start_helper(owner_pid: int) -> None:
+    """In the helper: Ctrl-C (which a terminal sends to the whole process group) is the stage's to handle, so the run
+    can still be marked KILLED; and the helper ends when its stage process is gone (e.g. killed alone)."""
+    import signal
+    import threading
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == owner_pid:
+            time.sleep(0.5)
+        os._exit(1)  # the run stays RUNNING under the stage's pid: the next run marks it KILLED
+
+    threading.Thread(target=watch, name="aumesh-owner-watch", daemon=True).start()
+
+
+def _open_beside(tracking_cfg, run_name, params, tags, owner_pid: int) -> tuple[str, str, str]:
+    global _BESIDE
+    handle = _open_run(tracking_cfg, run_name, tags, None, owner_pid)
+    try:
+        if params:
+            handle.log_params(params)
+    except BaseException as exc:
+        _fail(handle, exc)
+        raise
+    _BESIDE = handle
+    return handle.run_id, handle.experiment_id, handle.tracking_uri
+
+
+def _call_beside(fn, args, kwargs):
+    if _BESIDE is None:
+        raise RuntimeError("the MLflow run did not open (see the first error)")
+    return fn(_BESIDE, *args, **kwargs)
+
+
+def _end_beside(status: str, error: str = "", tb: str = "") -> None:
+    if status == "FINISHED":
+        _BESIDE.client.set_terminated(_BESIDE.run_id, status)
+    else:
+        _end_failed(_BESIDE, status, error, tb)
+
+
+@contextlib.contextmanager
+def tracked_run_beside(
+    tracking_cfg: Mapping[str, Any] | None,
+    run_name: str | None,
+    params: Mapping[str, Any] | None,
+    tags: Mapping[str, Any] | None = None,
+) -> Iterator[RunBeside | TrackedRun]:
+    """:func:`tracked_run` held by a helper process, so MLflow is never imported here and works beside the caller.
+
+    MLflow 3's import (its GenAI, gateway and data modules, pandas, SQLAlchemy: ~4 s of CPU) ran on one core before
+    the evaluate stage's first pass, while the other idled; beside it, the stage at 344k frames takes 0.82x the time.
+    The helper (one
+    worker of a :class:`concurrent.futures.ProcessPoolExecutor`, forked where the platform can) imports MLflow and opens
+    the run while the caller computes; the caller's logging is queued to it, in order
+    (:class:`RunBeside`). The run is the same as :func:`tracked_run`'s: params, provenance tags (``aumesh.pid`` is the
+    caller's), FINISHED on normal exit; if the body raises, or a queued call failed, the run gets the ``aumesh.error``
+    tag and ``error.txt``, is FAILED (KILLED for ``KeyboardInterrupt``) and the error is raised here. If the caller is
+    killed the helper ends too, and the next run marks the run KILLED (:func:`close_orphaned_runs`).
+
+    Yields
+    ------
+    RunBeside
+        Or the no-op handle (``enabled=False``) when ``tracking.enabled`` is false.
+    """
+    if not _enabled(tracking_cfg):
+        yield _NullRun()
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    methods = multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")  # fork: inherits the imports
+    owner = os.getpid()
+    with ProcessPoolExecutor(1, mp_context=context, initializer=_start_helper, initargs=(owner,)) as helper:
+        run = RunBeside(helper, helper.submit(_open_beside, dict(tracking_cfg or {}), run_name, params, tags, owner))
+        try:
+            yield run
+            run.wait()
+        except BaseException as exc:
+            run.end(exc)
+            raise
+        run.end()
 
 
 # ------------------------------------------------------------------------ sweeps

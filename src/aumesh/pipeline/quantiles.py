@@ -44,9 +44,6 @@ class Interval:
     hi: float
     closed: bool
 
-    def mask(self, v: np.ndarray) -> np.ndarray:
-        return (v >= self.lo) & ((v <= self.hi) if self.closed else (v < self.hi))
-
     def edges(self) -> np.ndarray:
         return np.linspace(self.lo, self.hi, BINS + 1)
 
@@ -66,20 +63,39 @@ def _merge_range(a, b):
     return a[0] + b[0], min(a[1], b[1]), max(a[2], b[2])
 
 
+def _locate(v: np.ndarray, intervals: tuple[Interval, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The values of ``v`` inside the disjoint ``intervals``, grouped by interval: ``(values, bounds)``, interval ``i``'s
+    values being ``values[bounds[i]:bounds[i + 1]]`` (in no particular order).
+
+    One search of each value among the intervals' lower ends, not a mask of the whole vector per interval: the
+    error curve asks for 1,001 quantiles, whose gather pass cost ~1,000 passes over every partition's values.
+    """
+    order = np.argsort([iv.lo for iv in intervals], kind="stable")
+    lo = np.array([intervals[i].lo for i in order])
+    hi = np.array([intervals[i].hi for i in order])
+    closed = np.array([intervals[i].closed for i in order], dtype=bool)
+    k = np.searchsorted(lo, v, side="right") - 1  # the interval of largest lower end <= v, if any
+    candidate = k >= 0
+    k, v = k[candidate], v[candidate]
+    inside = (v < hi[k]) | (closed[k] & (v == hi[k]))
+    which = order[k[inside]]  # back to the caller's numbering
+    grouped = np.argsort(which, kind="stable")
+    return v[inside][grouped], np.searchsorted(which[grouped], np.arange(len(intervals) + 1))
+
+
 def _histogram(values: Callable[[Any], np.ndarray], intervals: tuple[Interval, ...], part: Any) -> np.ndarray:
     """(len(intervals), BINS) counts of the partition's values in each interval's bins."""
-    v = np.asarray(values(part), dtype=np.float64)
+    inside, bounds = _locate(np.asarray(values(part), dtype=np.float64), intervals)
     out = np.zeros((len(intervals), BINS), dtype=np.int64)
     for i, iv in enumerate(intervals):
-        inside = v[iv.mask(v)]
-        j = np.clip(np.searchsorted(iv.edges(), inside, side="right") - 1, 0, BINS - 1)
+        j = np.clip(np.searchsorted(iv.edges(), inside[bounds[i] : bounds[i + 1]], side="right") - 1, 0, BINS - 1)
         out[i] = np.bincount(j, minlength=BINS)
     return out
 
 
 def _gather(values: Callable[[Any], np.ndarray], intervals: tuple[Interval, ...], part: Any) -> list[np.ndarray]:
-    v = np.asarray(values(part), dtype=np.float64)
-    return [v[iv.mask(v)] for iv in intervals]
+    inside, bounds = _locate(np.asarray(values(part), dtype=np.float64), intervals)
+    return [inside[bounds[i] : bounds[i + 1]] for i in range(len(intervals))]
 
 
 def needed_ranks(n: int, q: np.ndarray, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

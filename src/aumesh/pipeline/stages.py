@@ -134,7 +134,7 @@ def evaluate_run_name(cfg: Config) -> str:
 
 
 def evaluate_stage(cfg: Config) -> dict:
-    from aumesh.experiments import mlflow_store, pyfunc, tracking
+    from aumesh.experiments import mlflow_store, tracking
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
 
@@ -144,8 +144,9 @@ def evaluate_stage(cfg: Config) -> dict:
     out = Path(cfg.paths.model_dir)
     params = cfg.to_dict()
     tracking_cfg = params["tracking"]
-    with tracking.tracked_run(tracking_cfg, run_name=evaluate_run_name(cfg), params=params,
-                              tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
+    # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
+    with tracking.tracked_run_beside(tracking_cfg, run_name=evaluate_run_name(cfg), params=params,
+                                     tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
         run.log_config(params)
         if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
             run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
@@ -153,7 +154,7 @@ def evaluate_stage(cfg: Config) -> dict:
         metrics = cv.metrics()
         arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
                                 prepared.reference, card_text="", metadata={"mlflow_run_id": run.run_id})
-        run.log_metrics({"seconds_log_model": pyfunc.log_release_model(run, arrays)})  # MLflow pyfunc model
+        run.call(log_release_model, arrays)
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
                     # repo-relative (sqlite:///mlflow.db): the card built from this is shared
                     "tracking_uri": provenance.shareable_location(mlflow_store.resolve_tracking_uri(tracking_cfg))
@@ -171,6 +172,14 @@ def evaluate_stage(cfg: Config) -> dict:
         dvc_metrics.write(cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds)  # committed: `dvc metrics/plots diff`
         run.log_artifact(out / METRICS_JSON)
     return metrics
+
+
+def log_release_model(handle, arrays: dict) -> None:
+    """Log the release arrays as the open run's MLflow pyfunc model, and the seconds it took (``seconds_log_model``);
+    ``handle`` is the tracking helper's :class:`aumesh.experiments.tracking.TrackedRun`."""
+    from aumesh.experiments import pyfunc
+
+    handle.log_metrics({"seconds_log_model": pyfunc.log_release_model(handle, arrays)})
 
 
 def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict | None) -> dict:
