@@ -597,7 +597,7 @@ def tracked_run_beside(
     MLflow 3's import (its GenAI, gateway and data modules, pandas, SQLAlchemy: ~4 s of CPU) ran on one core before
     the evaluate stage's first pass, while the other idled; beside it, the stage at 344k frames takes 0.82x the time.
     The helper (one
-    worker of a :class:`concurrent.futures.ProcessPoolExecutor`, forked where the platform can) imports MLflow and opens
+    worker of a :class:`concurrent.futures.ProcessPoolExecutor`, forked on Linux) imports MLflow and opens
     the run while the caller computes; the caller's logging is queued to it, in order
     (:class:`RunBeside`). The run is the same as :func:`tracked_run`'s: params, provenance tags (``aumesh.pid`` is the
     caller's), FINISHED on normal exit; if the body raises, or a queued call failed, the run gets the ``aumesh.error``
@@ -615,8 +615,8 @@ def tracked_run_beside(
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    methods = multiprocessing.get_all_start_methods()
-    context = multiprocessing.get_context("fork" if "fork" in methods else "spawn")  # fork: inherits the imports
+    # fork (Linux): the helper inherits the imports (NumPy, pandas); elsewhere spawn, the platforms' safe default
+    context = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
     owner = os.getpid()
     with ProcessPoolExecutor(1, mp_context=context, initializer=_start_helper, initargs=(owner,)) as helper:
         run = RunBeside(helper, helper.submit(_open_beside, dict(tracking_cfg or {}), run_name, params, tags, owner))
