@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.config import flatten as flatten_config
+from aumesh.pipeline.prepared_files import PREPARED_FILES, SUMMARY_FILE
 from aumesh.utils.io import atomic_write_json
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -237,7 +238,7 @@ class SweepCache:
         from aumesh.pipeline import evaluate as ev
 
         ensure_prepared(source, cfg)
-        summary = source.path / "summary.json"
+        summary = source.path / SUMMARY_FILE
         pid = f"{source.path}@{summary.stat().st_mtime_ns}"
         if pid not in self.prepared:
             self.prepared = {pid: ev.load_prepared(source.path)}  # one prepared set at a time
@@ -320,7 +321,7 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
     from aumesh.pipeline import prepare as prep
     from aumesh.data import tables
 
-    complete = all((source.path / n).exists() for n in prep.PREPARED_FILES)
+    complete = all((source.path / n).exists() for n in PREPARED_FILES)
     if source.managed_by_dvc:
         if not complete:
             raise FileNotFoundError(

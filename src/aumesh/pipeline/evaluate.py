@@ -44,6 +44,8 @@ from threadpoolctl import threadpool_limits
 from aumesh.config import Config
 from aumesh.utils.errors import ConfigError, UserError
 from aumesh.pipeline import compute
+from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, PREPARED_FILES, REFERENCE_FILE,
+                                            SUMMARY_FILE, VIDEO_IDS_FILE)
 from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, row_runs, scratch_directory, write_rows
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
@@ -102,7 +104,6 @@ class Prepared:
         return self.frames[list(POSE_COLUMNS)].to_numpy(np.float64)
 
 
-FRAMES_FILE = "frames.parquet"
 
 
 def scratch_path(prepared_dir: str | Path) -> Path:
@@ -179,21 +180,19 @@ class _LazyArrays(Mapping):
 def load_prepared(prepared_dir: str | Path) -> Prepared:
     import json
 
-    from aumesh.pipeline.prepare import NEUTRAL_FILES, PREPARED_FILES, VIDEO_IDS_FILE
-
     d = Path(prepared_dir)
     missing = [n for n in PREPARED_FILES if not (d / n).exists()]
     if missing:
         raise UserError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
-    with open(d / "summary.json") as fh:
+    with open(d / SUMMARY_FILE) as fh:
         summary = json.load(fh)
     return Prepared(
         directory=d,
-        meshes=np.load(d / "meshes.npy", mmap_mode="r"),
-        mesh_path=d / "meshes.npy",
+        meshes=np.load(d / MESHES_FILE, mmap_mode="r"),
+        mesh_path=d / MESHES_FILE,
         video_ids=np.load(d / VIDEO_IDS_FILE),
         neutral=_LazyArrays({method: d / name for method, name in NEUTRAL_FILES.items()}),
-        reference=dict(np.load(d / "reference.npz")),
+        reference=dict(np.load(d / REFERENCE_FILE)),
         summary=summary,
     )
 
@@ -389,7 +388,7 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
     sums = DesignSums(p, q, n_splits)
     per_video = {name: np.zeros((len(videos), width)) for name, width in VIDEO_SUMS.items()}
     raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
-    with NpyRowFile(directory / "meshes.npy") as meshes:
+    with NpyRowFile(directory / MESHES_FILE) as meshes:
         for lo in range(start, stop, chunk_rows):
             rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], True, True)
@@ -635,7 +634,7 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
     y_rows = None if y_offset is None else np.asarray(y_offset[videos])
     abs_sum, vertex_sum = np.zeros(n_splits), np.zeros((n_splits, N_VERTICES))
     raw = np.empty((min(chunk_rows, stop - start), N_TARGETS), dtype=np.float32)
-    with NpyRowFile(directory / "meshes.npy") as meshes, NpyRowFile(frame_error, writable=True) as errors:
+    with NpyRowFile(directory / MESHES_FILE) as meshes, NpyRowFile(frame_error, writable=True) as errors:
         for lo in range(start, stop, chunk_rows):
             rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], use_pose, interactions)

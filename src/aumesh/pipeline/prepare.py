@@ -63,6 +63,8 @@ from aumesh.data.tables import FrameTable, Piece, TableError, check_unique_frame
 from aumesh.geometry.align import align_to_reference, apply_similarity_columns, generalized_procrustes
 from aumesh.model.statistics import video_row_sums
 from aumesh.pipeline import compute
+from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
+                                            VIDEO_IDS_FILE)
 from aumesh.pipeline.quantiles import exact_quantiles
 from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz,
                              read_row_set, row_runs, write_rows)
@@ -70,15 +72,12 @@ from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, cr
 log = logging.getLogger(__name__)
 
 Partition = tuple[Piece, ...]
-NEUTRAL_FILES = {"mean": "neutral_mean.npy", "low_au": "neutral_low_au.npy"}
-VIDEO_IDS_FILE = "video_ids.npy"
 #: Frames whose anchors pass 2 aligns at a time: the alignment's float64 temporaries (~7 arrays of 288 bytes a frame)
 #: are ~15 MiB at 8,192 frames, the same for any partition size (a whole 65,536-row partition at once: ~120 MiB a task).
 #: Each frame is solved on its own, so the block size does not change a bit of the results.
 RESIDUAL_BLOCK = 8192
 #: Rows aligned, summed and written at a time in pass 3 (a (256, 1434) float64 block is 2.9 MB: in cache).
 ALIGN_BLOCK = 256
-PREPARED_FILES = ("meshes.npy", "frames.parquet", VIDEO_IDS_FILE, *NEUTRAL_FILES.values(), "reference.npz", "summary.json")
 
 
 def pose_mask(pitch: np.ndarray, yaw: np.ndarray, cfg: PreprocessConfig) -> np.ndarray:
@@ -462,7 +461,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     position[rows] = np.arange(len(rows))
     with ExitStack() as stack:  # the output files opened once for the partition's writes
         files = {name: stack.enter_context(NpyRowFile(out_dir / name, writable=True))
-                 for name in ("meshes.npy", *NEUTRAL_FILES.values())}
+                 for name in (MESHES_FILE, *NEUTRAL_FILES.values())}
         offset = 0
         for p in part:
             for start, coords in iter_mesh_columns(p.table, chunk_rows, p.row_groups):
@@ -480,7 +479,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                     # np.take copies along each coordinate's row (coords[:, idx] gathers element by element)
                     block = np.take(coords, columns[lo : lo + ALIGN_BLOCK], axis=1)  # (1434, k)
                     flat = apply_similarity_columns(block, rotation[rows_out], scale[rows_out], translation[rows_out])
-                    files["meshes.npy"].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
+                    files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
                     result.sums[0] += flat.sum(axis=0)
                     result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
                     all_frames.add(video_index[rows_out], flat)
@@ -596,7 +595,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         n_kept, n_videos = n_kept_pose, len(video_ids)
 
         (tmp / "parts").mkdir()
-        create_npy(tmp / "meshes.npy", np.float32, (n_kept, N_TARGETS))
+        create_npy(tmp / MESHES_FILE, np.float32, (n_kept, N_TARGETS))
         for name in NEUTRAL_FILES.values():
             create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
         # pass 3: align and write; population sums and split videos' sums reduced in a tree
@@ -608,14 +607,14 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         for v, total in written.split.items():  # videos with frames in several partitions
             for slot, name in enumerate(("mean", "low_au")):
                 write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
-        _concatenate_parts(tmp / "parts", tmp / "frames.parquet")
+        _concatenate_parts(tmp / "parts", tmp / FRAMES_FILE)
         shutil.rmtree(scratch)
         np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
         n_low_population = written.n_low_population
         mean_aligned = written.sums[0] / n_kept
         mean_low = written.sums[1] / max(n_low_population, 1)
         np.savez(
-            tmp / "reference.npz",
+            tmp / REFERENCE_FILE,
             reference_anchors=reference.astype(np.float32),
             anchor_indices=np.asarray(pre.alignment.anchor_indices, dtype=np.int32),
             mean_aligned_mesh=mean_aligned.reshape(3, N_VERTICES).T.astype(np.float32),
@@ -629,7 +628,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             "dropped_videos": dropped_videos[:1000],
             "tables": [str(t.path) for t in tables],
         }
-        atomic_write_json(tmp / "summary.json", summary)
+        atomic_write_json(tmp / SUMMARY_FILE, summary)
     return summary
 
 
@@ -653,5 +652,5 @@ def _concatenate_parts(parts_dir: Path, out: Path) -> None:
 
 
 def load_summary(prepared_dir: str | Path) -> dict:
-    with open(Path(prepared_dir) / "summary.json") as fh:
+    with open(Path(prepared_dir) / SUMMARY_FILE) as fh:
         return json.load(fh)

@@ -23,6 +23,7 @@ from aumesh.experiments import provenance
 from aumesh.config import Config, PathsConfig
 from aumesh.utils.io import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text, remove_stale_temporaries
 from aumesh.model.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
+from aumesh.pipeline.prepared_files import REFERENCE_FILE, SUMMARY_FILE
 
 if TYPE_CHECKING:
     from aumesh.pipeline import evaluate as ev
@@ -188,7 +189,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         metrics = json.load(fh)
     with open(model_dir / TRACKING_JSON) as fh:
         run_info = json.load(fh)
-    summary = json.loads((prepared_dir / "summary.json").read_text())  # prepare's counts (not its module: pandera, dask)
+    summary = json.loads((prepared_dir / SUMMARY_FILE).read_text())  # prepare's counts
     git = provenance.git_commit(Path.cwd())
     return {
         "name": "AU+pose -> MediaPipe mesh PLS (aumesh)",
@@ -219,7 +220,7 @@ def release_stage(cfg: Config) -> Path:
         promotion = json.loads(Path(cfg.paths.promotion_file).read_text()).get("promoted") or None
     card = build_card(cfg, model_dir, prepared_dir, promotion)
     model = np.load(model_dir / MODEL_NPZ)
-    reference = dict(np.load(prepared_dir / "reference.npz"))
+    reference = dict(np.load(prepared_dir / REFERENCE_FILE))
     with atomic_directory(cfg.paths.release_dir) as tmp:
         arrays = release_arrays(model["coef"], model["mesh_intercept"], model["feature_columns"].tolist(),
                                 int(model["n_components"]), reference, card_text="", metadata=card)
