@@ -71,15 +71,24 @@ def test_partitions_cover_every_row_group_once_in_order(split_tables):
     assert len(tables.partitions(found, 1)) == len(expected) and len(tables.partitions(found, 10**9)) == 1
 
 
+def test_partition_count_gives_1_2_or_4_workers_equal_rounds():
+    """One partition stays one; more are a multiple of 4, the fewest of at most ``partition_rows`` rows each."""
+    assert tables.partition_count(3_750, 32_768) == 1
+    for n_rows, partition_rows in [(344_418, 32_768), (99_911, 32_768), (3_099_762, 32_768), (40_000, 32_768), (7, 1)]:
+        n = tables.partition_count(n_rows, partition_rows)
+        least = -(-n_rows // partition_rows)
+        assert n % 4 == 0 and least <= n < least + 4, (n_rows, n)
+
+
 @pytest.mark.parametrize("rows", [250, 400, 700])
 def test_partitions_are_balanced(split_tables, rows):
-    """ceil(n / partition_rows) partitions, each within a row group of n / count rows: no small remainder
-    partition left for the last round of tasks (the old packing, 'at least partition_rows', gave one)."""
+    """ceil(n / partition_rows) partitions (up to a multiple of 4), each within a row group of n / count rows: no
+    small remainder partition left for the last round of tasks (the old packing, 'at least partition_rows', gave one)."""
     cfg = default_config(**{"paths.data_dir": str(split_tables / "data")})
     found = tables.discover(split_tables / "data", cfg.data.tables, cfg.data.mesh_npy)
     sizes = [sum(p.n_rows for p in part) for part in tables.partitions(found, rows)]
     total = sum(t.n_rows for t in found)
-    assert len(sizes) == -(-total // rows) and sum(sizes) == total
+    assert len(sizes) == tables.partition_count(total, rows) and sum(sizes) == total
     assert max(abs(s - total / len(sizes)) for s in sizes) <= ROW_GROUP, sizes
 
 

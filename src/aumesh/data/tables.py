@@ -244,8 +244,21 @@ def pieces(table: FrameTable) -> list[Piece]:
     return out
 
 
+#: The number of partitions is a multiple of this (when there is more than one), so 1, 2 or 4 workers each get
+#: as many partitions and no core idles through a pass's last round: 344,418 frames made 11 partitions of ~31k rows,
+#: and every pass ended with one task on one core of two (prepare and evaluate at 344k: 0.96x the time with 12).
+PARTITION_MULTIPLE = 4
+
+
+def partition_count(n_rows: int, partition_rows: int) -> int:
+    """``ceil(n_rows / partition_rows)`` rounded up to a multiple of :data:`PARTITION_MULTIPLE` (1 if that is 1)."""
+    n = max(1, -(-n_rows // partition_rows))
+    return n if n == 1 else -(-n // PARTITION_MULTIPLE) * PARTITION_MULTIPLE
+
+
 def partitions(tables: Sequence[FrameTable], partition_rows: int) -> list[tuple[Piece, ...]]:
-    """Whole row groups, in table order, packed into ``ceil(n_rows / partition_rows)`` partitions of about equal rows.
+    """Whole row groups, in table order, packed into :func:`partition_count` partitions of about equal rows, at
+    most ~``partition_rows`` each.
 
     A large table is split at row-group boundaries; small tables (e.g. one per video) are packed together. Each
     partition ends at the row group whose middle is nearest its share of the rows, so partitions differ by at most
@@ -255,7 +268,7 @@ def partitions(tables: Sequence[FrameTable], partition_rows: int) -> list[tuple[
     """
     every = [piece for table in tables for piece in pieces(table)]
     total = sum(p.n_rows for p in every)
-    n_parts = max(1, -(-total // partition_rows))
+    n_parts = partition_count(total, partition_rows)
     out: list[tuple[Piece, ...]] = []
     current: list[Piece] = []
     done, k = 0, 1  # rows packed so far; the next partition ends near k * total / n_parts rows
