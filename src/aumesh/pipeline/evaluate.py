@@ -367,12 +367,14 @@ def _fold_grouped_block(meshes: NpyRowFile, raw: np.ndarray, lo: int, hi: int, s
         The partition's rows (``lo - start`` ... ) in the grouped order.
     bounds : ndarray, shape (n_splits + 1,)
         Fold ``f``'s rows are ``[bounds[f], bounds[f + 1])`` of the block.
-    Y : ndarray of float64, shape (m, 1434)
+    Y : ndarray of float32, shape (m, 1434)
+        The rows as stored (the first rows of ``raw``): the passes widen them to float64 in their first arithmetic step
+        instead of in a copy of their own.
     """
     order, bounds = fold_order(fold[lo - start : hi - start], n_splits)
     if order is None:
-        return np.arange(lo - start, hi - start), bounds, meshes.read(lo, hi, raw).astype(np.float64)
-    return order + (lo - start), bounds, meshes.take(order + lo, raw).astype(np.float64)
+        return np.arange(lo - start, hi - start), bounds, meshes.read(lo, hi, raw)
+    return order + (lo - start), bounds, meshes.take(order + lo, raw)
 
 
 def design_partition(group: tuple[int, int, int], directory: Path, video_fold: np.ndarray, a: np.ndarray, b: np.ndarray,
@@ -393,7 +395,7 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
             rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], True, True)
             X -= a
-            Y -= b
+            Y = np.subtract(Y, b)  # float64 (the float32 rows widen exactly)
             neutral = low[rows]
             for f in range(n_splits):  # a fold's rows keep their order, so each video's rows are summed as read
                 seg = slice(bounds[f], bounds[f + 1])
@@ -634,6 +636,7 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
     y_rows = None if y_offset is None else np.asarray(y_offset[videos])
     abs_sum, vertex_sum = np.zeros(n_splits), np.zeros((n_splits, N_VERTICES))
     raw = np.empty((min(chunk_rows, stop - start), N_TARGETS), dtype=np.float32)
+    residual = np.empty((len(raw), N_TARGETS))
     with NpyRowFile(directory / MESHES_FILE) as meshes, NpyRowFile(frame_error, writable=True) as errors:
         for lo in range(start, stop, chunk_rows):
             rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
@@ -641,16 +644,20 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
             if x_rows is not None:  # the target's per-video centres (held-out videos: their own)
                 X -= x_rows[local[rows]]
             if y_rows is not None:
-                Y -= y_rows[local[rows]]
+                Y = Y - y_rows[local[rows]]
+            # minus the residual y - (x @ coef_f.T + raw_intercept_f), rounded as it (-(u - v) is v - u exactly): the
+            # prediction's GEMM writes the block, and the float32 rows widen inside the subtraction, not in a copy
+            R = residual[: len(Y)]
             for f in range(n_splits):  # one GEMM per fold's rows and model
                 lo_f, hi_f = bounds[f], bounds[f + 1]
-                Y[lo_f:hi_f] -= X[lo_f:hi_f] @ coefs[f]  # residual: y - (x @ coef_f.T + raw_intercept_f)
-                Y[lo_f:hi_f] -= intercepts[f]
-            e3 = Y.reshape(len(Y), 3, N_VERTICES)
+                np.matmul(X[lo_f:hi_f], coefs[f], out=R[lo_f:hi_f])
+                np.subtract(R[lo_f:hi_f], Y[lo_f:hi_f], out=R[lo_f:hi_f])
+                R[lo_f:hi_f] += intercepts[f]
+            e3 = R.reshape(len(R), 3, N_VERTICES)
             per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
             error = per_vertex.mean(axis=1)
             errors.write(lo, error[np.argsort(rows)].astype(np.float32))  # back in the file's order
-            row_abs = np.abs(Y).sum(axis=1)
+            row_abs = np.abs(R).sum(axis=1)
             for f in range(n_splits):
                 lo_f, hi_f = bounds[f], bounds[f + 1]
                 abs_sum[f] += row_abs[lo_f:hi_f].sum()
