@@ -291,7 +291,8 @@ def _moments(design: DesignStatistics, idx: np.ndarray, videos: np.ndarray, d_of
 
 def configuration_statistics(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,
                              neutral_design_full: np.ndarray, video_block: int = 256) -> tuple[list[CrossProducts], list[CrossProducts]]:
-    """Per-fold (target, displacement) statistics of one configuration, from the design statistics.
+    """Per-fold (target, displacement) statistics of one configuration, from the design statistics
+    (:func:`fold_configuration_statistics` of every fold, in order).
 
     Every target's fold statistics use only that fold's videos (a held-out video is demeaned by its
     own means), so training statistics are still the total minus the fold's.
@@ -306,28 +307,34 @@ def configuration_statistics(design: DesignStatistics, columns: list[str], targe
         at 256; a block of 2,048 cost the evaluate stage ~110 MiB at 30k videos but ~50 at 2.9k, so its memory grew
         with the frames until a fold held 2,048 videos)
     """
+    per_fold = [fold_configuration_statistics(design, f, columns, target, neutral, neutral_design_full, video_block)
+                for f in range(len(design.folds))]
+    return [t for t, _ in per_fold], [d for _, d in per_fold]
+
+
+def fold_configuration_statistics(design: DesignStatistics, fold: int, columns: list[str], target: str,
+                                  neutral: np.ndarray, neutral_design_full: np.ndarray,
+                                  video_block: int = 256) -> tuple[CrossProducts, CrossProducts]:
+    """Fold ``fold``'s (target, displacement) statistics (:func:`configuration_statistics`); the folds are independent,
+    so a caller may compute them at once."""
     if target not in TARGETS:
         raise ValueError(f"preprocess.target={target!r}: use one of {', '.join(TARGETS)}")
     idx = np.array([FULL_DESIGN.index(c) for c in columns])
-    targets, displacements = [], []
-    for f, stats in enumerate(design.folds):
-        videos = np.flatnonzero(design.video_fold == f)
-        moments = _moments(design, idx, videos, lambda v: np.asarray(neutral[v], dtype=np.float64) - design.y_shift,
-                           lambda v: neutral_design_full[v][:, idx] - design.x_shift[idx], video_block)
-        sub = subset(stats, idx)
-        disp = displacement(sub, moments)
-        if target == "absolute":
-            targets.append(sub)
-        elif target == "neutral":
-            targets.append(neutral_subtracted(sub, moments))
-        elif target == "within_neutral":
-            targets.append(disp)
-        else:  # within: each video's own means, d_v = w_v / c_v, e_v = u_v / c_v
-            own = _moments(design, idx, videos, lambda v: design.video_sum_y[v] / _count(design, v),
-                           lambda v: design.video_sum_x[v][:, idx] / _count(design, v), video_block)
-            targets.append(displacement(sub, own))
-        displacements.append(disp)
-    return targets, displacements
+    videos = np.flatnonzero(design.video_fold == fold)
+    moments = _moments(design, idx, videos, lambda v: np.asarray(neutral[v], dtype=np.float64) - design.y_shift,
+                       lambda v: neutral_design_full[v][:, idx] - design.x_shift[idx], video_block)
+    sub = subset(design.folds[fold], idx)
+    disp = displacement(sub, moments)
+    if target == "absolute":
+        return sub, disp
+    if target == "neutral":
+        return neutral_subtracted(sub, moments), disp
+    if target == "within_neutral":
+        return disp, disp
+    # within: each video's own means, d_v = w_v / c_v, e_v = u_v / c_v
+    own = _moments(design, idx, videos, lambda v: design.video_sum_y[v] / _count(design, v),
+                   lambda v: design.video_sum_x[v][:, idx] / _count(design, v), video_block)
+    return displacement(sub, own), disp
 
 
 def target_offsets(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,

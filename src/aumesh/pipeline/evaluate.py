@@ -52,7 +52,7 @@ from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
-from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, configuration_statistics, fold_order, \
+from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, fold_configuration_statistics, fold_order, \
     target_offsets, video_row_sums
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
@@ -442,13 +442,14 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration).
 
     ``video_fold`` (n_videos,) is each video's fold (:func:`video_folds`). The provisional shift ``(a, b)`` is the
-    mean of the first ``chunk_rows`` rows, shared by every fold and partition. The per-video sums stay on disk
+    mean of the first :data:`BLOCK_ROWS` rows (a centre, not a statistic: reading ``chunk_rows`` rows for it cost the
+    stage 0.2 s of fresh memory), shared by every fold and partition. The per-video sums stay on disk
     (:class:`aumesh.utils.io.NpyRows`) in a scratch folder beside the prepared data, removed with the returned
     statistics.
     """
     n_videos = len(prepared.video_ids)
     videos = prepared.videos
-    first = min(chunk_rows, prepared.n_frames)
+    first = min(BLOCK_ROWS, prepared.n_frames)
     head = _head(prepared, first)
     a = design_matrix(head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64),
                       True, True).mean(axis=0)
@@ -496,8 +497,12 @@ def accumulate(prepared: Prepared, cfg: Config, video_fold: np.ndarray, chunk_ro
     elif not np.array_equal(design.video_fold, video_fold):
         raise ValueError("accumulate: the design statistics were built with other folds")
     method = cfg.preprocess.neutral.method
-    target, displacement = configuration_statistics(design, cfg.features.columns, cfg.preprocess.target,
-                                                    prepared.neutral[method], design.neutral_design[method])
+    # the folds' statistics are independent: at once on this machine's cores (single-threaded BLAS each: the same bits)
+    per_fold = compute.local_map(partial(fold_configuration_statistics, design, columns=cfg.features.columns,
+                                         target=cfg.preprocess.target, neutral=prepared.neutral[method],
+                                         neutral_design_full=design.neutral_design[method]),
+                                 range(cfg.cv.n_splits))
+    target, displacement = [t for t, _ in per_fold], [d for _, d in per_fold]
     x_offset, y_offset = target_offsets(design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method],
                                         design.neutral_design[method])
     return FoldStatistics(target=target, displacement=displacement, video_fold=video_fold, x_offset=x_offset,
