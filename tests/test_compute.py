@@ -17,7 +17,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from aumesh.data import synth, tables
+from aumesh.data import contract, synth, tables
 from aumesh.data.schema import VIDEO_COLUMN
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.pipeline import evaluate as ev
@@ -293,6 +293,22 @@ def test_pose_units_check_fires_across_partitions_at_the_median(split_tables, tm
     one_more[np.flatnonzero(halves == 0.5)[0]] = 1.5
     with pytest.raises(tables.TableError, match=r"median \|Roll\| = 1\.50"):
         _prepare(_with_roll(split_tables, tmp_path / "median-1.5", one_more), "out", **{"compute.partition_rows": 1})
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 10, 101])
+def test_pose_medians_are_computed_whenever_a_median_can_exceed_the_limit(n):
+    """The counts above the limit skip the exact medians only when numpy's median is at or below it, for every count
+    of values above it (odd and even frame counts, values exactly at the limit among them)."""
+    rng = np.random.default_rng(n)
+    limit = contract.MAX_MEDIAN_ABS_POSE_RAD
+    for n_above in range(n + 1):
+        for below in (rng.uniform(0.0, limit, n), np.full(n, limit)):
+            values = below.copy()
+            values[rng.permutation(n)[:n_above]] = limit + rng.uniform(1e-9, 2.0, n_above)
+            counts = np.array([0, n_above, 0])
+            if not contract.pose_medians_may_exceed(counts, n):
+                assert np.median(values) <= limit
+        assert contract.pose_medians_may_exceed(counts, n) == (n_above >= n - n // 2)
 
 
 def test_prepared_frames_store_only_the_video_ids_as_a_dictionary(split_prepared):

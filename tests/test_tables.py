@@ -199,3 +199,22 @@ def test_no_frame_passes_pose_filter(small_tables, tmp_path):
     df.to_parquet(path)
     with pytest.raises(tables.TableError, match="no frame passes the pose filter"):
         prepare.run(tables.discover(small_tables, PATTERN, NPY), default_config(), tmp_path / "p")
+
+
+def test_a_partition_of_several_tables_is_checked_at_once_and_a_broken_one_named(tmp_path):
+    """A partition's pieces (row groups of several tables) are read and checked together: the same rows as each table
+    read alone; an AU out of range in the third table is reported with that table and its own row number."""
+    write_tables(tmp_path / "data", SynthSpec(n_frames=600, n_videos=30, seed=4, frames_per_file=200))
+    found = tables.discover(tmp_path / "data", PATTERN, NPY)
+    assert len(found) >= 3
+    pieces = [piece for t in found for piece in tables.pieces(t)]
+    together = tables.read_pieces_metadata(pieces)
+    alone = pd.concat([tables.read_metadata(t) for t in found], ignore_index=True)
+    pd.testing.assert_frame_equal(together, alone)
+
+    broken = pd.read_parquet(found[2].path)
+    broken.loc[17, "AU12"] = 3.0
+    broken.to_parquet(found[2].path)
+    found = tables.discover(tmp_path / "data", PATTERN, NPY)
+    with pytest.raises(tables.TableError, match=rf"{found[2].path.name}.*'AU12'.*row 17\b"):
+        tables.read_pieces_metadata([piece for t in found for piece in tables.pieces(t)])

@@ -197,6 +197,14 @@ def check_pose_units(pose: np.ndarray, where: str | Path) -> None:
     check_pose_medians(np.median(np.abs(np.asarray(pose, dtype=np.float64)), axis=0), where)
 
 
+def pose_medians_may_exceed(n_above, n: int) -> bool:
+    """Whether a median |angle| can exceed :data:`MAX_MEDIAN_ABS_POSE_RAD`, from the counts alone: ``n_above`` (3,)
+    values of |Pitch|, |Yaw|, |Roll| above it among ``n``. A median reads the sorted values at ranks ``(n - 1) // 2``
+    and ``n // 2``; it cannot exceed the limit while the upper one is at or below it, that is while at most
+    ``n - n // 2 - 1`` values are above. So the exact medians (passes over every frame) are needed only then."""
+    return bool(np.any(np.asarray(n_above) > n - n // 2 - 1))
+
+
 def check_pose_medians(median, where: str | Path) -> None:
     """:func:`check_pose_units` on the medians of |Pitch|, |Yaw|, |Roll| (3,) over the frames (computed elsewhere,
     e.g. by exact quantiles of a vector held in partitions)."""

@@ -8,6 +8,8 @@ per-frame Umeyama similarity Procrustes onto a reference built on the 12 anchors
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 
@@ -115,7 +117,16 @@ def align_to_reference(anchors: np.ndarray, reference: np.ndarray) -> tuple[np.n
     return residual, transform
 
 
-def generalized_procrustes(anchors: np.ndarray, max_iter: int = 50, tol: float = 1e-10) -> np.ndarray:
+#: Frames aligned per block by :func:`generalized_procrustes` (a fixed size: the blocks, and the bits, do not depend on
+#: how many run at once).
+GPA_BLOCK = 4096
+
+
+def _aligned_onto(reference: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    return apply_similarity(frames, *umeyama_batch(frames, reference))
+
+
+def generalized_procrustes(anchors: np.ndarray, max_iter: int = 50, tol: float = 1e-10, map=map) -> np.ndarray:
     """Reference shape by generalised Procrustes analysis (Gower 1975) on anchor sets.
 
     Starts from the plain mean of the frames (near-frontal after the pose filter, so the
@@ -126,6 +137,13 @@ def generalized_procrustes(anchors: np.ndarray, max_iter: int = 50, tol: float =
     Parameters
     ----------
     anchors : ndarray, shape (n_frames, n_anchors, 3)
+    max_iter : int
+    tol : float
+        Stop when the reference moves less than ``tol`` relative to its largest coordinate.
+    map : callable, default the builtin
+        ``map(fn, blocks)``, run over blocks of :data:`GPA_BLOCK` frames each iteration; e.g. a thread pool's
+        (the stage's cores: NumPy's batched SVD and products release the GIL). Each frame is aligned on its own,
+        so the reference is the same to the bit whatever runs the blocks.
 
     Returns
     -------
@@ -134,10 +152,11 @@ def generalized_procrustes(anchors: np.ndarray, max_iter: int = 50, tol: float =
     anchors = np.asarray(anchors, dtype=np.float64)
     if anchors.ndim != 3 or anchors.shape[0] == 0:
         raise ValueError(f"generalized_procrustes needs (n_frames, n_anchors, 3) with n_frames > 0, got {anchors.shape}")
+    blocks = [anchors[lo : lo + GPA_BLOCK] for lo in range(0, len(anchors), GPA_BLOCK)]
     start = anchors.mean(axis=0)
     reference = start.copy()
     for _ in range(max_iter):
-        aligned = apply_similarity(anchors, *umeyama_batch(anchors, reference))
+        aligned = np.concatenate(list(map(partial(_aligned_onto, reference), blocks)))
         mean = aligned.mean(axis=0)
         rot, scale, trans = umeyama_batch(mean[None], start)
         new_reference = apply_similarity(mean[None], rot, scale, trans)[0]
