@@ -125,12 +125,13 @@ def conf_dir(src: str | Path | None) -> Path:
     return Path(src).resolve().parent / "conf" if src else REPO / "conf"
 
 
-def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = (), src: str | Path | None = None) -> Path:
-    """A params file whose paths all point into ``run_dir`` (tracking: a SQLite store there), composed from the
-    ``conf/`` of the source tree ``src`` by that tree's code (None: this checkout)."""
+def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = (), src: str | Path | None = None,
+                   name: str = "params.yaml") -> Path:
+    """A params file ``run_dir / name`` whose paths all point into ``run_dir`` (tracking: a SQLite store there),
+    composed from the ``conf/`` of the source tree ``src`` by that tree's code (None: this checkout)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     write_data_dvc(run_dir, data_dir)
-    out = run_dir / "params.yaml"
+    out = run_dir / name
     paths = {"data_dir": data_dir, "prepared_dir": run_dir / "prepared", "model_dir": run_dir / "model",
              "release_dir": run_dir / "release", "metrics_file": run_dir / "metrics.json",
              "promotion_file": run_dir / "promotion.json", "error_curve_file": run_dir / "cumulative_vertex_error.csv",
@@ -177,6 +178,11 @@ def run_stages(run_dir: Path, params: Path, env: dict | None = None, stages=STAG
     for stage in stages:
         for name in DVC_REMOVED_OUTPUTS.get(stage, ()):  # untimed, as `dvc repro` removes them before the stage
             shutil.rmtree(run_dir / name, ignore_errors=True)
+        if stage == stages[0]:
+            # untimed: the writes of earlier runs (another variant's 2 GB of prepared meshes) reach the disk now, not
+            # during this run's stages (the kernel's writeback, ~30 s after the writes, slowed the next variant's
+            # prepare by ~1-2 s in alternating runs)
+            os.sync()
         m = run_measured(AUMESH + [stage, "--params", str(params)], run_dir, run_dir / f"{stage}.log", env, stage)
         out.append(m)
         if m.returncode != 0:

@@ -9,8 +9,10 @@ repo's ``dvc.yaml``; data as an absolute external dependency), timing every stag
 ``/usr/bin/time`` and the whole ``dvc repro`` (hashing, caching of outputs included), after DVC has hashed
 the tables once (``dvc status``, as ``dvc add`` or a pull leaves a workspace; that first hash is printed apart).
 
-With ``--baseline-src`` (or ``--workers``) the variants take turns, run by run, each in a run folder of its own, and
-the median of the runs' ratios of total wall time to the first variant's is printed beside the medians.
+With ``--baseline-src`` (or ``--workers``) the variants take turns, run by run, in one run folder, in orders that
+alternate from run to run (use an even ``--repeats``), and the median of the runs' ratios of total wall
+time to the first variant's is printed beside the medians. Before each run the writes of earlier runs are flushed
+(``sync``) and a stage's outputs are deleted before it, as ``dvc repro`` does; none of that is timed.
 
 Prints a markdown table; no assertions. Not a timed test.
 
@@ -119,24 +121,30 @@ def main(argv=None) -> int:
     variants += [(f"after, {w} worker(s)", args.src, [f"compute.n_workers={w}"]) for w in args.workers or []]
     record = {"frames": args.frames, "videos": args.videos, "env": environment_note(),
               "mlflow_store_creation_s": store_s, "variants": {}}
-    # the variants take turns, run by run (before, after, before, after, ...), each in a run folder of its own, so a
-    # machine that speeds up or slows down during the benchmark weighs on every variant alike
-    run_dirs = [args.workdir / f"run_{args.frames}{'_' + args.tag if args.tag else ''}_{i}" for i in range(len(variants))]
-    params = [compose_params(run_dir, data, overrides, src=src) for run_dir, (_, src, overrides) in zip(run_dirs, variants)]
+    # the variants take turns, run by run, so a machine that speeds up or slows down during the benchmark weighs on
+    # every variant alike; in one run folder (the prepared meshes' 2 GB in the same place on disk: a second folder's
+    # prepare took ~1 s more system time, whichever code ran there); and in turn orders that alternate (before, after |
+    # after, before | ...): an even --repeats gives each variant each place equally often
+    run_dir = args.workdir / f"run_{args.frames}{'_' + args.tag if args.tag else ''}"
+    params = [compose_params(run_dir, data, overrides, src=src, name=f"params_{i}.yaml")
+              for i, (_, src, overrides) in enumerate(variants)]
     runs: dict[str, list] = {name: [] for name, _, _ in variants}
+    outcome: dict[str, dict] = {}
     for r in range(args.repeats):
-        for (name, src, _), run_dir, run_params in zip(variants, run_dirs, params):
+        turns = list(zip(variants, params))
+        for (name, src, _), run_params in (turns if r % 2 == 0 else turns[::-1]):
             floors.append(read_floor(data)[0])  # beside every run: the floor sees the same machine as the stages
             ms = run_stages(run_dir, run_params, source_env(src))
             runs[name].append(ms)
+            metrics = json.loads((run_dir / "metrics.json").read_text())
+            outcome[name] = {"metrics": {k: metrics[k] for k in ("r2_mean", "mae_mean", "vertex_error_mean",
+                                                                 "r2_displacement_mean")},
+                             "kept": json.loads((run_dir / "prepared" / "summary.json").read_text())["n_frames"]}
             print(f"{name} run {r + 1}: " + ", ".join(f"{m.stage} {m.wall_s:.1f} s ({m.cpu_s:.0f} s CPU) / "
                                                       f"{m.maxrss_mib:,.0f} MiB" for m in ms)
                   + f" | read floor before it {floors[-1]:.1f} s | load {load()}", flush=True)
-    for (name, _, _), run_dir in zip(variants, run_dirs):
-        metrics = json.loads((run_dir / "metrics.json").read_text())
-        summary = json.loads((run_dir / "prepared" / "summary.json").read_text())
-        rec = {"stages": {}, "metrics": {k: metrics[k] for k in ("r2_mean", "mae_mean", "vertex_error_mean",
-                                                                  "r2_displacement_mean")}, "kept": summary["n_frames"]}
+    for name, _, _ in variants:
+        rec = {"stages": {}} | outcome[name]
         for i, stage in enumerate(STAGES):
             rec["stages"][stage] = {key: statistics.median(getattr(run[i], key) for run in runs[name])
                                     for key in ("wall_s", "cpu_s", "maxrss_mib", "tree_rss_mib")}
@@ -145,8 +153,8 @@ def main(argv=None) -> int:
         peak = max(v["maxrss_mib"] for v in rec["stages"].values())
         rec |= {"total_wall_s": total, "total_cpu_s": cpu, "peak_rss_mib": peak}
         record["variants"][name] = rec
-        if not args.keep:
-            shutil.rmtree(run_dir, ignore_errors=True)
+    if not args.keep:
+        shutil.rmtree(run_dir, ignore_errors=True)
     if len(variants) > 1:  # the first variant against each other, run by run: robust to the machine's drift
         base = [sum(m.wall_s for m in run) for run in runs[variants[0][0]]]
         for name, _, _ in variants[1:]:
