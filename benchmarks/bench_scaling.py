@@ -10,7 +10,8 @@ every size has the same per-video statistics (~34.5 frames a video):
 
 For every size: the read floor (one pyarrow read of the tables, all columns, and their .npy), then each
 source tree's three stages as subprocesses (``benchmarks/_common.py``): ``--baseline-src`` (e.g. the code
-before a change) and the installed aumesh (or ``--src``), alternating, so both see the same machine.
+before a change) and the installed aumesh (or ``--src``), alternating, so both see the same machine: one run
+folder per set, the variants' order swapped from one set to the next.
 
 Prints markdown tables; no assertions. Not a timed test.
 
@@ -61,11 +62,13 @@ def main(argv=None) -> int:
         rec = {"set": spec, "read_floor_s": floor_s, "variants": {}}
         print(f"{spec}: {data} ({dir_size(data) / 2**30:.2f} GiB of parquet + linked .npy); read floor {floor_s:.1f} s "
               f"({floor_gib:.2f} GiB decoded) | load {load()}", flush=True)
-        for name, src in variants:
+        # one run folder for both variants (a second folder's prepare took ~1 s more system time), and the variants'
+        # order alternates from set to set (the second of two back-to-back pipelines ran slower)
+        run_dir = args.workdir / f"scaling_{spec}"
+        for name, src in (variants if len(results) % 2 == 0 else variants[::-1]):
             if name == "before" and args.baseline_sets and spec not in args.baseline_sets:
                 continue
-            run_dir = args.workdir / f"scaling_{spec}_{name}"
-            params = compose_params(run_dir, data, src=src)
+            params = compose_params(run_dir, data, src=src, name=f"params_{name}.yaml")
             runs = []
             for _ in range(args.repeats):
                 ms = run_stages(run_dir, params, source_env(src), stages=args.stages)
@@ -81,7 +84,7 @@ def main(argv=None) -> int:
             v["peak_rss_mib"] = max(st["maxrss_mib"] for st in v["stages"].values())
             v["peak_tree_rss_mib"] = max(st["tree_rss_mib"] for st in v["stages"].values())
             rec["variants"][name] = v
-            shutil.rmtree(run_dir, ignore_errors=True)
+        shutil.rmtree(run_dir, ignore_errors=True)
         results.append(rec)
         if args.clean:
             shutil.rmtree(data, ignore_errors=True)
