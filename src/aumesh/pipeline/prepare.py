@@ -205,9 +205,14 @@ def _staged_anchors_file(scratch: Path, i: int) -> Path:
     return scratch / f"{i:06d}.npy"
 
 
-def _staged_meta(scratch: Path, i: int) -> pd.DataFrame:
+def _staged_table(scratch: Path, i: int) -> pa.Table:
     """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 staged it."""
-    return feather.read_table(scratch / f"{i:06d}.arrow").to_pandas()
+    return feather.read_table(scratch / f"{i:06d}.arrow")
+
+
+def _staged_meta(scratch: Path, i: int) -> pd.DataFrame:
+    """:func:`_staged_table` as a DataFrame."""
+    return _staged_table(scratch, i).to_pandas()
 
 
 def _staged(scratch: Path, i: int) -> tuple[pd.DataFrame, np.ndarray]:
@@ -428,12 +433,11 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
     transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it
     rotation, scale, translation = rotation[transform], scale[transform], translation[transform]
-    meta = _staged_meta(scratch, plan.part_index)  # pass 2's transforms replace the anchors
-    kept = meta.drop(columns="piece").iloc[rows].reset_index(drop=True)
-    kept["video_index"] = video_index
-    kept["low_au"] = low_video
-    _write_staged(pa.Table.from_pandas(kept, preserve_index=False), out_dir / "parts" / f"{plan.part_index:06d}.arrow")
-    del meta, kept
+    # the kept rows of the staged metadata, in Arrow (pandas' Python strings cost ~300 bytes a row of the task's memory)
+    kept = _staged_table(scratch, plan.part_index).drop_columns(["piece"]).take(rows)
+    kept = kept.append_column("video_index", pa.array(video_index)).append_column("low_au", pa.array(low_video))
+    _write_staged(kept.replace_schema_metadata(None), out_dir / "parts" / f"{plan.part_index:06d}.arrow")
+    del kept
     result = Written(np.zeros((2, N_TARGETS)), int(low_population.sum()))
     split_video = set(plan.video_index[plan.split].tolist())
     neutrals: dict[str, dict[int, np.ndarray]] = {name: {} for name in NEUTRAL_FILES.values()}
