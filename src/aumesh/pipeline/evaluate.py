@@ -104,8 +104,6 @@ class Prepared:
         return self.frames[list(POSE_COLUMNS)].to_numpy(np.float64)
 
 
-
-
 def scratch_path(prepared_dir: str | Path) -> Path:
     """What the passes' scratch folders (per-video sums, each frame's error) are the temporaries of: a sibling of the
     prepared data (``.evaluate-scratch.tmp-<pid>-<host>-*``, :func:`aumesh.utils.io.scratch_directory`), so a killed

@@ -16,8 +16,9 @@ process holds per-partition and per-video summaries only (memory flat in frames)
    staged per partition in a scratch folder, so the tables are parsed once;
 2. ``residuals``: each pose-passing frame's max anchor residual to the reference and its AU sum,
    staged per partition with |pose| (:func:`residual_partition`). The outlier threshold, the
-   population low-AU threshold and the pose-units check's medians are exact quantiles of these
-   files (:func:`aumesh.pipeline.quantiles.exact_quantiles`: ``np.quantile`` of the whole vector,
+   population low-AU threshold and the pose-units check's medians (when the counts above its limit
+   leave them in doubt) are exact quantiles of these files
+   (:func:`aumesh.pipeline.quantiles.exact_quantiles`: ``np.quantile`` of the whole vector,
    bit for bit, without gathering it);
    ``keep``: each partition's kept count (the output offsets) and kept videos; the kept AU sums of
    videos split across partitions are gathered for their per-video low-AU thresholds (a video held
