@@ -174,8 +174,9 @@ def test_video_with_no_frames_left_after_filtering(small_tables, tmp_path):
     df.to_parquet(path)
     found = tables.discover(small_tables, PATTERN, NPY)
     strict = default_config(**{"preprocess.empty_video": "error"})
-    with pytest.raises(tables.TableError, match=r"video 'vid000001' \(column 'video_id'\) has no frames left.*empty_video=drop"):
+    with pytest.raises(tables.TableError, match=r"video 'vid000001' \(column 'video_id'\) has no frames left.*empty_video=drop") as err:
         prepare.run(found, strict, tmp_path / "strict")
+    assert str(err.value).startswith(f"{path}: ")  # the table that holds the video
     summary = prepare.run(found, default_config(), tmp_path / "lenient")
     assert "vid000001" in summary["dropped_videos"]
     assert summary["counts"]["videos_dropped_no_frames_left"] >= 1

@@ -174,14 +174,22 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
                       text_columns=frozenset(text_columns))
 
 
+#: Parsed parquet footers a process keeps (the most recently used). Partitions are consecutive row groups of the
+#: tables in order, so the tasks running at once read a few neighbouring tables and a pass re-parses each table at most
+#: once. Bounded by count, not by the tables: a parsed footer is ~9 times its serialized size in memory (a
+#: 1,461-column, 4-row-group footer: 6 MiB; 126 py-feat tables' footers held 18 MiB of the stage at 3.1M frames).
+FOOTER_CACHE_TABLES = 16
+
+
 def _footer(path: str | Path) -> pq.FileMetaData:
-    """The parquet footer of ``path``, parsed once per process and file version (a 1,500-column footer takes
-    ~30 ms to parse; every pass opens each table for each of its partitions)."""
+    """The parquet footer of ``path``, parsed once per process and file version while it is among the
+    ``FOOTER_CACHE_TABLES`` most recently used (a 1,461-column footer takes 10-16 ms to parse; every pass opens each
+    table for each of its partitions)."""
     st = os.stat(path)
     return _parsed_footer(str(path), st.st_mtime_ns, st.st_size, st.st_ino)
 
 
-@functools.lru_cache(maxsize=256)
+@functools.lru_cache(maxsize=FOOTER_CACHE_TABLES)
 def _parsed_footer(path: str, mtime_ns: int, size: int, inode: int) -> pq.FileMetaData:
     return pq.read_metadata(path)
 

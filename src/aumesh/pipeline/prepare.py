@@ -46,7 +46,7 @@ import json
 import logging
 import shutil
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -496,6 +496,16 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     return result
 
 
+def _table_of_video(scratch: Path, parts: list[Partition], video: str) -> Path:
+    """The first table with rows of ``video`` (for an error message), from pass 1's staged metadata."""
+    for i, part in enumerate(parts):
+        meta = _staged_table(scratch, i)
+        rows = np.flatnonzero(meta[VIDEO_COLUMN].to_numpy(zero_copy_only=False).astype(str) == video)
+        if len(rows):
+            return part[int(meta["piece"].to_numpy()[rows[0]])].table.path
+    raise KeyError(video)
+
+
 def _write_item(item: tuple[Partition, Plan], **kwargs) -> Written:
     return write_partition(item[0], plan=item[1], **kwargs)
 
@@ -540,10 +550,14 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             )
         partial_counts = {"frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose)}
         contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
-        sample = anchors_in_table_order(scratch, scan.candidates)
-        reference = generalized_procrustes(sample, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol, map=compute.local_map)
+        # one array of the videos in the stage, not one per partition besides (memory flat in frames)
         every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
         split_names = every_video[in_parts > 1]
+        scan = replace(scan, videos=[])
+        del in_parts
+        sample = anchors_in_table_order(scratch, scan.candidates)
+        reference = generalized_procrustes(sample, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol, map=compute.local_map)
+        del sample
 
         # pass 2: residuals and AU sums of the pose-passing frames, staged per partition
         res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names,
@@ -568,11 +582,15 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
                                           split_videos=split_names), staged, desc="prepare: outlier cut")
         n_kept_pose = sum(k.n_kept for k in kept)
         video_ids = np.unique(np.concatenate([k.videos for k in kept]))
-        dropped_videos = sorted(set(every_video.tolist()) - set(video_ids.tolist()))
+        # sorted, as NumPy strings: a Python string per video (and a set of them) left the freed strings' memory
+        # scattered over Python's small-object arenas (~6 MiB at 90k videos)
+        dropped_videos = np.setdiff1d(every_video, video_ids, assume_unique=True).tolist()
+        n_videos_in = len(every_video)
+        del every_video
         n_rows = int(sum(scan.n_rows))
         if dropped_videos and pre.empty_video == "error":
             v = dropped_videos[0]
-            f = next(p.table.path for part, names in zip(parts, scan.videos) if v in set(names) for p in part)
+            f = _table_of_video(scratch, parts, v)
             raise TableError(
                 f"{f}: video {v!r} (column {VIDEO_COLUMN!r}) has no frames left after the pose filter and the alignment "
                 f"outlier cut ({len(dropped_videos)} such videos). Fix: remove it from the tables, widen "
@@ -580,7 +598,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
             )
         counts = {
             "frames_in": n_rows,
-            "videos_in": int(len(every_video)),
+            "videos_in": int(n_videos_in),
             "dropped_pose": int(n_rows - scan.n_pose),
             "dropped_alignment_outliers": int(scan.n_pose - n_kept_pose),
             "alignment_residual_threshold": threshold,
