@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from aumesh.geometry.align import align_to_reference, apply_similarity, apply_similarity_columns, generalized_procrustes, \
-    umeyama_batch
+from aumesh.geometry.align import SIMILARITY_FRAMES, align_to_reference, apply_similarity, apply_similarity_columns, \
+    apply_similarity_vertices, generalized_procrustes, umeyama_batch
 
 
 def _points(rng, n=12):
@@ -70,3 +70,20 @@ def test_similarity_on_columns_moves_points_as_the_known_transform():
     np.testing.assert_allclose(rows.reshape(5, 3, 40).transpose(0, 2, 1), expected, rtol=1e-13, atol=1e-11)
     np.testing.assert_allclose(rows.reshape(5, 3, 40).transpose(0, 2, 1), apply_similarity(points, rot, scale, shift),
                                rtol=1e-13, atol=1e-11)
+
+
+def test_similarity_on_stored_vertices_is_bit_for_bit_that_on_columns():
+    """Frames stored a row each (a py-feat mesh .npy: (frames, points, xyz), float16 here) -> the same rows as the
+    columns path, bit for bit (prepare writes either), and the known transform to rounding; more frames than one
+    block of SIMILARITY_FRAMES."""
+    rng = np.random.default_rng(5)
+    n = SIMILARITY_FRAMES + 7
+    vertices = (rng.normal(size=(n, 40, 3)) * 100).astype(np.float16)
+    rot = Rotation.random(n, random_state=6).as_matrix()
+    scale, shift = rng.uniform(0.5, 2.0, n), rng.normal(size=(n, 3)) * 50
+    rows = apply_similarity_vertices(vertices, rot, scale, shift)
+    columns = vertices.astype(np.float32).transpose(2, 1, 0).reshape(3 * 40, n)
+    assert rows.shape == (n, 120) and rows.dtype == np.float64
+    np.testing.assert_array_equal(rows, apply_similarity_columns(columns, rot, scale, shift))
+    expected = scale[:, None, None] * (vertices.astype(np.float64) @ rot.transpose(0, 2, 1)) + shift[:, None]
+    np.testing.assert_allclose(rows.reshape(n, 3, 40).transpose(0, 2, 1), expected, rtol=1e-13, atol=1e-11)

@@ -59,7 +59,7 @@ def test_pyfeat_split_layout_with_float16_npy_and_input_column(tmp_path):
     np.testing.assert_allclose(block, mesh[:64].astype(np.float16).astype(np.float64))
 
 
-def test_npy_mesh_columns_are_the_axis_major_rows_read_without_a_memory_map(tmp_path, monkeypatch):
+def test_npy_mesh_chunks_are_the_stored_rows_read_without_a_memory_map(tmp_path, monkeypatch):
     write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=20, seed=3, layout="pyfeat"))
     npy = sorted((tmp_path / "data").glob("*.npy"))[0]
     mesh = np.load(npy).astype(np.float16)
@@ -68,9 +68,11 @@ def test_npy_mesh_columns_are_the_axis_major_rows_read_without_a_memory_map(tmp_
     real_load = np.load
     monkeypatch.setattr(np, "load", lambda *a, **k: pytest.fail("mesh rows read through np.load (a memory map)")
                         if k.get("mmap_mode") else real_load(*a, **k))
-    blocks = list(tables.iter_mesh_columns(found, 64, row_groups=None))
+    blocks = list(tables.iter_mesh_chunks(found, 64, row_groups=None))
     assert [start for start, _ in blocks] == list(range(0, len(mesh), 64))
-    coords = np.concatenate([c for _, c in blocks], axis=1)
+    assert all(c.vertices.dtype == np.float16 for _, c in blocks)  # as stored: converted a block at a time later
+    np.testing.assert_array_equal(np.concatenate([c.vertices for _, c in blocks]), mesh)
+    coords = np.concatenate([c.axis_major() for _, c in blocks], axis=1)
     assert coords.dtype == np.float32  # float16 widened exactly, not to float64
     # axis-major rows [x_0..x_477 | y_.. | z_..], one column per frame
     np.testing.assert_array_equal(coords, mesh.astype(np.float32).transpose(2, 1, 0).reshape(3 * N_VERTICES, -1))
@@ -97,7 +99,7 @@ def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tm
     compressed = sum(md.row_group(g).column(i).total_compressed_size for g in range(8) for i in mesh)
     code = ("import sys, pyarrow as pa\nfrom aumesh.data import tables\n"
             f"(t,) = tables.discover({str(tmp_path / 'data')!r}, '*.parquet', '{{stem}}.npy')\n"
-            "n = sum(c.shape[1] for _, c in tables.iter_mesh_columns(t, 1000, range(8)))\n"
+            "n = sum(c.columns.shape[1] for _, c in tables.iter_mesh_chunks(t, 1000, range(8)))\n"
             "print(n, pa.default_memory_pool().max_memory())")
     env = {**os.environ, ARROW_POOL_ENV: "system"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()

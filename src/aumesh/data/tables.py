@@ -423,21 +423,51 @@ def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[i
         start += batch.num_rows
 
 
-def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
-    """Full meshes chunk by chunk as ``(start, coords)``, ``coords`` of shape (1434, m), axis-major rows
-    ``[x_0..x_477 | y_.. | z_..]`` (one contiguous row per parquet column: no strided scatter).
-    ``row_groups`` as in :func:`iter_vertices`.
+@dataclass(frozen=True)
+class MeshChunk:
+    """Full meshes of ``m`` consecutive table rows, in the layout they were read in: exactly one of
 
-    ``coords`` keeps the columns' precision: float32 when every mesh column is float32 (MediaPipe's own
-    precision; half the bytes to move), else float64. Widening to float64 later is exact. It may be read-only."""
+    - ``vertices`` (m, 478, 3): rows of a py-feat mesh ``.npy``, in its dtype (float16, float32 or float64);
+    - ``columns`` (1434, m): parquet mesh columns, axis-major ``[x_0..x_477 | y_.. | z_..]``, one row per column.
+
+    Kept as read, not converted: transposing a whole chunk of ``.npy`` rows into columns cost a (1434, m) copy per
+    chunk (23 MiB a task at 4,096 float16 rows); a consumer converts the rows it uses, a block at a time
+    (:meth:`take`, then :func:`aumesh.geometry.align.apply_similarity_vertices` or ``apply_similarity_columns``).
+    """
+
+    vertices: np.ndarray | None = None
+    columns: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.vertices) if self.vertices is not None else self.columns.shape[1]
+
+    def take(self, rows: np.ndarray) -> "MeshChunk":
+        """The chunk's rows ``rows``, same layout (``np.take`` copies each coordinate's row; ``columns[:, rows]``
+        gathers element by element)."""
+        if self.vertices is not None:
+            return MeshChunk(vertices=self.vertices[rows])
+        return MeshChunk(columns=np.take(self.columns, rows, axis=1))
+
+    def axis_major(self) -> np.ndarray:
+        """(1434, m) axis-major coordinates, float32 when stored in float32 or less (widening is exact), else float64."""
+        if self.columns is not None:
+            return self.columns
+        v = self.vertices
+        return np.ascontiguousarray(v.transpose(2, 1, 0), dtype=np.promote_types(v.dtype, np.float32)).reshape(N_TARGETS, len(v))
+
+
+def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, MeshChunk]]:
+    """Full meshes chunk by chunk as ``(start, chunk)`` (:class:`MeshChunk`: ``.npy`` rows as stored, or parquet's
+    columns ``(1434, m)``, one contiguous row per column: no strided scatter). ``row_groups`` as in
+    :func:`iter_vertices`.
+
+    Parquet columns keep their precision: float32 when every mesh column is float32 (MediaPipe's own precision; half
+    the bytes to move), else float64; they may be read-only. A NaN/inf coordinate is a :class:`TableError`."""
     if table.mesh_npy is not None:
         for start, rows in _npy_blocks(table, chunk_rows, row_groups):
-            # float16/float32 as stored (widening to float32 is exact), one transposing copy into (1434, m)
-            coords = np.ascontiguousarray(rows.transpose(2, 1, 0), dtype=np.promote_types(rows.dtype, np.float32))
-            coords = coords.reshape(N_TARGETS, len(rows))
-            if not np.isfinite(coords).all():
+            if not np.isfinite(rows).all():
                 _check_finite_mesh(table.mesh_npy, rows, start, range(N_VERTICES))
-            yield start, coords
+            yield start, MeshChunk(vertices=rows)
         return
     columns = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
     start = _row_range(table, row_groups)[0]
@@ -456,7 +486,7 @@ def iter_mesh_columns(table: FrameTable, chunk_rows: int, row_groups: Sequence[i
                 coords[j] = _column(batch, k, columns[j], table, start)
         if not np.isfinite(coords).all():
             _check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
-        yield start, coords
+        yield start, MeshChunk(columns=coords)
         start += m
 
 

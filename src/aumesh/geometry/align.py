@@ -87,12 +87,45 @@ def apply_similarity_columns(columns: np.ndarray, rotation: np.ndarray, scale: n
         The moved points, a frame per row, axis-major.
     """
     n_coords, n_frames = columns.shape
+    return _moved_rows(lambda lo, hi: np.ascontiguousarray(columns[:, lo:hi].T).reshape(hi - lo, 3, -1),
+                       n_frames, n_coords, rotation, scale, translation)
+
+
+def apply_similarity_vertices(vertices: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
+                              translation: np.ndarray) -> np.ndarray:
+    """:func:`apply_similarity_columns` on point sets stored a frame per row, as a mesh ``.npy`` stores them.
+
+    Each frame's points are transposed to (3, n_points) a few frames at a time, widened to at least float32 (exact),
+    so the product, and every bit of the result, is that of :func:`apply_similarity_columns` on the same points.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (n_frames, n_points, 3)
+        Any float dtype (float16 as py-feat may save them).
+    rotation : ndarray, shape (n_frames, 3, 3)
+    scale : ndarray, shape (n_frames,)
+    translation : ndarray, shape (n_frames, 3)
+
+    Returns
+    -------
+    ndarray of float64, shape (n_frames, 3 n_points)
+        The moved points, a frame per row, axis-major ``[x_0..x_{n-1} | y_.. | z_..]``.
+    """
+    n_frames, n_points, _ = vertices.shape
+    dtype = np.promote_types(vertices.dtype, np.float32)
+    return _moved_rows(lambda lo, hi: np.ascontiguousarray(vertices[lo:hi].transpose(0, 2, 1), dtype=dtype),
+                       n_frames, 3 * n_points, rotation, scale, translation)
+
+
+def _moved_rows(points_of, n_frames: int, n_coords: int, rotation: np.ndarray, scale: np.ndarray,
+                translation: np.ndarray) -> np.ndarray:
+    """``(scale R) p + t`` of frames ``lo:hi`` at a time, ``points_of(lo, hi)`` their (hi - lo, 3, n_points)
+    points; returns (n_frames, n_coords) float64 axis-major rows."""
     rows = np.empty((n_frames, n_coords))
     for lo in range(0, n_frames, SIMILARITY_FRAMES):
         hi = min(lo + SIMILARITY_FRAMES, n_frames)
-        points = np.ascontiguousarray(columns[:, lo:hi].T).reshape(hi - lo, 3, -1)  # (frames, xyz, n_points)
         moved = rows[lo:hi].reshape(hi - lo, 3, -1)
-        np.matmul(rotation[lo:hi] * scale[lo:hi, None, None], points, out=moved)
+        np.matmul(rotation[lo:hi] * scale[lo:hi, None, None], points_of(lo, hi), out=moved)
         moved += translation[lo:hi, :, None]
     return rows
 

@@ -59,9 +59,10 @@ import pyarrow.parquet as pq
 from aumesh.config import Config, PreprocessConfig
 from aumesh.data import contract
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, VIDEO_COLUMN
-from aumesh.data.tables import FrameTable, Piece, TableError, check_unique_frames, iter_mesh_columns, iter_vertices, \
-    partitions, read_pieces_metadata
-from aumesh.geometry.align import align_to_reference, apply_similarity_columns, generalized_procrustes
+from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_unique_frames, iter_mesh_chunks, \
+    iter_vertices, partitions, read_pieces_metadata
+from aumesh.geometry.align import (align_to_reference, apply_similarity_columns, apply_similarity_vertices,
+                                   generalized_procrustes)
 from aumesh.model.statistics import video_row_sums
 from aumesh.pipeline import compute
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
@@ -470,8 +471,8 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                  for name in (MESHES_FILE, *NEUTRAL_FILES.values())}
         offset = 0
         for p in part:
-            for start, coords in iter_mesh_columns(p.table, chunk_rows, p.row_groups):
-                m = coords.shape[1]
+            for start, chunk in iter_mesh_chunks(p.table, chunk_rows, p.row_groups):
+                m = len(chunk)
                 local = offset + start - p.start
                 pos = position[local : local + m]
                 sel = pos >= 0
@@ -482,9 +483,8 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 # cache instead of streaming a chunk-sized float64 array through memory for every step
                 for lo in range(0, len(pos), ALIGN_BLOCK):
                     rows_out = pos[lo : lo + ALIGN_BLOCK]
-                    # np.take copies along each coordinate's row (coords[:, idx] gathers element by element)
-                    block = np.take(coords, columns[lo : lo + ALIGN_BLOCK], axis=1)  # (1434, k)
-                    flat = apply_similarity_columns(block, rotation[rows_out], scale[rows_out], translation[rows_out])
+                    flat = _aligned_rows(chunk.take(columns[lo : lo + ALIGN_BLOCK]), rotation[rows_out],
+                                         scale[rows_out], translation[rows_out])
                     files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
                     result.sums[0] += flat.sum(axis=0)
                     result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
@@ -504,6 +504,13 @@ def _table_of_video(scratch: Path, parts: list[Partition], video: str) -> Path:
         if len(rows):
             return part[int(meta["piece"].to_numpy()[rows[0]])].table.path
     raise KeyError(video)
+
+
+def _aligned_rows(block: MeshChunk, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """(k, 1434) float64 aligned meshes of a block of frames, from the layout they were read in."""
+    if block.vertices is not None:
+        return apply_similarity_vertices(block.vertices, rotation, scale, translation)
+    return apply_similarity_columns(block.columns, rotation, scale, translation)
 
 
 def _write_item(item: tuple[Partition, Plan], **kwargs) -> Written:
