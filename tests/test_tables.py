@@ -68,11 +68,16 @@ def test_npy_mesh_chunks_are_the_stored_rows_read_without_a_memory_map(tmp_path,
     real_load = np.load
     monkeypatch.setattr(np, "load", lambda *a, **k: pytest.fail("mesh rows read through np.load (a memory map)")
                         if k.get("mmap_mode") else real_load(*a, **k))
-    blocks = list(tables.iter_mesh_chunks(found, 64, row_groups=None))
-    assert [start for start, _ in blocks] == list(range(0, len(mesh), 64))
-    assert all(c.vertices.dtype == np.float16 for _, c in blocks)  # as stored: converted a block at a time later
-    np.testing.assert_array_equal(np.concatenate([c.vertices for _, c in blocks]), mesh)
-    coords = np.concatenate([c.axis_major() for _, c in blocks], axis=1)
+    starts, rows, columns, previous = [], [], [], None
+    for start, chunk in tables.iter_mesh_chunks(found, 64, row_groups=None):
+        assert chunk.vertices.dtype == np.float16  # as stored: converted a block at a time later
+        # every chunk is read into the same buffer (one chunk resident a task, no page faults per chunk)
+        assert previous is None or np.shares_memory(chunk.vertices, previous)
+        previous = chunk.vertices
+        starts.append(start), rows.append(chunk.vertices.copy()), columns.append(chunk.axis_major())
+    assert starts == list(range(0, len(mesh), 64))
+    np.testing.assert_array_equal(np.concatenate(rows), mesh)
+    coords = np.concatenate(columns, axis=1)
     assert coords.dtype == np.float32  # float16 widened exactly, not to float64
     # axis-major rows [x_0..x_477 | y_.. | z_..], one column per frame
     np.testing.assert_array_equal(coords, mesh.astype(np.float32).transpose(2, 1, 0).reshape(3 * N_VERTICES, -1))

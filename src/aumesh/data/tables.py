@@ -378,11 +378,16 @@ def _row_range(table: FrameTable, row_groups: Sequence[int] | None) -> tuple[int
 
 def _npy_blocks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None) -> Iterator[tuple[int, np.ndarray]]:
     """``(start, rows)`` of the table's mesh ``.npy``, ``rows`` (m, 478, 3) in the file's dtype, read with ``pread``:
-    a memory map would keep every page of the file read so far resident in the process (~70 MiB a py-feat table)."""
+    a memory map would keep every page of the file read so far resident in the process (~70 MiB a py-feat table).
+
+    ``rows`` is a view of one buffer that every chunk is read into: valid until the next chunk is read (a consumer
+    that keeps rows copies them). A fresh array per chunk held two chunks at once, the one the consumer still held and
+    the one being read (2 x 23 MiB a task at 8,192 float16 rows), and cost a page fault per 4 KiB of every chunk."""
     first, stop = _row_range(table, row_groups)
     with NpyRowFile(table.mesh_npy) as f:
+        buffer = np.empty((min(chunk_rows, max(stop - first, 0)), *f.shape[1:]), dtype=f.dtype)
         for start in range(first, stop, chunk_rows):
-            yield start, f.read(start, min(start + chunk_rows, stop))
+            yield start, f.read(start, min(start + chunk_rows, stop), out=buffer)
 
 
 def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[int] | None = None,
@@ -461,8 +466,10 @@ def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[in
     columns ``(1434, m)``, one contiguous row per column: no strided scatter). ``row_groups`` as in
     :func:`iter_vertices`.
 
-    Parquet columns keep their precision: float32 when every mesh column is float32 (MediaPipe's own precision; half
-    the bytes to move), else float64; they may be read-only. A NaN/inf coordinate is a :class:`TableError`."""
+    ``.npy`` rows are a view of a buffer the next chunk is read into (:func:`_npy_blocks`): use them, or copy them,
+    before the next chunk. Parquet columns keep their precision: float32 when every mesh column is float32
+    (MediaPipe's own precision; half the bytes to move), else float64; they may be read-only. A NaN/inf coordinate is
+    a :class:`TableError`."""
     if table.mesh_npy is not None:
         for start, rows in _npy_blocks(table, chunk_rows, row_groups):
             if not np.isfinite(rows).all():

@@ -190,7 +190,7 @@ def _read_anchors(part: Partition, cfg: Config) -> np.ndarray:
     out = np.empty((sum(p.n_rows for p in part), len(idx), 3), np.float32)
     offset = 0
     for p in part:
-        for start, block in iter_vertices(p.table, cfg.data.chunk_rows, idx, p.row_groups):
+        for start, block in iter_vertices(p.table, compute.task_rows(cfg.data.chunk_rows), idx, p.row_groups):
             out[offset + start - p.start : offset + start - p.start + len(block)] = block
         offset += p.n_rows
     return out
