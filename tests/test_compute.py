@@ -376,8 +376,8 @@ def test_local_map_runs_on_the_local_threads_in_order_and_one_by_one_when_synchr
 
 @pytest.mark.parametrize("scheduler", ["synchronous", "threads"])
 def test_a_pass_returns_its_freed_memory_every_few_tasks_and_when_it_ends(scheduler, monkeypatch):
-    """Freed memory goes back to the system every TRIM_EVERY_TASKS tasks the process runs and after the pass's last
-    task, not after each task (a task that finds its predecessor's freed pages reuses them; returned pages were
+    """Freed memory goes back to the system after the pass's last task and, in a pass of more than TRIM_AFTER_TASKS
+    partitions, every TRIM_EVERY_TASKS tasks the process runs; not after each task (a task that finds its predecessor's freed pages reuses them; returned pages were
     faulted in again by the next task)."""
     import itertools
     import threading
@@ -393,18 +393,19 @@ def test_a_pass_returns_its_freed_memory_every_few_tasks_and_when_it_ends(schedu
         return x
 
     k = compute.TRIM_EVERY_TASKS
-    n = 2 * k + 1
     monkeypatch.setattr(compute, "release_freed_memory", lambda: events.append("release"))
-    for run in (lambda: compute.map_gather(task, list(range(n))) == list(range(n)),
-                lambda: compute.map_reduce(task, lambda a, b: a + b, list(range(n))) == n * (n - 1) // 2):
-        monkeypatch.setattr(compute, "_TASKS_RUN", itertools.count(1))
-        events.clear()
-        with compute.engine(ComputeConfig(scheduler=scheduler, n_workers=2)):
-            assert run()
-        assert events.count("task") == n and events.count("release") == n // k + 1
-        assert events[-1] == "release"  # the pass's end
-        if scheduler == "synchronous":  # one task at a time: after every k-th task
-            assert events == ((["task"] * k + ["release"]) * (n // k) + ["task"] * (n % k) + ["release"])
+    # a long pass (more than TRIM_AFTER_TASKS partitions) also every k tasks; a short one at its end only
+    for n, periodic in ((compute.TRIM_AFTER_TASKS + k + 1, True), (compute.TRIM_AFTER_TASKS, False)):
+        for run in (lambda: compute.map_gather(task, list(range(n))) == list(range(n)),
+                    lambda: compute.map_reduce(task, lambda a, b: a + b, list(range(n))) == n * (n - 1) // 2):
+            monkeypatch.setattr(compute, "_TASKS_RUN", itertools.count(1))
+            events.clear()
+            with compute.engine(ComputeConfig(scheduler=scheduler, n_workers=2)):
+                assert run()
+            assert events.count("task") == n and events.count("release") == (n // k if periodic else 0) + 1
+            assert events[-1] == "release"  # the pass's end
+            if scheduler == "synchronous" and periodic:  # one task at a time: after every k-th task
+                assert events == ((["task"] * k + ["release"]) * (n // k) + ["task"] * (n % k) + ["release"])
 
 
 def test_a_process_pool_serves_every_pass_of_an_engine():

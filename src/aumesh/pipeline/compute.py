@@ -181,8 +181,8 @@ def task_rows(chunk_rows: int) -> int:
 def _releasing_freed_memory() -> Iterator[None]:
     """Hand the memory a pass freed back to the operating system when the pass ends (:func:`release_freed_memory`).
 
-    At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks, :class:`_Task`), not after each task: the tasks of
-    a pass allocate alike, and a task that finds the previous
+    At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks of a long pass, :class:`_Task`), not after each
+    task: the tasks of a pass allocate alike, and a task that finds the previous
     task's freed pages in its arena reuses them, where pages returned after every task were faulted in again by the
     next (prepare's pass 3 on 344k frames of parquet mesh columns: 1.3M page faults and 6.7 s of system time; at the
     pass's end: 0.4M and 3.6 s, wall 0.87x, peak +30 MiB). With glibc's arenas capped at the workers
@@ -259,27 +259,33 @@ def local_map(fn: Callable, items: Sequence[Any]) -> list:
         return list(pool.map(fn, items))
 
 
-#: Tasks a process runs between two returns of its freed memory to the system (:func:`release_freed_memory`), besides
-#: the one at each pass's end. Each task's freed buffers stay in glibc's arenas for the next tasks to reuse, but the
-#: holes they leave are rarely the next task's sizes, so the resident pages crept up with the tasks a pass ran: a pass
-#: of 96 partitions (3.1M frames) peaked 20-25 MiB higher than one of 4, all else equal. Every 4 tasks: prepare's
-#: peak at 3.1M frames 305 -> 287 MiB, evaluate's 321 -> 298 MiB, the same wall time (one run each).
+#: Tasks a process runs between two returns of its freed memory to the system (:func:`release_freed_memory`), in a
+#: pass of more than :data:`TRIM_AFTER_TASKS` partitions, besides the return at each pass's end. Each task's freed
+#: buffers stay in glibc's arenas for the next tasks to reuse, but the holes they leave are rarely the next task's
+#: sizes, so the resident pages crept up with the tasks a pass ran: a pass of 96 partitions (3.1M frames) peaked
+#: 20-25 MiB higher than one of 4, all else equal. Every 4 tasks: prepare's peak at 3.1M frames 305 -> 287 MiB,
+#: evaluate's 321 -> 298 and 326 -> 305 MiB, the same wall time (single runs).
 TRIM_EVERY_TASKS = 4
+#: Passes of at most this many partitions return freed memory at their end only: they creep little, and each return
+#: costs the next tasks the page faults of their working set again (prepare at 344k frames in the columns layout,
+#: 12 partitions whose tasks read ~400 MiB of Arrow buffers each: 1.043x wall with returns every 4 tasks, 4 pairs).
+TRIM_AFTER_TASKS = 16
 _TASKS_RUN = itertools.count(1)  # tasks this process has run (``next`` is atomic under the GIL)
 
 
 class _Task:
-    """A pass's partition function, returning freed memory every :data:`TRIM_EVERY_TASKS` tasks of this process
-    (picklable: a process pool or a cluster worker counts its own tasks)."""
+    """A pass's partition function; in a pass of more than :data:`TRIM_AFTER_TASKS` partitions it returns freed
+    memory every :data:`TRIM_EVERY_TASKS` tasks of this process (picklable: a process pool or a cluster worker counts
+    its own tasks)."""
 
-    def __init__(self, fn: Callable):
-        self.fn = fn
+    def __init__(self, fn: Callable, n_partitions: int):
+        self.fn, self.trims = fn, n_partitions > TRIM_AFTER_TASKS
 
     def __call__(self, item: Any) -> Any:
         try:
             return self.fn(item)
         finally:
-            if next(_TASKS_RUN) % TRIM_EVERY_TASKS == 0:
+            if self.trims and next(_TASKS_RUN) % TRIM_EVERY_TASKS == 0:
                 release_freed_memory()
 
 
@@ -289,7 +295,7 @@ def map_gather(fn: Callable, partitions: Sequence[Any], desc: str = "") -> list:
     if not partitions:
         return []
     with _current(), _progress(desc), _releasing_freed_memory():
-        return _bag(partitions).map(_Task(fn)).compute()
+        return _bag(partitions).map(_Task(fn, len(partitions))).compute()
 
 
 def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Sequence[Any], desc: str = "") -> Any:
@@ -298,7 +304,7 @@ def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Seq
     if not partitions:
         raise ValueError("map_reduce: no partitions")
     with _current(), _progress(desc), _releasing_freed_memory():
-        return _bag(partitions).map(_Task(fn)).reduction(_reduce_all(combine), _reduce_all(combine),
+        return _bag(partitions).map(_Task(fn, len(partitions))).reduction(_reduce_all(combine), _reduce_all(combine),
                                                   split_every=SPLIT_EVERY).compute()
 
 
