@@ -14,6 +14,7 @@ from aumesh.pipeline import prepare
 from aumesh.data import tables
 from aumesh.data.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
 from aumesh.data.synth import SynthSpec, write_tables
+from aumesh.geometry.align import apply_similarity_vertices
 from conftest import default_config
 
 PATTERN, NPY = "**/*.parquet", "{stem}.npy"
@@ -74,13 +75,14 @@ def test_npy_mesh_chunks_are_the_stored_rows_read_without_a_memory_map(tmp_path,
         # every chunk is read into the same buffer (one chunk resident a task, no page faults per chunk)
         assert previous is None or np.shares_memory(chunk.vertices, previous)
         previous = chunk.vertices
-        starts.append(start), rows.append(chunk.vertices.copy()), columns.append(chunk.axis_major())
+        n = len(chunk)  # moved by the identity, as pass 3 moves them: the rows' coordinates, axis-major
+        moved = apply_similarity_vertices(chunk.vertices, np.tile(np.eye(3), (n, 1, 1)), np.ones(n), np.zeros((n, 3)))
+        starts.append(start), rows.append(chunk.vertices.copy()), columns.append(moved.T)
     assert starts == list(range(0, len(mesh), 64))
     np.testing.assert_array_equal(np.concatenate(rows), mesh)
     coords = np.concatenate(columns, axis=1)
-    assert coords.dtype == np.float32  # float16 widened exactly, not to float64
-    # axis-major rows [x_0..x_477 | y_.. | z_..], one column per frame
-    np.testing.assert_array_equal(coords, mesh.astype(np.float32).transpose(2, 1, 0).reshape(3 * N_VERTICES, -1))
+    # axis-major rows [x_0..x_477 | y_.. | z_..], one column per frame, float16 widened exactly
+    np.testing.assert_array_equal(coords, mesh.astype(np.float64).transpose(2, 1, 0).reshape(3 * N_VERTICES, -1))
 
 
 def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tmp_path):

@@ -453,13 +453,6 @@ class MeshChunk:
             return MeshChunk(vertices=self.vertices[rows])
         return MeshChunk(columns=np.take(self.columns, rows, axis=1))
 
-    def axis_major(self) -> np.ndarray:
-        """(1434, m) axis-major coordinates, float32 when stored in float32 or less (widening is exact), else float64."""
-        if self.columns is not None:
-            return self.columns
-        v = self.vertices
-        return np.ascontiguousarray(v.transpose(2, 1, 0), dtype=np.promote_types(v.dtype, np.float32)).reshape(N_TARGETS, len(v))
-
 
 def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, MeshChunk]]:
     """Full meshes chunk by chunk as ``(start, chunk)`` (:class:`MeshChunk`: ``.npy`` rows as stored, or parquet's

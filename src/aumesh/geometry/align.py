@@ -102,14 +102,13 @@ def apply_similarity_vertices(vertices: np.ndarray, rotation: np.ndarray, scale:
     ----------
     vertices : ndarray, shape (n_frames, n_points, 3)
         Any float dtype (float16 as py-feat may save them).
-    rotation : ndarray, shape (n_frames, 3, 3)
-    scale : ndarray, shape (n_frames,)
-    translation : ndarray, shape (n_frames, 3)
+    rotation, scale, translation
+        As in :func:`apply_similarity_columns`.
 
     Returns
     -------
     ndarray of float64, shape (n_frames, 3 n_points)
-        The moved points, a frame per row, axis-major ``[x_0..x_{n-1} | y_.. | z_..]``.
+        As :func:`apply_similarity_columns` returns.
     """
     n_frames, n_points, _ = vertices.shape
     dtype = np.promote_types(vertices.dtype, np.float32)

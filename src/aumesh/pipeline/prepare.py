@@ -212,14 +212,9 @@ def _staged_table(scratch: Path, i: int) -> pa.Table:
     return feather.read_table(scratch / f"{i:06d}.arrow")
 
 
-def _staged_meta(scratch: Path, i: int) -> pd.DataFrame:
-    """:func:`_staged_table` as a DataFrame."""
-    return _staged_table(scratch, i).to_pandas()
-
-
 def _staged(scratch: Path, i: int) -> tuple[pd.DataFrame, np.ndarray]:
     """Partition ``i``'s validated metadata and float32 anchors, as pass 1 staged them."""
-    return _staged_meta(scratch, i), load_npy(_staged_anchors_file(scratch, i))
+    return _staged_table(scratch, i).to_pandas(), load_npy(_staged_anchors_file(scratch, i))
 
 
 def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> Scan:
