@@ -85,6 +85,44 @@ def test_npy_mesh_chunks_are_the_stored_rows_read_without_a_memory_map(tmp_path,
     np.testing.assert_array_equal(coords, mesh.astype(np.float64).transpose(2, 1, 0).reshape(3 * N_VERTICES, -1))
 
 
+def test_a_partitions_npy_chunks_are_its_pieces_rows_read_into_one_buffer(tmp_path):
+    """A partition's pieces (here 3-4 tables) are read into one buffer: the last chunk of one piece, still held by the
+    consumer, would otherwise live beside the next piece's fresh buffer (2 chunks a task at 3.1M frames)."""
+    write_tables(tmp_path / "data", SynthSpec(n_frames=600, n_videos=30, seed=4, layout="pyfeat", frames_per_file=200))
+    found = tables.discover(tmp_path / "data", PATTERN, NPY)
+    (part,) = tables.partitions(found, 10_000)
+    assert len({p.table.path for p in part}) == len(found) >= 3
+    expected = np.concatenate([np.load(t.mesh_npy) for t in found])
+    starts, rows, buffer = [], [], None
+    for start, chunk in tables.iter_pieces_mesh_chunks(part, 64):
+        assert buffer is None or np.shares_memory(chunk.vertices, buffer)
+        buffer = chunk.vertices
+        starts.append(start), rows.append(chunk.vertices.copy())
+    np.testing.assert_array_equal(np.concatenate(rows), expected)
+    assert starts == [s + sum(len(np.load(t.mesh_npy)) for t in found[:i])
+                      for i, t in enumerate(found) for s in range(0, len(np.load(t.mesh_npy)), 64)]
+
+
+@pytest.mark.parametrize("layout", ["pyfeat", "columns"])
+def test_a_nan_mesh_coordinate_past_the_first_block_of_a_chunk_is_found(tmp_path, layout):
+    """The finiteness check walks a chunk a block at a time (no chunk-sized bool temporary); a NaN in a later
+    block still fails, naming the row."""
+    write_tables(tmp_path / "data", SynthSpec(n_frames=900, n_videos=20, seed=5, layout=layout, frames_per_file=900))
+    (found,) = tables.discover(tmp_path / "data", PATTERN, NPY)
+    row = tables._FINITE_BLOCK * 3 + 7
+    if layout == "pyfeat":
+        mesh = np.load(found.mesh_npy)
+        mesh[row, 33, 1] = np.nan
+        np.save(found.mesh_npy, mesh)
+    else:
+        df = pd.read_parquet(found.path)
+        df.loc[row, "y_33"] = np.nan
+        df.to_parquet(found.path)
+    with pytest.raises(tables.TableError, match=rf"y_33 is NaN/inf at row {row}\b"):
+        for _ in tables.iter_mesh_chunks(found, 900):
+            pass
+
+
 def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tmp_path):
     """Reading a partition of 8 row groups holds one row group's column chunks at a time, not all 8 (pyarrow's
     default ``pre_buffer`` read every requested row group's mesh columns before the first batch: for 1,434 columns

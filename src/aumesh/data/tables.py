@@ -376,18 +376,35 @@ def _row_range(table: FrameTable, row_groups: Sequence[int] | None) -> tuple[int
     return first, first + sum(md.row_group(g).num_rows for g in row_groups)
 
 
-def _npy_blocks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None) -> Iterator[tuple[int, np.ndarray]]:
+def _npy_blocks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None,
+                buffers: dict | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """``(start, rows)`` of the table's mesh ``.npy``, ``rows`` (m, 478, 3) in the file's dtype, read with ``pread``:
     a memory map would keep every page of the file read so far resident in the process (~70 MiB a py-feat table).
 
     ``rows`` is a view of one buffer that every chunk is read into: valid until the next chunk is read (a consumer
     that keeps rows copies them). A fresh array per chunk held two chunks at once, the one the consumer still held and
-    the one being read (2 x 23 MiB a task at 8,192 float16 rows), and cost a page fault per 4 KiB of every chunk."""
+    the one being read (2 x 23 MiB a task at 8,192 float16 rows), and cost a page fault per 4 KiB of every chunk.
+    ``buffers`` ((dtype, row shape) -> buffer) carries the buffer on to the next table's reads (:func:`iter_pieces_mesh_chunks`)."""
     first, stop = _row_range(table, row_groups)
     with NpyRowFile(table.mesh_npy) as f:
-        buffer = np.empty((min(chunk_rows, max(stop - first, 0)), *f.shape[1:]), dtype=f.dtype)
+        n, key = min(chunk_rows, max(stop - first, 0)), (f.dtype.str, f.shape[1:])
+        buffer = None if buffers is None else buffers.get(key)
+        if buffer is None or len(buffer) < n:
+            buffer = np.empty((n, *f.shape[1:]), dtype=f.dtype)
+            if buffers is not None:
+                buffers[key] = buffer
         for start in range(first, stop, chunk_rows):
             yield start, f.read(start, min(start + chunk_rows, stop), out=buffer)
+
+
+#: Rows (first-axis entries) :func:`_all_finite` checks at a time.
+_FINITE_BLOCK = 256
+
+
+def _all_finite(values: np.ndarray) -> bool:
+    """``np.isfinite(values).all()`` a block of the first axis at a time: the check's bool temporary of a whole chunk
+    (11.7 MiB at 8,192 mesh rows) was a task's largest allocation after the chunk itself."""
+    return all(np.isfinite(values[lo : lo + _FINITE_BLOCK]).all() for lo in range(0, len(values), _FINITE_BLOCK))
 
 
 def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[int] | None = None,
@@ -454,18 +471,19 @@ class MeshChunk:
         return MeshChunk(columns=np.take(self.columns, rows, axis=1))
 
 
-def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, MeshChunk]]:
+def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None,
+                     buffers: dict | None = None) -> Iterator[tuple[int, MeshChunk]]:
     """Full meshes chunk by chunk as ``(start, chunk)`` (:class:`MeshChunk`: ``.npy`` rows as stored, or parquet's
     columns ``(1434, m)``, one contiguous row per column: no strided scatter). ``row_groups`` as in
     :func:`iter_vertices`.
 
     ``.npy`` rows are a view of a buffer the next chunk is read into (:func:`_npy_blocks`): use them, or copy them,
-    before the next chunk. Parquet columns keep their precision: float32 when every mesh column is float32
+    before the next chunk; ``buffers`` as in :func:`_npy_blocks`. Parquet columns keep their precision: float32 when every mesh column is float32
     (MediaPipe's own precision; half the bytes to move), else float64; they may be read-only. A NaN/inf coordinate is
     a :class:`TableError`."""
     if table.mesh_npy is not None:
-        for start, rows in _npy_blocks(table, chunk_rows, row_groups):
-            if not np.isfinite(rows).all():
+        for start, rows in _npy_blocks(table, chunk_rows, row_groups, buffers):
+            if not _all_finite(rows):
                 _check_finite_mesh(table.mesh_npy, rows, start, range(N_VERTICES))
             yield start, MeshChunk(vertices=rows)
         return
@@ -484,10 +502,25 @@ def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[in
             coords = np.empty((N_TARGETS, m), dtype=dtype)
             for j, k in enumerate(where):
                 coords[j] = _column(batch, k, columns[j], table, start)
-        if not np.isfinite(coords).all():
+        if not _all_finite(coords):
             _check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
         yield start, MeshChunk(columns=coords)
         start += m
+
+
+def iter_pieces_mesh_chunks(pieces: Sequence[Piece], chunk_rows: int) -> Iterator[tuple[int, MeshChunk]]:
+    """:func:`iter_mesh_chunks` over consecutive pieces (a partition), ``(row, chunk)`` with ``row`` the chunk's first
+    row within the pieces' rows, piece after piece.
+
+    The ``.npy`` rows of every piece are read into one buffer: a consumer's last chunk of one piece stayed alive while
+    the next piece's reader allocated its own, and at 3.1M frames a partition spans 2-3 tables (prepare's pass 3,
+    a task: 61 MiB traced at 8,192 rows, 39 MiB for a partition of one table)."""
+    buffers: dict = {}
+    offset = 0
+    for piece in pieces:
+        for start, chunk in iter_mesh_chunks(piece.table, chunk_rows, piece.row_groups, buffers):
+            yield offset + start - piece.start, chunk
+        offset += piece.n_rows
 
 
 def _check_finite_mesh(path: Path, block: np.ndarray, start: int, idx: Sequence[int]) -> None:

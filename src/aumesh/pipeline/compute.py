@@ -179,7 +179,7 @@ def task_rows(chunk_rows: int) -> int:
 
 @contextmanager
 def _releasing_freed_memory() -> Iterator[None]:
-    """Hand the memory a pass freed back to the operating system when the pass ends (:func:`release_freed_memory`).
+    """Hand freed memory back to the operating system when a pass starts and ends (:func:`release_freed_memory`).
 
     At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks of a long pass, :class:`_Task`), not after each
     task: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in its arena
@@ -192,7 +192,12 @@ def _releasing_freed_memory() -> Iterator[None]:
     It trims the stage process, whose threads run the local passes. A local process pool's workers keep their freed
     pages for their next task; ``dask.distributed``'s nanny starts its workers with glibc's ``MALLOC_TRIM_THRESHOLD_``
     at 64 KiB (its ``distributed.nanny.pre-spawn-environ``), so they trim as they free.
+
+    And when the pass starts: the stage's own work between two passes (prepare's GPA reference, cut and plans) frees
+    memory the next pass's tasks would otherwise add to (prepare at 3.1M frames started its pass 2 with 42 MiB of it
+    resident; with the return, the stage's peak fell 289 -> 274 MiB).
     """
+    release_freed_memory()
     try:
         yield
     finally:

@@ -59,7 +59,7 @@ import pyarrow.parquet as pq
 from aumesh.config import Config, PreprocessConfig
 from aumesh.data import contract
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, VIDEO_COLUMN
-from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_unique_frames, iter_mesh_chunks, \
+from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_unique_frames, iter_pieces_mesh_chunks, \
     iter_vertices, partitions, read_pieces_metadata
 from aumesh.geometry.align import (align_to_reference, apply_similarity_columns, apply_similarity_vertices,
                                    generalized_procrustes)
@@ -464,30 +464,26 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     with ExitStack() as stack:  # the output files opened once for the partition's writes
         files = {name: stack.enter_context(NpyRowFile(out_dir / name, writable=True))
                  for name in (MESHES_FILE, *NEUTRAL_FILES.values())}
-        offset = 0
-        for p in part:
-            for start, chunk in iter_mesh_chunks(p.table, chunk_rows, p.row_groups):
-                m = len(chunk)
-                local = offset + start - p.start
-                pos = position[local : local + m]
-                sel = pos >= 0
-                if not sel.any():
-                    continue
-                pos, columns = pos[sel], np.flatnonzero(sel)
-                # a block of rows at a time: the gather, the alignment's temporaries and the sums stay in the CPU's
-                # cache instead of streaming a chunk-sized float64 array through memory for every step
-                for lo in range(0, len(pos), ALIGN_BLOCK):
-                    rows_out = pos[lo : lo + ALIGN_BLOCK]
-                    flat = _aligned_rows(chunk.take(columns[lo : lo + ALIGN_BLOCK]), rotation[rows_out],
-                                         scale[rows_out], translation[rows_out])
-                    files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
-                    result.sums[0] += flat.sum(axis=0)
-                    result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
-                    all_frames.add(video_index[rows_out], flat)
-                    low = low_video[rows_out]
-                    low_frames.add(video_index[rows_out][low], flat[low])
-                write_neutrals(files)
-            offset += p.n_rows
+        for local, chunk in iter_pieces_mesh_chunks(part, chunk_rows):
+            m = len(chunk)
+            pos = position[local : local + m]
+            sel = pos >= 0
+            if not sel.any():
+                continue
+            pos, columns = pos[sel], np.flatnonzero(sel)
+            # a block of rows at a time: the gather, the alignment's temporaries and the sums stay in the CPU's
+            # cache instead of streaming a chunk-sized float64 array through memory for every step
+            for lo in range(0, len(pos), ALIGN_BLOCK):
+                rows_out = pos[lo : lo + ALIGN_BLOCK]
+                flat = _aligned_rows(chunk.take(columns[lo : lo + ALIGN_BLOCK]), rotation[rows_out],
+                                     scale[rows_out], translation[rows_out])
+                files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
+                result.sums[0] += flat.sum(axis=0)
+                result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
+                all_frames.add(video_index[rows_out], flat)
+                low = low_video[rows_out]
+                low_frames.add(video_index[rows_out][low], flat[low])
+            write_neutrals(files)
     return result
 
 
