@@ -8,8 +8,8 @@ import pytest
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.data.schema import N_TARGETS, feature_columns
-from aumesh.model.statistics import DesignSums, accumulate_design, configuration_statistics, video_indicator, \
-    video_row_sums
+from aumesh.model.statistics import DesignSums, VideoSumStream, accumulate_design, configuration_statistics, \
+    video_indicator, video_row_sums
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +109,28 @@ def test_video_row_sums_equal_the_indicator_product_bit_for_bit(grouped):
     np.testing.assert_array_equal(counts, np.bincount(video)[videos])
     empty = video_row_sums(video[:0], rows[:0])
     assert [a.shape for a in empty] == [(0,), (0, 50), (0,)]
+
+
+def test_video_sum_stream_hands_each_video_once_when_its_last_row_is_added():
+    """Blocks that cut videos anywhere: each video's sum goes out once, right after the block with its last row, equal
+    bit for bit to a dense (n_videos, n) array every block's per-video sums are added into; nothing stays open."""
+    rng = np.random.default_rng(6)
+    video = np.repeat(rng.permutation(40), rng.integers(1, 30, 40))  # consecutive rows per video, videos unsorted
+    rows = rng.standard_normal((len(video), 7)) * 10.0 ** rng.uniform(-4, 4, 7)
+    dense = np.zeros((40, 7))
+    out: dict[int, tuple[np.ndarray, int]] = {}
+    stream = VideoSumStream(video, lambda v, total, n: out.__setitem__(v, (total, n)) if v not in out else pytest.fail(v))
+    cuts = np.r_[0, np.sort(rng.choice(np.arange(1, len(video)), 25, replace=False)), len(video)]
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        v, sums, _ = video_row_sums(video[lo:hi], rows[lo:hi])
+        dense[v] += sums
+        stream.add(video[lo:hi], rows[lo:hi])
+        finished = set(video[:hi].tolist()) - set(video[hi:].tolist())
+        assert set(out) == finished  # out as soon as its last row is in, not before
+    assert not stream.open
+    for v in range(40):
+        np.testing.assert_array_equal(out[v][0], dense[v])
+        assert out[v][1] == (video == v).sum()
 
 
 def _demeaned(A, video):

@@ -107,6 +107,45 @@ def video_row_sums(video: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
     return video[starts], sums, (stops - starts).astype(np.int64)
 
 
+class VideoSumStream:
+    """Per-video sums of rows streamed in any number of blocks, in float64, held only while a video still has rows to
+    come: a finished video's sum goes to ``done(video, sum, n_rows)`` (memory: the videos open in the current block,
+    not one row per video of the partition).
+
+    Each video's rows are added one after another in their order (:func:`video_row_sums` within a block, blocks in
+    the order they are added): the same float64 sums, bit for bit, as a dense ``(n_videos, n)`` array that every
+    block's per-video sums are added into.
+
+    Parameters
+    ----------
+    video : ndarray, shape (m,)
+        The video of every row that will be added (any sortable labels), to know when a video is finished.
+    done : callable ``(video, sum, n_rows)``
+        Called once per video, with ``sum`` of shape (n,), float64.
+    """
+
+    def __init__(self, video: np.ndarray, done):
+        videos, counts = np.unique(video, return_counts=True)
+        self.count = dict(zip(videos.tolist(), counts.tolist()))
+        self.remaining = dict(self.count)
+        self.open: dict = {}
+        self.done = done
+
+    def add(self, video: np.ndarray, rows: np.ndarray) -> None:
+        """Add ``rows`` (k, n) of videos ``video`` (k,)."""
+        if len(video) == 0:
+            return
+        videos, sums, n_rows = video_row_sums(video, rows)
+        for j, v in enumerate(videos.tolist()):
+            acc = self.open.get(v)
+            if acc is None:
+                acc = self.open[v] = np.zeros(rows.shape[1])
+            acc += sums[j]
+            self.remaining[v] -= int(n_rows[j])
+            if self.remaining[v] == 0:
+                self.done(v, self.open.pop(v), self.count[v])
+
+
 class DesignSums:
     """Per-fold sums of a pass over shifted rows: ``Y'[X_f | 1_f]``, ``X_f'X_f``, ``sum X_f`` and ``diag(Y_f'Y_f)``.
 

@@ -1,9 +1,9 @@
 """The engine of the data passes: Dask, on the scheduler the ``compute`` config group names.
 
 A pass maps a pure partition function over the partitions (``dask.bag``, one partition per bag
-partition) and either gathers the small per-partition results in order or sums them with a tree
-reduction (``Bag.fold``, ``split_every`` results at a time). The task graph depends only on the
-partitions, never on the scheduler, so every scheduler sums in the same order.
+partition) and either gathers the small per-partition results in order or sums them in partition
+order, a left fold (:func:`map_reduce`). The task graph depends only on the partitions, never on the
+scheduler, so every scheduler sums in the same order.
 
 ``compute=local`` (default) runs the tasks on a thread per core of this machine (the partition
 functions spend their time in NumPy, BLAS and Arrow, which release the GIL); ``synchronous`` runs
@@ -27,10 +27,6 @@ from aumesh.config import ComputeConfig
 
 log = logging.getLogger(__name__)
 
-#: Partial results combined per task of the tree reductions. Pairs: a reduction task waits for all of its inputs, so the
-#: results it holds grow with this (evaluate's are ~3 MB each: over 47 partitions of 3.1M frames its statistics pass
-#: crept from ~335 to ~400 MiB at 8 and stayed at ~350 at 2); the number of additions, n - 1, is the same for any value.
-SPLIT_EVERY = 2
 _BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 _ACTIVE: contextvars.ContextVar[ComputeConfig | None] = contextvars.ContextVar("aumesh_compute_engine", default=None)
 
@@ -304,24 +300,35 @@ def map_gather(fn: Callable, partitions: Sequence[Any], desc: str = "") -> list:
 
 
 def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Sequence[Any], desc: str = "") -> Any:
-    """``combine``-tree of ``fn(p)`` over the partitions, in partition order (the same tree on every scheduler);
-    ``desc`` names the progress bar."""
+    """``combine(...combine(combine(fn(p0), fn(p1)), fn(p2))..., fn(pn))``: the results summed in partition order, the
+    same additions on every scheduler; ``desc`` names the progress bar.
+
+    A left fold, one task per addition, rather than a tree: a result waits only for the running sum of the results
+    before it, so the results held at once stay a few (4 with 2 workers, at 4 or 400 partitions) where a tree of pairs
+    holds one per level (4 at 4 partitions, 9 at 96, 11 at 400): evaluate's are ~5 MB, so its statistics pass grew with
+    the frames. The additions are cheap beside the partition functions, and the tasks still run as they are ready.
+    """
     if not partitions:
         raise ValueError("map_reduce: no partitions")
+    from dask import delayed
+
+    parts = _bag(partitions).map(_Task(fn, len(partitions))).to_delayed()  # one list of one result per partition
+    fold = delayed(_FoldInto(combine), pure=True)
+    total = delayed(_FoldInto(combine), pure=True)(None, parts[0])
+    for part in parts[1:]:
+        total = fold(total, part)
     with _current(), _progress(desc), _releasing_freed_memory():
-        return _bag(partitions).map(_Task(fn, len(partitions))).reduction(_reduce_all(combine), _reduce_all(combine),
-                                                  split_every=SPLIT_EVERY).compute()
+        return total.compute()
 
 
-class _reduce_all:
-    """``functools.reduce(combine, items)`` as a picklable callable (a task of the reduction tree)."""
+class _FoldInto:
+    """``combine`` the items of a partition's result list into a running total (None: none yet), as a picklable
+    callable (a task of :func:`map_reduce`'s fold)."""
 
     def __init__(self, combine: Callable[[Any, Any], Any]):
         self.combine = combine
 
-    def __call__(self, items) -> Any:
-        it = iter(items)
-        out = next(it)
-        for item in it:
-            out = self.combine(out, item)
-        return out
+    def __call__(self, total: Any, items) -> Any:
+        for item in items:
+            total = item if total is None else self.combine(total, item)
+        return total

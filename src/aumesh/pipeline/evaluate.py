@@ -32,6 +32,7 @@ import logging
 import shutil
 import weakref
 from collections.abc import Mapping
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import cached_property, partial
 from pathlib import Path
@@ -53,7 +54,7 @@ from aumesh.model import reliability
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, fold_configuration_statistics, fold_order, \
-    target_offsets, video_row_sums
+    VideoSumStream, target_offsets
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 log = logging.getLogger(__name__)
@@ -188,7 +189,7 @@ def load_prepared(prepared_dir: str | Path) -> Prepared:
         directory=d,
         meshes=np.load(d / MESHES_FILE, mmap_mode="r"),
         mesh_path=d / MESHES_FILE,
-        video_ids=np.load(d / VIDEO_IDS_FILE),
+        video_ids=np.load(d / VIDEO_IDS_FILE, mmap_mode="r"),  # the stage needs their number; 4 MiB at 88k videos
         neutral=_LazyArrays({method: d / name for method, name in NEUTRAL_FILES.items()}),
         reference=dict(np.load(d / REFERENCE_FILE)),
         summary=summary,
@@ -379,39 +380,53 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
                      n_splits: int, chunk_rows: int, scratch: Path, split_video: np.ndarray) -> DesignPart:
     """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
     coordinates (shifted by ``a``, ``b``), and the per-video sums; those of videos held whole by this
-    partition are written to ``scratch``, those of videos split across partitions returned."""
+    partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned."""
     g, start, stop = group
     au, pose, video, low = _read_group(directory, g)
     fold = video_fold[video]
-    videos, local = np.unique(video, return_inverse=True)
     p, q = len(FULL_DESIGN), N_TARGETS
     sums = DesignSums(p, q, n_splits)
-    per_video = {name: np.zeros((len(videos), width)) for name, width in VIDEO_SUMS.items()}
+    split: dict[int, tuple[np.ndarray, ...]] = {}
+    finished: dict[str, dict[int, np.ndarray]] = {name: {} for name in VIDEO_SUMS}  # whole videos, until written
+
+    def done(name: str):
+        k = list(VIDEO_SUMS).index(name)
+
+        def store(v: int, total: np.ndarray, _n_rows: int) -> None:
+            if split_video[v]:  # a split video without low-AU rows here adds zeros for them
+                values = split.setdefault(v, tuple(np.zeros(width) for width in VIDEO_SUMS.values()))
+                values[k][:] = total
+            else:
+                finished[name][v] = total
+        return store
+
+    # per-video sums while a video has rows to come in this partition (not a row per video of the partition: ~12 MiB
+    # a task at 3.1M frames), the same float64 additions as a dense array's
+    streams = {"video_sum_x": VideoSumStream(video, done("video_sum_x")),
+               "video_sum_y": VideoSumStream(video, done("video_sum_y")),
+               "video_low_sum_x": VideoSumStream(video[low], done("video_low_sum_x"))}
     raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
-    with NpyRowFile(directory / MESHES_FILE) as meshes:
+    with ExitStack() as stack:
+        meshes = stack.enter_context(NpyRowFile(directory / MESHES_FILE))
+        files = {name: stack.enter_context(NpyRowFile(scratch / f"{name}.npy", writable=True)) for name in VIDEO_SUMS}
         for lo in range(start, stop, chunk_rows):
             rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], True, True)
             X -= a
             Y = np.subtract(Y, b)  # float64 (the float32 rows widen exactly)
-            neutral = low[rows]
-            for f in range(n_splits):  # a fold's rows keep their order, so each video's rows are summed as read
+            block_video, neutral = video[rows], low[rows]
+            for f in range(n_splits):  # a fold's rows keep their order (and its videos', sorted: no reordering copy)
                 seg = slice(bounds[f], bounds[f + 1])
-                vids, sum_x, _ = video_row_sums(local[rows][seg], X[seg])
-                per_video["video_sum_x"][vids] += sum_x
-                per_video["video_sum_y"][vids] += video_row_sums(local[rows][seg], Y[seg])[1]
-                vids, sum_x, _ = video_row_sums(local[rows][seg][neutral[seg]], X[seg][neutral[seg]])
-                per_video["video_low_sum_x"][vids] += sum_x
+                streams["video_sum_x"].add(block_video[seg], X[seg])
+                streams["video_sum_y"].add(block_video[seg], Y[seg])
+                streams["video_low_sum_x"].add(block_video[seg][neutral[seg]], X[seg][neutral[seg]])
             sums.add(X, Y, fold[rows])
-    whole = ~split_video[videos]
-    for name, values in per_video.items():
-        values = values[whole]
-        with NpyRowFile(scratch / f"{name}.npy", writable=True) as sums_file:
-            for j, (lo_v, hi_v) in row_runs(videos[whole]):
-                sums_file.write(lo_v, values[j : j + hi_v - lo_v])
-    # copies: a row view would keep the partition's whole per-video sums (~25 MiB) alive in the result until the
-    # reduction tree adds it (up to compute.SPLIT_EVERY results at a time), so memory grew with the partitions
-    split = {int(v): tuple(per_video[name][j].copy() for name in VIDEO_SUMS) for j, v in enumerate(videos) if split_video[v]}
+            for name, rows_of in finished.items():  # a run of consecutive videos per write
+                if rows_of:
+                    videos = np.array(sorted(rows_of), dtype=np.int64)
+                    for j, (lo_v, hi_v) in row_runs(videos):
+                        files[name].write(lo_v, np.stack([rows_of[v] for v in videos[j : j + hi_v - lo_v].tolist()]))
+                    rows_of.clear()
     return DesignPart(sums, split)
 
 
@@ -660,7 +675,7 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
             per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
             error = per_vertex.mean(axis=1)
             errors.write(lo, error[np.argsort(rows)].astype(np.float32))  # back in the file's order
-            row_abs = np.abs(R).sum(axis=1)
+            row_abs = np.abs(R, out=R).sum(axis=1)  # in place: R is not used again (no block-sized temporary)
             for f in range(n_splits):
                 lo_f, hi_f = bounds[f], bounds[f + 1]
                 abs_sum[f] += row_abs[lo_f:hi_f].sum()

@@ -63,7 +63,7 @@ from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_u
     iter_vertices, partitions, read_pieces_metadata
 from aumesh.geometry.align import (align_to_reference, apply_similarity_columns, apply_similarity_vertices,
                                    generalized_procrustes)
-from aumesh.model.statistics import video_row_sums
+from aumesh.model.statistics import VideoSumStream
 from aumesh.pipeline import compute
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
                                             VIDEO_IDS_FILE)
@@ -129,8 +129,8 @@ class Candidates:
     """GPA candidates: the frames of smallest ``(hash, video, frame)`` seen so far, at most ``k``.
 
     A frame is named by its partition and row there, not carried with its anchors: pass 1 stages every partition's
-    anchors (:func:`anchors_in_table_order` reads the chosen ones back), so the ``SPLIT_EVERY`` results a reduction holds
-    at a time cost ~80 bytes a candidate, not ~450 (anchors and table paths: +100 MiB at the peak of pass 1 over
+    anchors (:func:`anchors_in_table_order` reads the chosen ones back), so the results a reduction holds at a time
+    cost ~80 bytes a candidate, not ~450 (anchors and table paths: +100 MiB at the peak of pass 1 over
     48 partitions, 3.1M frames).
     """
 
@@ -374,32 +374,6 @@ class Written:
         return out
 
 
-class _VideoSums:
-    """Per-video sums of mesh rows in float64, only while a video still has rows to come in this partition;
-    a finished video's mean is handed to ``done`` (memory: the videos open in the current chunk)."""
-
-    def __init__(self, video: np.ndarray, done):
-        videos, counts = np.unique(video, return_counts=True)
-        self.count = dict(zip(videos.tolist(), counts.tolist()))
-        self.remaining = dict(self.count)
-        self.open: dict[int, np.ndarray] = {}
-        self.done = done
-
-    def add(self, video: np.ndarray, rows: np.ndarray) -> None:
-        """Add ``rows`` (m, 1434) of videos ``video`` (m,)."""
-        if len(video) == 0:
-            return
-        videos, sums, n_rows = video_row_sums(video, rows)
-        for j, v in enumerate(videos.tolist()):
-            acc = self.open.get(v)
-            if acc is None:
-                acc = self.open[v] = np.zeros(N_TARGETS)
-            acc += sums[j]
-            self.remaining[v] -= int(n_rows[j])
-            if self.remaining[v] == 0:
-                self.done(v, self.open.pop(v), self.count[v])
-
-
 def kept_frames(scratch: Path, plan: Plan, cuts: Cuts) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The partition's kept rows (in order), their video index and low-AU flags (within the video, in the
     population), from pass 2's staged files; per-video thresholds of the videos the partition holds whole are
@@ -457,8 +431,8 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 files[name].write(lo, np.stack([finished_rows[v] for v in videos[j : j + hi - lo]]))
             finished_rows.clear()
 
-    all_frames = _VideoSums(video_index, finished("mean", 0))
-    low_frames = _VideoSums(video_index[low_video], finished("low_au", 1))
+    all_frames = VideoSumStream(video_index, finished("mean", 0))
+    low_frames = VideoSumStream(video_index[low_video], finished("low_au", 1))
     position = np.full(sum(p.n_rows for p in part), -1, dtype=np.int64)
     position[rows] = np.arange(len(rows))
     with ExitStack() as stack:  # the output files opened once for the partition's writes
