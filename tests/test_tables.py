@@ -266,3 +266,13 @@ def test_a_partition_of_several_tables_is_checked_at_once_and_a_broken_one_named
     found = tables.discover(tmp_path / "data", PATTERN, NPY)
     with pytest.raises(tables.TableError, match=rf"{found[2].path.name}.*'AU12'.*row 17\b"):
         tables.read_pieces_metadata([piece for t in found for piece in tables.pieces(t)])
+
+
+@pytest.mark.parametrize("path", ["clips/a/vid1.mp4", "vid1.mp4", "a/b.tar.gz", "a/.hidden", "a/b.", "a/b/", "/x/y/z",
+                                  "..", "a/..b", "noext", "dir.v/file", "C:\\clips\\v.mp4"])
+def test_video_from_input_path_is_pathlibs_stem(path):
+    """py-feat's ``input`` column names the video by its path's stem, computed without pathlib (which interns every
+    component, for the life of the process), exactly as ``PurePosixPath.stem``."""
+    from pathlib import PurePosixPath
+
+    assert tables._stem(path) == PurePosixPath(path).stem

@@ -178,7 +178,7 @@ def _releasing_freed_memory() -> Iterator[None]:
     """Hand freed memory back to the operating system when a pass starts and ends (:func:`release_freed_memory`).
 
     At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks of a long pass, :class:`_Task`), not after each
-    task: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in its arena
+    task of a short pass: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in its arena
     reuses them, where pages returned after every task were faulted in again by the
     next (prepare's pass 3 on 344k frames of parquet mesh columns: 1.3M page faults and 6.7 s of system time; at the
     pass's end: 0.4M and 3.6 s, wall 0.87x, peak +30 MiB). With glibc's arenas capped at the workers
@@ -265,8 +265,11 @@ def local_map(fn: Callable, items: Sequence[Any]) -> list:
 #: buffers stay in glibc's arenas for the next tasks to reuse, but the holes they leave are rarely the next task's
 #: sizes, so the resident pages crept up with the tasks a pass ran: a pass of 96 partitions (3.1M frames) peaked
 #: 20-25 MiB higher than one of 4, all else equal. Every 4 tasks: prepare's peak at 3.1M frames 305 -> 287 MiB,
-#: evaluate's 321 -> 298 and 326 -> 305 MiB, the same wall time (single runs).
-TRIM_EVERY_TASKS = 4
+#: evaluate's 321 -> 298 and 326 -> 305 MiB, the same wall time (single runs). After every task (the count is
+#: process-wide, so with 2 threads every 4 was every 2 tasks of a thread): prepare at 3.1M 275-295 -> 261-271 MiB
+#: (4 runs each, alternating), the same wall time; the tasks of a long pass are ~0.5-1 s, so faulting their working
+#: set in again costs them little.
+TRIM_EVERY_TASKS = 1
 #: Passes of at most this many partitions return freed memory at their end only: they creep little, and each return
 #: costs the next tasks the page faults of their working set again (prepare at 344k frames in the columns layout,
 #: 12 partitions whose tasks read ~400 MiB of Arrow buffers each: 1.043x wall with returns every 4 tasks, 4 pairs).

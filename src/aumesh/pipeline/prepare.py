@@ -591,6 +591,8 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
         plans = _plans(kept, video_ids, split_names, q)
         del kept
         n_kept, n_videos = n_kept_pose, len(video_ids)
+        np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
+        del video_ids  # ~4 MiB at 88k videos, not needed by pass 3
 
         (tmp / "parts").mkdir()
         create_npy(tmp / MESHES_FILE, np.float32, (n_kept, N_TARGETS))
@@ -607,7 +609,6 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
                 write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
         _concatenate_parts(tmp / "parts", tmp / FRAMES_FILE)
         shutil.rmtree(scratch)
-        np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
         n_low_population = written.n_low_population
         mean_aligned = written.sums[0] / n_kept
         mean_low = written.sums[1] / max(n_low_population, 1)
