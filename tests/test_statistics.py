@@ -119,7 +119,11 @@ def test_video_sum_stream_hands_each_video_once_when_its_last_row_is_added():
     rows = rng.standard_normal((len(video), 7)) * 10.0 ** rng.uniform(-4, 4, 7)
     dense = np.zeros((40, 7))
     out: dict[int, tuple[np.ndarray, int]] = {}
-    stream = VideoSumStream(video, lambda v, total, n: out.__setitem__(v, (total, n)) if v not in out else pytest.fail(v))
+    def done(v: int, total: np.ndarray, n: int) -> None:
+        assert v not in out, f"video {v} handed out twice"
+        out[v] = (total, n)
+
+    stream = VideoSumStream(video, done)
     cuts = np.r_[0, np.sort(rng.choice(np.arange(1, len(video)), 25, replace=False)), len(video)]
     for lo, hi in zip(cuts[:-1], cuts[1:]):
         v, sums, _ = video_row_sums(video[lo:hi], rows[lo:hi])

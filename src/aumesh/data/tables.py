@@ -393,7 +393,8 @@ def _npy_blocks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | 
     ``rows`` is a view of one buffer that every chunk is read into: valid until the next chunk is read (a consumer
     that keeps rows copies them). A fresh array per chunk held two chunks at once, the one the consumer still held and
     the one being read (2 x 23 MiB a task at 8,192 float16 rows), and cost a page fault per 4 KiB of every chunk.
-    ``buffers`` ((dtype, row shape) -> buffer) carries the buffer on to the next table's reads (:func:`iter_pieces_mesh_chunks`)."""
+    ``buffers`` ((dtype, row shape) -> buffer) carries the buffer on to the next table's reads
+    (:func:`iter_pieces_mesh_chunks`)."""
     first, stop = _row_range(table, row_groups)
     with NpyRowFile(table.mesh_npy) as f:
         n, key = min(chunk_rows, max(stop - first, 0)), (f.dtype.str, f.shape[1:])
@@ -487,9 +488,9 @@ def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[in
     :func:`iter_vertices`.
 
     ``.npy`` rows are a view of a buffer the next chunk is read into (:func:`_npy_blocks`): use them, or copy them,
-    before the next chunk; ``buffers`` as in :func:`_npy_blocks`. Parquet columns keep their precision: float32 when every mesh column is float32
-    (MediaPipe's own precision; half the bytes to move), else float64; they may be read-only. A NaN/inf coordinate is
-    a :class:`TableError`."""
+    before the next chunk; ``buffers`` as in :func:`_npy_blocks`. Parquet columns keep their precision: float32 when
+    every mesh column is float32 (MediaPipe's own precision; half the bytes to move), else float64; they may be
+    read-only. A NaN/inf coordinate is a :class:`TableError`."""
     if table.mesh_npy is not None:
         for start, rows in _npy_blocks(table, chunk_rows, row_groups, buffers):
             if not _all_finite(rows):

@@ -179,10 +179,10 @@ def _releasing_freed_memory(n_partitions: int) -> Iterator[None]:
     (:func:`release_freed_memory`).
 
     At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks of a long pass, :class:`_Task`), not after each
-    task of a short pass: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in its arena
-    reuses them, where pages returned after every task were faulted in again by the
-    next (prepare's pass 3 on 344k frames of parquet mesh columns: 1.3M page faults and 6.7 s of system time; at the
-    pass's end: 0.4M and 3.6 s, wall 0.87x, peak +30 MiB). With glibc's arenas capped at the workers
+    task of a short pass: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in
+    its arena reuses them, where pages returned after every task were faulted in again by the next (prepare's pass 3
+    on 344k frames of parquet mesh columns: 1.3M page faults and 6.7 s of system time; at the pass's end: 0.4M and
+    3.6 s, wall 0.87x, peak +30 MiB). With glibc's arenas capped at the workers
     (:func:`limit_malloc_arenas`) and Arrow on the same allocator (:func:`prefer_system_arrow_pool`), the reuse does
     not grow with the partitions: the peaks at 100k and 3.1M frames were 390 / 409 and 390 / 417 MiB in two runs.
 
@@ -320,7 +320,7 @@ def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Seq
 
     parts = _bag(partitions).map(_Task(fn, len(partitions))).to_delayed()  # one list of one result per partition
     fold = delayed(_FoldInto(combine), pure=True)
-    total = delayed(_FoldInto(combine), pure=True)(None, parts[0])
+    total = fold(None, parts[0])
     for part in parts[1:]:
         total = fold(total, part)
     with _current(), _progress(desc), _releasing_freed_memory(len(partitions)):
