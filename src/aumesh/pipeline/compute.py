@@ -174,9 +174,8 @@ def task_rows(chunk_rows: int) -> int:
 
 
 @contextmanager
-def _releasing_freed_memory(n_partitions: int) -> Iterator[None]:
-    """Hand freed memory back to the operating system when a pass ends, and when a long one starts
-    (:func:`release_freed_memory`).
+def _releasing_freed_memory() -> Iterator[None]:
+    """Hand freed memory back to the operating system when a pass starts and ends (:func:`release_freed_memory`).
 
     At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks of a long pass, :class:`_Task`), not after each
     task of a short pass: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in
@@ -190,13 +189,13 @@ def _releasing_freed_memory(n_partitions: int) -> Iterator[None]:
     pages for their next task; ``dask.distributed``'s nanny starts its workers with glibc's ``MALLOC_TRIM_THRESHOLD_``
     at 64 KiB (its ``distributed.nanny.pre-spawn-environ``), so they trim as they free.
 
-    And when a long pass (more than :data:`TRIM_AFTER_TASKS` partitions) starts: the stage's own work between two
-    passes (prepare's GPA reference, cut and plans) frees memory the next pass's tasks would otherwise add to (prepare
-    at 3.1M frames started its pass 2 with 42 MiB of it resident; with the return, the stage's peak fell 289 -> 274
-    MiB). Not before a short pass, for the page faults (as :data:`TRIM_AFTER_TASKS`).
+    And when the pass starts: the stage's own work between two passes (prepare's GPA reference, cut and plans) frees
+    memory the next pass's tasks would otherwise add to (prepare at 3.1M frames started its pass 2 with 42 MiB of it
+    resident; with the return, the stage's peak fell 289 -> 274 MiB). Short passes too: it costs no measurable time
+    (100k and 344k frames, side by side, 2 runs: 8.4 / 14.5 s either way) and lowers their peaks (243 -> 228 and
+    256 -> 248 MiB).
     """
-    if n_partitions > TRIM_AFTER_TASKS:
-        release_freed_memory()
+    release_freed_memory()
     try:
         yield
     finally:
@@ -301,7 +300,7 @@ def map_gather(fn: Callable, partitions: Sequence[Any], desc: str = "") -> list:
     progress bar."""
     if not partitions:
         return []
-    with _current(), _progress(desc), _releasing_freed_memory(len(partitions)):
+    with _current(), _progress(desc), _releasing_freed_memory():
         return _bag(partitions).map(_Task(fn, len(partitions))).compute()
 
 
@@ -323,7 +322,7 @@ def map_reduce(fn: Callable, combine: Callable[[Any, Any], Any], partitions: Seq
     total = fold(None, parts[0])
     for part in parts[1:]:
         total = fold(total, part)
-    with _current(), _progress(desc), _releasing_freed_memory(len(partitions)):
+    with _current(), _progress(desc), _releasing_freed_memory():
         return total.compute()
 
 
