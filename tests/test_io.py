@@ -131,3 +131,23 @@ def test_npy_reads_in_threads_never_parse_two_headers_at_once(tmp_path, reader):
         b.join()
     assert handovers[0] > 0, "no collection happened inside a header parse: the test forced nothing"
     assert not errors, errors
+
+
+def test_write_row_map_puts_each_row_at_its_number_in_runs(tmp_path, monkeypatch):
+    """Rows given by number, in any order and with gaps, land at their numbers; one write per run of consecutive
+    numbers; an empty map writes nothing."""
+    path = tmp_path / "rows.npy"
+    create_npy(path, np.float64, (20, 3))
+    rows = {int(r): np.full(3, float(r)) for r in (7, 2, 3, 4, 15, 9, 8)}
+    writes = []
+    real_write = NpyRowFile.write
+    monkeypatch.setattr(NpyRowFile, "write", lambda self, first, block: (writes.append((first, len(block))),
+                                                                          real_write(self, first, block)))
+    with NpyRowFile(path, writable=True) as f:
+        f.write_row_map(rows)
+        f.write_row_map({})
+    expected = np.zeros((20, 3))
+    for r, row in rows.items():
+        expected[r] = row
+    np.testing.assert_array_equal(np.load(path), expected)
+    assert writes == [(2, 3), (7, 3), (15, 1)]

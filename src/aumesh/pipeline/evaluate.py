@@ -47,7 +47,7 @@ from aumesh.utils.errors import ConfigError, UserError
 from aumesh.pipeline import compute
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, PREPARED_FILES, REFERENCE_FILE,
                                             SUMMARY_FILE, VIDEO_IDS_FILE)
-from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, row_runs, scratch_directory, write_rows
+from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, scratch_directory, write_rows
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
@@ -421,12 +421,9 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
                 streams["video_sum_y"].add(block_video[seg], Y[seg])
                 streams["video_low_sum_x"].add(block_video[seg][neutral[seg]], X[seg][neutral[seg]])
             sums.add(X, Y, fold[rows])
-            for name, rows_of in finished.items():  # a run of consecutive videos per write
-                if rows_of:
-                    videos = np.array(sorted(rows_of), dtype=np.int64)
-                    for j, (lo_v, hi_v) in row_runs(videos):
-                        files[name].write(lo_v, np.stack([rows_of[v] for v in videos[j : j + hi_v - lo_v].tolist()]))
-                    rows_of.clear()
+            for name, rows_of in finished.items():
+                files[name].write_row_map(rows_of)
+                rows_of.clear()
     return DesignPart(sums, split)
 
 

@@ -69,7 +69,7 @@ from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FI
                                             VIDEO_IDS_FILE)
 from aumesh.pipeline.quantiles import exact_quantiles
 from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz,
-                             read_row_set, row_runs, write_rows)
+                             read_row_set, write_rows)
 
 log = logging.getLogger(__name__)
 
@@ -423,12 +423,9 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
         return done
 
     def write_neutrals(files: dict[str, NpyRowFile]) -> None:
-        """The neutral rows of the videos finished so far, a run of consecutive videos per write (a partition's
-        videos are mostly consecutive: a write per video was ~20k small writes at 344k frames)."""
+        """The neutral rows of the videos finished so far (a partition's videos are mostly consecutive)."""
         for name, finished_rows in neutrals.items():
-            videos = np.array(sorted(finished_rows), dtype=np.int64)
-            for j, (lo, hi) in row_runs(videos):
-                files[name].write(lo, np.stack([finished_rows[v] for v in videos[j : j + hi - lo]]))
+            files[name].write_row_map(finished_rows)
             finished_rows.clear()
 
     all_frames = VideoSumStream(video_index, finished("mean", 0))
