@@ -360,3 +360,27 @@ def test_the_passes_scratch_goes_with_its_result_or_with_the_next_stage_after_a_
     stages.start_stage("evaluate", default_config(**{"paths.prepared_dir": str(build / "prepared"),
                                                      "paths.model_dir": str(build / "model")}))
     assert not killed.exists() and live.exists()
+
+
+def test_staged_video_codes_and_au_sums_equal_numpy_unique_and_pandas_row_sums():
+    """Pass 2 reads the staged metadata as Arrow arrays: its video codes are ``np.unique(..., return_inverse=True)``
+    and its AU sums pandas' row sums, bit for bit (the low-AU flags and thresholds rest on them)."""
+    import pandas as pd
+    import pyarrow as pa
+
+    from aumesh.pipeline import prepare
+
+    rng = np.random.default_rng(7)
+    names = np.array(["b", "a", "c10", "c9", "été", "a"], dtype=object)[rng.integers(0, 6, 500)]
+    chunked = pa.chunked_array([pa.array(names[:200]), pa.array(names[200:])])  # two chunks, as a table may hold
+    videos, code = prepare._video_codes(chunked)
+    expected_videos, expected_code = np.unique(names.astype(str), return_inverse=True)
+    np.testing.assert_array_equal(videos, expected_videos)
+    np.testing.assert_array_equal(code, expected_code)
+
+    frame = pd.DataFrame({name: rng.random(500) ** rng.integers(1, 8) for name in AU_COLUMNS})
+    frame.insert(0, "Pitch", rng.random(500))  # another float column in the same pandas block, as staged
+    rows = np.flatnonzero(rng.random(500) < 0.9)
+    pandas_sums = frame.loc[frame.index[rows], list(AU_COLUMNS)].to_numpy().sum(axis=1)
+    assert np.array_equal(prepare.au_sums(pa.Table.from_pandas(frame), rows), pandas_sums)
+    assert not np.array_equal(np.ascontiguousarray(frame[list(AU_COLUMNS)].to_numpy()[rows]).sum(axis=1), pandas_sums)

@@ -276,3 +276,20 @@ def test_video_from_input_path_is_pathlibs_stem(path):
     from pathlib import PurePosixPath
 
     assert tables._stem(path) == PurePosixPath(path).stem
+
+
+def test_npy_reads_are_capped_at_npy_read_rows_whatever_the_chunk_rows(tmp_path, monkeypatch):
+    """The .npy read buffer is transit only (whole rows, the consumer takes what it needs), so its size is capped
+    (``NPY_READ_ROWS``) below any ``chunk_rows``; the rows and their starts are still the stored ones."""
+    write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=20, seed=6, layout="pyfeat"))
+    (found,) = tables.discover(tmp_path / "data", PATTERN, NPY)
+    mesh = np.load(found.mesh_npy)
+    monkeypatch.setattr(tables, "NPY_READ_ROWS", 48)
+    for chunk_rows in (32, 1000):
+        step = min(chunk_rows, 48)
+        chunks = list(tables.iter_mesh_chunks(found, chunk_rows, row_groups=None))
+        assert [start for start, _ in chunks] == list(range(0, len(mesh), step))
+        assert max(len(chunk) for _, chunk in chunks) == step
+        anchors = list(tables.iter_vertices(found, chunk_rows, [10, 263]))
+        assert [start for start, _ in anchors] == list(range(0, len(mesh), step))
+        np.testing.assert_array_equal(np.concatenate([block for _, block in anchors]), mesh[:, [10, 263]])

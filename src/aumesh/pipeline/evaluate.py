@@ -110,16 +110,27 @@ def scratch_path(prepared_dir: str | Path) -> Path:
     prepared data (``.evaluate-scratch.tmp-<pid>-<host>-*``, :func:`aumesh.utils.io.scratch_directory`), so a killed
     run's are removed when the next evaluate stage starts."""
     return Path(prepared_dir).parent / "evaluate-scratch"
-_PASS_COLUMNS = [*AU_COLUMNS, *POSE_COLUMNS, "video_index", "low_au"]
 
 
 def _read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """AU (m, 20), pose (m, 3), video index (m,) and low-AU flag (m,) of one row group of ``frames.parquet``."""
-    # one thread: the partitions already run on every core (as aumesh.data.tables reads the tables)
-    t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(group, columns=_PASS_COLUMNS, use_threads=False)
-    au = np.column_stack([t.column(c).to_numpy() for c in AU_COLUMNS]).astype(np.float64)
-    pose = np.column_stack([t.column(c).to_numpy() for c in POSE_COLUMNS]).astype(np.float64)
-    return au, pose, t.column("video_index").to_numpy(), t.column("low_au").to_numpy(zero_copy_only=False)
+    """AU (m, 20), pose (m, 3), video index (m,) and low-AU flag (m,) of one row group of ``frames.parquet``.
+
+    A column at a time, straight into the stacked arrays: the row group's decoded columns and their compressed pages,
+    read at once, were ~12 MiB a task at 32k rows besides the arrays, the largest step of a task that grew with the
+    partition (the evaluate stage's peak at 3.1M frames)."""
+    with pq.ParquetFile(directory / FRAMES_FILE) as parquet:
+        def column(name: str) -> np.ndarray:
+            # one thread: the partitions already run on every core (as aumesh.data.tables reads the tables)
+            return parquet.read_row_group(group, columns=[name], use_threads=False).column(0).to_numpy(
+                zero_copy_only=False)
+
+        n_rows = parquet.metadata.row_group(group).num_rows
+        au, pose = np.empty((n_rows, len(AU_COLUMNS))), np.empty((n_rows, len(POSE_COLUMNS)))
+        for k, name in enumerate(AU_COLUMNS):
+            au[:, k] = column(name)
+        for k, name in enumerate(POSE_COLUMNS):
+            pose[:, k] = column(name)
+        return au, pose, column("video_index"), column("low_au")
 
 
 @dataclass(frozen=True)
@@ -406,6 +417,7 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
                "video_sum_y": VideoSumStream(video, done("video_sum_y")),
                "video_low_sum_x": VideoSumStream(video[low], done("video_low_sum_x"))}
     raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
+    centred = np.empty(raw.shape)  # the block's rows minus b, float64 (allocated once a task, as raw)
     with ExitStack() as stack:
         meshes = stack.enter_context(NpyRowFile(directory / MESHES_FILE))
         files = {name: stack.enter_context(NpyRowFile(scratch / f"{name}.npy", writable=True)) for name in VIDEO_SUMS}
@@ -413,7 +425,7 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
             rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], True, True)
             X -= a
-            Y = np.subtract(Y, b)  # float64 (the float32 rows widen exactly)
+            Y = np.subtract(Y, b, out=centred[: len(Y)])  # float64 (the float32 rows widen exactly)
             block_video, neutral = video[rows], low[rows]
             for f in range(n_splits):  # a fold's rows keep their order (and its videos', sorted: no reordering copy)
                 seg = slice(bounds[f], bounds[f + 1])
@@ -650,8 +662,11 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
     x_rows = None if x_offset is None else np.asarray(x_offset[videos], dtype=np.float64)
     y_rows = None if y_offset is None else np.asarray(y_offset[videos])
     abs_sum, vertex_sum = np.zeros(n_splits), np.zeros((n_splits, N_VERTICES))
+    # the blocks' arrays, allocated once a task: a fresh set per block left the freed blocks' holes in the heap for the
+    # partition's other arrays to fragment
     raw = np.empty((min(chunk_rows, stop - start), N_TARGETS), dtype=np.float32)
     residual = np.empty((len(raw), N_TARGETS))
+    vertex_error = np.empty((len(raw), N_VERTICES))
     with NpyRowFile(directory / MESHES_FILE) as meshes, NpyRowFile(frame_error, writable=True) as errors:
         for lo in range(start, stop, chunk_rows):
             rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
@@ -669,7 +684,8 @@ def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np
                 np.subtract(R[lo_f:hi_f], Y[lo_f:hi_f], out=R[lo_f:hi_f])
                 R[lo_f:hi_f] += intercepts[f]
             e3 = R.reshape(len(R), 3, N_VERTICES)
-            per_vertex = np.sqrt(np.einsum("ikj,ikj->ij", e3, e3))  # (m, 478) Euclidean error per vertex
+            per_vertex = vertex_error[: len(R)]  # (m, 478) Euclidean error per vertex
+            np.sqrt(np.einsum("ikj,ikj->ij", e3, e3, out=per_vertex), out=per_vertex)
             error = per_vertex.mean(axis=1)
             errors.write(lo, error[np.argsort(rows)].astype(np.float32))  # back in the file's order
             row_abs = np.abs(R, out=R).sum(axis=1)  # in place: R is not used again (no block-sized temporary)

@@ -58,7 +58,7 @@ import pyarrow.parquet as pq
 
 from aumesh.config import Config, PreprocessConfig
 from aumesh.data import contract
-from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, VIDEO_COLUMN
+from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_unique_frames, iter_pieces_mesh_chunks, \
     iter_vertices, partitions, read_pieces_metadata
 from aumesh.geometry.align import (align_to_reference, apply_similarity_columns, apply_similarity_vertices,
@@ -68,7 +68,7 @@ from aumesh.pipeline import compute
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
                                             VIDEO_IDS_FILE)
 from aumesh.pipeline.quantiles import exact_quantiles
-from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npy, load_npz,
+from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npz,
                              read_row_set, write_rows)
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ Partition = tuple[Piece, ...]
 #: Frames whose anchors pass 2 aligns at a time: the alignment's float64 temporaries (~7 arrays of 288 bytes a frame)
 #: are ~15 MiB at 8,192 frames, the same for any partition size (a whole 65,536-row partition at once: ~120 MiB a task).
 #: Each frame is solved on its own, so the block size does not change a bit of the results.
-RESIDUAL_BLOCK = 8192
+RESIDUAL_BLOCK = 2048
 #: Rows aligned, summed and written at a time in pass 3 (a (256, 1434) float64 block is 2.9 MB: in cache).
 ALIGN_BLOCK = 256
 
@@ -207,14 +207,21 @@ def _staged_anchors_file(scratch: Path, i: int) -> Path:
     return scratch / f"{i:06d}.npy"
 
 
-def _staged_table(scratch: Path, i: int) -> pa.Table:
-    """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 staged it."""
-    return feather.read_table(scratch / f"{i:06d}.arrow")
+def _staged_table(scratch: Path, i: int, columns: list[str] | None = None) -> pa.Table:
+    """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 staged it (``columns``: only
+    those). Memory-mapped: the uncompressed columns are read in place, not copied onto the task's heap."""
+    return feather.read_table(scratch / f"{i:06d}.arrow", columns=columns, memory_map=True)
 
 
-def _staged(scratch: Path, i: int) -> tuple[pd.DataFrame, np.ndarray]:
-    """Partition ``i``'s validated metadata and float32 anchors, as pass 1 staged them."""
-    return _staged_table(scratch, i).to_pandas(), load_npy(_staged_anchors_file(scratch, i))
+def _video_codes(video: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(video, return_inverse=True)`` of a string column, from its Arrow dictionary encoding: the distinct
+    videos, sorted (fixed-width ``str``), and each row's index into them, without a Python string per row."""
+    encoded = video.combine_chunks().dictionary_encode()
+    names = encoded.dictionary.to_numpy(zero_copy_only=False).astype(str)
+    order = np.argsort(names)
+    rank = np.empty(len(order), np.intp)
+    rank[order] = np.arange(len(order))
+    return names[order], rank[encoded.indices.to_numpy()]
 
 
 def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> Scan:
@@ -227,8 +234,9 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> S
     meta, file_index = _read_meta(part, cfg)
     check_unique_frames(meta, [p.table.path for p in part], file_index)
     anchors_all = _read_anchors(part, cfg)
-    _write_staged(pa.Table.from_pandas(meta.assign(piece=file_index.astype(np.int32)), preserve_index=False),
-                  scratch / f"{i:06d}.arrow")
+    staged = pa.Table.from_pandas(meta, preserve_index=False)  # + each row's piece (``assign`` copied the frame)
+    _write_staged(staged.append_column("piece", pa.array(file_index.astype(np.int32))), scratch / f"{i:06d}.arrow")
+    del staged
     np.save(_staged_anchors_file(scratch, i), anchors_all)
     pose = np.flatnonzero(pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess))
     k = cfg.preprocess.alignment.gpa_max_frames
@@ -262,6 +270,16 @@ def _pass2(item: tuple[Path, int], *keys: str) -> list[np.ndarray]:
     return load_npz(_pass2_file(*item), keys)
 
 
+def au_sums(meta: pa.Table, rows: np.ndarray) -> np.ndarray:
+    """(len(rows),) float64: the AU sum of rows ``rows`` of ``meta``, added AU by AU, left to right: the additions
+    (and bits) of pandas' row sums of the AU columns (``frame[AU_COLUMNS].to_numpy().sum(axis=1)`` on its column-major
+    block), which the stage computed before, so the low-AU flags do not change."""
+    total = np.zeros(len(rows))
+    for name in AU_COLUMNS:
+        total += meta.column(name).to_numpy()[rows]
+    return total
+
+
 def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.ndarray, split_videos: np.ndarray,
                        scratch: Path) -> Residuals:
     """Pass 2 on one partition: residuals of the pose-passing frames to the reference, and their AU sums.
@@ -272,24 +290,30 @@ def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.n
     (the pose-units check), and each pose-passing frame's similarity transform onto the reference
     (``rotation`` (n_pose, 3, 3), ``scale``, ``translation`` (n_pose, 3): pass 3 applies them instead of
     solving the Procrustes problem again): ~150 bytes a frame.
+
+    The staged columns are read as Arrow arrays and the anchors a block at a time: pandas' frame of the metadata (a
+    Python string per row) and the whole partition's anchors, twice (all rows, then the pose-passing ones), took
+    ~40 MiB a task at 32k rows, the peak of the stage at 3.1M frames.
     """
     i, part = item
-    meta, anchors = _staged(scratch, i)
-    file_index = meta["piece"].to_numpy()
-    pose = pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess)
-    rows = np.flatnonzero(pose)
-    anchors = anchors[rows]
+    meta = _staged_table(scratch, i, [VIDEO_COLUMN, FRAME_COLUMN, "piece", *POSE_COLUMNS, *AU_COLUMNS])
+    pitch, yaw, roll = (meta.column(c).to_numpy() for c in POSE_COLUMNS)
+    rows = np.flatnonzero(pose_mask(pitch, yaw, cfg.preprocess))
+    au_sum = au_sums(meta, rows)
     residual, rotation, scale, translation = (np.empty((len(rows), *shape)) for shape in ((), (3, 3), (), (3,)))
-    for lo in range(0, len(rows), RESIDUAL_BLOCK):
-        block = slice(lo, lo + RESIDUAL_BLOCK)
-        residual[block], (rotation[block], scale[block], translation[block]) = align_to_reference(anchors[block], reference)
-    au_sum = meta.loc[pose, list(AU_COLUMNS)].to_numpy().sum(axis=1)
-    videos, code = np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str), return_inverse=True)
-    split = np.isin(meta[VIDEO_COLUMN].to_numpy(dtype=str), split_videos)
-    split_rows = pd.DataFrame({VIDEO_COLUMN: meta.loc[split, VIDEO_COLUMN].to_numpy(),
-                               FRAME_COLUMN: meta.loc[split, FRAME_COLUMN].to_numpy(),
-                               "file": [str(part[i].table.path) for i in file_index[split]]})
-    abs_pose = np.abs(meta[["Pitch", "Yaw", "Roll"]].to_numpy()).astype(np.float32)
+    with NpyRowFile(_staged_anchors_file(scratch, i)) as anchors:
+        block_anchors = np.empty((min(RESIDUAL_BLOCK, len(rows)), *anchors.shape[1:]), anchors.dtype)
+        for lo in range(0, len(rows), RESIDUAL_BLOCK):
+            block = slice(lo, lo + RESIDUAL_BLOCK)
+            residual[block], (rotation[block], scale[block], translation[block]) = align_to_reference(
+                anchors.take(rows[block], block_anchors), reference)
+    videos, code = _video_codes(meta.column(VIDEO_COLUMN))
+    split = np.isin(videos, split_videos)[code]
+    file_index = meta.column("piece").to_numpy()[split]
+    split_rows = pd.DataFrame({VIDEO_COLUMN: meta.column(VIDEO_COLUMN).filter(split).to_numpy(zero_copy_only=False),
+                               FRAME_COLUMN: meta.column(FRAME_COLUMN).to_numpy()[split],
+                               "file": [str(part[k].table.path) for k in file_index]})
+    abs_pose = np.abs(np.column_stack([pitch, yaw, roll])).astype(np.float32)
     np.savez(_pass2_file(scratch, i), rows=rows.astype(np.int32), residual=residual, au_sum=au_sum, videos=videos,
              code=code[rows].astype(np.int32), abs_pose=abs_pose, rotation=rotation, scale=scale, translation=translation)
     return Residuals(float(residual.max()) if len(residual) else -np.inf, split_rows,
@@ -402,8 +426,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     """
     rows, video_index, low_video, low_population = kept_frames(scratch, plan, cuts)
     pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
-    transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it
-    rotation, scale, translation = rotation[transform], scale[transform], translation[transform]
+    transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it (read per block)
     # the kept rows of the staged metadata, in Arrow (pandas' Python strings cost ~300 bytes a row of the task's memory)
     kept = _staged_table(scratch, plan.part_index).drop_columns(["piece"]).take(rows)
     kept = kept.append_column("video_index", pa.array(video_index)).append_column("low_au", pa.array(low_video))
@@ -446,8 +469,9 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
             # cache instead of streaming a chunk-sized float64 array through memory for every step
             for lo in range(0, len(pos), ALIGN_BLOCK):
                 rows_out = pos[lo : lo + ALIGN_BLOCK]
-                flat = _aligned_rows(chunk.take(columns[lo : lo + ALIGN_BLOCK]), rotation[rows_out],
-                                     scale[rows_out], translation[rows_out])
+                solved = transform[rows_out]
+                flat = _aligned_rows(chunk.take(columns[lo : lo + ALIGN_BLOCK]), rotation[solved],
+                                     scale[solved], translation[solved])
                 files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
                 result.sums[0] += flat.sum(axis=0)
                 result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
