@@ -75,8 +75,9 @@ log = logging.getLogger(__name__)
 
 Partition = tuple[Piece, ...]
 #: Frames whose anchors pass 2 aligns at a time: the alignment's float64 temporaries (~7 arrays of 288 bytes a frame)
-#: are ~15 MiB at 8,192 frames, the same for any partition size (a whole 65,536-row partition at once: ~120 MiB a task).
-#: Each frame is solved on its own, so the block size does not change a bit of the results.
+#: are ~4 MiB at 2,048 frames, the same for any partition size (~15 MiB at 8,192; a whole 65,536-row partition at once:
+#: ~120 MiB a task). Each frame is solved on its own, so the block size does not change a bit of the results (the
+#: prepared data at 100k frames: identical at 8,192 and 2,048).
 RESIDUAL_BLOCK = 2048
 #: Rows aligned, summed and written at a time in pass 3 (a (256, 1434) float64 block is 2.9 MB: in cache).
 ALIGN_BLOCK = 256
@@ -292,8 +293,9 @@ def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.n
     solving the Procrustes problem again): ~150 bytes a frame.
 
     The staged columns are read as Arrow arrays and the anchors a block at a time: pandas' frame of the metadata (a
-    Python string per row) and the whole partition's anchors, twice (all rows, then the pose-passing ones), took
-    ~40 MiB a task at 32k rows, the peak of the stage at 3.1M frames.
+    Python string per row), the whole partition's anchors twice (all rows, then the pose-passing ones) and alignment
+    blocks of 8,192 frames took 32 MiB a task at 33.6k rows (synchronous, above the trimmed heap), the peak pass of
+    the stage at 3.1M frames; now 17-21 MiB.
     """
     i, part = item
     meta = _staged_table(scratch, i, [VIDEO_COLUMN, FRAME_COLUMN, "piece", *POSE_COLUMNS, *AU_COLUMNS])
