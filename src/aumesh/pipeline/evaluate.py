@@ -116,8 +116,8 @@ def _read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np
     """AU (m, 20), pose (m, 3), video index (m,) and low-AU flag (m,) of one row group of ``frames.parquet``.
 
     A column at a time, straight into the stacked arrays: the row group's decoded columns and their compressed pages,
-    read at once, were ~12 MiB a task at 32k rows besides the arrays, the largest step of a task that grew with the
-    partition (the evaluate stage's peak at 3.1M frames)."""
+    read at once and then copied twice, were the largest step of a task that grew with the partition (the error pass's
+    task at 3.1M frames: 35 -> 21 MiB above the trimmed heap with this and its reused block buffers)."""
     with pq.ParquetFile(directory / FRAMES_FILE) as parquet:
         def column(name: str) -> np.ndarray:
             # one thread: the partitions already run on every core (as aumesh.data.tables reads the tables)
