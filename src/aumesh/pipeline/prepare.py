@@ -210,8 +210,11 @@ def _staged_anchors_file(scratch: Path, i: int) -> Path:
 
 def _staged_table(scratch: Path, i: int, columns: list[str] | None = None) -> pa.Table:
     """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 staged it (``columns``: only
-    those). Memory-mapped: the uncompressed columns are read in place, not copied onto the task's heap."""
-    return feather.read_table(scratch / f"{i:06d}.arrow", columns=columns, memory_map=True)
+    those). Memory-mapped: the uncompressed columns are read in place, not copied onto the task's heap. On the calling
+    thread only, as every read of the passes (the partitions already run on every core; Arrow's own thread pool would
+    only oversubscribe them, and a process interrupted while it works can hang in the pool's teardown at exit, as in
+    apache/arrow#50482)."""
+    return feather.read_table(scratch / f"{i:06d}.arrow", columns=columns, memory_map=True, use_threads=False)
 
 
 def _video_codes(video: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
@@ -659,7 +662,7 @@ def _concatenate_parts(parts_dir: Path, out: Path) -> None:
     files = sorted(parts_dir.glob("*.arrow"))
     writer = None
     for f in files:
-        table = feather.read_table(f)
+        table = feather.read_table(f, use_threads=False)  # as _staged_table
         f.unlink()
         if table.num_rows == 0:  # a partition with no frame kept (its columns may even lack a type)
             continue
