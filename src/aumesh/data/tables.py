@@ -350,13 +350,13 @@ def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None) -> pd.Dat
     cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]
     cols.insert(0, INPUT_PATH_COLUMN if table.video_from_input else VIDEO_COLUMN)
     if row_groups is None:
-        df = _read_columns(table.path, cols).to_pandas(use_threads=False)  # as _read_columns reads
+        columns = _read_columns(table.path, cols)
     else:
         try:
-            df = _parquet(table.path).read_row_groups(list(row_groups), columns=cols, use_threads=False).to_pandas(
-                use_threads=False)  # as _batches
+            columns = _parquet(table.path).read_row_groups(list(row_groups), columns=cols, use_threads=False)  # as _batches
         except (pa.ArrowException, OSError) as err:
             raise _corrupt(table.path, err, " (reading the metadata columns)") from None
+    df = columns.to_pandas(use_threads=False)  # as the reads: the partitions already run on every core
     if table.video_from_input:
         codes, paths = pd.factorize(df.pop(INPUT_PATH_COLUMN), use_na_sentinel=False)  # one Path per distinct video, not per frame
         df[VIDEO_COLUMN] = np.array([_stem(str(p)) for p in paths], dtype=object)[codes]

@@ -203,6 +203,19 @@ def _write_staged(table: pa.Table, path: Path) -> None:
     feather.write_feather(table, path, compression="uncompressed")
 
 
+def _read_staged(path: Path, columns: list[str] | None = None) -> pa.Table:
+    """A table :func:`_write_staged` wrote (``columns``: only those). Memory-mapped: the uncompressed columns are read
+    in place, not copied onto the task's heap. On the calling thread only, as every read of the passes (the partitions
+    already run on every core; Arrow's own thread pool would only oversubscribe them, and a process interrupted while
+    it works can hang in the pool's teardown at exit, as in apache/arrow#50482)."""
+    return feather.read_table(path, columns=columns, memory_map=True, use_threads=False)
+
+
+def _staged_metadata_file(scratch: Path, i: int) -> Path:
+    """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 stages it."""
+    return scratch / f"{i:06d}.arrow"
+
+
 def _staged_anchors_file(scratch: Path, i: int) -> Path:
     """Partition ``i``'s float32 anchors of every row, (n_rows, n_anchors, 3), as pass 1 stages them."""
     return scratch / f"{i:06d}.npy"
@@ -210,11 +223,8 @@ def _staged_anchors_file(scratch: Path, i: int) -> Path:
 
 def _staged_table(scratch: Path, i: int, columns: list[str] | None = None) -> pa.Table:
     """Partition ``i``'s validated metadata (with the ``piece`` of each row), as pass 1 staged it (``columns``: only
-    those). Memory-mapped: the uncompressed columns are read in place, not copied onto the task's heap. On the calling
-    thread only, as every read of the passes (the partitions already run on every core; Arrow's own thread pool would
-    only oversubscribe them, and a process interrupted while it works can hang in the pool's teardown at exit, as in
-    apache/arrow#50482)."""
-    return feather.read_table(scratch / f"{i:06d}.arrow", columns=columns, memory_map=True, use_threads=False)
+    those)."""
+    return _read_staged(_staged_metadata_file(scratch, i), columns)
 
 
 def _video_codes(video: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
@@ -238,9 +248,8 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> S
     meta, file_index = _read_meta(part, cfg)
     check_unique_frames(meta, [p.table.path for p in part], file_index)
     anchors_all = _read_anchors(part, cfg)
-    staged = pa.Table.from_pandas(meta, preserve_index=False)  # + each row's piece (``assign`` copied the frame)
-    _write_staged(staged.append_column("piece", pa.array(file_index.astype(np.int32))), scratch / f"{i:06d}.arrow")
-    del staged
+    staged = pa.Table.from_pandas(meta, preserve_index=False)  # the piece appended in Arrow (``assign`` copied meta)
+    _write_staged(staged.append_column("piece", pa.array(file_index.astype(np.int32))), _staged_metadata_file(scratch, i))
     np.save(_staged_anchors_file(scratch, i), anchors_all)
     pose = np.flatnonzero(pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess))
     k = cfg.preprocess.alignment.gpa_max_frames
@@ -662,15 +671,15 @@ def _concatenate_parts(parts_dir: Path, out: Path) -> None:
     files = sorted(parts_dir.glob("*.arrow"))
     writer = None
     for f in files:
-        table = feather.read_table(f, use_threads=False)  # as _staged_table
+        table = _read_staged(f)
+        if table.num_rows:  # a partition with no frame kept is skipped (its columns may even lack a type)
+            if writer is None:
+                # dictionary pages for the video ids only: on continuous values (AUs, pose) Arrow builds a dictionary
+                # until it overflows and falls back to plain pages, 0.45 s of the stage at 344k frames, 20 % more bytes
+                writer = pq.ParquetWriter(out, table.schema, use_dictionary=[VIDEO_COLUMN])
+            writer.write_table(table.cast(writer.schema))
+        del table  # its memory map, before the file goes
         f.unlink()
-        if table.num_rows == 0:  # a partition with no frame kept (its columns may even lack a type)
-            continue
-        if writer is None:
-            # dictionary pages for the video ids only: on continuous values (AUs, pose) Arrow builds a dictionary until
-            # it overflows and falls back to plain pages, 0.45 s of the stage at 344k frames and a 20 % larger file
-            writer = pq.ParquetWriter(out, table.schema, use_dictionary=[VIDEO_COLUMN])
-        writer.write_table(table.cast(writer.schema))
     if writer is not None:
         writer.close()
     parts_dir.rmdir()
