@@ -72,6 +72,26 @@ def test_similarity_on_columns_moves_points_as_the_known_transform():
                                rtol=1e-13, atol=1e-11)
 
 
+def test_similarity_of_selected_frames_is_bit_for_bit_that_of_the_gathered_frames():
+    """``frames`` (prepare's kept rows of a chunk, any order, more than one block of SIMILARITY_FRAMES) moves exactly
+    the frames a gather-then-move would, in either layout; without a copy of the selection."""
+    rng = np.random.default_rng(8)
+    n_rows = 3 * SIMILARITY_FRAMES
+    vertices = (rng.normal(size=(n_rows, 40, 3)) * 100).astype(np.float16)
+    columns = vertices.astype(np.float32).transpose(2, 1, 0).reshape(3 * 40, n_rows)
+    frames = np.r_[rng.permutation(n_rows)[: 2 * SIMILARITY_FRAMES], [5, 5]]  # unsorted, a repeat
+    n = len(frames)
+    rot = Rotation.random(n, random_state=9).as_matrix()
+    scale, shift = rng.uniform(0.5, 2.0, n), rng.normal(size=(n, 3)) * 50
+    expected = apply_similarity_columns(np.ascontiguousarray(columns[:, frames]), rot, scale, shift)
+    np.testing.assert_array_equal(apply_similarity_columns(columns, rot, scale, shift, frames), expected)
+    np.testing.assert_array_equal(apply_similarity_vertices(vertices, rot, scale, shift, frames), expected)
+    np.testing.assert_array_equal(apply_similarity_vertices(vertices[frames], rot, scale, shift), expected)
+    moved = expected.reshape(n, 3, 40).transpose(0, 2, 1)  # the known transform, on the selected frames
+    known = scale[:, None, None] * (vertices[frames].astype(np.float64) @ rot.transpose(0, 2, 1)) + shift[:, None]
+    np.testing.assert_allclose(moved, known, rtol=1e-13, atol=1e-11)
+
+
 def test_similarity_on_stored_vertices_is_bit_for_bit_that_on_columns():
     """Frames stored a row each (a py-feat mesh .npy: (frames, points, xyz), float16 here) -> the same rows as the
     columns path, bit for bit (prepare writes either), and the known transform to rounding; more frames than one

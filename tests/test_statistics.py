@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from aumesh.model.features import design_matrix
@@ -95,17 +96,23 @@ def test_video_indicator_sums_rows_per_video():
     np.testing.assert_array_equal(indicator @ Y, [[2 + 8, 3 + 9], [0 + 4, 1 + 5], [6, 7]])
 
 
-@pytest.mark.parametrize("grouped", [True, False])
-def test_video_row_sums_equal_the_indicator_product_bit_for_bit(grouped):
-    """Rows grouped by video (the fast path) or not: the CSR product's sums exactly, bincount's counts."""
+@pytest.mark.parametrize("layout", ["sorted", "consecutive", "scattered"])
+def test_video_row_sums_equal_the_indicator_product_bit_for_bit(layout):
+    """Rows grouped by video, sorted or in any video order (summed in place), or scattered (sorted first): the CSR
+    product's sums exactly, bincount's counts; the videos in their rows' order when grouped, else sorted."""
     rng = np.random.default_rng(5)
     video = rng.integers(0, 12, 300)
-    video = np.sort(video) if grouped else video
+    if layout == "sorted":
+        video = np.sort(video)
+    elif layout == "consecutive":  # a fold-grouped block: each video's rows together, the videos not in order
+        video = rng.permutation(12)[np.sort(video)]
     rows = rng.standard_normal((300, 50)) * 10.0 ** rng.uniform(-4, 4, 50)
     videos, sums, counts = video_row_sums(video, rows)
     expected_videos, indicator = video_indicator(video)
-    np.testing.assert_array_equal(videos, expected_videos)
-    np.testing.assert_array_equal(sums, indicator @ rows)
+    order = np.searchsorted(expected_videos, videos)  # the indicator's rows are the sorted videos
+    np.testing.assert_array_equal(np.sort(videos), expected_videos)
+    np.testing.assert_array_equal(videos, pd.unique(video) if layout != "scattered" else expected_videos)
+    np.testing.assert_array_equal(sums, (indicator @ rows)[order])
     np.testing.assert_array_equal(counts, np.bincount(video)[videos])
     empty = video_row_sums(video[:0], rows[:0])
     assert [a.shape for a in empty] == [(0,), (0, 50), (0,)]

@@ -77,9 +77,10 @@ def video_row_sums(video: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
     """Sums of ``rows`` per video, each video's rows added one after another in their order.
 
     The same float64 sums, bit for bit, as ``video_indicator(video)[1] @ rows`` (whose CSR product adds a
-    row's entries in order), without building a sparse matrix: rows already grouped by video (frames of a
-    video are consecutive in the tables) are summed where they are, others after a stable sort.
-    ``np.add.reduceat`` is not used: it adds a segment pairwise, which rounds differently.
+    row's entries in order), without building a sparse matrix: when each video's rows are consecutive (frames of a
+    video are consecutive in the tables, and a fold-grouped block keeps them so) they are summed where they are,
+    whatever the videos' order; others after a stable sort. ``np.add.reduceat`` is not used: it adds a segment
+    pairwise, which rounds differently.
 
     Parameters
     ----------
@@ -90,16 +91,17 @@ def video_row_sums(video: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
     Returns
     -------
     videos : ndarray, shape (n_distinct,)
-        The distinct videos, sorted.
+        The distinct videos: in the order of their rows when each video's rows are consecutive, else sorted.
     sums : ndarray of float64, shape (n_distinct, n)
     counts : ndarray of int64, shape (n_distinct,)
     """
     if len(video) == 0:
         return video[:0], np.zeros((0, rows.shape[1])), np.zeros(0, np.int64)
-    if not np.all(video[1:] >= video[:-1]):
+    starts = np.flatnonzero(np.r_[True, video[1:] != video[:-1]])
+    if len(np.unique(video[starts])) < len(starts):  # a video in several runs
         order = np.argsort(video, kind="stable")
         video, rows = video[order], rows[order]
-    starts = np.flatnonzero(np.r_[True, video[1:] != video[:-1]])
+        starts = np.flatnonzero(np.r_[True, video[1:] != video[:-1]])
     stops = np.r_[starts[1:], len(video)]
     sums = np.empty((len(starts), rows.shape[1]))
     for j, (lo, hi) in enumerate(zip(starts.tolist(), stops.tolist())):

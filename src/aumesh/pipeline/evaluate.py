@@ -422,16 +422,15 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
         meshes = stack.enter_context(NpyRowFile(directory / MESHES_FILE))
         files = {name: stack.enter_context(NpyRowFile(scratch / f"{name}.npy", writable=True)) for name in VIDEO_SUMS}
         for lo in range(start, stop, chunk_rows):
-            rows, bounds, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
+            rows, _, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             X = design_matrix(au[rows], pose[rows], True, True)
             X -= a
             Y = np.subtract(Y, b, out=centred[: len(Y)])  # float64 (the float32 rows widen exactly)
+            # a video's rows stay consecutive in the fold-grouped block (a video is in one fold): summed in place
             block_video, neutral = video[rows], low[rows]
-            for f in range(n_splits):  # a fold's rows keep their order (and its videos', sorted: no reordering copy)
-                seg = slice(bounds[f], bounds[f + 1])
-                streams["video_sum_x"].add(block_video[seg], X[seg])
-                streams["video_sum_y"].add(block_video[seg], Y[seg])
-                streams["video_low_sum_x"].add(block_video[seg][neutral[seg]], X[seg][neutral[seg]])
+            streams["video_sum_x"].add(block_video, X)
+            streams["video_sum_y"].add(block_video, Y)
+            streams["video_low_sum_x"].add(block_video[neutral], X[neutral])
             sums.add(X, Y, fold[rows])
             for name, rows_of in finished.items():
                 files[name].write_row_map(rows_of)

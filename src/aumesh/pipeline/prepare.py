@@ -484,8 +484,8 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
             for lo in range(0, len(pos), ALIGN_BLOCK):
                 rows_out = pos[lo : lo + ALIGN_BLOCK]
                 solved = transform[rows_out]
-                flat = _aligned_rows(chunk.take(columns[lo : lo + ALIGN_BLOCK]), rotation[solved],
-                                     scale[solved], translation[solved])
+                flat = _aligned_rows(chunk, columns[lo : lo + ALIGN_BLOCK], rotation[solved], scale[solved],
+                                     translation[solved])
                 files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
                 result.sums[0] += flat.sum(axis=0)
                 result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
@@ -506,11 +506,12 @@ def _table_of_video(scratch: Path, parts: list[Partition], video: str) -> Path:
     raise KeyError(video)
 
 
-def _aligned_rows(block: MeshChunk, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """(k, 1434) float64 aligned meshes of a block of frames, from the layout they were read in."""
-    if block.vertices is not None:
-        return apply_similarity_vertices(block.vertices, rotation, scale, translation)
-    return apply_similarity_columns(block.columns, rotation, scale, translation)
+def _aligned_rows(chunk: MeshChunk, frames: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
+                  translation: np.ndarray) -> np.ndarray:
+    """(k, 1434) float64 aligned meshes of the chunk's rows ``frames`` (k,), from the layout they were read in."""
+    if chunk.vertices is not None:
+        return apply_similarity_vertices(chunk.vertices, rotation, scale, translation, frames)
+    return apply_similarity_columns(chunk.columns, rotation, scale, translation, frames)
 
 
 def _write_item(item: tuple[Partition, Plan], **kwargs) -> Written:
