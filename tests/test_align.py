@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from aumesh.geometry.align import SIMILARITY_FRAMES, align_to_reference, apply_similarity, apply_similarity_columns, \
@@ -90,6 +91,20 @@ def test_similarity_of_selected_frames_is_bit_for_bit_that_of_the_gathered_frame
     moved = expected.reshape(n, 3, 40).transpose(0, 2, 1)  # the known transform, on the selected frames
     known = scale[:, None, None] * (vertices[frames].astype(np.float64) @ rot.transpose(0, 2, 1)) + shift[:, None]
     np.testing.assert_allclose(moved, known, rtol=1e-13, atol=1e-11)
+
+
+def test_similarity_writes_into_a_given_buffer_and_refuses_a_wrong_one():
+    """``out`` (pass 3 reuses one buffer for every block): the same rows written there; a buffer of another shape or
+    dtype is an error, not a silently reshaped result."""
+    rng = np.random.default_rng(10)
+    columns = (rng.normal(size=(120, 9)) * 100).astype(np.float32)
+    rot, scale, shift = Rotation.random(9, random_state=2).as_matrix(), rng.uniform(0.5, 2, 9), rng.normal(size=(9, 3))
+    out = np.full((9, 120), np.nan)
+    assert apply_similarity_columns(columns, rot, scale, shift, out=out) is out
+    np.testing.assert_array_equal(out, apply_similarity_columns(columns, rot, scale, shift))
+    for bad in (np.empty((8, 120)), np.empty((9, 120), np.float32), np.empty((120, 9)).T):
+        with pytest.raises(ValueError, match="out must be"):
+            apply_similarity_columns(columns, rot, scale, shift, out=bad)
 
 
 def test_similarity_on_stored_vertices_is_bit_for_bit_that_on_columns():

@@ -64,7 +64,8 @@ SIMILARITY_FRAMES = 64
 
 
 def apply_similarity_columns(columns: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
-                             translation: np.ndarray, frames: np.ndarray | None = None) -> np.ndarray:
+                             translation: np.ndarray, frames: np.ndarray | None = None,
+                             out: np.ndarray | None = None) -> np.ndarray:
     """:func:`apply_similarity` on point sets stored one per column, axis-major, returned as rows.
 
     ``(scale R) p + t`` per point in float64: each frame's ``scale * R`` (3, 3) times its (3, n_points) coordinates
@@ -83,7 +84,9 @@ def apply_similarity_columns(columns: np.ndarray, rotation: np.ndarray, scale: n
     frames : ndarray of int, shape (n_frames,), optional
         The columns to move, in this order (default: every column). Each few are gathered as they are transposed:
         a chunk's selected frames are never copied out first (prepare's pass 3 moves the kept frames of a parquet
-        chunk: gathering 256 of them, then transposing, cost it 1.8 ms a 4,096-row chunk more than this).
+        chunk: gathering 256 of them, then transposing, took 44.7 ms a 4,096-row chunk against 40.1, one thread).
+    out : ndarray of float64, shape (n_frames, 3 n_points), optional
+        Where to write the result (a pass moving block after block reuses one).
 
     Returns
     -------
@@ -93,14 +96,15 @@ def apply_similarity_columns(columns: np.ndarray, rotation: np.ndarray, scale: n
     n_coords = columns.shape[0]
     if frames is None:
         return _moved_rows(lambda lo, hi: np.ascontiguousarray(columns[:, lo:hi].T).reshape(hi - lo, 3, -1),
-                           columns.shape[1], n_coords, rotation, scale, translation)
+                           columns.shape[1], n_coords, rotation, scale, translation, out)
     # np.take's (n_coords, k) block is dense (rows of k values), so its transpose stays in cache
     return _moved_rows(lambda lo, hi: np.take(columns, frames[lo:hi], axis=1).T.copy().reshape(hi - lo, 3, -1),
-                       len(frames), n_coords, rotation, scale, translation)
+                       len(frames), n_coords, rotation, scale, translation, out)
 
 
 def apply_similarity_vertices(vertices: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
-                              translation: np.ndarray, frames: np.ndarray | None = None) -> np.ndarray:
+                              translation: np.ndarray, frames: np.ndarray | None = None,
+                              out: np.ndarray | None = None) -> np.ndarray:
     """:func:`apply_similarity_columns` on point sets stored a frame per row, as a mesh ``.npy`` stores them.
 
     Each frame's points are transposed to (3, n_points) a few frames at a time, widened to at least float32 (exact),
@@ -110,7 +114,7 @@ def apply_similarity_vertices(vertices: np.ndarray, rotation: np.ndarray, scale:
     ----------
     vertices : ndarray, shape (n_rows, n_points, 3)
         Any float dtype (float16 as py-feat may save them).
-    rotation, scale, translation
+    rotation, scale, translation, out
         As in :func:`apply_similarity_columns`.
     frames : ndarray of int, shape (n_frames,), optional
         The rows to move, in this order (default: every row), gathered a few at a time.
@@ -124,16 +128,18 @@ def apply_similarity_vertices(vertices: np.ndarray, rotation: np.ndarray, scale:
     dtype = np.promote_types(vertices.dtype, np.float32)
     if frames is None:
         return _moved_rows(lambda lo, hi: np.ascontiguousarray(vertices[lo:hi].transpose(0, 2, 1), dtype=dtype),
-                           len(vertices), 3 * n_points, rotation, scale, translation)
+                           len(vertices), 3 * n_points, rotation, scale, translation, out)
     return _moved_rows(lambda lo, hi: np.ascontiguousarray(vertices[frames[lo:hi]].transpose(0, 2, 1), dtype=dtype),
-                       len(frames), 3 * n_points, rotation, scale, translation)
+                       len(frames), 3 * n_points, rotation, scale, translation, out)
 
 
 def _moved_rows(points_of, n_frames: int, n_coords: int, rotation: np.ndarray, scale: np.ndarray,
-                translation: np.ndarray) -> np.ndarray:
+                translation: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``(scale R) p + t`` of frames ``lo:hi`` at a time, ``points_of(lo, hi)`` their (hi - lo, 3, n_points)
-    points; returns (n_frames, n_coords) float64 axis-major rows."""
-    rows = np.empty((n_frames, n_coords))
+    points; returns (n_frames, n_coords) float64 axis-major rows (``out``, when given)."""
+    rows = np.empty((n_frames, n_coords)) if out is None else out
+    if rows.shape != (n_frames, n_coords) or rows.dtype != np.float64 or not rows.flags.c_contiguous:
+        raise ValueError(f"out must be C-contiguous float64 of shape {(n_frames, n_coords)}, got {rows.dtype} {rows.shape}")
     for lo in range(0, n_frames, SIMILARITY_FRAMES):
         hi = min(lo + SIMILARITY_FRAMES, n_frames)
         moved = rows[lo:hi].reshape(hi - lo, 3, -1)

@@ -203,6 +203,25 @@ def _write_staged(table: pa.Table, path: Path) -> None:
     feather.write_feather(table, path, compression="uncompressed")
 
 
+#: Rows of a staged table taken and written at a time by :func:`_write_staged_rows`.
+STAGE_ROWS = 4096
+
+
+def _write_staged_rows(table: pa.Table, rows: np.ndarray, columns: dict[str, np.ndarray], path: Path) -> None:
+    """Rows ``rows`` of ``table``, with ``columns`` (one value per row written) appended, as :func:`_write_staged`
+    writes a table (Arrow IPC, uncompressed: a Feather file), :data:`STAGE_ROWS` rows at a time: the partition's
+    taken rows were a task's largest Arrow allocation in pass 3 (~7 MiB at 32k rows), freed after it wrote them."""
+    schema = table.schema.remove_metadata()
+    for name, values in columns.items():
+        schema = schema.append(pa.field(name, pa.from_numpy_dtype(values.dtype)))
+    with pa.OSFile(str(path), "wb") as sink, pa.ipc.new_file(sink, schema) as writer:
+        for lo in range(0, len(rows), STAGE_ROWS):
+            block = table.take(rows[lo : lo + STAGE_ROWS])
+            for name, values in columns.items():
+                block = block.append_column(name, pa.array(values[lo : lo + STAGE_ROWS]))
+            writer.write_table(block.replace_schema_metadata(None))
+
+
 def _read_staged(path: Path, columns: list[str] | None = None) -> pa.Table:
     """A table :func:`_write_staged` wrote (``columns``: only those). Memory-mapped: the uncompressed columns are read
     in place, not copied onto the task's heap. On the calling thread only, as every read of the passes (the partitions
@@ -442,10 +461,8 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
     transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it (read per block)
     # the kept rows of the staged metadata, in Arrow (pandas' Python strings cost ~300 bytes a row of the task's memory)
-    kept = _staged_table(scratch, plan.part_index).drop_columns(["piece"]).take(rows)
-    kept = kept.append_column("video_index", pa.array(video_index)).append_column("low_au", pa.array(low_video))
-    _write_staged(kept.replace_schema_metadata(None), out_dir / "parts" / f"{plan.part_index:06d}.arrow")
-    del kept
+    _write_staged_rows(_staged_table(scratch, plan.part_index).drop_columns(["piece"]), rows,
+                       {"video_index": video_index, "low_au": low_video}, out_dir / "parts" / f"{plan.part_index:06d}.arrow")
     result = Written(np.zeros((2, N_TARGETS)), int(low_population.sum()))
     split_video = set(plan.video_index[plan.split].tolist())
     neutrals: dict[str, dict[int, np.ndarray]] = {name: {} for name in NEUTRAL_FILES.values()}
@@ -469,6 +486,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     low_frames = VideoSumStream(video_index[low_video], finished("low_au", 1))
     position = np.full(sum(p.n_rows for p in part), -1, dtype=np.int64)
     position[rows] = np.arange(len(rows))
+    aligned = np.empty((ALIGN_BLOCK, N_TARGETS))  # a block's aligned rows, float64, allocated once a task
     with ExitStack() as stack:  # the output files opened once for the partition's writes
         files = {name: stack.enter_context(NpyRowFile(out_dir / name, writable=True))
                  for name in (MESHES_FILE, *NEUTRAL_FILES.values())}
@@ -485,7 +503,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 rows_out = pos[lo : lo + ALIGN_BLOCK]
                 solved = transform[rows_out]
                 flat = _aligned_rows(chunk, columns[lo : lo + ALIGN_BLOCK], rotation[solved], scale[solved],
-                                     translation[solved])
+                                     translation[solved], aligned[: len(rows_out)])
                 files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
                 result.sums[0] += flat.sum(axis=0)
                 result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
@@ -507,11 +525,12 @@ def _table_of_video(scratch: Path, parts: list[Partition], video: str) -> Path:
 
 
 def _aligned_rows(chunk: MeshChunk, frames: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
-                  translation: np.ndarray) -> np.ndarray:
-    """(k, 1434) float64 aligned meshes of the chunk's rows ``frames`` (k,), from the layout they were read in."""
+                  translation: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """(k, 1434) float64 aligned meshes of the chunk's rows ``frames`` (k,), from the layout they were read in, into
+    ``out``."""
     if chunk.vertices is not None:
-        return apply_similarity_vertices(chunk.vertices, rotation, scale, translation, frames)
-    return apply_similarity_columns(chunk.columns, rotation, scale, translation, frames)
+        return apply_similarity_vertices(chunk.vertices, rotation, scale, translation, frames, out)
+    return apply_similarity_columns(chunk.columns, rotation, scale, translation, frames, out)
 
 
 def _write_item(item: tuple[Partition, Plan], **kwargs) -> Written:
