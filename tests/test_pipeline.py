@@ -384,26 +384,3 @@ def test_staged_video_codes_and_au_sums_equal_numpy_unique_and_pandas_row_sums()
     pandas_sums = frame.loc[frame.index[rows], list(AU_COLUMNS)].to_numpy().sum(axis=1)
     assert np.array_equal(prepare.au_sums(pa.Table.from_pandas(frame), rows), pandas_sums)
     assert not np.array_equal(np.ascontiguousarray(frame[list(AU_COLUMNS)].to_numpy()[rows]).sum(axis=1), pandas_sums)
-
-
-@pytest.mark.parametrize("n_rows", [0, 1, 7, 9])
-def test_staged_rows_written_in_blocks_read_back_as_the_taken_table(tmp_path, monkeypatch, n_rows):
-    """Pass 3 stages a partition's kept metadata a block of rows at a time: read back, it is the staged table's
-    ``take(rows)`` with the new columns appended (values, types, order), for no rows, part of a block and several."""
-    import pyarrow as pa
-
-    from aumesh.pipeline import prepare
-
-    monkeypatch.setattr(prepare, "STAGE_ROWS", 3)
-    rng = np.random.default_rng(11)
-    table = pa.table({"video_id": pa.array([f"v{i // 4}" for i in range(12)]), "frame": pa.array(np.arange(12)),
-                      "AU01": pa.array(rng.random(12))}).replace_schema_metadata({"pandas": "{}"})
-    rows = np.sort(rng.choice(12, n_rows, replace=False))
-    columns = {"video_index": rng.integers(0, 5, n_rows).astype(np.int32), "low_au": rng.random(n_rows) < 0.5}
-    prepare._write_staged_rows(table, rows, columns, tmp_path / "part.arrow")
-    expected = table.take(rows).replace_schema_metadata(None)
-    for name, values in columns.items():
-        expected = expected.append_column(name, pa.array(values, type=pa.from_numpy_dtype(values.dtype)))
-    got = prepare._read_staged(tmp_path / "part.arrow")
-    assert got.schema.equals(expected.schema) and got.num_rows == n_rows
-    assert got.equals(expected)

@@ -203,25 +203,6 @@ def _write_staged(table: pa.Table, path: Path) -> None:
     feather.write_feather(table, path, compression="uncompressed")
 
 
-#: Rows of a staged table taken and written at a time by :func:`_write_staged_rows`.
-STAGE_ROWS = 4096
-
-
-def _write_staged_rows(table: pa.Table, rows: np.ndarray, columns: dict[str, np.ndarray], path: Path) -> None:
-    """Rows ``rows`` of ``table``, with ``columns`` (one value per row written) appended, as :func:`_write_staged`
-    writes a table (Arrow IPC, uncompressed: a Feather file), :data:`STAGE_ROWS` rows at a time: the partition's
-    taken rows were a task's largest Arrow allocation in pass 3 (~7 MiB at 32k rows), freed after it wrote them."""
-    schema = table.schema.remove_metadata()
-    for name, values in columns.items():
-        schema = schema.append(pa.field(name, pa.from_numpy_dtype(values.dtype)))
-    with pa.OSFile(str(path), "wb") as sink, pa.ipc.new_file(sink, schema) as writer:
-        for lo in range(0, len(rows), STAGE_ROWS):
-            block = table.take(rows[lo : lo + STAGE_ROWS])
-            for name, values in columns.items():
-                block = block.append_column(name, pa.array(values[lo : lo + STAGE_ROWS]))
-            writer.write_table(block.replace_schema_metadata(None))
-
-
 def _read_staged(path: Path, columns: list[str] | None = None) -> pa.Table:
     """A table :func:`_write_staged` wrote (``columns``: only those). Memory-mapped: the uncompressed columns are read
     in place, not copied onto the task's heap. On the calling thread only, as every read of the passes (the partitions
@@ -461,8 +442,10 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
     transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it (read per block)
     # the kept rows of the staged metadata, in Arrow (pandas' Python strings cost ~300 bytes a row of the task's memory)
-    _write_staged_rows(_staged_table(scratch, plan.part_index).drop_columns(["piece"]), rows,
-                       {"video_index": video_index, "low_au": low_video}, out_dir / "parts" / f"{plan.part_index:06d}.arrow")
+    kept = _staged_table(scratch, plan.part_index).drop_columns(["piece"]).take(rows)
+    kept = kept.append_column("video_index", pa.array(video_index)).append_column("low_au", pa.array(low_video))
+    _write_staged(kept.replace_schema_metadata(None), out_dir / "parts" / f"{plan.part_index:06d}.arrow")
+    del kept
     result = Written(np.zeros((2, N_TARGETS)), int(low_population.sum()))
     split_video = set(plan.video_index[plan.split].tolist())
     neutrals: dict[str, dict[int, np.ndarray]] = {name: {} for name in NEUTRAL_FILES.values()}
