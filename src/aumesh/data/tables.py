@@ -475,8 +475,8 @@ class MeshChunk:
     - ``columns`` (1434, m): parquet mesh columns, axis-major ``[x_0..x_477 | y_.. | z_..]``, one row per column.
 
     Kept as read, not converted: transposing a whole chunk of ``.npy`` rows into columns cost a (1434, m) copy per
-    chunk (23 MiB a task at 4,096 float16 rows); a consumer converts the rows it uses, a block at a time
-    (:meth:`take`, then :func:`aumesh.geometry.align.apply_similarity_vertices` or ``apply_similarity_columns``).
+    chunk (23 MiB a task at 4,096 float16 rows); a consumer converts the rows it uses, a few at a time
+    (:func:`aumesh.geometry.align.apply_similarity_vertices` or ``apply_similarity_columns`` with ``frames=``).
     """
 
     vertices: np.ndarray | None = None
@@ -484,13 +484,6 @@ class MeshChunk:
 
     def __len__(self) -> int:
         return len(self.vertices) if self.vertices is not None else self.columns.shape[1]
-
-    def take(self, rows: np.ndarray) -> "MeshChunk":
-        """The chunk's rows ``rows``, same layout (``np.take`` copies each coordinate's row; ``columns[:, rows]``
-        gathers element by element)."""
-        if self.vertices is not None:
-            return MeshChunk(vertices=self.vertices[rows])
-        return MeshChunk(columns=np.take(self.columns, rows, axis=1))
 
 
 def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None,
