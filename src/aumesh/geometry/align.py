@@ -137,9 +137,12 @@ def _moved_rows(points_of, n_frames: int, n_coords: int, rotation: np.ndarray, s
                 translation: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``(scale R) p + t`` of frames ``lo:hi`` at a time, ``points_of(lo, hi)`` their (hi - lo, 3, n_points)
     points; returns (n_frames, n_coords) float64 axis-major rows (``out``, when given)."""
-    rows = np.empty((n_frames, n_coords)) if out is None else out
-    if rows.shape != (n_frames, n_coords) or rows.dtype != np.float64 or not rows.flags.c_contiguous:
-        raise ValueError(f"out must be C-contiguous float64 of shape {(n_frames, n_coords)}, got {rows.dtype} {rows.shape}")
+    if out is None:
+        rows = np.empty((n_frames, n_coords))
+    elif out.shape != (n_frames, n_coords) or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be C-contiguous float64 of shape {(n_frames, n_coords)}, got {out.dtype} {out.shape}")
+    else:
+        rows = out
     for lo in range(0, n_frames, SIMILARITY_FRAMES):
         hi = min(lo + SIMILARITY_FRAMES, n_frames)
         moved = rows[lo:hi].reshape(hi - lo, 3, -1)
