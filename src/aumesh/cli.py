@@ -41,6 +41,18 @@ def _cmd_synth(args) -> int:
     return 0
 
 
+def _cmd_ingest(args) -> int:
+    from aumesh.pipeline.stages import ingest_stage
+
+    cfg = _params(args)
+    c = ingest_stage(cfg)["counts"]
+    print(f"ingest: {c['frames_out']:,} frames from {c['rows_in']:,} rows of {c['tables_in']:,} tables "
+          f"(no face -{c['dropped_no_face']:,}, other faces -{c['dropped_extra_faces']:,} in "
+          f"{c['frames_with_several_faces']:,} frames, converted from normalized units {c['rows_converted_from_normalized']:,}) "
+          f"-> {cfg.paths.ingested_dir}")
+    return 0
+
+
 def _cmd_prepare(args) -> int:
     from aumesh.pipeline.stages import prepare_stage
 
@@ -292,7 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(baseline = C * softplus(resemblance of the identity to the AU's field), e.g. 0.15; default: 0 = off)")
     p.set_defaults(func=_cmd_synth)
 
-    for name, func, text in (("prepare", _cmd_prepare, "stage: filter and align the frame tables"),
+    for name, func, text in (("ingest", _cmd_ingest, "stage: py-feat's CSV/parquet tables -> clean frame tables"),
+                             ("prepare", _cmd_prepare, "stage: filter and align the frame tables"),
                              ("evaluate", _cmd_evaluate, "stage: cross-validate and fit; log an MLflow run"),
                              ("release", _cmd_release, "stage: write the release (NPZ, model card, figures)")):
         p = sub.add_parser(name, help=text)
@@ -370,7 +383,7 @@ def run() -> None:
 
 def _dvc_note(args) -> str | None:
     """Under ``dvc repro``: the command that restores the outputs DVC removed before this stage (None otherwise)."""
-    if args.command not in ("prepare", "evaluate", "release") or not os.environ.get("DVC_STAGE"):
+    if args.command not in ("ingest", "prepare", "evaluate", "release") or not os.environ.get("DVC_STAGE"):
         return None
     from aumesh.pipeline.stages import removed_by_dvc
 

@@ -21,10 +21,14 @@ from aumesh.utils.io import atomic_write_text
 from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, feature_set_columns
 from aumesh.model.statistics import TARGETS
 
+#: ``data.face_selection``: which face of a frame with several is the video's subject (aumesh.data.ingest).
+FACE_SELECTIONS = ("largest", "identity", "error")
+
 
 @dataclass(frozen=True)
 class PathsConfig:
     data_dir: str = "data"
+    ingested_dir: str = "build/ingested"
     prepared_dir: str = "build/prepared"
     model_dir: str = "build/model"
     release_dir: str = "release"
@@ -36,8 +40,9 @@ class PathsConfig:
 
 @dataclass(frozen=True)
 class DataConfig:
-    tables: str = "**/*.parquet"
+    tables: str = "**/*"
     mesh_npy: str = "{stem}.npy"
+    face_selection: str = "largest"
     chunk_rows: int = 8192
     coerce_numeric: bool = False
 
@@ -55,6 +60,7 @@ class AlignmentConfig:
     gpa_max_frames: int = 20000
     gpa_max_iter: int = 50
     gpa_tol: float = 1e-10
+    max_vertex_iod: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -276,6 +282,13 @@ def validate(cfg: Config) -> Config:
                           f"features={cfg.features.name}. Fix: lower it, or set model.clip_n_components=true.")
     if cfg.cv.n_splits < 2:
         raise ConfigError(f"cv.n_splits={cfg.cv.n_splits}: must be >= 2")
+    if cfg.data.face_selection not in FACE_SELECTIONS:
+        raise ConfigError(f"data.face_selection={cfg.data.face_selection!r}: use one of {', '.join(FACE_SELECTIONS)} "
+                          "(largest: the largest face box of a frame; identity: py-feat's Identity of the video's subject; "
+                          "error: refuse frames with several faces)")
+    if not cfg.preprocess.alignment.max_vertex_iod > 0:
+        raise ConfigError(f"preprocess.alignment.max_vertex_iod={cfg.preprocess.alignment.max_vertex_iod}: must be > 0 "
+                          "(inter-ocular distances; a large value such as 1e9 keeps every frame)")
     if cfg.data.chunk_rows < 1:
         raise ConfigError(f"data.chunk_rows={cfg.data.chunk_rows}: must be >= 1")
     if cfg.compute.scheduler not in ("synchronous", "threads", "processes", "distributed"):

@@ -220,8 +220,11 @@ def check_pose_medians(median, where: str | Path) -> None:
 
 # filter name -> (counted in, what it drops, the likely cause, the option that allows it)
 FILTERS = {
+    "no-face rows": ("rows", "videos where py-feat rarely found a face (occlusion, a face_detection_threshold too high)"),
     "pose filter": ("frames", "pose in degrees, or pose limits narrower than the data "
                               "(preprocess.pose_filter)"),
+    "wild values": ("frames", "a corrupt export (coordinates far outside the face), or a mesh in another layout "
+                              "(preprocess.alignment.max_vertex_iod)"),
     "alignment outlier cut": ("frames", "landmarks in different units or layouts across tables "
                                         "(preprocess.alignment.outlier_quantile)"),
     "empty videos": ("videos", "pose in degrees or filters too narrow for whole videos (preprocess.empty_video)"),
@@ -229,14 +232,17 @@ FILTERS = {
 
 
 # filter name -> its count key in the prepared summary (``<key>_fraction`` is the share)
-FILTER_KEYS = {"pose filter": "dropped_pose", "alignment outlier cut": "dropped_alignment_outliers",
-               "empty videos": "videos_dropped_no_frames_left"}
+FILTER_KEYS = {"no-face rows": "dropped_no_face", "pose filter": "dropped_pose", "wild values": "dropped_wild_values",
+               "alignment outlier cut": "dropped_alignment_outliers", "empty videos": "videos_dropped_no_frames_left"}
 
 
 def filter_shares(counts: Mapping[str, int]) -> dict[str, dict]:
-    """Counts and fractions dropped by each filter (pose filter, alignment outlier cut, empty videos) in ``counts``
+    """Counts and fractions dropped by each filter (no-face rows, pose filter, wild values, alignment outlier cut, empty
+    videos) in ``counts``
     (the prepared summary's counts, or the part known so far)."""
-    seen = {"pose filter": counts["frames_in"], "alignment outlier cut": counts["frames_in"] - counts["dropped_pose"],
+    after_pose = counts["frames_in"] - counts["dropped_pose"]
+    seen = {"no-face rows": counts.get("rows_in", 0), "pose filter": counts["frames_in"], "wild values": after_pose,
+            "alignment outlier cut": after_pose - counts.get("dropped_wild_values", 0),
             "empty videos": counts.get("videos_in", 0)}
     out = {name: (counts[key], seen[name]) for name, key in FILTER_KEYS.items() if key in counts}
     return {name: {"dropped": int(d), "of": int(n), "fraction": (d / n if n else 0.0), "unit": FILTERS[name][0]}

@@ -88,6 +88,15 @@ def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str, coerce_n
     return tables
 
 
+def check_tables(paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_numeric: bool = False) -> list[FrameTable]:
+    """Schema-check the tables the ingest stage lists (its manifest: cleaned tables and clean ones read in place)."""
+    tables = [_check_schema(Path(p), mesh_npy_pattern, coerce_numeric) for p in paths]
+    if sum(t.n_rows for t in tables) == 0:
+        raise TableError("no frame with a face in the tables (every row is py-feat's no-face row, or every table is "
+                         "empty). Fix: check the videos and py-feat's face_detection_threshold.")
+    return tables
+
+
 def _corrupt(path: Path, err: BaseException, what: str = "") -> TableError:
     return TableError(
         f"{path}: corrupt or truncated parquet file{what} ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). "

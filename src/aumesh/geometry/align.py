@@ -219,3 +219,54 @@ def generalized_procrustes(anchors: np.ndarray, max_iter: int = 50, tol: float =
         if change < tol:
             break
     return reference
+
+
+#: Pass 1's screen, before a reference exists: a frame whose farthest anchor lies more than this many times the
+#: anchors' median distance from their median point is no face at all (a corrupt export). Real faces stay near 3.5-4.3
+#: (the demo tables: median 3.5, max 4.3), so only gross corruption is caught here; the stated rule
+#: (:func:`beyond_radius`, ``preprocess.alignment.max_vertex_iod``) follows after alignment on every vertex.
+ANCHOR_SPREAD_LIMIT = 10.0
+
+
+def not_a_face(anchors: np.ndarray, limit: float = ANCHOR_SPREAD_LIMIT) -> np.ndarray:
+    """(n,) bool: frames whose anchors are not a face (non-finite, collapsed, or one far beyond the others).
+
+    Robust to any one anchor (medians), and invariant to rotation, scale and translation.
+
+    Parameters
+    ----------
+    anchors : ndarray, shape (n, k, 3)
+    """
+    a = np.asarray(anchors, dtype=np.float64)
+    centre = np.median(a, axis=1, keepdims=True)
+    distance = np.sqrt(((a - centre) ** 2).sum(axis=2))  # (n, k)
+    spread = np.median(distance, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bad = ~(distance.max(axis=1) <= limit * spread)  # NaN/inf compare False
+    return bad | ~(spread > 0)
+
+
+def reference_scale(reference: np.ndarray, anchor_indices, iod_vertices=(33, 263)) -> float:
+    """The reference's inter-ocular distance (outer canthi 33-263) when both are anchors; else the anchors' RMS
+    distance from their centroid times 1.6 (the ratio of the two on MediaPipe's face)."""
+    idx = list(anchor_indices)
+    ref = np.asarray(reference, dtype=np.float64)
+    if all(v in idx for v in iod_vertices):
+        return float(np.linalg.norm(ref[idx.index(iod_vertices[0])] - ref[idx.index(iod_vertices[1])]))
+    return 1.6 * float(np.sqrt(((ref - ref.mean(axis=0)) ** 2).sum(axis=1).mean()))
+
+
+def beyond_radius(flat: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """(m,) bool: aligned meshes with any vertex farther than ``radius`` from ``centre`` (or not finite).
+
+    Parameters
+    ----------
+    flat : ndarray, shape (m, 1434)
+        Aligned meshes, axis-major ``[x_0..x_477 | y_.. | z_..]``.
+    centre : ndarray, shape (3,)
+    """
+    m, n = len(flat), flat.shape[1] // 3
+    d2 = np.zeros((m, n))
+    for axis in range(3):
+        d2 += (flat[:, axis * n : (axis + 1) * n] - centre[axis]) ** 2
+    return ~(d2.max(axis=1) <= radius * radius) if n else np.zeros(m, bool)

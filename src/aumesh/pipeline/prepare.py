@@ -62,7 +62,7 @@ from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, 
 from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_unique_frames, iter_pieces_mesh_chunks, \
     iter_vertices, partitions, read_pieces_metadata
 from aumesh.geometry.align import (align_to_reference, apply_similarity_columns, apply_similarity_vertices,
-                                   generalized_procrustes)
+                                   beyond_radius, generalized_procrustes, not_a_face, reference_scale)
 from aumesh.model.statistics import VideoSumStream
 from aumesh.pipeline import compute
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
@@ -170,13 +170,14 @@ class Scan:
 
     n_rows: list[int]
     videos: list[np.ndarray]  # per partition: sorted distinct video ids
-    n_pose: int
+    n_pose: int  # frames that pass the pose filter
+    n_wild: int  # of those, frames with wild values (anchors that are no face, or frames ``exclude`` names)
     candidates: Candidates
     k: int
 
     def __add__(self, other: "Scan") -> "Scan":
         return Scan(self.n_rows + other.n_rows, self.videos + other.videos, self.n_pose + other.n_pose,
-                    self.candidates.merge(other.candidates, self.k), self.k)
+                    self.n_wild + other.n_wild, self.candidates.merge(other.candidates, self.k), self.k)
 
 
 def _read_meta(part: Partition, cfg: Config) -> tuple[pd.DataFrame, np.ndarray]:
@@ -238,20 +239,28 @@ def _video_codes(video: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
     return names[order], rank[encoded.indices.to_numpy()]
 
 
-def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> Scan:
-    """Pass 1 on one partition: validation, the pose filter and the partition's GPA candidates.
+def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path,
+                   exclude: dict[int, np.ndarray] | None = None) -> Scan:
+    """Pass 1 on one partition: validation, the pose filter, the wild-value screen of the anchors and the partition's
+    GPA candidates.
 
-    The validated metadata and the anchors (the only columns passes 2 and 3 need besides the meshes) are
-    staged in ``scratch`` (~350 bytes a frame), so the tables are parsed and validated once.
+    The validated metadata (with each row's ``wild`` flag: anchors that are no face, or a row of partition ``i`` that
+    ``exclude[i]`` names, found by pass 3 of an earlier round) and the anchors (the only columns passes 2 and 3 need
+    besides the meshes) are staged in ``scratch`` (~350 bytes a frame), so the tables are parsed and validated once.
     """
     i, part = item
     meta, file_index = _read_meta(part, cfg)
     check_unique_frames(meta, [p.table.path for p in part], file_index)
     anchors_all = _read_anchors(part, cfg)
+    wild = not_a_face(anchors_all)
+    if exclude and i in exclude:
+        wild[exclude[i]] = True
     staged = pa.Table.from_pandas(meta, preserve_index=False)  # the piece appended in Arrow (``assign`` copied meta)
-    _write_staged(staged.append_column("piece", pa.array(file_index.astype(np.int32))), _staged_metadata_file(scratch, i))
+    staged = staged.append_column("piece", pa.array(file_index.astype(np.int32))).append_column("wild", pa.array(wild))
+    _write_staged(staged, _staged_metadata_file(scratch, i))
     np.save(_staged_anchors_file(scratch, i), anchors_all)
-    pose = np.flatnonzero(pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess))
+    passing = pose_mask(meta["Pitch"].to_numpy(), meta["Yaw"].to_numpy(), cfg.preprocess)
+    pose = np.flatnonzero(passing & ~wild)
     k = cfg.preprocess.alignment.gpa_max_frames
     video = meta[VIDEO_COLUMN].to_numpy(dtype=object)[pose]
     frame = meta[FRAME_COLUMN].to_numpy(dtype=np.int64)[pose]
@@ -262,7 +271,8 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path) -> S
     # with the partitions (+90 MiB retained after this pass at 1M frames)
     candidates = Candidates(h[order], video[order].astype(str), frame[order], np.full(len(order), i, np.int32),
                             pose[order].astype(np.int64))
-    return Scan([len(meta)], [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))], len(pose), candidates, k)
+    return Scan([len(meta)], [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))], int(passing.sum()),
+                int((passing & wild).sum()), candidates, k)
 
 
 @dataclass
@@ -310,9 +320,9 @@ def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.n
     the stage at 3.1M frames; now 17-21 MiB.
     """
     i, part = item
-    meta = _staged_table(scratch, i, [VIDEO_COLUMN, FRAME_COLUMN, "piece", *POSE_COLUMNS, *AU_COLUMNS])
+    meta = _staged_table(scratch, i, [VIDEO_COLUMN, FRAME_COLUMN, "piece", "wild", *POSE_COLUMNS, *AU_COLUMNS])
     pitch, yaw, roll = (meta.column(c).to_numpy() for c in POSE_COLUMNS)
-    rows = np.flatnonzero(pose_mask(pitch, yaw, cfg.preprocess))
+    rows = np.flatnonzero(pose_mask(pitch, yaw, cfg.preprocess) & ~meta.column("wild").to_numpy(zero_copy_only=False))
     au_sum = au_sums(meta, rows)
     residual, rotation, scale, translation = (np.empty((len(rows), *shape)) for shape in ((), (3, 3), (), (3,)))
     with NpyRowFile(_staged_anchors_file(scratch, i)) as anchors:
@@ -399,10 +409,11 @@ class Written:
     n_low_population: int = 0
     split: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2, 1434) sums (all, low-AU)
     split_counts: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2,) frames
+    wild: dict[int, list[int]] = field(default_factory=dict)  # partition -> its rows with a vertex beyond the radius
 
     def __add__(self, other: "Written") -> "Written":
         out = Written(self.sums + other.sums, self.n_low_population + other.n_low_population, dict(self.split),
-                      dict(self.split_counts))
+                      dict(self.split_counts), {**self.wild, **other.wild})
         for v, s in other.split.items():
             if v in out.split:
                 out.split[v] = out.split[v] + s
@@ -433,16 +444,18 @@ def kept_frames(scratch: Path, plan: Plan, cuts: Cuts) -> tuple[np.ndarray, np.n
 
 
 def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: Plan, cuts: Cuts, out_dir: Path,
-                    scratch: Path, chunk_rows: int) -> Written:
+                    scratch: Path, chunk_rows: int, wild_radius: tuple[np.ndarray, float]) -> Written:
     """Pass 3 on one partition: align and write its kept meshes, metadata and whole videos' neutrals.
 
-    Videos with rows in other partitions too (``plan.split``): their sums are returned instead of written.
+    Videos with rows in other partitions too (``plan.split``): their sums are returned instead of written. Rows whose
+    aligned mesh has a vertex beyond ``wild_radius`` (centre (3,), radius) are returned in ``Written.wild``: the stage
+    then runs again without them (their sums are in this round's, which is discarded).
     """
     rows, video_index, low_video, low_population = kept_frames(scratch, plan, cuts)
     pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
     transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it (read per block)
     # the kept rows of the staged metadata, in Arrow (pandas' Python strings cost ~300 bytes a row of the task's memory)
-    kept = _staged_table(scratch, plan.part_index).drop_columns(["piece"]).take(rows)
+    kept = _staged_table(scratch, plan.part_index).drop_columns(["piece", "wild"]).take(rows)
     kept = kept.append_column("video_index", pa.array(video_index)).append_column("low_au", pa.array(low_video))
     _write_staged(kept.replace_schema_metadata(None), out_dir / "parts" / f"{plan.part_index:06d}.arrow")
     del kept
@@ -487,6 +500,9 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 solved = transform[rows_out]
                 flat = _aligned_rows(chunk, columns[lo : lo + ALIGN_BLOCK], rotation[solved], scale[solved],
                                      translation[solved], aligned[: len(rows_out)])
+                far = beyond_radius(flat, *wild_radius)
+                if far.any():  # preprocess.alignment.max_vertex_iod: the round is rerun without these rows
+                    result.wild.setdefault(plan.part_index, []).extend(rows[rows_out[far]].tolist())
                 files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
                 result.sums[0] += flat.sum(axis=0)
                 result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
@@ -541,131 +557,169 @@ def _plans(kept: list[Kept], video_ids: np.ndarray, split_names: np.ndarray, qua
     return plans
 
 
-def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path) -> dict:
-    """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary."""
-    pre = cfg.preprocess
+class _WildRows(Exception):
+    """Pass 3 found aligned meshes beyond the wild-value radius: the passes run again without them."""
+
+    def __init__(self, rows: dict[int, np.ndarray]):
+        super().__init__(f"{sum(len(r) for r in rows.values())} frames with wild values")
+        self.rows = rows
+
+
+def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path, ingested: dict | None = None) -> dict:
+    """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary.
+
+    ``ingested``: the ingest stage's counts (rows read, no-face rows and other faces dropped), added to the summary's.
+    Frames whose aligned mesh has a vertex beyond ``preprocess.alignment.max_vertex_iod`` are found while pass 3 writes
+    them; the passes then run once more without them, so the result is what tables without those frames give (the
+    GPA subsample, the thresholds and the means included). Clean data never takes the second round.
+    """
     parts = partitions(tables, cfg.compute.partition_rows)
+    exclude: dict[int, np.ndarray] = {}
     with compute.engine(cfg.compute), atomic_directory(out_dir) as tmp:
-        scratch = tmp / "scratch"  # per-partition validated metadata and anchors (pass 1), residuals (pass 2)
-        scratch.mkdir()
-        staged = [(scratch, i) for i in range(len(parts))]
-        # pass 1: validation, pose filter, GPA candidates
-        scan = compute.map_reduce(partial(scan_partition, cfg=cfg, scratch=scratch), Scan.__add__, list(enumerate(parts)),
-                                  desc="prepare: read + validate")
-        if scan.n_pose == 0:
-            raise TableError(
-                f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
-                f"|pitch| <= {pre.pose_filter.max_abs_pitch_deg} deg) of {sum(scan.n_rows)}. Likely cause: Pitch/Yaw in degrees "
-                f"(convert with np.deg2rad), or preprocess.pose_filter narrower than the data."
-            )
-        partial_counts = {"frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose)}
-        contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
-        # one array of the videos in the stage, not one per partition besides (memory flat in frames)
-        every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
-        split_names = every_video[in_parts > 1]
-        scan = replace(scan, videos=[])
-        del in_parts
-        sample = anchors_in_table_order(scratch, scan.candidates)
-        reference = generalized_procrustes(sample, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol, map=compute.local_map)
-        del sample
+        while True:
+            try:
+                return _passes(tables, parts, cfg, tmp, exclude, ingested or {})
+            except _WildRows as found:
+                log.warning("prepare: %d frame(s) have a vertex beyond %g inter-ocular distances after alignment "
+                            "(preprocess.alignment.max_vertex_iod): dropped, the passes run again without them",
+                            sum(len(r) for r in found.rows.values()), cfg.preprocess.alignment.max_vertex_iod)
+                for i, rows in found.rows.items():
+                    exclude[i] = np.union1d(exclude.get(i, np.empty(0, np.int64)), rows).astype(np.int64)
+                for child in tmp.iterdir():
+                    shutil.rmtree(child) if child.is_dir() else child.unlink()
 
-        # pass 2: residuals and AU sums of the pose-passing frames, staged per partition
-        res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names,
-                                         scratch=scratch), list(enumerate(parts)), desc="prepare: residuals")
-        # every frame (float32: compared with 1 rad); np.median is np.quantile(.., 0.5) here: the midpoint of two
-        # float32 values is exact in float64 either way. The exact medians (nine small passes) only when the counts
-        # above the limit leave a median in doubt: pose in radians has almost none there
-        if contract.pose_medians_may_exceed(np.sum([r.pose_above for r in res], axis=0), sum(scan.n_rows)):
-            contract.check_pose_medians([exact_quantiles(partial(_staged_abs_pose, j), staged, 0.5) for j in range(3)],
-                                        cfg.paths.data_dir)
-        split_rows = pd.concat([r.split_rows for r in res], ignore_index=True)
-        if len(split_rows):  # (video, frame) pairs across partitions (within one: checked in pass 1)
-            files = sorted(set(split_rows["file"]))
-            check_unique_frames(split_rows, [Path(f) for f in files], np.searchsorted(files, split_rows["file"]))
-        quantile_cut = pre.alignment.outlier_quantile < 1.0
-        # exact and independent of the partitioning: the quantile of the whole vector, which is never gathered
-        threshold = exact_quantiles(_staged_residuals, staged, pre.alignment.outlier_quantile) if quantile_cut \
-            else max(r.residual_max for r in res)
-        outlier = threshold if quantile_cut else None  # what the partitions apply (None: no outlier cut)
-        del res, split_rows
-        kept = compute.map_gather(partial(keep_partition, threshold=outlier,
-                                          split_videos=split_names), staged, desc="prepare: outlier cut")
-        n_kept_pose = sum(k.n_kept for k in kept)
-        video_ids = np.unique(np.concatenate([k.videos for k in kept]))
-        # sorted, as NumPy strings: a Python string per video (and a set of them) left the freed strings' memory
-        # scattered over Python's small-object arenas (~6 MiB at 90k videos)
-        dropped_videos = np.setdiff1d(every_video, video_ids, assume_unique=True).tolist()
-        n_videos_in = len(every_video)
-        del every_video
-        n_rows = int(sum(scan.n_rows))
-        if dropped_videos and pre.empty_video == "error":
-            v = dropped_videos[0]
-            f = _table_of_video(scratch, parts, v)
-            raise TableError(
-                f"{f}: video {v!r} (column {VIDEO_COLUMN!r}) has no frames left after the pose filter and the alignment "
-                f"outlier cut ({len(dropped_videos)} such videos). Fix: remove it from the tables, widen "
-                f"preprocess.pose_filter, or set preprocess.empty_video=drop to skip such videos."
-            )
-        counts = {
-            "frames_in": n_rows,
-            "videos_in": int(n_videos_in),
-            "dropped_pose": int(n_rows - scan.n_pose),
-            "dropped_alignment_outliers": int(scan.n_pose - n_kept_pose),
-            "alignment_residual_threshold": threshold,
-            "videos_dropped_no_frames_left": int(len(dropped_videos)),
-            "frames_kept": n_kept_pose,
-            "videos_kept": int(len(video_ids)),
-        }
-        shares = contract.filter_shares(counts)
-        for name, share in shares.items():
-            log.info("%s: dropped %d of %d %s (%.1f%%)", name, share["dropped"], share["of"], share["unit"], 100 * share["fraction"])
-            counts[f"{contract.FILTER_KEYS[name]}_fraction"] = share["fraction"]
-        if dropped_videos:
-            log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
-                        len(dropped_videos), ", ".join(dropped_videos[:5]))
-        contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
-        q = pre.neutral.low_au_quantile
-        cuts = Cuts(outlier, q, exact_quantiles(partial(_kept_au_sums, outlier), staged, q))
-        plans = _plans(kept, video_ids, split_names, q)
-        del kept
-        n_kept, n_videos = n_kept_pose, len(video_ids)
-        np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
-        del video_ids  # ~4 MiB at 88k videos, not needed by pass 3
 
-        (tmp / "parts").mkdir()
-        create_npy(tmp / MESHES_FILE, np.float32, (n_kept, N_TARGETS))
-        for name in NEUTRAL_FILES.values():
-            create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
-        # pass 3: align and write; population sums and split videos' sums reduced in a tree
-        written = compute.map_reduce(
-            partial(_write_item, cfg=cfg, reference=reference, cuts=cuts, out_dir=tmp, scratch=scratch,
-                    chunk_rows=compute.task_rows(cfg.data.chunk_rows)),
-            Written.__add__, list(zip(parts, plans)), desc="prepare: align + write")
-        del plans
-        for v, total in written.split.items():  # videos with frames in several partitions
-            for slot, name in enumerate(("mean", "low_au")):
-                write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
-        _concatenate_parts(tmp / "parts", tmp / FRAMES_FILE)
-        shutil.rmtree(scratch)
-        n_low_population = written.n_low_population
-        mean_aligned = written.sums[0] / n_kept
-        mean_low = written.sums[1] / max(n_low_population, 1)
-        np.savez(
-            tmp / REFERENCE_FILE,
-            reference_anchors=reference.astype(np.float32),
-            anchor_indices=np.asarray(pre.alignment.anchor_indices, dtype=np.int32),
-            mean_aligned_mesh=mean_aligned.reshape(3, N_VERTICES).T.astype(np.float32),
-            mean_low_au_mesh=mean_low.reshape(3, N_VERTICES).T.astype(np.float32),
+def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: Path, exclude: dict[int, np.ndarray],
+            ingested: dict) -> dict:
+    """One round of the passes into ``tmp`` (module docstring); :class:`_WildRows` when pass 3 finds wild values."""
+    pre = cfg.preprocess
+    scratch = tmp / "scratch"  # per-partition validated metadata and anchors (pass 1), residuals (pass 2)
+    scratch.mkdir()
+    staged = [(scratch, i) for i in range(len(parts))]
+    # pass 1: validation, pose filter, wild anchors, GPA candidates
+    scan = compute.map_reduce(partial(scan_partition, cfg=cfg, scratch=scratch, exclude=exclude), Scan.__add__,
+                              list(enumerate(parts)), desc="prepare: read + validate")
+    if scan.n_pose - scan.n_wild == 0:
+        raise TableError(
+            f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
+            f"|pitch| <= {pre.pose_filter.max_abs_pitch_deg} deg) of {sum(scan.n_rows)}. Likely cause: Pitch/Yaw in degrees "
+            f"(convert with np.deg2rad), or preprocess.pose_filter narrower than the data."
         )
-        summary = {
-            "counts": counts,
-            "n_frames": n_kept,
-            "n_videos": int(n_videos),
-            "n_low_au_population": n_low_population,
-            "dropped_videos": dropped_videos[:1000],
-            "tables": [str(t.path) for t in tables],
-        }
-        atomic_write_json(tmp / SUMMARY_FILE, summary)
+    partial_counts = {**ingested, "frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose),
+                      "dropped_wild_values": scan.n_wild}
+    contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
+    # one array of the videos in the stage, not one per partition besides (memory flat in frames)
+    every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
+    split_names = every_video[in_parts > 1]
+    scan = replace(scan, videos=[])
+    del in_parts
+    sample = anchors_in_table_order(scratch, scan.candidates)
+    reference = generalized_procrustes(sample, pre.alignment.gpa_max_iter, pre.alignment.gpa_tol, map=compute.local_map)
+    del sample
+
+    # pass 2: residuals and AU sums of the pose-passing frames, staged per partition
+    res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names,
+                                     scratch=scratch), list(enumerate(parts)), desc="prepare: residuals")
+    # every frame (float32: compared with 1 rad); np.median is np.quantile(.., 0.5) here: the midpoint of two
+    # float32 values is exact in float64 either way. The exact medians (nine small passes) only when the counts
+    # above the limit leave a median in doubt: pose in radians has almost none there
+    if contract.pose_medians_may_exceed(np.sum([r.pose_above for r in res], axis=0), sum(scan.n_rows)):
+        contract.check_pose_medians([exact_quantiles(partial(_staged_abs_pose, j), staged, 0.5) for j in range(3)],
+                                    cfg.paths.data_dir)
+    split_rows = pd.concat([r.split_rows for r in res], ignore_index=True)
+    if len(split_rows):  # (video, frame) pairs across partitions (within one: checked in pass 1)
+        files = sorted(set(split_rows["file"]))
+        check_unique_frames(split_rows, [Path(f) for f in files], np.searchsorted(files, split_rows["file"]))
+    quantile_cut = pre.alignment.outlier_quantile < 1.0
+    # exact and independent of the partitioning: the quantile of the whole vector, which is never gathered
+    threshold = exact_quantiles(_staged_residuals, staged, pre.alignment.outlier_quantile) if quantile_cut \
+        else max(r.residual_max for r in res)
+    outlier = threshold if quantile_cut else None  # what the partitions apply (None: no outlier cut)
+    del res, split_rows
+    kept = compute.map_gather(partial(keep_partition, threshold=outlier,
+                                      split_videos=split_names), staged, desc="prepare: outlier cut")
+    n_kept_pose = sum(k.n_kept for k in kept)
+    n_aligned = scan.n_pose - scan.n_wild
+    video_ids = np.unique(np.concatenate([k.videos for k in kept]))
+    # sorted, as NumPy strings: a Python string per video (and a set of them) left the freed strings' memory
+    # scattered over Python's small-object arenas (~6 MiB at 90k videos)
+    dropped_videos = np.setdiff1d(every_video, video_ids, assume_unique=True).tolist()
+    n_videos_in = len(every_video)
+    del every_video
+    n_rows = int(sum(scan.n_rows))
+    if dropped_videos and pre.empty_video == "error":
+        v = dropped_videos[0]
+        f = _table_of_video(scratch, parts, v)
+        raise TableError(
+            f"{f}: video {v!r} (column {VIDEO_COLUMN!r}) has no frames left after the pose filter and the alignment "
+            f"outlier cut ({len(dropped_videos)} such videos). Fix: remove it from the tables, widen "
+            f"preprocess.pose_filter, or set preprocess.empty_video=drop to skip such videos."
+        )
+    counts = {
+        **ingested,
+        "frames_in": n_rows,
+        "videos_in": int(n_videos_in),
+        "dropped_pose": int(n_rows - scan.n_pose),
+        "dropped_wild_values": int(scan.n_wild),
+        "dropped_alignment_outliers": int(n_aligned - n_kept_pose),
+        "alignment_residual_threshold": threshold,
+        "videos_dropped_no_frames_left": int(len(dropped_videos)),
+        "frames_kept": n_kept_pose,
+        "videos_kept": int(len(video_ids)),
+    }
+    shares = contract.filter_shares(counts)
+    for name, share in shares.items():
+        log.info("%s: dropped %d of %d %s (%.1f%%)", name, share["dropped"], share["of"], share["unit"], 100 * share["fraction"])
+        counts[f"{contract.FILTER_KEYS[name]}_fraction"] = share["fraction"]
+    if dropped_videos:
+        log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
+                    len(dropped_videos), ", ".join(dropped_videos[:5]))
+    contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
+    q = pre.neutral.low_au_quantile
+    cuts = Cuts(outlier, q, exact_quantiles(partial(_kept_au_sums, outlier), staged, q))
+    plans = _plans(kept, video_ids, split_names, q)
+    del kept
+    n_kept, n_videos = n_kept_pose, len(video_ids)
+    np.save(tmp / VIDEO_IDS_FILE, video_ids.astype(str))
+    del video_ids  # ~4 MiB at 88k videos, not needed by pass 3
+
+    (tmp / "parts").mkdir()
+    create_npy(tmp / MESHES_FILE, np.float32, (n_kept, N_TARGETS))
+    for name in NEUTRAL_FILES.values():
+        create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
+    # pass 3: align and write; population sums and split videos' sums reduced in a tree
+    radius = pre.alignment.max_vertex_iod * reference_scale(reference, pre.alignment.anchor_indices)
+    written = compute.map_reduce(
+        partial(_write_item, cfg=cfg, reference=reference, cuts=cuts, out_dir=tmp, scratch=scratch,
+                chunk_rows=compute.task_rows(cfg.data.chunk_rows), wild_radius=(reference.mean(axis=0), radius)),
+        Written.__add__, list(zip(parts, plans)), desc="prepare: align + write")
+    del plans
+    if written.wild:
+        raise _WildRows({i: np.asarray(rows, np.int64) for i, rows in written.wild.items()})
+    for v, total in written.split.items():  # videos with frames in several partitions
+        for slot, name in enumerate(("mean", "low_au")):
+            write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
+    _concatenate_parts(tmp / "parts", tmp / FRAMES_FILE)
+    shutil.rmtree(scratch)
+    n_low_population = written.n_low_population
+    mean_aligned = written.sums[0] / n_kept
+    mean_low = written.sums[1] / max(n_low_population, 1)
+    np.savez(
+        tmp / REFERENCE_FILE,
+        reference_anchors=reference.astype(np.float32),
+        anchor_indices=np.asarray(pre.alignment.anchor_indices, dtype=np.int32),
+        mean_aligned_mesh=mean_aligned.reshape(3, N_VERTICES).T.astype(np.float32),
+        mean_low_au_mesh=mean_low.reshape(3, N_VERTICES).T.astype(np.float32),
+    )
+    summary = {
+        "counts": counts,
+        "n_frames": n_kept,
+        "n_videos": int(n_videos),
+        "n_low_au_population": n_low_population,
+        "dropped_videos": dropped_videos[:1000],
+        "tables": [str(t.path) for t in tables],
+    }
+    atomic_write_json(tmp / SUMMARY_FILE, summary)
     return summary
 
 

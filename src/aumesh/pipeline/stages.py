@@ -50,7 +50,8 @@ def data_digest(dvc_file: str = "data.dvc") -> dict[str, Any]:
 
 def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
     """The outputs ``dvc.yaml`` declares for ``stage`` (prepare, evaluate, release)."""
-    return {"prepare": [paths.prepared_dir],
+    return {"ingest": [paths.ingested_dir],
+            "prepare": [paths.prepared_dir],
             "evaluate": [paths.model_dir, paths.metrics_file, paths.error_curve_file, paths.r2_curve_file],
             "release": [paths.release_dir]}.get(stage, [])
 
@@ -89,13 +90,21 @@ def removed_by_dvc(stage: str, lock_file: str | Path = "dvc.lock") -> str | None
 # matplotlib imported for nothing cost seconds of every `dvc repro`).
 
 
+def ingest_stage(cfg: Config) -> dict:
+    from aumesh.pipeline import ingest
+
+    start_stage("ingest", cfg)
+    return ingest.run(cfg, cfg.paths.ingested_dir)
+
+
 def prepare_stage(cfg: Config) -> dict:
     from aumesh.data import tables
-    from aumesh.pipeline import prepare as prep
+    from aumesh.pipeline import ingest, prepare as prep
 
     start_stage("prepare", cfg)
-    found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy, cfg.data.coerce_numeric)
-    summary = prep.run(found, cfg, cfg.paths.prepared_dir)
+    manifest = ingest.load_manifest(cfg.paths.ingested_dir)
+    found = tables.check_tables(manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric)
+    summary = prep.run(found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"])
     log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
     return summary
 

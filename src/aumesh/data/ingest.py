@@ -1,0 +1,584 @@
+"""py-feat's files as users have them -> the pipeline's frame tables: one row per (video, frame), pixels, only the
+contract's columns. Pure functions on a block of rows, and the readers and writer at the edges.
+
+What a block goes through (:func:`clean_block`), in order:
+
+1. **no face**: py-feat writes a frame without a face as one row with ``FaceScore`` 0 (MPDetector) or with every
+   measurement NaN (Detectorv2: its FaceScore is NaN too). Such rows are dropped and counted. A row with only *some*
+   values missing is kept, and the data contract refuses it downstream: that is corruption, not a missing face;
+2. **several faces**: py-feat writes one row per face, the rows of one frame consecutive (same ``input`` and
+   ``frame``). ``data.face_selection`` keeps one: ``largest`` (the largest face box), ``identity`` (py-feat's
+   ``Identity`` seen in most of the video's face rows; frames without that person are dropped) or ``error``;
+3. **units**: MediaPipe's raw landmarks are normalized image coordinates (x / width, y / height, z on x's scale).
+   Judged from the geometry (the inter-ocular distance, outer canthi 33-263, is below :data:`NORMALIZED_MAX_IOD`: no
+   face in pixels is that small), converted with ``FrameWidth``/``FrameHeight`` or refused when the table lacks them.
+
+Sources: py-feat's CSV (read with pyarrow's multi-threaded CSV reader, only the needed columns, types given, in
+byte ranges of whole frames: bounded memory), a Fex saved as parquet (either detector), and the card's split layout
+(a table plus an ``[N, 478, 3]`` ``.npy``).
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+from aumesh.data import pyfeat
+from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.utils.errors import TableError
+from aumesh.utils.io import NpyRowFile, npy_layout
+
+CSV_SUFFIXES = (".csv", ".csv.gz")
+PARQUET_SUFFIXES = (".parquet",)
+#: Outer canthi: the inter-ocular distance that judges units (MediaPipe's indices).
+IOD_VERTICES = (33, 263)
+#: An inter-ocular distance below this is normalized image units: the smallest face py-feat detects (a ~20 px box)
+#: has ~8 px between the outer canthi; a whole-frame face in normalized units has ~0.4.
+NORMALIZED_MAX_IOD = 1.0
+#: CSV bytes parsed at a time: py-feat writes ~20 KB a row, so ~3,300 rows (~40 MB of float64 columns) per range.
+CSV_RANGE_BYTES = 64 << 20
+#: Parquet rows read at a time.
+PARQUET_RANGE_ROWS = 16384
+#: Rows of an output row group (prepare packs whole row groups into its partitions).
+ROW_GROUP_ROWS = 8192
+
+
+def video_stem(path: str) -> str:
+    """The video id py-feat's ``input`` path gives: its file name without the extension (as :mod:`aumesh.data.tables`)."""
+    name = os.path.basename(str(path).rstrip("/"))
+    dot = name.rfind(".")
+    return name[:dot] if 0 < dot < len(name) - 1 else name
+
+
+@dataclass(frozen=True)
+class Source:
+    """One input file of ``data/``: a py-feat CSV, a parquet table, or a parquet table with its mesh ``.npy``."""
+
+    path: Path
+    kind: str  # csv | parquet
+    layout: pyfeat.Layout
+    header: tuple[str, ...]  # every column, in file order
+    mesh_npy: Path | None = None
+    n_rows: int | None = None  # parquet: rows (CSV: unknown until read)
+
+
+def is_table(path: Path) -> bool:
+    return path.name.endswith(CSV_SUFFIXES + PARQUET_SUFFIXES)
+
+
+def open_source(path: Path, mesh_npy_pattern: str) -> Source:
+    """A source's layout from its header (CSV) or schema (parquet)."""
+    if path.name.endswith(CSV_SUFFIXES):
+        header = _csv_header(path)
+        return Source(path, "csv", pyfeat.layout(header, str(path)), tuple(header))
+    try:
+        md = pq.read_metadata(path)
+    except Exception as err:  # pyarrow raises several types for a bad file
+        raise TableError(f"{path}: corrupt or truncated parquet file ({type(err).__name__}). Fix: restore the tracked "
+                         f"copy (`dvc checkout --force`, or `dvc pull`) or re-export it.") from None
+    names = md.schema.to_arrow_schema().names
+    npy = path.with_name(mesh_npy_pattern.format(stem=path.stem))
+    split = npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
+    lay = pyfeat.layout(names, str(path), split_mesh=split)
+    if split:
+        _, _, shape = npy_layout(npy)
+        if len(shape) != 3 or shape[1:] != (N_VERTICES, 3):
+            raise TableError(f"{npy}: wrong vertex count: mesh array has shape {shape}, need (N, {N_VERTICES}, 3). Fix: "
+                             f"save the 478-vertex MediaPipe FaceMesh (with irises) as float16/float32 [N, 478, 3].")
+        if shape[0] != md.num_rows:
+            raise TableError(f"{npy}: {shape[0]} meshes but {path} has {md.num_rows} rows. Fix: one mesh per table row, "
+                             f"same order; keep py-feat's no-face rows in both (aumesh drops them itself).")
+    return Source(path, "parquet", lay, tuple(names), npy if split else None, md.num_rows)
+
+
+def _csv_header(path: Path) -> list[str]:
+    opener = gzip.open if path.name.endswith(".gz") else open
+    try:
+        with opener(path, "rt", newline="") as fh:
+            header = next(csv.reader(fh), None)
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise TableError(f"{path}: cannot read the CSV header ({err}). Fix: save it with py-feat's detect(..., save=) "
+                         f"or DataFrame.to_csv.") from None
+    if not header:
+        raise TableError(f"{path}: empty CSV (no header). Fix: export frames with py-feat first.")
+    return header
+
+
+# ---------------------------------------------------------------------------------------------------- reading ranges
+
+
+@dataclass(frozen=True)
+class Span:
+    """Whole frames of one source: CSV bytes ``[start, stop)`` (the header excluded) or parquet rows ``[start, stop)``."""
+
+    source: Source
+    start: int
+    stop: int
+
+
+def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
+    """Byte ranges of about ``range_bytes`` that start at a line and never split the rows of one frame (py-feat writes a
+    frame's faces consecutively). A compressed CSV is one range."""
+    path = source.path
+    with open(path, "rb") as fh:
+        header_end = len(fh.readline())
+    size = path.stat().st_size
+    if path.name.endswith(".gz") or size - header_end <= range_bytes:
+        return [Span(source, header_end, size)]
+    key_columns = [source.header.index(source.layout.video), source.header.index(FRAME_COLUMN)]
+    bounds = [header_end]
+    with open(path, "rb") as fh:
+        target = header_end + range_bytes
+        while target < size:
+            cut = _frame_boundary(fh, target, key_columns)
+            if cut >= size:
+                break
+            if cut > bounds[-1]:
+                bounds.append(cut)
+            target = max(cut, bounds[-1]) + range_bytes
+    bounds.append(size)
+    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _frame_boundary(fh, offset: int, key_columns: list[int]) -> int:
+    """The first line start at or after ``offset`` whose (video, frame) differs from the line before it."""
+    fh.seek(offset - 1)
+    fh.readline()  # the rest of the line ``offset`` falls in (offset - 1: a line starting at ``offset`` is kept)
+    previous = None
+    while True:
+        start = fh.tell()
+        line = fh.readline()
+        if not line:
+            return start
+        row = next(csv.reader([line.decode("utf-8", "replace")]), [])
+        key = tuple(row[k] if k < len(row) else None for k in key_columns)
+        if previous is not None and key != previous:
+            return start
+        previous = key
+
+
+def parquet_spans(source: Source, range_rows: int = PARQUET_RANGE_ROWS) -> list[Span]:
+    """Row ranges of about ``range_rows`` that never split the rows of one frame."""
+    n = source.n_rows or 0
+    if n <= range_rows:
+        return [Span(source, 0, n)]
+    keys = pq.read_table(source.path, columns=[source.layout.video, FRAME_COLUMN], use_threads=False)
+    video = keys.column(0).to_numpy(zero_copy_only=False)
+    frame = keys.column(1).to_numpy(zero_copy_only=False)
+    new_frame = np.r_[True, (video[1:] != video[:-1]) | (frame[1:] != frame[:-1])]
+    starts = np.flatnonzero(new_frame)
+    bounds = [0]
+    for target in range(range_rows, n, range_rows):
+        k = np.searchsorted(starts, target)
+        if k < len(starts) and starts[k] > bounds[-1]:
+            bounds.append(int(starts[k]))
+    bounds.append(n)
+    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _types(layout: pyfeat.Layout) -> dict[str, pa.DataType]:
+    types = {name: pa.float64() for name in layout.numeric}
+    types |= {name: pa.float32() for name in layout.mesh or ()}
+    types |= {layout.video: pa.string(), FRAME_COLUMN: pa.int64()}
+    if layout.identity:
+        types[layout.identity] = pa.string()
+    return types
+
+
+def read_span(span: Span, columns: Sequence[str] | None = None) -> pa.Table:
+    """The span's rows, ``columns`` only (default: every column the layout needs), with the layout's types."""
+    source, lay = span.source, span.source.layout
+    columns = list(lay.columns if columns is None else columns)
+    types = {k: v for k, v in _types(lay).items() if k in columns}
+    if source.kind == "csv":
+        return _read_csv_span(span, columns, types)
+    try:
+        pf = pq.ParquetFile(source.path)
+        parquet_columns = [c for c in columns if c in source.header]
+        table = _parquet_rows(pf, parquet_columns, span.start, span.stop)
+    except (pa.ArrowException, OSError) as err:
+        raise TableError(f"{source.path}: corrupt or truncated parquet file ({type(err).__name__}: "
+                         f"{str(err).splitlines()[0] if str(err) else ''}). Fix: restore the tracked copy "
+                         f"(`dvc checkout --force`, or `dvc pull`) or re-export it.") from None
+    for name, typ in types.items():
+        if name in table.column_names and table.schema.field(name).type != typ:
+            table = table.set_column(table.column_names.index(name), name, _cast(table.column(name), typ, source.path, name))
+    return table
+
+
+def _cast(column, typ: pa.DataType, path: Path, name: str):
+    try:
+        return column.cast(typ)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as err:
+        raise TableError(f"{path}: column {name!r} holds values that are not {typ} ({str(err).splitlines()[0]}). Fix: "
+                         f"write numbers as numbers (missing values as NaN) before `dvc add data`.") from None
+
+
+def _parquet_rows(pf: pq.ParquetFile, columns: list[str], start: int, stop: int) -> pa.Table:
+    md = pf.metadata
+    groups, first, row = [], None, 0
+    for g in range(md.num_row_groups):
+        n = md.row_group(g).num_rows
+        if row + n > start and row < stop:
+            groups.append(g)
+            first = row if first is None else first
+        row += n
+    if not groups:
+        return pf.schema_arrow.empty_table().select(columns)
+    table = pf.read_row_groups(groups, columns=columns, use_threads=False)
+    return table.slice(start - first, stop - start)
+
+
+def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]) -> pa.Table:
+    path = span.source.path
+    read = pacsv.ReadOptions(column_names=list(span.source.header), use_threads=True, block_size=8 << 20)
+    convert = pacsv.ConvertOptions(include_columns=columns, column_types=types, strings_can_be_null=True,
+                                   quoted_strings_can_be_null=True)
+    try:
+        if path.name.endswith(".gz"):
+            stream = pa.input_stream(str(path), compression="gzip")
+            stream.readline()  # the header
+            return pacsv.read_csv(stream, read_options=read, convert_options=convert)
+        with open(path, "rb") as fh:
+            fh.seek(span.start)
+            data = fh.read(span.stop - span.start)
+        return pacsv.read_csv(io.BytesIO(data), read_options=read, convert_options=convert)
+    except pa.ArrowInvalid as err:
+        message = str(err).splitlines()[0]
+        column = next((c for c in columns if f"'{c}'" in message or f"column #{span.source.header.index(c)}" in message), None)
+        raise TableError(f"{path}: cannot read the CSV{f' (column {column!r})' if column else ''}: {message}. Fix: write "
+                         f"numbers as numbers and missing values as empty fields or NaN (py-feat's to_csv does).") from None
+
+
+# ------------------------------------------------------------------------------------------------------ cleaning
+
+
+@dataclass
+class Block:
+    """Rows of one span as arrays: video ids, frames, the numeric columns by name, identities and the mesh.
+
+    ``mesh`` is (n, 1434) axis-major ``[x_0..x_477 | y_.. | z_..]`` (float32 from parquet/CSV, the ``.npy``'s dtype
+    widened to float32 for the split layout).
+    """
+
+    video: np.ndarray  # (n,) str
+    frame: np.ndarray  # (n,) int64
+    values: dict[str, np.ndarray]  # column -> (n,) float64
+    identity: np.ndarray | None  # (n,) object, None where absent
+    mesh: np.ndarray  # (n, 1434) float32
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def take(self, rows: np.ndarray) -> "Block":
+        return Block(self.video[rows], self.frame[rows], {k: v[rows] for k, v in self.values.items()},
+                     None if self.identity is None else self.identity[rows], self.mesh[rows])
+
+
+def to_block(table: pa.Table, span: Span) -> Block:
+    """A read span as a :class:`Block` (the split layout's mesh read from its ``.npy``)."""
+    lay = span.source.layout
+    video = table.column(lay.video).to_numpy(zero_copy_only=False)
+    if lay.video == INPUT_PATH_COLUMN:
+        names, codes = np.unique(video.astype(str), return_inverse=True)
+        video = np.array([video_stem(v) for v in names], dtype=object)[codes] if len(names) else video.astype(object)
+    frame_col = table.column(FRAME_COLUMN)
+    if frame_col.null_count:
+        row = int(np.flatnonzero(frame_col.is_null().to_numpy(zero_copy_only=False))[0])
+        raise TableError(f"{span.source.path}: column {FRAME_COLUMN!r} is empty at row {row} of this range. Fix: keep "
+                         f"py-feat's frame numbers on every row.")
+    values = {name: table.column(name).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+              for name in lay.numeric}
+    identity = table.column(lay.identity).to_numpy(zero_copy_only=False) if lay.identity else None
+    if lay.mesh is not None:
+        mesh = np.asarray(table.select(list(lay.mesh)).to_tensor(null_to_nan=True, row_major=True), dtype=np.float32)
+    else:
+        with NpyRowFile(span.source.mesh_npy) as f:
+            rows = f.read(span.start, span.stop)
+        mesh = np.ascontiguousarray(rows.astype(np.float32).transpose(0, 2, 1)).reshape(len(rows), -1)
+    return Block(video.astype(str), frame_col.to_numpy().astype(np.int64), values, identity, mesh)
+
+
+@dataclass
+class Counts:
+    """What a span's cleaning dropped and converted, summed over spans."""
+
+    rows_in: int = 0
+    no_face: int = 0  # rows of frames without a face
+    extra_faces: int = 0  # face rows dropped by data.face_selection (another face in the same frame)
+    frames_several_faces: int = 0  # frames with more than one face row
+    frames_without_subject: int = 0  # identity selection: frames where the video's subject is not seen
+    rows_out: int = 0
+    rows_normalized: int = 0  # rows whose mesh was converted from normalized image units to pixels
+    identities: dict[str, dict[str, int]] = field(default_factory=dict)  # video -> Identity -> face rows
+
+    def __add__(self, other: "Counts") -> "Counts":
+        merged = {v: dict(c) for v, c in self.identities.items()}
+        for v, c in other.identities.items():
+            mine = merged.setdefault(v, {})
+            for k, n in c.items():
+                mine[k] = mine.get(k, 0) + n
+        return Counts(*(getattr(self, f) + getattr(other, f) for f in
+                        ("rows_in", "no_face", "extra_faces", "frames_several_faces", "frames_without_subject",
+                         "rows_out", "rows_normalized")), merged)
+
+    def as_dict(self) -> dict[str, int]:
+        return {"rows_in": self.rows_in, "dropped_no_face": self.no_face, "dropped_extra_faces": self.extra_faces,
+                "frames_with_several_faces": self.frames_several_faces,
+                "dropped_frames_without_subject": self.frames_without_subject, "frames_out": self.rows_out,
+                "rows_converted_from_normalized": self.rows_normalized}
+
+
+def no_face_rows(block: Block, layout: pyfeat.Layout) -> np.ndarray:
+    """(n,) bool: py-feat's rows for frames without a face: FaceScore 0, or every AU, pose and mesh value NaN."""
+    measured = np.column_stack([block.values[c] for c in (*AU_COLUMNS, *POSE_COLUMNS)])
+    empty = np.isnan(measured).all(axis=1) & np.isnan(block.mesh).all(axis=1)
+    if layout.face_score:
+        empty |= block.values[layout.face_score] == 0
+    return empty
+
+
+def frame_groups(block: Block) -> np.ndarray:
+    """(n + 1,) starts of the runs of consecutive rows with the same (video, frame), and ``n`` at the end."""
+    n = len(block)
+    new = np.r_[True, (block.video[1:] != block.video[:-1]) | (block.frame[1:] != block.frame[:-1])] if n else np.zeros(0, bool)
+    return np.r_[np.flatnonzero(new), n]
+
+
+def face_areas(block: Block, layout: pyfeat.Layout) -> np.ndarray:
+    """(n,) each face's box area: py-feat's FaceRectWidth x FaceRectHeight, else the mesh's x/y extent."""
+    if layout.box_size:
+        area = block.values[layout.box_size[0]] * block.values[layout.box_size[1]]
+        if np.isfinite(area).all():
+            return area
+    x, y = block.mesh[:, :N_VERTICES], block.mesh[:, N_VERTICES : 2 * N_VERTICES]
+    return (np.nanmax(x, axis=1) - np.nanmin(x, axis=1)).astype(np.float64) * (np.nanmax(y, axis=1) - np.nanmin(y, axis=1))
+
+
+def main_identities(identities: dict[str, dict[str, int]]) -> dict[str, str]:
+    """Each video's subject: the Identity of most of its face rows (ties: the first name in sorted order)."""
+    return {v: sorted(c.items(), key=lambda kv: (-kv[1], kv[0]))[0][0] for v, c in identities.items() if c}
+
+
+def select_faces(block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None,
+                 where: str) -> tuple[np.ndarray, Counts]:
+    """Rows kept (one per frame) among face rows, by ``data.face_selection`` (``how``), and what was dropped.
+
+    Parameters
+    ----------
+    block : face rows only (no-face rows removed), a frame's rows consecutive.
+    subjects : video -> its subject's Identity (``how="identity"``).
+    """
+    groups = frame_groups(block)
+    sizes = np.diff(groups)
+    counts = Counts(frames_several_faces=int((sizes > 1).sum()))
+    if how == "identity":
+        if layout.identity is None:
+            raise TableError(f"{where}: data.face_selection=identity needs py-feat's {pyfeat.IDENTITY!r} column. Fix: "
+                             f"keep it (detect computes it), or use data.face_selection=largest.")
+        subject = np.array([subjects.get(v) for v in block.video], dtype=object)
+        candidate = block.identity.astype(object) == subject
+    else:
+        candidate = np.ones(len(block), bool)
+    if how == "error" and (sizes > 1).any():
+        g = int(np.flatnonzero(sizes > 1)[0])
+        row = groups[g]
+        raise TableError(
+            f"{where}: {int(sizes[g])} faces in frame {block.frame[row]} of video {block.video[row]!r} "
+            f"({int((sizes > 1).sum())} such frames); data.face_selection=error keeps one face per frame only. Fix: "
+            f"data.face_selection=largest (the largest face box) or identity (py-feat's Identity of the video's subject).")
+    area = np.where(candidate, face_areas(block, layout), -np.inf)
+    # the largest candidate of each frame (ties: the first row): argmax within runs, as a sort by (group, -area)
+    group_of = np.repeat(np.arange(len(sizes)), sizes)
+    order = np.lexsort((np.arange(len(block)), -area, group_of))
+    first = order[groups[:-1]]
+    keep = first[candidate[first]]
+    counts.frames_without_subject = int(len(first) - len(keep))
+    counts.extra_faces = int(len(block) - len(first))
+    return np.sort(keep), counts
+
+
+def inter_ocular(mesh: np.ndarray) -> np.ndarray:
+    """(n,) image-plane distance between the outer canthi (MediaPipe 33 and 263) of axis-major meshes (n, 1434)."""
+    a, b = IOD_VERTICES
+    dx = mesh[:, a] - mesh[:, b]
+    dy = mesh[:, N_VERTICES + a] - mesh[:, N_VERTICES + b]
+    return np.hypot(dx.astype(np.float64), dy)
+
+
+def normalized_rows(mesh: np.ndarray) -> np.ndarray:
+    """(n,) bool: rows whose mesh is in normalized image units (inter-ocular distance below 1)."""
+    return inter_ocular(mesh) < NORMALIZED_MAX_IOD
+
+
+def to_pixels(block: Block, layout: pyfeat.Layout, normalized: np.ndarray, where: str) -> None:
+    """Convert the ``normalized`` rows' meshes in place: x by FrameWidth, y by FrameHeight, z by FrameWidth
+    (MediaPipe's z is on x's scale)."""
+    if not normalized.any():
+        return
+    iod = float(np.median(inter_ocular(block.mesh[normalized])))
+    if layout.frame_size is None:
+        raise TableError(
+            f"{where}: the mesh is in normalized image units (0-1; median inter-ocular distance {iod:.3g}), and the "
+            f"table has no FrameWidth/FrameHeight to convert it. Fix: keep py-feat's FrameWidth and FrameHeight "
+            f"columns, or multiply x and z by the frame width and y by its height before `dvc add data`.")
+    width, height = (block.values[c][normalized] for c in layout.frame_size)
+    bad = ~(np.isfinite(width) & np.isfinite(height) & (width > 0) & (height > 0))
+    if bad.any():
+        raise TableError(f"{where}: FrameWidth/FrameHeight are missing or not positive on {int(bad.sum())} rows whose "
+                         f"mesh is in normalized units. Fix: fill them with the video's frame size in pixels.")
+    scale = np.column_stack([width, height, width]).astype(np.float32)  # (m, 3)
+    m = block.mesh[normalized].reshape(-1, 3, N_VERTICES) * scale[:, :, None]
+    block.mesh[normalized] = m.reshape(len(m), -1)
+
+
+def clean_block(block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None,
+                where: str) -> tuple[Block, Counts]:
+    """No-face rows dropped, one face per frame, meshes in pixels (module docstring)."""
+    empty = no_face_rows(block, layout)
+    faces = block.take(np.flatnonzero(~empty))
+    keep, counts = select_faces(faces, layout, how, subjects, where)
+    out = faces.take(keep)
+    normalized = normalized_rows(out.mesh)
+    if normalized.any() and not normalized.all():
+        row = int(np.flatnonzero(normalized != normalized[0])[0])
+        raise TableError(f"{where}: mixes meshes in pixels and in normalized image units (frame {out.frame[row]} of "
+                         f"video {out.video[row]!r} differs from the first). Fix: export every video the same way.")
+    to_pixels(out, layout, normalized, where)
+    counts.rows_in, counts.no_face, counts.rows_out = len(block), int(empty.sum()), len(out)
+    counts.rows_normalized = int(normalized.sum())
+    return out, counts
+
+
+def identity_counts(block: Block, layout: pyfeat.Layout) -> dict[str, dict[str, int]]:
+    """video -> Identity -> face rows of the block (``data.face_selection=identity``'s first pass)."""
+    if layout.identity is None:
+        return {}
+    face = ~no_face_rows(block, layout)
+    out: dict[str, dict[str, int]] = {}
+    for v, ident in zip(block.video[face], block.identity[face]):
+        if ident is None or (isinstance(ident, float) and np.isnan(ident)):
+            continue
+        c = out.setdefault(str(v), {})
+        c[str(ident)] = c.get(str(ident), 0) + 1
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------- writing
+
+
+def output_schema() -> pa.Schema:
+    """The ingested tables' columns: video_id, frame, the AUs and pose (model order), the mesh axis-major, float32."""
+    fields = [pa.field(VIDEO_COLUMN, pa.string()), pa.field(FRAME_COLUMN, pa.int64())]
+    fields += [pa.field(c, pa.float64()) for c in (*AU_COLUMNS, *POSE_COLUMNS)]
+    fields += [pa.field(name, pa.float32()) for name in pyfeat.MESH_NAMES["MPDetector"]]
+    return pa.schema(fields)
+
+
+def to_table(block: Block, schema: pa.Schema) -> pa.Table:
+    arrays = [pa.array(block.video, pa.string()), pa.array(block.frame, pa.int64())]
+    arrays += [pa.array(block.values[c]) for c in (*AU_COLUMNS, *POSE_COLUMNS)]
+    arrays += [pa.array(col) for col in np.asarray(block.mesh, np.float32).T]
+    return pa.Table.from_arrays(arrays, schema=schema)
+
+
+def iter_clean_blocks(spans: Sequence[Span], how: str, subjects: dict[str, str] | None
+                      ) -> Iterator[tuple[Block, Counts]]:
+    """Each span read and cleaned (:func:`clean_block`)."""
+    for span in spans:
+        block = to_block(read_span(span), span)
+        yield clean_block(block, span.source.layout, how, subjects, str(span.source.path))
+
+
+def write_clean(spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None) -> Counts:
+    """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed)."""
+    schema = output_schema()
+    total = Counts()
+    writer = pq.ParquetWriter(out, schema, compression="none", use_dictionary=[VIDEO_COLUMN], write_statistics=False)
+    try:
+        for block, counts in iter_clean_blocks(spans, how, subjects):
+            total = total + counts
+            if len(block):
+                writer.write_table(to_table(block, schema), row_group_size=ROW_GROUP_ROWS)
+    finally:
+        writer.close()
+    return total
+
+
+def span_identities(spans: Sequence[Span]) -> Counts:
+    """Identity counts of ``spans`` (only the columns they need are read)."""
+    total = Counts()
+    for span in spans:
+        lay = span.source.layout
+        cols = [lay.video, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *([lay.face_score] if lay.face_score else []),
+                *([lay.identity] if lay.identity else []), *(lay.mesh or ())]
+        table = read_span(span, cols)
+        block = to_block(_with_missing(table, lay), span)
+        total = total + Counts(identities=identity_counts(block, lay))
+    return total
+
+
+def _with_missing(table: pa.Table, lay: pyfeat.Layout) -> pa.Table:
+    """``table`` with the layout's numeric columns it was not read with, as NaN (only what a pass needs is read)."""
+    for name in lay.numeric:
+        if name not in table.column_names:
+            table = table.append_column(name, pa.array(np.full(table.num_rows, np.nan)))
+    return table
+
+
+@dataclass(frozen=True)
+class PassThrough:
+    """A parquet table the pipeline reads as it is (already clean: one face row per frame, pixels)."""
+
+    clean: bool
+    rows: int
+    reason: str = ""
+
+
+def check_clean(source: Source) -> PassThrough:
+    """Whether a parquet source can be read in place: MPDetector columns or the split layout, no no-face rows, one row
+    per frame, pixels. Reads the id, AU and pose columns and 4 mesh columns (the units, judged on up to the first
+    :data:`ROW_GROUP_ROWS` rows): a fraction of one pass over the table."""
+    lay = source.layout
+    if lay.detector == "Detectorv2":
+        return PassThrough(False, source.n_rows or 0, "Detectorv2 mesh columns")
+    n = source.n_rows or 0
+    cols = [lay.video, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *([lay.face_score] if lay.face_score else [])]
+    table = read_span(Span(source, 0, n), cols)
+    measured = np.column_stack([table.column(c).to_numpy(zero_copy_only=False).astype(np.float64)
+                                for c in (*AU_COLUMNS, *POSE_COLUMNS)]) if n else np.zeros((0, 23))
+    empty = np.isnan(measured).all(axis=1)
+    if lay.face_score:
+        empty |= table.column(lay.face_score).to_numpy(zero_copy_only=False) == 0
+    if empty.any():
+        return PassThrough(False, n, f"{int(empty.sum())} no-face rows")
+    video = table.column(lay.video).to_numpy(zero_copy_only=False)
+    frame = table.column(FRAME_COLUMN).to_numpy(zero_copy_only=False)
+    if n > 1 and ((video[1:] == video[:-1]) & (frame[1:] == frame[:-1])).any():
+        return PassThrough(False, n, "several faces in a frame")
+    sample = Span(source, 0, min(n, ROW_GROUP_ROWS))
+    if lay.mesh is not None:
+        names = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
+        mesh_cols = [names[i] for i in (*IOD_VERTICES, *(N_VERTICES + i for i in IOD_VERTICES))]
+        part = read_span(sample, mesh_cols)
+        mesh = np.zeros((part.num_rows, 2 * N_VERTICES), np.float64)
+        for name in mesh_cols:
+            mesh[:, names.index(name)] = part.column(name).to_numpy(zero_copy_only=False)
+    else:
+        with NpyRowFile(source.mesh_npy) as f:
+            rows = f.read(0, sample.stop)
+        mesh = rows.astype(np.float64).transpose(0, 2, 1).reshape(len(rows), -1)
+    finite = np.isfinite(inter_ocular(mesh))
+    if finite.any() and normalized_rows(mesh[finite]).any():
+        return PassThrough(False, n, "normalized image units")
+    return PassThrough(True, n)

@@ -1,0 +1,142 @@
+"""py-feat's table layouts, by column name: which columns of a Fex table the pipeline needs, and nothing else.
+
+py-feat 2.1.5 writes one of two layouts (its ``detect(..., save=)`` CSV, or a Fex saved as parquet):
+
+* **MPDetector** (``landmark_model="mp_facemesh_v2"``): the 478-vertex mesh interleaved ``x_0, y_0, z_0 .. z_477``;
+* **Detectorv2**: the mesh axis-major ``mesh_x_0 .. mesh_x_477, mesh_y_*, mesh_z_*`` beside a 68-point
+  ``x_0..x_67, y_0..y_67`` block (a subset of the mesh, in 2-D: never the mesh);
+
+and the card's training layout, a table without mesh columns plus an ``[N, 478, 3]`` ``.npy`` beside it. Both
+detectors also write ``FaceRectX/Y/Width/Height``, ``FaceScore``, the 20 AUs, ``Pitch, Roll, Yaw`` (Fex order),
+``FrameWidth``/``FrameHeight``, ``input`` (the video path), ``frame``, ``approx_time`` and ``Identity``; blendshapes,
+emotions, identity embeddings and gaze (about 2,000 columns) are never read.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from dataclasses import dataclass
+from typing import Sequence
+
+from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.utils.errors import TableError
+
+FACE_SCORE = "FaceScore"
+FACE_BOX_SIZE = ("FaceRectWidth", "FaceRectHeight")
+IDENTITY = "Identity"
+FRAME_SIZE = ("FrameWidth", "FrameHeight")
+
+#: The detectors' mesh column names, axis-major ``[x_0..x_477 | y_.. | z_..]`` (the model's layout).
+MESH_NAMES = {
+    "MPDetector": [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)],
+    "Detectorv2": [f"mesh_{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)],
+}
+_POINT_COLUMN = re.compile(r"^([xyz])_(\d+)$")
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where a table keeps what the pipeline needs.
+
+    ``mesh`` is None in the split layout (the mesh is an ``.npy`` beside the table). ``video`` is ``video_id`` or
+    py-feat's ``input`` (the video's path, whose stem names the video). The optional columns are None when absent.
+    """
+
+    detector: str  # MPDetector | Detectorv2 | split
+    video: str
+    mesh: tuple[str, ...] | None
+    face_score: str | None
+    box_size: tuple[str, str] | None
+    identity: str | None
+    frame_size: tuple[str, str] | None
+
+    @property
+    def numeric(self) -> list[str]:
+        """The numeric columns read besides the video and frame (AUs, pose, face score and box, frame size)."""
+        out = [*AU_COLUMNS, *POSE_COLUMNS]
+        out += [self.face_score] if self.face_score else []
+        out += list(self.box_size or ()) + list(self.frame_size or ())
+        return out
+
+    @property
+    def columns(self) -> list[str]:
+        """Every column the pipeline reads of the table (mesh last, axis-major)."""
+        out = [self.video, FRAME_COLUMN, *self.numeric]
+        out += [self.identity] if self.identity else []
+        return out + list(self.mesh or ())
+
+
+def _suggest(name: str, names: Sequence[str]) -> str:
+    close = [c for c in names if c.lower() == name.lower()] or difflib.get_close_matches(name, names, n=1, cutoff=0.6)
+    return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
+
+
+def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout:
+    """The layout of a table with columns ``names`` (``where`` names the file in errors).
+
+    Parameters
+    ----------
+    names : the table's column names, in any order.
+    split_mesh : an ``.npy`` mesh lies beside the table (the split layout): the table needs no mesh columns.
+
+    Raises
+    ------
+    TableError
+        A required column is missing (with the closest name the table has), the 68-point landmark block is the
+        only mesh, or a mesh has the wrong vertex count.
+    """
+    present = set(names)
+    if VIDEO_COLUMN in present:
+        video = VIDEO_COLUMN
+    elif INPUT_PATH_COLUMN in present:
+        video = INPUT_PATH_COLUMN
+    else:
+        raise TableError(f"{where}: column {VIDEO_COLUMN!r} is missing{_suggest(VIDEO_COLUMN, names)}. Fix: keep "
+                         f"py-feat's {INPUT_PATH_COLUMN!r} column (the video path names the video), or add {VIDEO_COLUMN!r}.")
+    for col in (FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS):
+        if col not in present:
+            raise TableError(
+                f"{where}: column {col!r} is missing{_suggest(col, names)}. Fix: the table needs py-feat's Fex columns "
+                f"{FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians).")
+    mesh, detector = None, "split"
+    if set(MESH_NAMES["Detectorv2"]) <= present:
+        mesh, detector = MESH_NAMES["Detectorv2"], "Detectorv2"
+    elif not split_mesh:
+        mesh, detector = _mesh_points(names, where), "MPDetector"
+    def optional(*cols: str):
+        return cols if all(c in present for c in cols) else None
+    return Layout(detector=detector, video=video, mesh=None if mesh is None else tuple(mesh),
+                  face_score=FACE_SCORE if FACE_SCORE in present else None, box_size=optional(*FACE_BOX_SIZE),
+                  identity=IDENTITY if IDENTITY in present else None, frame_size=optional(*FRAME_SIZE))
+
+
+def _mesh_points(names: Sequence[str], where: str) -> list[str]:
+    """MPDetector's ``x_i, y_i, z_i`` (any order), checked: 478 vertices on every axis; the 68-point block is named."""
+    vertices: dict[str, set[int]] = {"x": set(), "y": set(), "z": set()}
+    for name in names:
+        m = _POINT_COLUMN.match(name)
+        if m:
+            vertices[m.group(1)].add(int(m.group(2)))
+    if not any(vertices.values()):
+        raise TableError(
+            f"{where}: no mesh columns (MPDetector's x_0..z_477 or Detectorv2's mesh_x_0..mesh_z_477) and no mesh .npy "
+            f"beside it. Fix: export with py-feat's MPDetector (landmark_model='mp_facemesh_v2') or Detectorv2, or save "
+            f"the [N, 478, 3] landmarks as an .npy named by data.mesh_npy.")
+    if not vertices["z"] and len(vertices["x"]) == 68:
+        raise TableError(
+            f"{where}: the only landmarks are a 68-point 2-D block (x_0..x_67, y_0..y_67), not the 478-vertex mesh. "
+            f"Fix: keep Detectorv2's mesh_x_*/mesh_y_*/mesh_z_* columns, or detect with MPDetector "
+            f"(landmark_model='mp_facemesh_v2').")
+    expected = set(range(N_VERTICES))
+    for axis, found in vertices.items():
+        if found != expected:
+            missing, extra = sorted(expected - found), sorted(found - expected)
+            detail = ([f"missing {axis}_{missing[0]}" + (f" and {len(missing) - 1} more" if len(missing) > 1 else "")]
+                      if missing else [])
+            detail += [f"unexpected {axis}_{extra[0]}" + (f" and {len(extra) - 1} more" if len(extra) > 1 else "")] if extra else []
+            raise TableError(
+                f"{where}: wrong vertex count in column {axis}_i: found {len(found)} vertices, need {N_VERTICES} "
+                f"({'; '.join(detail)}). Fix: export the 478-vertex MediaPipe FaceMesh (with irises, py-feat's "
+                f"mp_facemesh_v2), columns x_0..x_477, y_0..y_477, z_0..z_477.")
+    return MESH_NAMES["MPDetector"]
