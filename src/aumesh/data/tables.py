@@ -76,7 +76,7 @@ def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str, coerce_n
             f"{data_dir}: the data folder does not exist (paths.data_dir). Fix: `dvc pull data.dvc` for the demo "
             f"tables, or put py-feat frame tables (parquet) under {data_dir}/ and run `dvc add {data_dir}`."
         )
-    paths = sorted(p for p in data_dir.glob(pattern) if p.is_file())
+    paths = sorted(p for p in data_dir.glob(pattern) if p.is_file() and p.suffix == ".parquet")
     if not paths:
         raise TableError(
             f"{data_dir}/{pattern}: no frame tables found (empty input). Fix: put py-feat frame tables "
