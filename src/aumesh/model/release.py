@@ -145,6 +145,27 @@ def _share(counts: dict[str, Any], key: str) -> str:
     return f" ({counts[key + '_fraction']:.1%})" if key + "_fraction" in counts else ""
 
 
+def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]:
+    """The card's lines on py-feat's rows (the ingest stage): no-face rows, other faces, units."""
+    if "rows_in" not in counts:
+        return []
+    lines = [f"- py-feat rows read: {counts['rows_in']:,} from {counts.get('tables_in', 0):,} table(s); frames without a face "
+             f"(py-feat's no-face rows) dropped: {counts['dropped_no_face']:,}{_share(counts, 'dropped_no_face')}"]
+    if counts.get("frames_with_several_faces"):
+        how = data_cfg.get("face_selection", "largest")
+        rule = {"largest": "the largest face box kept", "identity": "py-feat's Identity of the video's subject kept"}
+        lines.append(f"- Frames with several faces: {counts['frames_with_several_faces']:,} ({rule.get(how, how)}; "
+                     f"{counts['dropped_extra_faces']:,} other face rows dropped"
+                     + (f", {counts['dropped_frames_without_subject']:,} frames without the subject dropped"
+                        if counts.get("dropped_frames_without_subject") else "") + ")")
+    if counts.get("rows_converted_from_normalized"):
+        lines.append(f"- Mesh units: {counts['rows_converted_from_normalized']:,} frames converted from normalized image "
+                     f"units to pixels (x, z by FrameWidth, y by FrameHeight)")
+    else:
+        lines.append("- Mesh units: image pixels, as recorded")
+    return lines
+
+
 def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:
     """The human-readable card, generated from ``model_card.json``."""
     cv, data, cfg = card["cv"], card["data"], card["config"]
@@ -161,9 +182,13 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "## Training data",
         "",
         f"- {data['n_frames']:,} frames from {data['n_videos']:,} videos (data digest `{data['digest'].get('md5')}`)",
+        *_ingest_lines(counts, cfg.get("data", {})),
         f"- Input: {counts['frames_in']:,} frames / {counts['videos_in']:,} videos",
         f"- Pose-filtered to |yaw| <= {pre['pose_filter']['max_abs_yaw_deg']} deg, |pitch| <= {pre['pose_filter']['max_abs_pitch_deg']} deg: "
         f"{counts['dropped_pose']:,} frames dropped{_share(counts, 'dropped_pose')}",
+        *([f"- Wild values (a vertex beyond {pre['alignment']['max_vertex_iod']:g} inter-ocular distances after "
+           f"alignment, a corrupt export): {counts['dropped_wild_values']:,} frames dropped"
+           f"{_share(counts, 'dropped_wild_values')}"] if "dropped_wild_values" in counts else []),
         f"- Per-frame Umeyama similarity Procrustes onto a GPA reference of anchors {list(pre['alignment']['anchor_indices'])}; "
         f"frames above the {pre['alignment']['outlier_quantile']:.0%} quantile of max anchor residual dropped: "
         f"{counts['dropped_alignment_outliers']:,}{_share(counts, 'dropped_alignment_outliers')} "
