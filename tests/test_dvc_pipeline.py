@@ -125,3 +125,44 @@ def test_dvc_links_a_stage_output_into_its_cache_without_copying_it(tmp_path):
     written = ws / "out" / "meshes.bin"
     assert written.stat().st_ino == int((ws / "inode").read_text())  # the stage's file itself, not a copy of it
     assert written.stat().st_nlink == 2  # shared with the cache's object
+
+
+@pytest.mark.slow
+def test_pyfeat_csvs_copied_into_data_train_with_dvc_repro_as_the_hand_cleaned_tables(workspace, tmp_path):
+    """The README's own-data path: py-feat's CSVs of both detectors copied into data/ unchanged, `dvc add data`,
+    `dvc repro`; the release matches the same frames cleaned by hand; a recipe change never re-reads the CSVs."""
+    from aumesh.data.synth_pyfeat import write_pyfeat_tables
+
+    ws = workspace
+    spec = SynthSpec(n_frames=1200, n_videos=40, seed=21)
+    shutil.rmtree(ws / "data")
+    made = write_pyfeat_tables(ws / "data", spec, detector="mp", fmt="csv", videos_per_file=20,
+                               clean_dir=tmp_path / "clean")
+    v2 = tmp_path / "v2"  # the second file of videos as Detectorv2 writes it, in normalized units
+    write_pyfeat_tables(v2, spec, detector="v2", fmt="csv", videos_per_file=20, normalized=True)
+    (ws / "data" / "clip_0001.csv").unlink()
+    shutil.copy(v2 / "clip_0001.csv", ws / "data" / "clip_0001_v2.csv")
+    _run([BIN / "dvc", "add", "-q", "data"], ws)
+    out = _run([BIN / "dvc", "repro"], ws)
+    assert "ingest:" in out and f"no face -{made['n_no_face']:,}" in out
+    card = json.loads((ws / "release" / "model_card.json").read_text())
+    counts = card["data"]["counts"]
+    assert counts["rows_in"] == made["n_rows"] and counts["dropped_no_face"] == made["n_no_face"]
+    assert counts["dropped_extra_faces"] == made["n_extra_faces"] and counts["frames_in"] == made["n_face_frames"]
+    assert counts["rows_converted_from_normalized"] > 0
+    md = (ws / "release" / "MODEL_CARD.md").read_text()
+    assert "frames without a face (py-feat's no-face rows) dropped" in md and "converted from normalized" in md
+
+    # a change of recipe reruns prepare on the ingested tables, never the CSV ingest
+    out = _run([BIN / "dvc", "exp", "run", "-S", "preprocess.alignment.outlier_quantile=0.98"], ws)
+    assert "Stage 'ingest' didn't change" in out
+
+    # the same frames cleaned by hand, through the same pipeline: the same model
+    r2 = card["cv"]["r2_mean"]
+    shutil.rmtree(ws / "data")
+    shutil.copytree(tmp_path / "clean", ws / "data")
+    _run([BIN / "dvc", "add", "-q", "data"], ws)
+    _run([BIN / "dvc", "exp", "run", "-S", "preprocess.alignment.outlier_quantile=0.99"], ws)
+    clean = json.loads((ws / "release" / "model_card.json").read_text())
+    assert clean["data"]["counts"]["frames_in"] == made["n_face_frames"]
+    assert abs(clean["cv"]["r2_mean"] - r2) < 0.01
