@@ -114,7 +114,8 @@ def test_a_release_without_a_key_is_named(card_release):
 
 @pytest.mark.parametrize("aus, message", [
     ({"AU12": 1.0, "AU13": 0.5}, r"unknown name\(s\) \['AU13'\]; the model takes AU01, AU02, .*AU43 and Pitch, Yaw, Roll"),
-    (pd.DataFrame({"AU12": [1.0], "smile": [1.0]}), r"aus \(DataFrame\): unknown name\(s\) \['smile'\]"),
+    (pd.DataFrame({"AU12": [1.0], "smile": [1.0]}), r"aus \(DataFrame\): no column 'AU01' \(no column has a name close "
+                                                    r"to it\); 18 more missing"),  # other columns: a whole table
     (np.zeros(19), r"aus has shape \(19,\); expected \(20,\) or \(N, 20\) in the release's AU order \[AU01, AU02, .*AU43\]"),
     (np.zeros((4, 22)), r"aus has shape \(4, 22\); expected"),
     (np.zeros((2, 2, 20)), r"aus has shape \(2, 2, 20\)"),
@@ -171,7 +172,7 @@ def test_cli_predict_writes_one_mesh_per_table_row(card_release, tmp_path, capsy
         np.testing.assert_allclose(z["meshes"], expected, rtol=1e-5, atol=1e-2)
         np.testing.assert_array_equal(z["pose"], pose)
     # the table's own errors name the table; OBJ/PLY hold one mesh; each is one line on stderr and exit 2
-    for extra, message in ([[], r"rows\.csv: aus \(DataFrame\): unknown name\(s\) \['frame'\]"],
+    for extra, message in ([["--strict"], r"rows\.csv: unknown name\(s\) \['frame'\]"],
                            [["--out", str(tmp_path / "m.obj"), "--ignore", "frame"], r"rows\.csv has 3 rows; \.obj holds one mesh"],
                            [["--ignore", "video_id"], r"--ignore names column\(s\) \['video_id'\]"],
                            [["--release", str(tmp_path / "none.npz")], r"release NPZ not found: .*none\.npz"]):

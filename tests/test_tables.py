@@ -275,7 +275,7 @@ def test_video_from_input_path_is_pathlibs_stem(path):
     component, for the life of the process), exactly as ``PurePosixPath.stem``."""
     from pathlib import PurePosixPath
 
-    assert tables._stem(path) == PurePosixPath(path).stem
+    assert tables.video_stem(path) == PurePosixPath(path).stem
 
 
 def test_npy_reads_are_capped_at_npy_read_rows_whatever_the_chunk_rows(tmp_path, monkeypatch):

@@ -21,6 +21,7 @@ _EXPORTS = {
     "load_release": "aumesh.model.inference",
     "predict_mesh": "aumesh.model.inference",
     "PredictionInputError": "aumesh.model.inference",
+    "InputRangeWarning": "aumesh.model.inference",
     "ReleaseError": "aumesh.model.inference",
     "PLSRegression": "aumesh.model.pls",
     "CrossProducts": "aumesh.model.cross_products",

@@ -92,7 +92,7 @@ def _cmd_render(args) -> int:
 def _cmd_predict(args) -> int:
     from aumesh.pipeline.predict import predict_table
 
-    out, n = predict_table(args.release, args.table, args.out, args.ignore)
+    out, n = predict_table(args.release, args.table, args.out, args.ignore, strict=args.strict)
     print(f"wrote {n} mesh(es) to {out}")
     return 0
 
@@ -323,15 +323,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: none, so no R² and error figures)")
     p.set_defaults(func=_cmd_render)
 
-    p = sub.add_parser("predict", help="meshes from a CSV/parquet table of AU (+ pose) rows, with a release NPZ")
+    p = sub.add_parser("predict", help="meshes from a CSV/parquet table of AU (+ pose) rows (py-feat's own output "
+                                       "too), with a release NPZ")
     p.add_argument("table", type=Path,
-                   help="CSV or parquet, one row per mesh: columns AU01..AU43 (missing AUs are 0) and optionally "
-                        "Pitch, Yaw, Roll in radians (absent: pose 0)")
+                   help="CSV or parquet, one row per mesh, columns by name: a whole py-feat table (MPDetector or "
+                        "Detectorv2; only AU01..AU43, Pitch, Yaw, Roll (radians) and FaceScore are read, all 20 AUs "
+                        "needed, AUs 0..1), or input columns only (missing AUs are 0; no Pitch, Yaw, Roll: pose 0). "
+                        "A row without a face (FaceScore 0, or every AU and pose value NaN) gets a NaN mesh and "
+                        "no_face=True; a row only partly NaN is an error")
     p.add_argument("--out", type=Path, required=True,
-                   help="output file: .npz (meshes (N, 478, 3)), or .obj / .ply for a one-row table")
+                   help="output file: .npz (meshes (N, 478, 3), no_face (N,)), or .obj / .ply for a one-row table")
     p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
     p.add_argument("--ignore", nargs="*", default=[], metavar="COLUMN",
-                   help="table columns that are not model inputs, e.g. video_id frame (default: none)")
+                   help="table columns to leave out, e.g. Pitch Yaw Roll for frontal meshes (default: none)")
+    p.add_argument("--strict", action="store_true",
+                   help="every column (after --ignore) must be an input column, AU01..AU43, Pitch, Yaw, Roll "
+                        "(default: other columns are ignored)")
     p.set_defaults(func=_cmd_predict)
 
     p = sub.add_parser("view", help="write an offline interactive viewer (one HTML file) of a release NPZ")

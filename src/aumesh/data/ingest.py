@@ -36,6 +36,7 @@ import pyarrow.parquet as pq
 from aumesh.data import pyfeat
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.utils.errors import TableError
+from aumesh.data.tables import corrupt_parquet, video_stem
 from aumesh.utils.io import NpyRowFile, npy_layout
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
@@ -51,13 +52,6 @@ CSV_RANGE_BYTES = 64 << 20
 PARQUET_RANGE_ROWS = 16384
 #: Rows of an output row group (prepare packs whole row groups into its partitions).
 ROW_GROUP_ROWS = 8192
-
-
-def video_stem(path: str) -> str:
-    """The video id py-feat's ``input`` path gives: its file name without the extension (as :mod:`aumesh.data.tables`)."""
-    name = os.path.basename(str(path).rstrip("/"))
-    dot = name.rfind(".")
-    return name[:dot] if 0 < dot < len(name) - 1 else name
 
 
 @dataclass(frozen=True)
@@ -84,8 +78,7 @@ def open_source(path: Path, mesh_npy_pattern: str) -> Source:
     try:
         md = pq.read_metadata(path)
     except Exception as err:  # pyarrow raises several types for a bad file
-        raise TableError(f"{path}: corrupt or truncated parquet file ({type(err).__name__}). Fix: restore the tracked "
-                         f"copy (`dvc checkout --force`, or `dvc pull`) or re-export it.") from None
+        raise corrupt_parquet(path, err) from None
     names = md.schema.to_arrow_schema().names
     npy = path.with_name(mesh_npy_pattern.format(stem=path.stem))
     split = npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
@@ -207,9 +200,7 @@ def read_span(span: Span, columns: Sequence[str] | None = None) -> pa.Table:
         parquet_columns = [c for c in columns if c in source.header]
         table = _parquet_rows(pf, parquet_columns, span.start, span.stop)
     except (pa.ArrowException, OSError) as err:
-        raise TableError(f"{source.path}: corrupt or truncated parquet file ({type(err).__name__}: "
-                         f"{str(err).splitlines()[0] if str(err) else ''}). Fix: restore the tracked copy "
-                         f"(`dvc checkout --force`, or `dvc pull`) or re-export it.") from None
+        raise corrupt_parquet(source.path, err) from None
     for name, typ in types.items():
         if name in table.column_names and table.schema.field(name).type != typ:
             table = table.set_column(table.column_names.index(name), name, _cast(table.column(name), typ, source.path, name))
@@ -568,7 +559,7 @@ def check_clean(source: Source) -> PassThrough:
         return PassThrough(False, n, "several faces in a frame")
     sample = Span(source, 0, min(n, ROW_GROUP_ROWS))
     if lay.mesh is not None:
-        names = [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)]
+        names = lay.mesh
         mesh_cols = [names[i] for i in (*IOD_VERTICES, *(N_VERTICES + i for i in IOD_VERTICES))]
         part = read_span(sample, mesh_cols)
         mesh = np.zeros((part.num_rows, 2 * N_VERTICES), np.float64)

@@ -97,7 +97,7 @@ def check_tables(paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_nume
     return tables
 
 
-def _corrupt(path: Path, err: BaseException, what: str = "") -> TableError:
+def corrupt_parquet(path: Path, err: BaseException, what: str = "") -> TableError:
     return TableError(
         f"{path}: corrupt or truncated parquet file{what} ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). "
         f"Fix: restore the tracked copy (`dvc checkout --force`, or `dvc pull`) or re-export it with pandas.DataFrame.to_parquet."
@@ -111,7 +111,7 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
         footer = _footer(path)
         schema = footer.schema.to_arrow_schema()
     except Exception as err:  # pyarrow raises several types for a bad file
-        raise _corrupt(path, err) from None
+        raise corrupt_parquet(path, err) from None
     names = schema.names
     n_rows = footer.num_rows
     present = set(names)
@@ -221,7 +221,7 @@ def _read_columns(path: Path, columns: list[str]) -> pa.Table:
     try:
         return pq.read_table(path, columns=columns, use_threads=False)  # as _batches
     except (pa.ArrowException, OSError) as err:
-        raise _corrupt(path, err, f" (reading {columns[0]}" + (f" and {len(columns) - 1} more columns)" if len(columns) > 1 else ")")) from None
+        raise corrupt_parquet(path, err, f" (reading {columns[0]}" + (f" and {len(columns) - 1} more columns)" if len(columns) > 1 else ")")) from None
 
 
 def _batches(table: FrameTable, chunk_rows: int, columns: list[str],
@@ -235,7 +235,7 @@ def _batches(table: FrameTable, chunk_rows: int, columns: list[str],
                                                               row_groups=None if row_groups is None else list(row_groups)):
             yield batch
     except (pa.ArrowException, OSError) as err:
-        raise _corrupt(table.path, err, " (reading the mesh columns)") from None
+        raise corrupt_parquet(table.path, err, " (reading the mesh columns)") from None
 
 
 def _column(batch: pa.RecordBatch, k: int, name: str, table: FrameTable, start: int) -> np.ndarray:
@@ -310,7 +310,7 @@ def partitions(tables: Sequence[FrameTable], partition_rows: int) -> list[tuple[
     return out
 
 
-def _stem(path: str) -> str:
+def video_stem(path: str) -> str:
     """``pathlib.PurePosixPath(path).stem`` without a Path: pathlib interns every component it parses, and the
     interpreter's table of interned strings grows with them and never shrinks (3.7 MiB held to the end of the
     prepare stage for 88k videos' paths)."""
@@ -367,11 +367,11 @@ def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None) -> pd.Dat
         try:
             columns = _parquet(table.path).read_row_groups(list(row_groups), columns=cols, use_threads=False)  # as _batches
         except (pa.ArrowException, OSError) as err:
-            raise _corrupt(table.path, err, " (reading the metadata columns)") from None
+            raise corrupt_parquet(table.path, err, " (reading the metadata columns)") from None
     df = columns.to_pandas(use_threads=False)  # as the reads: the partitions already run on every core
     if table.video_from_input:
         codes, paths = pd.factorize(df.pop(INPUT_PATH_COLUMN), use_na_sentinel=False)  # one Path per distinct video, not per frame
-        df[VIDEO_COLUMN] = np.array([_stem(str(p)) for p in paths], dtype=object)[codes]
+        df[VIDEO_COLUMN] = np.array([video_stem(str(p)) for p in paths], dtype=object)[codes]
     df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
     return df
 

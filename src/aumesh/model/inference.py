@@ -10,26 +10,44 @@ interactions), ``x_full = [AUs | pose | pose x AU]`` (pose-major products) and
 ``flat = x_full @ coef_full + intercept``: pose-conditioned prediction is exact, and at pose 0
 it equals the 23-row ``coef``.
 
-Inputs are checked before any arithmetic: unknown AU names, wrong lengths, NaN/inf and pose
-that looks like degrees are errors (:class:`PredictionInputError`) that say what was expected.
+Inputs are checked before any arithmetic: unknown AU names (with the closest input name),
+wrong lengths, partly NaN rows, AUs above py-feat's 0..1 in a detector's table and pose that
+looks like degrees are errors (:class:`PredictionInputError`) that say what was expected; pose
+beyond the training range is a warning (:class:`InputRangeWarning`). A whole detector table
+(py-feat's Fex output, CSV or parquet, MPDetector or Detectorv2) is taken as it is: the AU and
+pose columns are picked by name, and a frame without a face gets a NaN mesh.
 """
 
 from __future__ import annotations
 
+import difflib
+import json
 import os
-from collections.abc import Mapping
+import re
+import sys
+import warnings
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Union
 
 import numpy as np
 
-from aumesh.data.schema import N_TARGETS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
+from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
 from aumesh.model.release import load_npz
 from aumesh.utils.errors import MissingFileError, UserError
 
 # A head turned more than 90 degrees is no longer a face seen from the front: any pose value above
-# this (in radians) means the caller passed degrees. Training keeps |yaw| <= 40 deg, |pitch| <= 30 deg.
+# this (in radians) means the caller passed degrees. Training keeps |yaw| <= 40 deg, |pitch| <= 30 deg
+# (the release's preprocess.pose_filter): beyond that, a warning (training_pose_limits).
 MAX_ABS_POSE_RAD = np.pi / 2
+
+# py-feat's AU intensities (both detectors) are 0..1, and so are the training tables'; OpenFace's are 0..5.
+AU_SCALE_MAX = 1.0
+_AU_SCALE_SLACK = 1e-6  # float32 rounding of a 1.0
+
+# py-feat's face-detection confidence: 0 (MPDetector) or NaN (Detectorv2) on the one row of a frame without a face.
+FACE_SCORE_COLUMN = "FaceScore"
 
 REQUIRED_KEYS: tuple[str, ...] = ("coef", "intercept", "input_columns", "au_columns", "mean_aligned_mesh")
 
@@ -43,6 +61,11 @@ class ReleaseError(UserError, ValueError):
 
 class PredictionInputError(UserError, ValueError):
     """AU or pose input that the model cannot take as it is; the message names the column and the fix."""
+
+
+class InputRangeWarning(UserWarning):
+    """Input the model takes but was not trained on (pose beyond the training range, an AU above 1 given as
+    numbers); one line naming the column and the first row. The mesh there is an extrapolation."""
 
 
 # --------------------------------------------------------------------------- the release
@@ -124,16 +147,176 @@ def _names(values: Any) -> list[str]:
     return [str(v) for v in np.asarray(values).tolist()]
 
 
+# --------------------------------------------------------------------------- which columns of a table
+@dataclass(frozen=True)
+class ColumnSelection:
+    """The columns of a table that :func:`input_rows` uses, chosen from its header by :func:`select_columns`.
+
+    Attributes
+    ----------
+    whole : bool
+        True for a whole table: one with columns besides the model's inputs (py-feat's Fex output,
+        a detector's CSV or parquet). Its other columns are ignored, every AU must be present,
+        and an AU above 1 is an error. False for a table of input columns only (missing AUs are 0).
+    inputs : tuple of str
+        The AU and pose columns present, as the table names them.
+    face_score : str or None
+        ``FaceScore`` when a whole table has it (0 marks a frame without a face).
+    """
+
+    whole: bool
+    inputs: tuple[str, ...]
+    face_score: str | None = None
+
+    @property
+    def columns(self) -> list[str]:
+        """Every column to read: ``inputs`` and ``face_score``."""
+        return [*self.inputs, *([self.face_score] if self.face_score else [])]
+
+
+def select_columns(columns: Iterable[Any], au_columns: Sequence[str] = AU_COLUMNS, *, strict: bool = False,
+                   pose_given: bool = False, what: str = "table") -> ColumnSelection:
+    """Pick the model's input columns of a table by name, from its header alone.
+
+    Parameters
+    ----------
+    columns : iterable of str
+        The table's column names (e.g. the header of a 2,045-column py-feat CSV).
+    au_columns : sequence of str, length 20
+        The release's AU names (``au_columns``).
+    strict : bool
+        True: every column must be an input name (AU01 .. AU43, Pitch, Yaw, Roll), as before py-feat's
+        whole tables were taken. False (default): a table with other columns is a whole table.
+    pose_given : bool
+        Pose comes from elsewhere (``pose=``): a whole table need not have pose columns.
+    what : str
+        How messages name the table (its path).
+
+    Returns
+    -------
+    ColumnSelection
+
+    Raises
+    ------
+    PredictionInputError
+        ``strict`` and a column that is not an input (the first few named, with the closest input name);
+        a whole table without an AU, or with some pose columns and not others (the missing column named
+        with the table's closest column: ``did you mean 'AU_12'?``); one line, never every column.
+    """
+    names = [str(c) for c in columns]
+    au_columns = [str(a) for a in au_columns]
+    known = set(au_columns) | set(POSE_COLUMNS)
+    others = [c for c in names if c not in known]
+    present = [c for c in names if c in known]
+    if strict or not others:
+        if others:
+            raise _unknown_error(what, others, au_columns, present, fix="rename or drop them (missing AUs count as 0); "
+                                 "without strict (--strict), other columns are ignored")
+        _check_pose_complete(present, what)
+        return ColumnSelection(False, tuple(present))
+    missing = [a for a in au_columns if a not in present]
+    if missing:
+        raise _missing_error(what, missing, others, f"all {len(au_columns)} AUs ({au_columns[0]} .. {au_columns[-1]})",
+                             "rename the column, or give only input columns (then missing AUs count as 0)")
+    pose_missing = [p for p in POSE_COLUMNS if p not in present]
+    if pose_missing:
+        partial = len(pose_missing) < len(POSE_COLUMNS)
+        if partial or (not pose_given and any(closest_name(p, others) for p in pose_missing)):
+            raise _missing_error(what, pose_missing, others, f"all of {', '.join(POSE_COLUMNS)} (radians) or none",
+                                 "rename the column, or drop every pose column (pose 0)")
+    face_score = FACE_SCORE_COLUMN if FACE_SCORE_COLUMN in names else None
+    return ColumnSelection(True, tuple(present), face_score)
+
+
+def _check_pose_complete(present: Sequence[str], what: str) -> None:
+    named = [p for p in POSE_COLUMNS if p in present]
+    if named and len(named) != len(POSE_COLUMNS):
+        missing = [p for p in POSE_COLUMNS if p not in present]
+        raise PredictionInputError(f"{what}: has {named} but not {missing}; give all of "
+                                   f"{', '.join(POSE_COLUMNS)} (radians) or none (pose 0)")
+
+
+def _key(name: Any) -> str:
+    """A name as compared for "did you mean": case, blanks, ``_`` and ``-`` ignored; ``AU1``, ``AU01``,
+    ``AU12_r`` (OpenFace's intensity) and ``AU12_c`` read as ``au1`` / ``au12``."""
+    key = re.sub(r"[\s_\-]+", "", str(name).lower())
+    au = re.fullmatch(r"au0*(\d+)[rc]?", key)
+    return f"au{au.group(1)}" if au else key
+
+
+def closest_name(name: str, candidates: Iterable[Any]) -> str | None:
+    """The candidate that ``name`` most likely means, for a "did you mean" (``AU_12``, ``au12``, ``AU12_r``, ``Yaw ``).
+
+    Parameters
+    ----------
+    name : str
+        The name looked for (a missing column, or an unknown one).
+    candidates : iterable of str
+        The names it may mean (a table's other columns, or the model's inputs).
+
+    Returns
+    -------
+    str or None
+        The first candidate with the same :func:`_key` (case, blanks, ``_``, ``-``, leading zeros of an
+        AU number and OpenFace's ``_r`` / ``_c`` ignored); else, for a name that is not an AU (AU13 is
+        not a misspelt AU12), the closest by ``difflib`` with a ratio >= 0.8; else None.
+    """
+    keyed: dict[str, str] = {}
+    for c in candidates:
+        keyed.setdefault(_key(c), str(c))
+    key = _key(name)
+    if key in keyed:
+        return keyed[key]
+    if re.fullmatch(r"au\d+", key):
+        return None
+    match = difflib.get_close_matches(key, list(keyed), n=1, cutoff=0.8)
+    return keyed[match[0]] if match else None
+
+
+def short_list(names: Sequence[str], n: int = 5) -> str:
+    """``['a', 'b']``, or the first ``n`` and how many in all (a message never lists 2,000 columns)."""
+    if len(names) <= n:
+        return repr(list(names))
+    return f"[{', '.join(repr(x) for x in names[:n])}, ... ({len(names)} in all)]"
+
+
+def _unknown_error(what: str, unknown: Sequence[str], au_names: Sequence[str], present: Sequence[str],
+                   fix: str) -> PredictionInputError:
+    wanted = [c for c in (*au_names, *POSE_COLUMNS) if c not in present]
+    hint = next(((u, m) for u in unknown if (m := closest_name(u, wanted))), None)
+    meant = f" (did you mean {hint[1]!r} for {hint[0]!r}?)" if hint else ""
+    return PredictionInputError(
+        f"{what}: unknown name(s) {short_list(unknown)}; the model takes {', '.join(au_names)} "
+        f"and {', '.join(POSE_COLUMNS)} (radians){meant}. Fix: {fix}.")
+
+
+def _missing_error(what: str, missing: Sequence[str], others: Sequence[str], needs: str,
+                   fix: str) -> PredictionInputError:
+    """One line: the first missing column that has a near miss in the table (else the first), and that near miss."""
+    hint = next(((m, c) for m in missing if (c := closest_name(m, others))), None)
+    name, meant = hint if hint else (missing[0], None)
+    more = f"; {len(missing) - 1} more missing" if len(missing) > 1 else ""
+    near = f"did you mean {meant!r}?" if meant else "no column has a name close to it"
+    return PredictionInputError(
+        f"{what}: no column {name!r} ({near}){more}. A table with columns besides the model's inputs needs {needs}, "
+        f"by name. Fix: {fix}")
+
+
 # --------------------------------------------------------------------------- inputs
-def input_rows(release: Release, aus: Any = None, pose: Any = None) -> tuple[np.ndarray, np.ndarray, bool]:
+def input_rows(release: Release, aus: Any = None, pose: Any = None, *, strict: bool = False,
+               selection: ColumnSelection | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
     """AU and pose rows in the release's column order, checked (the inputs of :func:`predict_mesh`).
 
     Parameters
     ----------
     release : mapping
-        Release arrays (:func:`load_release`); ``au_columns`` gives the AU order.
-    aus, pose
+        Release arrays (:func:`load_release`); ``au_columns`` gives the AU order, ``training_metadata``
+        the training pose range.
+    aus, pose, strict
         As in :func:`predict_mesh`.
+    selection : ColumnSelection, optional
+        For a DataFrame ``aus``: the columns already chosen from the whole table's header
+        (:func:`select_columns`), e.g. by a reader that read only those columns.
 
     Returns
     -------
@@ -147,10 +330,23 @@ def input_rows(release: Release, aus: Any = None, pose: Any = None) -> tuple[np.
     Raises
     ------
     PredictionInputError
-        Unknown names, wrong lengths, NaN/inf, pose in degrees, pose given twice, mismatched row counts.
+        Unknown or missing names, wrong lengths, partly NaN rows, pose in degrees, pose given twice,
+        mismatched row counts, an AU above 1 in a whole table.
+
+    Warns
+    -----
+    InputRangeWarning
+        Pose beyond the training range; an AU above 1 given as numbers (array, mapping, a DataFrame of
+        input columns).
+
+    Notes
+    -----
+    A row without a face (``FaceScore`` 0, or every AU and every given pose value NaN; see
+    :func:`predict_mesh`) is all NaN in both ``au`` and ``pose``; every other row is finite, so
+    ``np.isnan(au).all(axis=1)`` flags them.
     """
     au_names = _names(release["au_columns"])
-    pose_from_aus = None
+    pose_from_aus, face_score, whole = None, None, False
     if aus is None:
         au, single = np.zeros((1, len(au_names))), True
     elif isinstance(aus, Mapping):
@@ -161,11 +357,14 @@ def input_rows(release: Release, aus: Any = None, pose: Any = None) -> tuple[np.
         au, pose_from_aus = _from_names({k: [v] for k, v in aus.items()}, 1, au_names, "aus")
         single = True
     elif _is_dataframe(aus):
-        au, pose_from_aus = _from_names({c: aus[c].to_numpy() for c in aus.columns}, len(aus), au_names,
-                                        "aus (DataFrame)")
-        single = False
+        what = "aus (DataFrame)"
+        if selection is None:
+            selection = select_columns(aus.columns, au_names, strict=strict, pose_given=pose is not None, what=what)
+        au, pose_from_aus, face_score = _table_values(aus, selection, au_names, what)
+        whole, single = selection.whole, False
     else:
         au, pose_from_aus, single = _from_array(aus, au_names)
+    pose_in_input = pose_from_aus is not None or pose is not None
     if pose_from_aus is not None:
         if pose is not None:
             raise PredictionInputError(
@@ -176,44 +375,73 @@ def input_rows(release: Release, aus: Any = None, pose: Any = None) -> tuple[np.
     else:
         pose_rows, pose_single = _pose_array(pose)
         single = single and pose_single
-    _check_finite(au, au_names, "aus")
-    _check_finite(pose_rows, list(POSE_COLUMNS), "pose")
-    _check_radians(pose_rows)
-    if len(au) != len(pose_rows):
-        if len(au) == 1:
-            au = np.repeat(au, len(pose_rows), axis=0)
-        elif len(pose_rows) == 1:
-            pose_rows = np.repeat(pose_rows, len(au), axis=0)
-        else:
-            raise PredictionInputError(f"aus has {len(au)} rows but pose has {len(pose_rows)}; "
-                                       f"give pose one row per AU row, or one row for all")
+    if len(au) == len(pose_rows) or len(pose_rows) == 1:
+        n = len(au)
+    elif len(au) == 1:
+        n = len(pose_rows)
+    else:
+        raise PredictionInputError(f"aus has {len(au)} rows but pose has {len(pose_rows)}; "
+                                   f"give pose one row per AU row, or one row for all")
+    no_face = _no_face(au, pose_rows if pose_in_input else None, face_score, n)
+    _check_finite(au, au_names, "aus", no_face)
+    _check_finite(pose_rows, list(POSE_COLUMNS), "pose", no_face)
+    if len(au) != n:
+        au = np.repeat(au, n, axis=0)
+    if len(pose_rows) != n:
+        pose_rows = np.repeat(pose_rows, n, axis=0)
+    if no_face.any():
+        au, pose_rows = au.copy(), pose_rows.copy()
+        au[no_face], pose_rows[no_face] = np.nan, np.nan
+    face = ~no_face
+    _check_radians(pose_rows[face])
+    _check_au_scale(au, au_names, face, refuse=whole)
+    _warn_pose_range(pose_rows, face, release)
     return au, pose_rows, single
 
 
 def _is_dataframe(obj: Any) -> bool:
+    """A pandas DataFrame or a subclass (py-feat's ``Fex``), without importing pandas."""
+    pandas = sys.modules.get("pandas")
+    if pandas is not None and isinstance(obj, pandas.DataFrame):
+        return True
     return type(obj).__name__ == "DataFrame" and hasattr(obj, "columns") and hasattr(obj, "to_numpy")
+
+
+def _table_values(df: Any, selection: ColumnSelection, au_names: list[str],
+                  what: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The selected columns of a DataFrame -> (N, 20) AUs (missing AUs 0), (N, 3) pose or None, FaceScore or None."""
+    labels = {str(c): c for c in df.columns}
+    absent = [c for c in selection.columns if c not in labels]
+    if absent:
+        raise PredictionInputError(f"{what}: the selected column(s) {absent} are not in the DataFrame")
+    values = {c: _numeric(df[labels[c]].to_numpy(), f"{what}[{c!r}]") for c in selection.inputs}
+    au = np.zeros((len(df), len(au_names)))
+    for j, name in enumerate(au_names):
+        if name in values:
+            au[:, j] = values[name]
+    pose = np.stack([values[p] for p in POSE_COLUMNS], axis=1) if all(p in values for p in POSE_COLUMNS) else None
+    score = None
+    if selection.face_score:
+        score = _numeric(df[labels[selection.face_score]].to_numpy(), f"{what}[{selection.face_score!r}]")
+    return au, pose, score
 
 
 def _from_names(columns: Mapping[Any, Any], n: int, au_names: list[str], what: str) -> tuple[np.ndarray, np.ndarray | None]:
     """Named columns -> (N, 20) AUs (missing AUs are 0) and (N, 3) pose if any pose column is named."""
     known = set(au_names) | set(POSE_COLUMNS)
-    unknown = [str(k) for k in columns if str(k) not in known]
+    names = [str(k) for k in columns]
+    unknown = [k for k in names if k not in known]
     if unknown:
-        raise PredictionInputError(
-            f"{what}: unknown name(s) {unknown}; the model takes {', '.join(au_names)} "
-            f"and {', '.join(POSE_COLUMNS)} (radians). Fix: rename or drop them (missing AUs count as 0).")
+        raise _unknown_error(what, unknown, au_names, [k for k in names if k in known],
+                             fix="rename or drop them (missing AUs count as 0)")
     values = {str(k): _numeric(v, f"{what}[{str(k)!r}]") for k, v in columns.items()}
+    _check_pose_complete(list(values), what)
     au = np.zeros((n, len(au_names)))
     for j, name in enumerate(au_names):
         if name in values:
             au[:, j] = values[name]
-    named_pose = [p for p in POSE_COLUMNS if p in values]
-    if not named_pose:
+    if not any(p in values for p in POSE_COLUMNS):
         return au, None
-    if len(named_pose) != len(POSE_COLUMNS):
-        missing = [p for p in POSE_COLUMNS if p not in values]
-        raise PredictionInputError(f"{what}: has {named_pose} but not {missing}; give all of "
-                                   f"{', '.join(POSE_COLUMNS)} (radians) or none (pose 0)")
     return au, np.stack([values[p] for p in POSE_COLUMNS], axis=1)
 
 
@@ -261,12 +489,26 @@ def _pose_array(pose: Any) -> tuple[np.ndarray, bool]:
     return p.reshape(-1, 3), p.ndim == 1
 
 
-def _check_finite(values: np.ndarray, names: list[str], what: str) -> None:
-    bad = ~np.isfinite(values)
+def _no_face(au: np.ndarray, pose: np.ndarray | None, face_score: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) bool: rows of a frame without a face: FaceScore 0, or every AU and every given pose value NaN."""
+    blank = np.broadcast_to(np.isnan(au).all(axis=1), (n,)) if len(au) else np.zeros(n, dtype=bool)
+    if pose is not None:
+        blank = blank & np.broadcast_to(np.isnan(pose).all(axis=1), (n,))
+    if face_score is not None:
+        blank = blank | (face_score == 0)
+    return np.array(blank, dtype=bool)
+
+
+def _check_finite(values: np.ndarray, names: list[str], what: str, no_face: np.ndarray) -> None:
+    """Refuse NaN/inf outside the no-face rows; ``values`` has len(no_face) rows or one row (for all)."""
+    skip = no_face if len(values) == len(no_face) else np.array([no_face.all()])
+    bad = ~np.isfinite(values) & ~skip[:, None]
     if bad.any():
         row, col = (int(i) for i in np.argwhere(bad)[0])
-        raise PredictionInputError(f"{what}: {int(bad.sum())} NaN/inf value(s), first in {names[col]!r} at row {row}. "
-                                   f"Fix: drop or fill those rows (e.g. frames where no face was found)")
+        raise PredictionInputError(
+            f"{what}: {int(bad.sum())} NaN/inf value(s), first in {names[col]!r} at row {row}. A frame without a face "
+            f"has every AU and pose value NaN (or FaceScore 0) and gets a NaN mesh; this row is only partly NaN. "
+            f"Fix: fill or drop it")
 
 
 def _check_radians(pose: np.ndarray) -> None:
@@ -280,8 +522,80 @@ def _check_radians(pose: np.ndarray) -> None:
             f"Pose is in radians, in the order {', '.join(POSE_COLUMNS)}. Fix: np.deg2rad(pose)")
 
 
+def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refuse: bool) -> None:
+    """An AU above 1: an error in a whole (detector's) table, a warning for numbers given directly."""
+    bad = (au > AU_SCALE_MAX + _AU_SCALE_SLACK) & face[:, None]
+    if not bad.any():
+        return
+    row, col = (int(i) for i in np.argwhere(bad)[0])
+    where = f"aus: {au_names[col]} = {au[row, col]:g} at row {row} is above {AU_SCALE_MAX:g}"
+    if refuse:
+        raise PredictionInputError(
+            f"{where}: py-feat's AU intensities, and the model's, are 0..1 (0..5 is OpenFace's scale). "
+            f"Fix: divide the AU columns by 5")
+    _warn(f"{where}, beyond the 0..1 scale the model was trained on (py-feat's); the mesh is an extrapolation "
+          f"(OpenFace's 0..5 AUs: divide by 5)")
+
+
+def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
+    """|angle| limits (radians) of the training frames, and where they come from.
+
+    Returns
+    -------
+    limits : dict of str -> float
+        ``{"Pitch": ..., "Yaw": ...}``: the release's ``preprocess.pose_filter`` (recorded in its
+        ``training_metadata``); when the release records none, the card's (|pitch| <= 30 deg, |yaw| <= 40 deg).
+        Roll is not filtered in training.
+    source : str
+        ``"the release's pose filter"`` or ``"the card's pose filter"``.
+    """
+    pose_filter: dict[str, Any] = {}
+    if "training_metadata" in release:
+        try:
+            meta = json.loads(str(np.asarray(release["training_metadata"])))
+        except ValueError:
+            meta = None
+        if isinstance(meta, dict):
+            pose_filter = ((meta.get("config") or {}).get("preprocess") or {}).get("pose_filter") or {}
+    if pose_filter.get("max_abs_pitch_deg") is not None and pose_filter.get("max_abs_yaw_deg") is not None:
+        pitch, yaw, source = pose_filter["max_abs_pitch_deg"], pose_filter["max_abs_yaw_deg"], "the release's pose filter"
+    else:
+        from aumesh.config import PoseFilterConfig  # the card's defaults, one place
+
+        pitch, yaw = PoseFilterConfig.max_abs_pitch_deg, PoseFilterConfig.max_abs_yaw_deg
+        source = "the card's pose filter (the release records none)"
+    return {"Pitch": float(np.deg2rad(float(pitch))), "Yaw": float(np.deg2rad(float(yaw)))}, source
+
+
+def _warn_pose_range(pose: np.ndarray, face: np.ndarray, release: Release) -> None:
+    """One :class:`InputRangeWarning` when a face row's Pitch or Yaw is beyond the training range."""
+    if not face.any() or not (np.abs(pose[face]).max(initial=0.0) > 0):
+        return
+    limits, source = training_pose_limits(release)
+    beyond = np.zeros(pose.shape, dtype=bool)
+    for name, limit in limits.items():
+        j = POSE_COLUMNS.index(name)
+        beyond[:, j] = face & (np.abs(pose[:, j]) > limit)
+    if not beyond.any():
+        return
+    row, j = (int(i) for i in np.argwhere(beyond)[0])
+    name, value = POSE_COLUMNS[j], pose[row, j]
+    rows = int(beyond.any(axis=1).sum())
+    _warn(f"pose: {name} = {value:.3g} rad ({np.rad2deg(value):.1f} deg) at row {row} is beyond the training range "
+          f"|{name}| <= {np.rad2deg(limits[name]):g} deg ({source}; {rows} row(s) beyond): "
+          f"the mesh there is an extrapolation")
+
+
+def _warn(message: str) -> None:
+    """``warnings.warn`` an :class:`InputRangeWarning` at the first caller outside this module."""
+    level, frame = 1, sys._getframe(0)
+    while frame is not None and frame.f_code.co_filename == __file__:
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, InputRangeWarning, stacklevel=level)
+
+
 # --------------------------------------------------------------------------- prediction
-def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None) -> np.ndarray:
+def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, strict: bool = False) -> np.ndarray:
     """Predict face meshes from AU intensities (and head pose) with a release.
 
     Parameters
@@ -290,37 +604,58 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None) -> n
         A release NPZ path or its loaded arrays (:func:`load_release`; load once when predicting
         many times).
     aus : array-like, mapping, DataFrame or None
-        AU intensities (the tables' scale, e.g. py-feat's 0..1):
+        AU intensities on py-feat's 0..1 scale (the training tables'):
 
         - array of shape (20,) or (N, 20) in the release's ``au_columns`` order
           (``AU01, AU02, AU04, ..., AU43``), or (23,) / (N, 23) with ``Pitch, Yaw, Roll`` appended
           (the card's ``input_columns``);
         - mapping ``{"AU12": 1.0}``: one row, AUs not named are 0;
-        - pandas DataFrame with named columns (AUs, optionally ``Pitch``, ``Yaw``, ``Roll``):
-          one mesh per row, AUs not named are 0;
+        - pandas DataFrame (or a subclass, such as py-feat's ``Fex``), one mesh per row, columns
+          taken by name:
+
+          * only input columns (AUs, optionally ``Pitch``, ``Yaw``, ``Roll``): AUs not named are 0;
+          * a whole table, with other columns too (py-feat's detector output, MPDetector or
+            Detectorv2: face boxes, landmarks, mesh, emotions, identity, ``input``, ``frame``, ...):
+            the other columns are ignored; all 20 AUs must be there, and ``Pitch``, ``Yaw``,
+            ``Roll`` all or none (none: pose 0); an AU above 1 is an error (0..5 is OpenFace's
+            scale: divide by 5);
         - None: all AUs 0 (the model's neutral face).
 
-        Unknown names are an error naming them.
+        Unknown names (``strict``) and missing ones (whole table) are errors naming the column and
+        the closest name (``did you mean 'AU12'?``). Given as numbers (array, mapping, input columns),
+        an AU above 1 is a warning.
     pose : array-like of shape (3,) or (N, 3), mapping, or None
         Head pose in **radians**, in the order **Pitch, Yaw, Roll** (py-feat's tables store
         Pitch, Roll, Yaw: select by name). Default 0 (frontal, the usual use: rotate the
         predicted mesh afterwards to show another view). One row applies to every AU row.
-        Values above pi/2 in magnitude are refused as degrees.
+        Values above pi/2 in magnitude are refused as degrees; Pitch or Yaw beyond the training
+        range (:func:`training_pose_limits`) is a warning.
+    strict : bool, keyword-only
+        True: every DataFrame column must be an input name (the behaviour before whole tables were
+        taken). Default False.
 
     Returns
     -------
     np.ndarray, float64
         Shape (478, 3) for one row (1-D array, mapping, None), (N, 478, 3) for a batch
         (2-D array or DataFrame), in the release's frame and units (the card's canonical
-        frame; see ``docs/conventions.md``).
+        frame; see ``docs/conventions.md``). A row without a face (``FaceScore`` 0, or every AU
+        and pose value NaN: py-feat's row for a frame where it found none) gets a mesh of NaN;
+        ``np.isnan(meshes).all(axis=(1, 2))`` flags them. A row only partly NaN is an error.
 
     Raises
     ------
     FileNotFoundError, ReleaseError
         From :func:`load_release`.
     PredictionInputError
-        Unknown names, wrong lengths (the message lists the expected columns), NaN/inf, pose
-        that looks like degrees.
+        Unknown or missing names, wrong lengths (the message lists the expected columns), a partly
+        NaN row (the message names the row and the column), pose that looks like degrees, an AU
+        above 1 in a whole table.
+
+    Warns
+    -----
+    InputRangeWarning
+        Pitch or Yaw beyond the training range; an AU above 1 given as numbers.
 
     Notes
     -----
@@ -335,12 +670,32 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None) -> n
     >>> smile = aumesh.predict_mesh(m, {"AU12": 1.0})             # doctest: +SKIP
     >>> smile.shape                                               # doctest: +SKIP
     (478, 3)
+    >>> fex = pd.read_csv("video.csv")   # py-feat's detector output  # doctest: +SKIP
+    >>> meshes = aumesh.predict_mesh(m, fex)  # (len(fex), 478, 3)     # doctest: +SKIP
     """
     arrays = load_release(release)
-    au, pose_rows, single = input_rows(arrays, aus, pose)
-    flat = _linear(arrays, au, pose_rows)
-    meshes = unflatten_axis_major(flat)
+    au, pose_rows, single = input_rows(arrays, aus, pose, strict=strict)
+    meshes = predict_rows(arrays, au, pose_rows)
     return meshes[0] if single else meshes
+
+
+def predict_rows(release: Release, au: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Meshes of rows already checked by :func:`input_rows` (no check here).
+
+    Parameters
+    ----------
+    release : mapping
+        Release arrays (:func:`load_release`).
+    au : np.ndarray, shape (N, 20)
+        AUs in ``au_columns`` order; a row of NaN (no face) gives a mesh of NaN.
+    pose : np.ndarray, shape (N, 3)
+        Pitch, Yaw, Roll in radians.
+
+    Returns
+    -------
+    np.ndarray, shape (N, 478, 3), float64
+    """
+    return unflatten_axis_major(_linear(release, au, pose))
 
 
 def _linear(arrays: Release, au: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -365,5 +720,6 @@ def _column(values: Mapping[str, np.ndarray], name: str) -> np.ndarray:
     raise ReleaseError(f"release column {name!r} is neither an input ({', '.join(values)}) nor a product 'Pose*AU'")
 
 
-__all__ = ["MAX_ABS_POSE_RAD", "PredictionInputError", "ReleaseError", "check_release", "input_rows",
-           "load_release", "predict_mesh"]
+__all__ = ["AU_SCALE_MAX", "FACE_SCORE_COLUMN", "MAX_ABS_POSE_RAD", "ColumnSelection", "InputRangeWarning",
+           "PredictionInputError", "ReleaseError", "check_release", "input_rows", "load_release", "predict_mesh",
+           "closest_name", "predict_rows", "select_columns", "short_list", "training_pose_limits"]

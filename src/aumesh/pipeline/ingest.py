@@ -115,10 +115,12 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             subjects = ingest.main_identities(seen.identities)
         counts = compute.map_gather(partial(_clean_task, how=how, subjects=subjects), tasks, desc="ingest: read + clean")
         total = ingest.Counts()
-        for c in counts:
+        for task, c in zip(tasks, counts):
             total = total + c
+            if not c.rows_out:  # every row a no-face row
+                task.out.unlink()
         tables = [e["table"] for e in entries if "table" in e]
-        tables += [str(out_dir / TABLES_DIR / t.out.name) for t in tasks]
+        tables += [str(out_dir / TABLES_DIR / t.out.name) for t, c in zip(tasks, counts) if c.rows_out]
         in_place = sum(e["rows"] for e in entries if "table" in e)
         totals = total.as_dict()
         totals["rows_in"] += in_place

@@ -1,31 +1,44 @@
 """``aumesh predict``: a release applied to a table of AU (+ pose) rows, meshes written to a file.
 
-Reads a CSV or parquet table (one row per mesh; columns named ``AU01 .. AU43``, missing AUs 0,
-optionally ``Pitch``, ``Yaw``, ``Roll`` in radians), predicts with :func:`aumesh.predict_mesh` and
-writes, by the output's suffix:
+Reads a CSV or parquet table, one row per mesh, and picks the model's inputs by name:
 
-- ``.npz``: ``meshes`` (N, 478, 3) float32 in table row order, the inputs ``au`` (N, 20) and
-  ``pose`` (N, 3) as the model used them, ``au_columns`` and ``pose_columns``;
-- ``.obj`` / ``.ply``: one row only, the mesh with the project's triangulation
+- a whole detector table (py-feat's output, MPDetector or Detectorv2, 2,000+ columns): only the
+  20 AUs ``AU01 .. AU43``, ``Pitch``, ``Yaw``, ``Roll`` (radians) and ``FaceScore`` are read (the
+  header decides, the rest of the file is never materialised); every other column is ignored;
+- a table of input columns only: missing AUs are 0, no pose columns means pose 0;
+- ``strict``: every column must be an input column (after ``ignore``).
+
+A row without a face (``FaceScore`` 0, or every AU and pose value NaN: py-feat's row for a frame
+where it found none) gets a mesh of NaN and ``no_face`` True; a row only partly NaN is an error
+naming the row and the column. Meshes are predicted with :func:`aumesh.predict_mesh`'s checks and
+written, by the output's suffix:
+
+- ``.npz``: ``meshes`` (N, 478, 3) float32 in table row order, ``no_face`` (N,) bool, the inputs
+  ``au`` (N, 20) and ``pose`` (N, 3) as the model used them (NaN on no-face rows), ``au_columns``
+  and ``pose_columns``;
+- ``.obj`` / ``.ply``: one row only (with a face), the mesh with the project's triangulation
   (:func:`aumesh.geometry.face.triangulate`), triangles facing out of the face.
 
-Files are written atomically.
+Files are written atomically. Input-range warnings (pose beyond the training range) are logged,
+one line each.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from aumesh.data.schema import POSE_COLUMNS
+from aumesh.data.schema import AU_COLUMNS, POSE_COLUMNS
 from aumesh.export import meshfiles
 from aumesh.geometry import face
-from aumesh.model.inference import PredictionInputError, input_rows, load_release, predict_mesh
+from aumesh.model.inference import (ColumnSelection, InputRangeWarning, PredictionInputError, closest_name, input_rows,
+                                    load_release, predict_rows, select_columns, short_list)
 from aumesh.utils.errors import MissingFileError
 from aumesh.utils.io import atomic_savez, atomic_write_text
 
@@ -36,62 +49,147 @@ MESH_SUFFIXES = (".obj", ".ply")
 OUT_SUFFIXES = (".npz", *MESH_SUFFIXES)
 
 
-def read_input_table(path: str | os.PathLike, ignore: Sequence[str] = ()) -> pd.DataFrame:
-    """The model-input columns of a CSV or parquet table, ``ignore`` columns dropped.
+def table_header(path: str | os.PathLike) -> list[str]:
+    """The column names of a CSV or parquet table, read without its rows.
 
     Raises
     ------
     FileNotFoundError
-        No such file.
+        No such file (:class:`MissingFileError`).
     PredictionInputError
-        Unsupported suffix, an ``ignore`` column the table lacks, or no rows.
+        Unsupported suffix, or a file that is not a readable table.
     """
     path = Path(path)
     if path.suffix.lower() not in TABLE_SUFFIXES:
         raise PredictionInputError(f"{path}: unsupported table type {path.suffix!r}; use {' or '.join(TABLE_SUFFIXES)}")
     if not path.is_file():
         raise MissingFileError(f"input table not found: {path}")
-    df = pd.read_csv(path) if path.suffix.lower() == ".csv" else pd.read_parquet(path)
-    absent = [c for c in ignore if c not in df.columns]
+    try:
+        if path.suffix.lower() == ".csv":
+            return [str(c) for c in pd.read_csv(path, nrows=0).columns]
+        import pyarrow.parquet as pq
+
+        return [str(c) for c in pq.read_schema(path).names]
+    except (OSError, ValueError) as exc:  # pandas' EmptyDataError, ParserError and pyarrow's ArrowInvalid: ValueErrors
+        raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
+
+
+def read_table(path: str | os.PathLike, au_columns: Sequence[str] = AU_COLUMNS, ignore: Sequence[str] = (), *,
+               strict: bool = False) -> tuple[pd.DataFrame, ColumnSelection]:
+    """The model-input columns of a CSV or parquet table (and ``FaceScore``), chosen from its header.
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``.csv`` or ``.parquet``.
+    au_columns : sequence of str
+        The release's AU names.
+    ignore : sequence of str
+        Columns to leave out before choosing (each must exist), e.g. the pose columns of a detector
+        table to predict frontal meshes.
+    strict : bool
+        Every remaining column must be an input column.
+
+    Returns
+    -------
+    df : pd.DataFrame, shape (N, k)
+        Only the ``selection.columns`` (k <= 24), in the file's row order; a 2,045-column py-feat CSV
+        is parsed for those columns only (``usecols``; parquet: ``columns=``).
+    selection : ColumnSelection
+        Whether the table is a whole table, and its input columns (:func:`aumesh.model.inference.select_columns`).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    PredictionInputError
+        Unsupported suffix, an ``ignore`` column the table lacks, a missing or (``strict``) unknown
+        column (named with the closest one), or no rows.
+    """
+    path = Path(path)
+    header = table_header(path)
+    absent = [c for c in ignore if c not in header]
     if absent:
-        raise PredictionInputError(f"{path}: --ignore names column(s) {absent} that the table does not have "
-                                   f"(it has {list(df.columns)})")
+        near = closest_name(absent[0], header)
+        hint = f" (did you mean {near!r} for {absent[0]!r}?)" if near else ""
+        raise PredictionInputError(f"{path}: --ignore names column(s) {short_list(absent)} that the table does not "
+                                   f"have{hint}")
+    dropped = set(ignore)
+    selection = select_columns([c for c in header if c not in dropped], au_columns, strict=strict, what=str(path))
+    wanted = selection.columns
+    try:
+        if path.suffix.lower() == ".csv":
+            df = pd.read_csv(path, usecols=wanted) if wanted else pd.read_csv(path).drop(columns=list(ignore))
+        else:
+            df = pd.read_parquet(path, columns=wanted)
+    except (OSError, ValueError) as exc:
+        raise PredictionInputError(f"{path}: cannot read the columns {short_list(wanted)} ({exc})") from exc
     if df.empty:
         raise PredictionInputError(f"{path}: no rows to predict")
-    return df.drop(columns=list(ignore))
+    return df, selection
+
+
+def read_input_table(path: str | os.PathLike, ignore: Sequence[str] = (), *, strict: bool = False) -> pd.DataFrame:
+    """The model-input columns of a CSV or parquet table, ``ignore`` columns dropped (:func:`read_table`'s table)."""
+    return read_table(path, AU_COLUMNS, ignore, strict=strict)[0]
 
 
 def predict_table(release: str | os.PathLike, table: str | os.PathLike, out: str | os.PathLike,
-                  ignore: Sequence[str] = ()) -> tuple[Path, int]:
+                  ignore: Sequence[str] = (), *, strict: bool = False) -> tuple[Path, int]:
     """Predict one mesh per table row and write them to ``out`` (``.npz``, or ``.obj`` / ``.ply`` for one row).
+
+    Parameters
+    ----------
+    release, table, out : str or path-like
+        The release NPZ, the input table (CSV or parquet; a whole py-feat table or input columns
+        only, see the module's docstring) and the file to write.
+    ignore : sequence of str
+        Table columns to leave out.
+    strict : bool
+        Every column (after ``ignore``) must be an input column, as before whole tables were taken.
 
     Returns
     -------
     (Path, int)
-        The file written and the number of meshes.
+        The file written and the number of meshes (rows, no-face rows included: NaN, ``no_face`` True).
 
     Raises
     ------
     FileNotFoundError, ReleaseError, PredictionInputError
         A missing file, an unusable release, or table values the model cannot take (the message
-        names the file and the column).
+        names the file, the column and the row).
     """
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in OUT_SUFFIXES:
         raise PredictionInputError(f"--out {out}: unsupported suffix {out.suffix!r}; use {', '.join(OUT_SUFFIXES)}")
     arrays = load_release(release)
-    df = read_input_table(table, ignore)
-    try:
-        au, pose, _ = input_rows(arrays, df)
-    except PredictionInputError as exc:
-        raise PredictionInputError(f"{table}: {exc}") from exc
+    df, selection = read_table(table, [str(a) for a in np.asarray(arrays["au_columns"]).tolist()], ignore,
+                               strict=strict)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InputRangeWarning)
+        try:
+            au, pose, _ = input_rows(arrays, df, selection=selection)
+        except PredictionInputError as exc:
+            raise PredictionInputError(f"{table}: {exc}") from exc
+    for w in caught:
+        if issubclass(w.category, InputRangeWarning):
+            log.warning("%s: %s", table, w.message)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    no_face = np.isnan(au).all(axis=1)
     if suffix in MESH_SUFFIXES and len(df) != 1:
         raise PredictionInputError(f"{table} has {len(df)} rows; {suffix} holds one mesh. "
                                    f"Fix: write .npz, or give a one-row table")
-    meshes = predict_mesh(arrays, au, pose)
+    if suffix in MESH_SUFFIXES and no_face[0]:
+        raise PredictionInputError(f"{table}: row 0 has no face (FaceScore 0, or every AU and pose value NaN); "
+                                   f"{suffix} needs a mesh. Fix: give a row with a face, or write .npz")
+    meshes = predict_rows(arrays, au, pose)
+    if no_face.any():
+        log.warning("%s: %d of %d row(s) without a face (FaceScore 0, or every AU and pose value NaN): NaN meshes, "
+                    "no_face True in %s", table, int(no_face.sum()), len(no_face), out.name)
     if suffix == ".npz":
-        atomic_savez(out, meshes=meshes.astype(np.float32), au=au, pose=pose,
+        atomic_savez(out, meshes=meshes.astype(np.float32), no_face=no_face, au=au, pose=pose,
                      au_columns=np.asarray(arrays["au_columns"]), pose_columns=np.array(POSE_COLUMNS))
     else:
         mesh = meshes[0]
