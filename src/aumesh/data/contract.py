@@ -158,8 +158,9 @@ def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int)
     if bad.any():
         row, value = first(bad)
         return TableError(
-            f"{path}: column {column!r} has {int(bad.sum())} NaN/inf value(s) (first at row {row}: {value}). Fix: drop "
-            f"frames where py-feat found no face (e.g. fex.dropna()) before `dvc add data`.")
+            f"{path}: column {column!r} has {int(bad.sum())} NaN/inf value(s) (first at row {row}: {value}) in rows with a "
+            f"face (py-feat's no-face rows, every measurement NaN, are dropped by the ingest stage itself): a corrupt or "
+            f"partial export. Fix: re-export those videos with py-feat, or drop those rows before `dvc add data`.")
     if column in AU_COLUMNS:
         bad = (x < AU_RANGE[0]) | (x > AU_RANGE[1])
         row, value = first(bad)
