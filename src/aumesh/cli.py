@@ -330,7 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "Detectorv2; only AU01..AU43, Pitch, Yaw, Roll (radians) and FaceScore are read, all 20 AUs "
                         "needed, AUs 0..1), or input columns only (missing AUs are 0; no Pitch, Yaw, Roll: pose 0). "
                         "A row without a face (FaceScore 0, or every AU and pose value NaN) gets a NaN mesh and "
-                        "no_face=True; a row only partly NaN is an error")
+                        "no_face=True; a row only partly NaN is an error. Pose beyond pi/2 is refused as degrees, "
+                        "Pitch/Yaw beyond the training range is a warning")
     p.add_argument("--out", type=Path, required=True,
                    help="output file: .npz (meshes (N, 478, 3), no_face (N,)), or .obj / .ply for a one-row table")
     p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
