@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -57,7 +58,7 @@ def good_workspace(tmp_path_factory):
     try:
         with pytest.MonkeyPatch.context() as mp:
             mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
-            for stage in ("prepare", "evaluate", "release"):
+            for stage in ("ingest", "prepare", "evaluate", "release"):
                 assert cli.main([stage]) == 0
     finally:
         os.chdir(old)
@@ -199,19 +200,29 @@ TABLE_FAULTS = {
 }
 
 
+def run_data_stages(cwd: Path, capsys) -> tuple[int, str]:
+    """``ingest`` then ``prepare``, as ``dvc repro`` runs them: the first failure's exit code and stderr."""
+    for stage in ("ingest", "prepare"):
+        code, err = run_cli([stage], cwd, capsys)
+        if code:
+            return code, err
+    return 0, ""
+
+
 @pytest.mark.parametrize("case", list(TABLE_FAULTS))
 def test_bad_table_exits_2_naming_file_and_column_and_keeps_outputs(workspace, case, capsys):
     inject, expected = TABLE_FAULTS[case]
-    before = {d: tree_digest(workspace / d) for d in ("release", "build")}
+    kept = ("release", "build/prepared", "build/model")
+    before = {d: tree_digest(workspace / d) for d in kept}
     inject(workspace)
-    code, err = run_cli(["prepare"], workspace, capsys)
+    code, err = run_data_stages(workspace, capsys)
     assert code == 2, err
     lines = err.strip().splitlines()
-    assert lines[0].startswith("aumesh prepare: error: ") and len(lines) <= 2, err
+    assert re.match(r"aumesh (ingest|prepare): error: ", lines[0]) and len(lines) <= 2, err
     for text in expected:
         assert text in err, f"{text!r} not in {err!r}"
     assert "Traceback" not in err
-    assert {d: tree_digest(workspace / d) for d in ("release", "build")} == before
+    assert {d: tree_digest(workspace / d) for d in kept} == before
 
 
 def test_debug_flag_and_env_show_the_traceback(workspace, capsys, monkeypatch):
@@ -232,7 +243,7 @@ def test_numbers_as_text_are_converted_only_when_asked_and_give_the_same_frames(
     params["data"]["coerce_numeric"] = True
     params["paths"]["prepared_dir"] = "build/coerced"
     write_params(params, workspace / "params.yaml")
-    code, err = run_cli(["prepare"], workspace, capsys)
+    code, err = run_data_stages(workspace, capsys)
     assert code == 0, err
     for name in ("frames.parquet", "meshes.npy"):
         a, b = workspace / "build/prepared" / name, workspace / "build/coerced" / name

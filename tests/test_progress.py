@@ -67,6 +67,9 @@ def stage_ws(tmp_path, fixed_conf):
 
 
 def test_one_summary_line_per_stage_and_no_noise_in_a_pipe(stage_ws):
+    out, err = _stage("ingest", stage_ws, tty=False)
+    assert out.count("\n") == 1 and out.startswith("ingest: 300 frames from 300 rows of 1 tables"), out
+    assert "INFO" not in err and "it/s]" not in err, err
     out, err = _stage("prepare", stage_ws, tty=False)
     assert out.count("\n") == 1 and out.startswith("prepare: kept ") and "of 300 frames" in out, out
     out, err = _stage("evaluate", stage_ws, tty=False)
@@ -83,7 +86,9 @@ def test_a_bar_on_a_terminal_none_in_a_pipe():
 
 
 def test_the_data_passes_show_a_bar_on_a_terminal(stage_ws):
-    """Every Dask pass of prepare and evaluate is named on a terminal (tqdm's Dask callback over its tasks)."""
+    """Every Dask pass of ingest, prepare and evaluate is named on a terminal (tqdm's Dask callback over its tasks)."""
+    _, err = _stage("ingest", stage_ws, tty=True)
+    assert "ingest: check parquet" in err, err[-2000:]
     _, err = _stage("prepare", stage_ws, tty=True)
     for name in ("prepare: read + validate", "prepare: residuals", "prepare: align + write"):
         assert name in err, err[-2000:]

@@ -33,7 +33,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from aumesh.data import pyfeat
+from aumesh.data import contract, pyfeat
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.utils.errors import TableError
 from aumesh.data.tables import corrupt_parquet, video_stem
@@ -203,16 +203,19 @@ def read_span(span: Span, columns: Sequence[str] | None = None) -> pa.Table:
         raise corrupt_parquet(source.path, err) from None
     for name, typ in types.items():
         if name in table.column_names and table.schema.field(name).type != typ:
-            table = table.set_column(table.column_names.index(name), name, _cast(table.column(name), typ, source.path, name))
+            column = _cast(table.column(name), typ, source.path, name, span.start)
+            table = table.set_column(table.column_names.index(name), name, column)
     return table
 
 
-def _cast(column, typ: pa.DataType, path: Path, name: str):
+def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
+    """``column`` as ``typ``; a value that is not a number is the data contract's error, naming its row and value."""
     try:
         return column.cast(typ)
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as err:
-        raise TableError(f"{path}: column {name!r} holds values that are not {typ} ({str(err).splitlines()[0]}). Fix: "
-                         f"write numbers as numbers (missing values as NaN) before `dvc add data`.") from None
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        contract.numeric_values(column.to_numpy(zero_copy_only=False), path, name, first_row)
+        raise TableError(f"{path}: column {name!r} cannot be read as {typ}. Fix: write numbers as numbers (missing "
+                         f"values as NaN) before `dvc add data`.") from None
 
 
 def _parquet_rows(pf: pq.ParquetFile, columns: list[str], start: int, stop: int) -> pa.Table:

@@ -92,8 +92,9 @@ def check_tables(paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_nume
     """Schema-check the tables the ingest stage lists (its manifest: cleaned tables and clean ones read in place)."""
     tables = [_check_schema(Path(p), mesh_npy_pattern, coerce_numeric) for p in paths]
     if sum(t.n_rows for t in tables) == 0:
-        raise TableError("no frame with a face in the tables (every row is py-feat's no-face row, or every table is "
-                         "empty). Fix: check the videos and py-feat's face_detection_threshold.")
+        raise TableError(f"{', '.join(str(p) for p in paths[:3])}: no frame with a face: every table has 0 rows or only "
+                         f"py-feat's no-face rows (empty input). Fix: export frames with py-feat first, or check the videos "
+                         f"and py-feat's face_detection_threshold.")
     return tables
 
 
