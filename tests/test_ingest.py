@@ -236,3 +236,19 @@ def test_a_table_with_only_the_68_point_block_is_named(tmp_path):
     df.drop(columns=[c for c in df.columns if c.startswith("mesh_")]).to_parquet(path)
     with pytest.raises(TableError, match=r"68-point 2-D block.*not the 478-vertex mesh"):
         _prepare(tmp_path / "data", tmp_path / "work")
+
+
+def test_a_parquet_table_is_streamed_in_batches_without_splitting_a_frames_faces(tmp_path, monkeypatch):
+    write_pyfeat_tables(tmp_path / "data", SPEC, detector="mp", fmt="parquet", extra_face_rate=0.3)
+    path = sorted((tmp_path / "data").glob("*.parquet"))[0]
+    pq.write_table(pq.read_table(path), path, row_group_size=1 << 20)  # one row group, as pandas writes
+    source = ingest_data.open_source(path, "{stem}.npy")
+    whole = ingest_data.Span(source, 0, source.n_rows)
+    ingest_data.write_clean([whole], tmp_path / "one.parquet", "largest", None)
+    monkeypatch.setattr(ingest_data, "PARQUET_RANGE_ROWS", 7)  # batches of 7 rows: frames with 2 faces straddle them
+    batches = list(ingest_data.iter_span_tables(whole))
+    assert len(batches) > 50 and sum(t.num_rows for _, t in batches) == source.n_rows
+    assert all(a.stop == b.start for (a, _), (b, _) in zip(batches[:-1], batches[1:]))
+    counts = ingest_data.write_clean([whole], tmp_path / "many.parquet", "largest", None)
+    assert counts.extra_faces > 0
+    assert pq.read_table(tmp_path / "many.parquet").equals(pq.read_table(tmp_path / "one.parquet"))

@@ -160,23 +160,29 @@ def _frame_boundary(fh, offset: int, key_columns: list[int]) -> int:
         previous = key
 
 
-def parquet_spans(source: Source, range_rows: int = PARQUET_RANGE_ROWS) -> list[Span]:
-    """Row ranges of about ``range_rows`` that never split the rows of one frame."""
-    n = source.n_rows or 0
-    if n <= range_rows:
-        return [Span(source, 0, n)]
-    keys = pq.read_table(source.path, columns=[source.layout.video, FRAME_COLUMN], use_threads=False)
-    video = keys.column(0).to_numpy(zero_copy_only=False)
-    frame = keys.column(1).to_numpy(zero_copy_only=False)
-    new_frame = np.r_[True, (video[1:] != video[:-1]) | (frame[1:] != frame[:-1])]
-    starts = np.flatnonzero(new_frame)
-    bounds = [0]
-    for target in range(range_rows, n, range_rows):
-        k = np.searchsorted(starts, target)
-        if k < len(starts) and starts[k] > bounds[-1]:
-            bounds.append(int(starts[k]))
-    bounds.append(n)
-    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+def _parquet_batches(source: Source, columns: list[str], batch_rows: int | None = None) -> Iterator[pa.Table]:
+    """The parquet source's ``columns`` a batch of rows at a time (default :data:`PARQUET_RANGE_ROWS`: memory flat in
+    the table's rows), typed."""
+    types = _types(source.layout)
+    try:
+        for batch in pq.ParquetFile(source.path).iter_batches(batch_size=batch_rows or PARQUET_RANGE_ROWS, columns=columns, use_threads=False):
+            table = pa.Table.from_batches([batch])
+            for name in columns:
+                if name in types and table.schema.field(name).type != types[name]:
+                    column = _cast(table.column(name), types[name], source.path, name, 0)
+                    table = table.set_column(table.column_names.index(name), name, column)
+            yield table
+    except (pa.ArrowException, OSError) as err:
+        raise corrupt_parquet(source.path, err) from None
+
+
+def _new_frames(video: np.ndarray, frame: np.ndarray, previous: tuple | None) -> np.ndarray:
+    """(n,) bool: the row starts a frame (its (video, frame) differs from the row before; ``previous``: the last key of
+    the batch before)."""
+    if not len(frame):
+        return np.zeros(0, bool)
+    first = previous is None or (video[0], frame[0]) != previous
+    return np.r_[first, (video[1:] != video[:-1]) | (frame[1:] != frame[:-1])]
 
 
 def _types(layout: pyfeat.Layout) -> dict[str, pa.DataType]:
@@ -189,23 +195,32 @@ def _types(layout: pyfeat.Layout) -> dict[str, pa.DataType]:
 
 
 def read_span(span: Span, columns: Sequence[str] | None = None) -> pa.Table:
-    """The span's rows, ``columns`` only (default: every column the layout needs), with the layout's types."""
-    source, lay = span.source, span.source.layout
+    """A CSV span's rows, ``columns`` only (default: every column the layout needs), with the layout's types."""
+    lay = span.source.layout
     columns = list(lay.columns if columns is None else columns)
-    types = {k: v for k, v in _types(lay).items() if k in columns}
-    if source.kind == "csv":
-        return _read_csv_span(span, columns, types)
-    try:
-        pf = pq.ParquetFile(source.path)
-        parquet_columns = [c for c in columns if c in source.header]
-        table = _parquet_rows(pf, parquet_columns, span.start, span.stop)
-    except (pa.ArrowException, OSError) as err:
-        raise corrupt_parquet(source.path, err) from None
-    for name, typ in types.items():
-        if name in table.column_names and table.schema.field(name).type != typ:
-            column = _cast(table.column(name), typ, source.path, name, span.start)
-            table = table.set_column(table.column_names.index(name), name, column)
-    return table
+    return _read_csv_span(span, columns, {k: v for k, v in _types(lay).items() if k in columns})
+
+
+def iter_span_tables(span: Span, columns: Sequence[str] | None = None) -> Iterator[tuple[Span, pa.Table]]:
+    """The span's rows as ``(rows, table)``, whole frames in each: a CSV range at once; a parquet table a batch of
+    :data:`PARQUET_RANGE_ROWS` rows at a time (memory flat in its rows, whatever its row groups), the rows of the
+    batch's last frame carried into the next batch (a frame's faces are never split)."""
+    if span.source.kind == "csv":
+        yield span, read_span(span, columns)
+        return
+    lay = span.source.layout
+    columns = [c for c in (lay.columns if columns is None else columns) if c in span.source.header]
+    carry, start = None, 0
+    for batch in _parquet_batches(span.source, columns):
+        table = batch if carry is None else pa.concat_tables([carry, batch])
+        video = table.column(lay.video).to_numpy(zero_copy_only=False)
+        frame = table.column(FRAME_COLUMN).to_numpy(zero_copy_only=False)
+        last = int(np.flatnonzero(_new_frames(video, frame, None))[-1]) if table.num_rows else 0
+        if last:
+            yield Span(span.source, start, start + last), table.slice(0, last)
+        carry, start = table.slice(last), start + last
+    if carry is not None and carry.num_rows:
+        yield Span(span.source, start, start + carry.num_rows), carry
 
 
 def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
@@ -216,21 +231,6 @@ def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
         contract.numeric_values(column.to_numpy(zero_copy_only=False), path, name, first_row)
         raise TableError(f"{path}: column {name!r} cannot be read as {typ}. Fix: write numbers as numbers (missing "
                          f"values as NaN) before `dvc add data`.") from None
-
-
-def _parquet_rows(pf: pq.ParquetFile, columns: list[str], start: int, stop: int) -> pa.Table:
-    md = pf.metadata
-    groups, first, row = [], None, 0
-    for g in range(md.num_row_groups):
-        n = md.row_group(g).num_rows
-        if row + n > start and row < stop:
-            groups.append(g)
-            first = row if first is None else first
-        row += n
-    if not groups:
-        return pf.schema_arrow.empty_table().select(columns)
-    table = pf.read_row_groups(groups, columns=columns, use_threads=False)
-    return table.slice(start - first, stop - start)
 
 
 def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]) -> pa.Table:
@@ -490,8 +490,8 @@ def iter_clean_blocks(spans: Sequence[Span], how: str, subjects: dict[str, str] 
                       ) -> Iterator[tuple[Block, Counts]]:
     """Each span read and cleaned (:func:`clean_block`)."""
     for span in spans:
-        block = to_block(read_span(span), span)
-        yield clean_block(block, span.source.layout, how, subjects, str(span.source.path))
+        for rows, table in iter_span_tables(span):
+            yield clean_block(to_block(table, rows), span.source.layout, how, subjects, str(span.source.path))
 
 
 def write_clean(spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None) -> Counts:
@@ -516,9 +516,9 @@ def span_identities(spans: Sequence[Span]) -> Counts:
         lay = span.source.layout
         cols = [lay.video, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *([lay.face_score] if lay.face_score else []),
                 *([lay.identity] if lay.identity else []), *(lay.mesh or ())]
-        table = read_span(span, cols)
-        block = to_block(_with_missing(table, lay), span)
-        total = total + Counts(identities=identity_counts(block, lay))
+        for rows, table in iter_span_tables(span, cols):
+            block = to_block(_with_missing(table, lay), rows)
+            total = total + Counts(identities=identity_counts(block, lay))
     return total
 
 
@@ -541,30 +541,34 @@ class PassThrough:
 
 def check_clean(source: Source) -> PassThrough:
     """Whether a parquet source can be read in place: MPDetector columns or the split layout, no no-face rows, one row
-    per frame, pixels. Reads the id, AU and pose columns and 4 mesh columns (the units, judged on up to the first
-    :data:`ROW_GROUP_ROWS` rows): a fraction of one pass over the table."""
+    per frame, pixels. Reads the id, AU and pose columns a batch at a time and 4 mesh columns (the units, judged on up
+    to the first :data:`ROW_GROUP_ROWS` rows): a fraction of one pass over the table."""
     lay = source.layout
     if lay.detector == "Detectorv2":
         return PassThrough(False, source.n_rows or 0, "Detectorv2 mesh columns")
     n = source.n_rows or 0
     cols = [lay.video, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *([lay.face_score] if lay.face_score else [])]
-    table = read_span(Span(source, 0, n), cols)
-    measured = np.column_stack([table.column(c).to_numpy(zero_copy_only=False).astype(np.float64)
-                                for c in (*AU_COLUMNS, *POSE_COLUMNS)]) if n else np.zeros((0, 23))
-    empty = np.isnan(measured).all(axis=1)
-    if lay.face_score:
-        empty |= table.column(lay.face_score).to_numpy(zero_copy_only=False) == 0
-    if empty.any():
-        return PassThrough(False, n, f"{int(empty.sum())} no-face rows")
-    video = table.column(lay.video).to_numpy(zero_copy_only=False)
-    frame = table.column(FRAME_COLUMN).to_numpy(zero_copy_only=False)
-    if n > 1 and ((video[1:] == video[:-1]) & (frame[1:] == frame[:-1])).any():
+    no_face, several, previous = 0, 0, None
+    for table in _parquet_batches(source, cols):  # a batch at a time: memory flat in the table's rows
+        measured = np.column_stack([table.column(c).to_numpy(zero_copy_only=False).astype(np.float64)
+                                    for c in (*AU_COLUMNS, *POSE_COLUMNS)])
+        empty = np.isnan(measured).all(axis=1)
+        if lay.face_score:
+            empty |= table.column(lay.face_score).to_numpy(zero_copy_only=False) == 0
+        no_face += int(empty.sum())
+        video = table.column(lay.video).to_numpy(zero_copy_only=False)
+        frame = table.column(FRAME_COLUMN).to_numpy(zero_copy_only=False)
+        several += int((~_new_frames(video, frame, previous)).sum())
+        previous = (video[-1], frame[-1]) if len(frame) else previous
+    if no_face:
+        return PassThrough(False, n, f"{no_face} no-face rows")
+    if several:
         return PassThrough(False, n, "several faces in a frame")
-    sample = Span(source, 0, min(n, ROW_GROUP_ROWS))
+    sample = Span(source, 0, max(1, min(n, ROW_GROUP_ROWS)))
     if lay.mesh is not None:
         names = lay.mesh
         mesh_cols = [names[i] for i in (*IOD_VERTICES, *(N_VERTICES + i for i in IOD_VERTICES))]
-        part = read_span(sample, mesh_cols)
+        part = next(_parquet_batches(source, mesh_cols, batch_rows=sample.stop), pa.table({}))
         mesh = np.zeros((part.num_rows, 2 * N_VERTICES), np.float64)
         for name in mesh_cols:
             mesh[:, names.index(name)] = part.column(name).to_numpy(zero_copy_only=False)

@@ -106,7 +106,8 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
                 continue
             reason = "CSV" if check is None else check.reason
             entries.append({"source": str(source.path), "detector": source.layout.detector, "read": f"cleaned ({reason})"})
-            spans += ingest.csv_spans(source) if source.kind == "csv" else ingest.parquet_spans(source)
+            # a parquet table is streamed whole by one task (batch by batch: memory flat in its rows)
+            spans += ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
         (tmp / TABLES_DIR).mkdir()
         tasks = [Task(group, tmp / TABLES_DIR / f"{i:06d}.parquet") for i, group in enumerate(pack(spans))]
         subjects = None
