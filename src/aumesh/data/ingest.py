@@ -33,10 +33,10 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from aumesh.data import contract, pyfeat
+from aumesh.data import pyfeat
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.utils.errors import TableError
-from aumesh.data.tables import corrupt_parquet, video_stem
+from aumesh.utils.errors import TableError, corrupt_parquet
+from aumesh.data.pyfeat import video_stem
 from aumesh.utils.io import NpyRowFile, npy_layout
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
@@ -228,6 +228,8 @@ def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
     try:
         return column.cast(typ)
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        from aumesh.data import contract  # pandera: imported only when a value is not a number
+
         contract.numeric_values(column.to_numpy(zero_copy_only=False), path, name, first_row)
         raise TableError(f"{path}: column {name!r} cannot be read as {typ}. Fix: write numbers as numbers (missing "
                          f"values as NaN) before `dvc add data`.") from None

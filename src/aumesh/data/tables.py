@@ -35,7 +35,8 @@ from aumesh.data.schema import (
     POSE_COLUMNS,
     VIDEO_COLUMN,
 )
-from aumesh.utils.errors import TableError
+from aumesh.data.pyfeat import video_stem
+from aumesh.utils.errors import TableError, corrupt_parquet
 from aumesh.utils.io import NpyRowFile
 
 _MESH_COLUMN = re.compile(r"^([xyz])_(\d+)$")
@@ -96,13 +97,6 @@ def check_tables(paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_nume
                          f"py-feat's no-face rows (empty input). Fix: export frames with py-feat first, or check the videos "
                          f"and py-feat's face_detection_threshold.")
     return tables
-
-
-def corrupt_parquet(path: Path, err: BaseException, what: str = "") -> TableError:
-    return TableError(
-        f"{path}: corrupt or truncated parquet file{what} ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}). "
-        f"Fix: restore the tracked copy (`dvc checkout --force`, or `dvc pull`) or re-export it with pandas.DataFrame.to_parquet."
-    )
 
 
 def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = False) -> FrameTable:
@@ -309,15 +303,6 @@ def partitions(tables: Sequence[FrameTable], partition_rows: int) -> list[tuple[
     if current:
         out.append(tuple(current))
     return out
-
-
-def video_stem(path: str) -> str:
-    """``pathlib.PurePosixPath(path).stem`` without a Path: pathlib interns every component it parses, and the
-    interpreter's table of interned strings grows with them and never shrinks (3.7 MiB held to the end of the
-    prepare stage for 88k videos' paths)."""
-    name = os.path.basename(path.rstrip("/"))
-    dot = name.rfind(".")
-    return name[:dot] if 0 < dot < len(name) - 1 else name
 
 
 def read_metadata(table: FrameTable, coerce_numeric: bool = False, row_groups: Sequence[int] | None = None) -> pd.DataFrame:

@@ -22,3 +22,12 @@ class TableError(UserError, ValueError):
 
 class MissingFileError(UserError, FileNotFoundError):
     """A file the user named does not exist; the message names it and how to get it."""
+
+
+def corrupt_parquet(path, err: BaseException, what: str = "") -> TableError:
+    """A parquet file pyarrow cannot read (``what``: which columns), with the fix."""
+    first = str(err).splitlines()[0] if str(err) else ""
+    return TableError(
+        f"{path}: corrupt or truncated parquet file{what} ({type(err).__name__}: {first}). "
+        f"Fix: restore the tracked copy (`dvc checkout --force`, or `dvc pull`) or re-export it with pandas.DataFrame.to_parquet."
+    )
