@@ -315,7 +315,7 @@ def test_page_source_holds_no_hostile_markup(tmp_path):
         html = viewer.viewer_html(arrays, source=text, modules=modules)
         assert html.lower().count("<script") == 3 and html.lower().count("</script") == 3
         assert "<!--" not in html and "<img" not in html and text not in html
-        assert "Lip corner puller" in html
+        assert "Lip corner puller" in html and html.isascii()  # no encoding question when the file is written
 
 
 @pytest.mark.parametrize("text", HOSTILE, ids=["close-script", "comment-script", "img-onerror"])
@@ -354,7 +354,8 @@ def test_hostile_strings_show_literally(browser, tmp_path, node_tools, text):
 
 
 def test_unescaped_json_would_run_the_text(browser, tmp_path, node_tools, monkeypatch):
-    """Control: with plain json.dumps (no escaping) the same text closes the script and runs: the browser test can fail."""
+    """Control: with plain json.dumps (no escaping) the same text closes the script and runs its own:
+    the browser test above can fail."""
     import json
 
     monkeypatch.setattr(viewer, "script_json", json.dumps)

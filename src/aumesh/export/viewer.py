@@ -114,7 +114,8 @@ def script_json(value: Any) -> str:
     ``\\u2029``: the same JSON value (``JSON.parse`` gives the original text back), but no ``</script>``,
     ``<!--`` or ``<script`` can appear in the page's source, whatever the strings hold.
     """
-    text = json.dumps(value, ensure_ascii=False, allow_nan=False)
+    # ensure_ascii: the page stays ASCII (no encoding question when written); U+2028/9 are escaped by it too
+    text = json.dumps(value, allow_nan=False)
     return re.sub("[<>&\u2028\u2029]", lambda m: _SCRIPT_ESCAPES[m.group(0)], text)
 
 
