@@ -326,7 +326,7 @@ def test_hostile_strings_show_literally(browser, tmp_path, node_tools, text):
     metadata = _hostile_metadata(text)
     arrays = _pose_release(tmp_path, metadata, card_text=text)
     path = viewer.write_viewer(arrays, tmp_path / viewer.VIEWER_NAME, source=text)
-    page, problems, requests = _open(browser, path, VIEW)
+    page, problems, requests = _open(browser, path, (800, 600))  # a small canvas: 23 renders in software GL
     # the text, literally, in every row that carries it
     cells = page.locator("#card tr").evaluate_all("rows => rows.map(r => [...r.cells].map(c => c.textContent))")
     assert [tuple(c) for c in cells] == viewer.card_rows(metadata)
