@@ -41,12 +41,14 @@ def page_file(tmp_path_factory, node_tools):
     return npz, d / "face.html"
 
 
-def _open(browser, path):
-    context = browser.new_context(viewport={"width": 1100, "height": 700}, offline=True)  # no network at all
+def _open(browser, path, viewport=(1100, 700)):
+    context = browser.new_context(viewport={"width": viewport[0], "height": viewport[1]}, offline=True)  # no network
     page = context.new_page()
     problems = []
     page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
     page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    # a dialog (alert) means embedded text ran as script; dismissed so the page never blocks
+    page.on("dialog", lambda d: (problems.append(f"dialog: {d.message}"), d.dismiss()))
     requests = []
     page.on("request", lambda r: requests.append(r.url) if not r.url.startswith(("file:", "data:")) else None)
     page.goto(path.as_uri())
@@ -98,9 +100,8 @@ def test_sliders_move_the_mouth_not_the_forehead(browser, page_file):
     page.close()
 
 
-def test_pose_sliders_use_coef_full(browser, tmp_path, node_tools):
-    """With pose x AU terms the page's mesh is the pose-conditioned prediction (aumesh.predict_mesh)."""
-    import aumesh
+def _pose_release(tmp_path, metadata=None, card_text=""):
+    """Release arrays with pose x AU terms (``coef_full``): the synthetic truth's AU rows, random pose terms."""
     from aumesh.data.schema import feature_columns
     from aumesh.model.release import release_arrays
 
@@ -110,7 +111,15 @@ def test_pose_sliders_use_coef_full(browser, tmp_path, node_tools):
     coef = rng.normal(0.0, 2.0, (1434, len(columns)))
     coef[:, :20] = truth["coef"][:20].T
     reference = {k: truth[k] for k in ("mean_aligned_mesh", "mean_low_au_mesh", "reference_anchors", "anchor_indices")}
-    arrays = release_arrays(coef, truth["intercept"], columns, 83, reference, card_text="", metadata={})
+    return release_arrays(coef, truth["intercept"], columns, 83, reference, card_text=card_text,
+                          metadata=metadata or {})
+
+
+def test_pose_sliders_use_coef_full(browser, tmp_path, node_tools):
+    """With pose x AU terms the page's mesh is the pose-conditioned prediction (aumesh.predict_mesh)."""
+    import aumesh
+
+    arrays = _pose_release(tmp_path)
     path = viewer.write_viewer(arrays, tmp_path / viewer.VIEWER_NAME)
     page, problems, _ = _open(browser, path)
     page.locator('input[name="AU12"]').fill("0.5")
@@ -123,3 +132,241 @@ def test_pose_sliders_use_coef_full(browser, tmp_path, node_tools):
     _shot(page, "viewer_pose.png")
     assert problems == []
     page.close()
+
+
+# ---------------------------------------------------------------- issue 35: a viewer people can use
+VIEW = (1280, 720)
+
+
+def _ranges_visible(page):
+    """Each slider's box, and whether the element at its centre is the slider itself (not covered, not clipped)."""
+    return page.evaluate("""() => [...document.querySelectorAll('input[type=range]')].map((e) => {
+        const r = e.getBoundingClientRect();
+        const hit = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2);
+        return {name: e.name, top: r.top, left: r.left, bottom: r.bottom, right: r.right, hit: hit === e};
+    })""")
+
+
+def test_layout_fills_the_window_and_every_slider_shows_at_1280x720(browser, page_file):
+    from aumesh.data.schema import AU_NAMES
+
+    _, path = page_file
+    page, problems, requests = _open(browser, path, VIEW)
+    boxes = _ranges_visible(page)
+    assert [b["name"] for b in boxes] == list(INPUT_COLUMNS)
+    for b in boxes:  # inside the window, drawn, nothing scrolled
+        assert b["top"] >= 0 and b["left"] >= 0 and b["bottom"] <= VIEW[1] and b["right"] <= VIEW[0], b
+        assert b["hit"], f"{b['name']} is covered or clipped"
+    scroll = page.evaluate("[document.scrollingElement.scrollHeight, document.scrollingElement.scrollWidth, "
+                           "document.getElementById('side').scrollTop]")
+    assert scroll == [VIEW[1], VIEW[0], 0]  # the page itself never scrolls
+    # FACS names beside the codes
+    rows = page.locator("#aus .row").evaluate_all("""rows => rows.map((r) => {
+        const code = r.querySelector('.code'), name = r.querySelector('.name');
+        return [code.textContent, name.textContent, name.scrollWidth <= name.clientWidth];
+    })""")
+    assert rows == [[au, name, True] for au, name in AU_NAMES.items()]  # each name whole, not cut by an ellipsis
+    # the canvas fills what the panel leaves, and follows the window
+    side = page.evaluate("document.getElementById('side').getBoundingClientRect().width")
+    canvas = page.locator("canvas").bounding_box()
+    assert (canvas["x"], canvas["y"]) == (0, 0)
+    assert abs(canvas["width"] + side - VIEW[0]) <= 1 and canvas["height"] == VIEW[1]
+    page.set_viewport_size({"width": 1000, "height": 600})
+    page.wait_for_function("document.querySelector('canvas').getBoundingClientRect().height === 600")
+    assert abs(page.locator("canvas").bounding_box()["width"] + side - 1000) <= 1
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def test_drag_orbits_and_wheel_zooms(browser, page_file):
+    _, path = page_file
+    page, problems, requests = _open(browser, path, VIEW)
+    box = page.locator("canvas").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    mesh0, cam0, front = page.evaluate("window.aumeshViewer.mesh()"), page.evaluate("window.aumeshViewer.camera()"), \
+        _shot(page, "viewer_front_1280.png")
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    for k in range(1, 11):  # a real drag: pointer events in steps, as a hand would
+        page.mouse.move(cx + 22 * k, cy + 4 * k)
+    page.mouse.up()
+    cam1 = page.evaluate("window.aumeshViewer.camera()")
+    turned = _shot(page, "viewer_orbit_canvas.png")
+    (SHOTS / "viewer_orbit_1280x720.png").write_bytes(page.screenshot())  # the whole window, for a person
+    p0, p1 = np.array(cam0["position"]), np.array(cam1["position"])
+    angle = np.degrees(np.arccos(np.clip(p0 @ p1 / np.linalg.norm(p0) / np.linalg.norm(p1), -1, 1)))
+    assert angle > 20, angle  # the camera went round the face ...
+    assert cam1["distance"] == pytest.approx(cam0["distance"], rel=1e-6)  # ... at the same distance
+    assert np.mean(np.abs(front - turned).sum(axis=-1) > 30) > 0.05  # and the picture changed
+    assert page.evaluate("window.aumeshViewer.mesh()") == mesh0  # orbit moves the camera, never the model
+    # the wheel zooms: the camera comes closer and the face grows on the canvas
+    spread0 = np.ptp(np.array([page.evaluate(f"window.aumeshViewer.project({i})") for i in FOREHEAD + MOUTH]), axis=0)
+    page.mouse.move(cx, cy)
+    page.mouse.wheel(0, -400)
+    page.wait_for_function(f"window.aumeshViewer.camera().distance < {cam1['distance'] * 0.95}")
+    spread1 = np.ptp(np.array([page.evaluate(f"window.aumeshViewer.project({i})") for i in FOREHEAD + MOUTH]), axis=0)
+    assert (spread1 > spread0 * 1.05).all(), (spread0, spread1)
+    zoomed = _shot(page, "viewer_zoom_canvas.png")
+    assert np.mean(np.abs(turned - zoomed).sum(axis=-1) > 30) > 0.05
+    # Reset brings the front view back, pixel for pixel
+    page.click("#reset")
+    np.testing.assert_array_equal(_shot(page, "viewer_reset_1280.png"), front)
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def test_copied_json_round_trips_through_predict_mesh(browser, tmp_path, node_tools):
+    """"Copy as JSON" puts the current values on the clipboard; predict_mesh(m, json.loads(text)) is the page's mesh."""
+    import json
+
+    import aumesh
+
+    arrays = _pose_release(tmp_path)  # pose x AU terms: the pose values in the JSON change the shape
+    path = viewer.write_viewer(arrays, tmp_path / viewer.VIEWER_NAME)
+    page, problems, _ = _open(browser, path, VIEW)
+    page.context.grant_permissions(["clipboard-read", "clipboard-write"])
+    settings = {"AU04": "0.15", "AU12": "0.37", "AU26": "0.8", "Pitch": "0.21", "Yaw": "-0.33", "Roll": "0.12"}
+    for name, value in settings.items():
+        page.locator(f'input[name="{name}"]').fill(value)
+    page.click("#copy-json")
+    page.wait_for_function("document.getElementById('copy-json').dataset.json")
+    text = page.evaluate("navigator.clipboard.readText()")  # what the user pastes
+    assert text == page.get_attribute("#copy-json", "data-json") == page.evaluate("window.aumeshViewer.json()")
+    values = json.loads(text)
+    assert list(values) == list(INPUT_COLUMNS)
+    assert {k: v for k, v in values.items() if v} == {k: float(v) for k, v in settings.items()}
+    got = np.array(page.evaluate("window.aumeshViewer.mesh()")).reshape(478, 3)
+    expected = aumesh.predict_mesh(arrays, values)
+    # the page computes in float64 from the float32 arrays and stores float32 positions: half a float32 ulp apart
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2 * np.finfo(np.float32).eps * np.abs(expected).max())
+    assert np.abs(expected - aumesh.predict_mesh(arrays, {k: v for k, v in values.items() if k.startswith("AU")})
+                  ).max() > 1.0  # the JSON's pose values matter here
+    # no clipboard (blocked): the text is shown selected instead, the same JSON
+    page.evaluate("() => { navigator.clipboard.writeText = () => Promise.reject(new Error('blocked')); }")
+    page.click("#copy-json")
+    page.wait_for_function("document.getElementById('json-text').style.display === 'block'")
+    assert page.input_value("#json-text") == text
+    assert problems == []
+    page.context.close()
+
+
+def test_png_snapshot_downloads_the_canvas(browser, page_file, tmp_path):
+    import io
+
+    from PIL import Image
+
+    _, path = page_file
+    page, problems, _ = _open(browser, path, VIEW)
+    page.locator('input[name="AU12"]').fill("1")
+    with page.expect_download() as info:
+        page.click("#snapshot")
+    download = info.value
+    assert download.suggested_filename.endswith(".png")
+    saved = tmp_path / download.suggested_filename
+    download.save_as(saved)
+    png = np.asarray(Image.open(saved).convert("RGB"), dtype=np.int16)
+    size = page.evaluate("[document.querySelector('canvas').width, document.querySelector('canvas').height]")
+    assert (png.shape[1], png.shape[0]) == tuple(size)
+    shown = np.asarray(Image.open(io.BytesIO(page.locator("canvas").screenshot())).convert("RGB"), dtype=np.int16)
+    assert png.std() > 10 and np.abs(png - shown).mean() < 1.0  # the picture on screen, not a blank buffer
+    assert problems == []
+    page.context.close()
+
+
+# ---------------------------------------------------------------- issue 34: hostile strings stay text
+HOSTILE = ("</script><script>alert(1)</script>", "<!--<script>", "<img src=x onerror=alert(1)>")
+
+
+def _hostile_metadata(text):
+    """model_card.json as the release stage writes it, with ``text`` in every string a user, the data or MLflow sets."""
+    return {
+        "cv": {"r2_mean": 0.5, "r2_std": 0.01, "mae_mean": 1.0, "r2_folds": [0.49, 0.5, 0.51]},
+        "model": {"n_components": 83},
+        "data": {"n_frames": 1000, "n_videos": 4},
+        "config": {"features": {"name": text}, "preprocess": {"target": text}, "cv": {"group": text}},
+        "provenance": {"git_commit": text},
+        "mlflow": {"run_id": text},
+        "promotion": {"run_id": text, "run_name": text, "parent_run_id": text, "criterion": text, "compared": text,
+                      "config_overrides": [text, text], "registered_model": text, "model_version": text,
+                      "alias": text},
+        "source": text,
+    }
+
+
+def test_script_json_escapes_what_could_leave_the_script():
+    """Fast, no browser: the embedded JSON has none of < > & U+2028 U+2029 and parses back to the same text."""
+    import json
+
+    from aumesh.card.directions import FACS_EXPECTATIONS
+    from aumesh.data.schema import AU_COLUMNS, AU_NAMES
+
+    for text in HOSTILE + ("a & b", "line\u2028sep\u2029par", "</SCRIPT >", "]]>"):
+        out = viewer.script_json({"k": [text]})
+        assert not set(out) & set("<>&\u2028\u2029"), out
+        assert json.loads(out) == {"k": [text]}
+    assert tuple(AU_NAMES) == AU_COLUMNS and all(FACS_EXPECTATIONS[a]["name"] == AU_NAMES[a] for a in AU_COLUMNS)
+
+
+def test_page_source_holds_no_hostile_markup(tmp_path):
+    """The page's source: exactly the template's three <script> elements, whatever the card's strings hold."""
+    modules = {"three": "data:,", viewer.CORE_SPECIFIER: "data:,", viewer.ORBIT_SPECIFIER: "data:,"}
+    for text in HOSTILE:
+        arrays = _pose_release(tmp_path, _hostile_metadata(text), card_text=text)
+        html = viewer.viewer_html(arrays, source=text, modules=modules)
+        assert html.lower().count("<script") == 3 and html.lower().count("</script") == 3
+        assert "<!--" not in html and "<img" not in html and text not in html
+        assert "Lip corner puller" in html and html.isascii()  # no encoding question when the file is written
+
+
+@pytest.mark.parametrize("text", HOSTILE, ids=["close-script", "comment-script", "img-onerror"])
+def test_hostile_strings_show_literally(browser, tmp_path, node_tools, text):
+    """Issue 34: markup in every embedded field (card, run names, promotion, config, source) stays text."""
+    import aumesh
+
+    metadata = _hostile_metadata(text)
+    arrays = _pose_release(tmp_path, metadata, card_text=text)
+    path = viewer.write_viewer(arrays, tmp_path / viewer.VIEWER_NAME, source=text)
+    page, problems, requests = _open(browser, path, (800, 600))  # a small canvas: 23 renders in software GL
+    # the text, literally, in every row that carries it
+    cells = page.locator("#card tr").evaluate_all("rows => rows.map(r => [...r.cells].map(c => c.textContent))")
+    assert [tuple(c) for c in cells] == viewer.card_rows(metadata)
+    assert sum(text in value for _, value in cells) == 12  # 3 config, commit, 2 runs, sweep, 4 promotion, source
+    assert page.text_content("#source") == f"release: {text}"
+    # no element came from the text
+    assert page.evaluate("document.scripts.length") == 3 and page.evaluate("document.images.length") == 0
+    # every slider works: each moves the mesh, and the mesh is the model's prediction
+    assert page.locator('input[type="range"]').count() == len(INPUT_COLUMNS)
+    moved = "window.aumeshViewer.mesh().reduce((s, v, i) => s + v * (1 + (i % 7)), 0)"  # a cheap fingerprint
+    for name in INPUT_COLUMNS:
+        before = page.evaluate(moved)
+        page.locator(f'input[name="{name}"]').fill("0.3")
+        assert page.evaluate(moved) != before, name
+    got = np.array(page.evaluate("window.aumeshViewer.mesh()")).reshape(478, 3)
+    expected = aumesh.predict_mesh(arrays, dict.fromkeys(INPUT_COLUMNS, 0.3))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2 * np.finfo(np.float32).eps * np.abs(expected).max())
+    page.wait_for_timeout(200)  # an onerror or a timer would have fired by now
+    assert problems == [] and requests == []
+    # the dialog check can fail: a script that alerts is caught
+    page.evaluate("setTimeout(() => alert('control'), 0)")
+    page.wait_for_timeout(200)
+    assert problems == ["dialog: control"]
+    page.context.close()
+
+
+def test_unescaped_json_would_run_the_text(browser, tmp_path, node_tools, monkeypatch):
+    """Control: with plain json.dumps (no escaping) the same text closes the script and runs its own:
+    the browser test above can fail."""
+    import json
+
+    monkeypatch.setattr(viewer, "script_json", json.dumps)
+    text = HOSTILE[0]
+    arrays = _pose_release(tmp_path, _hostile_metadata(text))
+    path = viewer.write_viewer(arrays, tmp_path / viewer.VIEWER_NAME, source=text)
+    context = browser.new_context(offline=True)
+    page = context.new_page()
+    dialogs = []
+    page.on("dialog", lambda d: (dialogs.append(d.message), d.dismiss()))
+    page.goto(path.as_uri())
+    page.wait_for_timeout(500)
+    assert "1" in dialogs
+    context.close()

@@ -42,7 +42,7 @@ import numpy as np
 from aumesh.utils.io import atomic_write_json
 from aumesh.geometry import face
 from aumesh.data import schema
-from aumesh.data.schema import AU_COLUMNS, N_TARGETS
+from aumesh.data.schema import AU_COLUMNS, AU_NAMES, N_TARGETS
 
 PASS_COSINE = 0.6
 FAIL_COSINE = 0.0
@@ -59,26 +59,26 @@ _TERMS: dict[str, tuple[float, float, float]] = {
 # The FACS expectation table (data). Each check: (region group, {term: weight}).
 # A group without a side suffix that names REGIONS "<group>_left/_right" is bilateral.
 FACS_EXPECTATIONS: dict[str, dict[str, Any]] = {
-    "AU01": {"name": "Inner brow raiser", "checks": [("brow_inner", {"up": 1.0})]},
-    "AU02": {"name": "Outer brow raiser", "checks": [("brow_outer", {"up": 1.0})]},
-    "AU04": {"name": "Brow lowerer", "checks": [("brow_inner", {"down": 1.0, "inward": 0.6})]},
-    "AU05": {"name": "Upper lid raiser", "checks": [("upper_eyelid", {"up": 1.0})]},
-    "AU06": {"name": "Cheek raiser", "checks": [("cheek", {"up": 1.0})]},
-    "AU07": {"name": "Lid tightener", "checks": [("lower_eyelid", {"up": 1.0})]},
-    "AU09": {"name": "Nose wrinkler", "checks": [("nose", {"up": 1.0})]},
-    "AU10": {"name": "Upper lip raiser", "checks": [("upper_lip", {"up": 1.0})]},
-    "AU11": {"name": "Nasolabial deepener", "checks": [("nasolabial", {"up": 1.0, "outward": 0.5})]},
-    "AU12": {"name": "Lip corner puller", "checks": [("lip_corner", {"up": 1.0, "outward": 1.0})]},
-    "AU14": {"name": "Dimpler", "checks": [("lip_corner", {"away": 1.0, "inward": 0.3})]},
-    "AU15": {"name": "Lip corner depressor", "checks": [("lip_corner", {"down": 1.0})]},
-    "AU17": {"name": "Chin raiser", "checks": [("chin", {"up": 1.0})]},
-    "AU20": {"name": "Lip stretcher", "checks": [("lip_corner", {"outward": 1.0})]},
-    "AU23": {"name": "Lip tightener", "checks": [("lip_corner", {"inward": 1.0})]},
-    "AU24": {"name": "Lip pressor", "checks": [("upper_lip", {"down": 1.0}), ("lower_lip", {"up": 1.0})]},
-    "AU25": {"name": "Lips part", "checks": [("lower_lip", {"down": 1.0})]},
-    "AU26": {"name": "Jaw drop", "checks": [("jaw", {"down": 1.0}), ("lower_lip", {"down": 1.0})]},
-    "AU28": {"name": "Lip suck", "checks": [("upper_lip", {"away": 1.0}), ("lower_lip", {"away": 1.0})]},
-    "AU43": {"name": "Eyes closed", "checks": [("upper_eyelid", {"down": 1.0})]},
+    "AU01": {"name": AU_NAMES["AU01"], "checks": [("brow_inner", {"up": 1.0})]},
+    "AU02": {"name": AU_NAMES["AU02"], "checks": [("brow_outer", {"up": 1.0})]},
+    "AU04": {"name": AU_NAMES["AU04"], "checks": [("brow_inner", {"down": 1.0, "inward": 0.6})]},
+    "AU05": {"name": AU_NAMES["AU05"], "checks": [("upper_eyelid", {"up": 1.0})]},
+    "AU06": {"name": AU_NAMES["AU06"], "checks": [("cheek", {"up": 1.0})]},
+    "AU07": {"name": AU_NAMES["AU07"], "checks": [("lower_eyelid", {"up": 1.0})]},
+    "AU09": {"name": AU_NAMES["AU09"], "checks": [("nose", {"up": 1.0})]},
+    "AU10": {"name": AU_NAMES["AU10"], "checks": [("upper_lip", {"up": 1.0})]},
+    "AU11": {"name": AU_NAMES["AU11"], "checks": [("nasolabial", {"up": 1.0, "outward": 0.5})]},
+    "AU12": {"name": AU_NAMES["AU12"], "checks": [("lip_corner", {"up": 1.0, "outward": 1.0})]},
+    "AU14": {"name": AU_NAMES["AU14"], "checks": [("lip_corner", {"away": 1.0, "inward": 0.3})]},
+    "AU15": {"name": AU_NAMES["AU15"], "checks": [("lip_corner", {"down": 1.0})]},
+    "AU17": {"name": AU_NAMES["AU17"], "checks": [("chin", {"up": 1.0})]},
+    "AU20": {"name": AU_NAMES["AU20"], "checks": [("lip_corner", {"outward": 1.0})]},
+    "AU23": {"name": AU_NAMES["AU23"], "checks": [("lip_corner", {"inward": 1.0})]},
+    "AU24": {"name": AU_NAMES["AU24"], "checks": [("upper_lip", {"down": 1.0}), ("lower_lip", {"up": 1.0})]},
+    "AU25": {"name": AU_NAMES["AU25"], "checks": [("lower_lip", {"down": 1.0})]},
+    "AU26": {"name": AU_NAMES["AU26"], "checks": [("jaw", {"down": 1.0}), ("lower_lip", {"down": 1.0})]},
+    "AU28": {"name": AU_NAMES["AU28"], "checks": [("upper_lip", {"away": 1.0}), ("lower_lip", {"away": 1.0})]},
+    "AU43": {"name": AU_NAMES["AU43"], "checks": [("upper_eyelid", {"down": 1.0})]},
 }
 
 _RANK = {"pass": 0, "doubtful": 1, "fail": 2}

@@ -12,6 +12,14 @@ AU_COLUMNS: tuple[str, ...] = (
     "AU01", "AU02", "AU04", "AU05", "AU06", "AU07", "AU09", "AU10", "AU11", "AU12",
     "AU14", "AU15", "AU17", "AU20", "AU23", "AU24", "AU25", "AU26", "AU28", "AU43",
 )
+# FACS names of the 20 AUs (Ekman & Friesen; py-feat's labels), for people who think "Lip corner puller", not "AU12".
+AU_NAMES: dict[str, str] = {
+    "AU01": "Inner brow raiser", "AU02": "Outer brow raiser", "AU04": "Brow lowerer", "AU05": "Upper lid raiser",
+    "AU06": "Cheek raiser", "AU07": "Lid tightener", "AU09": "Nose wrinkler", "AU10": "Upper lip raiser",
+    "AU11": "Nasolabial deepener", "AU12": "Lip corner puller", "AU14": "Dimpler", "AU15": "Lip corner depressor",
+    "AU17": "Chin raiser", "AU20": "Lip stretcher", "AU23": "Lip tightener", "AU24": "Lip pressor",
+    "AU25": "Lips part", "AU26": "Jaw drop", "AU28": "Lip suck", "AU43": "Eyes closed",
+}
 # The model's pose order (py-feat's Fex tables store Pitch, Roll, Yaw: always select by name).
 POSE_COLUMNS: tuple[str, ...] = ("Pitch", "Yaw", "Roll")
 INPUT_COLUMNS: tuple[str, ...] = AU_COLUMNS + POSE_COLUMNS

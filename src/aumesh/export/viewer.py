@@ -8,10 +8,23 @@ release's arrays, embedded exactly (base64 float32), and turns the head at rende
 the card's ``Rotation.from_euler("xyz", [Pitch, Yaw, Roll])``. The camera looks along -z with
 y up: the card's canonical frame.
 
+The canvas fills the window beside the panel; three.js's own ``OrbitControls`` (drag turns the
+view, the wheel zooms, right-drag pans) move the camera, never the model. The panel has the FACS
+names beside the AU codes (:data:`aumesh.data.schema.AU_NAMES`), "Copy as JSON" (the current
+values as ``{"AU01": 0, ..., "Pitch": 0, "Yaw": 0, "Roll": 0}``, ready for
+``aumesh.predict_mesh(m, json.loads(text))``) and a PNG snapshot of the canvas.
+
 three.js is not downloaded at view time: the locked npm package (``package-lock.json``,
-installed into ``node_modules/`` by ``make tools``) is inlined as its two ES modules in data: URLs
-named by the page's import map (``three.module.js`` imports ``./three.core.js``, which a data: URL
-cannot resolve: that one import is renamed to the bare specifier ``three/core``). No network, no CDN: the file works from disk, offline.
+installed into ``node_modules/`` by ``make tools``) is inlined as ES modules in data: URLs
+named by the page's import map: ``three.module.js``, ``three.core.js`` (``three.module.js``'s
+import of ``./three.core.js``, which a data: URL cannot resolve, is renamed to the bare specifier
+``three/core``) and ``examples/jsm/controls/OrbitControls.js`` (it imports only ``three``). No
+network, no CDN: the file works from disk, offline.
+
+Every string the page embeds (the card's rows: run names and ids, promotion fields, config
+values; the source name) travels as JSON inside ``<script type="application/json">`` with ``<``,
+``>``, ``&``, U+2028 and U+2029 written as ``\\uXXXX`` escapes (:func:`script_json`), so no text can
+close the script element or open a comment in it, and the page puts it in the DOM as text only.
 """
 
 from __future__ import annotations
@@ -19,13 +32,14 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, POSE_COLUMNS, N_VERTICES, unflatten_axis_major
+from aumesh.data.schema import AU_COLUMNS, AU_NAMES, INPUT_COLUMNS, POSE_COLUMNS, N_VERTICES, unflatten_axis_major
 from aumesh.geometry import face
 
 VIEWER_NAME = "viewer.html"
@@ -33,6 +47,12 @@ THREE_ENV = "AUMESH_NODE_MODULES"
 _TEMPLATE = Path(__file__).with_name("viewer.html")
 _CORE_IMPORT = "'./three.core.js'"
 CORE_SPECIFIER = "three/core"
+ORBIT_SPECIFIER = "three/addons/controls/OrbitControls.js"  # three.js's own name for it (its docs' import line)
+_ORBIT_FILE = Path("examples", "jsm", "controls", "OrbitControls.js")  # relative to the package folder
+_PLACEHOLDER = re.compile(r"__(IMPORT_MAP|AUMESH_DATA)__")
+# JSON inside <script>: these characters could end the element ("</script>"), open a comment ("<!--") that
+# swallows the rest of the page, start an entity, or end a JavaScript line; JSON's \uXXXX keeps their meaning.
+_SCRIPT_ESCAPES = {"<": "\\u003c", ">": "\\u003e", "&": "\\u0026", "\u2028": "\\u2028", "\u2029": "\\u2029"}
 DEFAULT_POSE_LIMITS = {"Pitch": 0.5, "Yaw": 0.7, "Roll": 0.5}  # radians, when the card has no pose filter
 
 
@@ -61,9 +81,13 @@ def _data_url(text: str) -> str:
     return "data:text/javascript;base64," + base64.b64encode(text.encode("utf-8")).decode("ascii")
 
 
-def three_module_urls(build: Path | None = None) -> tuple[str, str]:
-    """three.js's two ES modules as data: URLs: ``three.module.js`` (its import of ``./three.core.js``
-    renamed to the bare specifier ``three/core``) and ``three.core.js``; the page's import map maps both."""
+def module_urls(build: Path | None = None) -> dict[str, str]:
+    """The page's import map: specifier -> data: URL of three.js's ES modules.
+
+    ``three`` (``three.module.js``, its import of ``./three.core.js`` renamed to the bare specifier
+    ``three/core``), ``three/core`` (``three.core.js``) and :data:`ORBIT_SPECIFIER`
+    (``examples/jsm/controls/OrbitControls.js``, which imports ``three`` only), all from the same package.
+    """
     build = build or find_three()
     module = (build / "three.module.js").read_text(encoding="utf-8")
     if _CORE_IMPORT not in module:
@@ -72,7 +96,27 @@ def three_module_urls(build: Path | None = None) -> tuple[str, str]:
     core = (build / "three.core.js").read_text(encoding="utf-8")
     if "from './" in core:
         raise ValueError(f"{build / 'three.core.js'} imports other files; not supported. Fix: `make tools`.")
-    return _data_url(module.replace(_CORE_IMPORT, json.dumps(CORE_SPECIFIER))), _data_url(core)
+    orbit_path = build.parent / _ORBIT_FILE
+    if not orbit_path.is_file():
+        raise FileNotFoundError(f"{orbit_path} not found (the viewer's orbit and zoom). Fix: `make tools` "
+                                "(npm ci) installs the whole 'three' package.")
+    orbit = orbit_path.read_text(encoding="utf-8")
+    if re.search(r"""from\s*['"]\.""", orbit):
+        raise ValueError(f"{orbit_path} imports relative files; only 'three' can be resolved. Fix: `make tools`.")
+    return {"three": _data_url(module.replace(_CORE_IMPORT, json.dumps(CORE_SPECIFIER))),
+            CORE_SPECIFIER: _data_url(core), ORBIT_SPECIFIER: _data_url(orbit)}
+
+
+def script_json(value: Any) -> str:
+    """``value`` as JSON safe inside an HTML ``<script>`` element.
+
+    ``<``, ``>``, ``&``, U+2028 and U+2029 become ``\\u003c``, ``\\u003e``, ``\\u0026``, ``\\u2028``,
+    ``\\u2029``: the same JSON value (``JSON.parse`` gives the original text back), but no ``</script>``,
+    ``<!--`` or ``<script`` can appear in the page's source, whatever the strings hold.
+    """
+    # ensure_ascii: the page stays ASCII (no encoding question when written); U+2028/9 are escaped by it too
+    text = json.dumps(value, allow_nan=False)
+    return re.sub("[<>&\u2028\u2029]", lambda m: _SCRIPT_ESCAPES[m.group(0)], text)
 
 
 def _b64(array: np.ndarray) -> str:
@@ -110,17 +154,32 @@ def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
     frames, videos = get("data", "n_frames"), get("data", "n_videos")
     if frames is not None:
         add("training data", (frames, videos), "{:,} frames, {} videos")
+    add("CV groups", get("config", "cv", "group"))
     add("git commit", get("provenance", "git_commit"))
-    add("MLflow run", get("mlflow", "run_id"))
+    # two runs: the one that built these exact arrays (dvc repro), and the sweep child promoted to choose the config
+    add("build run (MLflow)", get("mlflow", "run_id"))
     promotion = get("promotion")
     if isinstance(promotion, Mapping):
+        name, run_id = promotion.get("run_name"), promotion.get("run_id")
+        add("promoted run (MLflow)", f"{name} ({run_id})" if name and run_id else (name or run_id))
+        add("sweep (MLflow)", promotion.get("parent_run_id"))
         add("promotion", promotion.get("criterion"))
+        add("compared", promotion.get("compared") or None)
+        overrides = promotion.get("config_overrides")
+        add("config overrides", " ".join(map(str, overrides)) if isinstance(overrides, list) else overrides)
+        model = promotion.get("registered_model")
+        if model:
+            version, alias = promotion.get("model_version"), promotion.get("alias")
+            add("registered model", f"{model}" + (f" v{version}" if version else "") + (f" @{alias}" if alias else ""))
     add("source", get("source"))
-    return rows
+    return [(label, str(text)) for label, text in rows]
 
 
-def viewer_html(npz: Mapping[str, Any], source: str = "", three_urls: tuple[str, str] | None = None) -> str:
-    """The viewer page for release arrays ``npz`` (the card's keys; ``coef_full`` used when present)."""
+def viewer_html(npz: Mapping[str, Any], source: str = "", modules: Mapping[str, str] | None = None) -> str:
+    """The viewer page for release arrays ``npz`` (the card's keys; ``coef_full`` used when present).
+
+    ``modules`` is the import map (:func:`module_urls`, read from ``node_modules`` when None).
+    """
     columns = [str(c) for c in np.asarray(npz["input_columns"]).tolist()]
     if columns != list(INPUT_COLUMNS):
         raise ValueError(f"{source or 'release'}: 'input_columns' is {columns}, expected the card's {list(INPUT_COLUMNS)}")
@@ -136,7 +195,7 @@ def viewer_html(npz: Mapping[str, Any], source: str = "", three_urls: tuple[str,
     data = {
         "n_vertices": N_VERTICES,
         "input_columns": list(INPUT_COLUMNS), "au_columns": list(AU_COLUMNS), "pose_columns": list(POSE_COLUMNS),
-        "au_max": 1.0, "pose_limits": limits,
+        "au_names": dict(AU_NAMES), "au_max": 1.0, "pose_limits": limits,
         "intercept": _b64(intercept), "coef": _b64(npz["coef"]),
         "triangles": face.outward_triangles(base, face.triangulate(base)).ravel().tolist(),
         "card": card_rows(metadata), "source": f"release: {source}" if source else "",
@@ -144,10 +203,9 @@ def viewer_html(npz: Mapping[str, Any], source: str = "", three_urls: tuple[str,
     if "coef_full" in npz:
         data["coef_full"] = _b64(npz["coef_full"])
         data["input_columns_full"] = [str(c) for c in np.asarray(npz["input_columns_full"]).tolist()]
-    payload = json.dumps(data).replace("</", "<\\/")
-    module_url, core_url = three_urls or three_module_urls()
-    imports = json.dumps({"imports": {"three": module_url, CORE_SPECIFIER: core_url}})
-    return _TEMPLATE.read_text(encoding="utf-8").replace("__IMPORT_MAP__", imports).replace("__AUMESH_DATA__", payload)
+    fill = {"IMPORT_MAP": script_json({"imports": dict(modules or module_urls())}), "AUMESH_DATA": script_json(data)}
+    # one pass: a placeholder's name inside the embedded text is never substituted again
+    return _PLACEHOLDER.sub(lambda m: fill[m.group(1)], _TEMPLATE.read_text(encoding="utf-8"))
 
 
 def write_viewer(npz: Mapping[str, Any], path: str | Path, source: str = "") -> Path:
