@@ -301,6 +301,31 @@ def test_sigterm_stops_a_stage_as_ctrl_c_does(workspace, tmp_path):
     assert not list(workspace.glob(".release.*"))
 
 
+def test_interrupt_between_the_two_renames_puts_the_previous_folder_back(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM after the old release was moved aside and before the new one moved in: the old one goes
+    back (it used to stay under ``.release.old-*`` with no ``release/`` at all)."""
+    from aumesh.utils import io
+
+    (tmp_path / "release").mkdir()
+    (tmp_path / "release" / "card.md").write_text("previous")
+    real = os.replace
+    calls = []
+
+    def interrupted_second(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(io.os, "replace", interrupted_second)
+    with pytest.raises(KeyboardInterrupt):
+        with io.atomic_directory(tmp_path / "release") as tmp:
+            (tmp / "card.md").write_text("new")
+    monkeypatch.setattr(io.os, "replace", real)
+    assert len(calls) >= 2 and (tmp_path / "release" / "card.md").read_text() == "previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["release"]
+
+
 def _stage_process(dvc_pid: int, stage: str):
     import psutil
 

@@ -6,6 +6,9 @@
   ``<workspace>/mlartifacts``, both absolute, so runs started from a subdirectory or from a DVC
   queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``) land in the workspace store.
 * Before the first client is built, telemetry and autologging are switched off.
+* A damaged SQLite store is one line (:class:`TrackingStoreError`), a locked one is retried with backoff for
+  ``tracking.busy_timeout_s`` seconds first, and a copied or moved workspace's store is pointed at its own
+  artifacts (:func:`relocate_artifacts`).
 """
 
 from __future__ import annotations
@@ -148,6 +151,10 @@ def _default_artifact_location(uri: str, tracking_cfg: Mapping[str, Any] | None)
 def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
     """An :class:`mlflow.MlflowClient` bound to :func:`resolve_tracking_uri` (telemetry off).
 
+    For a SQLite store: checked first (:func:`check_store`), pointed at this workspace's ``mlartifacts/`` when the
+    workspace was copied or moved (:func:`relocate_artifacts`), and wrapped in :class:`StoreClient`, whose calls retry
+    a locked store for ``tracking.busy_timeout_s`` seconds and name a damaged one (:class:`TrackingStoreError`).
+
     Parameters
     ----------
     tracking_cfg : Mapping, optional
@@ -155,14 +162,14 @@ def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
 
     Returns
     -------
-    mlflow.MlflowClient
+    mlflow.MlflowClient or StoreClient
     """
+    uri = resolve_tracking_uri(tracking_cfg)
+    limit = busy_timeout(tracking_cfg)
+    check_store(uri, limit)  # before MLflow's import (seconds): a damaged store says so at once
     _quiet_mlflow()
     from mlflow import MlflowClient
 
-    uri = resolve_tracking_uri(tracking_cfg)
-    limit = busy_timeout(tracking_cfg)
-    check_store(uri, limit)
     with _store_init_lock(uri):
         _with_store_retry(lambda: relocate_artifacts(uri), uri, limit)
         # MlflowClient() builds the store right away: schema creation + migrations

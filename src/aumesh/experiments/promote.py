@@ -443,7 +443,7 @@ def check_finished(parent: Mapping[str, Any], children: pd.DataFrame, partial: b
 
 
 def model_artifacts(run_id: str, tracking_cfg: Mapping[str, Any] | None, root: Path) -> tuple[bool, str]:
-    """Whether run ``run_id`` still has its model (``model/MLmodel``), and where it should be (workspace-relative
+    """Whether run ``run_id`` still has its model (a non-empty ``model/``), and where it should be (workspace-relative
     when local). A local artifact folder outside the workspace is refused: a record must not point there."""
     from urllib.parse import unquote, urlsplit
 
@@ -458,7 +458,8 @@ def model_artifacts(run_id: str, tracking_cfg: Mapping[str, Any] | None, root: P
             raise PromotionError(
                 f"run {run_id}: its artifacts lie outside this workspace ({path}), so registering it would register "
                 f"another workspace's model. Fix: promote from that workspace, or rerun the sweep here.")
-        return (path / "MLmodel").is_file(), provenance.shareable_location(uri, [root]) or uri
+        present = path.is_dir() and any(path.iterdir())  # what registry.register_model_version asks of the store
+        return present, provenance.shareable_location(uri, [root]) or uri
     return bool(client.list_artifacts(run_id, MODEL_ARTIFACT_DIR)), uri
 
 
