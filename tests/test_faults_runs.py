@@ -371,6 +371,7 @@ def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspac
     t0 = time.monotonic()
     gone, _ = psutil.wait_procs([worker], timeout=30)
     assert gone, f"the {stage} stage is still running {time.monotonic() - t0:.0f} s after DVC exited"
+    print(f"{stage}: stage gone {time.monotonic() - t0:.1f} s after DVC exited")
     assert time.monotonic() - t0 < 20
     time.sleep(1)
     assert tree_digest(ws / "release") == release  # nothing swapped in, then or later
