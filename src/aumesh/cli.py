@@ -8,6 +8,7 @@ import gc
 import json
 import logging
 import os
+import signal
 import sys
 from collections.abc import Mapping
 from pathlib import Path
@@ -200,7 +201,8 @@ def _cmd_promote(args) -> int:
             if evaluate and evaluate[0]["start_time"] > sweep["start_time"]:
                 newer = evaluate[0]
     record = promote.promote(parent, provenance.repo_root(), tracking_cfg, metric=args.metric, target=args.target,
-                             model_name=args.model_name, register=not args.no_register, newer_run=newer)
+                             model_name=args.model_name, register=not args.no_register, newer_run=newer,
+                             partial=args.partial, skip_missing=args.skip_missing, say=_say)
     print(json.dumps(record, indent=2, default=str))
     print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` rebuilds that release.")
     return 0
@@ -246,6 +248,12 @@ def add_experiment_commands(subparsers) -> None:
             p.add_argument("--model-name", default=None,
                            help="registered model name (default: aumesh-au-to-mesh)")
             p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
+            p.add_argument("--partial", action="store_true",
+                           help="promote from a sweep that did not finish (interrupted, killed): the best of the runs "
+                                "that finished, named in the output and promotion.json (without it, refused)")
+            p.add_argument("--skip-missing", action="store_true",
+                           help="when the best run's model artifacts were deleted, promote the next best run whose "
+                                "artifacts exist, and say so (without it, refused naming the run and the path)")
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -361,19 +369,55 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     debug = args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0")
+    if args.command in STOPPABLE:
+        from aumesh.utils.signals import install_stage_signals
+
+        install_stage_signals()  # SIGTERM as Ctrl-C; under DVC, stop when DVC is gone
     try:
         return args.func(args)
     except UserError as err:
         note = _dvc_note(args)
         if debug:
             raise
-        print(f"aumesh {args.command}: error: {err}" + (f"\n{note}" if note else ""), file=sys.stderr)
+        _say(f"aumesh {args.command}: error: {err}" + (f"\n{note}" if note else ""))
         return 2
-    except BaseException:  # a bug, Ctrl-C: the traceback stays; still say how to get DVC's removed outputs back
+    except KeyboardInterrupt as err:  # Ctrl-C, SIGTERM, DVC gone: cleaned up on the way out (temporaries, run KILLED)
+        from aumesh.utils.signals import Interrupted, Terminated
+
+        note = _dvc_note(args)
+        if debug:
+            raise
+        if isinstance(err, Interrupted):  # already described (a sweep: how far it got, what was marked KILLED)
+            _say(f"aumesh {args.command}: {err}" + (f"\n{note}" if note else ""))
+            return 128 + err.signum
+        why = f"stopped: {err}" if isinstance(err, Terminated) else "interrupted (Ctrl-C)"
+        _say(f"aumesh {args.command}: {why}; {_kept(args.command)}" + (f"\n{note}" if note else ""))
+        return 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT)
+    except BaseException:  # a bug: the traceback stays; still say how to get DVC's removed outputs back
         note = _dvc_note(args)
         if note:
-            print(note, file=sys.stderr)
+            _say(note)
         raise
+
+
+#: Commands that stop cleanly on SIGTERM (and, under DVC, when DVC dies): the stages and the sweep.
+STOPPABLE = ("ingest", "prepare", "evaluate", "release", "sweep")
+
+
+def _kept(command: str) -> str:
+    if command == "evaluate":
+        return "nothing was swapped in; its MLflow run is marked KILLED"
+    if command in ("ingest", "prepare", "evaluate", "release"):
+        return "nothing was swapped in, the previous outputs are intact"
+    return "nothing was written"
+
+
+def _say(text: str) -> None:
+    """Print to stderr; a reader that is gone (DVC killed, its pipe closed) is no reason for a traceback."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 def run() -> None:

@@ -134,6 +134,8 @@ class TrackingConfig:
     enabled: bool = True
     tracking_uri: str | None = None
     experiment: str = "aumesh"
+    # how long a store locked by another process is retried, with backoff, before one line says so
+    busy_timeout_s: float = 60.0
 
 
 @dataclass(frozen=True)

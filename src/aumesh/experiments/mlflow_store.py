@@ -6,18 +6,24 @@
   ``<workspace>/mlartifacts``, both absolute, so runs started from a subdirectory or from a DVC
   queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``) land in the workspace store.
 * Before the first client is built, telemetry and autologging are switched off.
+* A damaged SQLite store is one line (:class:`TrackingStoreError`), a locked one is retried with backoff for
+  ``tracking.busy_timeout_s`` seconds first, and a copied or moved workspace's store is pointed at its own
+  artifacts (:func:`relocate_artifacts`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
+import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.experiments import provenance
+from aumesh.utils.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
     from mlflow import MlflowClient
@@ -37,6 +43,7 @@ MAX_INPUT_TAG_VALUE_LENGTH = 500
 TRUNCATION_MARK = "...[truncated]"
 
 _QUIETED = False
+log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- setup
@@ -144,6 +151,10 @@ def _default_artifact_location(uri: str, tracking_cfg: Mapping[str, Any] | None)
 def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
     """An :class:`mlflow.MlflowClient` bound to :func:`resolve_tracking_uri` (telemetry off).
 
+    For a SQLite store: checked first (:func:`check_store`), pointed at this workspace's ``mlartifacts/`` when the
+    workspace was copied or moved (:func:`relocate_artifacts`), and wrapped in :class:`StoreClient`, whose calls retry
+    a locked store for ``tracking.busy_timeout_s`` seconds and name a damaged one (:class:`TrackingStoreError`).
+
     Parameters
     ----------
     tracking_cfg : Mapping, optional
@@ -151,16 +162,230 @@ def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
 
     Returns
     -------
-    mlflow.MlflowClient
+    mlflow.MlflowClient or StoreClient
     """
+    uri = resolve_tracking_uri(tracking_cfg)
+    limit = busy_timeout(tracking_cfg)
+    check_store(uri, limit)  # before MLflow's import (seconds): a damaged store says so at once
     _quiet_mlflow()
     from mlflow import MlflowClient
 
-    uri = resolve_tracking_uri(tracking_cfg)
     with _store_init_lock(uri):
+        _with_store_retry(lambda: relocate_artifacts(uri), uri, limit)
         # MlflowClient() builds the store right away: schema creation + migrations
         # for a new SQLite file.
-        return MlflowClient(tracking_uri=uri)
+        client = _with_store_retry(lambda: MlflowClient(tracking_uri=uri), uri, limit)
+    return StoreClient(client, uri, limit) if sqlite_path(uri) else client
+
+
+# --------------------------------------------------------------------------- a damaged or busy store
+DEFAULT_BUSY_TIMEOUT_S = 60.0
+_BUSY = ("database is locked", "database table is locked", "database schema is locked")
+_DAMAGED = ("malformed", "file is not a database", "disk image", "unsupported file format")
+_CHECKED: set[str] = set()  # stores checked by this process (check_store: once each)
+_RELOCATED: set[str] = set()  # stores relocate_artifacts looked at in this process
+
+
+class TrackingStoreError(UserError):
+    """The MLflow tracking store is damaged or stays locked; the message names the file, the cause and the fix."""
+
+
+def busy_timeout(tracking_cfg: Mapping[str, Any] | None) -> float:
+    """Seconds to keep retrying a locked store: ``tracking.busy_timeout_s`` (default about a minute)."""
+    value = (tracking_cfg or {}).get("busy_timeout_s")
+    return DEFAULT_BUSY_TIMEOUT_S if value is None else max(0.0, float(value))
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` URI (None for other stores and in-memory databases)."""
+    if not uri.startswith("sqlite:///"):
+        return None
+    path = uri[len("sqlite:///"):].partition("?")[0]
+    return Path(os.path.abspath(path)) if path and path != ":memory:" else None
+
+
+def _named(path: Path) -> str:
+    """``path`` as a message names it: relative to the current directory when inside it."""
+    with contextlib.suppress(ValueError):
+        return str(path.relative_to(Path.cwd()))
+    return str(path)
+
+
+def store_fault(exc: BaseException) -> str | None:
+    """``"busy"`` or ``"damaged"`` when ``exc`` (or an exception it was raised from) is SQLite saying so, else None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        text = str(exc).lower()
+        if any(word in text for word in _BUSY):
+            return "busy"
+        if any(word in text for word in _DAMAGED) and ("sqlite" in text or type(exc).__module__ == "sqlite3"
+                                                      or "database" in text):
+            return "damaged"
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _cause(exc: BaseException) -> str:
+    """SQLite's own words, the first line of the innermost error (``database disk image is malformed``)."""
+    while (exc.__cause__ or exc.__context__) is not None:
+        exc = exc.__cause__ or exc.__context__
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
+def damaged_error(db: Path, exc: BaseException | str) -> TrackingStoreError:
+    name = _named(db)
+    return TrackingStoreError(
+        f"{name}: the MLflow tracking store is damaged ({exc if isinstance(exc, str) else _cause(exc)}). Fix: move it "
+        f"aside (`mv {name} {name}.damaged`) and rerun, which starts a new store (the release and DVC's outputs do not "
+        "depend on it; past runs stay in the moved file), or restore it from a backup; `sqlite3 "
+        f"{name}.damaged .recover | sqlite3 {name}` may save what is readable.")
+
+
+def busy_error(db: Path, waited: float, tries: int, limit: float) -> TrackingStoreError:
+    name = _named(db)
+    return TrackingStoreError(
+        f"{name}: the MLflow tracking store is locked by another process (database is locked) and stayed locked for "
+        f"{waited:.0f} s ({tries} tries). Fix: let that process finish or stop it (`fuser {name}` names it), then "
+        f"rerun; tracking.busy_timeout_s={limit:g} sets how long to wait.")
+
+
+def _with_store_retry(call: Callable[[], Any], uri: str, limit: float) -> Any:
+    """``call()``; a locked SQLite store is retried with backoff (0.25 s doubling to 8 s) for up to ``limit``
+    seconds, then :class:`TrackingStoreError`; a damaged one is :class:`TrackingStoreError` at once."""
+    db = sqlite_path(uri)
+    if db is None:
+        return call()
+    start, delay, tries = time.monotonic(), 0.25, 0
+    while True:
+        tries += 1
+        try:
+            return call()
+        except Exception as exc:
+            fault = store_fault(exc)
+            if fault == "damaged":
+                raise damaged_error(db, exc) from exc
+            if fault != "busy":
+                raise
+            waited = time.monotonic() - start
+            if waited + delay > limit:
+                raise busy_error(db, waited, tries, limit) from exc
+            # one word on the console when the wait starts (it may last tracking.busy_timeout_s), the rest in debug
+            (log.warning if tries == 1 else log.debug)(
+                "%s is locked by another process: retrying for up to %g s (tracking.busy_timeout_s)", _named(db), limit)
+            time.sleep(delay)
+            delay = min(2 * delay, 8.0)
+
+
+def check_store(uri: str, limit: float = DEFAULT_BUSY_TIMEOUT_S) -> None:
+    """Check a SQLite store before any work (stdlib ``sqlite3``, no MLflow import; once per process and store).
+
+    ``PRAGMA quick_check`` (milliseconds for a store of a few MB) finds a damaged file; a store locked by another
+    process is retried as :func:`_with_store_retry` does.
+
+    Raises
+    ------
+    TrackingStoreError
+        Damaged, or locked for longer than ``limit`` seconds.
+    """
+    import sqlite3
+
+    db = sqlite_path(uri)
+    if db is None or str(db) in _CHECKED or not db.exists():
+        return
+
+    def quick_check() -> None:
+        with contextlib.closing(sqlite3.connect(f"{db.as_uri()}?mode=ro", uri=True, timeout=min(1.0, limit))) as con:
+            verdict = [row[0] for row in con.execute("PRAGMA quick_check(3)")]
+        if verdict != ["ok"]:
+            raise damaged_error(db, "; ".join(map(str, verdict)))
+
+    _with_store_retry(quick_check, uri, limit)
+    _CHECKED.add(str(db))
+
+
+class StoreClient:
+    """An :class:`mlflow.MlflowClient` whose calls retry a locked SQLite store and name a damaged one
+    (:func:`_with_store_retry`); everything else is the client's own."""
+
+    def __init__(self, client: MlflowClient, uri: str, limit: float) -> None:
+        self._client, self._uri, self._limit = client, uri, limit
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._client, name)
+        if not callable(attr):
+            return attr
+        return lambda *args, **kwargs: _with_store_retry(lambda: attr(*args, **kwargs), self._uri, self._limit)
+
+    def __repr__(self) -> str:
+        return f"StoreClient({self._uri!r})"
+
+
+# --------------------------------------------------------------------------- a copied or moved workspace
+# MLflow's columns that hold artifact locations (schema of MLflow 3.x; a column missing in another version is skipped)
+_LOCATION_COLUMNS = (("experiments", "artifact_location"), ("runs", "artifact_uri"), ("model_versions", "source"),
+                     ("model_versions", "storage_location"), ("logged_models", "artifact_location"))
+
+
+def relocate_artifacts(uri: str) -> dict[str, int]:
+    """Point a copied or moved workspace's own store at its own ``mlartifacts/``.
+
+    MLflow stores absolute artifact locations (``file:///old/ws/mlartifacts/...``). After ``cp -a`` or ``mv`` of a
+    workspace, its ``mlflow.db`` still names the old folder: new runs would log, and ``aumesh promote`` register, the
+    *old* workspace's artifacts (or nothing, once it is deleted). When the store is the workspace's own (its file
+    inside :func:`aumesh.experiments.provenance.repo_root`) and an experiment's artifact location is another folder's
+    ``mlartifacts``, every location under that folder is rewritten to this workspace's ``mlartifacts`` (one
+    transaction, under the store's creation lock). Stores outside the workspace (shared stores) are left alone.
+
+    Returns
+    -------
+    dict
+        ``{old prefix: rows rewritten}`` (empty when nothing moved).
+    """
+    import sqlite3
+    from urllib.parse import unquote, urlsplit
+
+    db = sqlite_path(uri)
+    if db is None or not db.exists() or str(db) in _RELOCATED:
+        return {}
+    _RELOCATED.add(str(db))  # once per process: a workspace does not move while a command runs
+    try:
+        root = provenance.repo_root().resolve()
+    except FileNotFoundError:
+        return {}
+    if not db.resolve().is_relative_to(root):
+        return {}
+    own = (root / DEFAULT_ARTIFACT_DIR).as_uri()
+    moved: dict[str, int] = {}
+    with contextlib.closing(sqlite3.connect(db, timeout=5.0)) as con:
+        tables = {row[0] for row in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if "experiments" not in tables:
+            return {}  # not an MLflow store yet
+        locations = [row[0] for row in con.execute("SELECT artifact_location FROM experiments")]
+        olds = set()
+        for loc in locations:
+            if not loc or not str(loc).startswith("file://"):
+                continue
+            path = Path(unquote(urlsplit(loc).path))
+            base = next((p for p in (path, *path.parents) if p.name == DEFAULT_ARTIFACT_DIR), None)
+            if base is not None and base.as_uri() != own and not base.is_relative_to(root):
+                olds.add(base.as_uri())
+        if not olds:
+            return {}
+        with con:
+            for old in sorted(olds):
+                n = 0
+                for table, column in _LOCATION_COLUMNS:
+                    if table not in tables or column not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+                        continue
+                    n += con.execute(f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
+                                     f"WHERE {column} = ? OR substr({column}, 1, ?) = ?",
+                                     (own, len(old) + 1, old, len(old) + 1, old + "/")).rowcount
+                moved[old] = n
+    for old, n in moved.items():
+        log.warning("this workspace's MLflow store named the artifacts of %s (a copied or moved workspace): "
+                    "%d locations now point to %s", unquote(urlsplit(old).path), n, own)
+    return moved
 
 
 @contextlib.contextmanager

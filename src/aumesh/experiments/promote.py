@@ -399,6 +399,70 @@ class OverruleError(UserError, ValueError):
     """Promotion refused: a newer pipeline run evaluated another configuration than the sweep's best."""
 
 
+class PromotionError(UserError, ValueError):
+    """Promotion refused: an unfinished sweep, or a best run whose model artifacts are gone or outside the workspace."""
+
+
+def check_finished(parent: Mapping[str, Any], children: pd.DataFrame, partial: bool) -> str | None:
+    """Refuse a sweep that did not finish (interrupted, killed, failed or still running) unless ``partial``.
+
+    Parameters
+    ----------
+    parent : Mapping
+        The sweep's parent run (:func:`aumesh.experiments.tracking.run_record`).
+    children : DataFrame
+        Its child runs (:func:`aumesh.experiments.tracking.list_child_runs`).
+    partial : bool
+        Promote from what finished anyway.
+
+    Returns
+    -------
+    str or None
+        With ``partial`` and an unfinished sweep: the sentence naming the runs compared; None for a finished sweep.
+
+    Raises
+    ------
+    PromotionError
+        The sweep did not finish and ``partial`` is false.
+    """
+    tags = parent.get("tags", {})
+    expected = tags.get("aumesh.sweep.n_expected")
+    finished = children[children["status"] == "FINISHED"] if len(children) else children
+    if parent.get("status") == "FINISHED" and not tags.get("aumesh.sweep.interrupted"):
+        return None
+    state = tags.get("aumesh.sweep.interrupted") or {"RUNNING": "is still running (or its process died)"}.get(
+        parent.get("status"), f"ended {parent.get('status')}")
+    of = f"{len(finished)} of {expected or '?'} configurations finished"
+    if not partial:
+        raise PromotionError(
+            f"sweep {parent['run_id']} did not finish ({state}; {of}): its best run is the best of a part of the "
+            "sweep. Fix: rerun the sweep (`aumesh sweep -m ...`), or pass --partial to promote the best of the runs "
+            "that finished.")
+    names = ", ".join(f"{r.run_name} ({r.run_id})" for r in finished.itertuples()) if len(finished) else "none"
+    return f"partial sweep ({state}; {of}): compared only {names}"
+
+
+def model_artifacts(run_id: str, tracking_cfg: Mapping[str, Any] | None, root: Path) -> tuple[bool, str]:
+    """Whether run ``run_id`` still has its model (a non-empty ``model/``), and where it should be (workspace-relative
+    when local). A local artifact folder outside the workspace is refused: a record must not point there."""
+    from urllib.parse import unquote, urlsplit
+
+    from aumesh.experiments import mlflow_store, provenance
+
+    client = mlflow_store.get_client(tracking_cfg)
+    uri = f"{client.get_run(run_id).info.artifact_uri.rstrip('/')}/{MODEL_ARTIFACT_DIR}"
+    if uri.startswith("file:") or "://" not in uri:
+        path = Path(unquote(urlsplit(uri).path) if uri.startswith("file:") else uri)
+        store = mlflow_store.sqlite_path(mlflow_store.resolve_tracking_uri(tracking_cfg))
+        if store is not None and store.resolve().is_relative_to(root) and not path.resolve().is_relative_to(root):
+            raise PromotionError(
+                f"run {run_id}: its artifacts lie outside this workspace ({path}), so registering it would register "
+                f"another workspace's model. Fix: promote from that workspace, or rerun the sweep here.")
+        present = path.is_dir() and any(path.iterdir())  # what registry.register_model_version asks of the store
+        return present, provenance.shareable_location(uri, [root]) or uri
+    return bool(client.list_artifacts(run_id, MODEL_ARTIFACT_DIR)), uri
+
+
 def check_not_overruled(values: Mapping[str, Any], parent_run_id: str, newer_run: Mapping[str, Any]) -> None:
     """Refuse to promote over a pipeline run that started after the sweep and evaluated another configuration.
 
@@ -432,7 +496,8 @@ def check_not_overruled(values: Mapping[str, Any], parent_run_id: str, newer_run
 def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any] | None = None,
             metric: str | None = None, target: str | None = None, model_name: str | None = None,
             register: bool = True, alias: str = CHAMPION_ALIAS,
-            newer_run: Mapping[str, Any] | None = None) -> dict[str, Any]:
+            newer_run: Mapping[str, Any] | None = None, partial: bool = False,
+            skip_missing: bool = False, say=print) -> dict[str, Any]:
     """Promote the best child of sweep *parent_run_id* in workspace *root* (see the module docstring).
 
     Parameters
@@ -452,6 +517,14 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     newer_run : Mapping, optional
         An evaluate run (:func:`aumesh.experiments.tracking.run_record`) that started after the sweep; if the
         winner's configuration differs from it, nothing is written (:func:`check_not_overruled`).
+    partial : bool, default False
+        Promote from a sweep that did not finish (interrupted, killed); without it that is refused
+        (:func:`check_finished`). The record's ``partial`` names the runs compared.
+    skip_missing : bool, default False
+        When the best run's model artifacts are gone, take the next best whose artifacts exist (and say so, through
+        ``say``); without it that is refused, naming the run and the path. Only with ``register``.
+    say : callable, default print
+        Where the notes on skipped runs and partial sweeps go.
 
     Returns
     -------
@@ -465,8 +538,32 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     conf_dir = root / "conf"
     check_defaults_entry(conf_dir)
     children = tracking.list_child_runs(parent_run_id, tracking_cfg)
+    partial_note = check_finished(tracking.run_record(parent_run_id, tracking_cfg), children, partial)
+    if partial_note:
+        say(partial_note)
     candidates = candidates_from_frame(children)
     choice = choose(candidates, metric=metric, target=target)
+    skipped: list[dict[str, str]] = []
+    while register:  # the model registered must exist: name the run and the path, or (--skip-missing) take the next
+        present, where = model_artifacts(choice.run_id, tracking_cfg, root)
+        if present:
+            break
+        if not skip_missing:
+            raise PromotionError(
+                f"run {choice.run_id}, the best of sweep {parent_run_id} by {choice.metric}, has lost its model "
+                f"artifacts ({where} is missing or empty). Fix: --skip-missing promotes the next best run whose "
+                "artifacts exist, or rerun the sweep; --no-register promotes its configuration without the registry.")
+        skipped.append({"run_id": choice.run_id, "missing": where})
+        say(f"skipped run {choice.run_id} ({choice.metric} = {choice.value:.6f}): its model artifacts are gone "
+            f"({where}); taking the next best")
+        rest = [c for c in candidates if c.run_id not in {s["run_id"] for s in skipped}]
+        try:
+            choice = choose(rest, metric=metric, target=target)
+        except ValueError as err:
+            raise PromotionError(f"sweep {parent_run_id}: no run with its model artifacts left ({len(skipped)} "
+                                 f"skipped): {err}") from err
+    if skipped:
+        say(f"promoting run {choice.run_id} ({choice.metric} = {choice.value:.6f}), the best run whose artifacts exist")
     winner = next(c for c in candidates if c.run_id == choice.run_id)
 
     base = compose_with(conf_dir, None)
@@ -512,9 +609,13 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
         "model_version": version["version"] if version else None,
         "alias": alias if version else None,
         # promotion.json is committed: locations relative to the workspace, never its absolute path
-        "model_source": provenance.shareable_location(version["source"], [root]) if version else None,
-        "tracking_uri": provenance.shareable_location(mlflow_store.resolve_tracking_uri(tracking_cfg), [root]),
+        "model_source": provenance.record_location(version["source"], [root]) if version else None,
+        "tracking_uri": provenance.record_location(mlflow_store.resolve_tracking_uri(tracking_cfg), [root]),
         "promoted_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
+    if skipped:
+        record["skipped_missing_artifacts"] = skipped
+    if partial_note:
+        record["partial"] = partial_note
     atomic_write_json(root / cfg.paths.promotion_file, {"promoted": record})
     return record

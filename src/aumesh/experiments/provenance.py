@@ -471,3 +471,25 @@ def shareable_location(value: str | None, roots: Sequence[Path | str] | None = N
     if not parts.scheme or len(parts.scheme) == 1:  # a plain path (or a Windows drive letter)
         return relative(text) or text
     return text
+
+
+OUTSIDE = "<outside the workspace>"
+
+
+def record_location(value: str | None, roots: Sequence[Path | str] | None = None) -> str | None:
+    """:func:`shareable_location`, and a local path still absolute (outside every root: a store the user named with
+    ``MLFLOW_TRACKING_URI``) keeps only its file name, ``<outside the workspace>/mlflow.db``: a record
+    (``promotion.json``, ``model_card.json``) never holds an absolute path."""
+    from urllib.parse import unquote, urlsplit
+
+    text = shareable_location(value, roots)
+    if text is None:
+        return None
+    if text.startswith("sqlite:///"):
+        path, sep, query = text[len("sqlite:///"):].partition("?")
+        return f"sqlite:///{OUTSIDE}/{Path(path).name}{sep}{query}" if path.startswith("/") else text
+    if text.startswith("file:"):
+        return f"{OUTSIDE}/{Path(unquote(urlsplit(text).path)).name}"
+    if text.startswith("/"):
+        return f"{OUTSIDE}/{Path(text).name}"
+    return text

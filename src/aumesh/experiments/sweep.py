@@ -563,7 +563,8 @@ class SweepCallback:
         parent = tracking.start_parent_run(
             tracking_cfg, run_name=f"sweep {directory.name}", params=plain,
             tags={"aumesh.sweep.dir": str(directory.resolve()), "aumesh.sweep.overrides": " ".join(overrides),
-                  "aumesh.sweep.mode": mode, "aumesh.sweep.launcher": launcher})
+                  "aumesh.sweep.mode": mode, "aumesh.sweep.launcher": launcher,
+                  "aumesh.sweep.n_expected": count_jobs(overrides) if mode == "multirun" else 1})
         directory.mkdir(parents=True, exist_ok=True)
         atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg)
                                                     if parent else None, "overrides": overrides})
@@ -712,12 +713,56 @@ def run_sweep(argv: Sequence[str]) -> SweepOutcome:
     sys.argv = ["aumesh-sweep", *args]
     try:
         app()
+    except KeyboardInterrupt as err:  # Ctrl-C or SIGTERM: the running child is KILLED (tracked_run); now the parent
+        raise interrupted(directory, expected, err) from err
     finally:
         sys.argv = saved
         from hydra.core.global_hydra import GlobalHydra
 
         GlobalHydra.instance().clear()  # so config.compose() works again in this process
     return outcome(directory, expected)
+
+
+def interrupted(directory: Path, expected: int, err: KeyboardInterrupt) -> KeyboardInterrupt:
+    """Mark an interrupted sweep's parent, and any child still RUNNING, KILLED (tag ``aumesh.sweep.interrupted``:
+    ``aumesh promote`` refuses the sweep without ``--partial``); return the one-line
+    :class:`aumesh.utils.signals.Interrupted` to raise."""
+    import signal
+
+    from aumesh.experiments import tracking
+    from aumesh.utils.signals import Interrupted, Terminated
+
+    signum = signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT
+    how = f"stopped: {err}" if isinstance(err, Terminated) else "Ctrl-C"
+    parent = read_parent(directory) if (directory / PARENT_FILE).is_file() else None
+    os.environ.pop(PARENT_ENV, None)
+    if parent is None:
+        return Interrupted(f"interrupted ({how}) before the sweep started; nothing was logged", signum)
+    tracking_cfg: dict[str, Any] = {}
+    with contextlib.suppress(Exception):
+        from aumesh.config import load_params
+
+        tracking_cfg = dict(load_params("params.yaml").tracking.__dict__)
+    children = tracking.list_child_runs(parent, tracking_cfg)
+    done = int(children["status"].isin(["FINISHED", "FAILED"]).sum()) if len(children) else 0
+    finished = int((children["status"] == "FINISHED").sum()) if len(children) else 0
+    summary = f"interrupted after {done} of {expected} runs"
+    killed = []
+    client = tracking.get_client(tracking_cfg)
+    for row in children.itertuples() if len(children) else ():
+        if row.status == "RUNNING":  # a child in another process (joblib) that did not close its run
+            client.set_tag(row.run_id, tracking.ERROR_TAG, f"sweep {summary} ({how})")
+            client.set_terminated(row.run_id, "KILLED")
+        if row.status in ("RUNNING", "KILLED"):
+            killed.append(row.run_name)
+    tracking.set_run_tags(parent, {"aumesh.sweep.interrupted": f"{summary} ({how})",
+                                   "aumesh.sweep.n_children": len(children), "aumesh.sweep.n_finished": finished,
+                                   "aumesh.sweep.n_failed": len(children) - finished,
+                                   tracking.ERROR_TAG: f"sweep {summary} ({how})"}, tracking_cfg)
+    tracking.end_run(parent, tracking_cfg, "KILLED")
+    return Interrupted(f"{summary} ({how}): sweep {parent} and its running configuration "
+                       f"{', '.join(killed) or '(none)'} marked KILLED; `aumesh promote` refuses it without --partial",
+                       signum)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -549,7 +549,11 @@ def _start_helper(owner_pid: int) -> None:
     import signal
     import threading
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # SIGTERM/SIGHUP too: a stage stops on them as on Ctrl-C (aumesh.utils.signals), and this helper, forked after the
+    # stage installed that handler, must stay to mark the run KILLED when a whole process group is told to stop
+    for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if sig is not None:
+            signal.signal(sig, signal.SIG_IGN)
 
     def watch() -> None:
         while os.getppid() == owner_pid:

@@ -149,11 +149,13 @@ def evaluate_stage(cfg: Config) -> dict:
     from aumesh.pipeline import evaluate as ev
 
     start_stage("evaluate", cfg)
+    params = cfg.to_dict()
+    tracking_cfg = params["tracking"]
+    if cfg.tracking.enabled:  # a damaged or locked store stops the stage before any work, not after the whole CV
+        mlflow_store.check_store(mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg))
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
-    params = cfg.to_dict()
-    tracking_cfg = params["tracking"]
     # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
     with tracking.tracked_run_beside(tracking_cfg, run_name=evaluate_run_name(cfg), params=params,
                                      tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
@@ -167,7 +169,7 @@ def evaluate_stage(cfg: Config) -> dict:
         run.call(log_release_model, arrays)
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
                     # repo-relative (sqlite:///mlflow.db): the card built from this is shared
-                    "tracking_uri": provenance.shareable_location(mlflow_store.resolve_tracking_uri(tracking_cfg))
+                    "tracking_uri": provenance.record_location(mlflow_store.resolve_tracking_uri(tracking_cfg))
                     if cfg.tracking.enabled else None}
         with atomic_directory(out) as tmp:
             np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,

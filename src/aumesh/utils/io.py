@@ -110,9 +110,9 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; a published folder gets the usual mode
+    old = None
     try:
         yield tmp
-        old = None
         if path.exists():
             old = path.with_name(_temp_prefix(path, "old") + "x")
             os.replace(path, old)
@@ -120,6 +120,9 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
     except BaseException:
+        # interrupted (Ctrl-C, SIGTERM) between the two renames: the previous folder goes back, not a hole
+        if old is not None and old.exists() and not path.exists():
+            os.replace(old, path)
         shutil.rmtree(tmp, ignore_errors=True)
         raise
 
