@@ -554,7 +554,7 @@ class SweepCallback:
 
     # -- implementation
     def _start(self, config, directory: Path, overrides: list[str], mode: str) -> None:
-        from aumesh.experiments import mlflow_store, tracking
+        from aumesh.experiments import tracking
 
         self._t0 = time.perf_counter()
         plain = _plain_config(config)
@@ -565,7 +565,7 @@ class SweepCallback:
             tags={"aumesh.sweep.dir": str(directory.resolve()), "aumesh.sweep.overrides": " ".join(overrides),
                   "aumesh.sweep.mode": mode, "aumesh.sweep.launcher": launcher})
         directory.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg)
+        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": tracking.tracking_uri(tracking_cfg)
                                                     if parent else None, "overrides": overrides})
         if parent:
             os.environ[PARENT_ENV] = parent
@@ -580,20 +580,7 @@ class SweepCallback:
             return
         tracking_cfg = dict(_plain_config(config).get("tracking") or {})
         wall = time.perf_counter() - self._t0 if self._t0 else None
-        children = None
-        tags: dict[str, Any] = {}
-        try:
-            children = tracking.list_child_runs(parent, tracking_cfg)
-            statuses = children["status"].value_counts().to_dict() if len(children) else {}
-            tags = {"aumesh.sweep.n_children": len(children), "aumesh.sweep.n_finished": statuses.get("FINISHED", 0),
-                    "aumesh.sweep.n_failed": len(children) - statuses.get("FINISHED", 0)}
-            if wall is not None:
-                tags["aumesh.sweep.wall_seconds"] = f"{wall:.2f}"
-            tracking.set_run_tags(parent, tags, tracking_cfg)
-            if wall is not None:
-                tracking.run_handle(parent, tracking_cfg).log_metrics({"sweep_wall_seconds": wall})
-        finally:
-            tracking.end_run(parent, tracking_cfg, "FINISHED")
+        children, tags = tracking.finish_sweep(parent, tracking_cfg, wall)
         if children is None:
             return
         print(f"\nsweep parent {parent}: {tags['aumesh.sweep.n_children']} configurations, "
@@ -602,7 +589,7 @@ class SweepCallback:
             from aumesh.experiments.leaderboard import format_runs_table, runs_table
 
             print(format_runs_table(runs_table(children)))
-        print(f"(`aumesh runs --parent {parent}`; `aumesh promote --parent {parent}`)")
+        print(f"(`aumesh runs --sweep {parent}`; `aumesh promote --sweep {parent}`)")
 
 
 def count_jobs(overrides: Sequence[str]) -> int:
