@@ -222,6 +222,16 @@ def _cmd_promote(args) -> int:
     return 0
 
 
+def _cmd_server(args) -> int:
+    from aumesh.experiments import server
+
+    cmd = server.server_command(args.backend_store_uri, args.artifacts_destination, args.host, args.port,
+                                args.workers, args.allowed_hosts, args.mlflow_args)
+    print("starting: " + " ".join(cmd[2:]), flush=True)
+    os.execve(cmd[0], cmd, server.server_environment())  # the server is this process: Ctrl-C and kill reach it
+    return 0  # pragma: no cover - execve does not return
+
+
 def add_experiment_commands(subparsers) -> None:
     """Add ``sweep``, ``runs`` and ``promote`` to the ``aumesh`` command."""
     from aumesh.model.statistics import TARGETS
@@ -272,6 +282,23 @@ def add_experiment_commands(subparsers) -> None:
             p.add_argument("--model-name", default=None,
                            help="registered model name (default: aumesh-au-to-mesh)")
             p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
+
+    p = subparsers.add_parser(
+        "server", help="start a team's MLflow tracking server (database backend, served artifacts); clients set "
+                       "MLFLOW_TRACKING_URI or aumesh.local.yaml to http://HOST:PORT")
+    p.add_argument("--backend-store-uri", required=True,
+                   help="the database: postgresql://USER@DBHOST:5432/DB (password in ~/.pgpass or PGPASSWORD; the "
+                        "installed driver is added) or sqlite:///PATH")
+    p.add_argument("--artifacts-destination", required=True,
+                   help="where the server stores run artifacts: a folder on the server, or s3://... ")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: the lab's network)")
+    p.add_argument("--port", type=int, default=5000, help="port to listen on")
+    p.add_argument("--workers", type=int, default=2, help="server worker processes")
+    p.add_argument("--allowed-hosts", default=None,
+                   help="host names clients use, e.g. mlflow.lab.example:5000 (default: localhost and private IPs)")
+    p.add_argument("mlflow_args", nargs="*", metavar="-- MLFLOW_OPTION",
+                   help="more `mlflow server` options after `--` (default: none)")
+    p.set_defaults(func=_cmd_server)
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):
