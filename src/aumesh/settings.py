@@ -27,6 +27,9 @@ from typing import Any
 
 LOCAL_SETTINGS = "aumesh.local.yaml"
 SETTINGS_ENV = "AUMESH_LOCAL_SETTINGS"
+#: The groups the local settings may hold: where a run is logged (where it computes, ``compute``, belongs here too
+#: once the compute engine reads it: :func:`local_value`).
+KNOWN_GROUPS = frozenset({"tracking"})
 
 
 def settings_path(root: Path | None = None) -> Path | None:
@@ -68,12 +71,9 @@ def local_settings(root: Path | None = None) -> dict[str, Any]:
     unknown = sorted(set(data) - KNOWN_GROUPS)
     if unknown:
         raise ConfigError(f"{path}: unknown group(s) {', '.join(unknown)}; it holds {', '.join(sorted(KNOWN_GROUPS))} "
-                          "(where runs execute and are logged, never what they compute).")
+                          "(where runs are logged, never what they compute).")
     return {str(k): dict(v or {}) for k, v in data.items()}
 
-
-#: The groups the local settings may hold: where a run is logged and where it computes.
-KNOWN_GROUPS = frozenset({"tracking", "compute"})
 
 
 def local_value(group: str, key: str, root: Path | None = None) -> Any:
