@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 # glTF-Validator (tests); `npm ci` installs the locked versions into ./node_modules (git-ignored).
 TOOLS_STAMP := node_modules/.package-lock.json
 
-.PHONY: help venv tools demo refresh-demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui pyfeat-check
+.PHONY: help venv tools demo refresh-demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-server-postgres mlflow-ui pyfeat-check
 
 help:
 	@echo "make demo        - create .venv from requirements.lock, pull the demo data and outputs, dvc repro (up to date)"
@@ -22,6 +22,7 @@ help:
 	@echo "make params      - recompose params.yaml from conf/ (what dvc exp run does)"
 	@echo "make bench       - run the benchmarks under benchmarks/"
 	@echo "make mlflow-server - start an MLflow tracking server (SQLite backend) on 127.0.0.1:5000"
+	@echo "make mlflow-server-postgres - a team's tracking server: MLFLOW_DB=postgresql://USER@DBHOST/DB MLFLOW_HOST=0.0.0.0"
 	@echo "make pyfeat-check - py-feat's own client on release/ (throwaway venv with py-feat + torch, ~6.5 GB; PYFEAT_VENV=DIR keeps one)"
 
 # The environment: a fresh venv, exact pins from requirements.lock, then the package itself without deps.
@@ -87,6 +88,16 @@ bench: $(STAMP)
 MLFLOW_PORT ?= 5000
 mlflow-server: $(STAMP)
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --host 127.0.0.1 --port $(MLFLOW_PORT)
+
+# A team's tracking server (README "Working as a team"): PostgreSQL backend, artifacts served through the server.
+# Clients: MLFLOW_TRACKING_URI=http://HOST:$(MLFLOW_PORT) or `tracking: {tracking_uri: ...}` in aumesh.local.yaml.
+# The password comes from ~/.pgpass or PGPASSWORD (libpq), never the command line.
+MLFLOW_DB ?= postgresql://mlflow@localhost:5432/mlflow
+MLFLOW_HOST ?= 127.0.0.1
+MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
+mlflow-server-postgres: $(STAMP)
+	$(BIN)/aumesh server --backend-store-uri '$(MLFLOW_DB)' --artifacts-destination '$(MLFLOW_ARTIFACTS)' \
+		--host $(MLFLOW_HOST) --port $(MLFLOW_PORT)
 
 clean-build:
 	rm -rf build release

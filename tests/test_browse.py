@@ -9,7 +9,7 @@ import json
 import pytest
 
 from aumesh import cli, config
-from aumesh.experiments import mlflow_store, promote, tracking
+from aumesh.experiments import mlflow_store, promote, queries, tracking
 from aumesh.pipeline import stages
 
 from test_sweep import workspace_with_store
@@ -29,14 +29,14 @@ def sweeps(workspace):
     ids, codes = [], []
     for argv in (["-m", *FAILING], ["-m", *FAILING, "--allow-failures"]):
         codes.append(cli.main(["sweep", *argv]))
-        ids.append(tracking.latest_parent_run({}))
+        ids.append(queries.latest_parent_run({}))
     return ids, codes
 
 
 def _evaluate(workspace) -> dict:
     stages.evaluate_stage(config.load_params(workspace / "params.yaml"))
     run_id = json.loads((workspace / "build" / "model" / stages.TRACKING_JSON).read_text())["run_id"]
-    return tracking.run_record(run_id, {})
+    return queries.run_record(run_id, {})
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +52,7 @@ def test_a_sweep_with_failed_configurations_exits_1_unless_allowed(sweeps, capsy
     assert codes == [1, 0]
     assert len(set(ids)) == 2
     for parent in ids:  # the failures were logged and the rest still ran
-        statuses = sorted(tracking.list_child_runs(parent, {})["status"])
+        statuses = sorted(queries.list_child_runs(parent, {})["status"])
         assert statuses == ["FAILED", "FINISHED"]
 
 
@@ -66,7 +66,7 @@ def test_runs_sweeps_lists_every_sweep_newest_first_with_size_and_best(sweeps, c
     assert cli.main(["runs", "--sweeps", "--json"]) == 0
     rows = {r["sweep"]: r for r in json.loads(capsys.readouterr().out)}
     for parent in ids:  # against the store itself: size, failures, the best r2_mean (ties: fewer components)
-        children = tracking.list_child_runs(parent, {})
+        children = queries.list_child_runs(parent, {})
         done = children[children["status"] == "FINISHED"]
         best = done.sort_values(["metrics.r2_mean", "metrics.n_components"], ascending=[False, True]).iloc[0]
         r = rows[parent]
@@ -102,9 +102,9 @@ def test_promote_names_its_sweep_and_refuses_to_overrule_a_newer_evaluate_run(sw
     assert err.startswith("aumesh promote: error: sweep ") and message in err
     assert f"sweep {latest} is older than evaluate run {newer['run_id']}" in message
     assert "model.n_components=83 there, 2 in the sweep's best run" in message
-    assert "--parent ID" in message and "--latest" in message
+    assert "--sweep ID" in message and "--latest" in message
     assert cli.main(["promote", "--no-register"]) == 2
-    assert f"the latest sweep: {latest}" in capsys.readouterr().out  # it said which sweep it took
+    assert f"your latest sweep: {latest}" in capsys.readouterr().out  # it said which sweep it took
     assert not promoted.exists() and (workspace / "promotion.json").read_text() == before  # nothing written
 
     assert cli.main(["promote", "--latest", "--no-register"]) == 0  # the flag to promote it anyway

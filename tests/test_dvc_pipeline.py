@@ -69,6 +69,14 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert (ws / "release" / "MODEL_CARD.md").read_text().count("figures/") >= 4
     assert (ws / "release" / "au_to_mesh.glb").read_bytes()[:4] == b"glTF"  # the blendshape rig (tests/test_gltf.py)
     assert "up to date" in _run([BIN / "dvc", "repro"], ws)
+    # where runs are logged and where the passes run are not what a stage computes: no stage param, nothing stale
+    params_text = (ws / "params.yaml").read_text()
+    moved = yaml.safe_load(params_text)
+    moved["tracking"]["tracking_uri"] = "http://10.0.0.5:5000"
+    moved["compute"].update(scheduler="distributed", address="tcp://10.0.0.5:8786")
+    (ws / "params.yaml").write_text(yaml.safe_dump(moved, sort_keys=False))
+    assert "up to date" in _run([BIN / "dvc", "status"], ws)
+    (ws / "params.yaml").write_text(params_text)
     # bytecode a plain `python` run writes beside the stages' source deps is not part of them (.dvcignore)
     shutil.copy(REPO / ".dvcignore", ws / ".dvcignore")
     (ws / "src" / "aumesh" / "model" / "__pycache__").mkdir(exist_ok=True)

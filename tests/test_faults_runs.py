@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from aumesh import cli, config
-from aumesh.experiments import mlflow_store, registry, sweep, tracking
+from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
 from test_faults import good_workspace, mlflow_runs, run_cli, tree_digest, workspace  # noqa: F401 (fixtures)
 
 KEPT = ("release", "build")
@@ -161,7 +161,7 @@ def swept_workspace(tmp_path_factory):
             mp.delenv(var, raising=False)
         mp.setattr(mlflow_store, "_RELOCATED", set())
         assert cli.main(["sweep", "-m", "model.n_components=2,4,6"]) == 0
-        parent = tracking.latest_parent_run({})
+        parent = queries.latest_parent_run({})
     return ws, parent
 
 
@@ -185,7 +185,7 @@ def promotion_files(ws: Path) -> dict[str, bytes]:
 def ranked(ws: Path, parent: str) -> list[str]:
     from aumesh.experiments import promote
 
-    children = tracking.list_child_runs(parent, {})
+    children = queries.list_child_runs(parent, {})
     return [r for r, _ in promote.choose(promote.candidates_from_frame(children)).ranking]
 
 
@@ -261,9 +261,9 @@ def test_interrupted_sweep_is_marked_killed_and_not_promoted_by_accident(swept, 
     assert code == 130, err
     line = one_line(err, "sweep")
     assert "interrupted after 2 of 5 runs (Ctrl-C)" in line and "marked KILLED" in line and "--partial" in line
-    parent = tracking.latest_parent_run({})
-    record = tracking.run_record(parent, {})
-    children = tracking.list_child_runs(parent, {})
+    parent = queries.latest_parent_run({})
+    record = queries.run_record(parent, {})
+    children = queries.list_child_runs(parent, {})
     assert record["status"] == "KILLED" and record["tags"]["aumesh.sweep.interrupted"].startswith("interrupted after 2")
     assert sorted(children["status"]) == ["FINISHED", "FINISHED", "KILLED"]
     assert line.split("running configuration ")[1].startswith(children[children["status"] == "KILLED"]["run_name"].iloc[0])

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from aumesh.experiments import mlflow_store, tracking
+from aumesh.experiments import mlflow_store, queries, tracking
 
 pytestmark = pytest.mark.server
 
@@ -111,5 +111,5 @@ def test_parent_and_children_over_http(mlflow_server, tmp_path, monkeypatch):
         assert got.data.params["model.n_components"] == str(k)
         assert [m.step for m in sorted(client.get_metric_history(rid, "r2"), key=lambda m: m.step)] == [0, 1, 2]
         assert "config.yaml" in {a.path for a in client.list_artifacts(rid)}  # proxied upload via the server
-    df = tracking.list_child_runs(parent, cfg)
+    df = queries.list_child_runs(parent, cfg)
     assert sorted(df["run_id"]) == sorted(children)

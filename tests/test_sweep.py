@@ -20,7 +20,7 @@ from aumesh.pipeline import prepare
 from aumesh.data import synth
 from aumesh.data import tables
 from aumesh.data.schema import INPUT_COLUMNS
-from aumesh.experiments import mlflow_store, registry, tracking
+from aumesh.experiments import mlflow_store, queries, registry, tracking
 
 from test_mlflow_server import mlflow_server  # noqa: F401  (module-scoped real server fixture)
 
@@ -74,9 +74,9 @@ def swept(workspace):
     from aumesh import cli
 
     assert cli.main(["sweep", *GRID]) == 1  # 2 configurations fail: logged and ranked, then exit 1
-    parent = tracking.latest_parent_run({})
+    parent = queries.latest_parent_run({})
     assert parent is not None
-    return parent, tracking.list_child_runs(parent, {})
+    return parent, queries.list_child_runs(parent, {})
 
 
 def test_sweep_one_parent_and_a_child_per_configuration(swept, workspace):
@@ -236,8 +236,8 @@ def test_joblib_launcher_children_find_the_parent(workspace):
     from aumesh import cli
 
     assert cli.main(["sweep", "-m", "model.n_components=2,3", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2"]) == 0
-    parent = tracking.latest_parent_run({})
-    children = tracking.list_child_runs(parent, {})
+    parent = queries.latest_parent_run({})
+    children = queries.list_child_runs(parent, {})
     assert len(children) == 2 and set(children["status"]) == {"FINISHED"}
     assert mlflow_store.get_client({}).get_run(parent).data.tags["aumesh.sweep.launcher"].endswith("JoblibLauncher")
 
@@ -261,7 +261,7 @@ def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_serve
         results.append(sweep.run_configuration(raw, ov, parent, cache=cache, root=workspace))
     tracking.end_run(parent, cfg)
     assert [r["status"] for r in results] == ["FINISHED", "FINISHED", "FAILED"]  # 30 components > 20 features
-    children = tracking.list_child_runs(parent, cfg)
+    children = queries.list_child_runs(parent, cfg)
     assert sorted(children["status"]) == ["FAILED", "FINISHED", "FINISHED"]
     record = promote.promote(parent, workspace, cfg, model_name="aumesh-server-test")
     champion = registry.model_version_by_alias("aumesh-server-test", "champion", cfg)

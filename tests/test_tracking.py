@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from aumesh.experiments import provenance
-from aumesh.experiments import mlflow_store, tracking
+from aumesh.experiments import mlflow_store, queries, tracking
 
 MD5 = "0123456789abcdef0123456789abcdef.dir"
 DVC_FILE = f"""outs:
@@ -135,7 +135,7 @@ def test_parent_and_children_are_linked(cfg, store_uri):
     client = _client(store_uri)
     assert client.get_run(parent).info.status == "FAILED"
     assert client.get_run(parent).data.tags[tracking.ROLE_TAG] == "sweep-parent"
-    df = tracking.list_child_runs(parent, cfg)
+    df = queries.list_child_runs(parent, cfg)
     assert list(df["run_name"]) == ["k=2", "k=4"]
     assert list(df["params.model.n_components"]) == ["2", "4"]
     assert df["metrics.r2"].tolist() == pytest.approx([0.21, 0.41])
@@ -153,7 +153,7 @@ def test_nested_uses_enclosing_run(cfg, store_uri):
     client = _client(store_uri)
     assert client.get_run(inner.run_id).data.tags["mlflow.parentRunId"] == outer.run_id
     assert "mlflow.parentRunId" not in client.get_run(independent.run_id).data.tags
-    assert list(tracking.list_child_runs(outer.run_id, cfg)["run_id"]) == [inner.run_id]
+    assert list(queries.list_child_runs(outer.run_id, cfg)["run_id"]) == [inner.run_id]
 
 
 def test_disabled_tracking_is_a_noop(workspace):

@@ -122,14 +122,19 @@ def _tracking_cfg(args) -> dict[str, Any]:
 
 
 def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
-    from aumesh.experiments import mlflow_store, tracking
+    """The sweep a command is about: ``--sweep ID``, else this clone's latest sweep (never a teammate's)."""
+    from aumesh.experiments import queries
+    from aumesh.utils.errors import UserError
 
     if args.parent:
         return args.parent
-    parent = tracking.latest_parent_run(tracking_cfg)
+    me = queries.current_owner()
+    parent = queries.latest_parent_run(tracking_cfg, workspace=me["workspace"])
     if parent is None:
-        raise SystemExit(f"no sweep parent run in experiment {tracking_cfg.get('experiment') or 'aumesh'} of "
-                         f"{mlflow_store.resolve_tracking_uri(tracking_cfg)}; run `aumesh sweep -m ...` first or pass --parent.")
+        raise UserError(f"no sweep of this workspace (user {me['user']}, workspace {me['workspace'][:8]}) in experiment "
+                        f"{tracking_cfg.get('experiment') or 'aumesh'}. Fix: run `aumesh sweep -m ...`, or name a "
+                        "teammate's sweep with --sweep ID (`aumesh runs --sweeps` lists the team's)"
+                        + (", or rank everyone's runs with --across" if args.command == "promote" else "") + ".")
     return parent
 
 
@@ -143,7 +148,7 @@ def _cmd_sweep(args) -> int:
     outcome = sweep.run_sweep([a for a in args.overrides if a != ALLOW_FAILURES])
     if not outcome.n_failed:
         return 0
-    print(f"{outcome.n_failed} of {outcome.n_jobs} configurations failed (errors: `aumesh runs --parent "
+    print(f"{outcome.n_failed} of {outcome.n_jobs} configurations failed (errors: `aumesh runs --sweep "
           f"{outcome.parent_run_id}`); " + ("exit 0 (--allow-failures)" if allow else f"exit 1 ({ALLOW_FAILURES} keeps 0)"),
           file=sys.stderr)
     return 0 if allow else 1
@@ -156,24 +161,30 @@ def _utc(ms: float) -> str:
 
 
 def _cmd_runs(args) -> int:
-    from aumesh.experiments import leaderboard, tracking
+    from aumesh.experiments import leaderboard, queries
 
     tracking_cfg = _tracking_cfg(args)
     if args.sweeps:
-        sweeps = leaderboard.sweeps_table(tracking_cfg, limit=args.limit)
+        user = queries.current_owner()["user"] if args.mine else args.user
+        sweeps = leaderboard.sweeps_table(tracking_cfg, limit=args.limit, user=user)
         print(sweeps.to_json(orient="records", indent=2, date_format="iso", double_precision=15) if args.json
               else leaderboard.format_sweeps_table(sweeps))
         return 0
+    if args.mine or args.user:
+        from aumesh.utils.errors import UserError
+
+        raise UserError("--mine and --user filter the list of sweeps: `aumesh runs --sweeps --mine`.")
     parent = _parent_id(args, tracking_cfg)
-    record = tracking.run_record(parent, tracking_cfg)
-    children = tracking.list_child_runs(parent, tracking_cfg)
+    record = queries.run_record(parent, tracking_cfg)
+    children = queries.list_child_runs(parent, tracking_cfg)
     table = leaderboard.runs_table(children, args.metric)
     if args.json:
         print(table.to_json(orient="records", indent=2))
         return 0
     tags = record["tags"]
     n_failed = int((children["status"] != "FINISHED").sum()) if len(children) else 0
-    print(f"sweep {parent} ({record['status']}, {record['run_name']}): {len(children)} runs, {n_failed} not finished"
+    print(f"sweep {parent} ({record['status']}, {record['run_name']}, by {record['user'] or '?'}): {len(children)} runs, "
+          f"{n_failed} not finished"
           + (f", wall {tags['aumesh.sweep.wall_seconds']} s" if "aumesh.sweep.wall_seconds" in tags else ""))
     if tags.get("aumesh.sweep.overrides"):
         print(f"  overrides: {tags['aumesh.sweep.overrides']}")
@@ -182,30 +193,44 @@ def _cmd_runs(args) -> int:
 
 
 def _cmd_promote(args) -> int:
-    from aumesh.experiments import promote
-    from aumesh.experiments import provenance
-
-    from aumesh.experiments import tracking
+    from aumesh.experiments import promote, provenance, queries
 
     tracking_cfg = _tracking_cfg(args)
-    parent = _parent_id(args, tracking_cfg)
-    newer = None
-    if not args.parent:  # the latest sweep: say which, and do not silently overrule a newer pipeline run
-        sweep = tracking.run_record(parent, tracking_cfg)
+    root = provenance.repo_root()
+    newer = parent = None
+    if not args.across:
+        parent = _parent_id(args, tracking_cfg)
+    if not args.parent and not args.across:  # your latest sweep: say which, and do not overrule your newer pipeline run
+        sweep = queries.run_record(parent, tracking_cfg)
         n_runs = sweep["tags"].get("aumesh.sweep.n_children", "?")
-        print(f"the latest sweep: {parent} (started {_utc(sweep['start_time'])}, {n_runs} runs, "
+        print(f"your latest sweep: {parent} (started {_utc(sweep['start_time'])}, {n_runs} runs, "
               f"swept {sweep['tags'].get('aumesh.sweep.overrides') or 'nothing'}); "
-              "--parent ID promotes another (`aumesh runs --sweeps` lists them)")
-        if not args.latest:
-            evaluate = tracking.latest_runs_tagged("aumesh.stage", "evaluate", tracking_cfg, max_results=1)
-            if evaluate and evaluate[0]["start_time"] > sweep["start_time"]:
-                newer = evaluate[0]
-    record = promote.promote(parent, provenance.repo_root(), tracking_cfg, metric=args.metric, target=args.target,
+              "--sweep ID promotes another, --across ranks the team's runs (`aumesh runs --sweeps` lists them)")
+        if not args.latest:  # only this clone's pipeline runs: a teammate's `dvc exp run` is theirs
+            evaluate = queries.latest_evaluate_run(tracking_cfg, workspace=queries.current_owner(root)["workspace"])
+            if evaluate and evaluate["start_time"] > sweep["start_time"]:
+                newer = evaluate
+    record = promote.promote(parent, root, tracking_cfg, metric=args.metric, target=args.target,
                              model_name=args.model_name, register=not args.no_register, newer_run=newer,
-                             partial=args.partial, skip_missing=args.skip_missing, say=_say)
+                             across=args.across, partial=args.partial, skip_missing=args.skip_missing, say=_say)
     print(json.dumps(record, indent=2, default=str))
+    if args.across:
+        me = queries.current_owner(root)
+        whose = "your own" if record["workspace"] == me["workspace"] else f"{record['user']}'s"
+        print(f"\nacross the team's runs on this data, {whose} run {record['run_id']} won "
+              f"({record['metric']} = {record['value']:.6f}, of sweep {record['parent_run_id']}).")
     print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` rebuilds that release.")
     return 0
+
+
+def _cmd_server(args) -> int:
+    from aumesh.experiments import server
+
+    cmd = server.server_command(args.backend_store_uri, args.artifacts_destination, args.host, args.port,
+                                args.workers, args.allowed_hosts, args.mlflow_args)
+    print("starting: " + " ".join(cmd[2:]), flush=True)
+    os.execve(cmd[0], cmd, server.server_environment())  # the server is this process: Ctrl-C and kill reach it
+    return 0  # pragma: no cover - execve does not return
 
 
 def add_experiment_commands(subparsers) -> None:
@@ -225,16 +250,26 @@ def add_experiment_commands(subparsers) -> None:
                              ("promote", _cmd_promote, "promote a sweep's best run into conf/ (+ model registry alias)")):
         p = subparsers.add_parser(name, help=text)
         who = p.add_mutually_exclusive_group()
-        who.add_argument("--parent", help="the sweep's parent run id (default: the latest sweep)")
+        who.add_argument("--sweep", "--parent", dest="parent", metavar="ID",
+                         help="the sweep's parent run id, anyone's (default: this workspace's latest sweep)")
         if name == "runs":
-            who.add_argument("--latest", action="store_true", help="the latest sweep (what happens without --parent)")
+            who.add_argument("--latest", action="store_true",
+                             help="this workspace's latest sweep (what happens without --sweep)")
             who.add_argument("--sweeps", action="store_true",
-                             help="list past sweeps instead: id, start, runs, failed, best run, what they swept")
+                             help="list past sweeps instead, the team's: id, start, user, workspace, runs, failed, "
+                                  "best run, what they swept")
             p.add_argument("--limit", type=int, default=20, help="how many of the newest sweeps --sweeps lists")
+            mine = p.add_mutually_exclusive_group()
+            mine.add_argument("--mine", action="store_true",
+                              help="with --sweeps: only your sweeps (your git user.email, else your login)")
+            mine.add_argument("--user", default=None, help="with --sweeps: only this user's sweeps (default: everyone's)")
         else:
             who.add_argument("--latest", action="store_true",
-                             help="promote the latest sweep even when a newer evaluate run evaluated another "
-                                  "configuration (without it, promote refuses to overrule that run)")
+                             help="promote your latest sweep even when a newer evaluate run of this workspace "
+                                  "evaluated another configuration (without it, promote refuses to overrule that run)")
+            who.add_argument("--across", action="store_true",
+                             help="rank every finished run on this workspace's data version (DVC hash of data.dvc), "
+                                  "whoever ran it, and say whose won")
         p.add_argument("--metric", default=None,
                        help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean; "
                             "au_reliability_median / au_reliability_min / n_aus_facs_pass rank by AU-field reliability)")
@@ -254,6 +289,23 @@ def add_experiment_commands(subparsers) -> None:
             p.add_argument("--skip-missing", action="store_true",
                            help="when the best run's model artifacts were deleted, promote the next best run whose "
                                 "artifacts exist, and say so (without it, refused naming the run and the path)")
+
+    p = subparsers.add_parser(
+        "server", help="start a team's MLflow tracking server (database backend, served artifacts); clients set "
+                       "MLFLOW_TRACKING_URI or aumesh.local.yaml to http://HOST:PORT")
+    p.add_argument("--backend-store-uri", required=True,
+                   help="the database: postgresql://USER@DBHOST:5432/DB (password in ~/.pgpass or PGPASSWORD; the "
+                        "installed driver is added) or sqlite:///PATH")
+    p.add_argument("--artifacts-destination", required=True,
+                   help="where the server stores run artifacts: a folder on the server, or s3://... ")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: the lab's network)")
+    p.add_argument("--port", type=int, default=5000, help="port to listen on")
+    p.add_argument("--workers", type=int, default=2, help="server worker processes")
+    p.add_argument("--allowed-hosts", default=None,
+                   help="host names clients use, e.g. mlflow.lab.example:5000 (default: localhost and private IPs)")
+    p.add_argument("mlflow_args", nargs="*", metavar="-- MLFLOW_OPTION",
+                   help="more `mlflow server` options after `--` (default: none)")
+    p.set_defaults(func=_cmd_server)
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter):

@@ -15,7 +15,7 @@ def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFram
     Parameters
     ----------
     children : DataFrame
-        :func:`aumesh.experiments.tracking.list_child_runs` output.
+        :func:`aumesh.experiments.queries.list_child_runs` output.
     metric : str, optional
         Ranking metric; default: :func:`aumesh.experiments.promote.default_metric` of the finished runs' targets.
 
@@ -87,7 +87,8 @@ def format_runs_table(table: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def sweeps_table(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20) -> pd.DataFrame:
+def sweeps_table(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20, user: str | None = None,
+                 workspace: str | None = None) -> pd.DataFrame:
     """Past sweeps of the configured experiment, newest first, each with its size and best run (``aumesh runs --sweeps``).
 
     Parameters
@@ -96,27 +97,32 @@ def sweeps_table(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20)
         The ``tracking`` config group (store and experiment).
     limit : int, default 20
         How many of the newest sweeps.
+    user, workspace : str, optional
+        Only the sweeps of this user (``aumesh.user``) / this clone (``aumesh.workspace.id``).
 
     Returns
     -------
     DataFrame
-        ``sweep`` (parent run id), ``started`` (UTC timestamp), ``status``, ``n_runs``, ``n_failed`` (children
+        ``sweep`` (parent run id), ``started`` (UTC timestamp), ``user`` (whose), ``workspace`` (which clone: its
+        id), ``status``, ``n_runs``, ``n_failed`` (children
         not FINISHED), ``metric`` (the ranking metric, as :func:`runs_table`), ``best_value``, ``best_run``,
         ``best`` (the best run's target, features and components), ``overrides`` (what the sweep varied).
     """
     import pandas as pd
 
-    from aumesh.experiments import tracking
+    from aumesh.experiments import queries
 
     rows = []
-    for parent in tracking.latest_runs_tagged(tracking.ROLE_TAG, tracking.SWEEP_PARENT_ROLE, tracking_cfg, limit):
-        children = tracking.list_child_runs(parent["run_id"], tracking_cfg)
+    for parent in queries.sweeps(tracking_cfg, limit, user=user, workspace=workspace):
+        children = queries.list_child_runs(parent["run_id"], tracking_cfg)
         table = runs_table(children) if len(children) else pd.DataFrame()
         best = table.iloc[0].to_dict() if len(table) and table.iloc[0]["rank"] == 1 else None
         metric = table.attrs.get("metric") if best else None
         rows.append({
             "sweep": parent["run_id"],
             "started": pd.to_datetime(parent["start_time"], unit="ms", utc=True),
+            "user": parent["user"],
+            "workspace": parent["workspace"],
             "status": parent["status"],
             "n_runs": len(children),
             "n_failed": int((children["status"] != "FINISHED").sum()) if len(children) else 0,
@@ -126,18 +132,21 @@ def sweeps_table(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20)
             "best": (f"{best['target']} {best['features']} k={best['n_components_requested']}" if best else None),
             "overrides": parent["tags"].get("aumesh.sweep.overrides", ""),
         })
-    columns = ["sweep", "started", "status", "n_runs", "n_failed", "metric", "best_value", "best_run", "best", "overrides"]
+    columns = ["sweep", "started", "user", "workspace", "status", "n_runs", "n_failed", "metric", "best_value", "best_run", "best", "overrides"]
     return pd.DataFrame(rows, columns=columns, dtype=object)
 
 
 def format_sweeps_table(table: pd.DataFrame) -> str:
-    """Fixed-width text of :func:`sweeps_table` (full sweep ids: they are what ``--parent`` takes)."""
+    """Fixed-width text of :func:`sweeps_table` (full sweep ids: they are what ``--sweep`` takes; the workspace id's
+    first 8 digits)."""
     if table.empty:
         return "(no sweeps: run `aumesh sweep -m ...`)"
-    lines = [f"{'sweep (--parent)':32}  {'started (UTC)':16}  {'status':8} {'runs':>4} {'failed':>6}  "
+    lines = [f"{'sweep (--sweep)':32}  {'started (UTC)':16}  {'user':24} {'workspace':9} {'status':8} {'runs':>4} "
+             f"{'failed':>6}  "
              f"{'best (run)':35} {'best configuration':38}  swept"]
     for r in table.to_dict(orient="records"):
         best = f"{r['metric']}={float(r['best_value']):.4f} ({str(r['best_run'])[:8]})" if r["best_value"] is not None else "-"
-        lines.append(f"{r['sweep']:32}  {r['started']:%Y-%m-%d %H:%M}  {r['status']:8} {r['n_runs']:>4} {r['n_failed']:>6}  "
+        lines.append(f"{r['sweep']:32}  {r['started']:%Y-%m-%d %H:%M}  {str(r['user'] or '-')[:24]:24} "
+                     f"{str(r['workspace'] or '-')[:8]:9} {r['status']:8} {r['n_runs']:>4} {r['n_failed']:>6}  "
                      f"{best:35} {r['best'] or '-':38}  {r['overrides']}")
     return "\n".join(lines)

@@ -42,6 +42,16 @@ MAX_DATASET_DIGEST_LENGTH = 36
 MAX_INPUT_TAG_VALUE_LENGTH = 500
 TRUNCATION_MARK = "...[truncated]"
 
+# Run tags both sides read (the logging side writes them, :mod:`aumesh.experiments.queries` filters on them).
+PARENT_TAG = "mlflow.parentRunId"
+ROLE_TAG = "aumesh.role"
+ERROR_TAG = "aumesh.error"
+HOST_TAG, PID_TAG = "aumesh.host", "aumesh.pid"  # the process that owns a RUNNING run
+USER_TAG = "aumesh.user"  # git user.email, else the login (provenance.user_identity)
+WORKSPACE_TAG = "aumesh.workspace.id"  # a stable id of the clone (provenance.workspace_id)
+DATA_TAG = "aumesh.data.md5"  # the DVC hash of the frame tables the run used
+SWEEP_PARENT_ROLE, SWEEP_CHILD_ROLE = "sweep-parent", "sweep-child"
+
 _QUIETED = False
 log = logging.getLogger(__name__)
 
@@ -111,22 +121,79 @@ def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
     Returns
     -------
     str
-        1. ``MLFLOW_TRACKING_URI`` from the environment, verbatim, if set;
-        2. else ``tracking_cfg["tracking_uri"]`` if set, with relative
-           ``sqlite:///``, ``file:`` or plain paths made absolute against
-           :func:`aumesh.experiments.provenance.repo_root`;
-        3. else ``sqlite:///<repo_root()>/mlflow.db`` (absolute).
+        The first of (see :mod:`aumesh.settings`):
+
+        1. ``MLFLOW_TRACKING_URI`` from the environment;
+        2. ``tracking.tracking_uri`` in the workspace's git-ignored ``aumesh.local.yaml``;
+        3. ``tracking_cfg["tracking_uri"]`` (``conf/``, committed: a repo-relative store);
+        4. ``sqlite:///<repo_root()>/mlflow.db``.
+
+        Relative ``sqlite:///``, ``file:`` or plain paths are made absolute against
+        :func:`aumesh.experiments.provenance.repo_root`; a driverless ``postgresql://`` gets the driver that is
+        installed (:func:`database_uri`).
     """
+    from aumesh import settings
+
     env = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
-    if env:
-        return env
-    cfg_uri = (tracking_cfg or {}).get("tracking_uri")
-    if cfg_uri:
-        cfg_uri = str(cfg_uri).strip()
-        if cfg_uri.startswith(("http://", "https://", "databricks")):
-            return cfg_uri
-        return _absolute_local_uri(cfg_uri, provenance.repo_root)
-    return f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}"
+    uri = env or settings.local_value("tracking", "tracking_uri") or (tracking_cfg or {}).get("tracking_uri")
+    if not uri:
+        return f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}"
+    uri = str(uri).strip()
+    if uri.startswith(("http://", "https://", "databricks")):
+        return uri
+    if env:  # the environment's value as given (a path there is the caller's, relative to where they are)
+        return database_uri(uri)
+    return database_uri(_absolute_local_uri(uri, provenance.repo_root))
+
+
+POSTGRES_SCHEMES = ("postgresql", "postgres")
+
+
+def database_uri(uri: str) -> str:
+    """A SQLAlchemy database URI MLflow can open with the driver that is installed.
+
+    SQLAlchemy 2 reads a driverless ``postgresql://`` as psycopg 3 (``psycopg``), while the usual install (and this
+    project's ``postgres`` extra) is ``psycopg2-binary``: with only psycopg2 present the URI becomes
+    ``postgresql+psycopg2://``. A URI naming its driver (``postgresql+psycopg://``) is left alone.
+
+    Raises
+    ------
+    aumesh.utils.errors.ConfigError
+        A PostgreSQL URI and no driver installed; the message says what to install.
+    """
+    import importlib.util
+
+    scheme, sep, rest = uri.partition("://")
+    if not sep or scheme not in POSTGRES_SCHEMES:
+        return uri
+    if importlib.util.find_spec("psycopg") is not None:
+        return f"postgresql+psycopg://{rest}"
+    if importlib.util.find_spec("psycopg2") is not None:
+        return f"postgresql+psycopg2://{rest}"
+    from aumesh.utils.errors import ConfigError
+
+    raise ConfigError(f"tracking URI {scheme}://...: no PostgreSQL driver is installed. Fix: "
+                      "`pip install 'aumesh[postgres]'` (psycopg2-binary), or point at the team's tracking server "
+                      "(http://host:5000) instead of its database.")
+
+
+def store_label(uri: str, root: Path | None = None) -> str:
+    """How shareable records (``model_card.json``, ``promotion.json``) name a tracking store.
+
+    The workspace's own store repo-relative (``sqlite:///mlflow.db``); any other store, a server's address or a
+    local path outside the workspace, is not written down (it means nothing on a teammate's machine and would commit
+    an address): :data:`EXTERNAL_STORE`. The run id is what finds the run on the team's server.
+    """
+    label = provenance.shareable_location(uri, [root] if root is not None else None)
+    if label.startswith("sqlite:///") and not label.startswith("sqlite:////"):  # sqlite:///mlflow.db
+        return label
+    if ":" not in label and not Path(label).is_absolute():  # a file store inside the workspace, made relative
+        return label
+    return EXTERNAL_STORE
+
+
+#: What shareable records hold instead of a store outside the workspace (a server, a path elsewhere).
+EXTERNAL_STORE = "external (MLFLOW_TRACKING_URI or aumesh.local.yaml; not recorded)"
 
 
 def _default_artifact_location(uri: str, tracking_cfg: Mapping[str, Any] | None) -> str | None:

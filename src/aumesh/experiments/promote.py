@@ -1,6 +1,8 @@
 """Promotion: a sweep's best run becomes the configuration ``dvc repro`` builds, and the registry's champion.
 
-``aumesh promote [--parent ID] [--metric M] [--target T]``:
+``aumesh promote [--sweep ID | --latest | --across] [--metric M] [--target T]``: without a sweep named, the caller's
+own latest sweep (this clone's: ``aumesh.workspace.id``); ``--across`` ranks every finished run on the workspace's data
+version (DVC hash), whoever ran it, and says whose run won.
 
 1. ranks the sweep's FINISHED children (:func:`choose`): by default the highest mean CV R²
    (``r2_mean``) when every candidate has the same ``preprocess.target``; when targets differ
@@ -19,8 +21,8 @@
    defaults list, after the groups so it overrides them): the model-defining keys
    (:data:`MODEL_KEYS`) always, plus any other key whose value in the run differs from ``conf/``
    without the experiment. Before anything is written, a temporary copy of ``conf/`` with the new
-   file is composed and every run parameter (except ``paths.*``, ``tracking.*``,
-   ``data.chunk_rows``) must compose to the run's value;
+   file is composed and every run parameter (except ``paths.*``, ``tracking.*``, ``compute.*``,
+   ``data.chunk_rows``: where a run lived, was logged and computed is not what it is) must compose to the run's value;
 3. registers the run's MLflow pyfunc model (artifact ``model/``: the release-format NPZ with a
    signature, :mod:`aumesh.experiments.pyfunc`) as a new version of the
    registered model (default ``aumesh-au-to-mesh``) and points the alias ``champion`` at it;
@@ -74,8 +76,9 @@ MODEL_KEYS = (
     "model.scale",
     "model.clip_n_components",
 )
-# never promoted: where things live and how runs are logged, not what the model is
-NOT_PROMOTED = ("paths.", "tracking.", "data.chunk_rows")
+# never promoted: where things live, how runs are logged and where they compute, not what the model is (a sweep on
+# a cluster must not write compute.address into conf/ and params.yaml)
+NOT_PROMOTED = ("paths.", "tracking.", "compute.", "data.chunk_rows")
 
 _TARGET_SPACE = {
     "absolute": "absolute aligned coordinates",
@@ -106,6 +109,9 @@ class Candidate:
     metrics: Mapping[str, float]
     start_time: float = 0.0
     error: str | None = None
+    user: str | None = None  # aumesh.user: whose run
+    workspace: str | None = None  # aumesh.workspace.id: which clone
+    parent_run_id: str | None = None  # its sweep (None: a pipeline evaluate run)
 
     @property
     def target(self) -> str | None:
@@ -142,7 +148,12 @@ class Choice:
 
 
 def candidates_from_frame(children: pd.DataFrame) -> list[Candidate]:
-    """Candidates from :func:`aumesh.experiments.tracking.list_child_runs` output (``params.*``/``metrics.*`` columns)."""
+    """Candidates from :func:`aumesh.experiments.queries.list_child_runs` output (``params.*``/``metrics.*`` columns)."""
+
+    def text(row, key):
+        value = row.get(key)
+        return value if isinstance(value, str) else None
+
     out = []
     for row in children.to_dict(orient="records"):
         params = {k[len("params."):]: v for k, v in row.items() if k.startswith("params.") and isinstance(v, str)}
@@ -152,7 +163,8 @@ def candidates_from_frame(children: pd.DataFrame) -> list[Candidate]:
         out.append(Candidate(run_id=row["run_id"], run_name=row.get("run_name"), status=row["status"],
                              params=params, metrics=metrics,
                              start_time=float(start.timestamp()) if hasattr(start, "timestamp") else 0.0,
-                             error=row.get("error") if isinstance(row.get("error"), str) else None))
+                             error=text(row, "error"), user=text(row, "user"), workspace=text(row, "workspace"),
+                             parent_run_id=text(row, "parent_run_id")))
     return out
 
 
@@ -182,7 +194,7 @@ def rank(candidates: Sequence[Candidate], metric: str, tie_tolerance: float = TI
 
 
 def choose(candidates: Sequence[Candidate], metric: str | None = None, target: str | None = None,
-           tie_tolerance: float = TIE_TOLERANCE) -> Choice:
+           tie_tolerance: float = TIE_TOLERANCE, scope: str = "of the sweep") -> Choice:
     """Pick the run to promote (see the module docstring for the criterion).
 
     Parameters
@@ -194,6 +206,8 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
     target : {"absolute", "neutral"}, optional
         Only consider runs with this ``preprocess.target``.
     tie_tolerance : float
+    scope : str, default "of the sweep"
+        Where the candidates come from, in the criterion's words (``--across``: the team's runs on the data).
 
     Returns
     -------
@@ -226,7 +240,7 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
     direction = "highest" if higher_is_better(chosen_metric) else "lowest"
     n_splits = best.params.get("cv.n_splits", "?")
     criterion = (f"{direction} {chosen_metric} ({n_splits}-fold GroupKFold CV, mean over folds) among {len(ranked)} "
-                 f"FINISHED runs of the sweep; values within {tie_tolerance:g} tie and ties go to fewer components")
+                 f"FINISHED runs {scope}; values within {tie_tolerance:g} tie and ties go to fewer components")
     counts = {t: sum(1 for c in ranked if str(c.target) == t) for t in targets}
     if len(targets) == 1:
         space = _TARGET_SPACE.get(targets[0], targets[0])
@@ -409,9 +423,9 @@ def check_finished(parent: Mapping[str, Any], children: pd.DataFrame, partial: b
     Parameters
     ----------
     parent : Mapping
-        The sweep's parent run (:func:`aumesh.experiments.tracking.run_record`).
+        The sweep's parent run (:func:`aumesh.experiments.queries.run_record`).
     children : DataFrame
-        Its child runs (:func:`aumesh.experiments.tracking.list_child_runs`).
+        Its child runs (:func:`aumesh.experiments.queries.list_child_runs`).
     partial : bool
         Promote from what finished anyway.
 
@@ -473,7 +487,7 @@ def check_not_overruled(values: Mapping[str, Any], parent_run_id: str, newer_run
     parent_run_id : str
         The sweep.
     newer_run : Mapping
-        A :func:`aumesh.experiments.tracking.run_record` of an evaluate run that started after the sweep.
+        A :func:`aumesh.experiments.queries.run_record` of an evaluate run that started after the sweep.
 
     Raises
     ------
@@ -489,20 +503,22 @@ def check_not_overruled(values: Mapping[str, Any], parent_run_id: str, newer_run
     raise OverruleError(
         f"sweep {parent_run_id} is older than evaluate run {newer_run['run_id']} ({newer_run.get('run_name')}, "
         f"started {started} UTC), which evaluated another configuration ({'; '.join(differ)}): promoting the sweep "
-        "would overrule it. Fix: run a new sweep, name the sweep to promote with --parent ID (`aumesh runs --sweeps` "
-        "lists them), or pass --latest to promote the latest sweep anyway.")
+        "would overrule it. Fix: run a new sweep, name the sweep to promote with --sweep ID (`aumesh runs --sweeps` "
+        "lists them), or pass --latest to promote your latest sweep anyway.")
 
 
-def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any] | None = None,
+def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[str, Any] | None = None,
             metric: str | None = None, target: str | None = None, model_name: str | None = None,
             register: bool = True, alias: str = CHAMPION_ALIAS,
-            newer_run: Mapping[str, Any] | None = None, partial: bool = False,
+            newer_run: Mapping[str, Any] | None = None, across: bool = False, partial: bool = False,
             skip_missing: bool = False, say=print) -> dict[str, Any]:
-    """Promote the best child of sweep *parent_run_id* in workspace *root* (see the module docstring).
+    """Promote the best child of sweep *parent_run_id* (or, *across*, the best run on this data) in workspace *root*
+    (see the module docstring).
 
     Parameters
     ----------
-    parent_run_id : str
+    parent_run_id : str or None
+        The sweep; None with *across*.
     root : Path
         Workspace root (``conf/``, ``params.yaml``, the promotion file).
     tracking_cfg : Mapping, optional
@@ -515,8 +531,11 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
         Register the run's NPZ and set *alias*; False leaves the registry alone.
     alias : str, default "champion"
     newer_run : Mapping, optional
-        An evaluate run (:func:`aumesh.experiments.tracking.run_record`) that started after the sweep; if the
+        An evaluate run (:func:`aumesh.experiments.queries.run_record`) that started after the sweep; if the
         winner's configuration differs from it, nothing is written (:func:`check_not_overruled`).
+    across : bool, default False
+        Rank every FINISHED model run (sweep children and pipeline evaluate runs) of the experiment whose data is
+        the workspace's (the DVC hash of ``data.dvc``), whoever ran it (:func:`aumesh.experiments.queries.finished_runs_on_data`).
     partial : bool, default False
         Promote from a sweep that did not finish (interrupted, killed); without it that is refused
         (:func:`check_finished`). The record's ``partial`` names the runs compared.
@@ -529,20 +548,32 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     Returns
     -------
     dict
-        The ``promoted`` record written to the promotion file.
+        The ``promoted`` record written to the promotion file (with ``user`` and ``workspace``: whose run won).
     """
-    from aumesh.experiments import mlflow_store, provenance, registry, tracking
+    from aumesh.experiments import queries, registry, tracking
     from aumesh.config import from_dict, write_params
 
     root = Path(root).resolve()
     conf_dir = root / "conf"
     check_defaults_entry(conf_dir)
-    children = tracking.list_child_runs(parent_run_id, tracking_cfg)
-    partial_note = check_finished(tracking.run_record(parent_run_id, tracking_cfg), children, partial)
-    if partial_note:
-        say(partial_note)
-    candidates = candidates_from_frame(children)
-    choice = choose(candidates, metric=metric, target=target)
+    partial_note = None
+    if across:
+        data_md5 = _workspace_data_md5(root)
+        candidates = candidates_from_frame(queries.finished_runs_on_data(data_md5, tracking_cfg))
+        if not candidates:
+            raise UserError(f"no FINISHED run on this workspace's data (data.dvc md5 {data_md5}) in the tracking store; "
+                            "run a sweep first (`aumesh sweep -m ...`).")
+        scope = f"on this data (DVC {data_md5}), whoever ran them"
+    else:
+        if parent_run_id is None:
+            raise ValueError("promote: name a sweep (parent_run_id) or pass across=True")
+        children = queries.list_child_runs(parent_run_id, tracking_cfg)
+        partial_note = check_finished(queries.run_record(parent_run_id, tracking_cfg), children, partial)
+        if partial_note:
+            say(partial_note)
+        candidates = candidates_from_frame(children)
+        scope = "of the sweep"
+    choice = choose(candidates, metric=metric, target=target, scope=scope)
     skipped: list[dict[str, str]] = []
     while register:  # the model registered must exist: name the run and the path, or (--skip-missing) take the next
         present, where = model_artifacts(choice.run_id, tracking_cfg, root)
@@ -550,7 +581,7 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
             break
         if not skip_missing:
             raise PromotionError(
-                f"run {choice.run_id}, the best of sweep {parent_run_id} by {choice.metric}, has lost its model "
+                f"run {choice.run_id}, the best {scope} by {choice.metric}, has lost its model "
                 f"artifacts ({where} is missing or empty). Fix: --skip-missing promotes the next best run whose "
                 "artifacts exist, or rerun the sweep; --no-register promotes its configuration without the registry.")
         skipped.append({"run_id": choice.run_id, "missing": where})
@@ -558,20 +589,22 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
             f"({where}); taking the next best")
         rest = [c for c in candidates if c.run_id not in {s["run_id"] for s in skipped}]
         try:
-            choice = choose(rest, metric=metric, target=target)
+            choice = choose(rest, metric=metric, target=target, scope=scope)
         except ValueError as err:
-            raise PromotionError(f"sweep {parent_run_id}: no run with its model artifacts left ({len(skipped)} "
+            raise PromotionError(f"no run {scope} with its model artifacts left ({len(skipped)} "
                                  f"skipped): {err}") from err
     if skipped:
         say(f"promoting run {choice.run_id} ({choice.metric} = {choice.value:.6f}), the best run whose artifacts exist")
     winner = next(c for c in candidates if c.run_id == choice.run_id)
+    sweep_id = winner.parent_run_id if across else parent_run_id
 
     base = compose_with(conf_dir, None)
     values = promoted_values(winner.params, base)
     if newer_run is not None:
-        check_not_overruled(values, parent_run_id, newer_run)
+        check_not_overruled(values, str(sweep_id), newer_run)
     overrides = [hydra_override(k, v) for k, v in values.items()]
-    text = experiment_yaml(values, [f"run {winner.run_id} of sweep {parent_run_id}",
+    origin = f"run {winner.run_id} of sweep {sweep_id}" if sweep_id else f"evaluate run {winner.run_id}"
+    text = experiment_yaml(values, [origin + (f" (by {winner.user}, across the team's runs)" if across else ""),
                                     f"criterion: {choice.metric} = {choice.value:.6f}"])
     composed = compose_with(conf_dir, text)
     verify_composition(composed, winner.params)
@@ -582,8 +615,9 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     if register:
         version = registry.register_model_version(
             winner.run_id, MODEL_ARTIFACT_DIR, name, tracking_cfg, alias=alias,
-            tags={"aumesh.parent_run_id": parent_run_id, "aumesh.metric": choice.metric,
-                  "aumesh.value": f"{choice.value:.6f}", "aumesh.config_overrides": " ".join(overrides)},
+            tags={"aumesh.parent_run_id": str(sweep_id), "aumesh.metric": choice.metric,
+                  "aumesh.value": f"{choice.value:.6f}", "aumesh.config_overrides": " ".join(overrides),
+                  "aumesh.user": str(winner.user)},
             description=f"aumesh promote: {choice.criterion}")
 
     exp_path = conf_dir / EXPERIMENT_GROUP / f"{EXPERIMENT_NAME}.yaml"
@@ -593,7 +627,10 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
     record = {
         "run_id": winner.run_id,
         "run_name": winner.run_name,
-        "parent_run_id": parent_run_id,
+        "parent_run_id": sweep_id,
+        "user": winner.user,  # whose run won (git user.email, else the login)
+        "workspace": winner.workspace,  # which clone ran it (an id, not a path)
+        "across": across,
         "criterion": choice.criterion,
         "metric": choice.metric,
         "value": choice.value,
@@ -608,9 +645,10 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
         "registered_model": version["name"] if version else None,
         "model_version": version["version"] if version else None,
         "alias": alias if version else None,
-        # promotion.json is committed: locations relative to the workspace, never its absolute path
-        "model_source": provenance.record_location(version["source"], [root]) if version else None,
-        "tracking_uri": provenance.record_location(mlflow_store.resolve_tracking_uri(tracking_cfg), [root]),
+        # promotion.json is committed: locations relative to the workspace, never its absolute path, and never a
+        # tracking server's address (the run id finds the run on the team's server)
+        "model_source": _model_source(version["source"], winner.run_id, root) if version else None,
+        "tracking_uri": tracking.store_label(tracking_cfg),
         "promoted_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
     if skipped:
@@ -619,3 +657,26 @@ def promote(parent_run_id: str, root: str | Path, tracking_cfg: Mapping[str, Any
         record["partial"] = partial_note
     atomic_write_json(root / cfg.paths.promotion_file, {"promoted": record})
     return record
+
+
+def _model_source(source: str, run_id: str, root: Path) -> str:
+    """The registered model's source as promotion.json holds it: repo-relative inside the workspace, a server's
+    ``mlflow-artifacts:/`` URI as it is; a path elsewhere (another machine's) as ``runs:/<run id>/model``."""
+    from aumesh.experiments import provenance
+
+    shared = provenance.shareable_location(source, [root]) or source
+    if shared.startswith("file:") or Path(shared).is_absolute():
+        return f"runs:/{run_id}/{MODEL_ARTIFACT_DIR}"
+    return shared
+
+
+def _workspace_data_md5(root: Path) -> str:
+    from aumesh.experiments import provenance
+
+    try:
+        md5 = provenance.data_digest(root).get("md5")
+    except (FileNotFoundError, ValueError) as err:
+        raise UserError(f"--across ranks the runs on this workspace's data: {err}") from None
+    if not md5:
+        raise UserError(f"{root / 'data.dvc'}: no md5; `dvc add data` first (--across ranks the runs on this data).")
+    return str(md5)

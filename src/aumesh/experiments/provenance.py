@@ -275,6 +275,38 @@ def git_commit(root: Path | str) -> dict[str, Any]:
     }
 
 
+USER_ENV = "AUMESH_USER"
+
+
+def user_identity(root: Path | str | None = None) -> str:
+    """Who runs this: ``$AUMESH_USER``, else git's ``user.email`` in *root* (a teammate's commits name them so too),
+    else the login name, else ``"unknown"``; never raises."""
+    if os.environ.get(USER_ENV, "").strip():
+        return os.environ[USER_ENV].strip()
+    email = _git(["config", "user.email"], Path(root) if root is not None else Path.cwd())
+    if email:
+        return email
+    import getpass
+
+    try:
+        return getpass.getuser()
+    except Exception:  # no user in some containers
+        return "unknown"
+
+
+def workspace_id(root: Path | str) -> str:
+    """A stable id of this clone: 16 hex digits of SHA-256 over its absolute path and its git remote's URL.
+
+    Two clones of one repository on one machine differ by path; the same path on two machines by remote (or not:
+    then they are the same place to the tracking server). Stable across runs, commits and DVC temporary copies
+    (they resolve to the workspace, :func:`repo_root`)."""
+    import hashlib
+
+    root = Path(root).resolve()
+    remote = _git(["config", "--get", "remote.origin.url"], root) or ""
+    return hashlib.sha256(f"{root.as_posix()}\n{remote}".encode()).hexdigest()[:16]
+
+
 def data_digest(root: Path | str, dvc_file: str = "data.dvc") -> dict[str, Any]:
     """Read the DVC hash of the tracked data from a ``.dvc`` file.
 

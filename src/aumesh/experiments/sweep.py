@@ -554,7 +554,7 @@ class SweepCallback:
 
     # -- implementation
     def _start(self, config, directory: Path, overrides: list[str], mode: str) -> None:
-        from aumesh.experiments import mlflow_store, tracking
+        from aumesh.experiments import tracking
 
         self._t0 = time.perf_counter()
         plain = _plain_config(config)
@@ -566,7 +566,7 @@ class SweepCallback:
                   "aumesh.sweep.mode": mode, "aumesh.sweep.launcher": launcher,
                   "aumesh.sweep.n_expected": count_jobs(overrides) if mode == "multirun" else 1})
         directory.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": mlflow_store.resolve_tracking_uri(tracking_cfg)
+        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": tracking.tracking_uri(tracking_cfg)
                                                     if parent else None, "overrides": overrides})
         if parent:
             os.environ[PARENT_ENV] = parent
@@ -581,20 +581,7 @@ class SweepCallback:
             return
         tracking_cfg = dict(_plain_config(config).get("tracking") or {})
         wall = time.perf_counter() - self._t0 if self._t0 else None
-        children = None
-        tags: dict[str, Any] = {}
-        try:
-            children = tracking.list_child_runs(parent, tracking_cfg)
-            statuses = children["status"].value_counts().to_dict() if len(children) else {}
-            tags = {"aumesh.sweep.n_children": len(children), "aumesh.sweep.n_finished": statuses.get("FINISHED", 0),
-                    "aumesh.sweep.n_failed": len(children) - statuses.get("FINISHED", 0)}
-            if wall is not None:
-                tags["aumesh.sweep.wall_seconds"] = f"{wall:.2f}"
-            tracking.set_run_tags(parent, tags, tracking_cfg)
-            if wall is not None:
-                tracking.run_handle(parent, tracking_cfg).log_metrics({"sweep_wall_seconds": wall})
-        finally:
-            tracking.end_run(parent, tracking_cfg, "FINISHED")
+        children, tags = tracking.finish_sweep(parent, tracking_cfg, wall)
         if children is None:
             return
         print(f"\nsweep parent {parent}: {tags['aumesh.sweep.n_children']} configurations, "
@@ -603,7 +590,7 @@ class SweepCallback:
             from aumesh.experiments.leaderboard import format_runs_table, runs_table
 
             print(format_runs_table(runs_table(children)))
-        print(f"(`aumesh runs --parent {parent}`; `aumesh promote --parent {parent}`)")
+        print(f"(`aumesh runs --sweep {parent}`; `aumesh promote --sweep {parent}`)")
 
 
 def count_jobs(overrides: Sequence[str]) -> int:
@@ -729,7 +716,7 @@ def interrupted(directory: Path, expected: int, err: KeyboardInterrupt) -> Keybo
     :class:`aumesh.utils.signals.Interrupted` to raise."""
     import signal
 
-    from aumesh.experiments import tracking
+    from aumesh.experiments import queries, tracking
     from aumesh.utils.signals import Interrupted, Terminated
 
     signum = signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT
@@ -743,7 +730,7 @@ def interrupted(directory: Path, expected: int, err: KeyboardInterrupt) -> Keybo
         from aumesh.config import load_params
 
         tracking_cfg = dict(load_params("params.yaml").tracking.__dict__)
-    children = tracking.list_child_runs(parent, tracking_cfg)
+    children = queries.list_child_runs(parent, tracking_cfg)
     done = int(children["status"].isin(["FINISHED", "FAILED"]).sum()) if len(children) else 0
     finished = int((children["status"] == "FINISHED").sum()) if len(children) else 0
     summary = f"interrupted after {done} of {expected} runs"

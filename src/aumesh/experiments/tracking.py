@@ -8,7 +8,8 @@ Design
 * The evaluate stage logs through :func:`tracked_run_beside`: a helper process imports MLflow and holds
   the run while the stage computes (the stage process never imports MLflow); sweeps, which log many
   runs from one process, use :func:`tracked_run`.
-* The default store is ``sqlite:///<workspace>/mlflow.db`` with artifacts in
+* The store: ``MLFLOW_TRACKING_URI``, else the git-ignored ``aumesh.local.yaml`` (:mod:`aumesh.settings`), else
+  ``tracking.tracking_uri``, else ``sqlite:///<workspace>/mlflow.db`` with artifacts in
   ``<workspace>/mlartifacts``, both absolute so runs started from a
   subdirectory or from a DVC queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``,
   deleted after the run) land in the workspace store.
@@ -17,6 +18,16 @@ Design
   ``mlflow.telemetry.utils.is_telemetry_disabled`` checks in MLflow 3.17) and
   autologging is disabled (``mlflow.autolog(disable=True)``). No models are
   logged here.
+
+The interface of the pipeline's stages and sweeps (nothing else of MLflow's is theirs to call):
+:func:`tracked_run_beside` (the evaluate stage), :func:`tracked_run` (one sweep configuration),
+:func:`start_parent_run` / :func:`finish_sweep` (a sweep), :func:`tracking_uri` and :func:`store_label` (where runs
+go, and how a shareable record names it). Reading runs back (sweeps, children, owners, data versions) is
+:mod:`aumesh.experiments.queries`.
+
+Whose and where: every run is tagged ``aumesh.user`` (and ``mlflow.user``, which the UI shows) with git's
+``user.email`` (else the login) and ``aumesh.workspace.id`` with a stable id of the clone
+(:func:`aumesh.experiments.provenance.workspace_id`), so a team's runs on one server can be told apart.
 
 Config keys (``tracking`` group, all optional): ``enabled`` (default True; when
 False :func:`tracked_run` yields a no-op handle), ``tracking_uri``,
@@ -29,7 +40,6 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import getpass
 import logging
 import os
 import socket
@@ -50,6 +60,14 @@ from aumesh.experiments.mlflow_store import (
     MAX_INPUT_TAG_VALUE_LENGTH,
     MAX_METRICS_BATCH,
     MAX_TAG_VALUE_LENGTH,
+    ERROR_TAG,
+    HOST_TAG,
+    PARENT_TAG,
+    PID_TAG,
+    ROLE_TAG,
+    SWEEP_PARENT_ROLE,
+    USER_TAG,
+    WORKSPACE_TAG,
     _clean_key,
     _default_artifact_location,
     _metric_value,
@@ -68,10 +86,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-PARENT_TAG = "mlflow.parentRunId"
-ROLE_TAG = "aumesh.role"
-ERROR_TAG = "aumesh.error"
-HOST_TAG, PID_TAG = "aumesh.host", "aumesh.pid"  # the process that owns a RUNNING run
 
 # Innermost-last stack of runs opened by tracked_run in this context (for nested=True).
 _ACTIVE_RUNS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar(
@@ -99,7 +113,9 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: in
         ``aumesh.version``, ``aumesh.lib.<dist>`` for each library,
         ``aumesh.workspace``, ``dvc.exp_name``/``dvc.stage``/``dvc.baseline_rev``
         when DVC set them, ``aumesh.host``/``aumesh.pid`` (the process running it, see
-        :func:`close_orphaned_runs`), ``mlflow.source.name``/``mlflow.source.type``/``mlflow.user``.
+        :func:`close_orphaned_runs`), ``mlflow.source.name``/``mlflow.source.type``, ``aumesh.user`` = ``mlflow.user``
+        (:func:`aumesh.experiments.provenance.user_identity`) and ``aumesh.workspace.id``
+        (:func:`aumesh.experiments.provenance.workspace_id`).
     """
     tags: dict[str, str] = {}
     try:
@@ -109,6 +125,7 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: in
         tags["aumesh.workspace.error"] = str(exc)
     if root is not None:
         tags["aumesh.workspace"] = str(root)
+        tags[WORKSPACE_TAG] = provenance.workspace_id(root)
         git = provenance.git_commit(root)
         tags["aumesh.git.commit"] = git["commit"] or "unknown"
         tags["aumesh.git.dirty"] = str(git["dirty"]).lower()
@@ -135,10 +152,8 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: in
     tags[HOST_TAG], tags[PID_TAG] = socket.gethostname(), str(owner_pid or os.getpid())
     tags["mlflow.source.name"] = sys.argv[0] if sys.argv and sys.argv[0] else "python"
     tags["mlflow.source.type"] = "LOCAL"
-    try:
-        tags["mlflow.user"] = getpass.getuser()
-    except Exception:  # pragma: no cover - no user in some containers
-        pass
+    # whose run: on a shared server the Unix login (MLflow's own mlflow.user) says nothing; the UI shows mlflow.user
+    tags[USER_TAG] = tags["mlflow.user"] = provenance.user_identity(root)
     return tags
 
 
@@ -709,127 +724,50 @@ def mark_failed(run_id: str, error: BaseException | str, tracking_cfg: Mapping[s
     client.set_terminated(run_id, "FAILED")
 
 
-def list_child_runs(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> pd.DataFrame:
-    """Child runs of *parent_run_id* as a DataFrame (one row per child, oldest first).
-
-    Parameters
-    ----------
-    parent_run_id : str
-    tracking_cfg : Mapping, optional
-
-    Returns
-    -------
-    pandas.DataFrame
-        Columns ``run_id``, ``run_name``, ``status``, ``start_time``, ``end_time``
-        (UTC timestamps), ``error`` (``aumesh.error`` tag or None), then
-        ``params.<key>`` (strings) and ``metrics.<key>`` (latest value).
-    """
-    import pandas as pd
-
-    client = get_client(tracking_cfg)
-    parent = client.get_run(parent_run_id)
-    rows: list[dict[str, Any]] = []
-    token = None
-    while True:
-        page = client.search_runs(
-            [parent.info.experiment_id],
-            filter_string=f"tags.`{PARENT_TAG}` = '{parent_run_id}'",
-            max_results=1000,
-            page_token=token,
-        )
-        for run in page:
-            row: dict[str, Any] = {
-                "run_id": run.info.run_id,
-                "run_name": run.info.run_name,
-                "status": run.info.status,
-                "start_time": pd.to_datetime(run.info.start_time, unit="ms", utc=True),
-                "end_time": pd.to_datetime(run.info.end_time, unit="ms", utc=True) if run.info.end_time else pd.NaT,
-                "error": run.data.tags.get(ERROR_TAG),
-            }
-            row.update({f"params.{k}": v for k, v in sorted(run.data.params.items())})
-            row.update({f"metrics.{k}": v for k, v in sorted(run.data.metrics.items())})
-            rows.append(row)
-        token = page.token
-        if not token:
-            break
-    base = ["run_id", "run_name", "status", "start_time", "end_time", "error"]
-    df = pd.DataFrame(rows, columns=None if rows else base)
-    if rows:
-        df = df.sort_values("start_time", kind="stable").reset_index(drop=True)
-    return df
-
-
-# ------------------------------------------------------- sweep queries
-SWEEP_PARENT_ROLE = "sweep-parent"
-
-
-def latest_parent_run(tracking_cfg: Mapping[str, Any] | None = None) -> str | None:
-    """Id of the most recently started sweep parent run of the configured experiment.
-
-    Parameters
-    ----------
-    tracking_cfg : Mapping, optional
-        The ``tracking`` config group (``experiment`` names the experiment).
-
-    Returns
-    -------
-    str or None
-        None when the experiment or a sweep parent does not exist.
-    """
-    runs = latest_runs_tagged(ROLE_TAG, SWEEP_PARENT_ROLE, tracking_cfg, max_results=1)
-    return runs[0]["run_id"] if runs else None
-
-
-def latest_runs_tagged(tag: str, value: str, tracking_cfg: Mapping[str, Any] | None = None,
-                       max_results: int = 20) -> list[dict[str, Any]]:
-    """The newest runs of the configured experiment whose *tag* equals *value*, newest first.
-
-    Parameters
-    ----------
-    tag, value : str
-        E.g. ``("aumesh.role", "sweep-parent")`` (sweeps) or ``("aumesh.stage", "evaluate")`` (pipeline runs).
-    tracking_cfg : Mapping, optional
-        The ``tracking`` config group (``experiment`` names the experiment).
-    max_results : int, default 20
-
-    Returns
-    -------
-    list of dict
-        :func:`run_record` views (``start_time`` in ms since the epoch); empty when the experiment does not exist.
-    """
-    client = get_client(tracking_cfg)
-    exp = client.get_experiment_by_name(str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT))
-    if exp is None:
-        return []
-    runs = client.search_runs(
-        [exp.experiment_id],
-        filter_string=f"tags.`{tag}` = '{value}'",
-        order_by=["attributes.start_time DESC"],
-        max_results=max_results,
-    )
-    return [_record(run) for run in runs]
-
-
-def run_record(run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """A plain-dict view of one run: ``run_id``, ``status``, ``experiment_id``, ``artifact_uri``,
-    ``start_time`` (ms), ``params``, ``metrics`` (latest values), ``tags``."""
-    return _record(get_client(tracking_cfg).get_run(run_id))
-
-
-def _record(run) -> dict[str, Any]:
-    return {
-        "run_id": run.info.run_id,
-        "run_name": run.info.run_name,
-        "status": run.info.status,
-        "experiment_id": run.info.experiment_id,
-        "artifact_uri": run.info.artifact_uri,
-        "start_time": run.info.start_time,
-        "params": dict(run.data.params),
-        "metrics": dict(run.data.metrics),
-        "tags": dict(run.data.tags),
-    }
-
-
 def set_run_tags(run_id: str, tags: Mapping[str, Any], tracking_cfg: Mapping[str, Any] | None = None) -> None:
     """Set tags on an existing run (e.g. a sweep parent's child counts)."""
     run_handle(run_id, tracking_cfg).set_tags(tags)
+
+
+def finish_sweep(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None = None,
+                 wall_seconds: float | None = None) -> tuple[pd.DataFrame | None, dict[str, Any]]:
+    """End a sweep's parent run FINISHED, tagged with its children's counts (and ``sweep_wall_seconds``).
+
+    Returns
+    -------
+    (DataFrame or None, dict)
+        The children (:func:`aumesh.experiments.queries.list_child_runs`; None if they could not be read) and the
+        tags set. The parent is ended even when counting fails.
+    """
+    from aumesh.experiments import queries
+
+    children, tags = None, {}
+    try:
+        children = queries.list_child_runs(parent_run_id, tracking_cfg)
+        statuses = children["status"].value_counts().to_dict() if len(children) else {}
+        tags = {"aumesh.sweep.n_children": len(children), "aumesh.sweep.n_finished": statuses.get("FINISHED", 0),
+                "aumesh.sweep.n_failed": len(children) - statuses.get("FINISHED", 0)}
+        if wall_seconds is not None:
+            tags["aumesh.sweep.wall_seconds"] = f"{wall_seconds:.2f}"
+        handle = run_handle(parent_run_id, tracking_cfg)
+        handle.set_tags(tags)
+        if wall_seconds is not None:
+            handle.log_metrics({"sweep_wall_seconds": wall_seconds})
+    finally:
+        end_run(parent_run_id, tracking_cfg, "FINISHED")
+    return children, tags
+
+
+def tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
+    """The store runs go to (environment, ``aumesh.local.yaml``, ``conf/``, default: see :mod:`aumesh.settings`)."""
+    from aumesh.experiments.mlflow_store import resolve_tracking_uri
+
+    return resolve_tracking_uri(tracking_cfg)
+
+
+def store_label(tracking_cfg: Mapping[str, Any] | None = None) -> str:
+    """The store as shareable records name it: ``sqlite:///mlflow.db`` for the workspace's own, never a server's
+    address or a path outside the workspace (:func:`aumesh.experiments.mlflow_store.store_label`)."""
+    from aumesh.experiments.mlflow_store import store_label as label
+
+    return label(tracking_uri(tracking_cfg))

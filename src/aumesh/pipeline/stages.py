@@ -144,7 +144,7 @@ def evaluate_run_name(cfg: Config) -> str:
 
 
 def evaluate_stage(cfg: Config) -> dict:
-    from aumesh.experiments import mlflow_store, tracking
+    from aumesh.experiments import tracking
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
 
@@ -168,9 +168,9 @@ def evaluate_stage(cfg: Config) -> dict:
                                 prepared.reference, card_text="", metadata={"mlflow_run_id": run.run_id})
         run.call(log_release_model, arrays)
         run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
-                    # repo-relative (sqlite:///mlflow.db): the card built from this is shared
-                    "tracking_uri": provenance.record_location(mlflow_store.resolve_tracking_uri(tracking_cfg))
-                    if cfg.tracking.enabled else None}
+                    # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
+                    # never a server's address (the run id finds the run there)
+                    "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None}
         with atomic_directory(out) as tmp:
             np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,
                      feature_columns=np.array(final.feature_columns), n_components=np.array(final.n_components, dtype=np.int32))
@@ -194,6 +194,16 @@ def log_release_model(handle, arrays: dict) -> None:
     handle.log_metrics({"seconds_log_model": pyfunc.log_release_model(handle, arrays)})
 
 
+#: Config groups that say where a run executes and is logged, not what it computes: not stage params in dvc.yaml,
+#: never promoted, and not in the shared card (they hold a server's or a scheduler's address).
+WHERE_GROUPS = ("tracking", "compute")
+
+
+def shareable_config(cfg: Config) -> dict:
+    """The configuration as the model card records it: what the model is, without :data:`WHERE_GROUPS`."""
+    return {k: v for k, v in cfg.to_dict().items() if k not in WHERE_GROUPS}
+
+
 def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict | None) -> dict:
     """``model_card.json``: CV results, data (counts per filter, digest), config, provenance, MLflow run."""
     with open(model_dir / METRICS_JSON) as fh:
@@ -210,7 +220,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
                   "estimator": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)"},
         "data": {"n_frames": summary["n_frames"], "n_videos": summary["n_videos"], "digest": run_info.get("data_digest"),
                  "counts": summary["counts"], "n_low_au_frames": summary["n_low_au_population"]},
-        "config": cfg.to_dict(),
+        "config": shareable_config(cfg),
         "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
         "mlflow": {k: run_info.get(k) for k in ("run_id", "experiment_id", "tracking_uri")},
         "libraries": provenance.library_versions(),

@@ -1,0 +1,54 @@
+"""A team's MLflow tracking server: ``aumesh server`` / ``make mlflow-server-postgres``.
+
+One ``mlflow server`` with a database backend (PostgreSQL for a team; SQLite works for one person) and served
+artifacts: clients upload and download run artifacts through the server (``mlflow-artifacts:/``), so nobody needs the
+server's disk mounted. The backend URI gets the installed PostgreSQL driver
+(:func:`aumesh.experiments.mlflow_store.database_uri`). Clients point at it with ``MLFLOW_TRACKING_URI`` or
+``aumesh.local.yaml`` (:mod:`aumesh.settings`).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+
+def server_command(backend_store_uri: str, artifacts_destination: str, host: str = "127.0.0.1", port: int = 5000,
+                   workers: int = 2, allowed_hosts: str | None = None, extra: Sequence[str] = ()) -> list[str]:
+    """The ``mlflow server`` command line (this interpreter's MLflow).
+
+    Parameters
+    ----------
+    backend_store_uri : str
+        ``postgresql://user@host:5432/db`` (password: ``~/.pgpass`` or ``PGPASSWORD``, not the command line),
+        or ``sqlite:///path``.
+    artifacts_destination : str
+        Where the server keeps artifacts: a folder (made absolute) or an object store URI (``s3://bucket/mlflow``).
+    host, port : str, int
+        The address to listen on: ``0.0.0.0`` serves the lab's network.
+    workers : int
+        Server worker processes.
+    allowed_hosts : str, optional
+        MLflow's DNS-rebinding guard accepts ``localhost`` and private IPs by default; a host name teammates use
+        (``mlflow.lab.example:5000``) must be listed.
+    extra : sequence of str
+        More ``mlflow server`` options, as they are.
+    """
+    from aumesh.experiments.mlflow_store import database_uri
+
+    if "://" not in artifacts_destination:
+        artifacts_destination = str(Path(artifacts_destination).expanduser().resolve())
+    cmd = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", database_uri(backend_store_uri),
+           "--serve-artifacts", "--artifacts-destination", artifacts_destination,
+           "--host", host, "--port", str(port), "--workers", str(workers)]
+    if allowed_hosts:
+        cmd += ["--allowed-hosts", allowed_hosts]
+    return cmd + list(extra)
+
+
+def server_environment() -> dict[str, str]:
+    """The server's environment: telemetry off, no GenAI job runner (it halves start-up time and CPU)."""
+    return dict(os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true",
+                MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false")
