@@ -144,7 +144,7 @@ def evaluate_run_name(cfg: Config) -> str:
 
 
 def evaluate_stage(cfg: Config) -> dict:
-    from aumesh.experiments import tracking
+    from aumesh.experiments import mlflow_store, tracking
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
 
