@@ -6,16 +6,19 @@ BIN := $(VENV)/bin
 UV_VERSION := 0.13.8
 STAMP := $(VENV)/.installed
 
-# Node tools (package.json / package-lock.json): three.js (inlined into release/viewer.html) and the Khronos
-# glTF-Validator (tests); `npm ci` installs the locked versions into ./node_modules (git-ignored).
+# Node tools (package.json / package-lock.json): three.js (inlined into release/viewer.html), vega, vega-lite and
+# vega-embed (inlined into DVC's plots template) and the Khronos glTF-Validator (tests); `npm ci` installs the locked
+# versions into ./node_modules (git-ignored).
 TOOLS_STAMP := node_modules/.package-lock.json
+# `dvc plots show/diff` draw offline with this template (.dvc/config: plots.html_template; generated, git-ignored)
+PLOTS_TEMPLATE := .dvc/plots/offline.html
 
 .PHONY: help venv tools demo refresh-demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui pyfeat-check
 
 help:
 	@echo "make demo        - create .venv from requirements.lock, pull the demo data and outputs, dvc repro (up to date)"
 	@echo "make refresh-demo - after a change to code, params or data: dvc repro, store the outputs in demo-remote/"
-	@echo "make tools       - install the node tools (three.js for the viewer, glTF-Validator) into node_modules/"
+	@echo "make tools       - install the node tools (three.js for the viewer, vega for dvc plots, glTF-Validator) into node_modules/"
 	@echo "make test        - run the test suite (fast tests)"
 	@echo "make test-slow   - run the slow end-to-end and scale tests"
 	@echo "make lock        - re-resolve requirements.lock from pyproject.toml"
@@ -38,7 +41,10 @@ $(TOOLS_STAMP): package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
 	touch $(TOOLS_STAMP)
 
-tools: $(TOOLS_STAMP)
+$(PLOTS_TEMPLATE): $(TOOLS_STAMP) $(STAMP) src/aumesh/export/dvc_plots.py
+	$(BIN)/python -m aumesh.export.dvc_plots --out $@
+
+tools: $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 
 lock:
 	$(BIN)/uv pip compile pyproject.toml --extra test --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
@@ -47,7 +53,7 @@ lock:
 # the workspace no longer uses (older commits keep theirs in their own demo-remote/); then commit
 # dvc.lock, metrics/ and demo-remote/ together. Run it on a committed tree: the release records the git
 # commit and whether the tree was dirty.
-refresh-demo: $(STAMP) $(TOOLS_STAMP)
+refresh-demo: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 	$(BIN)/dvc repro
 	$(BIN)/dvc push --quiet --remote demo
 	$(BIN)/dvc gc --workspace --all-experiments --cloud --remote demo --force --quiet
@@ -60,7 +66,7 @@ params: $(STAMP)
 # The demo remote holds the tables and the outputs of the committed dvc.lock: `dvc pull` fetches both and
 # `dvc repro` finds everything up to date, so a fresh clone stays clean (README "A clean clone stays clean").
 # --allow-missing: outputs the remote lacks (a stale dvc.lock) are rebuilt by `dvc repro` instead.
-demo: $(STAMP) $(TOOLS_STAMP)
+demo: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 	$(BIN)/dvc pull --quiet --allow-missing
 	$(BIN)/dvc repro
 	@echo
@@ -68,16 +74,16 @@ demo: $(STAMP) $(TOOLS_STAMP)
 	@ls -1 release
 	@$(BIN)/python -c "import json; c=json.load(open('release/model_card.json')); print('CV R2 = %.4f +/- %.4f  (folds %s), MAE = %.4f' % (c['cv']['r2_mean'], c['cv']['r2_std'], c['cv']['r2_folds'], c['cv']['mae_mean']))"
 
-test: $(STAMP) $(TOOLS_STAMP)
+test: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 	$(BIN)/python -m pytest -q
 
-test-slow: $(STAMP) $(TOOLS_STAMP)
+test-slow: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 	$(BIN)/python -m pytest -q -m slow
 
-test-all: $(STAMP) $(TOOLS_STAMP)
+test-all: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
-repro: $(STAMP) $(TOOLS_STAMP)
+repro: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 	$(BIN)/dvc repro
 
 bench: $(STAMP)
