@@ -139,8 +139,11 @@ def test_plots_diff_draws_both_curves_offline(demo):
     assert problems == [] and blocked == [], (problems, blocked)
     assert len(images) == 2, len(images)
     assert "Cumulative vertex error" in text or "Cumulative vertex error" in page_html
-    # each plot: the baseline's and the experiment's lines in vega's first two category colours (#4c78a8, #f58518)
+    # each plot: the baseline's and the experiment's lines, in the first two colours DVC gives revisions
+    from dvc_render.vega import OPTIONAL_ANCHOR_RANGES
+
+    colours = [tuple(int(c[i:i + 2], 16) for i in (1, 3, 5)) for c in OPTIONAL_ANCHOR_RANGES["color"][:2]]
     for image in images:
-        for colour in ((0x4C, 0x78, 0xA8), (0xF5, 0x85, 0x18)):
-            near = (np.abs(image - np.array(colour)).sum(axis=-1) < 60).sum()
-            assert near > 150, (colour, near)  # a drawn line, not a legend swatch only
+        for colour in colours:
+            near = int((np.abs(image - np.array(colour)).sum(axis=-1) < 60).sum())
+            assert near > 150, (colour, near)  # a drawn line (the legend's swatch is ~50 pixels)
