@@ -10,7 +10,8 @@ STAMP := $(VENV)/.installed
 # vega-embed (inlined into DVC's plots template) and the Khronos glTF-Validator (tests); `npm ci` installs the locked
 # versions into ./node_modules (git-ignored).
 TOOLS_STAMP := node_modules/.package-lock.json
-# `dvc plots show/diff` draw offline with this template (.dvc/config: plots.html_template; generated, git-ignored)
+# `dvc plots show/diff` draw offline with this template (.dvc/config: plots.html_template): committed, and written
+# again from the locked vega packages by `make tools` (the same bytes while package-lock.json is unchanged)
 PLOTS_TEMPLATE := .dvc/plots/offline.html
 
 .PHONY: help venv tools demo refresh-demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-ui pyfeat-check
@@ -53,7 +54,7 @@ lock:
 # the workspace no longer uses (older commits keep theirs in their own demo-remote/); then commit
 # dvc.lock, metrics/ and demo-remote/ together. Run it on a committed tree: the release records the git
 # commit and whether the tree was dirty.
-refresh-demo: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
+refresh-demo: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/dvc repro
 	$(BIN)/dvc push --quiet --remote demo
 	$(BIN)/dvc gc --workspace --all-experiments --cloud --remote demo --force --quiet
@@ -66,7 +67,7 @@ params: $(STAMP)
 # The demo remote holds the tables and the outputs of the committed dvc.lock: `dvc pull` fetches both and
 # `dvc repro` finds everything up to date, so a fresh clone stays clean (README "A clean clone stays clean").
 # --allow-missing: outputs the remote lacks (a stale dvc.lock) are rebuilt by `dvc repro` instead.
-demo: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
+demo: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/dvc pull --quiet --allow-missing
 	$(BIN)/dvc repro
 	@echo
@@ -74,16 +75,16 @@ demo: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 	@ls -1 release
 	@$(BIN)/python -c "import json; c=json.load(open('release/model_card.json')); print('CV R2 = %.4f +/- %.4f  (folds %s), MAE = %.4f' % (c['cv']['r2_mean'], c['cv']['r2_std'], c['cv']['r2_folds'], c['cv']['mae_mean']))"
 
-test: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
+test: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q
 
-test-slow: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
+test-slow: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
-test-all: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
+test-all: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
-repro: $(STAMP) $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
+repro: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/dvc repro
 
 bench: $(STAMP)

@@ -34,7 +34,7 @@ def _run(args, cwd: Path, env: dict, timeout: float = 1200.0) -> str:
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory, node_tools):
-    """A fresh clone after `make demo` (pull, repro, the plots template) with two experiments; (clone, env, head)."""
+    """A fresh clone after `make demo` (pull, repro) with two experiments; (clone, env, head)."""
     import shutil
 
     if shutil.which("git") is None or not (REPO / ".venv" / "bin" / "dvc").exists():
@@ -45,7 +45,7 @@ def demo(tmp_path_factory, node_tools):
     env = clean_env(ws) | {"AUMESH_NODE_MODULES": str(node_tools)}
     env["PATH"] = f"{ws / '.venv' / 'bin'}:{env['PATH']}"  # as a user who activated the venv
     _run([*MAKE, "demo"], ws, env)
-    assert (ws / ".dvc" / "plots" / "offline.html").is_file()  # written by make (tools), git-ignored
+    assert (ws / ".dvc" / "plots" / "offline.html").is_file()  # committed: the page .dvc/config names
     assert _run(["git", "status", "--porcelain", "--", ".dvc"], ws, env) == ""
     for override in EXPERIMENTS:
         _run(["dvc", "exp", "run", "-q", "-S", override], ws, env)

@@ -7,8 +7,11 @@ installs into ``node_modules/`` (``package-lock.json``: vega 5, vega-lite 5, veg
 Vega-Lite v5 specs are written for), as :mod:`aumesh.export.viewer` inlines three.js.
 
 ``.dvc/config`` names it (``[plots] html_template = plots/offline.html``, relative to ``.dvc/``), so the plain
-commands use it. It is generated, not committed (~0.8 MB of minified JavaScript whose version the lock file
-already pins): ``make tools`` (and ``make demo``, which runs it) writes ``.dvc/plots/offline.html`` (git-ignored).
+commands use it. It is committed (0.8 MB), as DVC's own custom plot templates in ``.dvc/plots/`` are: a clone
+draws offline whatever made its environment (make, conda, ``pip install -e .``), and a missing file would give
+DVC's cryptic "HTML template has to contain '{plot_divs}'". ``make tools`` writes it again from the locked
+packages (the same bytes while ``package-lock.json`` is unchanged; ``tests/test_dvc_plots_template.py`` holds
+the two together).
 
 The template has DVC's ``{plot_divs}`` and ``{refresh_tag}`` placeholders and deliberately no ``{scripts}``:
 that is where DVC would put its CDN ``<script>`` tags.
@@ -106,7 +109,7 @@ def write_template(out: str | Path = TEMPLATE_FILE, node_modules: Path | None = 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m aumesh.export.dvc_plots [--out FILE]`` (what ``make tools`` runs)."""
+    """``python -m aumesh.export.dvc_plots [--out FILE]`` (what ``make tools`` runs after a change of the lock file)."""
     parser = argparse.ArgumentParser(prog="python -m aumesh.export.dvc_plots", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=TEMPLATE_FILE,
                         help=f"the template file (default: %(default)s, named by .dvc/config as {CONFIG_VALUE})")
