@@ -94,7 +94,7 @@ bench: $(STAMP)
 MLFLOW_PORT ?= 5000
 mlflow-server: $(STAMP)
 	@echo "the runs, best r2_mean first: http://127.0.0.1:$(MLFLOW_PORT)/#/experiments/1/runs?workflowType=machine_learning&viewStateShareKey=aumesh-runs"
-	@echo "(1 = experiment aumesh in the clone's own store; README "Tracking")"
+	@echo "(1 = the id of experiment aumesh in a clone's own store; see the README, section Tracking)"
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --host 127.0.0.1 --port $(MLFLOW_PORT)
 
 clean-build:
