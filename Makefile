@@ -6,16 +6,20 @@ BIN := $(VENV)/bin
 UV_VERSION := 0.13.8
 STAMP := $(VENV)/.installed
 
-# Node tools (package.json / package-lock.json): three.js (inlined into release/viewer.html) and the Khronos
-# glTF-Validator (tests); `npm ci` installs the locked versions into ./node_modules (git-ignored).
+# Node tools (package.json / package-lock.json): three.js (inlined into release/viewer.html), vega, vega-lite and
+# vega-embed (inlined into DVC's plots template) and the Khronos glTF-Validator (tests); `npm ci` installs the locked
+# versions into ./node_modules (git-ignored).
 TOOLS_STAMP := node_modules/.package-lock.json
+# `dvc plots show/diff` draw offline with this template (.dvc/config: plots.html_template): committed, and written
+# again from the locked vega packages by `make tools` (the same bytes while package-lock.json is unchanged)
+PLOTS_TEMPLATE := .dvc/plots/offline.html
 
 .PHONY: help venv tools demo refresh-demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-server-postgres mlflow-ui pyfeat-check
 
 help:
 	@echo "make demo        - create .venv from requirements.lock, pull the demo data and outputs, dvc repro (up to date)"
 	@echo "make refresh-demo - after a change to code, params or data: dvc repro, store the outputs in demo-remote/"
-	@echo "make tools       - install the node tools (three.js for the viewer, glTF-Validator) into node_modules/"
+	@echo "make tools       - install the node tools (three.js for the viewer, vega for dvc plots, glTF-Validator) into node_modules/"
 	@echo "make test        - run the test suite (fast tests)"
 	@echo "make test-slow   - run the slow end-to-end and scale tests"
 	@echo "make lock        - re-resolve requirements.lock from pyproject.toml"
@@ -39,7 +43,10 @@ $(TOOLS_STAMP): package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
 	touch $(TOOLS_STAMP)
 
-tools: $(TOOLS_STAMP)
+$(PLOTS_TEMPLATE): $(TOOLS_STAMP) $(STAMP) src/aumesh/export/dvc_plots.py
+	$(BIN)/python -m aumesh.export.dvc_plots --out $@
+
+tools: $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 
 lock:
 	$(BIN)/uv pip compile pyproject.toml --extra test --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
@@ -87,6 +94,8 @@ bench: $(STAMP)
 
 MLFLOW_PORT ?= 5000
 mlflow-server: $(STAMP)
+	@echo "the runs, best r2_mean first: http://127.0.0.1:$(MLFLOW_PORT)/#/experiments/1/runs?workflowType=machine_learning&viewStateShareKey=aumesh-runs"
+	@echo "(1 = the id of experiment aumesh in a clone's own store; see the README, section Tracking)"
 	$(BIN)/mlflow server --backend-store-uri sqlite:///$(CURDIR)/mlflow.db --host 127.0.0.1 --port $(MLFLOW_PORT)
 
 # A team's tracking server (README "Working as a team"): PostgreSQL backend, artifacts served through the server.

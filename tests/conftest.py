@@ -97,7 +97,8 @@ def seeded_rng(seed: int = 0) -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def node_tools():
-    """The project's node packages (package-lock.json: three, gltf-validator) in REPO/node_modules.
+    """The project's node packages (package-lock.json: three, vega, vega-lite, vega-embed, gltf-validator) in
+    REPO/node_modules, or in $AUMESH_NODE_MODULES when that holds them all (the code's own override).
 
     `make tools` installs them (`npm ci`); if they are missing, this runs the same install once and
     skips, naming the reason, only when npm cannot install them (no npm, no registry access).
@@ -105,7 +106,11 @@ def node_tools():
     import shutil
     import subprocess
 
-    wanted = [REPO / "node_modules" / "gltf-validator" / "package.json", REPO / "node_modules" / "three" / "package.json"]
+    packages = ("gltf-validator", "three", "vega", "vega-lite", "vega-embed")
+    override = os.environ.get("AUMESH_NODE_MODULES")
+    if override and all((Path(override) / p / "package.json").exists() for p in packages):
+        return Path(override)
+    wanted = [REPO / "node_modules" / p / "package.json" for p in packages]
     if all(p.exists() for p in wanted):
         return REPO / "node_modules"
     if shutil.which("npm") is None or shutil.which("node") is None:
@@ -152,7 +157,9 @@ def clean_env(clone: Path) -> dict:
     env.update(PATH=os.pathsep.join(keep), PYTHONPATH=str(clone / "src"), GIT_AUTHOR_NAME="t",
                GIT_AUTHOR_EMAIL="t@example.com", GIT_COMMITTER_NAME="t", GIT_COMMITTER_EMAIL="t@example.com",
                MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true")
-    if (REPO / "node_modules").is_dir():  # the node tools `make tools` installed here (three.js for the viewer)
+    if os.environ.get("AUMESH_NODE_MODULES"):  # the node tools where this checkout's tests find them
+        env["AUMESH_NODE_MODULES"] = os.environ["AUMESH_NODE_MODULES"]
+    elif (REPO / "node_modules").is_dir():  # the node tools `make tools` installed here (three.js, vega)
         env["AUMESH_NODE_MODULES"] = str(REPO / "node_modules")
     return env
 

@@ -44,6 +44,7 @@ def workspace(tmp_path, fixed_conf):
     _run(["git", "config", "user.name", "test"], ws)
     _run([BIN / "dvc", "init", "-q"], ws)
     shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
+    shutil.copytree(REPO / ".dvc" / "plots", ws / ".dvc" / "plots")  # the offline plots page .dvc/config names
     _run([BIN / "dvc", "remote", "remove", "demo"], ws)
     write_tables(ws / "data", SynthSpec(n_frames=600, n_videos=60, seed=11))
     _run([BIN / "dvc", "add", "-q", "data"], ws)
@@ -125,6 +126,7 @@ def test_dvc_links_a_stage_output_into_its_cache_without_copying_it(tmp_path):
     _run(["git", "init", "-q"], ws)  # the repo's .dvc/config autostages in git
     _run([BIN / "dvc", "init", "-q"], ws)
     shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
+    shutil.copytree(REPO / ".dvc" / "plots", ws / ".dvc" / "plots")  # the offline plots page .dvc/config names
     _run([BIN / "dvc", "remote", "remove", "demo"], ws)
     (ws / "make.py").write_text("import os\nos.makedirs('out')\nwith open('out/meshes.bin', 'wb') as f:\n"
                                 "    f.write(os.urandom(1 << 20))\nprint(os.stat('out/meshes.bin').st_ino, file=open('inode', 'w'))\n")

@@ -15,9 +15,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+import aumesh
+
 from conftest import upright_truth_release
 from test_mlflow_server import _free_port, _stop
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS
+from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, flatten_axis_major
 from aumesh.experiments import registry, tracking
 from aumesh.model.release import load_npz
 
@@ -59,6 +61,7 @@ def test_registered_pyfunc_model_predicts_the_npz_meshes(champion):
     assert registry.model_version_by_alias(MODEL, "champion", {})["run_id"] == run_id
     assert info.signature.inputs.input_names() == list(INPUT_COLUMNS)
     assert [s.type.name for s in info.signature.inputs.inputs] == ["double"] * 23
+    assert info.signature.inputs.required_input_names() == []  # every column optional, as in predict_mesh
     assert info.signature.outputs.inputs[0].shape == (-1, 1434)
     assert info.saved_input_example_info["type"] == "dataframe"
     model = mlflow.pyfunc.load_model(f"models:/{MODEL}@champion")
@@ -67,9 +70,20 @@ def test_registered_pyfunc_model_predicts_the_npz_meshes(champion):
     np.testing.assert_allclose(pred, _card_snippet(npz, df), rtol=0, atol=1e-9 * 400)
     # columns are taken by name: shuffled columns give the same meshes
     np.testing.assert_allclose(model.predict(df[list(reversed(INPUT_COLUMNS))]), pred, rtol=0, atol=1e-12)
-    # a missing column is refused by the signature, naming it
-    with pytest.raises(Exception, match="AU12"):
-        model.predict(df.drop(columns=["AU12"]))
+    # a missing AU is 0 and no pose columns is pose 0, as in aumesh.predict_mesh (checked against numpy above)
+    partial = df.drop(columns=["AU12", "Pitch", "Yaw", "Roll"])
+    np.testing.assert_allclose(model.predict(partial), _card_snippet(npz, partial.reindex(columns=INPUT_COLUMNS,
+                               fill_value=0.0)), rtol=0, atol=1e-9 * 400)
+    # aumesh's input errors are MLflow's invalid-parameter errors with aumesh's own line as the message
+    from aumesh.model.inference import PredictionInputError
+    from mlflow.exceptions import MlflowException
+
+    with pytest.raises(PredictionInputError) as lib:
+        aumesh.predict_mesh(load_npz(npz), df.assign(Yaw=25.0))
+    with pytest.raises(MlflowException) as served:
+        model.predict(df.assign(Yaw=25.0))
+    assert served.value.error_code == "INVALID_PARAMETER_VALUE" and served.value.get_http_status_code() == 400
+    assert served.value.message == str(lib.value) and "degrees" in served.value.message
 
 
 def test_pyfunc_input_example_is_a_smile(champion):
@@ -108,13 +122,61 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
             assert time.monotonic() < deadline, "mlflow models serve did not start: " + (tmp_path / "serve.log").read_text()[-3000:]
             time.sleep(1)
         df = _inputs(3)
-        body = json.dumps({"dataframe_split": df.to_dict(orient="split") | {"index": None}}).encode()
-        req = urllib.request.Request(f"{url}/invocations", data=body, headers={"Content-Type": "application/json"})
-        with urllib.request.urlopen(req, timeout=60) as resp:
-            answer = json.loads(resp.read())
+        status, answer = _invoke(url, {"dataframe_split": df.to_dict(orient="split") | {"index": None}})
+        assert status == 200, answer
+        # only AU12, as a client that cares about one AU sends it: the others 0, pose 0 (predict_mesh's rules)
+        smile_status, smile = _invoke(url, {"dataframe_records": [{"AU12": 1.0}]})
+        # a head turned 25 "radians": aumesh's degrees error, as a 400 whose message is aumesh's line
+        bad_status, bad = _invoke(url, {"dataframe_records": [{"AU12": 1.0, "Pitch": 0.0, "Yaw": 25.0, "Roll": 0.0}]})
     finally:
         _stop(proc)
         log.close()
     pred = np.asarray(answer["predictions"], dtype=np.float64)
     assert pred.shape == (3, 1434)
     np.testing.assert_allclose(pred, _card_snippet(npz, df), rtol=0, atol=1e-9 * 400)
+    assert smile_status == 200, smile
+    expected = flatten_axis_major(aumesh.predict_mesh(load_npz(npz), {"AU12": 1.0})[None])[0]
+    np.testing.assert_allclose(np.asarray(smile["predictions"])[0], expected, rtol=0, atol=1e-9 * 400)
+    assert bad_status == 400, bad
+    with pytest.raises(aumesh.PredictionInputError) as lib:
+        aumesh.predict_mesh(load_npz(npz), {"AU12": 1.0}, pose=[0.0, 25.0, 0.0])
+    assert bad["error_code"] == "INVALID_PARAMETER_VALUE"
+    assert bad["message"] == str(lib.value) and "degrees" in bad["message"] and "\n" not in bad["message"]
+
+
+def _invoke(url: str, payload: dict) -> tuple[int, dict]:
+    """POST *payload* to the scoring server's /invocations: (HTTP status, the JSON answer)."""
+    req = urllib.request.Request(f"{url}/invocations", data=json.dumps(payload).encode(),
+                                 headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=60) as resp:
+            return resp.status, json.loads(resp.read())
+    except urllib.error.HTTPError as err:
+        return err.code, json.loads(err.read())
+
+
+def test_readme_load_model_snippet_works_from_any_folder(champion, tmp_path, monkeypatch):
+    """The README's snippet names the workspace's store itself: from another folder it finds the champion and
+    leaves no empty mlflow.db behind (without set_tracking_uri MLflow would look in the current folder)."""
+    import re
+
+    import mlflow
+
+    npz, _, _, _ = champion
+    store = Path(os.environ["MLFLOW_TRACKING_URI"][len("sqlite:///"):])  # the test's workspace store: <dir>/mlflow.db
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "models:/aumesh-au-to-mesh@champion" in b)
+    code = block.replace('Path("~/aumesh").expanduser()', f"Path({str(store.parent)!r})")
+    assert code != block, "the README's snippet no longer names the workspace as Path(\"~/aumesh\").expanduser()"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    namespace = {"df": pd.DataFrame({"AU12": [1.0]})}
+    try:
+        exec(code, namespace)
+    finally:
+        mlflow.set_tracking_uri(None)
+    expected = flatten_axis_major(aumesh.predict_mesh(load_npz(npz), {"AU12": 1.0})[None])
+    np.testing.assert_allclose(namespace["flat"], expected, rtol=0, atol=1e-9 * 400)
+    assert list(elsewhere.iterdir()) == []

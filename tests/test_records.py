@@ -88,3 +88,16 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     assert card["mlflow"]["tracking_uri"] == "sqlite:///mlflow.db" and card["mlflow"]["run_id"]
     assert card["data"]["digest"]["dvc_file"] == "data.dvc"
     assert card["promotion"]["run_id"] == record["run_id"]
+    # one release, both runs: the promoted sweep child and the evaluate run that built the arrays, by id
+    runs = card["runs"]
+    assert runs["promoted"]["run_id"] == record["run_id"] and runs["promoted"]["parent_run_id"] == parent
+    assert runs["build"]["run_id"] == card["mlflow"]["run_id"] != record["run_id"]
+    assert runs["build"]["tracking_uri"] == "sqlite:///mlflow.db" and runs["build"]["run_name"]
+    from mlflow import MlflowClient
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{ws / 'mlflow.db'}")
+    assert client.get_run(runs["build"]["run_id"]).info.run_name == runs["build"]["run_name"]
+    assert client.get_run(runs["promoted"]["run_id"]).data.tags["mlflow.parentRunId"] == parent
+    for run in runs.values():
+        assert f"`{run['run_id']}`" in texts["MODEL_CARD.md"]
+    assert json.loads(texts["training_metadata"])["runs"] == runs  # the viewer's data (training_metadata) too

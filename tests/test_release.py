@@ -111,6 +111,33 @@ def test_model_card_markdown_names_the_promoted_run():
     assert "child42" in text and "sweep7" in text and "0.2000" in text and "abc.dir" in text
 
 
+def test_card_names_both_runs_the_promoted_and_the_build():
+    """One release, two runs: the sweep child that chose the configuration and the `dvc repro` run that built the
+    arrays, each with its MLflow id and what it stands for (model_card.json's `runs`, MODEL_CARD.md's "Runs")."""
+    from aumesh.pipeline.stages import release_runs
+
+    promotion = {"run_id": "child42", "run_name": "features=au,n_components=10", "parent_run_id": "sweep7",
+                 "criterion": "max r2_mean", "compared": "3 runs", "registered_model": "aumesh-au-to-mesh",
+                 "model_version": "2", "alias": "champion", "tracking_uri": "sqlite:///mlflow.db"}
+    runs = release_runs({"run_id": "build9", "run_name": "absolute au k=10", "experiment_id": "1",
+                         "tracking_uri": "sqlite:///mlflow.db"}, promotion)
+    assert runs["build"]["run_id"] == "build9" and runs["build"]["role"].startswith("build")
+    assert runs["promoted"]["run_id"] == "child42" and runs["promoted"]["parent_run_id"] == "sweep7"
+    assert "max r2_mean" in runs["promoted"]["role"]
+    card = _card() | {"runs": runs, "mlflow": {"run_id": "build9", "tracking_uri": "sqlite:///mlflow.db"},
+                      "promotion": promotion}
+    text = model_card_markdown(card, None, [])
+    section = text[text.index("## Runs"):].split("\n## ")[0]
+    assert "**Promoted run** `child42` (features=au,n_components=10) of sweep `sweep7`" in section
+    assert "how the configuration was chosen" in section and "`aumesh-au-to-mesh` version 2 (`@champion`)" in section
+    assert "**Build run** `build9` (absolute au k=10) in `sqlite:///mlflow.db`" in section
+    assert "produced these exact arrays" in section
+    # without a promotion: the build run alone, and the card says so
+    alone = model_card_markdown(_card() | {"runs": release_runs({"run_id": "build9"}, None), "promotion": None}, None, [])
+    section = alone[alone.index("## Runs"):].split("\n## ")[0]
+    assert "**Build run** `build9`" in section and "Promoted run" not in section and "no promotion" in section
+
+
 def test_model_card_markdown_explains_the_target_and_shows_the_au_field_reliability_table():
     import copy
 

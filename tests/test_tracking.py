@@ -65,6 +65,33 @@ def _client(uri: str):
     return MlflowClient(tracking_uri=uri)
 
 
+# ----------------------------------------------------------------------------- the experiment
+def test_experiment_is_model_training_with_a_description(cfg, store_uri, workspace):
+    """MLflow 3 opens a model-training experiment on its runs (not GenAI traces); the description says what aumesh
+    is, which data (the DVC hash of data.dvc) and where to read more."""
+    import mlflow.utils.mlflow_tags
+
+    with tracking.tracked_run(cfg, "fit", {"a": 1}):
+        pass
+    client = _client(store_uri)
+    exp = client.get_experiment_by_name(cfg["experiment"])
+    tags = exp.tags
+    # MLflow's own names: the experiment-kind tag its UI reads, and the note tag it shows as the description
+    assert mlflow_store.NOTE_TAG == mlflow.utils.mlflow_tags.MLFLOW_RUN_NOTE  # "mlflow.note.content"
+    assert tags["mlflow.experimentKind"] == "custom_model_development"
+    note = tags["mlflow.note.content"]
+    assert note.startswith("**aumesh**") and MD5 in note and "README" in note and "Tracking" in note
+    assert "http" not in note  # a pointer, not a link
+    assert tags["aumesh.data.md5"] == MD5 and tags["aumesh.project"] == "aumesh"
+    # an experiment made before (no tags) gets them with the next run; a description edited in the UI is kept
+    other = client.create_experiment(f"{cfg['experiment']}-old")
+    client.set_experiment_tag(other, "mlflow.note.content", "my notes")
+    with tracking.tracked_run(cfg | {"experiment": f"{cfg['experiment']}-old"}, "fit", None):
+        pass
+    tags = client.get_experiment(other).tags
+    assert tags["mlflow.experimentKind"] == "custom_model_development" and tags["mlflow.note.content"] == "my notes"
+
+
 # ----------------------------------------------------------------------------- runs
 def test_run_logs_params_metrics_config_dataset_tags(cfg, store_uri, workspace):
     params = {"model": {"n_components": 8, "scale": True}, "anchors": [10, 9, 8], "long": "x" * 7000}

@@ -107,6 +107,50 @@ def _cmd_view(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------ versions
+#: What ``aumesh --version --verbose`` and ``aumesh info`` list after aumesh itself (distribution names, as pip has them).
+VERSION_LIBRARIES = ("dvc", "mlflow", "hydra-core", "dask", "distributed", "numpy", "scipy", "scikit-learn", "pandas",
+                     "pyarrow")
+
+
+def versions(libraries: tuple[str, ...] = VERSION_LIBRARIES) -> dict[str, str]:
+    """``{"aumesh": ..., "python": ..., <dist>: ...}`` from the installed package metadata (``importlib.metadata``).
+
+    A library that is not installed is ``"not installed"``; aumesh without metadata (a source tree on
+    ``PYTHONPATH`` only) falls back to ``aumesh.__version__``.
+    """
+    import platform
+    from importlib import metadata
+
+    def one(dist: str) -> str:
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return "not installed"
+
+    out = {"aumesh": one("aumesh")}
+    if out["aumesh"] == "not installed":
+        from aumesh import __version__
+
+        out["aumesh"] = __version__
+    out["python"] = platform.python_version()
+    return out | {dist: one(dist) for dist in libraries}
+
+
+def _print_versions(verbose: bool) -> None:
+    found = versions()
+    print(f"aumesh {found.pop('aumesh')}")
+    if verbose:
+        width = max(map(len, found))
+        for dist, ver in found.items():
+            print(f"  {dist:<{width}}  {ver}")
+
+
+def _cmd_info(args) -> int:
+    _print_versions(verbose=True)
+    return 0
+
+
 # ------------------------------------------------------------------ experiments: sweep, runs, promote
 def _tracking_cfg(args) -> dict[str, Any]:
     """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
@@ -338,7 +382,15 @@ def build_parser() -> argparse.ArgumentParser:
                         help="log the library's progress messages: -v info, -vv debug (default: warnings only)")
     parser.add_argument("--debug", action="store_true",
                         help=f"show the traceback of input and configuration errors too (or set {DEBUG_ENV}=1)")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.add_argument("--version", action="store_true",
+                        help="print aumesh's version and exit; with -v also python, dvc, mlflow, hydra-core, dask, "
+                             "numpy and the other libraries that shape results (as `aumesh info`)")
+    # not required=True: `aumesh --version` has no command; main() asks for one otherwise
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("info", help="versions of aumesh, python and the libraries that shape results (dvc, mlflow, "
+                                    "hydra-core, dask, numpy, ...), from the installed package metadata")
+    p.set_defaults(func=_cmd_info)
 
     p = sub.add_parser("compose-params", help="compose conf/ (+ Hydra overrides) into params.yaml, as `dvc exp run` does")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
@@ -417,7 +469,13 @@ def main(argv: list[str] | None = None) -> int:
     returns 2, with the traceback only under ``--debug`` or ``AUMESH_DEBUG=1``; other errors keep theirs."""
     from aumesh.utils.errors import UserError
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.version:
+        _print_versions(verbose=args.verbose > 0)
+        return 0
+    if args.command is None:
+        parser.error("a COMMAND is required (`aumesh --help` lists them; `aumesh --version` prints the version)")
     logging.basicConfig(level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     debug = args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0")

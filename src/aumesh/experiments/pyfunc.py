@@ -9,9 +9,16 @@ input example), the release-format NPZ (``model/artifacts/au_to_mesh_pls.npz``) 
 returns ``aumesh.predict_mesh(npz, df)`` flattened axis-major, and ``mlflow models serve -m
 models:/aumesh-au-to-mesh@champion --env-manager local`` serves it over REST.
 
-Signature: inputs are the card's 23 named float columns ``AU01 .. AU43, Pitch, Yaw, Roll``
-(pose in radians; with ``coef_full`` the prediction is pose-conditioned); the output is one row
-of 1434 axis-major coordinates ``[x_0..x_477 | y_0.. | z_0..]`` per input row.
+Signature: inputs are the card's 23 named float columns ``AU01 .. AU43, Pitch, Yaw, Roll``, every
+one optional, as in :func:`aumesh.predict_mesh`: a missing AU is 0, no pose columns is pose 0, and
+``Pitch, Yaw, Roll`` come all or none (pose in radians; with ``coef_full`` the prediction is
+pose-conditioned); the output is one row of 1434 axis-major coordinates
+``[x_0..x_477 | y_0.. | z_0..]`` per input row.
+
+Input errors are aumesh's own (:class:`aumesh.PredictionInputError`: pose in degrees, a partly NaN
+row, half a pose) raised as :class:`ServingInputError`, an ``MlflowException`` with
+``INVALID_PARAMETER_VALUE``: ``mlflow models serve`` answers HTTP 400 with aumesh's one-line
+message as the response's ``message``, and ``model.predict`` raises it with the same text.
 
 The wrapper is logged as code (MLflow's "models from code": ``pyfunc_entry.py``, no pickle) that
 imports :class:`ReleaseModel`, so loading needs ``aumesh`` importable (``--env-manager local`` in
@@ -30,6 +37,8 @@ from typing import Any
 import mlflow.pyfunc
 import numpy as np
 import pandas as pd
+from mlflow.exceptions import MlflowException
+from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 
 from aumesh.data.schema import INPUT_COLUMNS, N_TARGETS, flatten_axis_major
 from aumesh.model.release import NPZ_NAME
@@ -39,8 +48,30 @@ NPZ_KEY = "release_npz"
 NPZ_ARTIFACT = f"{MODEL_ARTIFACT_DIR}/artifacts/{NPZ_NAME}"  # the NPZ inside a run's model/
 
 
+class ServingInputError(MlflowException):
+    """An input error of aumesh's (:class:`aumesh.PredictionInputError`) as MLflow's invalid-parameter error (HTTP 400).
+
+    Its ``message`` stays aumesh's one line: MLflow's scoring server (3.17, ``invocations``) rewrites the ``message``
+    of an ``MlflowException`` from ``predict`` to ``"Failed to predict data '<the whole request DataFrame>'.
+    \nError: ..."``, which buries the line a client needs under a printout of its own request. So only the first
+    assignment (``MlflowException.__init__``'s) sets it.
+    """
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, error_code=INVALID_PARAMETER_VALUE)
+
+    @property
+    def message(self) -> str:
+        return self._aumesh_message
+
+    @message.setter
+    def message(self, value: str) -> None:
+        if "_aumesh_message" not in self.__dict__:
+            self._aumesh_message = value
+
+
 class ReleaseModel(mlflow.pyfunc.PythonModel):
-    """MLflow pyfunc wrapper of a release NPZ: DataFrame of the 23 input columns -> (n, 1434) meshes."""
+    """MLflow pyfunc wrapper of a release NPZ: DataFrame of input columns (any of the 23) -> (n, 1434) meshes."""
 
     def load_context(self, context) -> None:
         from aumesh.model.inference import load_release
@@ -48,20 +79,29 @@ class ReleaseModel(mlflow.pyfunc.PythonModel):
         self.release_ = load_release(context.artifacts[NPZ_KEY])
 
     def predict(self, context, model_input: pd.DataFrame, params: dict[str, Any] | None = None) -> np.ndarray:
-        """One mesh per row, flattened axis-major: shape (n, 1434), float64 (``aumesh.predict_mesh``)."""
-        from aumesh.model.inference import predict_mesh
+        """One mesh per row, flattened axis-major: shape (n, 1434), float64 (``aumesh.predict_mesh``).
+
+        Columns are taken by name; a missing AU is 0 and no pose columns is pose 0 (``predict_mesh``'s rules);
+        other columns are ignored. aumesh's input errors raise :class:`ServingInputError` (HTTP 400 when served).
+        """
+        from aumesh.model.inference import PredictionInputError, predict_mesh
 
         frame = pd.DataFrame(model_input)
-        meshes = predict_mesh(self.release_, frame[list(INPUT_COLUMNS)].astype(np.float64))
+        present = [c for c in INPUT_COLUMNS if c in frame.columns]
+        try:
+            meshes = predict_mesh(self.release_, frame[present].astype(np.float64))
+        except PredictionInputError as err:
+            raise ServingInputError(str(err)) from None  # the line is the whole story; no chained traceback
         return flatten_axis_major(meshes.reshape(len(frame), -1, 3))
 
 
 def signature():
-    """Inputs: the 23 named float (double) columns; output: a (-1, 1434) float64 tensor."""
+    """Inputs: the 23 named float (double) columns, each optional (missing AU = 0, no pose = pose 0, as
+    :func:`aumesh.predict_mesh`); output: a (-1, 1434) float64 tensor."""
     from mlflow.models.signature import ModelSignature
     from mlflow.types.schema import ColSpec, Schema, TensorSpec
 
-    return ModelSignature(inputs=Schema([ColSpec("double", c) for c in INPUT_COLUMNS]),
+    return ModelSignature(inputs=Schema([ColSpec("double", c, required=False) for c in INPUT_COLUMNS]),
                           outputs=Schema([TensorSpec(np.dtype(np.float64), (-1, N_TARGETS))]))
 
 

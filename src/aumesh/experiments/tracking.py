@@ -74,6 +74,7 @@ from aumesh.experiments.mlflow_store import (
     _str_value,
     _truncate,
     ensure_experiment,
+    experiment_tags,
     get_client,
     prepare_params,
 )
@@ -385,8 +386,8 @@ def _open_run(
     client = get_client(tracking_cfg)
     uri = client.tracking_uri
     name = str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT)
-    exp_id = ensure_experiment(client, name, _default_artifact_location(uri, tracking_cfg))
     all_tags = provenance_tags(tracking_cfg, owner_pid)
+    exp_id = ensure_experiment(client, name, _default_artifact_location(uri, tracking_cfg), experiment_tags(all_tags))
     close_orphaned_runs(client, exp_id, all_tags.get("aumesh.workspace"))
     if parent_run_id:
         all_tags[PARENT_TAG] = parent_run_id

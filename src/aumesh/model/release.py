@@ -166,6 +166,27 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
     return lines
 
 
+def _runs_lines(card: dict[str, Any]) -> list[str]:
+    """The card's "Runs" section: the promoted run (how the configuration was chosen) and the build run (what
+    produced these arrays), each with its MLflow id; without a promotion, only the build run."""
+    build = (card.get("runs") or {}).get("build") or card.get("mlflow") or {}
+    p = card.get("promotion")
+    where = f" in `{build['tracking_uri']}`" if build.get("tracking_uri") else ""
+    lines = ["## Runs", "", "This release names two MLflow runs: the one that chose its configuration and the one that "
+             "built its arrays." if p else "This release was built by one MLflow run; no promotion chose its "
+             "configuration (conf/'s own; `aumesh promote` records one).", ""]
+    if p:
+        registered = (f"; registered as `{p['registered_model']}` version {p.get('model_version')}"
+                      + (f" (`@{p['alias']}`)" if p.get("alias") else "") if p.get("registered_model") else "")
+        lines += [f"- **Promoted run** `{p.get('run_id')}`" + (f" ({p['run_name']})" if p.get("run_name") else "")
+                  + f" of sweep `{p.get('parent_run_id')}`: how the configuration was chosen. "
+                  f"Criterion: {p.get('criterion')}" + registered + ".",
+                  f"  Compared: {p.get('compared', '')}"]
+    lines += [f"- **Build run** `{build.get('run_id')}`" + (f" ({build['run_name']})" if build.get("run_name") else "")
+              + f"{where}: the evaluate run of `dvc repro` that produced these exact arrays and the numbers above.", ""]
+    return lines
+
+
 def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:
     """The human-readable card, generated from ``model_card.json``."""
     cv, data, cfg = card["cv"], card["data"], card["config"]
@@ -219,10 +240,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
     ]
     if "au_reliability" in cv:
         lines += reliability_section(cv)
-    if card.get("promotion"):
-        p = card["promotion"]
-        lines += ["## Promotion", "", f"- Promoted run `{p.get('run_id')}` of sweep `{p.get('parent_run_id')}`",
-                  f"- Criterion: {p.get('criterion')}", f"- Compared: {p.get('compared', '')}", ""]
+    lines += _runs_lines(card)
     if directions_table:
         lines += ["## AU directions (FACS check)", "", directions_table, ""]
     if figures:
@@ -249,7 +267,8 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         f"- code: git `{card['provenance'].get('git_commit')}`" + (" (dirty)" if card["provenance"].get("dirty") else ""),
         f"- data: `{data['digest'].get('md5')}`",
-        f"- MLflow run: `{card['mlflow'].get('run_id')}` ({card['mlflow'].get('tracking_uri')})",
+        f"- MLflow build run: `{card['mlflow'].get('run_id')}` ({card['mlflow'].get('tracking_uri')})"
+        + (f"; promoted run: `{card['promotion'].get('run_id')}`" if card.get("promotion") else ""),
         "- libraries: " + ", ".join(f"{k} {v}" for k, v in card["libraries"].items() if v),
         "",
     ]

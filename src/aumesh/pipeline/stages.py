@@ -167,7 +167,8 @@ def evaluate_stage(cfg: Config) -> dict:
         arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
                                 prepared.reference, card_text="", metadata={"mlflow_run_id": run.run_id})
         run.call(log_release_model, arrays)
-        run_info = {"run_id": run.run_id, "experiment_id": getattr(run, "experiment_id", None),
+        run_info = {"run_id": run.run_id, "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
+                    "experiment_id": getattr(run, "experiment_id", None),
                     # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
                     # never a server's address (the run id finds the run there)
                     "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None}
@@ -223,9 +224,41 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         "config": shareable_config(cfg),
         "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
         "mlflow": {k: run_info.get(k) for k in ("run_id", "experiment_id", "tracking_uri")},
+        "runs": release_runs(run_info, promotion),
         "libraries": provenance.library_versions(),
         "promotion": promotion,
     }
+
+
+def release_runs(run_info: dict, promotion: dict | None) -> dict:
+    """The two MLflow runs a release names: ``build`` made these exact arrays, ``promoted`` chose their configuration.
+
+    Parameters
+    ----------
+    run_info : dict
+        ``build/model/tracking.json``: the evaluate run of ``dvc repro`` (``run_id``, ``run_name``,
+        ``experiment_id``, ``tracking_uri``).
+    promotion : dict or None
+        ``promotion.json``'s ``promoted`` record (:func:`aumesh.experiments.promote.promote`), None when the
+        configuration is conf/'s own.
+
+    Returns
+    -------
+    dict
+        ``{"build": {...}, "promoted": {...} or None}``; each names its run id, its store (repo-relative) and, in
+        ``role``, what it stands for. The promoted run is a sweep child: the same configuration fitted by the sweep,
+        whose metrics decided; the build run refitted it in the pipeline (the card's arrays and numbers are its).
+    """
+    build = {"run_id": run_info.get("run_id"), "run_name": run_info.get("run_name"),
+             "experiment_id": run_info.get("experiment_id"), "tracking_uri": run_info.get("tracking_uri"),
+             "role": "build: the evaluate run of `dvc repro` that produced these exact arrays and the card's metrics"}
+    promoted = None
+    if promotion:
+        promoted = {k: promotion.get(k) for k in ("run_id", "run_name", "parent_run_id", "tracking_uri", "criterion",
+                                                  "metric", "value", "registered_model", "model_version", "alias")}
+        promoted["role"] = ("promoted: the sweep run whose configuration this release uses, chosen by `aumesh promote` "
+                            f"({promotion.get('criterion')})")
+    return {"build": build, "promoted": promoted}
 
 
 def release_stage(cfg: Config) -> Path:

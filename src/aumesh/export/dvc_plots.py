@@ -1,0 +1,127 @@
+"""An HTML template for ``dvc plots show`` / ``dvc plots diff`` that draws offline.
+
+DVC's own page loads vega, vega-lite and vega-embed from a CDN (``dvc_render.vega``: ``<script
+src="https://cdn.jsdelivr.net/npm/vega@5...">``); without network it stays white ("vegaEmbed is not
+defined"). This template carries the three libraries inlined, from the locked npm packages ``make tools``
+installs into ``node_modules/`` (``package-lock.json``: vega 5, vega-lite 5, vega-embed 6, the majors DVC's
+Vega-Lite v5 specs are written for), as :mod:`aumesh.export.viewer` inlines three.js.
+
+``.dvc/config`` names it (``[plots] html_template = plots/offline.html``, relative to ``.dvc/``), so the plain
+commands use it. It is committed (0.8 MB), as DVC's own custom plot templates in ``.dvc/plots/`` are: a clone
+draws offline whatever made its environment (make, conda, ``pip install -e .``), and a missing file would give
+DVC's cryptic "HTML template has to contain '{plot_divs}'". ``make tools`` writes it again from the locked
+packages (the same bytes while ``package-lock.json`` is unchanged; ``tests/test_dvc_plots_template.py`` holds
+the two together).
+
+The template has DVC's ``{plot_divs}`` and ``{refresh_tag}`` placeholders and deliberately no ``{scripts}``:
+that is where DVC would put its CDN ``<script>`` tags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+from pathlib import Path
+
+#: Where the template is written (from the repository root) and how ``.dvc/config`` names it (from ``.dvc/``).
+TEMPLATE_FILE = Path(".dvc") / "plots" / "offline.html"
+CONFIG_VALUE = "plots/offline.html"
+#: The npm packages inlined, in load order (vega-embed's UMD build finds ``vega`` and ``vegaLite`` as globals).
+PACKAGES = (("vega", "build/vega.min.js"), ("vega-lite", "build/vega-lite.min.js"),
+            ("vega-embed", "build/vega-embed.min.js"))
+NODE_MODULES_ENV = "AUMESH_NODE_MODULES"  # the same override as the viewer's three.js
+#: DVC's placeholders: a library's text must not contain them, or DVC would fill them in inside the JavaScript.
+PLACEHOLDERS = ("{plot_divs}", "{scripts}", "{refresh_tag}")
+
+PAGE = """<!DOCTYPE html>
+<html>
+<head>
+    <meta charset="utf-8">
+    {refresh_tag}
+    <title>DVC Plot</title>
+    <!-- aumesh: {versions} inlined from node_modules (make tools): the page draws offline, no CDN -->
+{libraries}
+    <style>
+        body { font-family: sans-serif; }
+        table { border-spacing: 15px; }
+    </style>
+</head>
+<body>
+{plot_divs}
+</body>
+</html>
+"""
+
+
+def find_node_modules() -> Path:
+    """The ``node_modules`` folder holding vega, vega-lite and vega-embed: ``$AUMESH_NODE_MODULES``, else
+    ``./node_modules``, else the repository's.
+
+    Raises
+    ------
+    FileNotFoundError
+        Naming the places searched and the fix (``make tools``).
+    """
+    candidates = [Path(os.environ[NODE_MODULES_ENV]) if os.environ.get(NODE_MODULES_ENV) else None,
+                  Path.cwd() / "node_modules", Path(__file__).resolve().parents[3] / "node_modules"]
+    searched = []
+    for base in filter(None, candidates):
+        searched.append(str(base))
+        if all((base / name / build).is_file() for name, build in PACKAGES):
+            return base
+    raise FileNotFoundError(f"vega, vega-lite and vega-embed not found in {', '.join(searched)} (the DVC plots "
+                            f"template inlines them; no CDN). Fix: run `make tools` (npm ci) in the aumesh repository, "
+                            f"or set {NODE_MODULES_ENV} to a node_modules folder holding them.")
+
+
+def _script(name: str, version: str, text: str) -> str:
+    # the HTML parser ends a <script> at the first "</script": escape it (valid JavaScript either way); drop the
+    # source-map comment, which names a file that is not beside the page
+    text = re.sub(r"\n//# sourceMappingURL=\S+\s*$", "\n", text).replace("</script", "<\\/script")
+    clash = [p for p in PLACEHOLDERS if p in text]
+    if clash:
+        raise ValueError(f"{name} {version} contains DVC's template placeholder(s) {clash}: it cannot be inlined as is")
+    return f'    <script data-package="{name}@{version}">\n{text}\n    </script>'
+
+
+def template_html(node_modules: Path | None = None) -> str:
+    """The template's text, with the three libraries of *node_modules* (default :func:`find_node_modules`)."""
+    base = node_modules or find_node_modules()
+    scripts, versions = [], []
+    for name, build in PACKAGES:
+        version = json.loads((base / name / "package.json").read_text())["version"]
+        versions.append(f"{name} {version}")
+        scripts.append(_script(name, version, (base / name / build).read_text(encoding="utf-8")))
+    # replacement, not str.format: the page's CSS has braces, and DVC's own placeholders stay for DVC to fill
+    return PAGE.replace("{versions}", ", ".join(versions)).replace("{libraries}", "\n".join(scripts))
+
+
+def write_template(out: str | Path = TEMPLATE_FILE, node_modules: Path | None = None) -> Path:
+    """Write the template to *out* atomically (folders created); returns the path."""
+    from aumesh.utils.io import atomic_write_text
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write_text(out, template_html(node_modules))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m aumesh.export.dvc_plots [--out FILE]`` (what ``make tools`` runs after a change of the lock file)."""
+    parser = argparse.ArgumentParser(prog="python -m aumesh.export.dvc_plots", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=TEMPLATE_FILE,
+                        help=f"the template file (default: %(default)s, named by .dvc/config as {CONFIG_VALUE})")
+    args = parser.parse_args(argv)
+    try:
+        out = write_template(args.out)
+    except FileNotFoundError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB: vega, vega-lite, vega-embed inlined)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
