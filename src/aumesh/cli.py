@@ -369,6 +369,17 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"aumesh {args.command}: error: {err}" + (f"\n{note}" if note else ""), file=sys.stderr)
         return 2
+    except OSError as err:
+        import errno
+
+        if err.errno not in (errno.ENOSPC, errno.EDQUOT) or debug:  # a full disk outside the atomic writers (scratch)
+            raise
+        note = _dvc_note(args)
+        where = f" while writing {err.filename}" if err.filename else ""
+        print(f"aumesh {args.command}: error: no space left on the device{where}; outputs are swapped in only when "
+              f"complete, so the previous ones are intact. Fix: free space (`df -h .`) and run again."
+              + (f"\n{note}" if note else ""), file=sys.stderr)
+        return 2
     except BaseException:  # a bug, Ctrl-C: the traceback stays; still say how to get DVC's removed outputs back
         note = _dvc_note(args)
         if note:

@@ -22,3 +22,15 @@ class TableError(UserError, ValueError):
 
 class MissingFileError(UserError, FileNotFoundError):
     """A file the user named does not exist; the message names it and how to get it."""
+
+
+class CorruptFileError(UserError, ValueError):
+    """A file on disk that is truncated, damaged or not what its checksum says; the message names it and the fix."""
+
+
+class DiskFullError(UserError, OSError):
+    """No space left on the device while writing an output; the message names the folder, what it needed and that
+    the previous outputs are intact (every output is written atomically). ``errno`` stays ``ENOSPC``."""
+
+    def __str__(self) -> str:  # the message alone, not OSError's "[Errno 28] ..."
+        return str(self.strerror)
