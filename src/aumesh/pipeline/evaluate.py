@@ -790,7 +790,7 @@ def constant_inputs(prepared: Prepared) -> dict[str, float]:
                 break
             lo, hi = min(lo, stats.min), max(hi, stats.max)
         if lo == hi:
-            out[name] = float(lo)
+            out[name] = float(lo) + 0.0  # parquet stores a min of 0.0 as -0.0
     return out
 
 

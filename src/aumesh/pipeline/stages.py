@@ -107,7 +107,10 @@ def check_columns(cfg: Config, columns: list[str] | None = None, where: str | No
         path = Path(cfg.paths.prepared_dir) / FRAMES_FILE
         where = where or str(path)
         columns = pq.read_schema(path).names if path.exists() else []
-    names = ", ".join(repr(c) for c in columns)
+    import re
+
+    mesh = [c for c in columns if re.fullmatch(r"[xyz]_\d+", c)]  # 1,434 mesh columns: named as a range
+    names = ", ".join([repr(c) for c in columns if c not in set(mesh)] + (["the mesh columns x_0..z_477"] if mesh else []))
     if group not in columns:
         raise ConfigError(f"cv.group={group!r} names no column of {where} (its columns: {names}). "
                           f"Fix: cv.group={VIDEO_COLUMN} (the video column: the only grouping the CV supports).")
