@@ -640,6 +640,10 @@ DAMAGED_FILES = {
     # a byte flipped in place (with DVC's hardlinked cache, in the cache too): caught by prepare's checksums
     "one byte flipped in meshes.npy": (lambda ws: _flip_byte(ws / PREPARED / "meshes.npy"), "evaluate",
                                        [f"{PREPARED}/meshes.npy: bytes", "sha256 checksum", FIX_PREPARE]),
+    "one byte flipped in a file hard-linked into a cache": (
+        lambda ws: (os.link(ws / PREPARED / "meshes.npy", ws / "cache-copy"), _flip_byte(ws / PREPARED / "meshes.npy")),
+        "evaluate", [f"{PREPARED}/meshes.npy: bytes", "hard-linked into DVC's cache", "find .dvc/cache -inum ",
+                     FIX_PREPARE]),
     "one byte flipped in frames.parquet": (lambda ws: _flip_byte(ws / PREPARED / "frames.parquet", 0.3), "evaluate",
                                            [f"{PREPARED}/frames.parquet: bytes", "checksum", FIX_PREPARE]),
     "one byte flipped in video_ids.npy": (lambda ws: _flip_byte(ws / PREPARED / "video_ids.npy", 0.9), "evaluate",

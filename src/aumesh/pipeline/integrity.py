@@ -29,11 +29,24 @@ BLOCK_BYTES = 64 << 20
 #: Bytes read at a time while hashing (in cache; hashlib releases the GIL above 2 KiB).
 READ_BYTES = 4 << 20
 
-#: The fix a mismatch names. With hard links, DVC's cached copy *is* the workspace file, so `dvc checkout -f` can only
-#: help where the cache holds a separate copy (reflink/copy, or a cache that DVC itself found corrupt and removed);
-#: recomputing always does.
-PREPARED_FIX = ("rebuild it with `dvc repro -f prepare` (`dvc checkout -f prepare` restores DVC's cached copy only "
-                "where the cache is not a hard link to this very file; see README, 'Checksums of the prepared data')")
+#: The fix a damaged prepared file names: recompute. With hard links (``cache.type = hardlink``) DVC's cached copy *is*
+#: the workspace file, so `dvc checkout -f prepare` cannot restore it: it relinks the same bytes and then reports the
+#: workspace up to date (tried with DVC 3.67). See :func:`prepared_fix` for a file that is hard-linked into the cache.
+PREPARED_FIX = "rebuild the prepared data with `dvc repro -f prepare` (or `aumesh prepare`)"
+
+
+def prepared_fix(path: str | Path) -> str:
+    """:data:`PREPARED_FIX`, preceded by removing DVC's cached copy when ``path`` has other hard links (DVC's cache):
+    DVC skips storing an object whose name is already in its cache, so the damaged copy would stay there and come back
+    with the next `dvc checkout`."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return PREPARED_FIX
+    if st.st_nlink > 1:
+        return (f"it is hard-linked into DVC's cache, whose copy is damaged too: remove that copy "
+                f"(`find .dvc/cache -inum {st.st_ino} -delete`), then {PREPARED_FIX}")
+    return PREPARED_FIX
 
 
 def new_hash():
@@ -83,11 +96,11 @@ def verify(directory: str | Path, records: dict[str, dict], names: list[str] | N
         rec, path = records[name], directory / name
         if rec.get("algorithm", ALGORITHM) != ALGORITHM:
             raise CorruptFileError(f"{path}: checksum algorithm {rec.get('algorithm')!r} unknown to this aumesh. "
-                                   f"Fix: {PREPARED_FIX}")
+                                   f"Fix: {PREPARED_FIX}.")
         size = path.stat().st_size
         if size != rec["size"]:
             raise CorruptFileError(f"{path}: {size:,} bytes, but prepare wrote {rec['size']:,} (checksum in summary.json): "
-                                   f"the file was truncated or replaced. Fix: {PREPARED_FIX}")
+                                   f"the file was truncated or replaced. Fix: {prepared_fix(path)}.")
         jobs += [(name, path, a, b, h) for a, b, h in rec["blocks"]]
     with ThreadPoolExecutor(max_workers=threads or min(len(jobs), os.cpu_count() or 1) or 1) as pool:
         got = list(pool.map(lambda j: hash_range(j[1], j[2], j[3]), jobs))
@@ -95,7 +108,7 @@ def verify(directory: str | Path, records: dict[str, dict], names: list[str] | N
         if have != want:
             raise CorruptFileError(f"{path}: bytes {a:,}-{b:,} do not match the {ALGORITHM} checksum prepare recorded "
                                    f"in summary.json: the file changed after it was written (disk or cache corruption, "
-                                   f"an edit). Fix: {PREPARED_FIX}")
+                                   f"an edit). Fix: {prepared_fix(path)}.")
 
 
 def load_summary(prepared_dir: str | Path) -> dict:
@@ -106,7 +119,7 @@ def load_summary(prepared_dir: str | Path) -> dict:
     try:
         return json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError) as err:
-        raise CorruptFileError(f"{path}: not readable JSON ({err}). Fix: {PREPARED_FIX}") from None
+        raise CorruptFileError(f"{path}: not readable JSON ({err}). Fix: {PREPARED_FIX}.") from None
 
 
 def verify_prepared(prepared_dir: str | Path, summary: dict, names: list[str] | None = None) -> None:
@@ -121,7 +134,7 @@ def verify_prepared(prepared_dir: str | Path, summary: dict, names: list[str] | 
     d = Path(prepared_dir)
     for name in (MESHES_FILE, VIDEO_IDS_FILE, *NEUTRAL_FILES.values()):
         if names is None or name in names:
-            check_npy(d / name, PREPARED_FIX)
+            check_npy(d / name, prepared_fix(d / name) + ".")
     records = summary.get("checksums")
     if not records:
         logging.getLogger(__name__).warning("%s: summary.json records no checksums (prepared by an older aumesh): the "
@@ -143,4 +156,4 @@ def load_reference(prepared_dir: str | Path) -> dict:
     except (zipfile.BadZipFile, ValueError, EOFError, OSError) as err:
         if isinstance(err, FileNotFoundError):
             raise
-        raise CorruptFileError(f"{path}: not a readable .npz ({err}). Fix: {PREPARED_FIX}") from None
+        raise CorruptFileError(f"{path}: not a readable .npz ({err}). Fix: {prepared_fix(path)}.") from None
