@@ -34,3 +34,7 @@ class DiskFullError(UserError, OSError):
 
     def __str__(self) -> str:  # the message alone, not OSError's "[Errno 28] ..."
         return str(self.strerror)
+
+
+class TruncatedFileError(CorruptFileError, EOFError):
+    """A file that ends before its header says (an ``EOFError`` too, what the readers raised before)."""

@@ -247,17 +247,21 @@ def check_npy(path: str | Path, fix: str) -> tuple[int, np.dtype, tuple[int, ...
     than its header's shape needs (a truncated copy, an interrupted ``np.save``), is a
     :class:`aumesh.utils.errors.CorruptFileError` naming the file, both sizes and ``fix`` (instead of numpy's
     "mmap length is greater than file size" or an ``EOFError`` deep inside a pass)."""
-    from aumesh.utils.errors import CorruptFileError
+    from aumesh.utils.errors import CorruptFileError, TruncatedFileError
 
     path = Path(path)
     try:
-        offset, dtype, shape = npy_layout(path)
+        with open(path, "rb") as fh:  # numpy's own header reader: Fortran order is the caller's to refuse
+            version = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(fh)
+            offset = fh.tell()
     except (ValueError, SyntaxError, EOFError) as err:
         raise CorruptFileError(f"{path}: not a readable .npy file ({err}). Fix: {fix}") from None
     need = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     size = path.stat().st_size
     if size < need:
-        raise CorruptFileError(f"{path}: truncated: {size:,} bytes on disk, its header ({shape} {dtype}) needs "
+        raise TruncatedFileError(f"{path}: truncated: {size:,} bytes on disk, its header ({shape} {dtype}) needs "
                                f"{need:,}. Fix: {fix}")
     return offset, dtype, shape
 
@@ -304,9 +308,9 @@ class NpyRowFile:
         while got < len(view):
             k = os.preadv(self._fd, [view[got:]], pos + got)
             if not k:  # the file shrank after its size was checked (check_npy), or was never checked
-                from aumesh.utils.errors import CorruptFileError
+                from aumesh.utils.errors import TruncatedFileError
 
-                raise CorruptFileError(f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)} of "
+                raise TruncatedFileError(f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)} of "
                                        f"{self.shape[0]}. Fix: restore or rewrite the file")
             got += k
         return out
