@@ -22,7 +22,7 @@ import pytest
 from aumesh.data import contract, synth, tables
 from aumesh.data.schema import VIDEO_COLUMN
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
-from aumesh.pipeline import evaluate as ev
+from aumesh.pipeline import integrity, evaluate as ev
 from aumesh.pipeline import prepare
 from aumesh.utils.io import create_npy
 from conftest import default_config
@@ -101,7 +101,14 @@ def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):
     many, s2 = _prepare(split_tables, "many", **sub, **{"compute.partition_rows": 1})
     some, s3 = _prepare(split_tables, "some", **sub, **{"compute.partition_rows": 300, "compute": "processes",
                                                           "compute.n_workers": 2})
+    # the checksums' byte ranges follow the partitions (each hashes its own rows while writing); the bytes do not
+    checksums = [s.pop("checksums") for s in (s1, s2, s3)]
     assert s1 == s2 == s3
+    assert len({c["meshes.npy"]["size"] for c in checksums}) == 1 and len(checksums[1]["meshes.npy"]["blocks"]) > 2
+    for name in ("video_ids.npy", "neutral_mean.npy", "neutral_low_au.npy"):  # written the same, byte for byte
+        assert len({c[name]["blocks"][0][2] for c in checksums}) == 1, name
+    for d, c in zip((one, many, some), checksums):
+        integrity.verify(d, c)
     _assert_same_prepared(one, many)
     _assert_same_prepared(one, some)
 

@@ -604,3 +604,332 @@ def test_a_killed_unreaped_child_counts_as_gone():
     me = psutil.Process()
     assert not process_gone(me.pid, me.create_time() + 5)  # live, started before its temporary
     assert process_gone(me.pid, me.create_time() - 60)  # a process newer than the temporary: the pid was reused
+
+
+# --------------------------------------------------------------- issue 34: damaged files, full disks, hostile text
+PREPARED = "build/prepared"
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _flip_byte(path: Path, where: float = 0.5) -> None:
+    raw = bytearray(path.read_bytes())
+    raw[int(len(raw) * where)] ^= 0x01
+    path.write_bytes(bytes(raw))
+
+
+def _nan_model_intercept(ws: Path) -> None:
+    path = ws / "build/model/model.npz"
+    arrays = dict(np.load(path))
+    arrays["mesh_intercept"] = arrays["mesh_intercept"].copy()
+    arrays["mesh_intercept"][5] = np.nan
+    np.savez(path, **arrays)
+
+
+FIX_PREPARE = "dvc repro -f prepare"
+DAMAGED_FILES = {
+    # the issue's "mmap length is greater than file size" and its kin: one line naming the file and the fix
+    "truncated meshes.npy": (lambda ws: _truncate(ws / PREPARED / "meshes.npy"), "evaluate",
+                             [f"{PREPARED}/meshes.npy: truncated", "needs", FIX_PREPARE]),
+    "truncated neutral_low_au.npy": (lambda ws: _truncate(ws / PREPARED / "neutral_low_au.npy"), "evaluate",
+                                     [f"{PREPARED}/neutral_low_au.npy: truncated", FIX_PREPARE]),
+    "truncated reference.npz": (lambda ws: _truncate(ws / PREPARED / "reference.npz"), "release",
+                                [f"{PREPARED}/reference.npz", "truncated or replaced", FIX_PREPARE]),
+    # a byte flipped in place (with DVC's hardlinked cache, in the cache too): caught by prepare's checksums
+    "one byte flipped in meshes.npy": (lambda ws: _flip_byte(ws / PREPARED / "meshes.npy"), "evaluate",
+                                       [f"{PREPARED}/meshes.npy: bytes", "sha256 checksum", FIX_PREPARE]),
+    "one byte flipped in a file hard-linked into a cache": (
+        lambda ws: (os.link(ws / PREPARED / "meshes.npy", ws / "cache-copy"), _flip_byte(ws / PREPARED / "meshes.npy")),
+        "evaluate", [f"{PREPARED}/meshes.npy: bytes", "hard-linked into DVC's cache", "find .dvc/cache -inum ",
+                     FIX_PREPARE]),
+    "one byte flipped in frames.parquet": (lambda ws: _flip_byte(ws / PREPARED / "frames.parquet", 0.3), "evaluate",
+                                           [f"{PREPARED}/frames.parquet: bytes", "checksum", FIX_PREPARE]),
+    "one byte flipped in video_ids.npy": (lambda ws: _flip_byte(ws / PREPARED / "video_ids.npy", 0.9), "evaluate",
+                                          [f"{PREPARED}/video_ids.npy", "checksum", FIX_PREPARE]),
+    "summary.json not JSON": (lambda ws: (ws / PREPARED / "summary.json").write_text("{\"counts\": "), "evaluate",
+                              [f"{PREPARED}/summary.json: not readable JSON", FIX_PREPARE]),
+    # a release is finite or refused
+    "NaN in model.npz's intercept": (_nan_model_intercept, "release",
+                                     ["build/model/model.npz", "'intercept' has 1 NaN/inf value(s)", "dvc repro -f evaluate"]),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED_FILES))
+def test_damaged_file_exits_2_naming_it_and_keeps_release(workspace, case, capsys):
+    inject, stage, expected = DAMAGED_FILES[case]
+    release = tree_digest(workspace / "release")
+    runs = mlflow_runs(workspace)
+    inject(workspace)
+    code, err = run_cli([stage], workspace, capsys)
+    assert code == 2, err
+    assert err.startswith(f"aumesh {stage}: error: ") and len(err.strip().splitlines()) == 1, err
+    assert "Traceback" not in err
+    for text in expected:
+        assert text in err, f"{text!r} not in {err!r}"
+    assert tree_digest(workspace / "release") == release
+    pd.testing.assert_frame_equal(mlflow_runs(workspace), runs)  # refused before a run was opened
+
+
+def test_truncated_split_layout_npy_in_data_names_it(workspace, capsys):
+    """py-feat's split layout (a parquet plus its [N, 478, 3] .npy): a short .npy is one line before any work."""
+    shutil.rmtree(workspace / "data")
+    write_tables(workspace / "data", SynthSpec(n_frames=400, n_videos=40, seed=3, layout="pyfeat"))
+    npy = workspace / "data/frames_0000.npy"
+    _truncate(npy)
+    release = tree_digest(workspace / "release")
+    code, err = run_cli(["ingest"], workspace, capsys)
+    assert code == 2, err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    for text in ("data/frames_0000.npy: truncated", "(400, 478, 3)", "dvc checkout data"):
+        assert text in err, err
+    assert tree_digest(workspace / "release") == release
+
+
+def _mesh_columns(ws: Path, change) -> None:
+    df = _table(ws)
+    change(df)
+    _save(ws, df)
+
+
+def _mirror(df: pd.DataFrame) -> None:
+    z = [c for c in df.columns if c.startswith("z_")]
+    df[z] = -df[z]
+
+
+def _swap_xy(df: pd.DataFrame) -> None:
+    x = [c for c in df.columns if c.startswith("x_")]
+    y = ["y_" + c[2:] for c in x]
+    df[x + y] = df[y + x].to_numpy()
+
+
+@pytest.mark.parametrize("change", [_mirror, _swap_xy], ids=["z negated", "x and y swapped"])
+def test_mirrored_mesh_is_refused_by_prepare_before_any_fit(workspace, change, capsys):
+    kept = {d: tree_digest(workspace / d) for d in ("release", PREPARED)}
+    runs = mlflow_runs(workspace)
+    _mesh_columns(workspace, change)
+    code, err = run_data_stages(workspace, capsys)
+    assert code == 2, err
+    assert err.startswith("aumesh prepare: error: ") and len(err.strip().splitlines()) == 1, err
+    for text in (TABLE, "mirrored (400 of 400 frames", "negate one axis"):
+        assert text in err, err
+    assert {d: tree_digest(workspace / d) for d in kept} == kept
+    pd.testing.assert_frame_equal(mlflow_runs(workspace), runs)
+
+
+def test_handedness_test_agrees_with_the_release_frame():
+    """:func:`mirrored` (prepare's early check on a few landmarks) says what ``canonical_frame`` (the release's) says."""
+    from scipy.spatial.transform import Rotation
+
+    from aumesh.geometry.face import canonical_template
+    from aumesh.geometry.frame import HANDEDNESS_LANDMARKS, canonical_frame, mirrored
+
+    rng = np.random.default_rng(0)
+    template = canonical_template()
+    for k in range(60):
+        mesh = template @ Rotation.random(random_state=k).as_matrix().T * rng.uniform(0.1, 500) + rng.normal(size=3)
+        mesh = (mesh, mesh * [1, 1, -1], mesh[:, [1, 0, 2]])[k % 3]
+        try:
+            canonical_frame(mesh)
+            refused = False
+        except ValueError:
+            refused = True
+        assert mirrored(mesh[list(HANDEDNESS_LANDMARKS)][None])[0] == refused == (k % 3 != 0)
+
+
+@pytest.mark.parametrize("group", ["<img src=x onerror=alert(1)>", "AU12"])
+def test_cv_group_must_name_the_video_column(workspace, group, capsys):
+    """An unknown cv.group was ignored (and pasted raw into the card); a known column other than the video's cannot
+    group this CV. Both: exit 2 before any work, listing the columns."""
+    release = tree_digest(workspace / "release")
+    runs = mlflow_runs(workspace)
+    edit_params(cv__group=group)(workspace)
+    for stage in ("prepare", "evaluate", "release"):
+        code, err = run_cli([stage], workspace, capsys)
+        assert code == 2, err
+        assert err.startswith(f"aumesh {stage}: error: cv.group={group!r}") and len(err.strip().splitlines()) == 1, err
+        assert "cv.group=video_id" in err
+        if group != "AU12":  # the columns that exist, the mesh's 1,434 as a range
+            assert "(its columns: " in err and "'video_id'" in err and "'AU01'" in err and "'x_0'" not in err, err
+    assert tree_digest(workspace / "release") == release
+    pd.testing.assert_frame_equal(mlflow_runs(workspace), runs)
+
+
+CONFIG_FAULTS["anchor vertex 999"] = (edit_params(preprocess__alignment__anchor_indices=[999, 9, 8, 151, 6, 168]),
+                                      ["anchor_indices: [999] name no vertex", "0..477"])
+
+
+# ------------------------------------------------------------------------------------------------ full disks
+class _Tmpfs:
+    """A tmpfs of ``size`` bytes mounted on ``where`` (its files copied in), or the test is skipped (needs root)."""
+
+    def __init__(self, where: Path, slack: int):
+        self.where, self.slack = where, slack
+
+    def __enter__(self):
+        import subprocess
+
+        if os.geteuid() != 0 or not shutil.which("mount"):
+            pytest.skip("mounting a small tmpfs needs root")
+        saved = self.where.with_name(self.where.name + ".saved")
+        self.where.rename(saved)
+        self.where.mkdir()
+        used = sum(p.stat().st_size for p in saved.rglob("*") if p.is_file())
+        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={used + self.slack + (64 << 12)}", "tmpfs", self.where],
+                              capture_output=True)
+        if proc.returncode:
+            self.where.rmdir()
+            saved.rename(self.where)
+            pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.decode().strip()}")
+        shutil.copytree(saved, self.where, dirs_exist_ok=True, copy_function=shutil.copy2)
+        shutil.rmtree(saved)
+        return self
+
+    def __exit__(self, *exc):
+        import subprocess
+
+        kept = self.where.with_name(self.where.name + ".kept")
+        shutil.copytree(self.where, kept, copy_function=shutil.copy2)
+        subprocess.run(["umount", self.where], check=True)
+        self.where.rmdir()
+        kept.rename(self.where)
+
+
+@pytest.mark.parametrize("stage", ["prepare", "release"])
+def test_full_disk_is_one_line_naming_the_folder_and_keeps_outputs(workspace, stage, capsys):
+    """A real full device (a small tmpfs): the stage names the folder, what a complete output takes, and that the
+    previous one is intact; no temporaries are left."""
+    if stage == "release":  # the release folder's parent gets the small device
+        (workspace / "out").mkdir()
+        (workspace / "release").rename(workspace / "out/release")
+        edit_params(paths__release_dir="out/release")(workspace)
+    folder = workspace / ("build" if stage == "prepare" else "out")
+    out = workspace / (PREPARED if stage == "prepare" else "out/release")
+    before = tree_digest(out)
+    with _Tmpfs(folder, slack=150_000):
+        code, err = run_cli([stage], workspace, capsys)
+        debris = sorted(p.name for p in folder.glob(f".{out.name}.*"))
+    assert code == 2, err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    name = "build" if stage == "prepare" else "out"
+    for text in (f"{name}/: no space left on the device while writing {out.relative_to(workspace)}",
+                 "a complete one takes about", f"the previous {out.relative_to(workspace)} is intact"):
+        assert text in err, err
+    assert not debris, debris
+    assert tree_digest(out) == before
+
+
+def test_full_disk_inside_a_pass_is_one_line(workspace, capsys, monkeypatch):
+    """Without root: ENOSPC from the OS call that writes the aligned meshes (pass 3's pwrite, in a worker thread)."""
+    import errno
+
+    from aumesh.utils import io as aio
+
+    def full(fd, data, offset):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    before = tree_digest(workspace / PREPARED)
+    code, err = run_cli(["ingest"], workspace, capsys)
+    assert code == 0, err
+    monkeypatch.setattr(aio.os, "pwrite", full)
+    code, err = run_cli(["prepare"], workspace, capsys)
+    assert code == 2, err
+    assert err.startswith("aumesh prepare: error: build/: no space left on the device while writing build/prepared")
+    assert "the previous build/prepared is intact" in err and len(err.strip().splitlines()) == 1, err
+    assert tree_digest(workspace / PREPARED) == before
+    assert not list((workspace / "build").glob(".prepared.*"))
+
+
+# ------------------------------------------------------------------------------------------ hostile text, card
+HOSTILE = ("</script><script>alert(1)</script>", "<!--<script>", "<img src=x onerror=alert(1)>")
+
+
+def _rendered_card(ws: Path) -> tuple[str, str]:
+    """MODEL_CARD.md rendered by a CommonMark renderer with raw HTML passed through (the worst case: GitHub sanitizes,
+    editors' previews and MLflow's UI may not): the HTML and its text."""
+    import html
+
+    from markdown_it import MarkdownIt
+
+    out = MarkdownIt("commonmark", {"html": True}).enable("table").render((ws / "release/MODEL_CARD.md").read_text())
+    text = html.unescape(re.sub(r"<[^>]*>", "", out))
+    return out, text
+
+
+@pytest.mark.parametrize("hostile", HOSTILE)
+def test_strings_from_promotion_and_config_are_text_in_the_card(workspace, hostile, capsys):
+    import json
+
+    (workspace / "promotion.json").write_text(json.dumps({"promoted": {
+        "run_id": hostile, "parent_run_id": hostile + "p", "criterion": "best " + hostile, "compared": hostile + " | x"}}))
+    edit_params(tracking__experiment=hostile)(workspace)
+    code, err = run_cli(["release"], workspace, capsys)
+    assert code == 0, err
+    md = (workspace / "release/MODEL_CARD.md").read_text()
+    for raw in ("<script", "<img", "<!--"):
+        assert raw not in md, raw
+    out, text = _rendered_card(workspace)
+    assert not re.search(r"<script\b|<!--|<img[^>]*onerror", out), out  # the figures' own <img> tags stay
+    assert "<h2>Provenance</h2>" in out and "<h2>Frame</h2>" in out  # nothing after the strings was swallowed (<!--)
+    for shown in (f"Promoted run {hostile} of sweep {hostile}p", f"Criterion: best {hostile}",
+                  f"Compared: {hostile} | x", f"experiment {hostile}"):
+        assert shown in text, (shown, text)
+
+
+# ------------------------------------------------------------------------------------------- degenerate inputs
+def _all_stages(ws: Path, capsys) -> str:
+    err_all = ""
+    for stage in ("ingest", "prepare", "evaluate", "release"):
+        code, err = run_cli([stage], ws, capsys)
+        assert code == 0, err
+        err_all += err
+    return err_all
+
+
+@pytest.mark.parametrize("columns", [("AU07",), ("Pitch", "Yaw", "Roll")], ids=["AU07 always 0", "pose always 0"])
+def test_constant_inputs_are_said_aloud_and_get_zero_coefficients(workspace, columns, capsys, caplog):
+    import json
+
+    import mlflow
+
+    _save(workspace, _table(workspace).assign(**{c: 0.0 for c in columns}))
+    _all_stages(workspace, capsys)
+    listed = ", ".join(f"{c}=0" for c in columns)
+    assert f"evaluate: {listed} constant in every one of the" in caplog.text
+    card = json.loads((workspace / "release/model_card.json").read_text())
+    run = mlflow.MlflowClient(tracking_uri=f"sqlite:///{workspace / 'mlflow.db'}").get_run(card["mlflow"]["run_id"])
+    assert run.data.tags["aumesh.constant_inputs"] == listed
+    pose = columns[0] == "Pitch"
+    assert run.data.tags["aumesh.pose_learned"] == ("false" if pose else "true")
+    assert run.data.tags["aumesh.constant_features"] == str(63 if pose else 4)  # AU07 + its 3 pose products
+    md = (workspace / "release/MODEL_CARD.md").read_text()
+    assert f"**Constant inputs**: {', '.join(f'{c} = 0' for c in columns)} in every training frame" in md
+    assert f"= 83 features, of which {63 if pose else 4} have no variance" in md
+    assert ("**Pose was not learned**" in md) == pose
+    release = np.load(workspace / "release/au_to_mesh_pls.npz")
+    rows = release["input_columns"].tolist()
+    for c in columns:  # the engine's zero-variance path: exactly 0, as dropping the column would give
+        assert not release["coef"][rows.index(c)].any()
+    full = release["input_columns_full"].tolist()
+    dead = [j for j, name in enumerate(full) if any(c in name.split("*") for c in columns)]
+    assert not release["coef_full"][dead].any() and release["coef_full"].any()
+    assert np.isfinite(release["coef_full"]).all()
+
+
+# ------------------------------------------------------------------------------------- finite releases only
+@pytest.mark.parametrize("key", ["coef", "coef_full", "intercept"])
+def test_load_release_and_predict_refuse_a_non_finite_release(good_workspace, tmp_path, key, capsys):
+    from aumesh.model.inference import ReleaseError, load_release
+
+    arrays = dict(np.load(good_workspace / "release/au_to_mesh_pls.npz"))
+    arrays[key] = arrays[key].copy()
+    arrays[key].flat[7] = np.nan if key != "coef" else np.inf
+    npz = tmp_path / "bad.npz"
+    np.savez(npz, **arrays)
+    with pytest.raises(ReleaseError, match=rf"{re.escape(str(npz))}: '{key}' has 1 NaN/inf value\(s\)"):
+        load_release(npz)
+    pd.DataFrame({"AU12": [1.0]}).to_csv(tmp_path / "one.csv", index=False)
+    code, err = run_cli(["predict", "one.csv", "--release", str(npz), "--out", "one.npz"], tmp_path, capsys)
+    assert code == 2 and f"'{key}' has 1 NaN/inf" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "one.npz").exists()

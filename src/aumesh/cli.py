@@ -503,6 +503,17 @@ def main(argv: list[str] | None = None) -> int:
         why = f"stopped: {err}" if isinstance(err, Terminated) else "interrupted (Ctrl-C)"
         _say(f"aumesh {args.command}: {why}; {_kept(args.command)}" + (f"\n{note}" if note else ""))
         return 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT)
+    except OSError as err:
+        import errno
+
+        if err.errno not in (errno.ENOSPC, errno.EDQUOT) or debug:  # a full disk outside the atomic writers (scratch)
+            raise
+        note = _dvc_note(args)
+        where = f" while writing {err.filename}" if err.filename else ""
+        _say(f"aumesh {args.command}: error: no space left on the device{where}; outputs are swapped in only when "
+             f"complete, so the previous ones are intact. Fix: free space (`df -h .`) and run again."
+             + (f"\n{note}" if note else ""))
+        return 2
     except BaseException:  # a bug: the traceback stays; still say how to get DVC's removed outputs back
         note = _dvc_note(args)
         if note:

@@ -18,7 +18,7 @@ import yaml
 
 from aumesh.utils.errors import ConfigError
 from aumesh.utils.io import atomic_write_text
-from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, feature_set_columns
+from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, N_VERTICES, feature_set_columns
 from aumesh.model.statistics import TARGETS
 
 #: ``data.face_selection``: which face of a frame with several is the video's subject (aumesh.data.ingest).
@@ -276,6 +276,15 @@ def validate(cfg: Config) -> Config:
                          "1.0 never stops a run")
     if len(cfg.preprocess.alignment.anchor_indices) < 3:
         raise ConfigError("preprocess.alignment.anchor_indices: need at least 3 anchors for a similarity fit")
+    anchors = cfg.preprocess.alignment.anchor_indices
+    outside = [i for i in anchors if not 0 <= i < N_VERTICES]
+    if outside:  # they name mesh columns x_i, y_i, z_i: there are 478 vertices
+        raise ConfigError(f"preprocess.alignment.anchor_indices: {outside} name no vertex (MediaPipe's mesh has vertices "
+                          f"0..{N_VERTICES - 1}: columns x_0..z_{N_VERTICES - 1}). Fix: use vertex numbers in that range "
+                          f"(the card's anchors: {list(ANCHOR_INDICES)}).")
+    if len(set(anchors)) != len(anchors):
+        raise ConfigError(f"preprocess.alignment.anchor_indices: {sorted({i for i in anchors if anchors.count(i) > 1})} "
+                          f"named twice. Fix: list each anchor vertex once.")
     if cfg.model.n_components < 1:
         raise ConfigError(f"model.n_components={cfg.model.n_components}: must be >= 1")
     p = len(cfg.features.columns) if cfg.features.name in FEATURE_SETS else 0

@@ -274,11 +274,13 @@ def report_markdown_table(report: Mapping[str, Any]) -> str:
         "| AU | Name | Expected (FACS) | Top region | Direction | Magnitude (IOD) | Verdict | Reason |",
         "|---|---|---|---|---|---:|---|---|",
     ]
-    for au, e in report["aus"].items():
-        reason = str(e["reason"]).replace("|", "/")
+    from aumesh.card.markdown import md_text
+
+    for au, e in report["aus"].items():  # names come from the NPZ (`aumesh render` takes any): shown as text
+        reason = md_text(str(e["reason"]).replace("|", "/"))
         lines.append(
-            f"| {au} | {e['name']} | {e['expected']} | {e['top_region']} | {e['top_region_direction']} | "
-            f"{e['magnitude']:.4f} | {e['verdict']} | {reason} |"
+            f"| {md_text(au)} | {md_text(e['name'])} | {md_text(e['expected'])} | {md_text(e['top_region'])} | "
+            f"{md_text(e['top_region_direction'])} | {e['magnitude']:.4f} | {md_text(e['verdict'])} | {reason} |"
         )
     s = report.get("summary", {})
     lines.append("")

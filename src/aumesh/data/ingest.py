@@ -38,7 +38,7 @@ from aumesh.data import pyfeat
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.utils.errors import TableError, corrupt_parquet
 from aumesh.data.pyfeat import video_stem
-from aumesh.utils.io import NpyRowFile, npy_layout
+from aumesh.utils.io import NpyRowFile, check_npy, npy_layout
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
 PARQUET_SUFFIXES = (".parquet",)
@@ -71,6 +71,11 @@ def is_table(path: Path) -> bool:
     return path.name.endswith(CSV_SUFFIXES + PARQUET_SUFFIXES)
 
 
+#: What to do about a damaged mesh ``.npy`` of ``data/`` (:func:`aumesh.utils.io.check_npy`).
+DATA_NPY_FIX = ("restore it (`dvc checkout data`, or `dvc pull` from the remote), or save py-feat's whole [N, 478, 3] "
+                "landmarks again with np.save.")
+
+
 def open_source(path: Path, mesh_npy_pattern: str) -> Source:
     """A source's layout from its header (CSV) or schema (parquet)."""
     if path.name.endswith(CSV_SUFFIXES):
@@ -85,7 +90,7 @@ def open_source(path: Path, mesh_npy_pattern: str) -> Source:
     split = npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
     lay = pyfeat.layout(names, str(path), split_mesh=split)
     if split:
-        _, _, shape = npy_layout(npy)
+        _, _, shape = check_npy(npy, DATA_NPY_FIX)
         if len(shape) != 3 or shape[1:] != (N_VERTICES, 3):
             raise TableError(f"{npy}: wrong vertex count: mesh array has shape {shape}, need (N, {N_VERTICES}, 3). Fix: "
                              f"save the 478-vertex MediaPipe FaceMesh (with irises) as float16/float32 [N, 478, 3].")

@@ -37,7 +37,7 @@ from aumesh.data.schema import (
 )
 from aumesh.data.pyfeat import video_stem
 from aumesh.utils.errors import TableError, corrupt_parquet
-from aumesh.utils.io import NpyRowFile
+from aumesh.utils.io import NpyRowFile, check_npy
 
 _MESH_COLUMN = re.compile(r"^([xyz])_(\d+)$")
 META_COLUMNS = (VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS)
@@ -162,6 +162,9 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
                 f"{path}: no mesh columns (x_0..z_477) and no mesh file {mesh_npy}. Fix: add the mesh columns, "
                 f"or save py-feat's [N, 478, 3] landmarks as {mesh_npy.name} (pattern data.mesh_npy)."
             )
+        from aumesh.data.ingest import DATA_NPY_FIX
+
+        check_npy(mesh_npy, DATA_NPY_FIX)  # numpy's own error for a short file is "mmap length is greater than file size"
         arr = np.load(mesh_npy, mmap_mode="r")
         if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] != N_VERTICES:
             raise TableError(

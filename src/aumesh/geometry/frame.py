@@ -67,6 +67,31 @@ def canonical_frame(mesh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rotation, origin
 
 
+#: The landmarks :func:`mirrored` reads: nose tip 1, forehead 10, chin 152, outer and inner canthi 33, 263, 133, 362.
+HANDEDNESS_LANDMARKS = (1, 10, 152, 33, 263, 133, 362)
+
+
+def mirrored(landmarks: np.ndarray) -> np.ndarray:
+    """(n,) bool: the frames that :func:`canonical_frame` would refuse as mirrored, from their
+    :data:`HANDEDNESS_LANDMARKS` alone (vectorised; a frame whose landmarks are degenerate or not finite: False).
+
+    :func:`aumesh.geometry.face.face_frame` points z so that the nose tip 1 is in front of the eyes; the frame is a
+    reflection (det -1) exactly when, with ``left = 263 - 33`` and ``up = 10 - 152``, the nose tip lies on the negative
+    side of ``left × up`` (the parts of ``up`` along ``left`` and the axes' lengths do not change that sign).
+
+    Parameters
+    ----------
+    landmarks : array-like, shape (n, 7, 3)
+        The vertices :data:`HANDEDNESS_LANDMARKS`, in that order.
+    """
+    m = np.asarray(landmarks, dtype=np.float64)
+    nose, top, chin, c33, c263, c133, c362 = (m[:, j] for j in range(len(HANDEDNESS_LANDMARKS)))
+    eyes = 0.25 * (c33 + c263 + c133 + c362)
+    with np.errstate(invalid="ignore"):
+        side = np.einsum("ij,ij->i", nose - eyes, np.cross(c263 - c33, top - chin))
+    return side < 0  # NaN compares False
+
+
 def to_canonical(points: np.ndarray, rotation: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray:
     """``(points - origin) @ rotation.T`` for points (..., 3); no origin = directions (displacements)."""
     p = np.asarray(points, dtype=np.float64)

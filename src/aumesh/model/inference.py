@@ -141,6 +141,28 @@ def check_release(arrays: Mapping[str, Any], where: str = "<release arrays>") ->
         if np.asarray(arrays["coef_full"]).shape != (len(full), N_TARGETS):
             raise ReleaseError(f"{where}: 'coef_full' must be ({len(full)}, {N_TARGETS}) (rows = input_columns_full), "
                                f"got {np.asarray(arrays['coef_full']).shape}")
+    nonfinite = nonfinite_arrays(arrays)
+    if nonfinite:
+        raise ReleaseError(f"{where}: {nonfinite}: a release must be finite (every mesh it predicts would be NaN/inf). "
+                           f"Fix: rebuild the release (`dvc repro -f evaluate release`), or use another release NPZ.")
+
+
+#: The arrays a prediction is computed from: a release is refused unless every value of them is finite.
+FINITE_KEYS = ("coef", "coef_full", "intercept")
+
+
+def nonfinite_arrays(arrays: Mapping[str, Any], keys: tuple[str, ...] = FINITE_KEYS) -> str | None:
+    """``None`` when ``arrays[k]`` is finite for each of ``keys`` present; else a phrase naming the first that is not,
+    e.g. ``"'intercept' has 1 NaN/inf value(s) of 1434 (first at index 5)"``."""
+    for key in keys:
+        if key in arrays:
+            a = np.asarray(arrays[key])
+            bad = ~np.isfinite(a) if a.dtype.kind in "fc" else np.zeros(a.shape, bool)
+            if bad.any():
+                first = np.unravel_index(int(np.argmax(bad)), a.shape)
+                return (f"{key!r} has {int(bad.sum()):,} NaN/inf value(s) of {a.size:,} "
+                        f"(first at index {first[0] if len(first) == 1 else tuple(int(i) for i in first)})")
+    return None
 
 
 def _names(values: Any) -> list[str]:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from aumesh.data.schema import FEATURE_SETS, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
+from aumesh.card.markdown import md_code, md_text
 from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
 
 NPZ_NAME = "au_to_mesh_pls.npz"
@@ -154,7 +155,7 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
     if counts.get("frames_with_several_faces"):
         how = data_cfg.get("face_selection", "largest")
         rule = {"largest": "the largest face box kept", "identity": "py-feat's Identity of the video's subject kept"}
-        lines.append(f"- Frames with several faces: {counts['frames_with_several_faces']:,} ({rule.get(how, how)}; "
+        lines.append(f"- Frames with several faces: {counts['frames_with_several_faces']:,} ({md_text(rule.get(how, how))}; "
                      f"{counts['dropped_extra_faces']:,} other face rows dropped"
                      + (f", {counts['dropped_frames_without_subject']:,} frames without the subject dropped"
                         if counts.get("dropped_frames_without_subject") else "") + ")")
@@ -171,20 +172,26 @@ def _runs_lines(card: dict[str, Any]) -> list[str]:
     produced these arrays), each with its MLflow id; without a promotion, only the build run."""
     build = (card.get("runs") or {}).get("build") or card.get("mlflow") or {}
     p = card.get("promotion")
-    where = f" in `{build['tracking_uri']}`" if build.get("tracking_uri") else ""
+    where = f" in {md_code(build['tracking_uri'])}" if build.get("tracking_uri") else ""
     lines = ["## Runs", "", "This release names two MLflow runs: the one that chose its configuration and the one that "
              "built its arrays." if p else "This release was built by one MLflow run; no promotion chose its "
              "configuration (conf/'s own; `aumesh promote` records one).", ""]
     if p:
-        registered = (f"; registered as `{p['registered_model']}` version {p.get('model_version')}"
-                      + (f" (`@{p['alias']}`)" if p.get("alias") else "") if p.get("registered_model") else "")
-        lines += [f"- **Promoted run** `{p.get('run_id')}`" + (f" ({p['run_name']})" if p.get("run_name") else "")
-                  + f" of sweep `{p.get('parent_run_id')}`: how the configuration was chosen. "
-                  f"Criterion: {p.get('criterion')}" + registered + ".",
-                  f"  Compared: {p.get('compared', '')}"]
-    lines += [f"- **Build run** `{build.get('run_id')}`" + (f" ({build['run_name']})" if build.get("run_name") else "")
+        registered = (f"; registered as {md_code(p['registered_model'])} version {md_text(p.get('model_version'))}"
+                      + (f" ({md_code('@' + str(p['alias']))})" if p.get("alias") else "") if p.get("registered_model") else "")
+        lines += [f"- **Promoted run** {md_code(p.get('run_id'))}" + (f" ({md_text(p['run_name'])})" if p.get("run_name") else "")
+                  + f" of sweep {md_code(p.get('parent_run_id'))}: how the configuration was chosen. "
+                  f"Criterion: {md_text(p.get('criterion'))}" + registered + ".",
+                  f"  Compared: {md_text(p.get('compared', ''))}"]
+    lines += [f"- **Build run** {md_code(build.get('run_id'))}" + (f" ({md_text(build['run_name'])})" if build.get("run_name") else "")
               + f"{where}: the evaluate run of `dvc repro` that produced these exact arrays and the numbers above.", ""]
     return lines
+
+
+def _url_path(name: str) -> str:
+    from urllib.parse import quote
+
+    return quote(name)
 
 
 def model_card_markdown(card: dict[str, Any], directions_table: str | None, figures: list[str]) -> str:
@@ -195,6 +202,9 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
     counts = data["counts"]
     pose, interactions = FEATURE_SETS[feats["name"]]
     inputs = "20 AU" + (" + 3 pose (Pitch, Yaw, Roll)" if pose else "") + (" + 60 pose x AU" if interactions else "")
+    degenerate = data.get("degenerate") or {}
+    constant = degenerate.get("constant_inputs") or {}
+    dead = degenerate.get("constant_features") or []
     lines = [
         f"# {card['name']}",
         "",
@@ -202,9 +212,10 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         "## Training data",
         "",
-        f"- {data['n_frames']:,} frames from {data['n_videos']:,} videos (data digest `{data['digest'].get('md5')}`)",
+        f"- {data['n_frames']:,} frames from {data['n_videos']:,} videos (data digest {md_code(data['digest'].get('md5'))})",
         *_ingest_lines(counts, cfg.get("data", {})),
         f"- Input: {counts['frames_in']:,} frames / {counts['videos_in']:,} videos",
+        # numbers, booleans: typed by the configuration's schema (aumesh.config), printed as they are
         f"- Pose-filtered to |yaw| <= {pre['pose_filter']['max_abs_yaw_deg']} deg, |pitch| <= {pre['pose_filter']['max_abs_pitch_deg']} deg: "
         f"{counts['dropped_pose']:,} frames dropped{_share(counts, 'dropped_pose')}",
         *([f"- Wild values (a vertex beyond {pre['alignment']['max_vertex_iod']:g} inter-ocular distances after "
@@ -216,21 +227,32 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         f"(threshold {counts['alignment_residual_threshold']:.3g})",
         f"- Videos with no frames left (dropped): {counts['videos_dropped_no_frames_left']}"
         f"{_share(counts, 'videos_dropped_no_frames_left')}",
-        f"- Target: **{pre['target']}**: " + TARGET_WORDS[pre["target"]].format(method=pre["neutral"]["method"]),
+        *([f"- **Constant inputs**: {md_text(', '.join(f'{c} = {v:g}' for c, v in constant.items()))} in every "
+           f"training frame: the data cannot say what they do, so the model learned nothing from them "
+           f"(their coefficients are exactly 0)"] if constant else []),
+        f"- Target: **{md_text(pre['target'])}**: " + TARGET_WORDS[pre["target"]].format(method=md_text(pre["neutral"]["method"])),
         "",
         TARGETS_NOTE,
         "",
         "## Method",
         "",
         f"- `PLSRegression(n_components={card['model']['n_components']}, scale={model['scale']})` (aumesh's exact kernel-PLS engine)",
-        f"- Inputs for training: {inputs} = {card['model']['n_features']} features; released `coef`: 23 rows (AU + pose)"
+        f"- Inputs for training: {inputs} = {card['model']['n_features']} features"
+        + (f", of which {len(dead)} have no variance in the training data (constant inputs, or products with an input "
+           f"that is 0 in every frame) and carry no information: {card['model']['n_features'] - len(dead)} "
+           f"informative" if dead else "")
+        + "; released `coef`: 23 rows (AU + pose)"
         + ("; full design in `coef_full` / `input_columns_full`" if interactions else ""),
+        *(["- **Pose was not learned**: Pitch, Yaw and Roll were constant in the training data, so every pose and "
+           "pose x AU coefficient is 0; a pose given at inference does not change the mesh, and the pose-conditioned "
+           "claims above (pose covariates, interactions) do not hold for this release"]
+          if pose and dead and not degenerate.get("pose_learned", True) else []),
         "",
-        f"## Out-of-sample performance ({cfg['cv']['n_splits']}-fold GroupKFold by {cfg['cv']['group']})",
+        f"## Out-of-sample performance ({cfg['cv']['n_splits']}-fold GroupKFold by {md_text(cfg['cv']['group'])})",
         "",
         "| metric | mean | std | folds |",
         "|---|---|---|---|",
-        f"| variance-weighted R² ({pre['target']} target) | {cv['r2_mean']:.4f} | {cv['r2_std']:.4f} | {folds} |",
+        f"| variance-weighted R² ({md_text(pre['target'])} target) | {cv['r2_mean']:.4f} | {cv['r2_std']:.4f} | {folds} |",
         f"| R² of AU-driven displacement from neutral | {cv['r2_displacement_mean']:.4f} | {cv['r2_displacement_std']:.4f} | "
         + ", ".join(f"{v:.4f}" for v in cv["r2_displacement_folds"]) + " |",
         f"| MAE (px) | {cv['mae_mean']:.4f} | {cv['mae_std']:.4f} | " + ", ".join(f"{v:.4f}" for v in cv["mae_folds"]) + " |",
@@ -244,7 +266,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
     if directions_table:
         lines += ["## AU directions (FACS check)", "", directions_table, ""]
     if figures:
-        lines += ["## Figures", ""] + [f"![{Path(f).stem}](figures/{Path(f).name})" for f in figures] + [""]
+        lines += ["## Figures", ""] + [f"![{md_text(Path(f).stem)}](figures/{_url_path(Path(f).name)})" for f in figures] + [""]
     lines += [
         "## Inference",
         "",
@@ -265,11 +287,12 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         "## Provenance",
         "",
-        f"- code: git `{card['provenance'].get('git_commit')}`" + (" (dirty)" if card["provenance"].get("dirty") else ""),
-        f"- data: `{data['digest'].get('md5')}`",
-        f"- MLflow build run: `{card['mlflow'].get('run_id')}` ({card['mlflow'].get('tracking_uri')})"
-        + (f"; promoted run: `{card['promotion'].get('run_id')}`" if card.get("promotion") else ""),
-        "- libraries: " + ", ".join(f"{k} {v}" for k, v in card["libraries"].items() if v),
+        f"- code: git {md_code(card['provenance'].get('git_commit'))}" + (" (dirty)" if card["provenance"].get("dirty") else ""),
+        f"- data: {md_code(data['digest'].get('md5'))}",
+        f"- MLflow build run: {md_code(card['mlflow'].get('run_id'))} ({md_text(card['mlflow'].get('tracking_uri'))}"
+        + (f", experiment {md_text(card['mlflow']['experiment'])}" if card["mlflow"].get("experiment") else "") + ")"
+        + (f"; promoted run: {md_code(card['promotion'].get('run_id'))}" if card.get("promotion") else ""),
+        "- libraries: " + ", ".join(f"{md_text(k)} {md_text(v)}" for k, v in card["libraries"].items() if v),
         "",
     ]
     return "\n".join(lines)

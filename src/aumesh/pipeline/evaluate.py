@@ -44,7 +44,7 @@ from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
 from aumesh.utils.errors import ConfigError, UserError
-from aumesh.pipeline import compute
+from aumesh.pipeline import compute, integrity
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, PREPARED_FILES, REFERENCE_FILE,
                                             SUMMARY_FILE, VIDEO_IDS_FILE)
 from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, scratch_directory, write_rows
@@ -194,15 +194,15 @@ def load_prepared(prepared_dir: str | Path) -> Prepared:
     missing = [n for n in PREPARED_FILES if not (d / n).exists()]
     if missing:
         raise UserError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
-    with open(d / SUMMARY_FILE) as fh:
-        summary = json.load(fh)
+    summary = integrity.load_summary(d)
+    integrity.verify_prepared(d, summary)  # before any file is used: truncated, damaged or edited files are refused
     return Prepared(
         directory=d,
         meshes=np.load(d / MESHES_FILE, mmap_mode="r"),
         mesh_path=d / MESHES_FILE,
         video_ids=np.load(d / VIDEO_IDS_FILE, mmap_mode="r"),  # the stage needs their number; 4 MiB at 88k videos
         neutral=_LazyArrays({method: d / name for method, name in NEUTRAL_FILES.items()}),
-        reference=dict(np.load(d / REFERENCE_FILE)),
+        reference=integrity.load_reference(d),
         summary=summary,
     )
 
@@ -760,3 +760,70 @@ def evaluate(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
     with compute.engine(cfg.compute):
         video_fold = video_folds(prepared.videos.count, cfg.cv.n_splits)
         return evaluate_statistics(prepared, cfg, accumulate(prepared, cfg, video_fold))
+
+
+# ------------------------------------------------------------------------------------------- degenerate inputs
+def constant_inputs(prepared: Prepared) -> dict[str, float]:
+    """The AU and pose columns with one value in every prepared frame (column -> that value), from the row groups'
+    min/max statistics in ``frames.parquet``'s footer (no pass over the data; a column without statistics is read).
+
+    Such a column carries no information. It stays in the design: its centred values are exactly 0 (the statistics
+    shift a column constant in their first block by its value), so the engine, as scikit-learn does, gives it a zero
+    standard deviation replaced by 1, no weight in any component and a coefficient of exactly 0 -- the model dropping it
+    would fit, with the release's format (23 rows of ``coef``, 83 of ``coef_full``) unchanged. What changes is what
+    is said: a console warning, an MLflow tag and the card (:func:`degenerate_inputs`).
+    """
+    path = prepared.directory / FRAMES_FILE
+    md = pq.ParquetFile(path).metadata
+    names = md.schema.to_arrow_schema().names
+    out = {}
+    for name in (*AU_COLUMNS, *POSE_COLUMNS):
+        j = names.index(name)
+        lo, hi = np.inf, -np.inf
+        for g in range(md.num_row_groups):
+            stats = md.row_group(g).column(j).statistics
+            if md.row_group(g).num_rows == 0:
+                continue
+            if stats is None or not stats.has_min_max:
+                values = pq.read_table(path, columns=[name]).column(0).to_numpy()
+                lo, hi = (values.min(), values.max()) if len(values) else (np.inf, -np.inf)
+                break
+            lo, hi = min(lo, stats.min), max(hi, stats.max)
+        if lo == hi:
+            out[name] = float(lo) + 0.0  # parquet stores a min of 0.0 as -0.0
+    return out
+
+
+def degenerate_inputs(constant: dict[str, float], columns: list[str]) -> dict:
+    """What the design's columns ``columns`` lose to the ``constant`` inputs: ``{"constant_inputs": {column: value},
+    "constant_features": [design columns without variance], "pose_learned": bool}`` (a pose x AU product has no variance
+    when its pose or its AU is 0 in every frame, or both are constant)."""
+    dead = []
+    for c in columns:
+        if "*" in c:
+            p, a = c.split("*")
+            if (p in constant and a in constant) or constant.get(p) == 0.0 or constant.get(a) == 0.0:
+                dead.append(c)
+        elif c in constant:
+            dead.append(c)
+    pose_features = [c for c in columns if c in POSE_COLUMNS or "*" in c]
+    return {"constant_inputs": dict(constant), "constant_features": dead,
+            "pose_learned": bool(pose_features) and any(c not in dead for c in pose_features)}
+
+
+def log_degenerate(prepared: Prepared, cfg: Config, handle) -> dict:
+    """Say constant inputs aloud: a console warning and MLflow tags on the open run ``handle``; returns
+    :func:`degenerate_inputs` (the card's sentence is made from it)."""
+    found = degenerate_inputs(constant_inputs(prepared), cfg.features.columns)
+    constant = found["constant_inputs"]
+    if not constant:
+        return found
+    listed = ", ".join(f"{c}={v:g}" for c, v in constant.items())
+    log.warning("evaluate: %s constant in every one of the %d prepared frames: %d of the %d features of features=%s carry "
+                "no information (kept in the design with coefficients of exactly 0)%s", listed, prepared.n_frames,
+                len(found["constant_features"]), len(cfg.features.columns), cfg.features.name,
+                "" if found["pose_learned"] or not (cfg.features.pose) else "; the model learned nothing from pose")
+    handle.set_tags({"aumesh.constant_inputs": listed,
+                     "aumesh.constant_features": str(len(found["constant_features"])),
+                     "aumesh.pose_learned": str(found["pose_learned"]).lower()})
+    return found

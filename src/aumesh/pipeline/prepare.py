@@ -63,8 +63,9 @@ from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_u
     iter_vertices, partitions, read_pieces_metadata
 from aumesh.geometry.align import (align_to_reference, apply_similarity_columns, apply_similarity_vertices,
                                    beyond_radius, generalized_procrustes, not_a_face, reference_scale)
+from aumesh.geometry.frame import HANDEDNESS_LANDMARKS, canonical_frame, mirrored
 from aumesh.model.statistics import VideoSumStream
-from aumesh.pipeline import compute
+from aumesh.pipeline import compute, integrity
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
                                             VIDEO_IDS_FILE)
 from aumesh.pipeline.quantiles import exact_quantiles
@@ -174,10 +175,15 @@ class Scan:
     n_wild: int  # of those, frames with wild values (anchors that are no face, or frames ``exclude`` names)
     candidates: Candidates
     k: int
+    n_mirrored: int = 0  # frames (not wild) whose mesh is mirrored (aumesh.geometry.frame.mirrored)
+    n_checked: int = 0  # frames (not wild) checked for it
+    mirrored_table: str | None = None  # the first table (in order) with a mirrored frame
 
     def __add__(self, other: "Scan") -> "Scan":
         return Scan(self.n_rows + other.n_rows, self.videos + other.videos, self.n_pose + other.n_pose,
-                    self.n_wild + other.n_wild, self.candidates.merge(other.candidates, self.k), self.k)
+                    self.n_wild + other.n_wild, self.candidates.merge(other.candidates, self.k), self.k,
+                    self.n_mirrored + other.n_mirrored, self.n_checked + other.n_checked,
+                    self.mirrored_table or other.mirrored_table)
 
 
 def _read_meta(part: Partition, cfg: Config) -> tuple[pd.DataFrame, np.ndarray]:
@@ -186,16 +192,22 @@ def _read_meta(part: Partition, cfg: Config) -> tuple[pd.DataFrame, np.ndarray]:
     return meta, np.repeat(np.arange(len(part)), [p.n_rows for p in part])
 
 
-def _read_anchors(part: Partition, cfg: Config) -> np.ndarray:
-    """(n_rows, n_anchors, 3) anchors of every row, float32 (the precision the alignment is defined at)."""
-    idx = list(cfg.preprocess.alignment.anchor_indices)
-    out = np.empty((sum(p.n_rows for p in part), len(idx), 3), np.float32)
+def _read_anchors(part: Partition, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+    """(n_rows, n_anchors, 3) anchors of every row, float32 (the precision the alignment is defined at), and (n_rows,)
+    bool: the rows whose mesh is mirrored (:func:`aumesh.geometry.frame.mirrored`; its landmarks are read with the
+    anchors, most of them are anchors)."""
+    anchors = list(cfg.preprocess.alignment.anchor_indices)
+    idx = list(dict.fromkeys(anchors + list(HANDEDNESS_LANDMARKS)))
+    out = np.empty((sum(p.n_rows for p in part), len(anchors), 3), np.float32)
+    flipped = np.zeros(len(out), bool)
     offset = 0
     for p in part:
         for start, block in iter_vertices(p.table, compute.task_rows(cfg.data.chunk_rows), idx, p.row_groups):
-            out[offset + start - p.start : offset + start - p.start + len(block)] = block
+            rows = slice(offset + start - p.start, offset + start - p.start + len(block))
+            out[rows] = block[:, : len(anchors)]
+            flipped[rows] = mirrored(block[:, [idx.index(v) for v in HANDEDNESS_LANDMARKS]])
         offset += p.n_rows
-    return out
+    return out, flipped
 
 
 def _write_staged(table: pa.Table, path: Path) -> None:
@@ -251,7 +263,7 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path,
     i, part = item
     meta, file_index = _read_meta(part, cfg)
     check_unique_frames(meta, [p.table.path for p in part], file_index)
-    anchors_all = _read_anchors(part, cfg)
+    anchors_all, flipped = _read_anchors(part, cfg)
     wild = not_a_face(anchors_all)
     if exclude and i in exclude:
         wild[exclude[i]] = True
@@ -271,8 +283,11 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path,
     # with the partitions (+90 MiB retained after this pass at 1M frames)
     candidates = Candidates(h[order], video[order].astype(str), frame[order], np.full(len(order), i, np.int32),
                             pose[order].astype(np.int64))
+    flipped &= ~wild
+    first_flipped = part[int(file_index[np.argmax(flipped)])].table.path if flipped.any() else None
     return Scan([len(meta)], [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))], int(passing.sum()),
-                int((passing & wild).sum()), candidates, k)
+                int((passing & wild).sum()), candidates, k, int(flipped.sum()), int((~wild).sum()),
+                None if first_flipped is None else str(first_flipped))
 
 
 @dataclass
@@ -410,10 +425,12 @@ class Written:
     split: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2, 1434) sums (all, low-AU)
     split_counts: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2,) frames
     wild: dict[int, list[int]] = field(default_factory=dict)  # partition -> its rows with a vertex beyond the radius
+    # partition -> (first row, stop row, SHA-256 of those rows of meshes.npy as written: aumesh.pipeline.integrity)
+    digests: dict[int, tuple[int, int, str]] = field(default_factory=dict)
 
     def __add__(self, other: "Written") -> "Written":
         out = Written(self.sums + other.sums, self.n_low_population + other.n_low_population, dict(self.split),
-                      dict(self.split_counts), {**self.wild, **other.wild})
+                      dict(self.split_counts), {**self.wild, **other.wild}, {**self.digests, **other.digests})
         for v, s in other.split.items():
             if v in out.split:
                 out.split[v] = out.split[v] + s
@@ -483,6 +500,8 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     position = np.full(sum(p.n_rows for p in part), -1, dtype=np.int64)
     position[rows] = np.arange(len(rows))
     aligned = np.empty((ALIGN_BLOCK, N_TARGETS))  # a block's aligned rows, float64, allocated once a task
+    # the partition's rows of meshes.npy are one contiguous range, written in order: hashed as they are written
+    digest, next_row = integrity.new_hash(), 0
     with ExitStack() as stack:  # the output files opened once for the partition's writes
         files = {name: stack.enter_context(NpyRowFile(out_dir / name, writable=True))
                  for name in (MESHES_FILE, *NEUTRAL_FILES.values())}
@@ -503,13 +522,20 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 far = beyond_radius(flat, *wild_radius)
                 if far.any():  # preprocess.alignment.max_vertex_iod: the round is rerun without these rows
                     result.wild.setdefault(plan.part_index, []).extend(rows[rows_out[far]].tolist())
-                files[MESHES_FILE].write(plan.offset + int(rows_out[0]), flat.astype(np.float32))
+                block = flat.astype(np.float32)
+                if int(rows_out[0]) != next_row or int(rows_out[-1]) != next_row + len(rows_out) - 1:
+                    raise RuntimeError(f"partition {plan.part_index}: rows written out of order, the checksum would "
+                                       f"not be the file's")
+                files[MESHES_FILE].write(plan.offset + next_row, block)
+                digest.update(memoryview(block).cast("B"))
+                next_row += len(rows_out)
                 result.sums[0] += flat.sum(axis=0)
                 result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
                 all_frames.add(video_index[rows_out], flat)
                 low = low_video[rows_out]
                 low_frames.add(video_index[rows_out][low], flat[low])
             write_neutrals(files)
+    result.digests[plan.part_index] = (plan.offset, plan.offset + next_row, digest.hexdigest())
     return result
 
 
@@ -589,6 +615,27 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path, ingested: di
                     shutil.rmtree(child) if child.is_dir() else child.unlink()
 
 
+MIRROR_FIX = ("Fix: the tables' x, y, z must form a right-handed system (py-feat's and MediaPipe's image pixels: x right, "
+              "y down, z into the image): negate one axis (e.g. z) of every mesh, or swap x and y back, and run again.")
+
+
+def check_handedness(scan: Scan, cfg: Config) -> None:
+    """Refuse mirrored meshes (a left-handed export, x and y swapped) after pass 1, before the alignment and any fit.
+
+    The release's frame is a proper rotation found from the anatomy (:func:`aumesh.geometry.frame.canonical_frame`),
+    which has none for a mirrored face: without this check the stage's mean mesh, and the release, failed only after the
+    whole cross-validation. Most frames mirrored: the tables' convention is; a few: a detector's odd frames, which the
+    alignment's outlier cut drops like any other bad fit (said in the log).
+    """
+    if scan.n_checked and scan.n_mirrored * 2 > scan.n_checked:
+        raise TableError(f"{scan.mirrored_table}: the meshes are mirrored ({scan.n_mirrored:,} of {scan.n_checked:,} "
+                         f"frames in {cfg.paths.data_dir}): with x = 33 -> 263 (subject's left) and y = chin 152 -> "
+                         f"forehead 10, the nose tip 1 lies behind the eyes in a right-handed frame. {MIRROR_FIX}")
+    if scan.n_mirrored:
+        log.warning("prepare: %d of %d frames have a mirrored mesh (first in %s): the alignment's outlier cut is "
+                    "expected to drop them", scan.n_mirrored, scan.n_checked, scan.mirrored_table)
+
+
 def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: Path, exclude: dict[int, np.ndarray],
             ingested: dict) -> dict:
     """One round of the passes into ``tmp`` (module docstring); :class:`_WildRows` when pass 3 finds wild values."""
@@ -605,6 +652,7 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
             f"|pitch| <= {pre.pose_filter.max_abs_pitch_deg} deg) of {sum(scan.n_rows)}. Likely cause: Pitch/Yaw in degrees "
             f"(convert with np.deg2rad), or preprocess.pose_filter narrower than the data."
         )
+    check_handedness(scan, cfg)
     partial_counts = {**ingested, "frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose),
                       "dropped_wild_values": scan.n_wild}
     contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
@@ -684,7 +732,7 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     del video_ids  # ~4 MiB at 88k videos, not needed by pass 3
 
     (tmp / "parts").mkdir()
-    create_npy(tmp / MESHES_FILE, np.float32, (n_kept, N_TARGETS))
+    mesh_offset = create_npy(tmp / MESHES_FILE, np.float32, (n_kept, N_TARGETS))
     for name in NEUTRAL_FILES.values():
         create_npy(tmp / name, np.float32, (n_videos, N_TARGETS))
     # pass 3: align and write; population sums and split videos' sums reduced in a tree
@@ -704,6 +752,11 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     n_low_population = written.n_low_population
     mean_aligned = written.sums[0] / n_kept
     mean_low = written.sums[1] / max(n_low_population, 1)
+    try:  # what the release's frame is found from (aumesh.model.release.release_arrays): the same check, here
+        canonical_frame(mean_aligned.reshape(3, N_VERTICES).T)
+    except ValueError as err:
+        raise TableError(f"{cfg.paths.data_dir}: the mean aligned mesh of the kept frames is mirrored, so no release "
+                         f"can be built from these tables ({str(err).split('. Fix')[0]}). {MIRROR_FIX}") from None
     np.savez(
         tmp / REFERENCE_FILE,
         reference_anchors=reference.astype(np.float32),
@@ -713,6 +766,7 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     )
     summary = {
         "counts": counts,
+        "checksums": _checksums(tmp, written.digests, mesh_offset),
         "n_frames": n_kept,
         "n_videos": int(n_videos),
         "n_low_au_population": n_low_population,
@@ -721,6 +775,19 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     }
     atomic_write_json(tmp / SUMMARY_FILE, summary)
     return summary
+
+
+def _checksums(directory: Path, mesh_digests: dict[int, tuple[int, int, str]], mesh_offset: int) -> dict[str, dict]:
+    """The files' checksums for ``summary.json`` (:mod:`aumesh.pipeline.integrity`): ``meshes.npy`` from the digests
+    pass 3 computed while writing its rows (plus its header), the others read back once (small: per video, or the
+    frames' metadata)."""
+    row_bytes = N_TARGETS * np.dtype(np.float32).itemsize
+    blocks = [(0, mesh_offset, integrity.hash_range(directory / MESHES_FILE, 0, mesh_offset))]
+    blocks += [(mesh_offset + a * row_bytes, mesh_offset + b * row_bytes, h) for a, b, h in mesh_digests.values() if b > a]
+    records = {MESHES_FILE: integrity.file_record(directory / MESHES_FILE, blocks)}
+    for name in (FRAMES_FILE, VIDEO_IDS_FILE, *NEUTRAL_FILES.values(), REFERENCE_FILE):
+        records[name] = integrity.file_record(directory / name)
+    return records
 
 
 def _concatenate_parts(parts_dir: Path, out: Path) -> None:

@@ -23,7 +23,8 @@ from aumesh.experiments import provenance
 from aumesh.config import Config, PathsConfig
 from aumesh.utils.io import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text, remove_stale_temporaries
 from aumesh.model.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
-from aumesh.pipeline.prepared_files import REFERENCE_FILE, SUMMARY_FILE
+from aumesh.pipeline import integrity
+from aumesh.pipeline.prepared_files import FRAMES_FILE, REFERENCE_FILE
 
 if TYPE_CHECKING:
     from aumesh.pipeline import evaluate as ev
@@ -86,6 +87,37 @@ def removed_by_dvc(stage: str, lock_file: str | Path = "dvc.lock") -> str | None
     return f"DVC removed {', '.join(missing)} before running {stage}: `dvc checkout {stage}` brings back the last good one."
 
 
+def check_columns(cfg: Config, columns: list[str] | None = None, where: str | None = None) -> None:
+    """Keys of the configuration that name a column, checked against the data before any work (``columns``: the
+    data's columns, read from ``where``; default: the prepared frames' ``frames.parquet`` schema).
+
+    ``cv.group``: the cross-validation keeps each group's frames in one fold, and its per-video statistics (the
+    neutral meshes, the displacement target) make the video the only grouping it can run; an unknown name was
+    ignored before (the same CV ran, and the name was printed in the card as if it had been used).
+    """
+    from aumesh.data.schema import VIDEO_COLUMN
+    from aumesh.utils.errors import ConfigError
+
+    group = cfg.cv.group
+    if group == VIDEO_COLUMN:
+        return
+    if columns is None:
+        import pyarrow.parquet as pq
+
+        path = Path(cfg.paths.prepared_dir) / FRAMES_FILE
+        where = where or str(path)
+        columns = pq.read_schema(path).names if path.exists() else []
+    import re
+
+    mesh = [c for c in columns if re.fullmatch(r"[xyz]_\d+", c)]  # 1,434 mesh columns: named as a range
+    names = ", ".join([repr(c) for c in columns if c not in set(mesh)] + (["the mesh columns x_0..z_477"] if mesh else []))
+    if group not in columns:
+        raise ConfigError(f"cv.group={group!r} names no column of {where} (its columns: {names}). "
+                          f"Fix: cv.group={VIDEO_COLUMN} (the video column: the only grouping the CV supports).")
+    raise ConfigError(f"cv.group={group!r}: the cross-validation groups frames by video only (each video's frames in "
+                      f"one fold; its per-video neutral meshes need that). Fix: cv.group={VIDEO_COLUMN}.")
+
+
 # Each stage imports only what it runs (a stage is a process of its own: scikit-learn, MLflow, pandera or
 # matplotlib imported for nothing cost seconds of every `dvc repro`).
 
@@ -104,6 +136,10 @@ def prepare_stage(cfg: Config) -> dict:
     start_stage("prepare", cfg)
     manifest = ingest.load_manifest(cfg.paths.ingested_dir)
     found = tables.check_tables(manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric)
+    if found:  # keys naming a column, before the passes (the first table's columns: the contract makes them alike)
+        import pyarrow.parquet as pq
+
+        check_columns(cfg, pq.read_schema(found[0].path).names, str(found[0].path))
     summary = prep.run(found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"])
     log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
     return summary
@@ -115,8 +151,10 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
 
     timings = {}
     ev.log_clipping(cfg, handle)
+    degenerate = ev.log_degenerate(prepared, cfg, handle)
     t0 = time.perf_counter()
     cv, final = ev.evaluate(prepared, cfg)
+    cv.extra["degenerate"] = degenerate
     timings["evaluate_seconds"] = time.perf_counter() - t0
     handle.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
                              "r2_displacement": cv.r2_displacement_folds})
@@ -153,6 +191,7 @@ def evaluate_stage(cfg: Config) -> dict:
     tracking_cfg = params["tracking"]
     if cfg.tracking.enabled:  # a damaged or locked store stops the stage before any work, not after the whole CV
         mlflow_store.check_store(mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg))
+    check_columns(cfg)
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
@@ -166,6 +205,7 @@ def evaluate_stage(cfg: Config) -> dict:
         metrics = cv.metrics()
         arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
                                 prepared.reference, card_text="", metadata={"mlflow_run_id": run.run_id})
+        refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
         run.call(log_release_model, arrays)
         run_info = {"run_id": run.run_id, "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
                     "experiment_id": getattr(run, "experiment_id", None),
@@ -180,7 +220,8 @@ def evaluate_stage(cfg: Config) -> dict:
                      r2_path_folds=cv.r2_path_folds, vertex_error_per_vertex=cv.vertex_error_per_vertex,
                      cumulative_error_thresholds=thresholds, cumulative_error_fraction=fraction)
             shutil.copyfile(cv.frame_vertex_error.path, tmp / ev.FRAME_ERROR_FILE)  # per frame, frames.parquet's order
-            atomic_write_json(tmp / TRACKING_JSON, run_info | {"data_digest": digest})
+            atomic_write_json(tmp / TRACKING_JSON, run_info | {"data_digest": digest,
+                                                               "degenerate": cv.extra.get("degenerate", {})})
             atomic_write_json(tmp / METRICS_JSON, metrics)
         dvc_metrics.write(cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds)  # committed: `dvc metrics/plots diff`
         run.log_artifact(out / METRICS_JSON)
@@ -211,7 +252,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         metrics = json.load(fh)
     with open(model_dir / TRACKING_JSON) as fh:
         run_info = json.load(fh)
-    summary = json.loads((prepared_dir / SUMMARY_FILE).read_text())  # prepare's counts
+    summary = integrity.load_summary(prepared_dir)  # prepare's counts
     git = provenance.git_commit(Path.cwd())
     return {
         "name": "AU+pose -> MediaPipe mesh PLS (aumesh)",
@@ -220,10 +261,12 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         "model": {"n_components": metrics["n_components"], "n_features": metrics["n_features"],
                   "estimator": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)"},
         "data": {"n_frames": summary["n_frames"], "n_videos": summary["n_videos"], "digest": run_info.get("data_digest"),
+                 "degenerate": run_info.get("degenerate") or {},
                  "counts": summary["counts"], "n_low_au_frames": summary["n_low_au_population"]},
         "config": shareable_config(cfg),
         "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
-        "mlflow": {k: run_info.get(k) for k in ("run_id", "experiment_id", "tracking_uri")},
+        "mlflow": {**{k: run_info.get(k) for k in ("run_id", "experiment_id", "tracking_uri")},
+                   "experiment": cfg.tracking.experiment if cfg.tracking.enabled else None},
         "runs": release_runs(run_info, promotion),
         "libraries": provenance.library_versions(),
         "promotion": promotion,
@@ -261,6 +304,33 @@ def release_runs(run_info: dict, promotion: dict | None) -> dict:
     return {"build": build, "promoted": promoted}
 
 
+def load_model(model_dir: Path) -> dict[str, np.ndarray]:
+    """The arrays of ``model.npz`` (evaluate's fit); a damaged archive is one line naming it."""
+    import zipfile
+
+    from aumesh.utils.errors import CorruptFileError, MissingFileError
+
+    path = Path(model_dir) / MODEL_NPZ
+    if not path.exists():
+        raise MissingFileError(f"{path}: not found. Fix: run the evaluate stage first (`dvc repro evaluate`).")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, ValueError, EOFError, OSError) as err:
+        raise CorruptFileError(f"{path}: not a readable .npz ({err}). Fix: `dvc repro -f evaluate`.") from None
+
+
+def refuse_nonfinite(arrays: dict, source: Path) -> None:
+    """A :class:`aumesh.model.inference.ReleaseError` naming the first of ``coef``, ``coef_full``, ``intercept`` with a
+    NaN/inf value: a release is finite or not written."""
+    from aumesh.model.inference import ReleaseError, nonfinite_arrays
+
+    nonfinite = nonfinite_arrays(arrays)
+    if nonfinite:
+        raise ReleaseError(f"{source}: {nonfinite}; nothing written, the previous release is kept. "
+                           f"Fix: rerun the fit (`dvc repro -f evaluate`) and look for degenerate inputs in its log.")
+
+
 def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
     start_stage("release", cfg)
@@ -272,12 +342,16 @@ def release_stage(cfg: Config) -> Path:
     promotion = None
     if Path(cfg.paths.promotion_file).exists():
         promotion = json.loads(Path(cfg.paths.promotion_file).read_text()).get("promoted") or None
+    check_columns(cfg)
+    integrity.verify_prepared(prepared_dir, integrity.load_summary(prepared_dir), [REFERENCE_FILE])
     card = build_card(cfg, model_dir, prepared_dir, promotion)
-    model = np.load(model_dir / MODEL_NPZ)
-    reference = dict(np.load(prepared_dir / REFERENCE_FILE))
+    model = load_model(model_dir)
+    reference = integrity.load_reference(prepared_dir)
+    arrays = release_arrays(model["coef"], model["mesh_intercept"], model["feature_columns"].tolist(),
+                            int(model["n_components"]), reference, card_text="", metadata=card)
+    refuse_nonfinite({"coef": model["coef"], "intercept": model["mesh_intercept"]}, model_dir / MODEL_NPZ)
+    refuse_nonfinite(arrays, model_dir / MODEL_NPZ)  # before anything is written: the previous release stays
     with atomic_directory(cfg.paths.release_dir) as tmp:
-        arrays = release_arrays(model["coef"], model["mesh_intercept"], model["feature_columns"].tolist(),
-                                int(model["n_components"]), reference, card_text="", metadata=card)
         npz_path = tmp / NPZ_NAME
         atomic_savez(npz_path, **arrays)  # figures are rendered from the NPZ alone
         figures = render.render_release(npz_path, tmp / "figures", cv_path=model_dir / CV_NPZ)

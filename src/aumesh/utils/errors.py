@@ -31,3 +31,19 @@ def corrupt_parquet(path, err: BaseException, what: str = "") -> TableError:
         f"{path}: corrupt or truncated parquet file{what} ({type(err).__name__}: {first}). "
         f"Fix: restore the tracked copy (`dvc checkout --force`, or `dvc pull`) or re-export it with pandas.DataFrame.to_parquet."
     )
+
+
+class CorruptFileError(UserError, ValueError):
+    """A file on disk that is truncated, damaged or not what its checksum says; the message names it and the fix."""
+
+
+class DiskFullError(UserError, OSError):
+    """No space left on the device while writing an output; the message names the folder, what it needed and that
+    the previous outputs are intact (every output is written atomically). ``errno`` stays ``ENOSPC``."""
+
+    def __str__(self) -> str:  # the message alone, not OSError's "[Errno 28] ..."
+        return str(self.strerror)
+
+
+class TruncatedFileError(CorruptFileError, EOFError):
+    """A file that ends before its header says (an ``EOFError`` too, what the readers raised before)."""

@@ -31,8 +31,11 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     try:
         yield tmp_path
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as err:
+        written = _allocated_bytes(tmp_path)
         tmp_path.unlink(missing_ok=True)
+        if _no_space(err) and not _is_disk_full_error(err):
+            raise disk_full(path, written) from err
         raise
 
 
@@ -119,12 +122,71 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
         os.replace(tmp, path)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
+    except BaseException as err:
+        written = _allocated_bytes(tmp)
         # interrupted (Ctrl-C, SIGTERM) between the two renames: the previous folder goes back, not a hole
         if old is not None and old.exists() and not path.exists():
             os.replace(old, path)
         shutil.rmtree(tmp, ignore_errors=True)
+        if _no_space(err):  # named here, for the whole folder (an atomic file inside it named its temporary copy)
+            raise disk_full(path, written) from err
         raise
+
+
+def _no_space(err: BaseException) -> bool:
+    import errno
+
+    return isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def _is_disk_full_error(err: BaseException) -> bool:
+    from aumesh.utils.errors import DiskFullError
+
+    return isinstance(err, DiskFullError)
+
+
+def _allocated_bytes(path: Path) -> int:
+    """Bytes a file or folder takes on its device (allocated blocks: a sparse ``.npy`` takes what was written)."""
+    try:
+        if path.is_dir() and not path.is_symlink():
+            return sum(p.lstat().st_blocks * 512 for p in path.rglob("*"))
+        return path.lstat().st_blocks * 512
+    except OSError:
+        return 0
+
+
+def _size(path: Path) -> int:
+    try:
+        if path.is_dir():
+            return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+        return path.stat().st_size if path.exists() else 0
+    except OSError:
+        return 0
+
+
+def disk_full(path: str | Path, written: int) -> Exception:
+    """The one line for ``ENOSPC`` while ``path`` was being written atomically (its temporary copy already removed):
+    the folder, what the new output had taken and what it needs, and that the previous output is intact."""
+    import errno
+
+    from aumesh.utils.errors import DiskFullError
+
+    path = Path(path)
+    folder = path.parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        free = 0
+    previous = _size(path)
+    kept = (f"the previous {path} is intact (nothing was swapped in)" if path.exists()
+            else f"nothing was written to {path}")
+    need = (f"a complete one takes about {previous:,} bytes (the previous one's size), {free:,} are free"
+            if previous else f"it needs more than the {free:,} bytes free")
+    taken = f"the new output had taken {written:,} bytes when the disk filled; " if written else ""
+    err = DiskFullError(errno.ENOSPC, f"{folder}/: no space left on the device while writing {path} ({taken}{need}); "
+                        f"{kept}. Fix: free space on the "
+                        f"device of {folder}/ (`df -h {folder}`) or point the output elsewhere in params.yaml, and run again.")
+    return err
 
 
 def _json_default(obj: Any) -> Any:
@@ -183,6 +245,30 @@ def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
     return _parse_npy_header(header, str(path))
 
 
+def check_npy(path: str | Path, fix: str) -> tuple[int, np.dtype, tuple[int, ...]]:
+    """:func:`npy_layout` of an ``.npy`` whose data is all on disk: a header numpy cannot parse, or a file shorter
+    than its header's shape needs (a truncated copy, an interrupted ``np.save``), is a
+    :class:`aumesh.utils.errors.CorruptFileError` naming the file, both sizes and ``fix`` (instead of numpy's
+    "mmap length is greater than file size" or an ``EOFError`` deep inside a pass)."""
+    from aumesh.utils.errors import CorruptFileError, TruncatedFileError
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:  # numpy's own header reader: Fortran order is the caller's to refuse
+            version = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(fh)
+            offset = fh.tell()
+    except (ValueError, SyntaxError, EOFError) as err:
+        raise CorruptFileError(f"{path}: not a readable .npy file ({err}). Fix: {fix}") from None
+    need = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    size = path.stat().st_size
+    if size < need:
+        raise TruncatedFileError(f"{path}: truncated: {size:,} bytes on disk, its header ({shape} {dtype}) needs "
+                               f"{need:,}. Fix: {fix}")
+    return offset, dtype, shape
+
+
 @functools.lru_cache(maxsize=64)
 def _parse_npy_header(header: bytes, path: str) -> tuple[int, np.dtype, tuple[int, ...]]:
     fh = io.BytesIO(header)
@@ -224,8 +310,11 @@ class NpyRowFile:
         pos, got = self.offset + start * self.row_bytes, 0
         while got < len(view):
             k = os.preadv(self._fd, [view[got:]], pos + got)
-            if not k:
-                raise EOFError(f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)}")
+            if not k:  # the file shrank after its size was checked (check_npy), or was never checked
+                from aumesh.utils.errors import TruncatedFileError
+
+                raise TruncatedFileError(f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)} of "
+                                       f"{self.shape[0]}. Fix: restore or rewrite the file")
             got += k
         return out
 
