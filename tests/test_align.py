@@ -122,3 +122,22 @@ def test_similarity_on_stored_vertices_is_bit_for_bit_that_on_columns():
     np.testing.assert_array_equal(rows, apply_similarity_columns(columns, rot, scale, shift))
     expected = scale[:, None, None] * (vertices.astype(np.float64) @ rot.transpose(0, 2, 1)) + shift[:, None]
     np.testing.assert_allclose(rows.reshape(n, 3, 40).transpose(0, 2, 1), expected, rtol=1e-13, atol=1e-11)
+
+
+@pytest.mark.parametrize("radius", [2.0, 3.4, 3.6, 4.0, 5.0, 7.0])
+def test_beyond_radius_is_the_euclidean_rule(radius):
+    """The fast rule (per-axis extremes, Euclidean only where they leave it in doubt) against the plain one."""
+    from aumesh.geometry.align import beyond_radius
+
+    rng = np.random.default_rng(1)
+    flat = rng.normal(0, 1.0, (300, 1434)) * np.linspace(0.4, 2.0, 300)[:, None]  # farthest vertices ~1.6 to ~8
+    centre = np.array([0.1, -0.2, 0.3])
+    flat[7, 900] = np.nan
+    flat[8, 20] = np.inf
+    vertices = flat.reshape(len(flat), 3, 478) - centre[None, :, None]
+    with np.errstate(invalid="ignore"):
+        expected = ~(np.sqrt((vertices**2).sum(axis=1)).max(axis=1) <= radius)
+    got = beyond_radius(flat, centre, radius)
+    assert got[7] and got[8]
+    np.testing.assert_array_equal(got, expected)
+    assert 2 < got.sum() < len(got)  # both kinds of rows, and rows the per-axis bound leaves in doubt
