@@ -22,3 +22,9 @@ class TableError(UserError, ValueError):
 
 class MissingFileError(UserError, FileNotFoundError):
     """A file the user named does not exist; the message names it and how to get it."""
+
+
+class ClusterError(UserError):
+    """A Dask cluster that cannot serve the run: no scheduler at the address, a scheduler lost mid-run, a worker that
+    cannot read the data or write the output folders at the paths the stage uses; the message names the address or
+    the worker and the path, and the fix."""
