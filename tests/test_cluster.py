@@ -218,21 +218,29 @@ def test_data_the_workers_do_not_see_is_named_by_the_probe(cluster, tmp_path, fi
     assert not (ws / "build" / "ingested").exists()
 
 
+#: What shows a stage's passes are under way on the cluster: pass 1's staged partitions (prepare), the scratch
+#: folder of pass A's per-video sums (evaluate).
+MID_RUN = {"prepare": ".prepared.tmp-*/scratch/*.arrow", "evaluate": ".evaluate-scratch.tmp-*/*.npy"}
+
+
 @pytest.mark.slow
-def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(tmp_path, fixed_conf):
+@pytest.mark.parametrize("stage", ["prepare", "evaluate"])
+def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stage, tmp_path, fixed_conf):
+    import mlflow
+
     ws = make_workspace(tmp_path / "ws", fixed_conf, seed=5, n_frames=6000)
     write_params(compose(["compute.partition_rows=100"], config_dir=ws / "conf"), ws / "params.yaml")
-    for stage in ("ingest", "prepare"):  # the previous output, built here
-        _run([BIN / "aumesh", stage], ws, _env())
+    stages = ["ingest", "prepare"] + (["evaluate"] if stage == "evaluate" else [])
+    for s in stages:  # the previous output, built here
+        _run([BIN / "aumesh", s], ws, _env())
     before = outputs(ws)
     (tmp_path / "elsewhere").mkdir()
     c = Cluster(tmp_path / "elsewhere", n_workers=1)
     try:
-        proc = subprocess.Popen([str(BIN / "aumesh"), "prepare"], cwd=ws, text=True, stdout=subprocess.PIPE,
+        proc = subprocess.Popen([str(BIN / "aumesh"), stage], cwd=ws, text=True, stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, env=_env(AUMESH_COMPUTE_ADDRESS=c.address))
         deadline = time.monotonic() + 120
-        # mid-run: the workers have staged a partition of pass 1 in this run's scratch folder
-        while not list((ws / "build").glob(".prepared.tmp-*/scratch/*.arrow")) and proc.poll() is None:
+        while not list((ws / "build").glob(MID_RUN[stage])) and proc.poll() is None:
             assert time.monotonic() < deadline
             time.sleep(0.05)
         c.scheduler.send_signal(signal.SIGKILL)
@@ -243,10 +251,15 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(tmp_
         c.stop()
     line = _one_line(err)
     assert proc.returncode == 2, err
-    assert line.startswith(f"aumesh prepare: error: AUMESH_COMPUTE_ADDRESS={c.address}: lost the Dask scheduler"), line
+    assert line.startswith(f"aumesh {stage}: error: AUMESH_COMPUTE_ADDRESS={c.address}: lost the Dask scheduler"), line
     assert "The previous outputs stand." in line
-    assert_same_outputs(outputs(ws), before)
-    assert not list((ws / "build").glob(".*"))  # the run's temporary folder is gone
+    after = outputs(ws)
+    if stage == "evaluate":  # and the run that failed is FAILED in MLflow, the one before FINISHED
+        runs = mlflow.MlflowClient().search_runs(mlflow.get_experiment_by_name("aumesh").experiment_id,
+                                                 order_by=["attributes.start_time DESC"])
+        assert [r.info.status for r in runs] == ["FAILED", "FINISHED"]
+    assert_same_outputs(after, before)
+    assert not list((ws / "build").glob(".*"))  # the run's temporary folders are gone
 
 
 # ------------------------------------------------------------------------------------------------------- fast cases
