@@ -284,31 +284,35 @@ def check_workers(client, read: str | Path | None, write: str | Path | None) -> 
     except OSError:
         expected = None
     results = client.run(_probe, read, write, token, on_error="return")
-    problem = None
     try:
-        for worker, result in sorted(results.items()):
-            if problem is not None:
-                break
-            if isinstance(result, BaseException):  # the probe did not run: no aumesh there, or another version
-                problem = (f"worker {worker} cannot run aumesh's probe ({_first_line(result)}): every worker must run "
-                           f"the aumesh of this workspace. Fix: start the workers from the project's environment "
-                           f"(.venv/bin/dask worker)")
-                continue
-            if "read_error" in result or (expected is not None and tuple(result["read"]) != expected):
-                cause = result.get("read_error") or (f"another file there: {result['read'][0]} bytes, here "
-                                                     f"{expected[0]}" if result["read"][0] != expected[0] else
-                                                     "another file there: other bytes")
-                problem = _unseen(worker, "read", read, cause)
-            elif "write_error" in result:
-                problem = _unseen(worker, "write into", write, result["write_error"])
-            elif write is not None and not _written_by_probe(Path(write) / result["wrote"], token):
-                problem = _unseen(worker, "write into", write, "what it wrote there is not seen here")
+        problems = (_probe_problem(worker, result, read, write, expected, token)
+                    for worker, result in sorted(results.items()))
+        problem = next((p for p in problems if p), None)
     finally:
         for result in results.values():
             if isinstance(result, dict) and "wrote" in result:
                 (Path(write) / result["wrote"]).unlink(missing_ok=True)
     if problem is not None:
         raise ClusterError(problem)
+
+
+def _probe_problem(worker: str, result: Any, read: str | None, write: str | None,
+                   expected: tuple[int, str] | None, token: str) -> str | None:
+    """What a worker's probe found wrong (:func:`_probe`), as the one line to print; None: nothing."""
+    if isinstance(result, BaseException):  # the probe did not run: no aumesh there, or another version of it
+        return (f"worker {worker} cannot run aumesh's probe ({_first_line(result)}): every worker must run the aumesh "
+                f"of this workspace. Fix: start the workers from the project's environment (.venv/bin/dask worker).")
+    if "read_error" in result:
+        return _unseen(worker, "read", read, result["read_error"])
+    if expected is not None and tuple(result["read"]) != expected:
+        size = result["read"][0]
+        return _unseen(worker, "read", read, f"another file there: {size} bytes, here {expected[0]}" if size != expected[0]
+                       else "another file there: other bytes")
+    if "write_error" in result:
+        return _unseen(worker, "write into", write, result["write_error"])
+    if write is not None and not _written_by_probe(Path(write) / result["wrote"], token):
+        return _unseen(worker, "write into", write, "what it wrote there is not seen here")
+    return None
 
 
 def _written_by_probe(path: Path, token: str) -> bool:
