@@ -330,3 +330,36 @@ def test_the_environment_chooses_where_the_passes_run_over_params(monkeypatch):
         compute.effective(cfg, {"AUMESH_COMPUTE_CONNECT_TIMEOUT": "0"})
     assert compute.source_of("address", {"AUMESH_COMPUTE_ADDRESS": "tcp://h:1"}) == "AUMESH_COMPUTE_ADDRESS"
     assert compute.source_of("address", {}) == "compute.address"
+
+
+def test_tasks_get_absolute_paths_and_the_records_keep_the_workspace_relative_ones(tmp_path, monkeypatch):
+    """Ingest and prepare in a workspace with relative paths (params.yaml's): the partition tasks are handed absolute
+    paths (what a worker elsewhere needs), the manifest and the summary record ``data/...`` as before."""
+    from aumesh.pipeline import prepare
+    from aumesh.utils.io import recorded
+    from conftest import default_config
+
+    write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=30, seed=2, frames_per_file=150))
+    write_params(default_config(**{"compute": "synchronous", "compute.partition_rows": 100}).to_dict(),
+                 tmp_path / "params.yaml")
+    seen = []
+    scan = prepare.scan_partition
+
+    def spy(item, cfg, scratch, exclude=None):
+        seen.append((scratch, [p.table.path for p in item[1]]))
+        return scan(item, cfg, scratch, exclude)
+
+    monkeypatch.setattr(prepare, "scan_partition", spy)
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["ingest"]) == 0 and cli.main(["prepare"]) == 0
+    assert len(seen) > 1 and all(s.is_absolute() and all(p.is_absolute() for p in paths) for s, paths in seen)
+    assert {str(p) for _, paths in seen for p in paths} == {str(p) for p in (tmp_path / "data").glob("*.parquet")}
+    assert seen[0][0].parent.name.startswith(".prepared.tmp-") and seen[0][0].parent.parent == tmp_path / "build"
+    manifest = (tmp_path / "build" / "ingested" / "manifest.json").read_text()
+    summary = (tmp_path / "build" / "prepared" / "summary.json").read_text()
+    for text in (manifest, summary):
+        assert '"data/frames_0000.parquet"' in text and str(tmp_path) not in text
+    # recorded(): relative inside the workspace, as given outside it
+    assert recorded(tmp_path / "data" / "x.parquet") == "data/x.parquet" and recorded("data/x") == "data/x"
+    assert recorded("/elsewhere/x.parquet") == "/elsewhere/x.parquet"
+    assert recorded(tmp_path.parent / "x") == str(tmp_path.parent / "x")
