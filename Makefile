@@ -27,6 +27,7 @@ help:
 	@echo "make bench       - run the benchmarks under benchmarks/"
 	@echo "make mlflow-server - start an MLflow tracking server (SQLite backend) on 127.0.0.1:5000"
 	@echo "make mlflow-server-postgres - a team's tracking server: MLFLOW_DB=postgresql://USER@DBHOST/DB MLFLOW_HOST=0.0.0.0"
+	@echo "make cluster     - start a local Dask cluster (a scheduler + CLUSTER_WORKERS workers on 127.0.0.1:CLUSTER_PORT); make cluster-stop"
 	@echo "make pyfeat-check - py-feat's own client on release/ (throwaway venv with py-feat + torch, ~6.5 GB; PYFEAT_VENV=DIR keeps one)"
 
 # The environment: a fresh venv, exact pins from requirements.lock, then the package itself without deps.
@@ -110,6 +111,42 @@ mlflow-server-postgres: $(STAMP)
 
 clean-build:
 	rm -rf build release
+
+# A local Dask cluster (README "Scale out"): `dask scheduler` and CLUSTER_WORKERS `dask worker` processes on 127.0.0.1,
+# started in CLUSTER_CWD, a folder outside the repository (the stages hand the workers absolute paths, so any number of
+# workspaces of this machine share it); pid files and logs in .cluster/ (git-ignored). Use it with
+# `AUMESH_COMPUTE_ADDRESS=tcp://127.0.0.1:8786 dvc repro -f` (params.yaml stays as it is).
+.PHONY: cluster cluster-stop
+CLUSTER_PORT ?= 8786
+CLUSTER_WORKERS ?= 2
+CLUSTER_THREADS ?= 1
+CLUSTER_CWD ?= $(or $(TMPDIR),/tmp)
+CLUSTER_STATE := $(CURDIR)/.cluster
+CLUSTER_ADDRESS := tcp://127.0.0.1:$(CLUSTER_PORT)
+
+cluster: $(STAMP)
+	@mkdir -p "$(CLUSTER_STATE)"
+	@if [ -s "$(CLUSTER_STATE)/scheduler.pid" ] && kill -0 "$$(cat "$(CLUSTER_STATE)/scheduler.pid")" 2>/dev/null; then \
+		echo "a cluster is running already (pid $$(cat "$(CLUSTER_STATE)/scheduler.pid")): make cluster-stop first"; exit 1; fi
+	@cd "$(CLUSTER_CWD)" && { nohup "$(CURDIR)/$(BIN)/dask" scheduler --host 127.0.0.1 --port $(CLUSTER_PORT) \
+		--no-dashboard > "$(CLUSTER_STATE)/scheduler.log" 2>&1 & echo $$! > "$(CLUSTER_STATE)/scheduler.pid"; }
+	@cd "$(CLUSTER_CWD)" && for i in $$(seq 1 $(CLUSTER_WORKERS)); do \
+		{ ARROW_DEFAULT_MEMORY_POOL=system nohup "$(CURDIR)/$(BIN)/dask" worker $(CLUSTER_ADDRESS) --host 127.0.0.1 \
+			--nthreads $(CLUSTER_THREADS) --no-dashboard > "$(CLUSTER_STATE)/worker-$$i.log" 2>&1 & \
+		  echo $$! > "$(CLUSTER_STATE)/worker-$$i.pid"; }; done
+	@$(BIN)/python -c "from distributed import Client; c = Client('$(CLUSTER_ADDRESS)', timeout=60); \
+		c.wait_for_workers($(CLUSTER_WORKERS), timeout=120); c.close()" 2>/dev/null \
+		|| { echo "the cluster did not start: see $(CLUSTER_STATE)/*.log"; $(MAKE) --no-print-directory cluster-stop; exit 1; }
+	@echo "Dask cluster at $(CLUSTER_ADDRESS): $(CLUSTER_WORKERS) workers x $(CLUSTER_THREADS) threads, started in $(CLUSTER_CWD)"
+	@echo "use it:  AUMESH_COMPUTE_ADDRESS=$(CLUSTER_ADDRESS) dvc repro -f     (stop it: make cluster-stop)"
+
+cluster-stop:
+	@for f in "$(CLUSTER_STATE)"/worker-*.pid "$(CLUSTER_STATE)/scheduler.pid"; do \
+		[ -s "$$f" ] || continue; pid=$$(cat "$$f"); \
+		if kill "$$pid" 2>/dev/null; then \
+			for _ in $$(seq 50); do kill -0 "$$pid" 2>/dev/null || break; sleep 0.2; done; \
+			echo "stopped $$(basename "$$f" .pid) (pid $$pid)"; fi; \
+		rm -f "$$f"; done
 
 # Sweeps (README "Sweeps and promotion"): the demo grid in-process, the latest sweep's table, promotion.
 .PHONY: sweep runs promote

@@ -24,6 +24,14 @@ def _isolated_mlflow(tmp_path_factory, monkeypatch):
         monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
 
 
+@pytest.fixture(autouse=True)
+def _local_compute(monkeypatch):
+    """The passes run where the test's configuration says: a cluster chosen in the caller's shell
+    (``AUMESH_COMPUTE_ADDRESS``, aumesh.pipeline.compute.effective) is not the tests' to use."""
+    for name in [k for k in os.environ if k.startswith("AUMESH_COMPUTE_")]:
+        monkeypatch.delenv(name)
+
+
 _FIXED_CONF: list[Path] = []  # set once per session by the fixed_conf fixture
 
 

@@ -152,6 +152,9 @@ class ComputeConfig:
     # per-video sums) scale with them: 65,536 put 130k rows in flight from ~130k frames up but 100k at 100k frames
     # (2 x 50k), so the peak grew with the data; 32,768 halves that step (benchmarks/README, issue 12's sixth round)
     partition_rows: int = 32768
+    # distributed: seconds to wait for the scheduler (and for a first worker) before the stage stops with one line
+    # (Dask's own default waits 30 s and then prints a 75-line traceback)
+    connect_timeout: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -309,6 +312,8 @@ def validate(cfg: Config) -> Config:
         raise ConfigError("compute=distributed needs the scheduler's address: compute.address=tcp://host:8786")
     if cfg.compute.partition_rows < 1:
         raise ConfigError(f"compute.partition_rows={cfg.compute.partition_rows}: must be >= 1")
+    if not cfg.compute.connect_timeout > 0:
+        raise ConfigError(f"compute.connect_timeout={cfg.compute.connect_timeout}: must be > 0 (seconds)")
     if cfg.features.name not in FEATURE_SETS:
         raise ConfigError(f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} "
                          "(conf/features/<name>.yaml)")

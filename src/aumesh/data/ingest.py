@@ -24,7 +24,7 @@ import csv
 import gzip
 import io
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -38,7 +38,7 @@ from aumesh.data import pyfeat
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.utils.errors import TableError, corrupt_parquet
 from aumesh.data.pyfeat import video_stem
-from aumesh.utils.io import NpyRowFile, check_npy, npy_layout
+from aumesh.utils.io import NpyRowFile, absolute, check_npy, npy_layout
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
 PARQUET_SUFFIXES = (".parquet",)
@@ -65,6 +65,11 @@ class Source:
     header: tuple[str, ...]  # every column, in file order
     mesh_npy: Path | None = None
     n_rows: int | None = None  # parquet: rows (CSV: unknown until read)
+
+    def absolute(self) -> "Source":
+        """The same source named by absolute paths (:func:`aumesh.utils.io.absolute`): what partition tasks get, so a
+        cluster worker in another directory reads this workspace's file."""
+        return replace(self, path=absolute(self.path), mesh_npy=None if self.mesh_npy is None else absolute(self.mesh_npy))
 
 
 def is_table(path: Path) -> bool:

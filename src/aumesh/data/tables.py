@@ -196,7 +196,8 @@ def _footer(path: str | Path) -> pq.FileMetaData:
     ``FOOTER_CACHE_TABLES`` most recently used (a 1,461-column footer takes 10-16 ms to parse; every pass opens each
     table for each of its partitions)."""
     st = os.stat(path)
-    return _parsed_footer(str(path), st.st_mtime_ns, st.st_size, st.st_ino)
+    # by absolute path: the stage checks the tables by the paths it was given, its tasks read them by absolute ones
+    return _parsed_footer(os.path.abspath(path), st.st_mtime_ns, st.st_size, st.st_ino)
 
 
 @functools.lru_cache(maxsize=FOOTER_CACHE_TABLES)

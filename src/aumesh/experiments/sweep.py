@@ -270,7 +270,7 @@ class SweepCache:
         if design_key not in self.designs:  # the one pass over the meshes; every target/feature set derives from it
             from aumesh.pipeline import compute
 
-            with compute.engine(cfg.compute):
+            with compute.engine(cfg.compute, **ev.workers_check(prepared)):
                 self.designs[design_key] = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
         stats = ev.accumulate(prepared, cfg, fold, design=self.designs[design_key])
         self.statistics[key] = stats
@@ -373,7 +373,7 @@ def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistic
     from aumesh.pipeline import compute
     from aumesh.pipeline import evaluate as ev
 
-    with compute.engine(cfg.compute):
+    with compute.engine(cfg.compute, **ev.workers_check(prepared)):
         return ev.evaluate_statistics(prepared, cfg, stats)
 
 

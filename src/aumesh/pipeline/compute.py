@@ -10,20 +10,32 @@ functions spend their time in NumPy, BLAS and Arrow, which release the GIL); ``s
 them one by one in the caller (debugging); ``processes`` on a local process pool; ``distributed``
 on a running ``dask.distributed`` scheduler (``compute.address``), e.g. a SLURM cluster started
 with ``dask-jobqueue`` (README, "Scale out").
+
+Where a run executes is not what it computes: the environment's ``AUMESH_COMPUTE_<KEY>`` (``AUMESH_COMPUTE_ADDRESS=
+tcp://host:8786`` alone selects the cluster) overrides the ``compute`` group of ``params.yaml`` (:func:`effective`), so
+``dvc repro -f`` runs on a cluster without a change to a tracked file. One cluster serves many workspaces: the stages
+hand their tasks absolute paths and per-run scratch folders, and a probe on every worker checks, when the stage
+connects, that it reads the data and writes the output folder at those paths (:func:`check_workers`). A scheduler that
+does not answer, or is lost mid-run, is one line (:class:`aumesh.utils.errors.ClusterError`, exit 2).
 """
 
 from __future__ import annotations
 
 import contextvars
+import dataclasses
 import functools
+import hashlib
 import itertools
 import logging
 import os
 import sys
+import uuid
 from contextlib import contextmanager, nullcontext
-from typing import Any, Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from aumesh.config import ComputeConfig
+from aumesh.utils.errors import ClusterError, ConfigError, UserError
 
 log = logging.getLogger(__name__)
 
@@ -36,24 +48,285 @@ def n_workers(cfg: ComputeConfig) -> int:
     return int(cfg.n_workers or os.cpu_count() or 1)
 
 
+#: The environment variables that override the ``compute`` group: ``AUMESH_COMPUTE_<KEY>`` (e.g.
+#: ``AUMESH_COMPUTE_ADDRESS``, ``AUMESH_COMPUTE_CONNECT_TIMEOUT``, ``AUMESH_COMPUTE_SCHEDULER``).
+ENV_PREFIX = "AUMESH_COMPUTE_"
+
+
+def _from_environment(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    env = os.environ if environ is None else environ
+    given = {}
+    for f in dataclasses.fields(ComputeConfig):
+        value = env.get(ENV_PREFIX + f.name.upper(), "").strip()
+        if value:
+            given[f.name] = value
+    return given
+
+
+def effective(cfg: ComputeConfig, environ: Mapping[str, str] | None = None) -> ComputeConfig:
+    """``cfg`` with the environment's ``AUMESH_COMPUTE_<KEY>`` over it (the environment wins); an address alone means
+    ``scheduler=distributed``.
+
+    Where a computation runs is not what it computes (the scheduler changes no result beyond float64 summation
+    order), so a cluster's address belongs to the shell, not to ``params.yaml``: ``AUMESH_COMPUTE_ADDRESS=tcp://h:8786
+    dvc repro -f`` leaves every tracked file as it is, and the address never reaches a record (the MLflow run's
+    parameters, the model card), which hold the configuration read from ``params.yaml``.
+
+    Raises
+    ------
+    ConfigError
+        A value of the wrong type or outside what the key allows, named by its variable.
+    """
+    given = _from_environment(environ)
+    if not given:
+        return cfg
+    if "address" in given and "scheduler" not in given:
+        given["scheduler"] = "distributed"
+    from aumesh import config
+
+    try:
+        return config.from_dict({"compute": {**dataclasses.asdict(cfg), **given}}).compute
+    except ConfigError as err:
+        names = ", ".join(f"{ENV_PREFIX}{k.upper()}={v}" for k, v in given.items())
+        raise ConfigError(f"{names} (environment): {err}") from None
+
+
+def source_of(key: str, environ: Mapping[str, str] | None = None) -> str:
+    """Where the ``compute`` key ``key`` is set, for messages: its environment variable if set, else ``compute.<key>``."""
+    name = ENV_PREFIX + key.upper()
+    env = os.environ if environ is None else environ
+    return name if env.get(name, "").strip() else f"compute.{key}"
+
+
 @contextmanager
-def engine(cfg: ComputeConfig) -> Iterator[None]:
-    """Run the enclosed passes on ``cfg``'s scheduler, with single-threaded BLAS in every worker.
+def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path | None = None) -> Iterator[None]:
+    """Run the enclosed passes on ``cfg``'s scheduler (:func:`effective`: the environment's settings over ``cfg``),
+    with single-threaded BLAS in every worker.
 
     The partitions already use every core; a BLAS thread pool per task would only oversubscribe
     them (``dask.distributed`` workers set ``OPENBLAS_NUM_THREADS=1`` themselves).
+
+    Parameters
+    ----------
+    cfg : ComputeConfig
+    read, write : path, optional
+        On a ``dask.distributed`` cluster, a file every worker must read (the data) and a folder every worker must
+        write (the output's temporary folder), checked on each worker when the client connects
+        (:func:`check_workers`); absolute paths, as the tasks get them.
+
+    Raises
+    ------
+    ClusterError
+        No scheduler at the address within ``compute.connect_timeout`` seconds, no worker, a worker that cannot read
+        ``read`` or write ``write``, the scheduler lost or a worker killed mid-run. One line; the outputs were being
+        built in temporary folders, so the previous ones stand.
     """
     import dask
     from threadpoolctl import threadpool_limits
 
+    cfg = effective(cfg)
     token = _ACTIVE.set(cfg)
     try:
         if cfg.scheduler == "threads":  # before the scheduler starts its threads
             limit_malloc_arenas(n_workers(cfg))
         with threadpool_limits(limits=1, user_api="blas"):
-            yield from _scheduler(cfg, dask)
+            if cfg.scheduler == "distributed":
+                yield from _distributed(cfg, dask, read, write)
+            else:
+                yield from _scheduler(cfg, dask)
     finally:
         _ACTIVE.reset(token)
+
+
+def _local_fix() -> str:
+    """How to run without the cluster, in the words of where it was chosen."""
+    key = source_of("address")
+    return f"unset {key} to run here" if key.startswith(ENV_PREFIX) else "compute=local runs here"
+
+
+def _first_line(err: BaseException) -> str:
+    reason = getattr(err, "reason", None)  # distributed's FutureCancelledError: its reason, not its task's key
+    text = [reason] if isinstance(reason, str) and reason else str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
+
+
+def _connect(cfg: ComputeConfig):
+    """A client of the scheduler at ``cfg.address`` with at least one worker, or a :class:`ClusterError`."""
+    from distributed import Client
+
+    where = f"{source_of('address')}={cfg.address}"
+    timeout = source_of("connect_timeout")
+    try:
+        client = Client(cfg.address, timeout=cfg.connect_timeout, set_as_default=False)
+    except Exception as err:  # OSError (timed out, refused), ValueError (no port), or a peer that is no scheduler
+        raise ClusterError(f"{where}: cannot connect to a Dask scheduler there ({_first_line(err)}). "
+                           f"Fix: start one (`make cluster`, or `dask scheduler` and `dask worker ADDRESS`) or correct "
+                           f"the address, or {_local_fix()}; {timeout} sets the wait.") from None
+    try:
+        client.wait_for_workers(1, timeout=cfg.connect_timeout)
+    except Exception:
+        _close(client, quiet=True)
+        raise ClusterError(f"{where}: the scheduler has no worker (none joined within {cfg.connect_timeout:g} s). "
+                           f"Fix: start workers (`dask worker {cfg.address}`, or `make cluster`), or {_local_fix()}; "
+                           f"{timeout} sets the wait.") from None
+    return client
+
+
+def _close(client, quiet: bool) -> None:
+    """Close ``client``; ``quiet`` (the scheduler is gone): without ``distributed``'s traceback of its cancelled
+    reconnection, which it logs as an error while it closes."""
+    if quiet:  # every logger: distributed.client has a level of its own (distributed's logging config)
+        logging.disable(logging.CRITICAL)
+    try:
+        client.close(timeout=5)
+    except Exception:
+        if not quiet:
+            raise
+    finally:
+        if quiet:
+            logging.disable(logging.NOTSET)
+
+
+def _lost(err: BaseException, client) -> bool:
+    """``err`` means the cluster, not the task, failed: the scheduler's connection lost (futures cancelled, a closed
+    comm), or a worker killed by a task (:class:`distributed.scheduler.KilledWorker`)."""
+    from concurrent.futures import CancelledError
+
+    from distributed.comm import CommClosedError
+    from distributed.scheduler import KilledWorker
+
+    return isinstance(err, (CancelledError, CommClosedError, KilledWorker)) or client.status != "running"
+
+
+def _distributed(cfg: ComputeConfig, dask, read: str | Path | None, write: str | Path | None) -> Iterator[None]:
+    client = _connect(cfg)
+    where = f"{source_of('address')}={cfg.address}"
+    failed = False
+    try:
+        n = len(client.scheduler_info().get("workers", {}))
+        log.info("compute: dask.distributed scheduler at %s (%d workers)", cfg.address, n)
+        check_workers(client, read, write)
+        with dask.config.set(scheduler=client):
+            yield
+    except UserError:
+        failed = client.status != "running"
+        raise
+    except Exception as err:
+        if not _lost(err, client):
+            raise
+        failed = True
+        from distributed.scheduler import KilledWorker
+
+        if isinstance(err, KilledWorker):
+            raise ClusterError(f"{where}: a task ended its worker's process {dask.config.get('distributed.scheduler.allowed-failures', 3) + 1} "
+                               f"times ({_first_line(err)}), likely its memory limit. Fix: see the workers' logs; give "
+                               "them more memory (`dask worker --memory-limit`) or lower data.chunk_rows and "
+                               "compute.partition_rows. The previous outputs stand.") from None
+        raise ClusterError(f"{where}: lost the Dask scheduler during the run ({_first_line(err)}). Fix: restart the "
+                           f"scheduler and its workers and run again, or {_local_fix()}. The previous outputs "
+                           "stand.") from None
+    finally:
+        _close(client, quiet=failed)
+
+
+#: Bytes of the data file's start and end the probe compares (a parquet table's first pages and its footer).
+_PROBE_BYTES = 65536
+
+
+def _fingerprint(path: str) -> tuple[int, str]:
+    """``(size, sha256 of the first and last 64 KiB)`` of a file: the same file, or another at the same path."""
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        digest = hashlib.sha256(fh.read(_PROBE_BYTES))
+        if size > _PROBE_BYTES:
+            fh.seek(max(_PROBE_BYTES, size - _PROBE_BYTES))
+            digest.update(fh.read())
+    return size, digest.hexdigest()
+
+
+def _probe(read: str | None, write: str | None, token: str) -> dict[str, Any]:
+    """On a worker (``Client.run``): the fingerprint of ``read``, and a file written into ``write`` (named by ``token``
+    and this process), or the error of each."""
+    out: dict[str, Any] = {}
+    if read is not None:
+        try:
+            out["read"] = _fingerprint(read)
+        except OSError as err:
+            out["read_error"] = _first_line(err)
+    if write is not None:
+        name = f".aumesh-probe-{token}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        try:
+            with open(os.path.join(write, name), "x") as fh:
+                fh.write(token)
+            out["wrote"] = name
+        except OSError as err:
+            out["write_error"] = _first_line(err)
+    return out
+
+
+def check_workers(client, read: str | Path | None, write: str | Path | None) -> None:
+    """A probe on every worker of ``client``'s cluster: it reads ``read`` (the same bytes as this process: the first
+    and last 64 KiB and the size) and writes a file into ``write`` that this process then sees.
+
+    Raises
+    ------
+    ClusterError
+        The first worker that cannot, named with the path: the folder must be on a filesystem every worker sees at
+        the same path.
+    """
+    if read is None and write is None:
+        return
+    read = None if read is None else os.path.abspath(read)
+    write = None if write is None else os.path.abspath(write)
+    token = uuid.uuid4().hex
+    try:  # what the workers must read; a file this process cannot read is the stage's own error, when it reads it
+        expected = _fingerprint(read) if read is not None else None
+    except OSError:
+        expected = None
+    results = client.run(_probe, read, write, token, on_error="return")
+    try:
+        problems = (_probe_problem(worker, result, read, write, expected, token)
+                    for worker, result in sorted(results.items()))
+        problem = next((p for p in problems if p), None)
+    finally:
+        for result in results.values():
+            if isinstance(result, dict) and "wrote" in result:
+                (Path(write) / result["wrote"]).unlink(missing_ok=True)
+    if problem is not None:
+        raise ClusterError(problem)
+
+
+def _probe_problem(worker: str, result: Any, read: str | None, write: str | None,
+                   expected: tuple[int, str] | None, token: str) -> str | None:
+    """What a worker's probe found wrong (:func:`_probe`), as the one line to print; None: nothing."""
+    if isinstance(result, BaseException):  # the probe did not run: no aumesh there, or another version of it
+        return (f"worker {worker} cannot run aumesh's probe ({_first_line(result)}): every worker must run the aumesh "
+                f"of this workspace. Fix: start the workers from the project's environment (.venv/bin/dask worker).")
+    if "read_error" in result:
+        return _unseen(worker, "read", read, result["read_error"])
+    if expected is not None and tuple(result["read"]) != expected:
+        size = result["read"][0]
+        return _unseen(worker, "read", read, f"another file there: {size} bytes, here {expected[0]}" if size != expected[0]
+                       else "another file there: other bytes")
+    if "write_error" in result:
+        return _unseen(worker, "write into", write, result["write_error"])
+    if write is not None and not _written_by_probe(Path(write) / result["wrote"], token):
+        return _unseen(worker, "write into", write, "what it wrote there is not seen here")
+    return None
+
+
+def _written_by_probe(path: Path, token: str) -> bool:
+    try:
+        return path.read_text() == token
+    except OSError:
+        return False
+
+
+def _unseen(worker: str, verb: str, path: str, cause: str) -> str:
+    folder = path if verb == "write into" else os.path.dirname(path)
+    return (f"worker {worker} cannot {verb} {path} ({cause}): the folder {folder} must be on a filesystem every worker "
+            f"sees at the same path. Fix: start the workers where the workspace is mounted at that path (README, "
+            f"\"Scale out\"), or {_local_fix()}.")
 
 
 #: Arrow's allocator, read once, when pyarrow first allocates (so it is set before pyarrow is imported).
@@ -93,14 +366,6 @@ def limit_malloc_arenas(n: int) -> bool:
 
 
 def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
-    if cfg.scheduler == "distributed":
-        from distributed import Client
-
-        with Client(cfg.address, set_as_default=False) as client, dask.config.set(scheduler=client):
-            log.info("compute: dask.distributed scheduler at %s (%d workers)", cfg.address,
-                     len(client.scheduler_info().get("workers", {})))
-            yield
-        return
     # the scheduler's function, not its name: given a name, dask first imports dask.distributed to look for a
     # client (0.2 s of every stage that runs a pass)
     settings: dict[str, Any] = {"scheduler": _local_get(cfg.scheduler)}

@@ -47,7 +47,7 @@ from aumesh.utils.errors import ConfigError, UserError
 from aumesh.pipeline import compute, integrity
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, PREPARED_FILES, REFERENCE_FILE,
                                             SUMMARY_FILE, VIDEO_IDS_FILE)
-from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_rows, scratch_directory, write_rows
+from aumesh.utils.io import NpyRowFile, NpyRows, absolute, create_npy, read_rows, scratch_directory, write_rows
 from aumesh.model.features import design_matrix
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model import reliability
@@ -110,6 +110,12 @@ def scratch_path(prepared_dir: str | Path) -> Path:
     prepared data (``.evaluate-scratch.tmp-<pid>-<host>-*``, :func:`aumesh.utils.io.scratch_directory`), so a killed
     run's are removed when the next evaluate stage starts."""
     return Path(prepared_dir).parent / "evaluate-scratch"
+
+
+def workers_check(prepared: Prepared) -> dict[str, Path]:
+    """What a cluster's workers must reach (:func:`aumesh.pipeline.compute.engine`): read the prepared frames, write
+    the scratch folders beside the prepared data (:func:`scratch_path`)."""
+    return {"read": prepared.directory / FRAMES_FILE, "write": scratch_path(prepared.directory).parent}
 
 
 def _read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -196,6 +202,7 @@ def load_prepared(prepared_dir: str | Path) -> Prepared:
         raise UserError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
     summary = integrity.load_summary(d)
     integrity.verify_prepared(d, summary)  # before any file is used: truncated, damaged or edited files are refused
+    d = absolute(d)  # what the partition tasks read, and the scratch folders' place: a cluster's workers run elsewhere
     return Prepared(
         directory=d,
         meshes=np.load(d / MESHES_FILE, mmap_mode="r"),
@@ -757,7 +764,7 @@ def evaluate_statistics(prepared: Prepared, cfg: Config, stats: FoldStatistics) 
 def evaluate(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
     """Cross-validation and the final fit for one configuration (the stage's one typed call), the passes on
     the ``compute`` group's scheduler."""
-    with compute.engine(cfg.compute):
+    with compute.engine(cfg.compute, **workers_check(prepared)):
         video_fold = video_folds(prepared.videos.count, cfg.cv.n_splits)
         return evaluate_statistics(prepared, cfg, accumulate(prepared, cfg, video_fold))
 

@@ -27,7 +27,7 @@ from aumesh.config import Config
 from aumesh.data import ingest
 from aumesh.pipeline import compute
 from aumesh.utils.errors import TableError
-from aumesh.utils.io import atomic_directory, atomic_write_json
+from aumesh.utils.io import absolute, atomic_directory, atomic_write_json, recorded
 
 log = logging.getLogger(__name__)
 
@@ -90,9 +90,10 @@ def _identity_task(task: Task) -> ingest.Counts:
 def run(cfg: Config, out_dir: str | Path) -> dict:
     """Ingest ``paths.data_dir`` into ``out_dir`` (replaced atomically). Returns the manifest."""
     data_dir, out_dir = Path(cfg.paths.data_dir), Path(out_dir)
-    sources = find_sources(data_dir, cfg.data.tables, cfg.data.mesh_npy)
+    # the tasks get absolute paths (a cluster's workers run elsewhere); the manifest records them as given
+    sources = [s.absolute() for s in find_sources(data_dir, cfg.data.tables, cfg.data.mesh_npy)]
     how = cfg.data.face_selection
-    with compute.engine(cfg.compute), atomic_directory(out_dir) as tmp:
+    with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=sources[0].path, write=tmp):
         parquet = [s for s in sources if s.kind == "parquet"]
         checks = dict(zip([s.path for s in parquet],
                           compute.map_gather(ingest.check_clean, parquet, desc="ingest: check parquet")))
@@ -100,12 +101,13 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         for source in sources:
             check = checks.get(source.path)
             if check is not None and check.clean:
-                entries.append({"source": str(source.path), "table": str(source.path), "rows": check.rows,
-                                "mesh_npy": None if source.mesh_npy is None else str(source.mesh_npy),
+                entries.append({"source": recorded(source.path), "table": recorded(source.path), "rows": check.rows,
+                                "mesh_npy": None if source.mesh_npy is None else recorded(source.mesh_npy),
                                 "detector": source.layout.detector, "read": "in place"})
                 continue
             reason = "CSV" if check is None else check.reason
-            entries.append({"source": str(source.path), "detector": source.layout.detector, "read": f"cleaned ({reason})"})
+            entries.append({"source": recorded(source.path), "detector": source.layout.detector,
+                            "read": f"cleaned ({reason})"})
             # a parquet table is streamed whole by one task (batch by batch: memory flat in its rows)
             spans += ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
         (tmp / TABLES_DIR).mkdir()
@@ -121,7 +123,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             if not c.rows_out:  # every row a no-face row
                 task.out.unlink()
         tables = [e["table"] for e in entries if "table" in e]
-        tables += [str(out_dir / TABLES_DIR / t.out.name) for t, c in zip(tasks, counts) if c.rows_out]
+        tables += [recorded(out_dir / TABLES_DIR / t.out.name) for t, c in zip(tasks, counts) if c.rows_out]
         in_place = sum(e["rows"] for e in entries if "table" in e)
         totals = total.as_dict()
         totals["rows_in"] += in_place

@@ -36,7 +36,9 @@ Outputs (in ``paths.prepared_dir``, swapped in atomically as a whole folder):
 video_index, low_au per kept frame, same order; a row group per partition); ``video_ids.npy``
 (n_videos,) and ``neutral_mean.npy`` / ``neutral_low_au.npy`` (n_videos, 1434) float32 (per-video
 neutral meshes); ``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts).
-On a cluster the output folder must be on a filesystem every worker sees at the same path.
+The tasks get absolute paths (the tables, the output's temporary folder, its scratch folder: per run, unique names),
+so workers that run elsewhere, for several workspaces, read and write this run's files; on a cluster the tables and the
+output folder must be on a filesystem every worker sees at the same path (a probe checks it when the stage connects).
 """
 
 from __future__ import annotations
@@ -69,8 +71,8 @@ from aumesh.pipeline import compute, integrity
 from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
                                             VIDEO_IDS_FILE)
 from aumesh.pipeline.quantiles import exact_quantiles
-from aumesh.utils.io import (NpyRowFile, atomic_directory, atomic_write_json, create_npy, load_npz,
-                             read_row_set, write_rows)
+from aumesh.utils.io import (NpyRowFile, absolute, atomic_directory, atomic_write_json, create_npy, load_npz,
+                             read_row_set, recorded, write_rows)
 
 log = logging.getLogger(__name__)
 
@@ -599,12 +601,20 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path, ingested: di
     them; the passes then run once more without them, so the result is what tables without those frames give (the
     GPA subsample, the thresholds and the means included). Clean data never takes the second round.
     """
+    given = [t.path for t in tables]  # what the summary records (as the ingest manifest lists them)
+    # the tasks get absolute paths: a cluster's workers run in directories of their own (README, "Scale out")
+    tables = [replace(t, path=absolute(t.path), mesh_npy=None if t.mesh_npy is None else absolute(t.mesh_npy))
+              for t in tables]
     parts = partitions(tables, cfg.compute.partition_rows)
     exclude: dict[int, np.ndarray] = {}
-    with compute.engine(cfg.compute), atomic_directory(out_dir) as tmp:
+    with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=tables[0].path if tables else None,
+                                                                  write=tmp):
         while True:
             try:
-                return _passes(tables, parts, cfg, tmp, exclude, ingested or {})
+                summary = _passes(tables, parts, cfg, tmp, exclude, ingested or {})
+                summary["tables"] = [recorded(p) for p in given]
+                atomic_write_json(tmp / SUMMARY_FILE, summary)
+                return summary
             except _WildRows as found:
                 log.warning("prepare: %d frame(s) have a vertex beyond %g inter-ocular distances after alignment "
                             "(preprocess.alignment.max_vertex_iod): dropped, the passes run again without them",
@@ -771,9 +781,7 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
         "n_videos": int(n_videos),
         "n_low_au_population": n_low_population,
         "dropped_videos": dropped_videos[:1000],
-        "tables": [str(t.path) for t in tables],
     }
-    atomic_write_json(tmp / SUMMARY_FILE, summary)
     return summary
 
 

@@ -3,6 +3,9 @@
 ``dvc.yaml`` runs ``aumesh prepare``, ``aumesh evaluate`` and ``aumesh release`` from the
 repo root; paths come from ``cfg.paths`` (relative to the stage's working directory, so a
 DVC queued experiment writes into its own temporary copy). Only MLflow goes to the workspace.
+The stages' passes get those paths made absolute (``aumesh.utils.io.absolute``: a cluster's workers run in
+directories of their own); the outputs record them as given (``aumesh.utils.io.recorded``), never this machine's
+workspace path.
 """
 
 from __future__ import annotations

@@ -47,3 +47,9 @@ class DiskFullError(UserError, OSError):
 
 class TruncatedFileError(CorruptFileError, EOFError):
     """A file that ends before its header says (an ``EOFError`` too, what the readers raised before)."""
+
+
+class ClusterError(UserError):
+    """A Dask cluster that cannot serve the run: no scheduler at the address, a scheduler lost mid-run, a worker that
+    cannot read the data or write the output folders at the paths the stage uses; the message names the address or
+    the worker and the path, and the fix."""

@@ -189,6 +189,27 @@ def disk_full(path: str | Path, written: int) -> Exception:
     return err
 
 
+def absolute(path: str | Path) -> Path:
+    """``path`` made absolute against the current directory (the stage's workspace), without following symlinks.
+
+    What a stage hands to its partition tasks: a ``dask.distributed`` worker runs in a directory of its own (and may
+    serve several workspaces), so a relative path there names another file or none (README, "Scale out"). Symlinks
+    stay as they are (DVC may link the tables into its cache; an error should name the workspace's file)."""
+    return Path(os.path.abspath(path))
+
+
+def recorded(path: str | Path, root: str | Path | None = None) -> str:
+    """``path`` as the outputs record it: relative to ``root`` (default: the current directory, the workspace) when
+    inside it, else unchanged. Records are shared (committed, pushed to a DVC remote) and never hold this machine's
+    workspace path."""
+    text = str(path)
+    if not os.path.isabs(text):
+        return text
+    base = os.path.abspath(root if root is not None else os.getcwd())
+    rel = os.path.relpath(text, base)
+    return text if rel == os.pardir or rel.startswith(os.pardir + os.sep) else rel
+
+
 def _json_default(obj: Any) -> Any:
     if isinstance(obj, np.generic):
         return obj.item()
