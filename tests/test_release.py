@@ -128,9 +128,12 @@ def test_card_names_both_runs_the_promoted_and_the_build():
                       "promotion": promotion}
     text = model_card_markdown(card, None, [])
     section = text[text.index("## Runs"):].split("\n## ")[0]
-    assert "**Promoted run** `child42` (features=au,n_components=10) of sweep `sweep7`" in section
+    from aumesh.card.markdown import md_text
+
+    # names are text from MLflow: escaped for Markdown (issue 34), read back as typed
+    assert f"**Promoted run** `child42` ({md_text('features=au,n_components=10')}) of sweep `sweep7`" in section
     assert "how the configuration was chosen" in section and "`aumesh-au-to-mesh` version 2 (`@champion`)" in section
-    assert "**Build run** `build9` (absolute au k=10) in `sqlite:///mlflow.db`" in section
+    assert f"**Build run** `build9` ({md_text('absolute au k=10')}) in `sqlite:///mlflow.db`" in section
     assert "produced these exact arrays" in section
     # without a promotion: the build run alone, and the card says so
     alone = model_card_markdown(_card() | {"runs": release_runs({"run_id": "build9"}, None), "promotion": None}, None, [])

@@ -464,6 +464,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _StderrHandler(logging.StreamHandler):
+    """A handler on whatever ``sys.stderr`` is when a record is written: a handler bound to the stream of its time
+    writes into a closed stream once that is replaced (a second ``main()`` in one process, as in the tests)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler.__init__ assigns it
+        pass
+
+
+def _configure_logging(level: int) -> None:
+    """``logging.basicConfig`` (the root logger, configured only when nothing configured it), on :class:`_StderrHandler`."""
+    root = logging.getLogger()
+    if root.handlers:
+        return
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root.addHandler(handler)
+    root.setLevel(level)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command. An input, configuration or path error (``UserError``) prints its message and
     returns 2, with the traceback only under ``--debug`` or ``AUMESH_DEBUG=1``; other errors keep theirs."""
@@ -476,8 +500,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command is None:
         parser.error("a COMMAND is required (`aumesh --help` lists them; `aumesh --version` prints the version)")
-    logging.basicConfig(level=(logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    _configure_logging((logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)])
     debug = args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0")
     if args.command in STOPPABLE:
         from aumesh.utils.signals import install_stage_signals

@@ -582,6 +582,8 @@ def check_clean(source: Source) -> PassThrough:
             same = pc.and_(pc.equal(video.slice(1), video.slice(0, m - 1)), pc.equal(frame.slice(1), frame.slice(0, m - 1)))
             several += int(pc.sum(same).as_py() or 0) + int((video[0].as_py(), frame[0].as_py()) == previous)
             previous = (video[m - 1].as_py(), frame[m - 1].as_py())
+    if not n:  # an empty table: nothing to clean (prepare names empty input)
+        return PassThrough(True, 0)
     if no_face:
         return PassThrough(False, n, f"{no_face} no-face rows")
     if several:

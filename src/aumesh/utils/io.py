@@ -172,13 +172,15 @@ def disk_full(path: str | Path, written: int) -> Exception:
     from aumesh.utils.errors import DiskFullError
 
     path = Path(path)
-    folder = path.parent
     try:
-        free = shutil.disk_usage(folder).free
+        free = shutil.disk_usage(path.parent).free
     except OSError:
         free = 0
     previous = _size(path)
-    kept = (f"the previous {path} is intact (nothing was swapped in)" if path.exists()
+    exists = path.exists()
+    path = Path(recorded(path))  # named as the user names it: relative to the workspace (a stage's paths are absolute)
+    folder = path.parent
+    kept = (f"the previous {path} is intact (nothing was swapped in)" if exists
             else f"nothing was written to {path}")
     need = (f"a complete one takes about {previous:,} bytes (the previous one's size), {free:,} are free"
             if previous else f"it needs more than the {free:,} bytes free")
