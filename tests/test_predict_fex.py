@@ -16,19 +16,13 @@ import pytest
 import aumesh
 from aumesh import cli
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_set_columns
+from aumesh.data.synth_pyfeat import BLENDSHAPE_COLUMNS
 from aumesh.model.inference import PredictionInputError
 from aumesh.model.release import release_arrays
 from aumesh.utils.io import atomic_savez
 from conftest import face_reference
 
-BLENDSHAPES = (
-    "_neutral browDownLeft browDownRight browInnerUp browOuterUpLeft browOuterUpRight cheekPuff cheekSquintLeft "
-    "cheekSquintRight eyeBlinkLeft eyeBlinkRight eyeLookDownLeft eyeLookDownRight eyeLookInLeft eyeLookInRight "
-    "eyeLookOutLeft eyeLookOutRight eyeLookUpLeft eyeLookUpRight eyeSquintLeft eyeSquintRight eyeWideLeft eyeWideRight "
-    "jawForward jawLeft jawOpen jawRight mouthClose mouthDimpleLeft mouthDimpleRight mouthFrownLeft mouthFrownRight "
-    "mouthFunnel mouthLeft mouthLowerDownLeft mouthLowerDownRight mouthPressLeft mouthPressRight mouthPucker mouthRight "
-    "mouthRollLower mouthRollUpper mouthShrugLower mouthShrugUpper mouthSmileLeft mouthSmileRight mouthStretchLeft "
-    "mouthStretchRight mouthUpperUpLeft mouthUpperUpRight noseSneerLeft noseSneerRight").split()
+BLENDSHAPES = list(BLENDSHAPE_COLUMNS)
 FACE_RECT = ["FaceRectX", "FaceRectY", "FaceRectWidth", "FaceRectHeight"]
 POSE_FEX_ORDER = ["Pitch", "Roll", "Yaw"]  # py-feat's order; the model's is Pitch, Yaw, Roll
 N_ROWS, NO_FACE_ROW = 6, 4
