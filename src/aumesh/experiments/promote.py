@@ -465,7 +465,7 @@ def model_artifacts(run_id: str, tracking_cfg: Mapping[str, Any] | None, root: P
 
     client = mlflow_store.get_client(tracking_cfg)
     uri = f"{client.get_run(run_id).info.artifact_uri.rstrip('/')}/{MODEL_ARTIFACT_DIR}"
-    if uri.startswith("file:") or "://" not in uri:
+    if urlsplit(uri).scheme in ("", "file"):  # a path on this machine (a server's is mlflow-artifacts:/..., s3://...)
         path = Path(unquote(urlsplit(uri).path) if uri.startswith("file:") else uri)
         store = mlflow_store.sqlite_path(mlflow_store.resolve_tracking_uri(tracking_cfg))
         if store is not None and store.resolve().is_relative_to(root) and not path.resolve().is_relative_to(root):
