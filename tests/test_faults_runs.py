@@ -387,3 +387,25 @@ def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspac
 
 
 from test_faults import dvc_workspace  # noqa: E402,F401 (module-scoped fixture: git + DVC workspace after a repro)
+
+
+def test_a_stage_whose_dvc_is_gone_commits_nothing(tmp_path, monkeypatch):
+    """Quicker than the watcher's poll: the commit points themselves check that DVC still runs."""
+    from aumesh.utils import signals
+    from aumesh.utils.io import atomic_directory, atomic_path
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    monkeypatch.setattr(signals, "_WATCHED", [(dead.pid, time.time() - 60, "the DVC process")])
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "old.txt").write_text("previous")
+    with pytest.raises(signals.Terminated, match="the DVC process"):
+        with atomic_directory(tmp_path / "out") as tmp:
+            (tmp / "new.txt").write_text("new")
+    with pytest.raises(signals.Terminated):
+        with atomic_path(tmp_path / "file.txt") as tmp:
+            tmp.write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["old.txt"]
+    monkeypatch.setattr(signals, "_WATCHED", [])
+    signals.check_supervisor()  # outside DVC: nothing to check

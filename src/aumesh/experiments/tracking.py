@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING, Any
 
 from aumesh.experiments import provenance
 from aumesh.utils.io import process_gone
+from aumesh.utils.signals import check_supervisor
 from aumesh.experiments.mlflow_store import (
     DEFAULT_EXPERIMENT,
     MAX_BATCH,
@@ -643,6 +644,7 @@ def tracked_run_beside(
         try:
             yield run
             run.wait()
+            check_supervisor()  # under DVC: a run whose DVC was stopped is KILLED, never FINISHED by an orphan
         except BaseException as exc:
             run.end(exc)
             raise

@@ -18,6 +18,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from aumesh.utils.signals import check_supervisor
+
 
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
@@ -30,6 +32,7 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; published files get the usual mode
     try:
         yield tmp_path
+        check_supervisor()
         os.replace(tmp_path, path)
     except BaseException as err:
         written = _allocated_bytes(tmp_path)
@@ -116,6 +119,7 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
     old = None
     try:
         yield tmp
+        check_supervisor()  # under DVC: never swap in an output as the orphan of a stopped DVC
         if path.exists():
             old = path.with_name(_temp_prefix(path, "old") + "x")
             os.replace(path, old)

@@ -81,16 +81,35 @@ def dvc_process():
     return fallback
 
 
-def _watch(watched: list[tuple[int, float, str]]) -> None:
+_WATCHED: list[tuple[int, float, str]] = []  # (pid, start time, what) of the processes this stage runs under
+
+
+def _gone(watched: list[tuple[int, float, str]]) -> str | None:
     from aumesh.utils.io import process_gone
 
+    for pid, started, what in watched:
+        if process_gone(pid, started):
+            return f"{what} (pid {pid}) is gone"
+    return None
+
+
+def _watch(watched: list[tuple[int, float, str]]) -> None:
     while True:
         time.sleep(POLL_SECONDS)
-        for pid, started, what in watched:
-            if process_gone(pid, started):
-                _REASON.append(f"{what} (pid {pid}) is gone")
-                os.kill(os.getpid(), signal.SIGTERM)
-                return
+        reason = _gone(watched)
+        if reason:
+            _REASON.append(reason)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+
+
+def check_supervisor() -> None:
+    """Raise :class:`Terminated` now if the DVC process this stage runs under is gone: called where a stage commits
+    (an output swapped in, a run marked FINISHED), so a stage quicker than the watcher's poll never commits as an
+    orphan. Nothing outside DVC."""
+    reason = _gone(_WATCHED) if _WATCHED else None
+    if reason:
+        raise Terminated(reason)
 
 
 def install_stage_signals() -> None:
@@ -115,4 +134,5 @@ def install_stage_signals() -> None:
     parent = psutil.Process().parent()
     if parent is not None and parent.pid != dvc.pid:
         watched.append((parent.pid, parent.create_time(), f"this stage's parent process ({parent.name()})"))
+    _WATCHED[:] = watched
     threading.Thread(target=_watch, args=(watched,), name="aumesh-dvc-watch", daemon=True).start()
