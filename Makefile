@@ -78,7 +78,7 @@ demo: $(STAMP) $(TOOLS_STAMP)
 	@$(BIN)/python -c "import json; c=json.load(open('release/model_card.json')); print('CV R2 = %.4f +/- %.4f  (folds %s), MAE = %.4f' % (c['cv']['r2_mean'], c['cv']['r2_std'], c['cv']['r2_folds'], c['cv']['mae_mean']))"
 
 test: $(STAMP) $(TOOLS_STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto
 
 test-slow: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -m slow
