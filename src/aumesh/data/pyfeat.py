@@ -33,7 +33,7 @@ MESH_NAMES = {
     "MPDetector": [f"{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)],
     "Detectorv2": [f"mesh_{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)],
 }
-_POINT_COLUMN = re.compile(r"^([xyz])_(\d+)$")
+POINT_COLUMN = re.compile(r"^([xyz])_(\d+)$")
 
 
 def video_stem(path: str) -> str:
@@ -113,7 +113,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout
     if set(MESH_NAMES["Detectorv2"]) <= present:
         mesh, detector = MESH_NAMES["Detectorv2"], "Detectorv2"
     elif not split_mesh:
-        mesh, detector = _mesh_points(names, where), "MPDetector"
+        mesh, detector = mesh_point_columns(names, where), "MPDetector"
     def optional(*cols: str):
         return cols if all(c in present for c in cols) else None
     return Layout(detector=detector, video=video, mesh=None if mesh is None else tuple(mesh),
@@ -121,11 +121,11 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout
                   identity=IDENTITY if IDENTITY in present else None, frame_size=optional(*FRAME_SIZE))
 
 
-def _mesh_points(names: Sequence[str], where: str) -> list[str]:
+def mesh_point_columns(names: Sequence[str], where: str) -> list[str]:
     """MPDetector's ``x_i, y_i, z_i`` (any order), checked: 478 vertices on every axis; the 68-point block is named."""
     vertices: dict[str, set[int]] = {"x": set(), "y": set(), "z": set()}
     for name in names:
-        m = _POINT_COLUMN.match(name)
+        m = POINT_COLUMN.match(name)
         if m:
             vertices[m.group(1)].add(int(m.group(2)))
     if not any(vertices.values()):

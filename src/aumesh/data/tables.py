@@ -15,7 +15,6 @@ from __future__ import annotations
 import difflib
 import functools
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -35,11 +34,12 @@ from aumesh.data.schema import (
     POSE_COLUMNS,
     VIDEO_COLUMN,
 )
+from aumesh.data import pyfeat
 from aumesh.data.pyfeat import video_stem
 from aumesh.utils.errors import TableError, corrupt_parquet
 from aumesh.utils.io import NpyRowFile, check_npy
 
-_MESH_COLUMN = re.compile(r"^([xyz])_(\d+)$")
+_MESH_COLUMN = pyfeat.POINT_COLUMN
 META_COLUMNS = (VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS)
 
 
@@ -125,29 +125,11 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
                 f"{path}: column {col!r} is missing{_suggest(col, names)}. Fix: the table needs py-feat's Fex "
                 f"columns {FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians)."
             )
-    vertices: dict[str, set[int]] = {"x": set(), "y": set(), "z": set()}
-    for name in names:
-        m = _MESH_COLUMN.match(name)
-        if m:
-            vertices[m.group(1)].add(int(m.group(2)))
+    has_mesh = any(_MESH_COLUMN.match(name) for name in names)
     mesh_npy = None
     text_columns: set[str] = set()
-    if any(vertices.values()):
-        expected = set(range(N_VERTICES))
-        for axis, found in vertices.items():
-            if found != expected:
-                missing = sorted(expected - found)
-                extra = sorted(found - expected)
-                detail = []
-                if missing:
-                    detail.append(f"missing {axis}_{missing[0]}" + (f" and {len(missing) - 1} more" if len(missing) > 1 else ""))
-                if extra:
-                    detail.append(f"unexpected {axis}_{extra[0]}" + (f" and {len(extra) - 1} more" if len(extra) > 1 else ""))
-                raise TableError(
-                    f"{path}: wrong vertex count in column {axis}_i: found {len(found)} vertices, need "
-                    f"{N_VERTICES} ({'; '.join(detail)}). Fix: export the 478-vertex MediaPipe FaceMesh "
-                    f"(with irises, py-feat's mp_facemesh_v2), columns x_0..x_477, y_0..y_477, z_0..z_477."
-                )
+    if has_mesh:
+        pyfeat.mesh_point_columns(names, str(path))  # 478 vertices on every axis, or the error naming the fix
         for field in schema:
             if _MESH_COLUMN.match(field.name) and not (pa.types.is_floating(field.type) or pa.types.is_integer(field.type)):
                 values = _read_columns(path, [field.name])[field.name].to_numpy(zero_copy_only=False)

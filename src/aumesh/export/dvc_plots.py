@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import sys
 from pathlib import Path
@@ -32,7 +31,6 @@ CONFIG_VALUE = "plots/offline.html"
 #: The npm packages inlined, in load order (vega-embed's UMD build finds ``vega`` and ``vegaLite`` as globals).
 PACKAGES = (("vega", "build/vega.min.js"), ("vega-lite", "build/vega-lite.min.js"),
             ("vega-embed", "build/vega-embed.min.js"))
-NODE_MODULES_ENV = "AUMESH_NODE_MODULES"  # the same override as the viewer's three.js
 #: DVC's placeholders: a library's text must not contain them, or DVC would fill them in inside the JavaScript.
 PLACEHOLDERS = ("{plot_divs}", "{scripts}", "{refresh_tag}")
 
@@ -57,24 +55,12 @@ PAGE = """<!DOCTYPE html>
 
 
 def find_node_modules() -> Path:
-    """The ``node_modules`` folder holding vega, vega-lite and vega-embed: ``$AUMESH_NODE_MODULES``, else
-    ``./node_modules``, else the repository's.
+    """The ``node_modules`` folder holding vega, vega-lite and vega-embed
+    (:func:`aumesh.export.viewer.find_node_modules`: ``$AUMESH_NODE_MODULES``, ``./node_modules``, the repository's)."""
+    from aumesh.export.viewer import find_node_modules as find
 
-    Raises
-    ------
-    FileNotFoundError
-        Naming the places searched and the fix (``make tools``).
-    """
-    candidates = [Path(os.environ[NODE_MODULES_ENV]) if os.environ.get(NODE_MODULES_ENV) else None,
-                  Path.cwd() / "node_modules", Path(__file__).resolve().parents[3] / "node_modules"]
-    searched = []
-    for base in filter(None, candidates):
-        searched.append(str(base))
-        if all((base / name / build).is_file() for name, build in PACKAGES):
-            return base
-    raise FileNotFoundError(f"vega, vega-lite and vega-embed not found in {', '.join(searched)} (the DVC plots "
-                            f"template inlines them; no CDN). Fix: run `make tools` (npm ci) in the aumesh repository, "
-                            f"or set {NODE_MODULES_ENV} to a node_modules folder holding them.")
+    return find([f"{name}/{build}" for name, build in PACKAGES],
+                "vega, vega-lite and vega-embed (the DVC plots template inlines them; no CDN)")
 
 
 def _script(name: str, version: str, text: str) -> str:

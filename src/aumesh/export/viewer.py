@@ -56,25 +56,31 @@ _SCRIPT_ESCAPES = {"<": "\\u003c", ">": "\\u003e", "&": "\\u0026", "\u2028": "\\
 DEFAULT_POSE_LIMITS = {"Pitch": 0.5, "Yaw": 0.7, "Roll": 0.5}  # radians, when the card has no pose filter
 
 
-def find_three() -> Path:
-    """three.js's ``build/`` folder: ``$AUMESH_NODE_MODULES``, else ``./node_modules``, else the repository's.
+def find_node_modules(required: list[str], what: str) -> Path:
+    """The ``node_modules`` folder holding every file of ``required`` (paths inside it): ``$AUMESH_NODE_MODULES``,
+    else ``./node_modules``, else the repository's. Shared by the viewer (three.js) and the DVC plots template (vega).
 
     Raises
     ------
     FileNotFoundError
-        Naming the places searched and the fix (``make tools``).
+        Naming ``what`` was looked for, the places searched and the fix (``make tools``).
     """
     candidates = [Path(os.environ[THREE_ENV]) if os.environ.get(THREE_ENV) else None,
                   Path.cwd() / "node_modules", Path(__file__).resolve().parents[3] / "node_modules"]
     searched = []
     for base in filter(None, candidates):
-        build = base / "three" / "build"
-        searched.append(str(build))
-        if (build / "three.module.js").is_file() and (build / "three.core.js").is_file():
-            return build
-    raise FileNotFoundError("three.js not found (viewer.html inlines it; no CDN) in " + ", ".join(searched)
+        searched.append(str(base))
+        if all((base / name).is_file() for name in required):
+            return base
+    raise FileNotFoundError(f"{what} not found in " + ", ".join(searched)
                             + f". Fix: run `make tools` (npm ci) in the aumesh repository, or set {THREE_ENV} to a "
-                            "node_modules folder holding the 'three' package.")
+                            "node_modules folder holding it.")
+
+
+def find_three() -> Path:
+    """three.js's ``build/`` folder (:func:`find_node_modules`)."""
+    return find_node_modules(["three/build/three.module.js", "three/build/three.core.js"],
+                             "three.js (viewer.html inlines it; no CDN)") / "three" / "build"
 
 
 def _data_url(text: str) -> str:
