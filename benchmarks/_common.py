@@ -79,8 +79,13 @@ def run_measured(cmd: list[str], cwd: Path, log_path: Path, env: dict | None = N
     """Run ``cmd``; wall time, its CPU time and ru_maxrss (``/usr/bin/time``) and a sampled tree-RSS peak."""
     with open(log_path, "w") as log, tempfile.NamedTemporaryFile("r", suffix=".time") as usage:
         t0 = time.perf_counter()
-        proc = subprocess.Popen(["/usr/bin/time", "-f", "%U %S %M", "-o", usage.name, *cmd], cwd=cwd, stdout=log,
-                                stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.Popen(
+            ["/usr/bin/time", "-f", "%U %S %M", "-o", usage.name, *cmd],
+            cwd=cwd,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
         peak = [0]
         done = threading.Event()
 
@@ -96,8 +101,9 @@ def run_measured(cmd: list[str], cwd: Path, log_path: Path, env: dict | None = N
         done.set()
         sampler.join()
         user_s, system_s, maxrss_kib = usage.read().split()[-3:]  # after "Command exited with non-zero status N"
-    return Measurement(stage, wall, int(maxrss_kib) / 1024.0, peak[0] / 2**20, proc.returncode,
-                       float(user_s) + float(system_s))
+    return Measurement(
+        stage, wall, int(maxrss_kib) / 1024.0, peak[0] / 2**20, proc.returncode, float(user_s) + float(system_s)
+    )
 
 
 def ensure_data(workdir: Path, n_frames: int, n_videos: int, seed: int = 0) -> tuple[Path, float | None]:
@@ -111,8 +117,12 @@ def ensure_data(workdir: Path, n_frames: int, n_videos: int, seed: int = 0) -> t
     tmp = data.with_name(data.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     t0 = time.perf_counter()
-    subprocess.run(AUMESH + ["synth", "--out", str(tmp), "--frames", str(n_frames), "--videos", str(n_videos),
-                             "--seed", str(seed)], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        AUMESH
+        + ["synth", "--out", str(tmp), "--frames", str(n_frames), "--videos", str(n_videos), "--seed", str(seed)],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
     tmp.rename(data)
     return data, time.perf_counter() - t0
 
@@ -132,24 +142,48 @@ def conf_dir(src: str | Path | None) -> Path:
     return Path(src).resolve().parent / "conf" if src else REPO / "conf"
 
 
-def compose_params(run_dir: Path, data_dir: Path, overrides: list[str] = (), src: str | Path | None = None,
-                   name: str = "params.yaml") -> Path:
+def compose_params(
+    run_dir: Path, data_dir: Path, overrides: list[str] = (), src: str | Path | None = None, name: str = "params.yaml"
+) -> Path:
     """A params file ``run_dir / name`` whose paths all point into ``run_dir`` (tracking: a SQLite store there),
     composed from the ``conf/`` of the source tree ``src`` by that tree's code (None: this checkout)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     write_data_dvc(run_dir, data_dir)
     out = run_dir / name
-    paths = {"data_dir": data_dir, "ingested_dir": run_dir / "ingested", "prepared_dir": run_dir / "prepared", "model_dir": run_dir / "model",
-             "release_dir": run_dir / "release", "metrics_file": run_dir / "metrics.json",
-             "promotion_file": run_dir / "promotion.json", "error_curve_file": run_dir / "cumulative_vertex_error.csv",
-             "r2_curve_file": run_dir / "r2_by_n_components.csv"}
+    paths = {
+        "data_dir": data_dir,
+        "ingested_dir": run_dir / "ingested",
+        "prepared_dir": run_dir / "prepared",
+        "model_dir": run_dir / "model",
+        "release_dir": run_dir / "release",
+        "metrics_file": run_dir / "metrics.json",
+        "promotion_file": run_dir / "promotion.json",
+        "error_curve_file": run_dir / "cumulative_vertex_error.csv",
+        "r2_curve_file": run_dir / "r2_by_n_components.csv",
+    }
     # an older tree's conf/ may lack some of today's keys (Hydra refuses to override a missing key)
-    known = (conf_dir(src) / "paths" / "default.yaml").read_text() if (conf_dir(src) / "paths" / "default.yaml").exists() else ""
+    known = (
+        (conf_dir(src) / "paths" / "default.yaml").read_text()
+        if (conf_dir(src) / "paths" / "default.yaml").exists()
+        else ""
+    )
     path_overrides = [f"paths.{k}={v}" for k, v in paths.items() if not known or f"{k}:" in known]
     subprocess.run(
-        AUMESH + ["compose-params", "--config-dir", str(conf_dir(src)), "--out", str(out), *path_overrides,
-                  f"tracking.tracking_uri=sqlite:///{run_dir / 'mlflow.db'}", *overrides],
-        check=True, stdout=subprocess.DEVNULL, env=source_env(src))
+        AUMESH
+        + [
+            "compose-params",
+            "--config-dir",
+            str(conf_dir(src)),
+            "--out",
+            str(out),
+            *path_overrides,
+            f"tracking.tracking_uri=sqlite:///{run_dir / 'mlflow.db'}",
+            *overrides,
+        ],
+        check=True,
+        stdout=subprocess.DEVNULL,
+        env=source_env(src),
+    )
     return out
 
 
@@ -158,16 +192,25 @@ def write_data_dvc(run_dir: Path, data_dir: Path) -> None:
     and refuses a digest without md5); the 'md5' names the synthetic set, it is not a real hash."""
     (run_dir / "data.dvc").write_text(
         f"outs:\n- md5: benchmark-{Path(data_dir).name}.dir\n  size: {dir_size(data_dir)}\n"
-        f"  nfiles: {sum(1 for _ in Path(data_dir).glob('*.parquet'))}\n  hash: md5\n  path: data\n")
+        f"  nfiles: {sum(1 for _ in Path(data_dir).glob('*.parquet'))}\n  hash: md5\n  path: data\n"
+    )
 
 
 def init_tracking_store(db: Path, env: dict | None = None) -> float:
     """Create the SQLite MLflow store ``db`` (MLflow's schema migrations) as a workspace's first run does;
     returns the wall seconds (a one-time cost per workspace, printed apart from the stages')."""
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import sys; from mlflow import MlflowClient; "
-                    "MlflowClient(sys.argv[1]).search_experiments()", f"sqlite:///{Path(db).resolve()}"],
-                   check=True, capture_output=True, env=env)
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from mlflow import MlflowClient; MlflowClient(sys.argv[1]).search_experiments()",
+            f"sqlite:///{Path(db).resolve()}",
+        ],
+        check=True,
+        capture_output=True,
+        env=env,
+    )
     return time.perf_counter() - t0
 
 
@@ -178,7 +221,9 @@ def run_stages(run_dir: Path, params: Path, env: dict | None = None, stages=STAG
     works with any source tree (older ones look for the workspace root to resolve a configured URI). It is
     created before the stages (:func:`init_tracking_store`): a user's workspace has it after its first run.
     """
-    env = dict(env if env is not None else os.environ, MLFLOW_TRACKING_URI=f"sqlite:///{run_dir.resolve() / 'mlflow.db'}")
+    env = dict(
+        env if env is not None else os.environ, MLFLOW_TRACKING_URI=f"sqlite:///{run_dir.resolve() / 'mlflow.db'}"
+    )
     if not (run_dir / "mlflow.db").exists():
         init_tracking_store(run_dir / "mlflow.db", env)
     out = []
@@ -282,13 +327,16 @@ def environment_note() -> str:
     import platform
 
     blas = os.environ.get("OPENBLAS_CORETYPE")
-    return (f"{platform.node()} | {os.cpu_count()} cores | Python {platform.python_version()} | "
-            f"OPENBLAS_CORETYPE={blas if blas is not None else '(unset)'}")
+    return (
+        f"{platform.node()} | {os.cpu_count()} cores | Python {platform.python_version()} | "
+        f"OPENBLAS_CORETYPE={blas if blas is not None else '(unset)'}"
+    )
 
 
 def fmt_table(headers: list[str], rows: list[list]) -> str:
-    cells = [[str(h) for h in headers]] + [[c if isinstance(c, str) else f"{c:,.1f}" if isinstance(c, float) else f"{c:,}"
-                                            for c in r] for r in rows]
+    cells = [[str(h) for h in headers]] + [
+        [c if isinstance(c, str) else f"{c:,.1f}" if isinstance(c, float) else f"{c:,}" for c in r] for r in rows
+    ]
     widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
     lines = ["| " + " | ".join(c.rjust(w) for c, w in zip(r, widths)) + " |" for r in cells]
     lines.insert(1, "|" + "|".join("-" * (w + 1) + ":" for w in widths) + "|")

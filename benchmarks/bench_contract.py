@@ -73,9 +73,11 @@ def main(argv=None) -> int:
     print(f"{n:,} frames in {len(found)} tables ({data}); {environment_note()}; median of {args.repeats}\n")
     print("| step | seconds | vs one pyarrow read |")
     print("|---|---:|---:|")
-    for name, t in (("contract: pandera metadata schema + pose units + filter shares", t_contract),
-                    ("schema checks of tables.discover (footers, mesh column types)", t_schema),
-                    ("one pyarrow read of every table, all columns", t_read)):
+    for name, t in (
+        ("contract: pandera metadata schema + pose units + filter shares", t_contract),
+        ("schema checks of tables.discover (footers, mesh column types)", t_schema),
+        ("one pyarrow read of every table, all columns", t_read),
+    ):
         print(f"| {name} | {t:.2f} | {t / t_read:.1%} |")
     return 0
 

@@ -30,8 +30,17 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (DEFAULT_OUT, STAGES, compose_params, dir_size, environment_note, fmt_table, load,  # noqa: E402
-                     run_stages, videos_for)
+from _common import (  # noqa: E402
+    DEFAULT_OUT,
+    STAGES,
+    compose_params,
+    dir_size,
+    environment_note,
+    fmt_table,
+    load,
+    run_stages,
+    videos_for,
+)
 
 
 def ensure_pyfeat_data(workdir: Path, n_frames: int, videos_per_file: int) -> tuple[Path, Path, dict]:
@@ -44,8 +53,14 @@ def ensure_pyfeat_data(workdir: Path, n_frames: int, videos_per_file: int) -> tu
     if not summary_file.exists():
         shutil.rmtree(root, ignore_errors=True)
         t0 = time.perf_counter()
-        made = write_pyfeat_tables(root / "csv", SynthSpec(n_frames=n_frames, n_videos=videos_for(n_frames)),
-                                   detector="mp", fmt="csv", clean_dir=root / "clean", videos_per_file=videos_per_file)
+        made = write_pyfeat_tables(
+            root / "csv",
+            SynthSpec(n_frames=n_frames, n_videos=videos_for(n_frames)),
+            detector="mp",
+            fmt="csv",
+            clean_dir=root / "clean",
+            videos_per_file=videos_per_file,
+        )
         made = {k: v for k, v in made.items() if not k.endswith("files")} | {"generated_s": time.perf_counter() - t0}
         summary_file.write_text(json.dumps(made))
     return root / "csv", root / "clean", json.loads(summary_file.read_text())
@@ -75,9 +90,12 @@ def main(argv=None) -> int:
     args.workdir.mkdir(parents=True, exist_ok=True)
     csv_dir, clean_dir, made = ensure_pyfeat_data(args.workdir, args.frames, args.videos_per_file)
     print(environment_note())
-    print(f"py-feat CSVs: {csv_dir} ({dir_size(csv_dir) / 2**30:.2f} GiB, {made['n_rows']:,} rows: "
-          f"{made['n_no_face']:,} no-face, {made['n_extra_faces']:,} background faces); hand-cleaned parquet: "
-          f"{dir_size(clean_dir) / 2**30:.2f} GiB, {made['n_face_frames']:,} frames", flush=True)
+    print(
+        f"py-feat CSVs: {csv_dir} ({dir_size(csv_dir) / 2**30:.2f} GiB, {made['n_rows']:,} rows: "
+        f"{made['n_no_face']:,} no-face, {made['n_extra_faces']:,} background faces); hand-cleaned parquet: "
+        f"{dir_size(clean_dir) / 2**30:.2f} GiB, {made['n_face_frames']:,} frames",
+        flush=True,
+    )
     paths = {"csv": csv_dir, "parquet": clean_dir}
     run_dirs = {name: args.workdir / f"ingest_run_{name}" for name in paths}
     params = {name: compose_params(run_dirs[name], data) for name, data in paths.items()}
@@ -88,8 +106,12 @@ def main(argv=None) -> int:
         for name in order:
             ms = run_stages(run_dirs[name], params[name])
             runs[name].append(ms)
-            print(f"run {r + 1} {name}: " + ", ".join(f"{m.stage} {m.wall_s:.1f} s / {m.maxrss_mib:,.0f} MiB" for m in ms)
-                  + f" | CSV read floor {floors[-1]:.1f} s | load {load()}", flush=True)
+            print(
+                f"run {r + 1} {name}: "
+                + ", ".join(f"{m.stage} {m.wall_s:.1f} s / {m.maxrss_mib:,.0f} MiB" for m in ms)
+                + f" | CSV read floor {floors[-1]:.1f} s | load {load()}",
+                flush=True,
+            )
     totals = {name: [sum(m.wall_s for m in run) for run in runs[name]] for name in paths}
     ratio = statistics.median((c - f) / p for c, f, p in zip(totals["csv"], floors, totals["parquet"]))
     rows = []
@@ -99,8 +121,10 @@ def main(argv=None) -> int:
         r2 = json.loads((run_dirs[name] / "metrics.json").read_text())["r2_mean"]
         rows.append([f"{name} path", *med, statistics.median(totals[name]), peak, f"{r2:.6f}"])
     print()
-    print(f"{made['n_face_frames']:,} frames ({made['n_rows']:,} py-feat rows); median of {args.repeats} run(s); CSV read "
-          f"floor {statistics.median(floors):.1f} s ({min(floors):.1f}-{max(floors):.1f}); load average now {load()}")
+    print(
+        f"{made['n_face_frames']:,} frames ({made['n_rows']:,} py-feat rows); median of {args.repeats} run(s); CSV read "
+        f"floor {statistics.median(floors):.1f} s ({min(floors):.1f}-{max(floors):.1f}); load average now {load()}"
+    )
     print(fmt_table(["input", *(f"{s} s" for s in STAGES), "total s", "peak RSS MiB", "CV R2"], rows))
     print(f"\n(CSV path - CSV read floor) / parquet path: {ratio:.2f} (median of the runs' ratios; target <= 1.2)")
     record = {"made": made, "floors_s": floors, "totals_s": totals, "ratio": ratio, "env": environment_note()}
@@ -110,8 +134,11 @@ def main(argv=None) -> int:
         for name, data in paths.items():
             res = run_dvc(args.workdir, data, None)
             record[f"dvc_{name}_s"] = res["total"].wall_s
-            print(f"`dvc repro` of the {name} path: {res['total'].wall_s:.1f} s (" +
-                  ", ".join(f"{s} {res['stages'][s][0]:.1f} s" for s in STAGES) + ")")
+            print(
+                f"`dvc repro` of the {name} path: {res['total'].wall_s:.1f} s ("
+                + ", ".join(f"{s} {res['stages'][s][0]:.1f} s" for s in STAGES)
+                + ")"
+            )
             shutil.rmtree(res["workspace"], ignore_errors=True)
     for d in run_dirs.values():
         shutil.rmtree(d, ignore_errors=True)

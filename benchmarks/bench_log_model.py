@@ -55,8 +55,10 @@ def main() -> None:
             times["pyfunc model (now)"].append(t_model)
     print(f"{args.runs} runs per variant, store {work / 'mlflow.db'}")
     for name, values in times.items():
-        print(f"  {name:28s} median {statistics.median(values):.3f} s   mean {statistics.mean(values):.3f} s   "
-              f"max {max(values):.3f} s")
+        print(
+            f"  {name:28s} median {statistics.median(values):.3f} s   mean {statistics.mean(values):.3f} s   "
+            f"max {max(values):.3f} s"
+        )
     extra = statistics.median(times["pyfunc model (now)"]) - statistics.median(times["npz artifact only (before)"])
     print(f"  per-run overhead of the pyfunc model: {extra:.3f} s (median)")
 

@@ -43,8 +43,13 @@ def main(argv: list[str] | None = None) -> None:
     cfg = config.from_dict(config.compose([f"paths.data_dir={data}"], config_dir=REPO / "conf"))
     if not truth_path.exists():
         t = time.perf_counter()
-        synth.write_tables(data, synth.SynthSpec(n_frames=args.frames, n_videos=args.videos, seed=args.seed,
-                                                 identity_au_coupling=args.coupling), truth_path=truth_path)
+        synth.write_tables(
+            data,
+            synth.SynthSpec(
+                n_frames=args.frames, n_videos=args.videos, seed=args.seed, identity_au_coupling=args.coupling
+            ),
+            truth_path=truth_path,
+        )
         print(f"synth: {time.perf_counter() - t:.1f} s", flush=True)
     if not (prepared_dir / "summary.json").exists():
         t = time.perf_counter()
@@ -55,15 +60,21 @@ def main(argv: list[str] | None = None) -> None:
     fold = ev.video_folds(prepared.videos.count, cfg.cv.n_splits)
     t = time.perf_counter()
     design = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
-    print(f"{prepared.n_frames:,} frames, {len(prepared.video_ids):,} videos, coupling {args.coupling:g}; "
-          f"the shared statistics pass: {time.perf_counter() - t:.1f} s\n", flush=True)
+    print(
+        f"{prepared.n_frames:,} frames, {len(prepared.video_ids):,} videos, coupling {args.coupling:g}; "
+        f"the shared statistics pass: {time.perf_counter() - t:.1f} s\n",
+        flush=True,
+    )
 
-    header = (f"{'target':15} {'cos median':>10} {'cos worst':>15} {'r2 (own)':>9} {'r2_disp':>8} "
-              f"{'rel median':>10} {'rel min':>8} {'FACS':>5} {'stats s':>8} {'checks s':>8} {'eval s':>7}")
+    header = (
+        f"{'target':15} {'cos median':>10} {'cos worst':>15} {'r2 (own)':>9} {'r2_disp':>8} "
+        f"{'rel median':>10} {'rel min':>8} {'FACS':>5} {'stats s':>8} {'checks s':>8} {'eval s':>7}"
+    )
     print(header + "\n" + "-" * len(header))
     for target in args.targets:
-        tcfg = config.from_dict(config.compose([f"paths.data_dir={data}", f"preprocess.target={target}"],
-                                               config_dir=REPO / "conf"))
+        tcfg = config.from_dict(
+            config.compose([f"paths.data_dir={data}", f"preprocess.target={target}"], config_dir=REPO / "conf")
+        )
         t = time.perf_counter()
         stats = ev.accumulate(prepared, tcfg, fold, design=design)
         t_stats = time.perf_counter() - t
@@ -77,9 +88,12 @@ def main(argv: list[str] | None = None) -> None:
         cos = truth.au_field_cosines(final.coef, final.feature_columns, true, prepared.reference["reference_anchors"])
         m = cv.metrics()
         worst = int(np.argmin(cos))
-        print(f"{target:15} {np.median(cos):10.4f} {cos[worst]:8.4f} ({AU_COLUMNS[worst]}) {m['r2_mean']:9.4f} "
-              f"{m['r2_displacement_mean']:8.4f} {m['au_reliability_median']:10.4f} {m['au_reliability_min']:8.4f} "
-              f"{m['n_aus_facs_pass']:5d} {t_stats:8.2f} {t_checks:8.2f} {t_eval:7.1f}", flush=True)
+        print(
+            f"{target:15} {np.median(cos):10.4f} {cos[worst]:8.4f} ({AU_COLUMNS[worst]}) {m['r2_mean']:9.4f} "
+            f"{m['r2_displacement_mean']:8.4f} {m['au_reliability_median']:10.4f} {m['au_reliability_min']:8.4f} "
+            f"{m['n_aus_facs_pass']:5d} {t_stats:8.2f} {t_checks:8.2f} {t_eval:7.1f}",
+            flush=True,
+        )
         del stats
 
 

@@ -39,7 +39,10 @@ def _run(cmd: list[str]) -> None:
 def ensure_environment(venv: Path, torch: str, pyfeat: str) -> Path:
     """A venv at ``venv`` with ``torch`` (space-separated pins) and ``pyfeat`` installed; returns its python."""
     python = venv / "bin" / "python"
-    if python.exists() and subprocess.run([str(python), "-c", "import feat.plotting"], capture_output=True).returncode == 0:
+    if (
+        python.exists()
+        and subprocess.run([str(python), "-c", "import feat.plotting"], capture_output=True).returncode == 0
+    ):
         print(f"reusing the py-feat environment at {venv}", flush=True)
         return python
     _run([sys.executable, "-m", "venv", str(venv)])
@@ -50,20 +53,26 @@ def ensure_environment(venv: Path, torch: str, pyfeat: str) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     parser.add_argument("--release", default="release/au_to_mesh_pls.npz", help="release NPZ to check")
     parser.add_argument("--out", default="build/pyfeat-check", help="folder for the PNGs and pyfeat_check.json")
-    parser.add_argument("--venv", default=None,
-                        help="build (or reuse) the py-feat environment here and keep it; default: a temporary one")
+    parser.add_argument(
+        "--venv",
+        default=None,
+        help="build (or reuse) the py-feat environment here and keep it; default: a temporary one",
+    )
     parser.add_argument("--torch", default=TORCH, help="pip requirement(s) for torch, installed before py-feat")
     parser.add_argument("--pyfeat", default=PYFEAT, help="pip requirement for py-feat")
     parser.add_argument("--intensity", type=float, default=1.0, help="AU intensity of the checked predictions")
     args = parser.parse_args(argv)
     release = Path(args.release)
     if not release.is_file():
-        print(f"check_pyfeat_client: release NPZ not found: {release} (run `make demo` or pass --release)",
-              file=sys.stderr)
+        print(
+            f"check_pyfeat_client: release NPZ not found: {release} (run `make demo` or pass --release)",
+            file=sys.stderr,
+        )
         return 2
     started = time.perf_counter()
     tmp = None if args.venv else tempfile.mkdtemp(prefix="aumesh-pyfeat-")
@@ -71,13 +80,25 @@ def main(argv: list[str] | None = None) -> int:
     try:
         python = ensure_environment(venv, args.torch, args.pyfeat)
         built = time.perf_counter()
-        status = subprocess.run([str(python), str(HERE / "pyfeat_probe.py"), "--release", str(release.resolve()),
-                                 "--out", str(Path(args.out).resolve()), "--intensity", str(args.intensity)]).returncode
+        status = subprocess.run(
+            [
+                str(python),
+                str(HERE / "pyfeat_probe.py"),
+                "--release",
+                str(release.resolve()),
+                "--out",
+                str(Path(args.out).resolve()),
+                "--intensity",
+                str(args.intensity),
+            ]
+        ).returncode
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-    print(f"environment {built - started:.0f} s, probe {time.perf_counter() - built:.0f} s; "
-          f"{'all checks pass' if status == 0 else 'CHECKS FAILED'}; see {args.out}/pyfeat_check.json and its PNGs")
+    print(
+        f"environment {built - started:.0f} s, probe {time.perf_counter() - built:.0f} s; "
+        f"{'all checks pass' if status == 0 else 'CHECKS FAILED'}; see {args.out}/pyfeat_check.json and its PNGs"
+    )
     return status
 
 

@@ -51,9 +51,9 @@ def main(argv=None) -> int:
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import feat
     import feat.plotting as fp
+    import matplotlib.pyplot as plt
     from feat.pretrained import AU_LANDMARK_MAP
 
     fp.hf_hub_download = lambda *a, **k: release  # the one replacement: no hub, our file
@@ -77,8 +77,11 @@ def main(argv=None) -> int:
         fp.plot_face_mesh(au=vec, model=model, ax=ax, mode="tesselation", linewidth=0.3)
         fig.text((k + 0.5) / len(panels), 0.04, title, ha="center", fontsize=11)
         screens[au or "neutral"] = (screen_xy(ax, neutral), screen_xy(ax, fp.predict_face_mesh(vec, model=model)))
-    fig.suptitle(f"aumesh release through py-feat {feat.__version__}'s own loader and plot_face_mesh "
-                 "(default view, tessellation)", fontsize=11)
+    fig.suptitle(
+        f"aumesh release through py-feat {feat.__version__}'s own loader and plot_face_mesh "
+        "(default view, tessellation)",
+        fontsize=11,
+    )
     fig.subplots_adjust(left=-0.05, right=1.05, bottom=-0.2, top=1.1, wspace=-0.25)
     fig.savefig(out / "pyfeat_tesselation.png", dpi=110)
     plt.close(fig)
@@ -89,8 +92,13 @@ def main(argv=None) -> int:
         ax = fig.add_subplot(1, len(AUS), k + 1, projection="3d")
         fp.plot_face_mesh(au=au_vector(None, 0), model=model, ax=ax, mode="contours", color="0.6")
         fp.plot_face_mesh(au=au_vector(au, 3 * args.intensity), model=model, ax=ax, mode="contours", color="tab:red")
-        fig.text((k + 0.5) / len(AUS), 0.04, f"{au} = {3 * args.intensity:g} (red) over neutral (grey)", ha="center",
-                 fontsize=11)
+        fig.text(
+            (k + 0.5) / len(AUS),
+            0.04,
+            f"{au} = {3 * args.intensity:g} (red) over neutral (grey)",
+            ha="center",
+            fontsize=11,
+        )
     fig.suptitle("py-feat plot_face_mesh, contours", fontsize=11)
     fig.subplots_adjust(left=-0.05, right=1.05, bottom=-0.2, top=1.1, wspace=-0.25)
     fig.savefig(out / "pyfeat_contours.png", dpi=110)
@@ -112,8 +120,9 @@ def main(argv=None) -> int:
         "AU04: inner brows 107 and 336 down": bool(d["AU04"][107, 1] < 0 and d["AU04"][336, 1] < 0),
         "AU04: inner brows not apart": bool(d["AU04"][336, 0] - d["AU04"][107, 0] <= 0),
     }
-    moves = {au: {str(v): [round(float(c), 3) for c in d[au][v]] for v in (61, 291, 152, 17, 0, 107, 336)}
-             for au in AUS}
+    moves = {
+        au: {str(v): [round(float(c), 3) for c in d[au][v]] for v in (61, 291, 152, 17, 0, 107, 336)} for au in AUS
+    }
     report = {
         "pyfeat_version": feat.__version__,
         "release": release,

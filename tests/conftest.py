@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from aumesh import config
+from aumesh.data import synth, tables
 from aumesh.pipeline import prepare
-from aumesh.data import synth
-from aumesh.data import tables
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,8 +54,15 @@ def default_config(**overrides) -> config.Config:
 
 
 # a clean, well-identified problem: truth recovery needs signal, not the demo's realism
-RECOVERY_SPEC = synth.SynthSpec(n_frames=3000, n_videos=300, seed=7, identity_scale=0.001, unexplained_scale=0.001,
-                                noise_px=0.1, landmark_failure_rate=0.003)
+RECOVERY_SPEC = synth.SynthSpec(
+    n_frames=3000,
+    n_videos=300,
+    seed=7,
+    identity_scale=0.001,
+    unexplained_scale=0.001,
+    noise_px=0.1,
+    landmark_failure_rate=0.003,
+)
 
 
 @pytest.fixture(scope="session")
@@ -87,8 +93,12 @@ def face_reference(rng: np.random.Generator) -> dict[str, np.ndarray]:
     from aumesh.geometry.face import canonical_template
 
     face_px = canonical_template() * 60.0 + 300.0
-    return {"mean_aligned_mesh": face_px + rng.normal(scale=0.1, size=face_px.shape), "mean_low_au_mesh": face_px,
-            "reference_anchors": face_px[:12], "anchor_indices": np.arange(12)}
+    return {
+        "mean_aligned_mesh": face_px + rng.normal(scale=0.1, size=face_px.shape),
+        "mean_low_au_mesh": face_px,
+        "reference_anchors": face_px[:12],
+        "anchor_indices": np.arange(12),
+    }
 
 
 def in_card_frame(coef: np.ndarray, intercept: np.ndarray, reference: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -159,12 +169,24 @@ def link_venv(clone: Path) -> None:
 def clean_env(clone: Path) -> dict:
     """The environment of a user who did not activate the venv: the venv's bin is not on PATH; the clone's
     committed code (PYTHONPATH) wins over this checkout's editable install."""
-    keep = [p for p in os.environ.get("PATH", "").split(os.pathsep) if p and Path(p).resolve() != (VENV / "bin").resolve()]
-    env = {k: v for k, v in os.environ.items()
-           if not k.startswith(("MLFLOW_", "DVC_", "AUMESH_")) and k not in ("PYTHONPATH", "VIRTUAL_ENV")}
-    env.update(PATH=os.pathsep.join(keep), PYTHONPATH=str(clone / "src"), GIT_AUTHOR_NAME="t",
-               GIT_AUTHOR_EMAIL="t@example.com", GIT_COMMITTER_NAME="t", GIT_COMMITTER_EMAIL="t@example.com",
-               MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true")
+    keep = [
+        p for p in os.environ.get("PATH", "").split(os.pathsep) if p and Path(p).resolve() != (VENV / "bin").resolve()
+    ]
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("MLFLOW_", "DVC_", "AUMESH_")) and k not in ("PYTHONPATH", "VIRTUAL_ENV")
+    }
+    env.update(
+        PATH=os.pathsep.join(keep),
+        PYTHONPATH=str(clone / "src"),
+        GIT_AUTHOR_NAME="t",
+        GIT_AUTHOR_EMAIL="t@example.com",
+        GIT_COMMITTER_NAME="t",
+        GIT_COMMITTER_EMAIL="t@example.com",
+        MLFLOW_DISABLE_TELEMETRY="true",
+        DO_NOT_TRACK="true",
+    )
     if os.environ.get("AUMESH_NODE_MODULES"):  # the node tools where this checkout's tests find them
         env["AUMESH_NODE_MODULES"] = os.environ["AUMESH_NODE_MODULES"]
     elif (REPO / "node_modules").is_dir():  # the node tools `make tools` installed here (three.js, vega)

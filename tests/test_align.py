@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aumesh.geometry.align import SIMILARITY_FRAMES, align_to_reference, apply_similarity, apply_similarity_columns, \
-    apply_similarity_vertices, generalized_procrustes, umeyama_batch
+from aumesh.geometry.align import (
+    SIMILARITY_FRAMES,
+    align_to_reference,
+    apply_similarity,
+    apply_similarity_columns,
+    apply_similarity_vertices,
+    generalized_procrustes,
+    umeyama_batch,
+)
 
 
 def _points(rng, n=12):
@@ -69,8 +76,9 @@ def test_similarity_on_columns_moves_points_as_the_known_transform():
     rows = apply_similarity_columns(columns, rot, scale, shift)
     assert rows.shape == (5, 120) and rows.flags.c_contiguous and rows.dtype == np.float64
     np.testing.assert_allclose(rows.reshape(5, 3, 40).transpose(0, 2, 1), expected, rtol=1e-13, atol=1e-11)
-    np.testing.assert_allclose(rows.reshape(5, 3, 40).transpose(0, 2, 1), apply_similarity(points, rot, scale, shift),
-                               rtol=1e-13, atol=1e-11)
+    np.testing.assert_allclose(
+        rows.reshape(5, 3, 40).transpose(0, 2, 1), apply_similarity(points, rot, scale, shift), rtol=1e-13, atol=1e-11
+    )
 
 
 def test_similarity_of_selected_frames_is_bit_for_bit_that_of_the_gathered_frames():

@@ -9,9 +9,8 @@ import json
 import pytest
 
 from aumesh import cli, config
-from aumesh.experiments import mlflow_store, promote, queries, tracking
+from aumesh.experiments import mlflow_store, promote, queries
 from aumesh.pipeline import stages
-
 from test_sweep import workspace_with_store
 
 FAILING = ["features=au", "model.n_components=2,25", "model.clip_n_components=false"]  # 25 > 20 features: FAILED
@@ -80,14 +79,24 @@ def test_runs_sweeps_lists_every_sweep_newest_first_with_size_and_best(sweeps, c
 
 def test_evaluate_runs_are_named_by_what_tells_them_apart(newer_evaluate, workspace):
     cfg = config.load_params(workspace / "params.yaml")
-    assert (cfg.preprocess.target, cfg.features.name, cfg.model.n_components) == ("absolute", "au_pose_interactions", 83)
+    assert (cfg.preprocess.target, cfg.features.name, cfg.model.n_components) == (
+        "absolute",
+        "au_pose_interactions",
+        83,
+    )
     assert newer_evaluate["run_name"] == "bumpy-tods: absolute au_pose_interactions k=83"
-    neutral = config.from_dict(config.compose(["preprocess.target=neutral", "preprocess.neutral.method=mean",
-                                               "features=au", "model.n_components=5"], config_dir=workspace / "conf"))
+    neutral = config.from_dict(
+        config.compose(
+            ["preprocess.target=neutral", "preprocess.neutral.method=mean", "features=au", "model.n_components=5"],
+            config_dir=workspace / "conf",
+        )
+    )
     assert stages.evaluate_run_name(neutral) == "neutral(mean) au k=5"
 
 
-def test_promote_names_its_sweep_and_refuses_to_overrule_a_newer_evaluate_run(sweeps, newer_evaluate, workspace, capsys):
+def test_promote_names_its_sweep_and_refuses_to_overrule_a_newer_evaluate_run(
+    sweeps, newer_evaluate, workspace, capsys
+):
     ids, _ = sweeps
     latest = ids[-1]
     promoted = workspace / "conf" / "experiment" / "promoted.yaml"

@@ -9,7 +9,18 @@ import pytest
 
 from aumesh import cli
 
-COMMANDS = {"compose-params", "synth", "prepare", "evaluate", "release", "render", "predict", "sweep", "runs", "promote"}
+COMMANDS = {
+    "compose-params",
+    "synth",
+    "prepare",
+    "evaluate",
+    "release",
+    "render",
+    "predict",
+    "sweep",
+    "runs",
+    "promote",
+}
 
 
 def _commands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -35,12 +46,17 @@ def test_every_option_has_help_with_its_default():
     assert not missing, "\n".join(missing)
 
 
-@pytest.mark.parametrize("argv, expected", [
-    (["synth", "--help"], [r"--frames FRAMES\s+number of frames .* \(default: 4000\)", r"\(default: 0\)",
-                           r"\(default:\s+columns\)"]),
-    (["predict", "--help"], [r"\(default:\s+release/au_to_mesh_pls\.npz\)", r"--ignore .*\(default:\s+none\)"]),
-    (["evaluate", "--help"], [r"\(default:\s+params\.yaml\)"]),
-])
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (
+            ["synth", "--help"],
+            [r"--frames FRAMES\s+number of frames .* \(default: 4000\)", r"\(default: 0\)", r"\(default:\s+columns\)"],
+        ),
+        (["predict", "--help"], [r"\(default:\s+release/au_to_mesh_pls\.npz\)", r"--ignore .*\(default:\s+none\)"]),
+        (["evaluate", "--help"], [r"\(default:\s+params\.yaml\)"]),
+    ],
+)
 def test_help_as_the_user_sees_it(argv, expected, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(argv)

@@ -60,12 +60,40 @@ class Cluster:
         self.log = open(cwd / "cluster.log", "ab")
         common = dict(cwd=cwd, env=_env(ARROW_DEFAULT_MEMORY_POOL="system"), stdout=self.log, stderr=subprocess.STDOUT)
         # --idle-timeout / --death-timeout: they stop by themselves if the test process dies before it stops them
-        self.scheduler = subprocess.Popen([BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(self.port),
-                                           "--no-dashboard", "--idle-timeout", "600"], **common)
-        self.workers = [subprocess.Popen([BIN / "dask", "worker", self.address, "--host", "127.0.0.1", "--nthreads", "1",
-                                          "--no-dashboard", "--death-timeout", "30",
-                                          "--local-directory", str(cwd / f"worker-{i}")], **common)
-                        for i in range(n_workers)]
+        self.scheduler = subprocess.Popen(
+            [
+                BIN / "dask",
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--no-dashboard",
+                "--idle-timeout",
+                "600",
+            ],
+            **common,
+        )
+        self.workers = [
+            subprocess.Popen(
+                [
+                    BIN / "dask",
+                    "worker",
+                    self.address,
+                    "--host",
+                    "127.0.0.1",
+                    "--nthreads",
+                    "1",
+                    "--no-dashboard",
+                    "--death-timeout",
+                    "30",
+                    "--local-directory",
+                    str(cwd / f"worker-{i}"),
+                ],
+                **common,
+            )
+            for i in range(n_workers)
+        ]
         from distributed import Client
 
         with Client(self.address, timeout=60, set_as_default=False) as client:
@@ -114,8 +142,12 @@ def make_workspace(root: Path, fixed_conf: Path, seed: int, n_frames: int = 1500
     (ws / "promotion.json").write_text('{"promoted": null}\n')
     shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     env = _env()
-    for args in (["git", "init", "-q"], ["git", "config", "user.email", "t@example.com"],
-                 ["git", "config", "user.name", "test"], [BIN / "dvc", "init", "-q"]):
+    for args in (
+        ["git", "init", "-q"],
+        ["git", "config", "user.email", "t@example.com"],
+        ["git", "config", "user.name", "test"],
+        [BIN / "dvc", "init", "-q"],
+    ):
         _run(args, ws, env)
     shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
     _run([BIN / "dvc", "remote", "remove", "demo"], ws, env)
@@ -176,8 +208,17 @@ def test_two_workspaces_share_one_cluster_started_elsewhere_and_equal_their_loca
         local[ws] = outputs(ws)
     # the two workspaces at once on the one cluster, chosen by the environment alone: params.yaml stays as it is
     env = _env(AUMESH_COMPUTE_ADDRESS=cluster.address)
-    procs = [subprocess.Popen([str(BIN / "dvc"), "repro", "-f", "evaluate"], cwd=ws, env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True) for ws in spaces]
+    procs = [
+        subprocess.Popen(
+            [str(BIN / "dvc"), "repro", "-f", "evaluate"],
+            cwd=ws,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for ws in spaces
+    ]
     for ws, proc in zip(spaces, procs):
         log = proc.communicate(timeout=900)[0]
         assert proc.returncode == 0, log
@@ -237,8 +278,14 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stag
     (tmp_path / "elsewhere").mkdir()
     c = Cluster(tmp_path / "elsewhere", n_workers=1)
     try:
-        proc = subprocess.Popen([str(BIN / "aumesh"), stage], cwd=ws, text=True, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, env=_env(AUMESH_COMPUTE_ADDRESS=c.address))
+        proc = subprocess.Popen(
+            [str(BIN / "aumesh"), stage],
+            cwd=ws,
+            text=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=_env(AUMESH_COMPUTE_ADDRESS=c.address),
+        )
         deadline = time.monotonic() + 120
         while not list((ws / "build").glob(MID_RUN[stage])) and proc.poll() is None:
             assert time.monotonic() < deadline
@@ -255,8 +302,9 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stag
     assert "The previous outputs stand." in line
     after = outputs(ws)
     if stage == "evaluate":  # and the run that failed is FAILED in MLflow, the one before FINISHED
-        runs = mlflow.MlflowClient().search_runs(mlflow.get_experiment_by_name("aumesh").experiment_id,
-                                                 order_by=["attributes.start_time DESC"])
+        runs = mlflow.MlflowClient().search_runs(
+            mlflow.get_experiment_by_name("aumesh").experiment_id, order_by=["attributes.start_time DESC"]
+        )
         assert [r.info.status for r in runs] == ["FAILED", "FINISHED"]
     assert_same_outputs(after, before)
     assert not list((ws / "build").glob(".*"))  # the run's temporary folders are gone
@@ -271,8 +319,10 @@ def test_an_address_nobody_answers_is_one_line_and_exit_2_within_the_connect_tim
     with pytest.raises(ClusterError) as err, compute.engine(ComputeConfig()):
         pytest.fail("the engine must not start")
     assert time.monotonic() - t0 < 5
-    assert str(err.value).startswith(f"AUMESH_COMPUTE_ADDRESS={address}: cannot connect to a Dask scheduler there "
-                                     f"(OSError: Timed out trying to connect")
+    assert str(err.value).startswith(
+        f"AUMESH_COMPUTE_ADDRESS={address}: cannot connect to a Dask scheduler there "
+        f"(OSError: Timed out trying to connect"
+    )
     assert "AUMESH_COMPUTE_CONNECT_TIMEOUT sets the wait" in str(err.value)
 
     # through the command: a stage that reaches its passes stops with the one line, exit 2
@@ -298,19 +348,33 @@ def test_the_probe_names_the_worker_and_the_path_it_cannot_read_or_write(tmp_pat
     table.write_bytes(os.urandom(200_000))
     out = tmp_path / "build"
     out.mkdir()
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://", host="127.0.0.1",
-                      dashboard_address=None) as lc, Client(lc, set_as_default=False) as client:
+    with (
+        LocalCluster(
+            n_workers=1,
+            threads_per_worker=1,
+            processes=False,
+            protocol="tcp://",
+            host="127.0.0.1",
+            dashboard_address=None,
+        ) as lc,
+        Client(lc, set_as_default=False) as client,
+    ):
         (worker,) = client.scheduler_info()["workers"]
         compute.check_workers(client, table, out)  # passes, and leaves no probe file
         assert list(out.iterdir()) == []
         with pytest.raises(ClusterError) as err:
             compute.check_workers(client, tmp_path / "elsewhere" / "frames_0000.parquet", out)
-        assert str(err.value).startswith(f"worker {worker} cannot read {tmp_path}/elsewhere/frames_0000.parquet "
-                                         f"(FileNotFoundError: ")
-        assert (f"the folder {tmp_path}/elsewhere must be on a filesystem every worker sees at the same path"
-                in str(err.value))
-        with pytest.raises(ClusterError, match=rf"^worker {worker} cannot write into {tmp_path}/missing "
-                                               r"\(FileNotFoundError: .*\): the folder .* must be on a filesystem"):
+        assert str(err.value).startswith(
+            f"worker {worker} cannot read {tmp_path}/elsewhere/frames_0000.parquet (FileNotFoundError: "
+        )
+        assert f"the folder {tmp_path}/elsewhere must be on a filesystem every worker sees at the same path" in str(
+            err.value
+        )
+        with pytest.raises(
+            ClusterError,
+            match=rf"^worker {worker} cannot write into {tmp_path}/missing "
+            r"\(FileNotFoundError: .*\): the folder .* must be on a filesystem",
+        ):
             compute.check_workers(client, table, tmp_path / "missing")
         assert list(out.iterdir()) == []
 
@@ -318,13 +382,18 @@ def test_the_probe_names_the_worker_and_the_path_it_cannot_read_or_write(tmp_pat
 def test_the_environment_chooses_where_the_passes_run_over_params(monkeypatch):
     cfg = ComputeConfig(scheduler="threads", partition_rows=500)
     assert compute.effective(cfg, {}) is cfg
-    remote = compute.effective(cfg, {"AUMESH_COMPUTE_ADDRESS": "tcp://10.0.0.5:8786",
-                                     "AUMESH_COMPUTE_CONNECT_TIMEOUT": "2.5"})
-    assert remote == ComputeConfig(scheduler="distributed", address="tcp://10.0.0.5:8786", partition_rows=500,
-                                   connect_timeout=2.5)
+    remote = compute.effective(
+        cfg, {"AUMESH_COMPUTE_ADDRESS": "tcp://10.0.0.5:8786", "AUMESH_COMPUTE_CONNECT_TIMEOUT": "2.5"}
+    )
+    assert remote == ComputeConfig(
+        scheduler="distributed", address="tcp://10.0.0.5:8786", partition_rows=500, connect_timeout=2.5
+    )
     assert compute.effective(cfg, {"AUMESH_COMPUTE_SCHEDULER": "synchronous"}).scheduler == "synchronous"
-    with pytest.raises(ConfigError, match=r"^AUMESH_COMPUTE_CONNECT_TIMEOUT=soon \(environment\): "
-                                          r"compute.connect_timeout='soon': must be a number"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^AUMESH_COMPUTE_CONNECT_TIMEOUT=soon \(environment\): "
+        r"compute.connect_timeout='soon': must be a number",
+    ):
         compute.effective(cfg, {"AUMESH_COMPUTE_CONNECT_TIMEOUT": "soon"})
     with pytest.raises(ConfigError, match="compute.connect_timeout=0.0: must be > 0"):
         compute.effective(cfg, {"AUMESH_COMPUTE_CONNECT_TIMEOUT": "0"})
@@ -340,8 +409,9 @@ def test_tasks_get_absolute_paths_and_the_records_keep_the_workspace_relative_on
     from conftest import default_config
 
     write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=30, seed=2, frames_per_file=150))
-    write_params(default_config(**{"compute": "synchronous", "compute.partition_rows": 100}).to_dict(),
-                 tmp_path / "params.yaml")
+    write_params(
+        default_config(**{"compute": "synchronous", "compute.partition_rows": 100}).to_dict(), tmp_path / "params.yaml"
+    )
     seen = []
     scan = prepare.scan_partition
 

@@ -22,8 +22,8 @@ import pytest
 from aumesh.data import contract, synth, tables
 from aumesh.data.schema import VIDEO_COLUMN
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
-from aumesh.pipeline import integrity, evaluate as ev
-from aumesh.pipeline import prepare
+from aumesh.pipeline import evaluate as ev
+from aumesh.pipeline import integrity, prepare
 from aumesh.utils.io import create_npy
 from conftest import default_config
 
@@ -99,8 +99,9 @@ def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):
     sub = {"preprocess.alignment.gpa_max_frames": 300}
     one, s1 = _prepare(split_tables, "one", **sub, **{"compute.partition_rows": 10**9, "compute": "synchronous"})
     many, s2 = _prepare(split_tables, "many", **sub, **{"compute.partition_rows": 1})
-    some, s3 = _prepare(split_tables, "some", **sub, **{"compute.partition_rows": 300, "compute": "processes",
-                                                          "compute.n_workers": 2})
+    some, s3 = _prepare(
+        split_tables, "some", **sub, **{"compute.partition_rows": 300, "compute": "processes", "compute.n_workers": 2}
+    )
     # the checksums' byte ranges follow the partitions (each hashes its own rows while writing); the bytes do not
     checksums = [s.pop("checksums") for s in (s1, s2, s3)]
     assert s1 == s2 == s3
@@ -129,27 +130,33 @@ def test_alignment_block_size_changes_no_bit(split_tables, monkeypatch):
 def test_outlier_threshold_and_gpa_subsample_follow_their_definitions(split_tables):
     """Threshold = numpy quantile of every pose-passing frame's residual; subsample = smallest seeded hashes."""
     k = 300
-    out, summary = _prepare(split_tables, "defs", **{"preprocess.alignment.gpa_max_frames": k, "compute.partition_rows": 200})
+    out, summary = _prepare(
+        split_tables, "defs", **{"preprocess.alignment.gpa_max_frames": k, "compute.partition_rows": 200}
+    )
     cfg = default_config()
-    frames = pd.concat([pq.read_table(f).to_pandas() for f in sorted((split_tables / "data").glob("*.parquet"))],
-                       ignore_index=True)
+    frames = pd.concat(
+        [pq.read_table(f).to_pandas() for f in sorted((split_tables / "data").glob("*.parquet"))], ignore_index=True
+    )
     pose = prepare.pose_mask(frames["Pitch"].to_numpy(), frames["Yaw"].to_numpy(), cfg.preprocess)
     idx = list(cfg.preprocess.alignment.anchor_indices)
     anchors = np.stack([frames[[f"{a}_{i}" for i in idx]].to_numpy() for a in "xyz"], axis=2).astype(np.float32)
-    h = prepare.gpa_hash(frames.loc[pose, VIDEO_COLUMN].to_numpy(object), frames.loc[pose, "frame"].to_numpy(), cfg.seed)
+    h = prepare.gpa_hash(
+        frames.loc[pose, VIDEO_COLUMN].to_numpy(object), frames.loc[pose, "frame"].to_numpy(), cfg.seed
+    )
     chosen = np.sort(np.argsort(h)[:k])  # summed in the tables' order
-    reference = generalized_procrustes(anchors[pose][chosen], cfg.preprocess.alignment.gpa_max_iter,
-                                       cfg.preprocess.alignment.gpa_tol)
+    reference = generalized_procrustes(
+        anchors[pose][chosen], cfg.preprocess.alignment.gpa_max_iter, cfg.preprocess.alignment.gpa_tol
+    )
     np.testing.assert_allclose(np.load(out / "reference.npz")["reference_anchors"], reference, rtol=1e-6, atol=1e-4)
     residual, _ = align_to_reference(anchors[pose].astype(np.float64), reference)
     threshold = summary["counts"]["alignment_residual_threshold"]
     assert threshold == pytest.approx(np.quantile(residual, 0.99), rel=1e-9)
     assert summary["counts"]["frames_kept"] == int((residual <= threshold).sum())
     # another seed draws another subsample
-    assert not np.array_equal(np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object),
-                                                          frames["frame"].to_numpy(), 1))[:k],
-                              np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object),
-                                                          frames["frame"].to_numpy(), 0))[:k])
+    assert not np.array_equal(
+        np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object), frames["frame"].to_numpy(), 1))[:k],
+        np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object), frames["frame"].to_numpy(), 0))[:k],
+    )
 
 
 def _evaluate(prepared_dir, **overrides):
@@ -202,8 +209,12 @@ def test_pass_a_results_own_their_rows(split_prepared, tmp_path):
     for name, width in ev.VIDEO_SUMS.items():
         create_npy(tmp_path / f"{name}.npy", np.float64, (len(prepared.video_ids), width))
     fold = ev.video_folds(videos.count, 3)
-    parts = [ev.design_partition(group, prepared.directory, fold, np.zeros(83), np.zeros(1434), 3, 64, tmp_path,
-                                 videos.split) for group in prepared.row_groups()]
+    parts = [
+        ev.design_partition(
+            group, prepared.directory, fold, np.zeros(83), np.zeros(1434), 3, 64, tmp_path, videos.split
+        )
+        for group in prepared.row_groups()
+    ]
     rows = [row for part in parts for values in part.split.values() for row in values]
     assert rows and all(row.base is None for row in rows)
 
@@ -222,8 +233,9 @@ def test_local_cluster_of_two_worker_processes(split_tables, split_prepared):
     """A real dask.distributed LocalCluster (2 processes, loopback): the same prepared data and model."""
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None) as cluster:
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
         remote = {"compute": "distributed", "compute.address": cluster.scheduler_address}
         out, _ = _prepare(split_tables, "prepared-cluster", **remote, **{"compute.partition_rows": 1})
         _assert_same_prepared(out, split_prepared)
@@ -245,14 +257,17 @@ def test_low_au_frames_of_videos_split_across_partitions_follow_the_whole_set(sp
     """Per-video and population low-AU frames from 13 partitions (videos cut at row groups) against numpy on the
     whole kept set: the low_au column, the per-video low-AU neutrals, the population count and mesh."""
     q = 0.37
-    out, summary = _prepare(split_tables, "low-au-split", **{"compute.partition_rows": 1,
-                                                             "preprocess.neutral.low_au_quantile": q})
+    out, summary = _prepare(
+        split_tables, "low-au-split", **{"compute.partition_rows": 1, "preprocess.neutral.low_au_quantile": q}
+    )
     frames = pd.read_parquet(out / "frames.parquet")
     meshes = np.load(out / "meshes.npy").astype(np.float64)
     video = frames["video_index"].to_numpy()
     parquet = pq.ParquetFile(out / "frames.parquet")  # a row group per partition
-    groups = [set(parquet.read_row_group(g, columns=["video_index"]).column(0).to_pylist())
-              for g in range(parquet.num_row_groups)]
+    groups = [
+        set(parquet.read_row_group(g, columns=["video_index"]).column(0).to_pylist())
+        for g in range(parquet.num_row_groups)
+    ]
     split = {v for g, a in enumerate(groups) for b in groups[g + 1 :] for v in a & b}
     assert len(split) >= 5  # kept frames of these videos lie in two partitions
     au_sum = frames[[c for c in frames.columns if c.startswith("AU")]].to_numpy().sum(axis=1)
@@ -325,8 +340,11 @@ def test_prepared_frames_store_only_the_video_ids_as_a_dictionary(split_prepared
     and falls back to plain pages after the work of building it (0.45 s of prepare at 344k frames)."""
     md = pq.ParquetFile(split_prepared / "frames.parquet").metadata
     columns = md.row_group(0)
-    dictionary = {columns.column(i).path_in_schema for i in range(columns.num_columns)
-                  if "PLAIN_DICTIONARY" in columns.column(i).encodings or "RLE_DICTIONARY" in columns.column(i).encodings}
+    dictionary = {
+        columns.column(i).path_in_schema
+        for i in range(columns.num_columns)
+        if "PLAIN_DICTIONARY" in columns.column(i).encodings or "RLE_DICTIONARY" in columns.column(i).encodings
+    }
     assert dictionary == {"video_id"}
 
 
@@ -334,10 +352,12 @@ def test_prepared_frames_store_only_the_video_ids_as_a_dictionary(split_prepared
 def test_local_schedulers_do_not_import_dask_distributed(scheduler):
     """A pass on a local scheduler leaves dask.distributed unimported (given a scheduler's name, dask imports it to
     look for a client: 0.2 s of every stage)."""
-    code = ("import sys; from aumesh.config import ComputeConfig; from aumesh.pipeline import compute\n"
-            f"with compute.engine(ComputeConfig(scheduler={scheduler!r}, n_workers=2)):\n"
-            "    assert compute.map_gather(abs, [-1, -2, 3]) == [1, 2, 3]\n"
-            "print('distributed' in sys.modules)")
+    code = (
+        "import sys; from aumesh.config import ComputeConfig; from aumesh.pipeline import compute\n"
+        f"with compute.engine(ComputeConfig(scheduler={scheduler!r}, n_workers=2)):\n"
+        "    assert compute.map_gather(abs, [-1, -2, 3]) == [1, 2, 3]\n"
+        "print('distributed' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 
@@ -348,13 +368,15 @@ def test_thread_passes_allocate_from_one_malloc_arena_per_worker(tmp_path):
     not one per allocating thread: every arena keeps the holes of the partitions' freed arrays, so their number is
     what made a stage's resident memory grow with the partitions it streamed."""
     report = tmp_path / "malloc_info.xml"
-    code = ("import ctypes, numpy as np; from aumesh.config import ComputeConfig; from aumesh.pipeline import compute\n"
-            "def task(n):\n"
-            "    return sum(float(np.ones(k).sum()) for k in range(1000, 3000, 7))\n"
-            "with compute.engine(ComputeConfig(scheduler='threads', n_workers=2)):\n"
-            "    compute.map_gather(task, list(range(64)))\n"
-            "libc = ctypes.CDLL('libc.so.6'); libc.fopen.restype = ctypes.c_void_p\n"
-            f"fh = libc.fopen({str(report).encode()!r}, b'w'); libc.malloc_info(0, ctypes.c_void_p(fh)); libc.fclose(ctypes.c_void_p(fh))\n")
+    code = (
+        "import ctypes, numpy as np; from aumesh.config import ComputeConfig; from aumesh.pipeline import compute\n"
+        "def task(n):\n"
+        "    return sum(float(np.ones(k).sum()) for k in range(1000, 3000, 7))\n"
+        "with compute.engine(ComputeConfig(scheduler='threads', n_workers=2)):\n"
+        "    compute.map_gather(task, list(range(64)))\n"
+        "libc = ctypes.CDLL('libc.so.6'); libc.fopen.restype = ctypes.c_void_p\n"
+        f"fh = libc.fopen({str(report).encode()!r}, b'w'); libc.malloc_info(0, ctypes.c_void_p(fh)); libc.fclose(ctypes.c_void_p(fh))\n"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
     arenas = report.read_text().count("<heap nr=")
     assert 1 <= arenas <= 2
@@ -406,8 +428,10 @@ def test_a_pass_returns_freed_memory_when_it_starts_every_few_tasks_and_when_it_
     monkeypatch.setattr(compute, "release_freed_memory", lambda: events.append("release"))
     # a long pass (more than TRIM_AFTER_TASKS partitions) also every k tasks; a short one at its end only
     for n, periodic in ((compute.TRIM_AFTER_TASKS + k + 1, True), (compute.TRIM_AFTER_TASKS, False)):
-        for run in (lambda: compute.map_gather(task, list(range(n))) == list(range(n)),
-                    lambda: compute.map_reduce(task, lambda a, b: a + b, list(range(n))) == n * (n - 1) // 2):
+        for run in (
+            lambda: compute.map_gather(task, list(range(n))) == list(range(n)),
+            lambda: compute.map_reduce(task, lambda a, b: a + b, list(range(n))) == n * (n - 1) // 2,
+        ):
             monkeypatch.setattr(compute, "_TASKS_RUN", itertools.count(1))
             events.clear()
             with compute.engine(ComputeConfig(scheduler=scheduler, n_workers=2)):
@@ -415,8 +439,9 @@ def test_a_pass_returns_freed_memory_when_it_starts_every_few_tasks_and_when_it_
             assert events.count("task") == n and events.count("release") == (n // k if periodic else 0) + 2
             assert events[0] == events[-1] == "release"  # the pass's start and end
             if scheduler == "synchronous" and periodic:  # one task at a time: after every k-th task
-                assert events == (["release"] + (["task"] * k + ["release"]) * (n // k) + ["task"] * (n % k)
-                                  + ["release"])
+                assert events == (
+                    ["release"] + (["task"] * k + ["release"]) * (n // k) + ["task"] * (n % k) + ["release"]
+                )
 
 
 class _Held:
@@ -434,7 +459,7 @@ class _Held:
         with _Held.lock:
             _Held.alive.discard(id(self))
 
-    def __add__(self, other: "_Held") -> "_Held":
+    def __add__(self, other: _Held) -> _Held:
         return _Held(f"({self.text}+{other.text})")
 
 
@@ -486,8 +511,10 @@ def test_stage_processes_allocate_arrow_buffers_with_the_system_allocator(preset
     kept freed partition buffers resident); a user's ``ARROW_DEFAULT_MEMORY_POOL`` stands."""
     from aumesh.pipeline.compute import ARROW_POOL_ENV
 
-    code = ("import aumesh.cli as cli\ncli.main = lambda: 0\ntry:\n    cli.run()\nexcept SystemExit:\n    pass\n"
-            "import pyarrow as pa\nprint(pa.default_memory_pool().backend_name)")
+    code = (
+        "import aumesh.cli as cli\ncli.main = lambda: 0\ntry:\n    cli.run()\nexcept SystemExit:\n    pass\n"
+        "import pyarrow as pa\nprint(pa.default_memory_pool().backend_name)"
+    )
     env = {k: v for k, v in os.environ.items() if k != ARROW_POOL_ENV}
     if preset:
         env[ARROW_POOL_ENV] = preset

@@ -22,12 +22,15 @@ def test_unknown_key_is_rejected_with_its_path(fixed_conf):
         config.from_dict(data)
 
 
-@pytest.mark.parametrize("override,message", [
-    ("preprocess.target=relative", "preprocess.target='relative'"),
-    ("features.name=au_pose_inter", "features='au_pose_inter': use one of au, au_pose, au_pose_interactions"),
-    ("preprocess.alignment.outlier_quantile=0", "outlier_quantile=0"),
-    ("cv.n_splits=1", "cv.n_splits=1"),
-])
+@pytest.mark.parametrize(
+    "override,message",
+    [
+        ("preprocess.target=relative", "preprocess.target='relative'"),
+        ("features.name=au_pose_inter", "features='au_pose_inter': use one of au, au_pose, au_pose_interactions"),
+        ("preprocess.alignment.outlier_quantile=0", "outlier_quantile=0"),
+        ("cv.n_splits=1", "cv.n_splits=1"),
+    ],
+)
 def test_bad_values_name_the_key(override, message):
     key, value = override.split("=")
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):

@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from aumesh.card import directions
 from aumesh.data import schema, truth
-from aumesh.geometry import face
 from aumesh.data.schema import AU_COLUMNS
+from aumesh.geometry import face
 
 
 def _verdicts(report):

@@ -63,12 +63,19 @@ def test_rounding_hides_last_bit_differences_and_keeps_six_significant_digits():
 
 
 def test_write_gives_rounded_json_and_two_csv_plots(tmp_path):
-    paths = SimpleNamespace(metrics_file=tmp_path / "m" / "metrics.json", error_curve_file=tmp_path / "m" / "err.csv",
-                            r2_curve_file=tmp_path / "m" / "r2.csv")
+    paths = SimpleNamespace(
+        metrics_file=tmp_path / "m" / "metrics.json",
+        error_curve_file=tmp_path / "m" / "err.csv",
+        r2_curve_file=tmp_path / "m" / "r2.csv",
+    )
     rng = np.random.default_rng(2)
     err, path = rng.gamma(2.0, 1.0, size=500), rng.uniform(0, 1, size=(3, 23))
     dvc_metrics.write(paths, {"r2_mean": 0.123456789, "r2_folds": [0.1111111111, 0.2], "n_components": 23}, err, path)
-    assert json.loads(paths.metrics_file.read_text()) == {"r2_mean": 0.123457, "r2_folds": [0.111111, 0.2], "n_components": 23}
+    assert json.loads(paths.metrics_file.read_text()) == {
+        "r2_mean": 0.123457,
+        "r2_folds": [0.111111, 0.2],
+        "n_components": 23,
+    }
     curve = pd.read_csv(paths.error_curve_file)
     assert list(curve.columns) == ["vertex_error", "fraction_of_frames"] and len(curve) == 101
     np.testing.assert_allclose(curve["vertex_error"], dvc_metrics.error_curve(err)[0], rtol=1e-5)

@@ -101,7 +101,10 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert yaml.safe_load((ws / "params.yaml").read_text())["model"]["n_components"] == 7
     metrics = json.loads((ws / paths["metrics_file"]).read_text())
     assert metrics["n_components"] == 7
-    assert len(metrics["au_reliability"]) == 20 and -1 <= metrics["au_reliability_min"] <= metrics["au_reliability_median"] <= 1
+    assert (
+        len(metrics["au_reliability"]) == 20
+        and -1 <= metrics["au_reliability_min"] <= metrics["au_reliability_median"] <= 1
+    )
     assert json.loads((ws / "release" / "model_card.json").read_text())["config"]["preprocess"]["target"] == "within"
     assert "## AU-field reliability" in (ws / "release" / "MODEL_CARD.md").read_text()
     assert int(np.load(ws / "release" / "au_to_mesh_pls.npz")["n_components"]) == 7
@@ -128,9 +131,13 @@ def test_dvc_links_a_stage_output_into_its_cache_without_copying_it(tmp_path):
     shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
     shutil.copytree(REPO / ".dvc" / "plots", ws / ".dvc" / "plots")  # the offline plots page .dvc/config names
     _run([BIN / "dvc", "remote", "remove", "demo"], ws)
-    (ws / "make.py").write_text("import os\nos.makedirs('out')\nwith open('out/meshes.bin', 'wb') as f:\n"
-                                "    f.write(os.urandom(1 << 20))\nprint(os.stat('out/meshes.bin').st_ino, file=open('inode', 'w'))\n")
-    _run([BIN / "dvc", "stage", "add", "-q", "-n", "make", "-d", "make.py", "-o", "out", f"{sys.executable} make.py"], ws)
+    (ws / "make.py").write_text(
+        "import os\nos.makedirs('out')\nwith open('out/meshes.bin', 'wb') as f:\n"
+        "    f.write(os.urandom(1 << 20))\nprint(os.stat('out/meshes.bin').st_ino, file=open('inode', 'w'))\n"
+    )
+    _run(
+        [BIN / "dvc", "stage", "add", "-q", "-n", "make", "-d", "make.py", "-o", "out", f"{sys.executable} make.py"], ws
+    )
     _run([BIN / "dvc", "repro", "-q"], ws)
     written = ws / "out" / "meshes.bin"
     assert written.stat().st_ino == int((ws / "inode").read_text())  # the stage's file itself, not a copy of it
@@ -146,8 +153,9 @@ def test_pyfeat_csvs_copied_into_data_train_with_dvc_repro_as_the_hand_cleaned_t
     ws = workspace
     spec = SynthSpec(n_frames=1200, n_videos=40, seed=21)
     shutil.rmtree(ws / "data")
-    made = write_pyfeat_tables(ws / "data", spec, detector="mp", fmt="csv", videos_per_file=20,
-                               clean_dir=tmp_path / "clean")
+    made = write_pyfeat_tables(
+        ws / "data", spec, detector="mp", fmt="csv", videos_per_file=20, clean_dir=tmp_path / "clean"
+    )
     v2 = tmp_path / "v2"  # the second file of videos as Detectorv2 writes it, in normalized units
     write_pyfeat_tables(v2, spec, detector="v2", fmt="csv", videos_per_file=20, normalized=True)
     (ws / "data" / "clip_0001.csv").unlink()

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import os
 
-from conftest import REPO
 from aumesh.export import dvc_plots
+from conftest import REPO
 
 
 def test_committed_template_is_the_locked_packages_inlined(node_tools):
     committed = (REPO / dvc_plots.TEMPLATE_FILE).read_text(encoding="utf-8")
-    assert committed == dvc_plots.template_html(node_tools), \
+    assert committed == dvc_plots.template_html(node_tools), (
         "stale .dvc/plots/offline.html: run `make tools` (python -m aumesh.export.dvc_plots) and commit it"
+    )
     assert "{plot_divs}" in committed and "{scripts}" not in committed  # where DVC would put its CDN <script> tags
     assert "cdn.jsdelivr" not in committed and "<script src" not in committed
     for name in ("vega", "vega-lite", "vega-embed"):

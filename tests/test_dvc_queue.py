@@ -31,7 +31,9 @@ pytestmark = pytest.mark.slow
 def _run(args: list[str], cwd: Path, env: dict, timeout: float = 600.0) -> subprocess.CompletedProcess:
     proc = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
     if proc.returncode != 0:
-        raise AssertionError(f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+        raise AssertionError(
+            f"{' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+        )
     return proc
 
 
@@ -43,7 +45,8 @@ def _evaluate_runs(db: Path) -> list[tuple[str, str, str]]:
         return con.execute(
             "SELECT r.run_uuid, r.status, p.value FROM runs r "
             "JOIN tags t ON t.run_uuid = r.run_uuid AND t.key = 'aumesh.stage' AND t.value = 'evaluate' "
-            "JOIN params p ON p.run_uuid = r.run_uuid AND p.key = 'model.n_components'").fetchall()
+            "JOIN params p ON p.run_uuid = r.run_uuid AND p.key = 'model.n_components'"
+        ).fetchall()
 
 
 def _rows(shown: list) -> dict[str, dict]:
@@ -59,8 +62,11 @@ def _rows(shown: list) -> dict[str, dict]:
             if "rev" in node and isinstance(data, dict) and "metrics" in data:
                 metrics = (data.get("metrics") or {}).get(METRICS, {}).get("data") or {}
                 params = (data.get("params") or {}).get("params.yaml", {}).get("data") or {}
-                rows[node["rev"]] = {"name": node.get("name"), "metrics": metrics,
-                                     "n_components": (params.get("model") or {}).get("n_components")}
+                rows[node["rev"]] = {
+                    "name": node.get("name"),
+                    "metrics": metrics,
+                    "n_components": (params.get("model") or {}).get("n_components"),
+                }
             for value in node.values():
                 visit(value)
 

@@ -22,7 +22,10 @@ from conftest import REPO, clean_env, link_venv
 pytestmark = pytest.mark.slow
 
 MAKE = ["make", "-o", ".venv/.installed", "-o", "node_modules/.package-lock.json"]  # linked venv, node tools as given
-EXPERIMENTS = {"model.n_components=10": ("model", "n_components", 10), "features=au_pose": ("features", "name", "au_pose")}
+EXPERIMENTS = {
+    "model.n_components=10": ("model", "n_components", 10),
+    "features=au_pose": ("features", "name", "au_pose"),
+}
 SHOTS = REPO / "build" / "test-screenshots"
 
 
@@ -61,8 +64,10 @@ def _rows(shown: list, head: str) -> dict[str, dict]:
         nodes += [(exp["name"], exp["revs"][0]) for exp in commit.get("experiments") or []]
         for name, node in nodes:
             data = node["data"]
-            rows[name] = {"params": data["params"]["params.yaml"]["data"],
-                          "metrics": data["metrics"]["metrics/metrics.json"]["data"]}
+            rows[name] = {
+                "params": data["params"]["params.yaml"]["data"],
+                "metrics": data["metrics"]["metrics/metrics.json"]["data"],
+            }
     return rows
 
 
@@ -71,7 +76,9 @@ def test_readme_exp_show_fits_one_screen_with_every_experiment(demo):
     rows = _rows(json.loads(_run(["dvc", "exp", "show", "--json"], ws, env)), head)
     names = {}
     for override, (group, key, value) in EXPERIMENTS.items():  # each experiment is its -S value, with its own metrics
-        (name,) = [n for n, r in rows.items() if n not in ("baseline", "workspace") and r["params"][group][key] == value]
+        (name,) = [
+            n for n, r in rows.items() if n not in ("baseline", "workspace") and r["params"][group][key] == value
+        ]
         names[override] = name
     assert len(set(names.values())) == 2 and rows["baseline"]["params"]["model"]["n_components"] == 83
 
@@ -85,18 +92,29 @@ def test_readme_exp_show_fits_one_screen_with_every_experiment(demo):
     assert max(map(len, lines)) <= 120, table
     assert "…" not in table, table  # no column or cell cut off
     header = next(line for line in lines if "Experiment" in line).split()
-    assert header == ["Experiment", "r2_mean", "r2_displacement_mean", "mae_mean", "features.name",
-                      "model.n_components"], header  # the metrics, then exactly the swept parameters
+    assert header == [
+        "Experiment",
+        "r2_mean",
+        "r2_displacement_mean",
+        "mae_mean",
+        "features.name",
+        "model.n_components",
+    ], header  # the metrics, then exactly the swept parameters
     for override, name in names.items():
         (line,) = [line for line in lines if f"[{name}]" in line]
         r2, r2_displacement, mae = (float(v) for v in line.split("]")[1].split()[:3])
         metrics = rows[name]["metrics"]
-        for shown, exact in ((r2, metrics["r2_mean"]), (r2_displacement, metrics["r2_displacement_mean"]),
-                             (mae, metrics["mae_mean"])):
+        for shown, exact in (
+            (r2, metrics["r2_mean"]),
+            (r2_displacement, metrics["r2_displacement_mean"]),
+            (mae, metrics["mae_mean"]),
+        ):
             assert shown == pytest.approx(exact, rel=1e-4), (override, line)
         group, key, value = EXPERIMENTS[override]
-        assert line.split()[-2:] == [str(rows[name]["params"]["features"]["name"]),
-                                     str(rows[name]["params"]["model"]["n_components"])], line
+        assert line.split()[-2:] == [
+            str(rows[name]["params"]["features"]["name"]),
+            str(rows[name]["params"]["model"]["n_components"]),
+        ], line
 
 
 def test_plots_diff_draws_both_curves_offline(demo):
@@ -119,20 +137,29 @@ def test_plots_diff_draws_both_curves_offline(demo):
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         try:
             context = browser.new_context(viewport={"width": 1280, "height": 1000})
-            context.route("**/*", lambda route: route.continue_() if route.request.url.startswith(("file:", "data:"))
-                          else (blocked.append(route.request.url), route.abort()))
+            context.route(
+                "**/*",
+                lambda route: (
+                    route.continue_()
+                    if route.request.url.startswith(("file:", "data:"))
+                    else (blocked.append(route.request.url), route.abort())
+                ),
+            )
             page = context.new_page()
             page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
             page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
             page.goto((ws / "dvc_plots" / "index.html").as_uri())
             views = page.locator(".vega-embed canvas, .vega-embed svg.marks")
-            page.wait_for_function("document.querySelectorAll('.vega-embed canvas, .vega-embed svg.marks').length >= 2",
-                                   timeout=60_000)
+            page.wait_for_function(
+                "document.querySelectorAll('.vega-embed canvas, .vega-embed svg.marks').length >= 2", timeout=60_000
+            )
             page.wait_for_timeout(500)
             SHOTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=SHOTS / "dvc_plots_diff_offline.png", full_page=True)
-            images = [np.asarray(Image.open(io.BytesIO(views.nth(i).screenshot())).convert("RGB"), dtype=np.int16)
-                      for i in range(views.count())]
+            images = [
+                np.asarray(Image.open(io.BytesIO(views.nth(i).screenshot())).convert("RGB"), dtype=np.int16)
+                for i in range(views.count())
+            ]
             text = page.inner_text("body")
         finally:
             browser.close()
@@ -142,7 +169,7 @@ def test_plots_diff_draws_both_curves_offline(demo):
     # each plot: the baseline's and the experiment's lines, in the first two colours DVC gives revisions
     from dvc_render.vega import OPTIONAL_ANCHOR_RANGES
 
-    colours = [tuple(int(c[i:i + 2], 16) for i in (1, 3, 5)) for c in OPTIONAL_ANCHOR_RANGES["color"][:2]]
+    colours = [tuple(int(c[i : i + 2], 16) for i in (1, 3, 5)) for c in OPTIONAL_ANCHOR_RANGES["color"][:2]]
     for image in images:
         for colour in colours:
             near = int((np.abs(image - np.array(colour)).sum(axis=-1) < 60).sum())

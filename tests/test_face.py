@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aumesh.data import truth
-from aumesh.geometry import face
 from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES
+from aumesh.geometry import face
 
 
 @pytest.fixture(scope="module")

@@ -31,8 +31,11 @@ TABLE = "data/frames_0000.parquet"
 
 def tree_digest(root: Path) -> dict[str, str]:
     """sha256 of every file under ``root`` (relative path -> digest): 'bit for bit'."""
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def run_cli(args: list[str], cwd: Path, capsys) -> tuple[int, str]:
@@ -110,6 +113,7 @@ def numeric_strings(column):
         df = _table(ws)
         df[column] = df[column].map(repr)  # a CSV round trip
         _save(ws, df)
+
     return inject
 
 
@@ -119,6 +123,7 @@ def text_value(column, value, row=7):
         df[column] = df[column].map(repr)  # text, as a CSV round trip leaves it, with one value that is no number
         df.loc[row, column] = value
         _save(ws, df)
+
     return inject
 
 
@@ -127,6 +132,7 @@ def set_value(column, value, row=5):
         df = _table(ws)
         df.loc[row, column] = value
         _save(ws, df)
+
     return inject
 
 
@@ -177,9 +183,18 @@ def empty_table(ws):
 
 TABLE_FAULTS = {
     # the issue's list: these trained a wrong model with exit 0, or said the wrong thing
-    "still subject in degrees": (still_subject_in_degrees, [TABLE.split("/")[0], "degrees", "preprocess.max_drop_fraction"]),
-    "AU stored as numeric strings": (numeric_strings("AU12"), [TABLE, "'AU12'", "stored as text", "data.coerce_numeric"]),
-    "mesh stored as numeric strings": (numeric_strings("x_10"), [TABLE, "'x_10'", "stored as text", "data.coerce_numeric"]),
+    "still subject in degrees": (
+        still_subject_in_degrees,
+        [TABLE.split("/")[0], "degrees", "preprocess.max_drop_fraction"],
+    ),
+    "AU stored as numeric strings": (
+        numeric_strings("AU12"),
+        [TABLE, "'AU12'", "stored as text", "data.coerce_numeric"],
+    ),
+    "mesh stored as numeric strings": (
+        numeric_strings("x_10"),
+        [TABLE, "'x_10'", "stored as text", "data.coerce_numeric"],
+    ),
     "AU 'n/a'": (text_value("AU04", "n/a"), [TABLE, "'AU04'", "row 7", "'n/a'"]),
     "AU ''": (text_value("AU04", ""), [TABLE, "'AU04'", "row 7", "''"]),
     "mesh 'n/a'": (text_value("y_33", "n/a"), [TABLE, "'y_33'", "row 7", "'n/a'"]),
@@ -261,10 +276,15 @@ def test_filter_shares_are_reported_in_summary_card_and_mlflow(good_workspace):
     card = json.loads((good_workspace / "release/model_card.json").read_text())
     counts = card["data"]["counts"]
     assert counts["dropped_pose_fraction"] == pytest.approx(counts["dropped_pose"] / counts["frames_in"])
-    assert counts["videos_dropped_no_frames_left_fraction"] == counts["videos_dropped_no_frames_left"] / counts["videos_in"]
+    assert (
+        counts["videos_dropped_no_frames_left_fraction"]
+        == counts["videos_dropped_no_frames_left"] / counts["videos_in"]
+    )
     md = (good_workspace / "release/MODEL_CARD.md").read_text()
     assert f"{counts['dropped_pose']:,} frames dropped ({counts['dropped_pose_fraction']:.1%})" in md
-    run = mlflow.MlflowClient(tracking_uri=f"sqlite:///{good_workspace / 'mlflow.db'}").get_run(card["mlflow"]["run_id"])
+    run = mlflow.MlflowClient(tracking_uri=f"sqlite:///{good_workspace / 'mlflow.db'}").get_run(
+        card["mlflow"]["run_id"]
+    )
     assert run.data.metrics["data.dropped_pose_fraction"] == pytest.approx(counts["dropped_pose_fraction"])
     assert run.data.metrics["data.dropped_alignment_outliers"] == counts["dropped_alignment_outliers"]
 
@@ -272,6 +292,7 @@ def test_filter_shares_are_reported_in_summary_card_and_mlflow(good_workspace):
 # --------------------------------------------------------------------------------------------- config faults
 def edit_params(**changes):
     """Set dotted keys of params.yaml (``None`` value with key ``+``: add a key)."""
+
     def inject(ws):
         params = yaml.safe_load((ws / "params.yaml").read_text())
         for dotted, value in changes.items():
@@ -281,6 +302,7 @@ def edit_params(**changes):
                 node = node[key]
             node[last] = value
         (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
     return inject
 
 
@@ -293,7 +315,8 @@ CONFIG_FAULTS = {
     "bad target": (edit_params(preprocess__target="absolut"), ["preprocess.target='absolut'", "'absolute'"]),
     "n_components above features, no clipping": (
         edit_params(model__n_components=1000, model__clip_n_components=False),
-        ["model.n_components=1000", "model.clip_n_components=true"]),
+        ["model.n_components=1000", "model.clip_n_components=true"],
+    ),
     "section not a mapping": (edit_params(model=5), ["'model' must be a mapping"]),
 }
 
@@ -314,12 +337,15 @@ def test_bad_config_exits_2_naming_key_before_any_work_or_run(workspace, case, c
     pd.testing.assert_frame_equal(mlflow_runs(workspace), runs_before)  # no run was opened
 
 
-@pytest.mark.parametrize("override,expected", [
-    ("model.n_components=ten", ["model.n_components='ten'", "an integer"]),
-    ("model.scale=maybe", ["model.scale='maybe'", "true or false"]),
-    ("model.n_componets=3", ["model.n_componets"]),
-    ("features=au_pos", ["features", "au_pos"]),
-])
+@pytest.mark.parametrize(
+    "override,expected",
+    [
+        ("model.n_components=ten", ["model.n_components='ten'", "an integer"]),
+        ("model.scale=maybe", ["model.scale='maybe'", "true or false"]),
+        ("model.n_componets=3", ["model.n_componets"]),
+        ("features=au_pos", ["features", "au_pos"]),
+    ],
+)
 def test_compose_params_refuses_bad_overrides_and_keeps_params(workspace, override, expected, capsys):
     from conftest import REPO
 
@@ -364,8 +390,13 @@ def test_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
     other_host = tmp_path / f".release.tmp-{dead_pid}-elsewhere-ghi"
     other_host.mkdir()
     removed = remove_stale_temporaries(tmp_path / "release") + remove_stale_temporaries(tmp_path / "metrics.json")
-    assert sorted(p.name for p in removed) == sorted([f".release.tmp-{dead_pid}-{host}-abc", f".release.old-{dead_pid}-{host}-x",
-                                                      f".metrics.json.tmp-{dead_pid}-{host}-q1.tmp"])
+    assert sorted(p.name for p in removed) == sorted(
+        [
+            f".release.tmp-{dead_pid}-{host}-abc",
+            f".release.old-{dead_pid}-{host}-x",
+            f".metrics.json.tmp-{dead_pid}-{host}-q1.tmp",
+        ]
+    )
     assert live.exists() and other_host.exists()
     with atomic_directory(tmp_path / "release") as tmp:  # its own temporaries carry this process and host
         assert tmp.name.startswith(f".release.tmp-{os.getpid()}-{host}-")
@@ -382,9 +413,11 @@ def test_a_run_whose_process_is_gone_is_marked_killed_by_the_next_run(tmp_path, 
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    code = ("from aumesh.experiments import tracking; import os, time\n"
-            "with tracking.tracked_run({'experiment': 'e'}, 'victim', {'a': 1}) as run:\n"
-            "    print(run.run_id, flush=True); time.sleep(600)\n")
+    code = (
+        "from aumesh.experiments import tracking; import os, time\n"
+        "with tracking.tracked_run({'experiment': 'e'}, 'victim', {'a': 1}) as run:\n"
+        "    print(run.run_id, flush=True); time.sleep(600)\n"
+    )
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=os.environ)
     victim = proc.stdout.readline().strip()
     client = mlflow.MlflowClient(uri)
@@ -407,7 +440,6 @@ def dvc_workspace(tmp_path_factory):
     import subprocess
 
     from conftest import REPO
-
     from test_dvc_pipeline import BIN, _run
 
     ws = tmp_path_factory.mktemp("dvcfaults") / "ws"
@@ -416,8 +448,12 @@ def dvc_workspace(tmp_path_factory):
         shutil.copy(REPO / name, ws / name)
     shutil.copytree(REPO / "conf", ws / "conf")
     shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-    for args in (["git", "init", "-q"], ["git", "config", "user.email", "t@example.com"], ["git", "config", "user.name", "t"],
-                 [BIN / "dvc", "init", "-q"]):
+    for args in (
+        ["git", "init", "-q"],
+        ["git", "config", "user.email", "t@example.com"],
+        ["git", "config", "user.name", "t"],
+        [BIN / "dvc", "init", "-q"],
+    ):
         _run(args, ws)
     shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
     subprocess.run([BIN / "dvc", "remote", "remove", "demo"], cwd=ws, capture_output=True)
@@ -471,12 +507,23 @@ def _interrupt_stage(ws: Path, stage: str, sig: int) -> tuple[int, str]:
 
     from test_dvc_pipeline import BIN
 
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}"}
+    env = {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}",
+    }
     # a user's terminal delivers Ctrl-C to processes with the default SIGINT action; a test run started in the
     # background by a non-interactive shell (`cmd &`) inherits SIGINT ignored, which `dvc repro` would inherit too
-    proc = subprocess.Popen([BIN / "dvc", "repro"], cwd=ws, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = subprocess.Popen(
+        [BIN / "dvc", "repro"],
+        cwd=ws,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     deadline = time.monotonic() + 900
     sent = False
     while proc.poll() is None and time.monotonic() < deadline:
@@ -532,18 +579,24 @@ def test_interrupted_dvc_repro_keeps_the_release_bit_for_bit(dvc_workspace, tmp_
         removed = [o for o in stages.stage_outputs(stage, cfg.paths) if not (ws / o).exists()]
         if signame == "SIGINT" and removed:  # the stage said how to get DVC's removed outputs back
             assert f"`dvc checkout {stage}` brings back the last good one" in out, out
-        debris = sorted(p.name for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*"))
+        debris = sorted(
+            p.name for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")
+        )
         if signame == "SIGINT":
             assert not debris, debris  # cleaned up on the way out
         stages.start_stage(stage, cfg)  # what the next run does first
-        assert not [p for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")]
+        assert not [
+            p for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")
+        ]
         client = mlflow.MlflowClient(f"sqlite:///{ws / 'mlflow.db'}")
         with pytest.MonkeyPatch.context() as mp:
             mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
             with tracking.tracked_run(cfg.to_dict()["tracking"], "next run", None):
                 pass
         runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
-        assert all(r.info.status in ("FINISHED", "KILLED") for r in runs), [(r.info.run_name, r.info.status) for r in runs]
+        assert all(r.info.status in ("FINISHED", "KILLED") for r in runs), [
+            (r.info.run_name, r.info.status) for r in runs
+        ]
         if stage == "evaluate":
             assert sum(r.info.status == "KILLED" for r in runs) == 1
         if removed:
@@ -569,7 +622,11 @@ def test_failed_dvc_repro_keeps_the_release_and_names_the_fault(dvc_workspace, t
     else:
         edit_params(model__n_components="ten")(ws)
         stage, expected = "evaluate", ["model.n_components='ten'", "dvc checkout evaluate"]
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}"}
+    env = {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}",
+    }
     proc = subprocess.run([BIN / "dvc", "repro"], cwd=ws, env=env, capture_output=True, text=True)
     assert proc.returncode != 0
     for text in expected:
@@ -631,28 +688,53 @@ def _nan_model_intercept(ws: Path) -> None:
 FIX_PREPARE = "dvc repro -f prepare"
 DAMAGED_FILES = {
     # the issue's "mmap length is greater than file size" and its kin: one line naming the file and the fix
-    "truncated meshes.npy": (lambda ws: _truncate(ws / PREPARED / "meshes.npy"), "evaluate",
-                             [f"{PREPARED}/meshes.npy: truncated", "needs", FIX_PREPARE]),
-    "truncated neutral_low_au.npy": (lambda ws: _truncate(ws / PREPARED / "neutral_low_au.npy"), "evaluate",
-                                     [f"{PREPARED}/neutral_low_au.npy: truncated", FIX_PREPARE]),
-    "truncated reference.npz": (lambda ws: _truncate(ws / PREPARED / "reference.npz"), "release",
-                                [f"{PREPARED}/reference.npz", "truncated or replaced", FIX_PREPARE]),
+    "truncated meshes.npy": (
+        lambda ws: _truncate(ws / PREPARED / "meshes.npy"),
+        "evaluate",
+        [f"{PREPARED}/meshes.npy: truncated", "needs", FIX_PREPARE],
+    ),
+    "truncated neutral_low_au.npy": (
+        lambda ws: _truncate(ws / PREPARED / "neutral_low_au.npy"),
+        "evaluate",
+        [f"{PREPARED}/neutral_low_au.npy: truncated", FIX_PREPARE],
+    ),
+    "truncated reference.npz": (
+        lambda ws: _truncate(ws / PREPARED / "reference.npz"),
+        "release",
+        [f"{PREPARED}/reference.npz", "truncated or replaced", FIX_PREPARE],
+    ),
     # a byte flipped in place (with DVC's hardlinked cache, in the cache too): caught by prepare's checksums
-    "one byte flipped in meshes.npy": (lambda ws: _flip_byte(ws / PREPARED / "meshes.npy"), "evaluate",
-                                       [f"{PREPARED}/meshes.npy: bytes", "sha256 checksum", FIX_PREPARE]),
+    "one byte flipped in meshes.npy": (
+        lambda ws: _flip_byte(ws / PREPARED / "meshes.npy"),
+        "evaluate",
+        [f"{PREPARED}/meshes.npy: bytes", "sha256 checksum", FIX_PREPARE],
+    ),
     "one byte flipped in a file hard-linked into a cache": (
         lambda ws: (os.link(ws / PREPARED / "meshes.npy", ws / "cache-copy"), _flip_byte(ws / PREPARED / "meshes.npy")),
-        "evaluate", [f"{PREPARED}/meshes.npy: bytes", "hard-linked into DVC's cache", "find .dvc/cache -inum ",
-                     FIX_PREPARE]),
-    "one byte flipped in frames.parquet": (lambda ws: _flip_byte(ws / PREPARED / "frames.parquet", 0.3), "evaluate",
-                                           [f"{PREPARED}/frames.parquet: bytes", "checksum", FIX_PREPARE]),
-    "one byte flipped in video_ids.npy": (lambda ws: _flip_byte(ws / PREPARED / "video_ids.npy", 0.9), "evaluate",
-                                          [f"{PREPARED}/video_ids.npy", "checksum", FIX_PREPARE]),
-    "summary.json not JSON": (lambda ws: (ws / PREPARED / "summary.json").write_text("{\"counts\": "), "evaluate",
-                              [f"{PREPARED}/summary.json: not readable JSON", FIX_PREPARE]),
+        "evaluate",
+        [f"{PREPARED}/meshes.npy: bytes", "hard-linked into DVC's cache", "find .dvc/cache -inum ", FIX_PREPARE],
+    ),
+    "one byte flipped in frames.parquet": (
+        lambda ws: _flip_byte(ws / PREPARED / "frames.parquet", 0.3),
+        "evaluate",
+        [f"{PREPARED}/frames.parquet: bytes", "checksum", FIX_PREPARE],
+    ),
+    "one byte flipped in video_ids.npy": (
+        lambda ws: _flip_byte(ws / PREPARED / "video_ids.npy", 0.9),
+        "evaluate",
+        [f"{PREPARED}/video_ids.npy", "checksum", FIX_PREPARE],
+    ),
+    "summary.json not JSON": (
+        lambda ws: (ws / PREPARED / "summary.json").write_text('{"counts": '),
+        "evaluate",
+        [f"{PREPARED}/summary.json: not readable JSON", FIX_PREPARE],
+    ),
     # a release is finite or refused
-    "NaN in model.npz's intercept": (_nan_model_intercept, "release",
-                                     ["build/model/model.npz", "'intercept' has 1 NaN/inf value(s)", "dvc repro -f evaluate"]),
+    "NaN in model.npz's intercept": (
+        _nan_model_intercept,
+        "release",
+        ["build/model/model.npz", "'intercept' has 1 NaN/inf value(s)", "dvc repro -f evaluate"],
+    ),
 }
 
 
@@ -756,8 +838,10 @@ def test_cv_group_must_name_the_video_column(workspace, group, capsys):
     pd.testing.assert_frame_equal(mlflow_runs(workspace), runs)
 
 
-CONFIG_FAULTS["anchor vertex 999"] = (edit_params(preprocess__alignment__anchor_indices=[999, 9, 8, 151, 6, 168]),
-                                      ["anchor_indices: [999] name no vertex", "0..477"])
+CONFIG_FAULTS["anchor vertex 999"] = (
+    edit_params(preprocess__alignment__anchor_indices=[999, 9, 8, 151, 6, 168]),
+    ["anchor_indices: [999] name no vertex", "0..477"],
+)
 
 
 # ------------------------------------------------------------------------------------------------ full disks
@@ -776,8 +860,10 @@ class _Tmpfs:
         self.where.rename(saved)
         self.where.mkdir()
         used = sum(p.stat().st_size for p in saved.rglob("*") if p.is_file())
-        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={used + self.slack + (64 << 12)}", "tmpfs", self.where],
-                              capture_output=True)
+        proc = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={used + self.slack + (64 << 12)}", "tmpfs", self.where],
+            capture_output=True,
+        )
         if proc.returncode:
             self.where.rmdir()
             saved.rename(self.where)
@@ -813,8 +899,11 @@ def test_full_disk_is_one_line_naming_the_folder_and_keeps_outputs(workspace, st
     assert code == 2, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     name = "build" if stage == "prepare" else "out"
-    for text in (f"{name}/: no space left on the device while writing {out.relative_to(workspace)}",
-                 "a complete one takes about", f"the previous {out.relative_to(workspace)} is intact"):
+    for text in (
+        f"{name}/: no space left on the device while writing {out.relative_to(workspace)}",
+        "a complete one takes about",
+        f"the previous {out.relative_to(workspace)} is intact",
+    ):
         assert text in err, err
     assert not debris, debris
     assert tree_digest(out) == before
@@ -861,8 +950,18 @@ def _rendered_card(ws: Path) -> tuple[str, str]:
 def test_strings_from_promotion_and_config_are_text_in_the_card(workspace, hostile, capsys):
     import json
 
-    (workspace / "promotion.json").write_text(json.dumps({"promoted": {
-        "run_id": hostile, "parent_run_id": hostile + "p", "criterion": "best " + hostile, "compared": hostile + " | x"}}))
+    (workspace / "promotion.json").write_text(
+        json.dumps(
+            {
+                "promoted": {
+                    "run_id": hostile,
+                    "parent_run_id": hostile + "p",
+                    "criterion": "best " + hostile,
+                    "compared": hostile + " | x",
+                }
+            }
+        )
+    )
     edit_params(tracking__experiment=hostile)(workspace)
     code, err = run_cli(["release"], workspace, capsys)
     assert code == 0, err
@@ -872,8 +971,12 @@ def test_strings_from_promotion_and_config_are_text_in_the_card(workspace, hosti
     out, text = _rendered_card(workspace)
     assert not re.search(r"<script\b|<!--|<img[^>]*onerror", out), out  # the figures' own <img> tags stay
     assert "<h2>Provenance</h2>" in out and "<h2>Frame</h2>" in out  # nothing after the strings was swallowed (<!--)
-    for shown in (f"Promoted run {hostile} of sweep {hostile}p", f"Criterion: best {hostile}",
-                  f"Compared: {hostile} | x", f"experiment {hostile}"):
+    for shown in (
+        f"Promoted run {hostile} of sweep {hostile}p",
+        f"Criterion: best {hostile}",
+        f"Compared: {hostile} | x",
+        f"experiment {hostile}",
+    ):
         assert shown in text, (shown, text)
 
 

@@ -18,11 +18,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
-from aumesh import cli, config
+from aumesh import cli
 from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
 from test_faults import good_workspace, mlflow_runs, run_cli, tree_digest, workspace  # noqa: F401 (fixtures)
 
@@ -38,9 +37,11 @@ def one_line(err: str, command: str) -> str:
 
 def hold_lock(db: Path, seconds: float) -> subprocess.Popen:
     """Another process holding an exclusive lock on the store (as a long transaction of another program does)."""
-    code = ("import sqlite3, sys, time\n"
-            "c = sqlite3.connect(sys.argv[1], isolation_level=None); c.execute('BEGIN EXCLUSIVE')\n"
-            "print('locked', flush=True); time.sleep(float(sys.argv[2]))\n")
+    code = (
+        "import sqlite3, sys, time\n"
+        "c = sqlite3.connect(sys.argv[1], isolation_level=None); c.execute('BEGIN EXCLUSIVE')\n"
+        "print('locked', flush=True); time.sleep(float(sys.argv[2]))\n"
+    )
     proc = subprocess.Popen([sys.executable, "-c", code, str(db), str(seconds)], stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "locked"
     return proc
@@ -135,9 +136,11 @@ def test_store_client_retries_a_write_while_another_writer_holds_the_lock(tmp_pa
 
     assert mlflow_store._with_store_retry(flaky, uri, 10) == "ok" and len(calls) == 3
     assert calls[2] - calls[1] > calls[1] - calls[0] > 0.2  # backoff
+
     def always(exc):
         def call():
             raise exc
+
         return call
 
     with pytest.raises(mlflow_store.TrackingStoreError, match="locked by another process.*busy_timeout_s=0.3"):
@@ -179,7 +182,8 @@ def swept(swept_workspace, tmp_path, monkeypatch):
 
 def promotion_files(ws: Path) -> dict[str, bytes]:
     return {p: (ws / p).read_bytes() for p in ("promotion.json", "params.yaml")} | {
-        "conf": json.dumps(tree_digest(ws / "conf")).encode()}
+        "conf": json.dumps(tree_digest(ws / "conf")).encode()
+    }
 
 
 def ranked(ws: Path, parent: str) -> list[str]:
@@ -190,7 +194,7 @@ def ranked(ws: Path, parent: str) -> list[str]:
 
 
 def no_absolute_path(record, where: str) -> None:
-    for value in (record.values() if isinstance(record, dict) else record):
+    for value in record.values() if isinstance(record, dict) else record:
         if isinstance(value, (dict, list)):
             no_absolute_path(value, where)
         elif isinstance(value, str):
@@ -266,7 +270,9 @@ def test_interrupted_sweep_is_marked_killed_and_not_promoted_by_accident(swept, 
     children = queries.list_child_runs(parent, {})
     assert record["status"] == "KILLED" and record["tags"]["aumesh.sweep.interrupted"].startswith("interrupted after 2")
     assert sorted(children["status"]) == ["FINISHED", "FINISHED", "KILLED"]
-    assert line.split("running configuration ")[1].startswith(children[children["status"] == "KILLED"]["run_name"].iloc[0])
+    assert line.split("running configuration ")[1].startswith(
+        children[children["status"] == "KILLED"]["run_name"].iloc[0]
+    )
 
     before = promotion_files(ws)
     code, err = run_cli(["promote"], ws, capsys)
@@ -288,8 +294,14 @@ def test_sigterm_stops_a_stage_as_ctrl_c_does(workspace, tmp_path):
     removed, the release bit for bit."""
     before = tree_digest(workspace / "release")
     env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).parents[1])}
-    proc = subprocess.Popen([sys.executable, "-m", "aumesh", "release"], cwd=workspace, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "aumesh", "release"],
+        cwd=workspace,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 120
     while proc.poll() is None and not any(workspace.glob(".release.tmp-*")) and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -354,10 +366,19 @@ def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspac
     release = tree_digest(ws / "release")
     lock = (ws / "dvc.lock").read_bytes()
     _stale(ws, stage)
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
-           "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}"}
-    proc = subprocess.Popen([BIN / "dvc", "repro"], cwd=ws, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    env = {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}",
+    }
+    proc = subprocess.Popen(
+        [BIN / "dvc", "repro"],
+        cwd=ws,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     deadline = time.monotonic() + 600
     worker = None
     while proc.poll() is None and time.monotonic() < deadline:

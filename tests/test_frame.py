@@ -68,23 +68,29 @@ def test_axis_major_rotation_matches_per_vertex_rotation():
     flat = rng.normal(size=(5, 3 * N_VERTICES))
     expected = (unflatten_axis_major(flat) - origin) @ rot.T
     np.testing.assert_allclose(unflatten_axis_major(rotate_axis_major(flat, rot, origin)), expected, atol=1e-12)
-    np.testing.assert_allclose(unflatten_axis_major(rotate_axis_major(flat, rot)), unflatten_axis_major(flat) @ rot.T,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        unflatten_axis_major(rotate_axis_major(flat, rot)), unflatten_axis_major(flat) @ rot.T, atol=1e-12
+    )
 
 
 def test_release_predicts_the_aligned_model_rotated_exactly():
     rng = np.random.default_rng(3)
     tpl = face.canonical_template() * 60.0 + 300.0
-    reference = {"mean_aligned_mesh": tpl, "mean_low_au_mesh": tpl, "reference_anchors": tpl[:12],
-                 "anchor_indices": np.arange(12)}
+    reference = {
+        "mean_aligned_mesh": tpl,
+        "mean_low_au_mesh": tpl,
+        "reference_anchors": tpl[:12],
+        "anchor_indices": np.arange(12),
+    }
     columns = [*AU_COLUMNS, "Pitch", "Yaw", "Roll"]
     coef, intercept = rng.normal(size=(3 * N_VERTICES, 23)), rng.normal(size=3 * N_VERTICES)
     arrays = release_arrays(coef, intercept, columns, 23, reference, "", {})
     rotation, origin = canonical_frame(tpl)
     x = np.concatenate([rng.normal(size=20), rng.uniform(-0.5, 0.5, size=3)])  # pose in radians
     aligned = unflatten_axis_major(x @ coef.T + intercept)
-    np.testing.assert_allclose(predict_mesh(arrays, x[:20], x[20:]), to_canonical(aligned, rotation, origin),
-                               rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(
+        predict_mesh(arrays, x[:20], x[20:]), to_canonical(aligned, rotation, origin), rtol=1e-5, atol=1e-3
+    )
     np.testing.assert_allclose(arrays["mean_aligned_mesh"].mean(axis=0), 0.0, atol=1e-3)  # origin: its centroid
     _assert_card_orientation(arrays["mean_aligned_mesh"])
 
@@ -111,8 +117,9 @@ def _release_from(data_dir: Path, work: Path):
     prepare.run(tables.discover(data_dir, cfg.data.tables, cfg.data.mesh_npy), cfg, work)
     prepared = ev.load_prepared(work)
     cv, final = ev.evaluate(prepared, cfg)
-    arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
-                            prepared.reference, "", {})
+    arrays = release_arrays(
+        final.coef, final.mesh_intercept, final.feature_columns, final.n_components, prepared.reference, "", {}
+    )
     return cv, arrays
 
 
@@ -134,7 +141,11 @@ def test_release_is_in_the_card_frame_whatever_the_tables_convention(three_conve
     _assert_card_orientation(arrays["mean_aligned_mesh"].astype(np.float64))
     _assert_card_orientation(arrays["mean_low_au_mesh"].astype(np.float64), exact=False)
     neutral = predict_mesh(arrays, np.zeros(20))
-    assert neutral[263, 0] > neutral[33, 0] and neutral[10, 1] > neutral[152, 1] and neutral[1, 2] > neutral[EYES, 2].mean()
+    assert (
+        neutral[263, 0] > neutral[33, 0]
+        and neutral[10, 1] > neutral[152, 1]
+        and neutral[1, 2] > neutral[EYES, 2].mean()
+    )
     # AU12 (lip corner puller) pulls the corners up and outward: the subject's left corner toward +x, both toward +y
     smile = predict_mesh(arrays, np.eye(20)[AU_COLUMNS.index("AU12")]) - neutral
     assert smile[291, 0] > 0 > smile[61, 0] and smile[291, 1] > 0 and smile[61, 1] > 0

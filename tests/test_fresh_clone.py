@@ -27,8 +27,9 @@ def _run(args, cwd: Path, env: dict, timeout: float = 1200.0) -> str:
 
 def test_make_demo_leaves_the_clone_clean_and_stages_run_however_dvc_is_started(fresh_clone):
     ws, env = fresh_clone
-    assert subprocess.run(["bash", "-c", "command -v aumesh"], env=env, capture_output=True).returncode != 0, \
+    assert subprocess.run(["bash", "-c", "command -v aumesh"], env=env, capture_output=True).returncode != 0, (
         "the venv's bin must not be on PATH for this test"
+    )
     out = _run([*MAKE, "demo"], ws, env)
     assert (ws / "release" / "au_to_mesh_pls.npz").exists()
     # the demo remote holds the committed lock's outputs: nothing is rebuilt, nothing changes

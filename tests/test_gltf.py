@@ -9,10 +9,10 @@ import subprocess
 import numpy as np
 import pytest
 
-from conftest import REPO, upright_truth_release
 from aumesh.data.schema import AU_COLUMNS
 from aumesh.export import gltf
 from aumesh.model.release import load_npz
+from conftest import REPO, upright_truth_release
 
 COMPONENT = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
 WIDTH = {"SCALAR": 1, "VEC3": 3}
@@ -25,16 +25,18 @@ def parse_glb(path):
     assert (magic, version, length) == (b"glTF", 2, len(data))
     json_len, json_type = struct.unpack_from("<I4s", data, 12)
     assert json_type == b"JSON"
-    doc = json.loads(data[20:20 + json_len])
+    doc = json.loads(data[20 : 20 + json_len])
     bin_len, bin_type = struct.unpack_from("<I4s", data, 20 + json_len)
     assert bin_type == b"BIN\0"
-    blob = data[28 + json_len:28 + json_len + bin_len]
+    blob = data[28 + json_len : 28 + json_len + bin_len]
 
     def accessor(i):
         acc = doc["accessors"][i]
         view = doc["bufferViews"][acc["bufferView"]]
         n = acc["count"] * WIDTH[acc["type"]]
-        arr = np.frombuffer(blob, COMPONENT[acc["componentType"]], n, view.get("byteOffset", 0) + acc.get("byteOffset", 0))
+        arr = np.frombuffer(
+            blob, COMPONENT[acc["componentType"]], n, view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        )
         return arr.reshape(acc["count"], -1) if WIDTH[acc["type"]] > 1 else arr
 
     return doc, accessor
@@ -63,7 +65,9 @@ def test_rig_is_the_model_at_pose_zero(rig):
         flat = x @ m["coef"].astype(np.float64) + m["intercept"].astype(np.float64)
         expected = np.stack([flat[:478], flat[478:956], flat[956:]], axis=1)
         rig_mesh = base + np.tensordot(w, targets, axes=1)
-        np.testing.assert_allclose(rig_mesh, expected, rtol=0, atol=4 * np.finfo(np.float32).eps * np.abs(expected).max())
+        np.testing.assert_allclose(
+            rig_mesh, expected, rtol=0, atol=4 * np.finfo(np.float32).eps * np.abs(expected).max()
+        )
     # POSITION bounds are required by the spec and must be the data's
     acc = doc["accessors"][prim["attributes"]["POSITION"]]
     np.testing.assert_array_equal(acc["min"], base.min(axis=0).astype(np.float32))
@@ -88,8 +92,13 @@ def test_triangles_and_normals_face_out_of_the_face(rig):
 
 def test_rig_passes_the_khronos_gltf_validator(rig, node_tools):
     _, glb = rig
-    proc = subprocess.run(["node", str(REPO / "tests" / "tools" / "validate_gltf.cjs"), str(glb)],
-                          capture_output=True, text=True, check=True, timeout=120)
+    proc = subprocess.run(
+        ["node", str(REPO / "tests" / "tools" / "validate_gltf.cjs"), str(glb)],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    )
     report = json.loads(proc.stdout)
     issues = report["issues"]
     assert issues["numErrors"] == 0, issues["messages"]

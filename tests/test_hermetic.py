@@ -13,8 +13,10 @@ from aumesh.experiments import promote
 from conftest import REPO
 
 # tests that read the configuration and fail if it is not the card's (n_components=83 is OLS on 83 features)
-CONFIG_SENSITIVE = ["tests/test_pipeline.py::test_full_rank_final_fit_is_ordinary_least_squares",
-                    "tests/test_config.py"]
+CONFIG_SENSITIVE = [
+    "tests/test_pipeline.py::test_full_rank_final_fit_is_ordinary_least_squares",
+    "tests/test_config.py",
+]
 
 
 def test_suite_passes_in_a_checkout_with_a_promoted_experiment(tmp_path):
@@ -27,11 +29,18 @@ def test_suite_passes_in_a_checkout_with_a_promoted_experiment(tmp_path):
     # what `aumesh promote` leaves behind: a promoted run with another design and n_components, params.yaml recomposed
     (repo / "conf" / "experiment").mkdir(exist_ok=True)
     (repo / "conf" / "experiment" / "promoted.yaml").write_text(
-        promote.experiment_yaml({"features.name": "au", "model.n_components": 19}))
+        promote.experiment_yaml({"features.name": "au", "model.n_components": 19})
+    )
     config.write_params(config.compose(config_dir=repo / "conf"), repo / "params.yaml")
     assert config.load_params(repo / "params.yaml").model.n_components == 19  # the promotion is in effect
 
     env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *CONFIG_SENSITIVE],
-                          cwd=repo, env=env, capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *CONFIG_SENSITIVE],
+        cwd=repo,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]

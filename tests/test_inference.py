@@ -70,8 +70,9 @@ def test_batches_and_dataframes_give_one_mesh_per_row(card_release):
     au_sub = np.zeros_like(au)
     for name in sub.columns:
         au_sub[:, AU_COLUMNS.index(name)] = au[:, AU_COLUMNS.index(name)]
-    np.testing.assert_allclose(aumesh.predict_mesh(path, sub), np.stack([_card_snippet(path, r) for r in au_sub]),
-                               rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(
+        aumesh.predict_mesh(path, sub), np.stack([_card_snippet(path, r) for r in au_sub]), rtol=1e-6, atol=1e-4
+    )
     assert aumesh.predict_mesh(path, df.iloc[:1]).shape == (1, 478, 3)  # a DataFrame is a batch, even of one
 
 
@@ -83,15 +84,18 @@ def test_pose_conditioned_prediction_uses_the_interactions(card_release):
     x_full = np.stack([np.concatenate([a, p, np.outer(p, a).ravel()]) for a, p in zip(au, pose)])
     expected = (x_full @ coef.T + intercept).reshape(4, 3, 478).transpose(0, 2, 1)
     np.testing.assert_allclose(aumesh.predict_mesh(path, au, pose), expected, rtol=1e-5, atol=1e-3)
-    df = pd.DataFrame(au, columns=list(AU_COLUMNS)).assign(Pitch=pose[:, 0], Roll=pose[:, 2], Yaw=pose[:, 1])  # py-feat's order
+    df = pd.DataFrame(au, columns=list(AU_COLUMNS)).assign(
+        Pitch=pose[:, 0], Roll=pose[:, 2], Yaw=pose[:, 1]
+    )  # py-feat's order
     np.testing.assert_allclose(aumesh.predict_mesh(path, df), expected, rtol=1e-5, atol=1e-3)
     # one pose row applies to every AU row; pose as a mapping by name
     one = aumesh.predict_mesh(path, au, {"Yaw": pose[0, 1], "Roll": pose[0, 2], "Pitch": pose[0, 0]})
     np.testing.assert_allclose(one[0], expected[0], rtol=1e-5, atol=1e-3)
     # without interactions the 23-row coef with pose is the model: the card's snippet with a pose
     path23, _, _ = _release(path.parent, "au_pose", seed=3)
-    np.testing.assert_allclose(aumesh.predict_mesh(path23, au[0], pose[0]), _card_snippet(path23, au[0], pose[0]),
-                               rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(
+        aumesh.predict_mesh(path23, au[0], pose[0]), _card_snippet(path23, au[0], pose[0]), rtol=1e-6, atol=1e-4
+    )
 
 
 def test_a_missing_file_names_the_path_and_the_fix(tmp_path):
@@ -112,33 +116,51 @@ def test_a_release_without_a_key_is_named(card_release):
         aumesh.predict_mesh(arrays, {"AU12": 1.0})
 
 
-@pytest.mark.parametrize("aus, message", [
-    ({"AU12": 1.0, "AU13": 0.5}, r"unknown name\(s\) \['AU13'\]; the model takes AU01, AU02, .*AU43 and Pitch, Yaw, Roll"),
-    (pd.DataFrame({"AU12": [1.0], "smile": [1.0]}), r"aus \(DataFrame\): no column 'AU01' \(no column has a name close "
-                                                    r"to it\); 18 more missing"),  # other columns: a whole table
-    (np.zeros(19), r"aus has shape \(19,\); expected \(20,\) or \(N, 20\) in the release's AU order \[AU01, AU02, .*AU43\]"),
-    (np.zeros((4, 22)), r"aus has shape \(4, 22\); expected"),
-    (np.zeros((2, 2, 20)), r"aus has shape \(2, 2, 20\)"),
-    ({"AU12": np.nan}, r"aus: 1 NaN/inf value\(s\), first in 'AU12' at row 0"),
-    (pd.DataFrame({"AU04": [0.0, np.inf]}), r"first in 'AU04' at row 1"),
-    ({"AU12": [1.0, 2.0]}, r"values must be single numbers \(one row\), not \['AU12'\]"),
-    ({"AU12": "high"}, r"aus\['AU12'\]: not numeric"),
-    (pd.DataFrame({"AU12": [1.0], "Pitch": [0.1]}), r"has \['Pitch'\] but not \['Yaw', 'Roll'\]"),
-])
+@pytest.mark.parametrize(
+    "aus, message",
+    [
+        (
+            {"AU12": 1.0, "AU13": 0.5},
+            r"unknown name\(s\) \['AU13'\]; the model takes AU01, AU02, .*AU43 and Pitch, Yaw, Roll",
+        ),
+        (
+            pd.DataFrame({"AU12": [1.0], "smile": [1.0]}),
+            r"aus \(DataFrame\): no column 'AU01' \(no column has a name close "
+            r"to it\); 18 more missing",
+        ),  # other columns: a whole table
+        (
+            np.zeros(19),
+            r"aus has shape \(19,\); expected \(20,\) or \(N, 20\) in the release's AU order \[AU01, AU02, .*AU43\]",
+        ),
+        (np.zeros((4, 22)), r"aus has shape \(4, 22\); expected"),
+        (np.zeros((2, 2, 20)), r"aus has shape \(2, 2, 20\)"),
+        ({"AU12": np.nan}, r"aus: 1 NaN/inf value\(s\), first in 'AU12' at row 0"),
+        (pd.DataFrame({"AU04": [0.0, np.inf]}), r"first in 'AU04' at row 1"),
+        ({"AU12": [1.0, 2.0]}, r"values must be single numbers \(one row\), not \['AU12'\]"),
+        ({"AU12": "high"}, r"aus\['AU12'\]: not numeric"),
+        (pd.DataFrame({"AU12": [1.0], "Pitch": [0.1]}), r"has \['Pitch'\] but not \['Yaw', 'Roll'\]"),
+    ],
+)
 def test_bad_aus_are_refused_with_a_message_naming_the_problem(card_release, aus, message):
     with pytest.raises(PredictionInputError, match=message):
         aumesh.predict_mesh(card_release[0], aus)
 
 
-@pytest.mark.parametrize("pose, message", [
-    ([10.0, 20.0, 0.0], r"pose: Yaw reaches 20, more than pi/2: pose looks like degrees\. "
-                        r"Pose is in radians, in the order Pitch, Yaw, Roll\. Fix: np\.deg2rad\(pose\)"),
-    ([0.0, 0.0, -45.0], r"Roll reaches 45"),
-    ([0.1, 0.2], r"pose has shape \(2,\); expected \(3,\) or \(N, 3\): Pitch, Yaw, Roll in radians"),
-    ([0.1, np.inf, 0.0], r"pose: 1 NaN/inf value\(s\), first in 'Yaw' at row 0"),
-    ({"pitch": 0.1, "Yaw": 0.0, "Roll": 0.0}, r"pose: keys must be \['Pitch', 'Yaw', 'Roll'\]"),
-    (np.zeros((3, 3)), r"aus has 2 rows but pose has 3"),
-])
+@pytest.mark.parametrize(
+    "pose, message",
+    [
+        (
+            [10.0, 20.0, 0.0],
+            r"pose: Yaw reaches 20, more than pi/2: pose looks like degrees\. "
+            r"Pose is in radians, in the order Pitch, Yaw, Roll\. Fix: np\.deg2rad\(pose\)",
+        ),
+        ([0.0, 0.0, -45.0], r"Roll reaches 45"),
+        ([0.1, 0.2], r"pose has shape \(2,\); expected \(3,\) or \(N, 3\): Pitch, Yaw, Roll in radians"),
+        ([0.1, np.inf, 0.0], r"pose: 1 NaN/inf value\(s\), first in 'Yaw' at row 0"),
+        ({"pitch": 0.1, "Yaw": 0.0, "Roll": 0.0}, r"pose: keys must be \['Pitch', 'Yaw', 'Roll'\]"),
+        (np.zeros((3, 3)), r"aus has 2 rows but pose has 3"),
+    ],
+)
 def test_bad_pose_is_refused_with_a_message_naming_the_problem(card_release, pose, message):
     with pytest.raises(PredictionInputError, match=message):
         aumesh.predict_mesh(card_release[0], np.zeros((2, 20)), pose)
@@ -158,12 +180,17 @@ def test_cli_predict_writes_one_mesh_per_table_row(card_release, tmp_path, capsy
     path, coef, intercept = card_release
     rng = np.random.default_rng(4)
     au, pose = rng.uniform(0, 2, size=(3, 20)), rng.uniform(-0.4, 0.4, size=(3, 3))
-    table = pd.DataFrame(au, columns=list(AU_COLUMNS)).assign(Pitch=pose[:, 0], Roll=pose[:, 2], Yaw=pose[:, 1],
-                                                            frame=[7, 8, 9])
+    table = pd.DataFrame(au, columns=list(AU_COLUMNS)).assign(
+        Pitch=pose[:, 0], Roll=pose[:, 2], Yaw=pose[:, 1], frame=[7, 8, 9]
+    )
     table.to_csv(tmp_path / "rows.csv", index=False)
     out = tmp_path / "meshes.npz"
-    assert cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out),
-                     "--ignore", "frame"]) == 0
+    assert (
+        cli.main(
+            ["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out), "--ignore", "frame"]
+        )
+        == 0
+    )
     assert "wrote 3 mesh(es)" in capsys.readouterr().out
     x_full = np.stack([np.concatenate([a, p, np.outer(p, a).ravel()]) for a, p in zip(au, pose)])
     expected = (x_full @ coef.T + intercept).reshape(3, 3, 478).transpose(0, 2, 1)
@@ -172,10 +199,12 @@ def test_cli_predict_writes_one_mesh_per_table_row(card_release, tmp_path, capsy
         np.testing.assert_allclose(z["meshes"], expected, rtol=1e-5, atol=1e-2)
         np.testing.assert_array_equal(z["pose"], pose)
     # the table's own errors name the table; OBJ/PLY hold one mesh; each is one line on stderr and exit 2
-    for extra, message in ([["--strict"], r"rows\.csv: unknown name\(s\) \['frame'\]"],
-                           [["--out", str(tmp_path / "m.obj"), "--ignore", "frame"], r"rows\.csv has 3 rows; \.obj holds one mesh"],
-                           [["--ignore", "video_id"], r"--ignore names column\(s\) \['video_id'\]"],
-                           [["--release", str(tmp_path / "none.npz")], r"release NPZ not found: .*none\.npz"]):
+    for extra, message in (
+        [["--strict"], r"rows\.csv: unknown name\(s\) \['frame'\]"],
+        [["--out", str(tmp_path / "m.obj"), "--ignore", "frame"], r"rows\.csv has 3 rows; \.obj holds one mesh"],
+        [["--ignore", "video_id"], r"--ignore names column\(s\) \['video_id'\]"],
+        [["--release", str(tmp_path / "none.npz")], r"release NPZ not found: .*none\.npz"],
+    ):
         assert cli.main(["predict", str(tmp_path / "rows.csv"), "--release", str(path), "--out", str(out), *extra]) == 2
         err = capsys.readouterr().err
         assert err.startswith("aumesh predict: error: ") and re.search(message, err), err
@@ -200,7 +229,7 @@ def test_cli_predict_one_row_as_a_mesh_file_facing_out_of_the_face(tmp_path, suf
         assert lines[:2] == ["ply", "format ascii 1.0"]
         n_v = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[-1])
         n_f = int(next(ln for ln in lines if ln.startswith("element face")).split()[-1])
-        body = lines[lines.index("end_header") + 1:]
+        body = lines[lines.index("end_header") + 1 :]
         assert len(body) == n_v + n_f
         verts = np.array([[float(v) for v in ln.split()] for ln in body[:n_v]])
         faces = np.array([[int(v) for v in ln.split()] for ln in body[n_v:]])

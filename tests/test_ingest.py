@@ -49,8 +49,9 @@ def _same_prepared(a: Path, b: Path, atol: float = 0.0) -> None:
 def clean_reference(tmp_path_factory):
     """The hand-cleaned tables (one per generated file) prepared by the recipe."""
     root = tmp_path_factory.mktemp("pyfeat")
-    summary = write_pyfeat_tables(root / "mp_csv", SPEC, detector="mp", fmt="csv", clean_dir=root / "clean",
-                                  videos_per_file=5)
+    summary = write_pyfeat_tables(
+        root / "mp_csv", SPEC, detector="mp", fmt="csv", clean_dir=root / "clean", videos_per_file=5
+    )
     prepared_summary, prepared = _prepare(root / "clean", root / "clean_work")
     return root, summary, prepared_summary, prepared
 
@@ -120,11 +121,15 @@ def test_face_selection_identity_keeps_the_videos_subject(clean_reference, tmp_p
 
 def test_identity_selection_picks_the_person_seen_most_not_the_largest_face():
     block = ingest_data.Block(
-        video=np.array(["v", "v", "v", "v"]), frame=np.array([0, 0, 1, 2]),
+        video=np.array(["v", "v", "v", "v"]),
+        frame=np.array([0, 0, 1, 2]),
         values={"FaceRectWidth": np.array([10.0, 50, 10, 10]), "FaceRectHeight": np.array([10.0, 50, 10, 10])},
-        identity=np.array(["Person_0", "Person_1", "Person_0", "Person_0"], dtype=object), mesh=np.zeros((4, 1434)))
-    layout = ingest_data.pyfeat.Layout("MPDetector", "input", None, None, ("FaceRectWidth", "FaceRectHeight"),
-                                       "Identity", None)
+        identity=np.array(["Person_0", "Person_1", "Person_0", "Person_0"], dtype=object),
+        mesh=np.zeros((4, 1434)),
+    )
+    layout = ingest_data.pyfeat.Layout(
+        "MPDetector", "input", None, None, ("FaceRectWidth", "FaceRectHeight"), "Identity", None
+    )
     subjects = ingest_data.main_identities({"v": {"Person_0": 3, "Person_1": 1}})
     keep, counts = ingest_data.select_faces(block, layout, "identity", subjects, "t")
     assert keep.tolist() == [0, 2, 3] and counts.extra_faces == 1
@@ -141,8 +146,15 @@ def test_csv_ranges_never_split_a_frame_and_give_the_same_tables(clean_reference
     assert all(a.stop == b.start for a, b in zip(spans[:-1], spans[1:]))
     whole = ingest_data.read_span(ingest_data.Span(source, spans[0].start, spans[-1].stop))
     parts = [ingest_data.read_span(s) for s in spans]
-    keys = [(str(p.column("input")[0]), p.column("frame")[0].as_py(), str(p.column("input")[-1]),
-             p.column("frame")[-1].as_py()) for p in parts]
+    keys = [
+        (
+            str(p.column("input")[0]),
+            p.column("frame")[0].as_py(),
+            str(p.column("input")[-1]),
+            p.column("frame")[-1].as_py(),
+        )
+        for p in parts
+    ]
     for (_, _, last_video, last_frame), (first_video, first_frame, _, _) in zip(keys[:-1], keys[1:]):
         assert (last_video, last_frame) != (first_video, first_frame)  # a frame's faces stay in one range
     assert sum(p.num_rows for p in parts) == whole.num_rows

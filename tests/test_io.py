@@ -62,7 +62,7 @@ def test_take_reads_rows_in_the_order_asked(tmp_path):
         got = f.take(rows, out)
         np.testing.assert_array_equal(f.take(rows[::-1]), data[rows[::-1]])
     np.testing.assert_array_equal(got, data[rows])
-    assert np.shares_memory(got, out) and np.isnan(out[len(rows):]).all()
+    assert np.shares_memory(got, out) and np.isnan(out[len(rows) :]).all()
 
 
 @pytest.mark.parametrize("reader", ["load_npy", "load_npz", "npy_layout"])
@@ -86,9 +86,11 @@ def test_npy_reads_in_threads_never_parse_two_headers_at_once(tmp_path, reader):
 
     def read(name):
         aio._parse_npy_header.cache_clear()  # parse the header every call
-        return {"load_npy": lambda: aio.load_npy(tmp_path / f"{name}.npy"),
-                "load_npz": lambda: aio.load_npz(tmp_path / f"{name}.npz", ["x", "y"]),
-                "npy_layout": lambda: aio.npy_layout(tmp_path / f"{name}.npy")}[reader]()
+        return {
+            "load_npy": lambda: aio.load_npy(tmp_path / f"{name}.npy"),
+            "load_npz": lambda: aio.load_npz(tmp_path / f"{name}.npz", ["x", "y"]),
+            "npy_layout": lambda: aio.npy_layout(tmp_path / f"{name}.npy"),
+        }[reader]()
 
     go, done, stop = threading.Event(), threading.Event(), threading.Event()
     handovers, errors = [0], []
@@ -101,8 +103,13 @@ def test_npy_reads_in_threads_never_parse_two_headers_at_once(tmp_path, reader):
 
     def handover(phase, info):  # runs in whichever thread allocates when a collection starts
         caller = sys._getframe(1).f_code
-        if (phase == "start" and threading.current_thread() is a and caller.co_name == "parse"
-                and caller.co_filename.endswith("ast.py") and handovers[0] < 20):
+        if (
+            phase == "start"
+            and threading.current_thread() is a
+            and caller.co_name == "parse"
+            and caller.co_filename.endswith("ast.py")
+            and handovers[0] < 20
+        ):
             handovers[0] += 1
             done.clear()
             go.set()
@@ -141,8 +148,11 @@ def test_write_row_map_puts_each_row_at_its_number_in_runs(tmp_path, monkeypatch
     rows = {int(r): np.full(3, float(r)) for r in (7, 2, 3, 4, 15, 9, 8)}
     writes = []
     real_write = NpyRowFile.write
-    monkeypatch.setattr(NpyRowFile, "write", lambda self, first, block: (writes.append((first, len(block))),
-                                                                          real_write(self, first, block)))
+    monkeypatch.setattr(
+        NpyRowFile,
+        "write",
+        lambda self, first, block: (writes.append((first, len(block))), real_write(self, first, block)),
+    )
     with NpyRowFile(path, writable=True) as f:
         f.write_row_map(rows)
         f.write_row_map({})

@@ -59,15 +59,26 @@ def mlflow_server(tmp_path_factory):
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     # No job runner (huey consumers for GenAI jobs): halves start-up time and CPU.
-    env = dict(os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true",
-               MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false")
+    env = dict(
+        os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true", MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false"
+    )
     env.pop("MLFLOW_TRACKING_URI", None)
     log = open(tmp / "server.log", "w")
     cmd = [
-        sys.executable, "-m", "mlflow", "server",
-        "--backend-store-uri", f"sqlite:///{tmp / 'mlflow.db'}",
-        "--artifacts-destination", str(tmp / "mlartifacts"),
-        "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
+        sys.executable,
+        "-m",
+        "mlflow",
+        "server",
+        "--backend-store-uri",
+        f"sqlite:///{tmp / 'mlflow.db'}",
+        "--artifacts-destination",
+        str(tmp / "mlartifacts"),
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+        "--workers",
+        "1",
     ]
     proc = subprocess.Popen(cmd, cwd=tmp, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
@@ -76,8 +87,9 @@ def mlflow_server(tmp_path_factory):
             if proc.poll() is not None:
                 pytest.fail(f"mlflow server exited with {proc.returncode}:\n{(tmp / 'server.log').read_text()[-3000:]}")
             if time.monotonic() > deadline:
-                pytest.fail(f"mlflow server not healthy after {STARTUP_TIMEOUT_S}s:\n"
-                            f"{(tmp / 'server.log').read_text()[-3000:]}")
+                pytest.fail(
+                    f"mlflow server not healthy after {STARTUP_TIMEOUT_S}s:\n{(tmp / 'server.log').read_text()[-3000:]}"
+                )
             time.sleep(0.25)
         yield url
     finally:
@@ -135,8 +147,9 @@ def test_ui_opens_the_experiment_on_its_runs(mlflow_server, monkeypatch):
     for k, r2 in ((10, 0.412345), (83, 0.587654)):
         cfg = default_config(**{"model.n_components": k})
         with tracking.tracked_run(tracking_cfg, f"absolute au_pose_interactions k={k}", cfg.to_dict()) as run:
-            run.log_metrics({"r2_mean": r2, "r2_displacement_mean": r2 - 0.1, "au_reliability_median": 0.9,
-                             "mae_mean": 1.0})
+            run.log_metrics(
+                {"r2_mean": r2, "r2_displacement_mean": r2 - 0.1, "au_reliability_median": 0.9, "mae_mean": 1.0}
+            )
         names[run.run_id] = f"absolute au_pose_interactions k={k}"
     experiment = MlflowClient(tracking_uri=mlflow_server).get_experiment_by_name("ui-test")
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
@@ -145,8 +158,10 @@ def test_ui_opens_the_experiment_on_its_runs(mlflow_server, monkeypatch):
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         try:
             context = browser.new_context(viewport={"width": 1920, "height": 800})
-            context.route("**/*", lambda route: route.continue_() if route.request.url.startswith(mlflow_server)
-                          else route.abort())  # nothing but the server: the UI must not need the network
+            context.route(
+                "**/*",
+                lambda route: route.continue_() if route.request.url.startswith(mlflow_server) else route.abort(),
+            )  # nothing but the server: the UI must not need the network
             page = context.new_page()
             page.goto(url)
             best = page.get_by_text(names[run.run_id], exact=True)  # the k=83 run, the best r2_mean

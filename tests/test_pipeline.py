@@ -8,11 +8,11 @@ from sklearn.cross_decomposition import PLSRegression as SkPLS
 from sklearn.metrics import mean_absolute_error, r2_score
 from sklearn.model_selection import GroupKFold
 
-from aumesh.pipeline import evaluate as ev
-from aumesh.utils.errors import ConfigError
+from aumesh.data.schema import AU_COLUMNS, N_VERTICES
 from aumesh.geometry.align import umeyama_batch
 from aumesh.model.features import design_matrix
-from aumesh.data.schema import AU_COLUMNS, N_VERTICES
+from aumesh.pipeline import evaluate as ev
+from aumesh.utils.errors import ConfigError
 from conftest import default_config
 
 
@@ -57,7 +57,7 @@ def test_video_folds_from_frame_counts_equal_group_kfold_on_the_frames(n_splits)
     rng = np.random.default_rng(n_splits)
     for n_videos, high in ((7, 3), (60, 4), (500, 12), (3000, 40)):
         count = rng.integers(0, high, n_videos)
-        count[: n_splits] = np.maximum(count[: n_splits], 1)
+        count[:n_splits] = np.maximum(count[:n_splits], 1)
         video = rng.permutation(np.repeat(np.arange(n_videos), count))
         video_fold = ev.video_folds(count, n_splits)
         np.testing.assert_array_equal(video_fold[video], _group_kfold(video, n_splits))
@@ -69,7 +69,9 @@ def test_video_folds_of_the_prepared_data_equal_group_kfold(recovery_prepared):
     video = prepared.frames["video_index"].to_numpy()
     np.testing.assert_array_equal(prepared.videos.count, np.bincount(video, minlength=len(prepared.video_ids)))
     for n_splits in (2, 3, 5):
-        np.testing.assert_array_equal(ev.video_folds(prepared.videos.count, n_splits)[video], _group_kfold(video, n_splits))
+        np.testing.assert_array_equal(
+            ev.video_folds(prepared.videos.count, n_splits)[video], _group_kfold(video, n_splits)
+        )
     with pytest.raises(ConfigError, match="cv.n_splits=4 but only 3 videos"):
         ev.video_folds(np.array([0, 5, 2, 0, 9]), 4)
 
@@ -132,7 +134,9 @@ def test_neutral_target_equals_explicit_subtraction(recovery_prepared):
     X, Y = _arrays(prepared, target="neutral")
     fold = _group_kfold(prepared.frames["video_index"].to_numpy())
     model = PLSRegression(n_components=12).fit(X[fold != 1], Y[fold != 1])
-    assert cv.r2_folds[1] == pytest.approx(r2_score(Y[fold == 1], model.predict(X[fold == 1]), multioutput="variance_weighted"), abs=1e-9)
+    assert cv.r2_folds[1] == pytest.approx(
+        r2_score(Y[fold == 1], model.predict(X[fold == 1]), multioutput="variance_weighted"), abs=1e-9
+    )
     full = PLSRegression(n_components=12).fit(X, Y)
     np.testing.assert_allclose(final.coef, full.coef_, rtol=1e-9, atol=1e-12)
     # released meshes add the population's mean neutral, so `x @ coef + intercept` is a face, not a displacement
@@ -150,8 +154,8 @@ def test_n_components_above_feature_count_is_clipped_or_rejected(recovery_prepar
 
 
 def test_same_inputs_give_identical_coefficients_twice(recovery_tables, tmp_path):
-    from aumesh.pipeline import prepare
     from aumesh.data import tables
+    from aumesh.pipeline import prepare
 
     out = recovery_tables[0]
     cfg = default_config(**{"model.n_components": 20})
@@ -162,7 +166,9 @@ def test_same_inputs_give_identical_coefficients_twice(recovery_tables, tmp_path
         _, final = ev.evaluate(ev.load_prepared(tmp_path / f"prepared{run}"), cfg)
         coefs.append(final.coef)
     assert np.array_equal(coefs[0], coefs[1])
-    assert np.array_equal(np.load(tmp_path / "prepared0" / "meshes.npy"), np.load(tmp_path / "prepared1" / "meshes.npy"))
+    assert np.array_equal(
+        np.load(tmp_path / "prepared0" / "meshes.npy"), np.load(tmp_path / "prepared1" / "meshes.npy")
+    )
 
 
 def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(tmp_path):
@@ -170,10 +176,9 @@ def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(
     import dataclasses
 
     from aumesh.card import directions
-    from aumesh.pipeline import prepare
-    from aumesh.data import synth
-    from aumesh.data import tables
+    from aumesh.data import synth, tables
     from aumesh.model.release import release_arrays
+    from aumesh.pipeline import prepare
     from conftest import RECOVERY_SPEC
 
     spec = dataclasses.replace(RECOVERY_SPEC, n_frames=2000, n_videos=200, reversed_aus=("AU12",))
@@ -182,8 +187,9 @@ def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(
     prepare.run(tables.discover(tmp_path / "data", cfg.data.tables, cfg.data.mesh_npy), cfg, tmp_path / "prepared")
     prepared = ev.load_prepared(tmp_path / "prepared")
     _, final = ev.evaluate(prepared, cfg)
-    arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
-                            prepared.reference, "", {})
+    arrays = release_arrays(
+        final.coef, final.mesh_intercept, final.feature_columns, final.n_components, prepared.reference, "", {}
+    )
     report = directions.au_direction_report(arrays)
     verdicts = {au: r["verdict"] for au, r in report["aus"].items()}
     assert verdicts["AU12"] == "fail"
@@ -213,8 +219,11 @@ def test_within_target_is_ols_on_per_video_demeaned_data(recovery_prepared):
     fold = _group_kfold(video)
     for f in (0, 2):
         train, test = fold != f, fold == f
-        b, *_ = np.linalg.lstsq(_per_video_demeaned(X[train], np.unique(video[train], return_inverse=True)[1]),
-                                _per_video_demeaned(Y[train], np.unique(video[train], return_inverse=True)[1]), rcond=None)
+        b, *_ = np.linalg.lstsq(
+            _per_video_demeaned(X[train], np.unique(video[train], return_inverse=True)[1]),
+            _per_video_demeaned(Y[train], np.unique(video[train], return_inverse=True)[1]),
+            rcond=None,
+        )
         vt = np.unique(video[test], return_inverse=True)[1]
         Xt, Yt = _per_video_demeaned(X[test], vt), _per_video_demeaned(Y[test], vt)
         pred = Xt @ b
@@ -240,8 +249,10 @@ def test_au_field_reliability_is_the_cosine_between_fields_fitted_on_each_fold_a
     cv, _ = ev.evaluate(prepared, default_config(**{"model.n_components": 30}))
     X, Y = _arrays(prepared)
     fold = _group_kfold(prepared.frames["video_index"].to_numpy())
-    fields = [SkPLS(n_components=30, scale=True, tol=1e-13, max_iter=10000).fit(X[fold == f], Y[fold == f]).coef_[:, :20]
-              for f in range(3)]
+    fields = [
+        SkPLS(n_components=30, scale=True, tol=1e-13, max_iter=10000).fit(X[fold == f], Y[fold == f]).coef_[:, :20]
+        for f in range(3)
+    ]
     unit = [F / np.linalg.norm(F, axis=0) for F in fields]
     expected = np.mean([(unit[a] * unit[b]).sum(0) for a, b in ((0, 1), (0, 2), (1, 2))], axis=0)
     np.testing.assert_allclose(cv.au_reliability, expected, atol=1e-6)
@@ -281,13 +292,15 @@ def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vect
     e = np.sort(errors.astype(np.float64))
     q = np.linspace(0, 1, stages.CARD_ERROR_CURVE_POINTS)
     np.testing.assert_array_equal(cv["cumulative_error_thresholds"], np.quantile(e, q, method="inverted_cdf"))
-    np.testing.assert_array_equal(cv["cumulative_error_fraction"],
-                                  np.searchsorted(e, cv["cumulative_error_thresholds"], side="right") / e.size)
+    np.testing.assert_array_equal(
+        cv["cumulative_error_fraction"], np.searchsorted(e, cv["cumulative_error_thresholds"], side="right") / e.size
+    )
     thresholds, fraction = render.cumulative_curve(cv)
     for p in (0.5, 0.9):  # the figure's marks: first point at or above p, on the curve and on the whole ECDF
         assert thresholds[np.searchsorted(fraction, p)] == e[np.searchsorted(np.arange(1, e.size + 1) / e.size, p)]
-    np.testing.assert_allclose(curve["vertex_error"], np.quantile(e, np.linspace(0, 1, 101), method="inverted_cdf"),
-                               rtol=1e-5)  # the committed CSV: 6 significant digits
+    np.testing.assert_allclose(
+        curve["vertex_error"], np.quantile(e, np.linspace(0, 1, 101), method="inverted_cdf"), rtol=1e-5
+    )  # the committed CSV: 6 significant digits
 
 
 def test_the_evaluate_stage_never_imports_mlflow_its_run_is_logged_beside(tmp_path_factory):
@@ -307,12 +320,14 @@ def test_the_evaluate_stage_never_imports_mlflow_its_run_is_logged_beside(tmp_pa
     from aumesh.pipeline import stages
     from test_sweep import workspace_with_store
 
-    code = ("import json, os, sys\n"
-            "from aumesh import config\n"
-            "from aumesh.pipeline import stages\n"
-            "stages.evaluate_stage(config.load_params('params.yaml'))\n"
-            "print(json.dumps({'pid': os.getpid(), 'mlflow': sorted(m for m in sys.modules if m.split('.')[0] == 'mlflow'),\n"
-            "                  'pandera': sorted(m for m in sys.modules if m.split('.')[0] == 'pandera')}))\n")
+    code = (
+        "import json, os, sys\n"
+        "from aumesh import config\n"
+        "from aumesh.pipeline import stages\n"
+        "stages.evaluate_stage(config.load_params('params.yaml'))\n"
+        "print(json.dumps({'pid': os.getpid(), 'mlflow': sorted(m for m in sys.modules if m.split('.')[0] == 'mlflow'),\n"
+        "                  'pandera': sorted(m for m in sys.modules if m.split('.')[0] == 'pandera')}))\n"
+    )
     with workspace_with_store(tmp_path_factory, "beside") as ws:
         out = subprocess.run([sys.executable, "-c", code], cwd=ws, env=os.environ, capture_output=True, text=True)
         assert out.returncode == 0, out.stderr
@@ -351,14 +366,20 @@ def test_the_passes_scratch_goes_with_its_result_or_with_the_next_stage_after_a_
     gc.collect()
     assert not scratch.exists() and set(recovery_prepared.glob(".evaluate-scratch*")) == before  # pass A's went too
 
-    dead_pid = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                                  text=True).stdout)
+    dead_pid = int(
+        subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout
+    )
     build = tmp_path / "build"
-    killed, live = build / f".evaluate-scratch.tmp-{dead_pid}-{host}-abc", build / f".evaluate-scratch.tmp-{os.getpid()}-{host}-d"
+    killed, live = (
+        build / f".evaluate-scratch.tmp-{dead_pid}-{host}-abc",
+        build / f".evaluate-scratch.tmp-{os.getpid()}-{host}-d",
+    )
     for d in (killed, live):
         d.mkdir(parents=True)
-    stages.start_stage("evaluate", default_config(**{"paths.prepared_dir": str(build / "prepared"),
-                                                     "paths.model_dir": str(build / "model")}))
+    stages.start_stage(
+        "evaluate",
+        default_config(**{"paths.prepared_dir": str(build / "prepared"), "paths.model_dir": str(build / "model")}),
+    )
     assert not killed.exists() and live.exists()
 
 

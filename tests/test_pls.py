@@ -306,8 +306,9 @@ def test_r2_path_equals_scoring_each_model_of_the_coefficient_path(scale):
     test_stats = CrossProducts.from_arrays(X_test, Y_test)
     sse, sst = residual_sums(model.coef_path_, model.raw_intercept_path_, test_stats)
     np.testing.assert_allclose(r2_path(model, test_stats), r2_variance_weighted(sse, sst), rtol=1e-11)
-    expected = [r2_score(Y_test, model.predict(X_test, n_components=k), multioutput="variance_weighted")
-                for k in range(1, 11)]
+    expected = [
+        r2_score(Y_test, model.predict(X_test, n_components=k), multioutput="variance_weighted") for k in range(1, 11)
+    ]
     np.testing.assert_allclose(r2_path(model, test_stats), expected, rtol=1e-9)
 
 
@@ -397,7 +398,9 @@ def test_the_evaluate_stage_fits_and_scores_without_importing_scikit_learn(tmp_p
         "print([m for m in sys.modules if m.split('.')[0] == 'sklearn' or m == 'scipy.stats'])\n"
         "np.save(sys.argv[1], np.concatenate([fit.coef_.ravel(), path]))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "out.npy")], capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(tmp_path / "out.npy")], capture_output=True, text=True, check=True
+    )
     assert out.stdout.strip() == "[]"
     values = np.load(tmp_path / "out.npy")
     rng = np.random.default_rng(0)

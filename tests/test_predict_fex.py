@@ -28,8 +28,9 @@ POSE_FEX_ORDER = ["Pitch", "Roll", "Yaw"]  # py-feat's order; the model's is Pit
 N_ROWS, NO_FACE_ROW = 6, 4
 
 
-def fex_table(detector: str, rng: np.random.Generator, n: int = N_ROWS, no_face_row: int | None = NO_FACE_ROW,
-              junk: bool = True) -> pd.DataFrame:
+def fex_table(
+    detector: str, rng: np.random.Generator, n: int = N_ROWS, no_face_row: int | None = NO_FACE_ROW, junk: bool = True
+) -> pd.DataFrame:
     """A py-feat-shaped detector table (MPDetector: 2,045 columns; Detectorv2: its own layout), random values,
     AUs 0..1, pose in radians within the card's pose filter; ``no_face_row`` is py-feat's row for a frame
     without a face (FaceScore 0 or NaN, every measurement NaN, input/frame/approx_time filled)."""
@@ -56,9 +57,14 @@ def fex_table(detector: str, rng: np.random.Generator, n: int = N_ROWS, no_face_
     else:
         cols |= {f"mesh_{a}_{i}": rng.uniform(0, 640, n) for a in "xyz" for i in range(478)}
         cols |= {b: rng.random(n) for b in BLENDSHAPES}
-    cols |= {"FrameHeight": np.full(n, 480.0), "FrameWidth": np.full(n, 640.0),
-             "input": np.full(n, "clips/video_01.mp4"), "frame": np.arange(n),
-             "approx_time": np.array([f"00:{i // 30:02d}" for i in range(n)]), "Identity": np.full(n, "Person_0")}
+    cols |= {
+        "FrameHeight": np.full(n, 480.0),
+        "FrameWidth": np.full(n, 640.0),
+        "input": np.full(n, "clips/video_01.mp4"),
+        "frame": np.arange(n),
+        "approx_time": np.array([f"00:{i // 30:02d}" for i in range(n)]),
+        "Identity": np.full(n, "Person_0"),
+    }
     if junk:
         cols |= {"notes": np.full(n, "junk"), "Unnamed: 0": np.arange(n)}
     df = pd.DataFrame(cols)
@@ -87,8 +93,9 @@ def write_release(tmp_path, features: str = "au_pose", metadata: dict | None = N
     columns = feature_set_columns(features)
     coef, intercept = rng.normal(size=(N_TARGETS, len(columns))), rng.normal(size=N_TARGETS) + 300.0
     path = tmp_path / f"{features}-{seed}.npz"
-    atomic_savez(path, **release_arrays(coef, intercept, columns, len(columns), face_reference(rng), "card",
-                                        metadata or {}))
+    atomic_savez(
+        path, **release_arrays(coef, intercept, columns, len(columns), face_reference(rng), "card", metadata or {})
+    )
     return path
 
 
@@ -211,8 +218,9 @@ def test_strict_refuses_the_other_columns_in_one_line(tmp_path, capsys):
     assert aumesh.predict_mesh(release, inputs_only.drop(columns="frame"), strict=True).shape == (N_ROWS - 1, 478, 3)
 
 
-@pytest.mark.parametrize("column, misspelt", [("AU12", "AU_12"), ("AU12", "au12"), ("AU12", "AU12_r"),
-                                              ("Yaw", "Yaw "), ("Pitch", "pitch")])
+@pytest.mark.parametrize(
+    "column, misspelt", [("AU12", "AU_12"), ("AU12", "au12"), ("AU12", "AU12_r"), ("Yaw", "Yaw "), ("Pitch", "pitch")]
+)
 def test_a_near_miss_column_gets_a_did_you_mean(tmp_path, capsys, column, misspelt):
     release = write_release(tmp_path)
     df = fex_table("mp", np.random.default_rng(6)).rename(columns={column: misspelt})
@@ -228,8 +236,11 @@ def test_a_near_miss_column_gets_a_did_you_mean(tmp_path, capsys, column, misspe
 
 def test_a_missing_au_without_a_near_miss_is_named_alone(tmp_path):
     df = fex_table("mp", np.random.default_rng(7)).rename(columns={"AU43": "AU45"})  # AU45 is not AU43
-    with pytest.raises(PredictionInputError, match=r"no column 'AU43' \(no column has a name close to it\)\. "
-                                                   r"A table with columns besides the model's inputs needs all 20 AUs"):
+    with pytest.raises(
+        PredictionInputError,
+        match=r"no column 'AU43' \(no column has a name close to it\)\. "
+        r"A table with columns besides the model's inputs needs all 20 AUs",
+    ):
         aumesh.predict_mesh(write_release(tmp_path), df)
 
 
@@ -268,14 +279,21 @@ def test_pose_beyond_the_training_range_warns_in_one_line(tmp_path, caplog):
     df.loc[1, "Yaw"] = 0.9  # 51.6 deg, beyond the card's |yaw| <= 40 deg
     release = write_release(tmp_path)  # records no pose filter: the card's
     assert training_pose_limits(aumesh.load_release(release))[0] == pytest.approx(
-        {"Pitch": np.deg2rad(30.0), "Yaw": np.deg2rad(40.0)})
-    with pytest.warns(InputRangeWarning, match=r"pose: Yaw = 0\.9 rad \(51\.6 deg\) at row 1 is beyond the training "
-                                               r"range \|Yaw\| <= 40 deg \(the card's pose filter"):
+        {"Pitch": np.deg2rad(30.0), "Yaw": np.deg2rad(40.0)}
+    )
+    with pytest.warns(
+        InputRangeWarning,
+        match=r"pose: Yaw = 0\.9 rad \(51\.6 deg\) at row 1 is beyond the training "
+        r"range \|Yaw\| <= 40 deg \(the card's pose filter",
+    ):
         meshes = aumesh.predict_mesh(release, df)
     assert np.isfinite(meshes[1]).all()  # predicted all the same
     # a release that records its pose filter: that range
-    narrow = write_release(tmp_path, metadata={"config": {"preprocess": {"pose_filter": {
-        "max_abs_yaw_deg": 20.0, "max_abs_pitch_deg": 10.0}}}}, seed=1)
+    narrow = write_release(
+        tmp_path,
+        metadata={"config": {"preprocess": {"pose_filter": {"max_abs_yaw_deg": 20.0, "max_abs_pitch_deg": 10.0}}}},
+        seed=1,
+    )
     df[["Pitch", "Yaw"]] = 0.05
     df.loc[2, "Pitch"] = 0.3  # 17.2 deg
     with pytest.warns(InputRangeWarning, match=r"Pitch = 0\.3 rad .* at row 2 .*\|Pitch\| <= 10 deg \(the release's"):
@@ -315,5 +333,6 @@ def test_a_csv_is_read_for_the_needed_columns_only(tmp_path, monkeypatch):
     monkeypatch.setattr(pd, "read_csv", spy)
     assert run_predict(table, release, tmp_path / "m.npz") == 0
     reads = [c for c in calls if c.get("nrows") != 0]  # the header read has nrows=0
-    assert reads and all(sorted(c.get("usecols") or ["every column"]) == sorted([*INPUT_COLUMNS, "FaceScore"])
-                         for c in reads), reads
+    assert reads and all(
+        sorted(c.get("usecols") or ["every column"]) == sorted([*INPUT_COLUMNS, "FaceScore"]) for c in reads
+    ), reads

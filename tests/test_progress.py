@@ -8,8 +8,8 @@ import os
 import pty
 import struct
 import subprocess
-import termios
 import sys
+import termios
 import threading
 
 import pytest
@@ -61,8 +61,10 @@ def stage_ws(tmp_path, fixed_conf):
     if any((d / ".git").exists() or (d / "dvc.yaml").exists() for d in tmp_path.parents):
         pytest.skip("the temporary folder is inside a repository")
     write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=30, seed=5))
-    write_params(compose([f"tracking.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}"], config_dir=fixed_conf),
-                 tmp_path / "params.yaml")
+    write_params(
+        compose([f"tracking.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}"], config_dir=fixed_conf),
+        tmp_path / "params.yaml",
+    )
     return tmp_path
 
 

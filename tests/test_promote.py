@@ -13,9 +13,7 @@ import yaml
 
 from aumesh import config
 from aumesh.data.schema import INPUT_COLUMNS
-from aumesh.experiments import promote
-from aumesh.experiments import provenance
-from aumesh.experiments import registry, tracking
+from aumesh.experiments import promote, provenance, registry, tracking
 from aumesh.experiments.promote import Candidate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -26,15 +24,25 @@ def cand(rid, value, k, target="absolute", status="FINISHED", disp=None, **extra
     if disp is not None:
         metrics["r2_displacement_mean"] = disp
     metrics.update(extra)
-    return Candidate(run_id=rid, run_name=rid, status=status,
-                     params={"preprocess.target": target, "model.n_components": str(k), "cv.n_splits": "3"},
-                     metrics=metrics, start_time=0.0)
+    return Candidate(
+        run_id=rid,
+        run_name=rid,
+        status=status,
+        params={"preprocess.target": target, "model.n_components": str(k), "cv.n_splits": "3"},
+        metrics=metrics,
+        start_time=0.0,
+    )
 
 
 # ---------------------------------------------------------------- the criterion (pure)
 def test_highest_r2_wins_ties_go_to_fewer_components_failed_ignored():
-    runs = [cand("a", 0.50, 10), cand("b", 0.70, 40), cand("c", 0.70 + 1e-12, 23), cand("d", 0.69, 5),
-            cand("e", 0.99, 10, status="FAILED")]
+    runs = [
+        cand("a", 0.50, 10),
+        cand("b", 0.70, 40),
+        cand("c", 0.70 + 1e-12, 23),
+        cand("d", 0.69, 5),
+        cand("e", 0.99, 10, status="FAILED"),
+    ]
     choice = promote.choose(runs)
     assert choice.run_id == "c"  # tied with b within 1e-9, fewer components
     assert choice.metric == "r2_mean"
@@ -46,8 +54,11 @@ def test_highest_r2_wins_ties_go_to_fewer_components_failed_ignored():
 
 
 def test_mixed_targets_are_compared_on_displacement_r2():
-    runs = [cand("abs", 0.90, 10, "absolute", disp=0.30), cand("neu", 0.40, 10, "neutral", disp=0.50),
-            cand("abs2", 0.95, 40, "absolute", disp=0.31)]
+    runs = [
+        cand("abs", 0.90, 10, "absolute", disp=0.30),
+        cand("neu", 0.40, 10, "neutral", disp=0.50),
+        cand("abs2", 0.95, 40, "absolute", disp=0.31),
+    ]
     choice = promote.choose(runs)
     assert choice.run_id == "neu" and choice.metric == "r2_displacement_mean"
     assert "differ in preprocess.target" in choice.compared and "not compared" in choice.compared
@@ -60,9 +71,11 @@ def test_mixed_targets_are_compared_on_displacement_r2():
 
 
 def test_mixed_targets_can_be_ranked_by_au_field_reliability():
-    runs = [cand("abs", 0.90, 83, "absolute", disp=0.30, au_reliability_median=0.70, au_reliability_min=0.2),
-            cand("neu", 0.40, 83, "neutral", disp=0.32, au_reliability_median=0.75, au_reliability_min=0.4),
-            cand("win", 0.50, 83, "within", disp=0.31, au_reliability_median=0.90, au_reliability_min=0.3)]
+    runs = [
+        cand("abs", 0.90, 83, "absolute", disp=0.30, au_reliability_median=0.70, au_reliability_min=0.2),
+        cand("neu", 0.40, 83, "neutral", disp=0.32, au_reliability_median=0.75, au_reliability_min=0.4),
+        cand("win", 0.50, 83, "within", disp=0.31, au_reliability_median=0.90, au_reliability_min=0.3),
+    ]
     assert promote.choose(runs).run_id == "neu"  # default: r2_displacement_mean across targets
     best = promote.choose(runs, metric="au_reliability_median")
     assert best.run_id == "win" and "cosine between AU fields" in best.compared
@@ -96,8 +109,9 @@ def conf_ws(tmp_path, monkeypatch):
 
 def test_promoted_experiment_overrides_groups_and_cli_overrides_win(conf_ws):
     promote.check_defaults_entry(conf_ws / "conf")
-    text = promote.experiment_yaml({"features.name": "au_pose", "model.n_components": 7,
-                                    "preprocess.target": "neutral"})
+    text = promote.experiment_yaml(
+        {"features.name": "au_pose", "model.n_components": 7, "preprocess.target": "neutral"}
+    )
     assert text.startswith("# @package _global_")
     (conf_ws / "conf" / "experiment").mkdir(exist_ok=True)
     (conf_ws / "conf" / "experiment" / "promoted.yaml").write_text(text)
@@ -125,8 +139,9 @@ def _log_fake_sweep(tmp_path: Path, conf_dir: Path, rows: list[tuple[dict, dict,
     for overrides, metrics, status in rows:
         raw = config.compose([f"{k}={v}" for k, v in overrides.items()], config_dir=conf_dir)
         try:
-            with tracking.tracked_run({}, "child", raw, tags={"aumesh.role": "sweep-child"},
-                                      parent_run_id=parent) as run:
+            with tracking.tracked_run(
+                {}, "child", raw, tags={"aumesh.role": "sweep-child"}, parent_run_id=parent
+            ) as run:
                 ids.append(run.run_id)
                 run.log_metrics(metrics)
                 run.log_artifact(art, "model")
@@ -142,8 +157,11 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
     conf = conf_ws / "conf"
     rows = [
         ({"model.n_components": 40}, {"r2_mean": 0.61, "r2_displacement_mean": 0.3, "n_components": 40.0}, "FINISHED"),
-        ({"model.n_components": 10, "features.name": "au_pose"},
-         {"r2_mean": 0.64, "r2_displacement_mean": 0.2, "n_components": 10.0}, "FINISHED"),
+        (
+            {"model.n_components": 10, "features.name": "au_pose"},
+            {"r2_mean": 0.64, "r2_displacement_mean": 0.2, "n_components": 10.0},
+            "FINISHED",
+        ),
         ({"model.n_components": 23}, {"r2_mean": 0.64, "r2_displacement_mean": 0.2, "n_components": 23.0}, "FINISHED"),
         ({"model.n_components": 83}, {"r2_mean": 0.99, "n_components": 83.0}, "FAILED"),
     ]
@@ -168,8 +186,17 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
 
     # a second sweep's promotion adds version 2 and moves the alias
     # (composed from the promoted conf/, as a sweep after a promotion is)
-    parent2, ids2 = _log_fake_sweep(tmp_path, conf, [({"model.n_components": 5, "features.name": "au_pose_interactions"},
-                                                       {"r2_mean": 0.7, "n_components": 5.0}, "FINISHED")])
+    parent2, ids2 = _log_fake_sweep(
+        tmp_path,
+        conf,
+        [
+            (
+                {"model.n_components": 5, "features.name": "au_pose_interactions"},
+                {"r2_mean": 0.7, "n_components": 5.0},
+                "FINISHED",
+            )
+        ],
+    )
     record2 = promote.promote(parent2, conf_ws, {})
     assert record2["model_version"] == "2"
     assert registry.model_version_by_alias("aumesh-au-to-mesh", "champion", {})["run_id"] == ids2[0]
@@ -179,8 +206,11 @@ def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(c
 
 
 def test_promotion_refuses_a_run_on_other_data(conf_ws, tmp_path):
-    parent, _ = _log_fake_sweep(tmp_path, conf_ws / "conf", [({"paths.data_dir": "/elsewhere"},
-                                                              {"r2_mean": 0.5, "n_components": 83.0}, "FINISHED")])
+    parent, _ = _log_fake_sweep(
+        tmp_path,
+        conf_ws / "conf",
+        [({"paths.data_dir": "/elsewhere"}, {"r2_mean": 0.5, "n_components": 83.0}, "FINISHED")],
+    )
     with pytest.raises(ValueError, match="paths.data_dir"):
         promote.promote(parent, conf_ws, {}, register=False)
     assert not (conf_ws / "conf" / "experiment" / "promoted.yaml").exists()
@@ -190,10 +220,9 @@ def test_promotion_refuses_a_run_on_other_data(conf_ws, tmp_path):
 def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, monkeypatch):
     """sweep children -> promote -> the evaluate stage on the recomposed params.yaml: same coefficients as the
     registered NPZ, and the card built by the release stage names the promoted run."""
-    from test_sweep import make_workspace
-
-    from aumesh.pipeline import stages
     from aumesh.experiments import sweep
+    from aumesh.pipeline import stages
+    from test_sweep import make_workspace
 
     ws = make_workspace(tmp_path / "ws")
     monkeypatch.chdir(ws)
@@ -209,15 +238,24 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     with sweep.blas_threads():
         stages.evaluate_stage(cfg)
     model = np.load(ws / cfg.paths.model_dir / stages.MODEL_NPZ)
-    npz = np.load(registry.download_run_artifacts(record["run_id"], "model/artifacts/au_to_mesh_pls.npz", tmp_path / "dl"))
+    npz = np.load(
+        registry.download_run_artifacts(record["run_id"], "model/artifacts/au_to_mesh_pls.npz", tmp_path / "dl")
+    )
     coef_full = npz["coef_full"] if "coef_full" in npz else None
     if coef_full is not None:
         np.testing.assert_array_equal(coef_full, model["coef"].T.astype(np.float32))
     from aumesh.model.release import release_arrays
 
     ref = dict(np.load(ws / cfg.paths.prepared_dir / "reference.npz"))
-    fresh = release_arrays(model["coef"], model["mesh_intercept"], model["feature_columns"].tolist(),
-                           int(model["n_components"]), ref, card_text="", metadata={})
+    fresh = release_arrays(
+        model["coef"],
+        model["mesh_intercept"],
+        model["feature_columns"].tolist(),
+        int(model["n_components"]),
+        ref,
+        card_text="",
+        metadata={},
+    )
     np.testing.assert_array_equal(fresh["coef"], npz["coef"])
     np.testing.assert_array_equal(fresh["intercept"], npz["intercept"])
     promotion = json.loads((ws / cfg.paths.promotion_file).read_text())["promoted"]

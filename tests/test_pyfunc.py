@@ -16,12 +16,11 @@ import pandas as pd
 import pytest
 
 import aumesh
-
-from conftest import upright_truth_release
-from test_mlflow_server import _free_port, _stop
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, flatten_axis_major
 from aumesh.experiments import registry, tracking
 from aumesh.model.release import load_npz
+from conftest import upright_truth_release
+from test_mlflow_server import _free_port, _stop
 
 MODEL = "aumesh-au-to-mesh"
 
@@ -72,11 +71,16 @@ def test_registered_pyfunc_model_predicts_the_npz_meshes(champion):
     np.testing.assert_allclose(model.predict(df[list(reversed(INPUT_COLUMNS))]), pred, rtol=0, atol=1e-12)
     # a missing AU is 0 and no pose columns is pose 0, as in aumesh.predict_mesh (checked against numpy above)
     partial = df.drop(columns=["AU12", "Pitch", "Yaw", "Roll"])
-    np.testing.assert_allclose(model.predict(partial), _card_snippet(npz, partial.reindex(columns=INPUT_COLUMNS,
-                               fill_value=0.0)), rtol=0, atol=1e-9 * 400)
+    np.testing.assert_allclose(
+        model.predict(partial),
+        _card_snippet(npz, partial.reindex(columns=INPUT_COLUMNS, fill_value=0.0)),
+        rtol=0,
+        atol=1e-9 * 400,
+    )
     # aumesh's input errors are MLflow's invalid-parameter errors with aumesh's own line as the message
-    from aumesh.model.inference import PredictionInputError
     from mlflow.exceptions import MlflowException
+
+    from aumesh.model.inference import PredictionInputError
 
     with pytest.raises(PredictionInputError) as lib:
         aumesh.predict_mesh(load_npz(npz), df.assign(Yaw=25.0))
@@ -91,7 +95,8 @@ def test_pyfunc_input_example_is_a_smile(champion):
 
     npz, run_id, _, _ = champion
     example = mlflow.models.Model.load(f"runs:/{run_id}/model").load_input_example(
-        mlflow.artifacts.download_artifacts(f"runs:/{run_id}/model"))
+        mlflow.artifacts.download_artifacts(f"runs:/{run_id}/model")
+    )
     assert list(example.columns) == list(INPUT_COLUMNS)
     assert example.loc[0, "AU12"] == 1.0 and example.drop(columns="AU12").to_numpy().sum() == 0.0
     assert set(AU_COLUMNS) < set(example.columns)
@@ -105,9 +110,27 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
     bin_dir = Path(sys.executable).parent  # the venv's bin: mlflow execs uvicorn from PATH, as in an activated venv
     env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
     log = open(tmp_path / "serve.log", "w")
-    proc = subprocess.Popen([str(bin_dir / "mlflow"), "models", "serve", "-m", f"models:/{MODEL}@champion",
-                             "--env-manager", "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"],
-                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            str(bin_dir / "mlflow"),
+            "models",
+            "serve",
+            "-m",
+            f"models:/{MODEL}@champion",
+            "--env-manager",
+            "local",
+            "-h",
+            "127.0.0.1",
+            "-p",
+            str(port),
+            "-w",
+            "1",
+        ],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     url = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 180
@@ -119,7 +142,9 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
             except (urllib.error.URLError, ConnectionError, OSError):
                 pass
             assert proc.poll() is None, (tmp_path / "serve.log").read_text()[-3000:]
-            assert time.monotonic() < deadline, "mlflow models serve did not start: " + (tmp_path / "serve.log").read_text()[-3000:]
+            assert time.monotonic() < deadline, (
+                "mlflow models serve did not start: " + (tmp_path / "serve.log").read_text()[-3000:]
+            )
             time.sleep(1)
         df = _inputs(3)
         status, answer = _invoke(url, {"dataframe_split": df.to_dict(orient="split") | {"index": None}})
@@ -146,8 +171,9 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
 
 def _invoke(url: str, payload: dict) -> tuple[int, dict]:
     """POST *payload* to the scoring server's /invocations: (HTTP status, the JSON answer)."""
-    req = urllib.request.Request(f"{url}/invocations", data=json.dumps(payload).encode(),
-                                 headers={"Content-Type": "application/json"})
+    req = urllib.request.Request(
+        f"{url}/invocations", data=json.dumps(payload).encode(), headers={"Content-Type": "application/json"}
+    )
     try:
         with urllib.request.urlopen(req, timeout=60) as resp:
             return resp.status, json.loads(resp.read())
@@ -163,11 +189,13 @@ def test_readme_load_model_snippet_works_from_any_folder(champion, tmp_path, mon
     import mlflow
 
     npz, _, _, _ = champion
-    store = Path(os.environ["MLFLOW_TRACKING_URI"][len("sqlite:///"):])  # the test's workspace store: <dir>/mlflow.db
+    store = Path(os.environ["MLFLOW_TRACKING_URI"][len("sqlite:///") :])  # the test's workspace store: <dir>/mlflow.db
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "models:/aumesh-au-to-mesh@champion" in b)
+    block = next(
+        b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "models:/aumesh-au-to-mesh@champion" in b
+    )
     code = block.replace('Path("~/aumesh").expanduser()', f"Path({str(store.parent)!r})")
-    assert code != block, "the README's snippet no longer names the workspace as Path(\"~/aumesh\").expanduser()"
+    assert code != block, 'the README\'s snippet no longer names the workspace as Path("~/aumesh").expanduser()'
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)

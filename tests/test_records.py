@@ -4,7 +4,6 @@ run ids, never the workspace's absolute path (they are committed or sent to othe
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,18 +12,21 @@ from aumesh import config
 from aumesh.experiments import provenance
 
 
-@pytest.mark.parametrize("value, expected", [
-    ("sqlite:///{ws}/mlflow.db", "sqlite:///mlflow.db"),
-    ("sqlite:///{ws}/mlflow.db?timeout=30", "sqlite:///mlflow.db?timeout=30"),
-    ("file://{ws}/mlartifacts/1/abc/artifacts/model", "mlartifacts/1/abc/artifacts/model"),
-    ("{ws}/data.dvc", "data.dvc"),
-    ("{ws}/.dvc/tmp/exps/tmpq1/data.dvc", ".dvc/tmp/exps/tmpq1/data.dvc"),
-    ("http://user:secret@tracking.example:5000", "http://tracking.example:5000"),
-    ("mlflow-artifacts:/1/abc/artifacts/model", "mlflow-artifacts:/1/abc/artifacts/model"),
-    ("runs:/abc/model", "runs:/abc/model"),
-    ("sqlite:////elsewhere/mlflow.db", "sqlite:////elsewhere/mlflow.db"),
-    (None, None),
-])
+@pytest.mark.parametrize(
+    "value, expected",
+    [
+        ("sqlite:///{ws}/mlflow.db", "sqlite:///mlflow.db"),
+        ("sqlite:///{ws}/mlflow.db?timeout=30", "sqlite:///mlflow.db?timeout=30"),
+        ("file://{ws}/mlartifacts/1/abc/artifacts/model", "mlartifacts/1/abc/artifacts/model"),
+        ("{ws}/data.dvc", "data.dvc"),
+        ("{ws}/.dvc/tmp/exps/tmpq1/data.dvc", ".dvc/tmp/exps/tmpq1/data.dvc"),
+        ("http://user:secret@tracking.example:5000", "http://tracking.example:5000"),
+        ("mlflow-artifacts:/1/abc/artifacts/model", "mlflow-artifacts:/1/abc/artifacts/model"),
+        ("runs:/abc/model", "runs:/abc/model"),
+        ("sqlite:////elsewhere/mlflow.db", "sqlite:////elsewhere/mlflow.db"),
+        (None, None),
+    ],
+)
 def test_shareable_location_forms(tmp_path, value, expected):
     ws = tmp_path / "ws"
     ws.mkdir()
@@ -45,10 +47,9 @@ def test_store_of_the_workspace_is_relative_from_a_dvc_temporary_copy(tmp_path, 
 def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkeypatch):
     """A workspace with the default store (ws/mlflow.db, ws/mlartifacts): sweep children -> promote (registered)
     -> evaluate and release stages; every shared record is free of the workspace's absolute path."""
-    from test_sweep import make_workspace
-
     from aumesh.experiments import promote, sweep, tracking
     from aumesh.pipeline import stages
+    from test_sweep import make_workspace
 
     ws = make_workspace(tmp_path / "ws")
     monkeypatch.chdir(ws)
@@ -58,8 +59,12 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     parent = tracking.start_parent_run({}, "small sweep")
     cache = sweep.SweepCache()
     for ov in (["model.n_components=2"], ["model.n_components=5"]):
-        assert sweep.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache,
-                                       root=ws)["status"] == "FINISHED"
+        assert (
+            sweep.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws)[
+                "status"
+            ]
+            == "FINISHED"
+        )
     tracking.end_run(parent)
     record = promote.promote(parent, ws, {})
     cfg = config.load_params(ws / "params.yaml")

@@ -6,13 +6,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from aumesh.card import render
 from aumesh.data import truth
 from aumesh.geometry import face
-from aumesh.card import render
 from aumesh.model.inference import ReleaseError
 
-ALWAYS = ("au_solid_panels.png", "au_solid_neutral_vs_activated.png", "au_compare_overlay.png",
-          "au_effect_maps.png", "pose_views.png")
+ALWAYS = (
+    "au_solid_panels.png",
+    "au_solid_neutral_vs_activated.png",
+    "au_compare_overlay.png",
+    "au_effect_maps.png",
+    "pose_views.png",
+)
 WITH_CV = ("r2_per_vertex.png", "cumulative_vertex_error.png")
 
 

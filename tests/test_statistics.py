@@ -6,11 +6,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from aumesh.model.features import design_matrix
-from aumesh.model.cross_products import CrossProducts
 from aumesh.data.schema import N_TARGETS, feature_columns
-from aumesh.model.statistics import DesignSums, VideoSumStream, accumulate_design, configuration_statistics, \
-    video_indicator, video_row_sums
+from aumesh.model.cross_products import CrossProducts
+from aumesh.model.features import design_matrix
+from aumesh.model.statistics import (
+    DesignSums,
+    VideoSumStream,
+    accumulate_design,
+    configuration_statistics,
+    video_indicator,
+    video_row_sums,
+)
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +29,9 @@ def frames():
     fold = (video % 3).astype(np.int8)
     au = rng.random((n, 20))
     pose = rng.normal(0, 0.2, (n, 3))
-    Y = 400.0 + rng.normal(size=(n, N_TARGETS)) + rng.normal(size=(n_videos, N_TARGETS))[video] * 3  # far from 0, per-video offsets
+    Y = (
+        400.0 + rng.normal(size=(n, N_TARGETS)) + rng.normal(size=(n_videos, N_TARGETS))[video] * 3
+    )  # far from 0, per-video offsets
     neutral = 400.0 + rng.normal(size=(n_videos, N_TARGETS))
     xbar = rng.random((n_videos, 83))
     return au, pose, video, n_videos, fold, Y, neutral, xbar
@@ -44,7 +52,9 @@ def _assert_same(derived: CrossProducts, explicit: CrossProducts):
     np.testing.assert_allclose(derived.cyy_diag, explicit.cyy_diag, rtol=1e-9)
 
 
-@pytest.mark.parametrize("pose_on,interactions,target", [(True, True, "absolute"), (True, False, "neutral"), (False, False, "neutral")])
+@pytest.mark.parametrize(
+    "pose_on,interactions,target", [(True, True, "absolute"), (True, False, "neutral"), (False, False, "neutral")]
+)
 def test_derived_statistics_equal_explicit_accumulation(frames, pose_on, interactions, target):
     au, pose, video, n_videos, fold, Y, neutral, xbar = frames
     design = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 128))
@@ -56,7 +66,9 @@ def test_derived_statistics_equal_explicit_accumulation(frames, pose_on, interac
     for f in range(3):
         m = fold == f
         _assert_same(targets[f], CrossProducts.from_arrays(X[m], Yt[m]))
-        _assert_same(displacements[f], CrossProducts.from_arrays(X[m] - xbar[video[m]][:, idx], Y[m] - neutral[video[m]]))
+        _assert_same(
+            displacements[f], CrossProducts.from_arrays(X[m] - xbar[video[m]][:, idx], Y[m] - neutral[video[m]])
+        )
 
 
 def test_chunking_does_not_change_the_statistics(frames):
@@ -65,8 +77,11 @@ def test_chunking_does_not_change_the_statistics(frames):
     many = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 77))
     for a, b in zip(one.folds, many.folds):
         _assert_same(a.reshifted(b.x_shift, b.y_shift) if hasattr(a, "reshifted") else a, b)
-    np.testing.assert_allclose(one.video_sum_y + one.y_shift * one.video_count[:, None],
-                               many.video_sum_y + many.y_shift * many.video_count[:, None], rtol=1e-12)
+    np.testing.assert_allclose(
+        one.video_sum_y + one.y_shift * one.video_count[:, None],
+        many.video_sum_y + many.y_shift * many.video_count[:, None],
+        rtol=1e-12,
+    )
 
 
 def test_design_sums_give_each_folds_cross_products_and_add():
@@ -126,6 +141,7 @@ def test_video_sum_stream_hands_each_video_once_when_its_last_row_is_added():
     rows = rng.standard_normal((len(video), 7)) * 10.0 ** rng.uniform(-4, 4, 7)
     dense = np.zeros((40, 7))
     out: dict[int, tuple[np.ndarray, int]] = {}
+
     def done(v: int, total: np.ndarray, n: int) -> None:
         assert v not in out, f"video {v} handed out twice"
         out[v] = (total, n)
@@ -166,8 +182,14 @@ def test_within_statistics_equal_explicit_per_video_demeaned_accumulation(frames
     for f in range(3):
         m = fold == f
         # each held-out video demeaned by its own means (the fold's videos are whole videos)
-        Xd, Yd = _demeaned(X[m], np.unique(video[m], return_inverse=True)[1]), _demeaned(Y[m], np.unique(video[m], return_inverse=True)[1])
-        got, want = targets[f], CrossProducts.from_arrays(Xd, Yd, x_shift=np.zeros(X.shape[1]), y_shift=np.zeros(N_TARGETS))
+        Xd, Yd = (
+            _demeaned(X[m], np.unique(video[m], return_inverse=True)[1]),
+            _demeaned(Y[m], np.unique(video[m], return_inverse=True)[1]),
+        )
+        got, want = (
+            targets[f],
+            CrossProducts.from_arrays(Xd, Yd, x_shift=np.zeros(X.shape[1]), y_shift=np.zeros(N_TARGETS)),
+        )
         assert got.n == want.n
         _close(got.xtx, want.xtx)  # X'X_w = X'X - sum_v n_v xbar_v xbar_v^T
         _close(got.xty, want.xty)

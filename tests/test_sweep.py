@@ -16,12 +16,10 @@ import numpy as np
 import pytest
 
 from aumesh import config
-from aumesh.pipeline import prepare
-from aumesh.data import synth
-from aumesh.data import tables
+from aumesh.data import synth, tables
 from aumesh.data.schema import INPUT_COLUMNS
 from aumesh.experiments import mlflow_store, queries, registry, tracking
-
+from aumesh.pipeline import prepare
 from test_mlflow_server import mlflow_server  # noqa: F401  (module-scoped real server fixture)
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,8 +42,9 @@ def make_workspace(root: Path, spec: synth.SynthSpec = SPEC) -> Path:
     prepare.run(found, cfg, root / cfg.paths.prepared_dir)
     (root / "promotion.json").write_text('{"promoted": null}\n')
     # what `dvc add data` records (a placeholder hash: these tests do not run DVC)
-    (root / "data.dvc").write_text("outs:\n- md5: 0123456789abcdef0123456789abcdef.dir\n  size: 1\n  nfiles: 1\n"
-                                   "  hash: md5\n  path: data\n")
+    (root / "data.dvc").write_text(
+        "outs:\n- md5: 0123456789abcdef0123456789abcdef.dir\n  size: 1\n  nfiles: 1\n  hash: md5\n  path: data\n"
+    )
     return root
 
 
@@ -111,7 +110,7 @@ def test_failed_configuration_is_recorded_and_sweep_continues(swept):
     # the jobs launched after the first failure still ran and finished
     order = children.sort_values("start_time")["status"].tolist()
     first_fail = order.index("FAILED")
-    assert "FINISHED" in order[first_fail + 1:]
+    assert "FINISHED" in order[first_fail + 1 :]
 
 
 def test_children_log_per_fold_metrics_curve_figure_and_model(swept):
@@ -136,7 +135,9 @@ def test_children_log_per_fold_metrics_curve_figure_and_model(swept):
         curve = client.get_metric_history(rid, "r2_by_n_components")
         assert sorted(m.step for m in curve) == list(range(1, k + 1))
         assert np.isclose(max(curve, key=lambda m: m.step).value, run.data.metrics["r2_mean"], atol=1e-9)
-        arts = {a.path for a in client.list_artifacts(rid, "plots")} | {a.path for a in client.list_artifacts(rid, "model")}
+        arts = {a.path for a in client.list_artifacts(rid, "plots")} | {
+            a.path for a in client.list_artifacts(rid, "model")
+        }
         assert {"plots/r2_vs_n_components.png", "model/MLmodel", "model/input_example.json"} <= arts
         # the model is an MLflow pyfunc model with the card's signature
         info = mlflow.models.get_model_info(f"runs:/{rid}/model")
@@ -157,24 +158,40 @@ def test_statistics_are_reused_across_n_components(swept):
 
 def test_child_equals_a_fresh_fit(swept, workspace):
     """A sweep child's metrics and NPZ coefficients equal evaluate.evaluate of the same configuration."""
-    from aumesh.pipeline import evaluate as ev
     from aumesh.experiments import sweep
     from aumesh.model.release import release_arrays
+    from aumesh.pipeline import evaluate as ev
 
     _, children = swept
-    row = children[(children["status"] == "FINISHED") & (children["params.features.name"] == "au_pose_interactions")
-                   & (children["params.model.n_components"] == "25")].iloc[0]
-    cfg = config.from_dict(config.compose(["model.n_components=25", "features=au_pose_interactions",
-                                           "model.clip_n_components=false"], config_dir=workspace / "conf"))
+    row = children[
+        (children["status"] == "FINISHED")
+        & (children["params.features.name"] == "au_pose_interactions")
+        & (children["params.model.n_components"] == "25")
+    ].iloc[0]
+    cfg = config.from_dict(
+        config.compose(
+            ["model.n_components=25", "features=au_pose_interactions", "model.clip_n_components=false"],
+            config_dir=workspace / "conf",
+        )
+    )
     prepared = ev.load_prepared(workspace / cfg.paths.prepared_dir)
     with sweep.blas_threads():
         cv, final = ev.evaluate(prepared, cfg)
     assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
-    local = registry.download_run_artifacts(row["run_id"], "model/artifacts/au_to_mesh_pls.npz", workspace / "build" / "dl")
+    local = registry.download_run_artifacts(
+        row["run_id"], "model/artifacts/au_to_mesh_pls.npz", workspace / "build" / "dl"
+    )
     npz = np.load(local)
     # the fresh fit's release (in the card's frame, as every released NPZ)
-    fresh = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
-                           prepared.reference, card_text="", metadata={})
+    fresh = release_arrays(
+        final.coef,
+        final.mesh_intercept,
+        final.feature_columns,
+        final.n_components,
+        prepared.reference,
+        card_text="",
+        metadata={},
+    )
     np.testing.assert_array_equal(npz["coef_full"], fresh["coef_full"])
     np.testing.assert_array_equal(npz["intercept"], fresh["intercept"])
     assert int(npz["n_components"]) == 25
@@ -201,7 +218,9 @@ def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     from aumesh.experiments import sweep
 
     cache = sweep.SweepCache()
-    raw = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=3"], config_dir=workspace / "conf")
+    raw = config.compose(
+        ["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=3"], config_dir=workspace / "conf"
+    )
     r1 = sweep.run_configuration(raw, ["preprocess.pose_filter.max_abs_yaw_deg=30"], cache=cache, root=workspace)
     assert r1["status"] == "FINISHED", r1
     run = mlflow_store.get_client({}).get_run(r1["run_id"])
@@ -210,7 +229,9 @@ def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     assert (prepared_dir / sweep.PREPARE_STAMP).exists()
     summary = prepare.load_summary(prepared_dir)
     assert summary["n_frames"] < prepare.load_summary(workspace / "build" / "prepared")["n_frames"]
-    raw2 = config.compose(["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=4"], config_dir=workspace / "conf")
+    raw2 = config.compose(
+        ["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=4"], config_dir=workspace / "conf"
+    )
     r2 = sweep.run_configuration(raw2, ["model.n_components=4"], cache=cache, root=workspace)
     assert mlflow_store.get_client({}).get_run(r2["run_id"]).data.tags["aumesh.cache.statistics"] == "reused"
 
@@ -247,16 +268,18 @@ def test_joblib_launcher_children_find_the_parent(workspace):
 def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_server, monkeypatch):
     """Over loopback HTTP: parent + children with artifacts, then promote registers the NPZ (the server checks
     the source lies in the run's artifacts) and sets the champion alias."""
-    from aumesh.experiments import promote
-    from aumesh.experiments import sweep
+    from aumesh.experiments import promote, sweep
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_server)
     cfg = {"experiment": "server-sweep"}
     parent = tracking.start_parent_run(cfg, "server sweep")
     cache = sweep.SweepCache()
     results = []
-    for ov in (["model.n_components=2"], ["model.n_components=4"],
-               ["features=au", "model.n_components=30", "model.clip_n_components=false"]):
+    for ov in (
+        ["model.n_components=2"],
+        ["model.n_components=4"],
+        ["features=au", "model.n_components=30", "model.clip_n_components=false"],
+    ):
         raw = config.compose(ov + ["tracking.experiment=server-sweep"], config_dir=workspace / "conf")
         results.append(sweep.run_configuration(raw, ov, parent, cache=cache, root=workspace))
     tracking.end_run(parent, cfg)

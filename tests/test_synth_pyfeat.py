@@ -29,12 +29,47 @@ MESH_MP = [f"{a}_{i}" for i in range(478) for a in "xyz"]
 MESH_V2 = [f"mesh_{a}_{i}" for a in "xyz" for i in range(478)]
 PT68 = [f"{a}_{i}" for a in "xy" for i in range(68)]
 EXPECTED = {
-    "mp": RECT + ["FaceScore"] + MESH_MP + ["Pitch", "Roll", "Yaw", "X", "Y", "Z"] + BLENDSHAPES + list(AU_COLUMNS)
-    + ["anger", "disgust", "fear", "happiness", "sadness", "surprise", "neutral"] + IDENT
-    + ["gaze_pitch", "gaze_yaw", "gaze_angle", "FrameHeight", "FrameWidth", "input", "frame", "approx_time", "Identity"],
-    "v2": RECT + ["FaceScore"] + PT68 + ["Pitch", "Roll", "Yaw", "X", "Y", "Z"] + list(AU_COLUMNS)
-    + ["Neutral", "Happy", "Sad", "Surprise", "Fear", "Disgust", "Anger", "valence", "arousal",
-       "gaze_pitch", "gaze_yaw", "gaze_angle"] + IDENT + MESH_V2 + BLENDSHAPES
+    "mp": RECT
+    + ["FaceScore"]
+    + MESH_MP
+    + ["Pitch", "Roll", "Yaw", "X", "Y", "Z"]
+    + BLENDSHAPES
+    + list(AU_COLUMNS)
+    + ["anger", "disgust", "fear", "happiness", "sadness", "surprise", "neutral"]
+    + IDENT
+    + [
+        "gaze_pitch",
+        "gaze_yaw",
+        "gaze_angle",
+        "FrameHeight",
+        "FrameWidth",
+        "input",
+        "frame",
+        "approx_time",
+        "Identity",
+    ],
+    "v2": RECT
+    + ["FaceScore"]
+    + PT68
+    + ["Pitch", "Roll", "Yaw", "X", "Y", "Z"]
+    + list(AU_COLUMNS)
+    + [
+        "Neutral",
+        "Happy",
+        "Sad",
+        "Surprise",
+        "Fear",
+        "Disgust",
+        "Anger",
+        "valence",
+        "arousal",
+        "gaze_pitch",
+        "gaze_yaw",
+        "gaze_angle",
+    ]
+    + IDENT
+    + MESH_V2
+    + BLENDSHAPES
     + ["FrameHeight", "FrameWidth", "input", "frame", "approx_time", "Identity"],
 }
 FILLED = ["input", "frame", "approx_time", "FrameHeight", "FrameWidth"]
@@ -119,7 +154,9 @@ def test_background_faces(written, det):
     assert first.any() and (~first).any()  # detection order, not size
     assert ((both["row_e"] - both["row_m"]).abs() == 1).all()
     assert extra[list(AU_COLUMNS)].stack().between(0, 1).all()
-    assert not np.allclose(both[[f"{a}_e" for a in AU_COLUMNS]].to_numpy(), both[[f"{a}_m" for a in AU_COLUMNS]].to_numpy())
+    assert not np.allclose(
+        both[[f"{a}_e" for a in AU_COLUMNS]].to_numpy(), both[[f"{a}_m" for a in AU_COLUMNS]].to_numpy()
+    )
     # the background person appears in runs of consecutive frames
     f = np.sort(extra[extra["input"] == extra["input"].iloc[0]]["frame"].to_numpy())
     assert len(f) == 1 or (np.diff(f) == 1).any()
@@ -151,8 +188,10 @@ def _check_clean(df: pd.DataFrame, clean: pd.DataFrame, det: str, units=(1.0, 1.
         np.testing.assert_allclose(px, want, rtol=1e-6, atol=1e-4)
     if det == "v2":  # the 68-point block is 68 of the mesh's vertices' x, y
         pts = main[PT68].to_numpy().reshape(len(main), 2, 68).transpose(0, 2, 1) * np.asarray(units[:2])
-        hits = [np.flatnonzero(np.isclose(want[0, :, 0], pts[0, k, 0]) & np.isclose(want[0, :, 1], pts[0, k, 1]))
-                for k in range(68)]
+        hits = [
+            np.flatnonzero(np.isclose(want[0, :, 0], pts[0, k, 0]) & np.isclose(want[0, :, 1], pts[0, k, 1]))
+            for k in range(68)
+        ]
         assert all(len(h) >= 1 for h in hits)
         idx = np.array([h[0] for h in hits])
         np.testing.assert_allclose(pts, want[:, idx, :2], rtol=1e-6, atol=1e-4)
@@ -176,8 +215,15 @@ def test_clean_frames_are_synths(written, tmp_path):
 
 @pytest.mark.parametrize("det", ["mp", "v2"])
 def test_normalized_units(tmp_path, det):
-    s = write_pyfeat_tables(tmp_path / "t", SPEC, detector=det, normalized=True, fmt="parquet", videos_per_file=2,
-                            clean_dir=tmp_path / "clean")
+    s = write_pyfeat_tables(
+        tmp_path / "t",
+        SPEC,
+        detector=det,
+        normalized=True,
+        fmt="parquet",
+        videos_per_file=2,
+        clean_dir=tmp_path / "clean",
+    )
     assert [Path(f).name for f in s["files"]] == ["clip_0000.parquet", "clip_0001.parquet", "clip_0002.parquet"]
     df = pd.concat(pd.read_parquet(f) for f in s["files"])
     clean = pd.concat(pd.read_parquet(f) for f in s["clean_files"])
@@ -200,7 +246,7 @@ def test_split_and_frame_size(written, tmp_path):
         assert list(df.columns) == [c for c in EXPECTED["mp"] if c not in MESH_MP + ["FrameHeight", "FrameWidth"]]
         gone = df["Identity"].isna().to_numpy()
         assert np.isnan(mesh[gone]).all() and np.isfinite(mesh[~gone]).all()
-        part = csv.iloc[n:n + len(df)]
+        part = csv.iloc[n : n + len(df)]
         np.testing.assert_array_equal(part[MESH_MP].to_numpy().astype(np.float32).reshape(-1, 478, 3), mesh)
         np.testing.assert_array_equal(part[list(AU_COLUMNS)].to_numpy(), df[list(AU_COLUMNS)].to_numpy())
         n += len(df)

@@ -10,11 +10,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from aumesh.pipeline import prepare
 from aumesh.data import tables
 from aumesh.data.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
 from aumesh.data.synth import SynthSpec, write_tables
 from aumesh.geometry.align import apply_similarity_vertices
+from aumesh.pipeline import prepare
 from conftest import default_config
 
 PATTERN, NPY = "**/*.parquet", "{stem}.npy"
@@ -67,8 +67,13 @@ def test_npy_mesh_chunks_are_the_stored_rows_read_without_a_memory_map(tmp_path,
     np.save(npy, mesh)
     (found,) = tables.discover(tmp_path / "data", PATTERN, NPY)
     real_load = np.load
-    monkeypatch.setattr(np, "load", lambda *a, **k: pytest.fail("mesh rows read through np.load (a memory map)")
-                        if k.get("mmap_mode") else real_load(*a, **k))
+    monkeypatch.setattr(
+        np,
+        "load",
+        lambda *a, **k: (
+            pytest.fail("mesh rows read through np.load (a memory map)") if k.get("mmap_mode") else real_load(*a, **k)
+        ),
+    )
     starts, rows, columns, previous = [], [], [], None
     for start, chunk in tables.iter_mesh_chunks(found, 64, row_groups=None):
         assert chunk.vertices.dtype == np.float16  # as stored: converted a block at a time later
@@ -99,8 +104,11 @@ def test_a_partitions_npy_chunks_are_its_pieces_rows_read_into_one_buffer(tmp_pa
         buffer = chunk.vertices
         starts.append(start), rows.append(chunk.vertices.copy())
     np.testing.assert_array_equal(np.concatenate(rows), expected)
-    assert starts == [s + sum(len(np.load(t.mesh_npy)) for t in found[:i])
-                      for i, t in enumerate(found) for s in range(0, len(np.load(t.mesh_npy)), 64)]
+    assert starts == [
+        s + sum(len(np.load(t.mesh_npy)) for t in found[:i])
+        for i, t in enumerate(found)
+        for s in range(0, len(np.load(t.mesh_npy)), 64)
+    ]
 
 
 @pytest.mark.parametrize("layout", ["pyfeat", "columns"])
@@ -142,12 +150,16 @@ def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tm
     mesh = [names.index(name) for name in mesh_columns_axis_major()]
     assert md.num_row_groups == 8 and len(mesh) == 3 * N_VERTICES
     compressed = sum(md.row_group(g).column(i).total_compressed_size for g in range(8) for i in mesh)
-    code = ("import sys, pyarrow as pa\nfrom aumesh.data import tables\n"
-            f"(t,) = tables.discover({str(tmp_path / 'data')!r}, '*.parquet', '{{stem}}.npy')\n"
-            "n = sum(c.columns.shape[1] for _, c in tables.iter_mesh_chunks(t, 1000, range(8)))\n"
-            "print(n, pa.default_memory_pool().max_memory())")
+    code = (
+        "import sys, pyarrow as pa\nfrom aumesh.data import tables\n"
+        f"(t,) = tables.discover({str(tmp_path / 'data')!r}, '*.parquet', '{{stem}}.npy')\n"
+        "n = sum(c.columns.shape[1] for _, c in tables.iter_mesh_chunks(t, 1000, range(8)))\n"
+        "print(n, pa.default_memory_pool().max_memory())"
+    )
     env = {**os.environ, ARROW_POOL_ENV: "system"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
     assert int(out[0]) == 8000
     assert int(out[1]) < 0.8 * compressed  # pre-buffered: 1.5x (89 vs 58 MiB); a row group at a time: 0.65x
 
@@ -221,7 +233,9 @@ def test_video_with_no_frames_left_after_filtering(small_tables, tmp_path):
     df.to_parquet(path)
     found = tables.discover(small_tables, PATTERN, NPY)
     strict = default_config(**{"preprocess.empty_video": "error"})
-    with pytest.raises(tables.TableError, match=r"video 'vid000001' \(column 'video_id'\) has no frames left.*empty_video=drop") as err:
+    with pytest.raises(
+        tables.TableError, match=r"video 'vid000001' \(column 'video_id'\) has no frames left.*empty_video=drop"
+    ) as err:
         prepare.run(found, strict, tmp_path / "strict")
     assert str(err.value).startswith(f"{path}: ")  # the table that holds the video
     summary = prepare.run(found, default_config(), tmp_path / "lenient")
@@ -268,8 +282,23 @@ def test_a_partition_of_several_tables_is_checked_at_once_and_a_broken_one_named
         tables.read_pieces_metadata([piece for t in found for piece in tables.pieces(t)])
 
 
-@pytest.mark.parametrize("path", ["clips/a/vid1.mp4", "vid1.mp4", "a/b.tar.gz", "a/.hidden", "a/b.", "a/b/", "/x/y/z",
-                                  "..", "a/..b", "noext", "dir.v/file", "C:\\clips\\v.mp4"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "clips/a/vid1.mp4",
+        "vid1.mp4",
+        "a/b.tar.gz",
+        "a/.hidden",
+        "a/b.",
+        "a/b/",
+        "/x/y/z",
+        "..",
+        "a/..b",
+        "noext",
+        "dir.v/file",
+        "C:\\clips\\v.mp4",
+    ],
+)
 def test_video_from_input_path_is_pathlibs_stem(path):
     """py-feat's ``input`` column names the video by its path's stem, computed without pathlib (which interns every
     component, for the life of the process), exactly as ``PurePosixPath.stem``."""

@@ -18,7 +18,6 @@ import yaml
 
 from aumesh import cli, config
 from aumesh.experiments import mlflow_store, promote, provenance, queries, sweep, tracking
-
 from test_sweep import make_workspace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,8 +57,10 @@ def team(tmp_path_factory):
             _git(ws, "remote", "add", "origin", "https://git.lab.example/aumesh.git")  # one remote, two clones
             clones[name] = ws
         cache = sweep.SweepCache()
-        sweeps = {"alice": _sweep(clones["alice"], [["model.n_components=1"]], cache, mp),
-                  "bob": _sweep(clones["bob"], [["model.n_components=2"], ["model.n_components=6"]], cache, mp)}
+        sweeps = {
+            "alice": _sweep(clones["alice"], [["model.n_components=1"]], cache, mp),
+            "bob": _sweep(clones["bob"], [["model.n_components=2"], ["model.n_components=6"]], cache, mp),
+        }
         yield {"clones": clones, "sweeps": sweeps, "mp": mp}
 
 
@@ -73,8 +74,11 @@ def test_every_run_names_its_user_and_clone(team):
     ids = {provenance.workspace_id(ws) for ws in team["clones"].values()}
     assert len(ids) == 2 and all(len(i) == 16 for i in ids)  # same remote, other path: other clone
     for name, (parent, children) in team["sweeps"].items():
-        expected = {"aumesh.user": USERS[name], "mlflow.user": USERS[name],
-                    "aumesh.workspace.id": provenance.workspace_id(team["clones"][name])}
+        expected = {
+            "aumesh.user": USERS[name],
+            "mlflow.user": USERS[name],
+            "aumesh.workspace.id": provenance.workspace_id(team["clones"][name]),
+        }
         for run_id in [parent, *children]:
             tags = client.get_run(run_id).data.tags
             assert {k: tags.get(k) for k in expected} == expected
@@ -111,9 +115,12 @@ def test_bare_promote_takes_your_own_sweep_and_only_your_evaluate_runs_overrule(
     alice_parent, alice_children = team["sweeps"]["alice"]
     # Bob's pipeline run (a `dvc exp run` of his), after both sweeps, of another configuration
     team["mp"].chdir(team["clones"]["bob"])
-    with tracking.tracked_run({}, "bob: absolute au_pose_interactions k=20",
-                              config.compose(["model.n_components=20"], config_dir=team["clones"]["bob"] / "conf"),
-                              tags={"aumesh.stage": "evaluate"}):
+    with tracking.tracked_run(
+        {},
+        "bob: absolute au_pose_interactions k=20",
+        config.compose(["model.n_components=20"], config_dir=team["clones"]["bob"] / "conf"),
+        tags={"aumesh.stage": "evaluate"},
+    ):
         pass
     _as(team, "alice")
     capsys.readouterr()
@@ -124,8 +131,12 @@ def test_bare_promote_takes_your_own_sweep_and_only_your_evaluate_runs_overrule(
     assert (record["parent_run_id"], record["run_id"]) == (alice_parent, alice_children[0])
     assert (record["user"], record["workspace"]) == (USERS["alice"], provenance.workspace_id(ws))
     # Alice's own newer pipeline run of another configuration does stop her
-    with tracking.tracked_run({}, "alice: k=20", config.compose(["model.n_components=20"], config_dir=ws / "conf"),
-                              tags={"aumesh.stage": "evaluate"}) as newer:
+    with tracking.tracked_run(
+        {},
+        "alice: k=20",
+        config.compose(["model.n_components=20"], config_dir=ws / "conf"),
+        tags={"aumesh.stage": "evaluate"},
+    ) as newer:
         pass
     assert cli.main(["promote", "--no-register"]) == 2
     assert f"older than evaluate run {newer.run_id}" in capsys.readouterr().err
@@ -162,21 +173,29 @@ def test_a_cluster_run_on_a_server_promotes_what_it_is_not_where_it_ran(team, tm
     promotion writes neither into conf/, params.yaml or promotion.json."""
     ws = _as(team, "alice")
     before = yaml.safe_load((ws / "params.yaml").read_text())
-    where = ["compute=distributed", "compute.address=tcp://10.0.0.5:8786", "compute.partition_rows=1000",
-             "tracking.tracking_uri=http://10.0.0.9:5000", "tracking.experiment=aumesh"]
+    where = [
+        "compute=distributed",
+        "compute.address=tcp://10.0.0.5:8786",
+        "compute.partition_rows=1000",
+        "tracking.tracking_uri=http://10.0.0.9:5000",
+        "tracking.experiment=aumesh",
+    ]
     raw = config.compose(["model.n_components=3", *where], config_dir=ws / "conf")
     parent = tracking.start_parent_run({}, "cluster sweep")
-    with tracking.tracked_run({}, "k=3 on the cluster", raw, tags={"aumesh.role": "sweep-child"},
-                              parent_run_id=parent) as run:
+    with tracking.tracked_run(
+        {}, "k=3 on the cluster", raw, tags={"aumesh.role": "sweep-child"}, parent_run_id=parent
+    ) as run:
         run.log_metrics({"r2_mean": 0.5, "n_components": 3.0})
     tracking.end_run(parent)
     params = queries.run_record(run.run_id, {})["params"]
     assert params["compute.address"] == "tcp://10.0.0.5:8786"  # the run itself knows where it ran
     record = promote.promote(parent, ws, {}, register=False)
     exp = yaml.safe_load((ws / "conf" / "experiment" / "promoted.yaml").read_text())
-    assert exp == {"preprocess": {"target": "absolute", "neutral": {"method": "low_au"}},
-                   "features": {"name": "au_pose_interactions"},
-                   "model": {"n_components": 3, "scale": True, "clip_n_components": True}}
+    assert exp == {
+        "preprocess": {"target": "absolute", "neutral": {"method": "low_au"}},
+        "features": {"name": "au_pose_interactions"},
+        "model": {"n_components": 3, "scale": True, "clip_n_components": True},
+    }
     after = yaml.safe_load((ws / "params.yaml").read_text())
     assert after["compute"] == before["compute"] and after["tracking"] == before["tracking"]
     shared = (ws / "promotion.json").read_text() + (ws / "params.yaml").read_text()
@@ -225,8 +244,13 @@ def test_shared_records_name_no_server(tmp_path, monkeypatch):
     monkeypatch.chdir(ws)
     label = mlflow_store.store_label
     assert label(f"sqlite:///{ws}/mlflow.db", ws) == "sqlite:///mlflow.db"
-    for uri in ("http://10.0.0.9:5000", "https://user:pw@mlflow.lab.example", "sqlite:////elsewhere/mlflow.db",
-                "postgresql+psycopg2://mlflow:pw@db:5432/mlflow", f"file://{tmp_path}/other"):
+    for uri in (
+        "http://10.0.0.9:5000",
+        "https://user:pw@mlflow.lab.example",
+        "sqlite:////elsewhere/mlflow.db",
+        "postgresql+psycopg2://mlflow:pw@db:5432/mlflow",
+        f"file://{tmp_path}/other",
+    ):
         assert label(uri, ws) == mlflow_store.EXTERNAL_STORE
 
 
@@ -245,7 +269,9 @@ def test_postgresql_uri_gets_the_installed_driver():
             mlflow_store.database_uri(uri)
         return
     fixed = mlflow_store.database_uri(uri)
-    assert fixed.startswith(("postgresql+psycopg2://", "postgresql+psycopg://")) and fixed.endswith("@127.0.0.1:5432/mlflow")
+    assert fixed.startswith(("postgresql+psycopg2://", "postgresql+psycopg://")) and fixed.endswith(
+        "@127.0.0.1:5432/mlflow"
+    )
     assert sqlalchemy.create_engine(fixed).dialect.driver in ("psycopg2", "psycopg")
     if importlib.util.find_spec("psycopg") is None:  # the defect this fixes
         with pytest.raises(ModuleNotFoundError, match="psycopg"):

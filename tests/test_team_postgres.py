@@ -18,7 +18,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from test_mlflow_server import STARTUP_TIMEOUT_S, _free_port, _healthy, _stop
@@ -67,7 +66,9 @@ def postgres(timings):
     """A PostgreSQL 15 cluster in a temporary folder on 127.0.0.1:<free port>, user `mlflow` with a password,
     database `mlflow`; stopped (and the folder removed) at the end."""
     if not (PG_BIN / "initdb").exists():
-        pytest.fail(f"{PG_BIN}/initdb not found: install Debian's postgresql (apt-get install -y postgresql; .ci/run does)")
+        pytest.fail(
+            f"{PG_BIN}/initdb not found: install Debian's postgresql (apt-get install -y postgresql; .ci/run does)"
+        )
     sudo = _as_unprivileged()
     home = Path(tempfile.mkdtemp(prefix="aumesh-pg-"))  # /tmp/..., not root's private pytest folder
     data, log = home / "data", home / "server.log"
@@ -77,20 +78,49 @@ def postgres(timings):
         shutil.chown(home / "pwfile", user=sudo[2])
     port = _free_port()
     t0 = time.perf_counter()
-    _run([*sudo, str(PG_BIN / "initdb"), "-D", str(data), "-U", "mlflow", "--pwfile", str(home / "pwfile"),
-          "--auth=scram-sha-256", "-E", "UTF8", "--no-instructions"])
+    _run(
+        [
+            *sudo,
+            str(PG_BIN / "initdb"),
+            "-D",
+            str(data),
+            "-U",
+            "mlflow",
+            "--pwfile",
+            str(home / "pwfile"),
+            "--auth=scram-sha-256",
+            "-E",
+            "UTF8",
+            "--no-instructions",
+        ]
+    )
     timings["initdb (a new PostgreSQL cluster)"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    _run([*sudo, str(PG_BIN / "pg_ctl"), "-D", str(data), "-l", str(log), "-w", "-t", "60", "start",
-          "-o", f"-p {port} -c listen_addresses=127.0.0.1 -k {home}"])
+    _run(
+        [
+            *sudo,
+            str(PG_BIN / "pg_ctl"),
+            "-D",
+            str(data),
+            "-l",
+            str(log),
+            "-w",
+            "-t",
+            "60",
+            "start",
+            "-o",
+            f"-p {port} -c listen_addresses=127.0.0.1 -k {home}",
+        ]
+    )
     try:
         env = dict(os.environ, PGPASSWORD=PASSWORD)
         _run([str(PG_BIN / "createdb"), "-h", "127.0.0.1", "-p", str(port), "-U", "mlflow", "mlflow"], env=env)
         timings["pg_ctl start + createdb"] = time.perf_counter() - t0
         yield f"postgresql://mlflow@127.0.0.1:{port}/mlflow"
     finally:
-        subprocess.run([*sudo, str(PG_BIN / "pg_ctl"), "-D", str(data), "-m", "fast", "-w", "stop"],
-                       capture_output=True)
+        subprocess.run(
+            [*sudo, str(PG_BIN / "pg_ctl"), "-D", str(data), "-m", "fast", "-w", "stop"], capture_output=True
+        )
         shutil.rmtree(home, ignore_errors=True)
 
 
@@ -104,14 +134,34 @@ def server(postgres, tmp_path_factory, timings):
     env.pop("MLFLOW_TRACKING_URI", None)
     log = open(tmp / "server.log", "w")
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "aumesh", "server", "--backend-store-uri", postgres,
-                             "--artifacts-destination", str(tmp / "artifacts"), "--port", str(port), "--workers", "2"],
-                            cwd=tmp, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "aumesh",
+            "server",
+            "--backend-store-uri",
+            postgres,
+            "--artifacts-destination",
+            str(tmp / "artifacts"),
+            "--port",
+            str(port),
+            "--workers",
+            "2",
+        ],
+        cwd=tmp,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not _healthy(url):
             if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"aumesh server not healthy (exit {proc.poll()}):\n{(tmp / 'server.log').read_text()[-3000:]}")
+                pytest.fail(
+                    f"aumesh server not healthy (exit {proc.poll()}):\n{(tmp / 'server.log').read_text()[-3000:]}"
+                )
             time.sleep(0.25)
         timings["aumesh server up (schema created in PostgreSQL)"] = time.perf_counter() - t0
         yield url
@@ -150,9 +200,17 @@ def _aumesh(ws: Path, *args: str) -> subprocess.CompletedProcess:
 def swept(clones, server, timings):
     """Both clones' `aumesh sweep -m ...` at the same time; their parent run ids (from each sweep's folder)."""
     t0 = time.perf_counter()
-    procs = {name: subprocess.Popen([sys.executable, "-m", "aumesh", "sweep", "-m", GRIDS[name]], cwd=ws,
-                                    env=_env(ws), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for name, ws in clones.items()}
+    procs = {
+        name: subprocess.Popen(
+            [sys.executable, "-m", "aumesh", "sweep", "-m", GRIDS[name]],
+            cwd=ws,
+            env=_env(ws),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for name, ws in clones.items()
+    }
     outs = {name: p.communicate(timeout=900)[0] for name, p in procs.items()}
     timings["two sweeps at once (2 configurations each)"] = time.perf_counter() - t0
     for name, p in procs.items():
@@ -174,7 +232,9 @@ def test_two_sweeps_at_once_land_whole_under_their_parents_with_owners(swept, cl
         p = client.get_run(parent)
         assert p.info.status == "FINISHED" and p.data.tags["aumesh.user"] == USERS[name]
         children = client.search_runs([p.info.experiment_id], f"tags.`mlflow.parentRunId` = '{parent}'")
-        assert sorted(c.data.params["model.n_components"] for c in children) == sorted(GRIDS[name].split("=")[1].split(","))
+        assert sorted(c.data.params["model.n_components"] for c in children) == sorted(
+            GRIDS[name].split("=")[1].split(",")
+        )
         for c in children:
             assert c.info.status == "FINISHED"
             assert c.data.tags["aumesh.user"] == USERS[name]
@@ -182,8 +242,7 @@ def test_two_sweeps_at_once_land_whole_under_their_parents_with_owners(swept, cl
             assert c.info.artifact_uri.startswith("mlflow-artifacts:")  # served by the server, not a local path
 
 
-def test_promote_registers_in_postgres_and_the_other_clone_loads_the_champion(swept, clones, server, postgres,
-                                                                               timings):
+def test_promote_registers_in_postgres_and_the_other_clone_loads_the_champion(swept, clones, server, postgres, timings):
     import psycopg2
 
     alice, bob = clones["alice"], clones["bob"]
@@ -195,8 +254,11 @@ def test_promote_registers_in_postgres_and_the_other_clone_loads_the_champion(sw
     assert record["parent_run_id"] == swept["alice"] and record["user"] == USERS["alice"]
     assert record["alias"] == "champion" and record["model_version"] == "1"
     # shared records hold no server address and no local path
-    for text in ((alice / "promotion.json").read_text(), (alice / "params.yaml").read_text(),
-                 (alice / "conf" / "experiment" / "promoted.yaml").read_text()):
+    for text in (
+        (alice / "promotion.json").read_text(),
+        (alice / "params.yaml").read_text(),
+        (alice / "conf" / "experiment" / "promoted.yaml").read_text(),
+    ):
         assert "127.0.0.1" not in text and str(alice) not in text and "postgresql" not in text
 
     # the alias is a row of PostgreSQL's registry tables (the database itself, read with psycopg2)
@@ -209,20 +271,25 @@ def test_promote_registers_in_postgres_and_the_other_clone_loads_the_champion(sw
 
     # Bob, in his clone (his aumesh.local.yaml names the server), loads the champion through MLflow's pyfunc
     t0 = time.perf_counter()
-    code = ("import json, sys, numpy as np, pandas as pd, mlflow\n"
-            "from aumesh.experiments import mlflow_store, registry\n"
-            "from aumesh.data.schema import INPUT_COLUMNS\n"
-            "mlflow.set_tracking_uri(mlflow_store.resolve_tracking_uri())\n"
-            "model = mlflow.pyfunc.load_model('models:/aumesh-au-to-mesh@champion')\n"
-            "df = pd.DataFrame(np.random.default_rng(0).uniform(0, 1, (4, 23)), columns=list(INPUT_COLUMNS))\n"
-            "df[['Pitch', 'Yaw', 'Roll']] = 0.0\n"
-            "run = registry.model_version_by_alias('aumesh-au-to-mesh', 'champion', {})['run_id']\n"
-            "npz = np.load(registry.download_run_artifacts(run, 'model/artifacts/au_to_mesh_pls.npz', sys.argv[1]))\n"
-            "expected = df.to_numpy() @ npz['coef'].astype(np.float64) + npz['intercept'].astype(np.float64)\n"
-            "print(json.dumps({'run': run, 'max_abs_diff': float(np.abs(model.predict(df) - expected).max()),\n"
-            "                  'scale': float(np.abs(expected).max())}))\n")
-    result = json.loads(_run([sys.executable, "-c", code, str(bob / "download")], cwd=bob, env=_env(bob),
-                             timeout=600).stdout.strip().splitlines()[-1])
+    code = (
+        "import json, sys, numpy as np, pandas as pd, mlflow\n"
+        "from aumesh.experiments import mlflow_store, registry\n"
+        "from aumesh.data.schema import INPUT_COLUMNS\n"
+        "mlflow.set_tracking_uri(mlflow_store.resolve_tracking_uri())\n"
+        "model = mlflow.pyfunc.load_model('models:/aumesh-au-to-mesh@champion')\n"
+        "df = pd.DataFrame(np.random.default_rng(0).uniform(0, 1, (4, 23)), columns=list(INPUT_COLUMNS))\n"
+        "df[['Pitch', 'Yaw', 'Roll']] = 0.0\n"
+        "run = registry.model_version_by_alias('aumesh-au-to-mesh', 'champion', {})['run_id']\n"
+        "npz = np.load(registry.download_run_artifacts(run, 'model/artifacts/au_to_mesh_pls.npz', sys.argv[1]))\n"
+        "expected = df.to_numpy() @ npz['coef'].astype(np.float64) + npz['intercept'].astype(np.float64)\n"
+        "print(json.dumps({'run': run, 'max_abs_diff': float(np.abs(model.predict(df) - expected).max()),\n"
+        "                  'scale': float(np.abs(expected).max())}))\n"
+    )
+    result = json.loads(
+        _run([sys.executable, "-c", code, str(bob / "download")], cwd=bob, env=_env(bob), timeout=600)
+        .stdout.strip()
+        .splitlines()[-1]
+    )
     timings["pyfunc load + predict from the other clone"] = time.perf_counter() - t0
     assert result["run"] == record["run_id"]
     assert result["max_abs_diff"] <= 1e-9 * result["scale"]
@@ -232,8 +299,11 @@ def test_promote_registers_in_postgres_and_the_other_clone_loads_the_champion(sw
 
     client = MlflowClient(tracking_uri=server)
     exp = client.get_experiment_by_name("aumesh")
-    children = [r for r in client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'")
-                if r.data.tags.get("aumesh.role") == "sweep-child"]
+    children = [
+        r
+        for r in client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'")
+        if r.data.tags.get("aumesh.role") == "sweep-child"
+    ]
     best = max(children, key=lambda r: (r.data.metrics["r2_mean"], -r.data.metrics["n_components"]))
     t0 = time.perf_counter()
     out = _aumesh(bob, "promote", "--across").stdout

@@ -9,8 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from aumesh.experiments import provenance
-from aumesh.experiments import mlflow_store, queries, tracking
+from aumesh.experiments import mlflow_store, provenance, queries, tracking
 
 MD5 = "0123456789abcdef0123456789abcdef.dir"
 DVC_FILE = f"""outs:
@@ -25,7 +24,10 @@ DVC_FILE = f"""outs:
 def _git(ws: Path, *args: str) -> str:
     out = subprocess.run(
         ["git", "-c", "user.email=t@example.com", "-c", "user.name=t", "-c", "commit.gpgsign=false", *args],
-        cwd=ws, capture_output=True, text=True, check=True,
+        cwd=ws,
+        capture_output=True,
+        text=True,
+        check=True,
     )
     return out.stdout.strip()
 
@@ -255,12 +257,14 @@ def test_the_helper_ends_with_its_caller_and_the_next_run_marks_the_run_killed(c
 
     from aumesh.utils.io import process_gone
 
-    code = ("import os, signal, sys\n"
-            "from aumesh.experiments import tracking\n"
-            "from test_tracking import _pid\n"
-            "with tracking.tracked_run_beside({'experiment': sys.argv[1]}, 'victim', {'a': 1}) as run:\n"
-            "    print(run.run_id, run.call(_pid).result(), flush=True)\n"
-            "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    code = (
+        "import os, signal, sys\n"
+        "from aumesh.experiments import tracking\n"
+        "from test_tracking import _pid\n"
+        "with tracking.tracked_run_beside({'experiment': sys.argv[1]}, 'victim', {'a': 1}) as run:\n"
+        "    print(run.run_id, run.call(_pid).result(), flush=True)\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
     with open(tmp_path / "out.txt", "w+") as out:  # a file, not a pipe: an orphaned helper would hold a pipe open
         assert subprocess.run([sys.executable, "-c", code, cfg["experiment"]], stdout=out, env=env).returncode == -9
@@ -293,7 +297,9 @@ def test_resolve_tracking_uri_from_subdirectory(workspace, monkeypatch):
     monkeypatch.chdir(sub)
     assert mlflow_store.resolve_tracking_uri(None) == f"sqlite:///{workspace}/mlflow.db"
     assert mlflow_store.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
-    assert mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:///runs/t.db"}) == f"sqlite:///{workspace}/runs/t.db"
+    assert (
+        mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:///runs/t.db"}) == f"sqlite:///{workspace}/runs/t.db"
+    )
     assert mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:////abs/t.db"}) == "sqlite:////abs/t.db"
     assert mlflow_store.resolve_tracking_uri({"tracking_uri": "http://127.0.0.1:5000"}) == "http://127.0.0.1:5000"
 
@@ -307,7 +313,9 @@ def test_resolve_tracking_uri_from_dvc_temp_copy(workspace, monkeypatch, copy):
     monkeypatch.chdir(tmp_copy / "src")
     assert provenance.repo_root() == workspace
     assert mlflow_store.resolve_tracking_uri({"tracking_uri": None}) == f"sqlite:///{workspace}/mlflow.db"
-    assert mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:///mlflow.db"}) == f"sqlite:///{workspace}/mlflow.db"
+    assert (
+        mlflow_store.resolve_tracking_uri({"tracking_uri": "sqlite:///mlflow.db"}) == f"sqlite:///{workspace}/mlflow.db"
+    )
     assert provenance.in_dvc_temp_copy()
 
 
@@ -349,8 +357,10 @@ def test_git_commit_reports_dvc_baseline_and_dirty(workspace, monkeypatch):
     # what DVC itself rewrites (the lock file, the git-tracked metrics it lists) is not a dirty tree
     (workspace / "metrics").mkdir()
     (workspace / "metrics" / "m.json").write_text("{}")
-    (workspace / "dvc.lock").write_text("schema: '2.0'\nstages:\n  a:\n    cmd: echo\n    outs:\n"
-                                        "    - path: metrics/m.json\n      hash: md5\n      md5: 0\n")
+    (workspace / "dvc.lock").write_text(
+        "schema: '2.0'\nstages:\n  a:\n    cmd: echo\n    outs:\n"
+        "    - path: metrics/m.json\n      hash: md5\n      md5: 0\n"
+    )
     _git(workspace, "add", "dvc.lock", "metrics/m.json")
     _git(workspace, "commit", "-q", "-m", "lock")
     (workspace / "metrics" / "m.json").write_text('{"r2": 0.5}')
@@ -377,8 +387,18 @@ def test_flatten_and_library_versions():
     assert flat == {"a.b.c": 1, "a.l": "[1, 2]", "e": "{}", "n": None}
     assert provenance.flatten({"a": {"b": 1}}, sep="/") == {"a/b": 1}
     versions = provenance.library_versions()
-    assert set(versions) >= {"numpy", "scipy", "scikit-learn", "pandas", "pyarrow", "mlflow", "dvc",
-                             "hydra-core", "python", "aumesh"}
+    assert set(versions) >= {
+        "numpy",
+        "scipy",
+        "scikit-learn",
+        "pandas",
+        "pyarrow",
+        "mlflow",
+        "dvc",
+        "hydra-core",
+        "python",
+        "aumesh",
+    }
     assert versions["mlflow"].startswith("3.")
 
 
@@ -395,8 +415,17 @@ def test_concurrent_first_use_of_a_fresh_sqlite_store(tmp_path, workspace):
         "    r.log_fold_metrics({'r2': [0.1, 0.2]})\n"
     )
     env = dict(os.environ, MLFLOW_TRACKING_URI=uri)
-    procs = [subprocess.Popen([sys.executable, "-c", script, str(i)], env=env, cwd=workspace,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for i in range(4)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script, str(i)],
+            env=env,
+            cwd=workspace,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for i in range(4)
+    ]
     outs = [p.communicate(timeout=120)[0] for p in procs]
     assert all(p.returncode == 0 for p in procs), "\n".join(outs)
     client = _client(uri)

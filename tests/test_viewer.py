@@ -7,15 +7,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import upright_truth_release
-from aumesh.data.schema import INPUT_COLUMNS, flatten_axis_major
 from aumesh import cli
+from aumesh.data.schema import INPUT_COLUMNS, flatten_axis_major
 from aumesh.export import viewer
 from aumesh.model.release import load_npz
+from conftest import upright_truth_release
 
 CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-        "--disable-sync", "--no-first-run"]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 FOREHEAD = (10, 151, 9, 67, 297, 109, 338, 103, 332)
 MOUTH = (61, 291, 0, 17, 13, 14, 78, 308, 39, 269, 181, 405)
 SHOTS = Path(__file__).resolve().parents[1] / "build" / "test-screenshots"  # kept for a person to look at
@@ -57,8 +64,9 @@ def _open(browser, path, viewport=(1100, 700)):
 
 
 def _shot(page, name):
-    from PIL import Image
     import io
+
+    from PIL import Image
 
     SHOTS.mkdir(parents=True, exist_ok=True)
     png = page.locator("canvas").screenshot()
@@ -89,7 +97,8 @@ def test_sliders_move_the_mouth_not_the_forehead(browser, page_file):
         assert _changed(neutral, moved, mouth) > 0.05, au
         assert _changed(neutral, moved, forehead) < 0.002, au
         # the page's mesh is the card's prediction
-        x = np.zeros(23); x[INPUT_COLUMNS.index(au)] = 1.0  # noqa: E702
+        x = np.zeros(23)
+        x[INPUT_COLUMNS.index(au)] = 1.0  # noqa: E702
         m = np.load(npz_path, allow_pickle=False)
         expected = x @ m["coef"].astype(np.float64) + m["intercept"].astype(np.float64)
         got = flatten_axis_major(np.array(page.evaluate("window.aumeshViewer.mesh()")).reshape(478, 3))
@@ -111,8 +120,9 @@ def _pose_release(tmp_path, metadata=None, card_text=""):
     coef = rng.normal(0.0, 2.0, (1434, len(columns)))
     coef[:, :20] = truth["coef"][:20].T
     reference = {k: truth[k] for k in ("mean_aligned_mesh", "mean_low_au_mesh", "reference_anchors", "anchor_indices")}
-    return release_arrays(coef, truth["intercept"], columns, 83, reference, card_text=card_text,
-                          metadata=metadata or {})
+    return release_arrays(
+        coef, truth["intercept"], columns, 83, reference, card_text=card_text, metadata=metadata or {}
+    )
 
 
 def test_pose_sliders_use_coef_full(browser, tmp_path, node_tools):
@@ -157,8 +167,10 @@ def test_layout_fills_the_window_and_every_slider_shows_at_1280x720(browser, pag
     for b in boxes:  # inside the window, drawn, nothing scrolled
         assert b["top"] >= 0 and b["left"] >= 0 and b["bottom"] <= VIEW[1] and b["right"] <= VIEW[0], b
         assert b["hit"], f"{b['name']} is covered or clipped"
-    scroll = page.evaluate("[document.scrollingElement.scrollHeight, document.scrollingElement.scrollWidth, "
-                           "document.getElementById('side').scrollTop]")
+    scroll = page.evaluate(
+        "[document.scrollingElement.scrollHeight, document.scrollingElement.scrollWidth, "
+        "document.getElementById('side').scrollTop]"
+    )
     assert scroll == [VIEW[1], VIEW[0], 0]  # the page itself never scrolls
     # FACS names beside the codes
     rows = page.locator("#aus .row").evaluate_all("""rows => rows.map((r) => {
@@ -183,8 +195,11 @@ def test_drag_orbits_and_wheel_zooms(browser, page_file):
     page, problems, requests = _open(browser, path, VIEW)
     box = page.locator("canvas").bounding_box()
     cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-    mesh0, cam0, front = page.evaluate("window.aumeshViewer.mesh()"), page.evaluate("window.aumeshViewer.camera()"), \
-        _shot(page, "viewer_front_1280.png")
+    mesh0, cam0, front = (
+        page.evaluate("window.aumeshViewer.mesh()"),
+        page.evaluate("window.aumeshViewer.camera()"),
+        _shot(page, "viewer_front_1280.png"),
+    )
     page.mouse.move(cx, cy)
     page.mouse.down()
     for k in range(1, 11):  # a real drag: pointer events in steps, as a hand would
@@ -216,7 +231,7 @@ def test_drag_orbits_and_wheel_zooms(browser, page_file):
 
 
 def test_copied_json_round_trips_through_predict_mesh(browser, tmp_path, node_tools):
-    """"Copy as JSON" puts the current values on the clipboard; predict_mesh(m, json.loads(text)) is the page's mesh."""
+    """ "Copy as JSON" puts the current values on the clipboard; predict_mesh(m, json.loads(text)) is the page's mesh."""
     import json
 
     import aumesh
@@ -239,8 +254,10 @@ def test_copied_json_round_trips_through_predict_mesh(browser, tmp_path, node_to
     expected = aumesh.predict_mesh(arrays, values)
     # the page computes in float64 from the float32 arrays and stores float32 positions: half a float32 ulp apart
     np.testing.assert_allclose(got, expected, rtol=0, atol=2 * np.finfo(np.float32).eps * np.abs(expected).max())
-    assert np.abs(expected - aumesh.predict_mesh(arrays, {k: v for k, v in values.items() if k.startswith("AU")})
-                  ).max() > 1.0  # the JSON's pose values matter here
+    assert (
+        np.abs(expected - aumesh.predict_mesh(arrays, {k: v for k, v in values.items() if k.startswith("AU")})).max()
+        > 1.0
+    )  # the JSON's pose values matter here
     # no clipboard (blocked): the text is shown selected instead, the same JSON
     page.evaluate("() => { navigator.clipboard.writeText = () => Promise.reject(new Error('blocked')); }")
     page.click("#copy-json")
@@ -286,9 +303,17 @@ def _hostile_metadata(text):
         "config": {"features": {"name": text}, "preprocess": {"target": text}, "cv": {"group": text}},
         "provenance": {"git_commit": text},
         "mlflow": {"run_id": text},
-        "promotion": {"run_id": text, "run_name": text, "parent_run_id": text, "criterion": text, "compared": text,
-                      "config_overrides": [text, text], "registered_model": text, "model_version": text,
-                      "alias": text},
+        "promotion": {
+            "run_id": text,
+            "run_name": text,
+            "parent_run_id": text,
+            "criterion": text,
+            "compared": text,
+            "config_overrides": [text, text],
+            "registered_model": text,
+            "model_version": text,
+            "alias": text,
+        },
         "source": text,
     }
 

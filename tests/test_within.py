@@ -74,9 +74,15 @@ def test_default_promotion_criterion_picks_within_on_coupled_data(coupled):
     candidates = []
     for target in ("absolute", "neutral", "within"):
         cv, _ = _fit(prepared, target)
-        candidates.append(promote.Candidate(run_id=target, run_name=target, status="FINISHED",
-                                            params={"preprocess.target": target, "model.n_components": "83"},
-                                            metrics=cv.scalar_metrics() | {"n_components": 83.0}))
+        candidates.append(
+            promote.Candidate(
+                run_id=target,
+                run_name=target,
+                status="FINISHED",
+                params={"preprocess.target": target, "model.n_components": "83"},
+                metrics=cv.scalar_metrics() | {"n_components": 83.0},
+            )
+        )
     choice = promote.choose(candidates)
     assert choice.metric == "r2_displacement_mean" and choice.run_id == "within", choice.ranking
     assert promote.choose(candidates, metric="au_reliability_median").run_id == "within"

@@ -11,13 +11,14 @@ import os
 import signal
 import sys
 from collections.abc import Mapping
+from datetime import UTC
 from pathlib import Path
 from typing import Any
 
 DEBUG_ENV = "AUMESH_DEBUG"
 
 
-def _params(args) -> "Config":  # noqa: F821
+def _params(args) -> Config:  # noqa: F821
     from aumesh.config import load_params
 
     return load_params(args.params)
@@ -36,8 +37,14 @@ def _cmd_compose_params(args) -> int:
 def _cmd_synth(args) -> int:
     from aumesh.data.synth import SynthSpec, write_tables
 
-    spec = SynthSpec(n_frames=args.frames, n_videos=args.videos, seed=args.seed, layout=args.layout,
-                     reversed_aus=tuple(args.reverse or ()), identity_au_coupling=args.identity_au_coupling)
+    spec = SynthSpec(
+        n_frames=args.frames,
+        n_videos=args.videos,
+        seed=args.seed,
+        layout=args.layout,
+        reversed_aus=tuple(args.reverse or ()),
+        identity_au_coupling=args.identity_au_coupling,
+    )
     print(json.dumps(write_tables(args.out, spec, args.truth), indent=2))
     return 0
 
@@ -47,10 +54,12 @@ def _cmd_ingest(args) -> int:
 
     cfg = _params(args)
     c = ingest_stage(cfg)["counts"]
-    print(f"ingest: {c['frames_out']:,} frames from {c['rows_in']:,} rows of {c['tables_in']:,} tables "
-          f"(no face -{c['dropped_no_face']:,}, other faces -{c['dropped_extra_faces']:,} in "
-          f"{c['frames_with_several_faces']:,} frames, converted from normalized units {c['rows_converted_from_normalized']:,}) "
-          f"-> {cfg.paths.ingested_dir}")
+    print(
+        f"ingest: {c['frames_out']:,} frames from {c['rows_in']:,} rows of {c['tables_in']:,} tables "
+        f"(no face -{c['dropped_no_face']:,}, other faces -{c['dropped_extra_faces']:,} in "
+        f"{c['frames_with_several_faces']:,} frames, converted from normalized units {c['rows_converted_from_normalized']:,}) "
+        f"-> {cfg.paths.ingested_dir}"
+    )
     return 0
 
 
@@ -59,9 +68,11 @@ def _cmd_prepare(args) -> int:
 
     cfg = _params(args)
     c = prepare_stage(cfg)["counts"]
-    print(f"prepare: kept {c['frames_kept']:,} of {c['frames_in']:,} frames, {c['videos_kept']:,} of {c['videos_in']:,} videos "
-          f"(pose filter -{c['dropped_pose']:,}, alignment outliers -{c['dropped_alignment_outliers']:,}) "
-          f"-> {cfg.paths.prepared_dir}")
+    print(
+        f"prepare: kept {c['frames_kept']:,} of {c['frames_in']:,} frames, {c['videos_kept']:,} of {c['videos_in']:,} videos "
+        f"(pose filter -{c['dropped_pose']:,}, alignment outliers -{c['dropped_alignment_outliers']:,}) "
+        f"-> {cfg.paths.prepared_dir}"
+    )
     return 0
 
 
@@ -70,8 +81,10 @@ def _cmd_evaluate(args) -> int:
 
     cfg = _params(args)
     m = evaluate_stage(cfg)
-    print(f"evaluate: CV R2 = {m['r2_mean']:.4f} +/- {m['r2_std']:.4f} (folds {' '.join(f'{v:.4f}' for v in m['r2_folds'])}), "
-          f"MAE = {m['mae_mean']:.4f}, n_components = {m['n_components']} -> {cfg.paths.model_dir}, {cfg.paths.metrics_file}")
+    print(
+        f"evaluate: CV R2 = {m['r2_mean']:.4f} +/- {m['r2_std']:.4f} (folds {' '.join(f'{v:.4f}' for v in m['r2_folds'])}), "
+        f"MAE = {m['mae_mean']:.4f}, n_components = {m['n_components']} -> {cfg.paths.model_dir}, {cfg.paths.metrics_file}"
+    )
     return 0
 
 
@@ -109,8 +122,18 @@ def _cmd_view(args) -> int:
 
 # ------------------------------------------------------------------ versions
 #: What ``aumesh --version --verbose`` and ``aumesh info`` list after aumesh itself (distribution names, as pip has them).
-VERSION_LIBRARIES = ("dvc", "mlflow", "hydra-core", "dask", "distributed", "numpy", "scipy", "scikit-learn", "pandas",
-                     "pyarrow")
+VERSION_LIBRARIES = (
+    "dvc",
+    "mlflow",
+    "hydra-core",
+    "dask",
+    "distributed",
+    "numpy",
+    "scipy",
+    "scikit-learn",
+    "pandas",
+    "pyarrow",
+)
 
 
 def versions(libraries: tuple[str, ...] = VERSION_LIBRARIES) -> dict[str, str]:
@@ -154,8 +177,8 @@ def _cmd_info(args) -> int:
 # ------------------------------------------------------------------ experiments: sweep, runs, promote
 def _tracking_cfg(args) -> dict[str, Any]:
     """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
-    from aumesh.experiments import provenance
     from aumesh.config import load_params
+    from aumesh.experiments import provenance
 
     cfg: dict[str, Any] = {}
     with contextlib.suppress(FileNotFoundError, ValueError):
@@ -175,10 +198,13 @@ def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
     me = queries.current_owner()
     parent = queries.latest_parent_run(tracking_cfg, workspace=me["workspace"])
     if parent is None:
-        raise UserError(f"no sweep of this workspace (user {me['user']}, workspace {me['workspace'][:8]}) in experiment "
-                        f"{tracking_cfg.get('experiment') or 'aumesh'}. Fix: run `aumesh sweep -m ...`, or name a "
-                        "teammate's sweep with --sweep ID (`aumesh runs --sweeps` lists the team's)"
-                        + (", or rank everyone's runs with --across" if args.command == "promote" else "") + ".")
+        raise UserError(
+            f"no sweep of this workspace (user {me['user']}, workspace {me['workspace'][:8]}) in experiment "
+            f"{tracking_cfg.get('experiment') or 'aumesh'}. Fix: run `aumesh sweep -m ...`, or name a "
+            "teammate's sweep with --sweep ID (`aumesh runs --sweeps` lists the team's)"
+            + (", or rank everyone's runs with --across" if args.command == "promote" else "")
+            + "."
+        )
     return parent
 
 
@@ -192,16 +218,19 @@ def _cmd_sweep(args) -> int:
     outcome = sweep.run_sweep([a for a in args.overrides if a != ALLOW_FAILURES])
     if not outcome.n_failed:
         return 0
-    print(f"{outcome.n_failed} of {outcome.n_jobs} configurations failed (errors: `aumesh runs --sweep "
-          f"{outcome.parent_run_id}`); " + ("exit 0 (--allow-failures)" if allow else f"exit 1 ({ALLOW_FAILURES} keeps 0)"),
-          file=sys.stderr)
+    print(
+        f"{outcome.n_failed} of {outcome.n_jobs} configurations failed (errors: `aumesh runs --sweep "
+        f"{outcome.parent_run_id}`); "
+        + ("exit 0 (--allow-failures)" if allow else f"exit 1 ({ALLOW_FAILURES} keeps 0)"),
+        file=sys.stderr,
+    )
     return 0 if allow else 1
 
 
 def _utc(ms: float) -> str:
-    from datetime import datetime, timezone
+    from datetime import datetime
 
-    return datetime.fromtimestamp(ms / 1000, tz=timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    return datetime.fromtimestamp(ms / 1000, tz=UTC).strftime("%Y-%m-%d %H:%M UTC")
 
 
 def _cmd_runs(args) -> int:
@@ -211,8 +240,11 @@ def _cmd_runs(args) -> int:
     if args.sweeps:
         user = queries.current_owner()["user"] if args.mine else args.user
         sweeps = leaderboard.sweeps_table(tracking_cfg, limit=args.limit, user=user)
-        print(sweeps.to_json(orient="records", indent=2, date_format="iso", double_precision=15) if args.json
-              else leaderboard.format_sweeps_table(sweeps))
+        print(
+            sweeps.to_json(orient="records", indent=2, date_format="iso", double_precision=15)
+            if args.json
+            else leaderboard.format_sweeps_table(sweeps)
+        )
         return 0
     if args.mine or args.user:
         from aumesh.utils.errors import UserError
@@ -227,9 +259,11 @@ def _cmd_runs(args) -> int:
         return 0
     tags = record["tags"]
     n_failed = int((children["status"] != "FINISHED").sum()) if len(children) else 0
-    print(f"sweep {parent} ({record['status']}, {record['run_name']}, by {record['user'] or '?'}): {len(children)} runs, "
-          f"{n_failed} not finished"
-          + (f", wall {tags['aumesh.sweep.wall_seconds']} s" if "aumesh.sweep.wall_seconds" in tags else ""))
+    print(
+        f"sweep {parent} ({record['status']}, {record['run_name']}, by {record['user'] or '?'}): {len(children)} runs, "
+        f"{n_failed} not finished"
+        + (f", wall {tags['aumesh.sweep.wall_seconds']} s" if "aumesh.sweep.wall_seconds" in tags else "")
+    )
     if tags.get("aumesh.sweep.overrides"):
         print(f"  overrides: {tags['aumesh.sweep.overrides']}")
     print(leaderboard.format_runs_table(table))
@@ -247,31 +281,55 @@ def _cmd_promote(args) -> int:
     if not args.parent and not args.across:  # your latest sweep: say which, and do not overrule your newer pipeline run
         sweep = queries.run_record(parent, tracking_cfg)
         n_runs = sweep["tags"].get("aumesh.sweep.n_children", "?")
-        print(f"your latest sweep: {parent} (started {_utc(sweep['start_time'])}, {n_runs} runs, "
-              f"swept {sweep['tags'].get('aumesh.sweep.overrides') or 'nothing'}); "
-              "--sweep ID promotes another, --across ranks the team's runs (`aumesh runs --sweeps` lists them)")
+        print(
+            f"your latest sweep: {parent} (started {_utc(sweep['start_time'])}, {n_runs} runs, "
+            f"swept {sweep['tags'].get('aumesh.sweep.overrides') or 'nothing'}); "
+            "--sweep ID promotes another, --across ranks the team's runs (`aumesh runs --sweeps` lists them)"
+        )
         if not args.latest:  # only this clone's pipeline runs: a teammate's `dvc exp run` is theirs
             evaluate = queries.latest_evaluate_run(tracking_cfg, workspace=queries.current_owner(root)["workspace"])
             if evaluate and evaluate["start_time"] > sweep["start_time"]:
                 newer = evaluate
-    record = promote.promote(parent, root, tracking_cfg, metric=args.metric, target=args.target,
-                             model_name=args.model_name, register=not args.no_register, newer_run=newer,
-                             across=args.across, partial=args.partial, skip_missing=args.skip_missing, say=_say)
+    record = promote.promote(
+        parent,
+        root,
+        tracking_cfg,
+        metric=args.metric,
+        target=args.target,
+        model_name=args.model_name,
+        register=not args.no_register,
+        newer_run=newer,
+        across=args.across,
+        partial=args.partial,
+        skip_missing=args.skip_missing,
+        say=_say,
+    )
     print(json.dumps(record, indent=2, default=str))
     if args.across:
         me = queries.current_owner(root)
         whose = "your own" if record["workspace"] == me["workspace"] else f"{record['user']}'s"
-        print(f"\nacross the team's runs on this data, {whose} run {record['run_id']} won "
-              f"({record['metric']} = {record['value']:.6f}, of sweep {record['parent_run_id']}).")
-    print("\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` rebuilds that release.")
+        print(
+            f"\nacross the team's runs on this data, {whose} run {record['run_id']} won "
+            f"({record['metric']} = {record['value']:.6f}, of sweep {record['parent_run_id']})."
+        )
+    print(
+        "\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` rebuilds that release."
+    )
     return 0
 
 
 def _cmd_server(args) -> int:
     from aumesh.experiments import server
 
-    cmd = server.server_command(args.backend_store_uri, args.artifacts_destination, args.host, args.port,
-                                args.workers, args.allowed_hosts, args.mlflow_args)
+    cmd = server.server_command(
+        args.backend_store_uri,
+        args.artifacts_destination,
+        args.host,
+        args.port,
+        args.workers,
+        args.allowed_hosts,
+        args.mlflow_args,
+    )
     print("starting: " + " ".join(cmd[2:]), flush=True)
     os.execve(cmd[0], cmd, server.server_environment())  # the server is this process: Ctrl-C and kill reach it
     return 0  # pragma: no cover - execve does not return
@@ -282,73 +340,128 @@ def add_experiment_commands(subparsers) -> None:
     from aumesh.model.statistics import TARGETS
 
     p = subparsers.add_parser(
-        "sweep", add_help=False, prefix_chars="\0",
+        "sweep",
+        add_help=False,
+        prefix_chars="\0",
         help="Hydra sweep over conf/ in-process, one MLflow child run per configuration; exits 1 when a configuration "
-             "failed, after logging and ranking the rest (--allow-failures: exit 0) "
-             "(e.g. `aumesh sweep -m model.n_components=10,40`; `aumesh sweep --help` is Hydra's help)")
-    p.add_argument("overrides", nargs=argparse.REMAINDER,
-                   help="Hydra's arguments: -m and KEY=V1,V2 sweeps over conf/ (default: one run of conf/ as it is)")
+        "failed, after logging and ranking the rest (--allow-failures: exit 0) "
+        "(e.g. `aumesh sweep -m model.n_components=10,40`; `aumesh sweep --help` is Hydra's help)",
+    )
+    p.add_argument(
+        "overrides",
+        nargs=argparse.REMAINDER,
+        help="Hydra's arguments: -m and KEY=V1,V2 sweeps over conf/ (default: one run of conf/ as it is)",
+    )
     p.set_defaults(func=_cmd_sweep)
 
-    for name, func, text in (("runs", _cmd_runs, "table of a sweep's runs, best first; --sweeps lists past sweeps"),
-                             ("promote", _cmd_promote, "promote a sweep's best run into conf/ (+ model registry alias)")):
+    for name, func, text in (
+        ("runs", _cmd_runs, "table of a sweep's runs, best first; --sweeps lists past sweeps"),
+        ("promote", _cmd_promote, "promote a sweep's best run into conf/ (+ model registry alias)"),
+    ):
         p = subparsers.add_parser(name, help=text)
         who = p.add_mutually_exclusive_group()
-        who.add_argument("--sweep", "--parent", dest="parent", metavar="ID",
-                         help="the sweep's parent run id, anyone's (default: this workspace's latest sweep)")
+        who.add_argument(
+            "--sweep",
+            "--parent",
+            dest="parent",
+            metavar="ID",
+            help="the sweep's parent run id, anyone's (default: this workspace's latest sweep)",
+        )
         if name == "runs":
-            who.add_argument("--latest", action="store_true",
-                             help="this workspace's latest sweep (what happens without --sweep)")
-            who.add_argument("--sweeps", action="store_true",
-                             help="list past sweeps instead, the team's: id, start, user, workspace, runs, failed, "
-                                  "best run, what they swept")
+            who.add_argument(
+                "--latest", action="store_true", help="this workspace's latest sweep (what happens without --sweep)"
+            )
+            who.add_argument(
+                "--sweeps",
+                action="store_true",
+                help="list past sweeps instead, the team's: id, start, user, workspace, runs, failed, "
+                "best run, what they swept",
+            )
             p.add_argument("--limit", type=int, default=20, help="how many of the newest sweeps --sweeps lists")
             mine = p.add_mutually_exclusive_group()
-            mine.add_argument("--mine", action="store_true",
-                              help="with --sweeps: only your sweeps (your git user.email, else your login)")
-            mine.add_argument("--user", default=None, help="with --sweeps: only this user's sweeps (default: everyone's)")
+            mine.add_argument(
+                "--mine",
+                action="store_true",
+                help="with --sweeps: only your sweeps (your git user.email, else your login)",
+            )
+            mine.add_argument(
+                "--user", default=None, help="with --sweeps: only this user's sweeps (default: everyone's)"
+            )
         else:
-            who.add_argument("--latest", action="store_true",
-                             help="promote your latest sweep even when a newer evaluate run of this workspace "
-                                  "evaluated another configuration (without it, promote refuses to overrule that run)")
-            who.add_argument("--across", action="store_true",
-                             help="rank every finished run on this workspace's data version (DVC hash of data.dvc), "
-                                  "whoever ran it, and say whose won")
-        p.add_argument("--metric", default=None,
-                       help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean; "
-                            "au_reliability_median / au_reliability_min / n_aus_facs_pass rank by AU-field reliability)")
+            who.add_argument(
+                "--latest",
+                action="store_true",
+                help="promote your latest sweep even when a newer evaluate run of this workspace "
+                "evaluated another configuration (without it, promote refuses to overrule that run)",
+            )
+            who.add_argument(
+                "--across",
+                action="store_true",
+                help="rank every finished run on this workspace's data version (DVC hash of data.dvc), "
+                "whoever ran it, and say whose won",
+            )
+        p.add_argument(
+            "--metric",
+            default=None,
+            help="ranking metric (default: r2_mean if all runs share the target, else r2_displacement_mean; "
+            "au_reliability_median / au_reliability_min / n_aus_facs_pass rank by AU-field reliability)",
+        )
         p.add_argument("--experiment", default=None, help="MLflow experiment (default: tracking.experiment)")
         p.set_defaults(func=func)
         if name == "runs":
             p.add_argument("--json", action="store_true", help="print the table as JSON records")
         else:
-            p.add_argument("--target", choices=list(TARGETS), default=None,
-                           help="only consider runs with this preprocess.target (default: runs of every target)")
-            p.add_argument("--model-name", default=None,
-                           help="registered model name (default: aumesh-au-to-mesh)")
+            p.add_argument(
+                "--target",
+                choices=list(TARGETS),
+                default=None,
+                help="only consider runs with this preprocess.target (default: runs of every target)",
+            )
+            p.add_argument("--model-name", default=None, help="registered model name (default: aumesh-au-to-mesh)")
             p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
-            p.add_argument("--partial", action="store_true",
-                           help="promote from a sweep that did not finish (interrupted, killed): the best of the runs "
-                                "that finished, named in the output and promotion.json (without it, refused)")
-            p.add_argument("--skip-missing", action="store_true",
-                           help="when the best run's model artifacts were deleted, promote the next best run whose "
-                                "artifacts exist, and say so (without it, refused naming the run and the path)")
+            p.add_argument(
+                "--partial",
+                action="store_true",
+                help="promote from a sweep that did not finish (interrupted, killed): the best of the runs "
+                "that finished, named in the output and promotion.json (without it, refused)",
+            )
+            p.add_argument(
+                "--skip-missing",
+                action="store_true",
+                help="when the best run's model artifacts were deleted, promote the next best run whose "
+                "artifacts exist, and say so (without it, refused naming the run and the path)",
+            )
 
     p = subparsers.add_parser(
-        "server", help="start a team's MLflow tracking server (database backend, served artifacts); clients set "
-                       "MLFLOW_TRACKING_URI or aumesh.local.yaml to http://HOST:PORT")
-    p.add_argument("--backend-store-uri", required=True,
-                   help="the database: postgresql://USER@DBHOST:5432/DB (password in ~/.pgpass or PGPASSWORD; the "
-                        "installed driver is added) or sqlite:///PATH")
-    p.add_argument("--artifacts-destination", required=True,
-                   help="where the server stores run artifacts: a folder on the server, or s3://... ")
+        "server",
+        help="start a team's MLflow tracking server (database backend, served artifacts); clients set "
+        "MLFLOW_TRACKING_URI or aumesh.local.yaml to http://HOST:PORT",
+    )
+    p.add_argument(
+        "--backend-store-uri",
+        required=True,
+        help="the database: postgresql://USER@DBHOST:5432/DB (password in ~/.pgpass or PGPASSWORD; the "
+        "installed driver is added) or sqlite:///PATH",
+    )
+    p.add_argument(
+        "--artifacts-destination",
+        required=True,
+        help="where the server stores run artifacts: a folder on the server, or s3://... ",
+    )
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: the lab's network)")
     p.add_argument("--port", type=int, default=5000, help="port to listen on")
     p.add_argument("--workers", type=int, default=2, help="server worker processes")
-    p.add_argument("--allowed-hosts", default=None,
-                   help="host names clients use, e.g. mlflow.lab.example:5000 (default: localhost and private IPs)")
-    p.add_argument("mlflow_args", nargs="*", metavar="-- MLFLOW_OPTION",
-                   help="more `mlflow server` options after `--` (default: none)")
+    p.add_argument(
+        "--allowed-hosts",
+        default=None,
+        help="host names clients use, e.g. mlflow.lab.example:5000 (default: localhost and private IPs)",
+    )
+    p.add_argument(
+        "mlflow_args",
+        nargs="*",
+        metavar="-- MLFLOW_OPTION",
+        help="more `mlflow server` options after `--` (default: none)",
+    )
     p.set_defaults(func=_cmd_server)
 
 
@@ -360,8 +473,12 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if ("default" in text or any(action.default is v for v in (None, False, argparse.SUPPRESS)) or action.required
-                or not (action.option_strings or action.nargs in ("?", "*"))):
+        if (
+            "default" in text
+            or any(action.default is v for v in (None, False, argparse.SUPPRESS))
+            or action.required
+            or not (action.option_strings or action.nargs in ("?", "*"))
+        ):
             return text
         default = " ".join(map(str, action.default)) if isinstance(action.default, (list, tuple)) else "%(default)s"
         return f"{text} (default: {default or 'none'})"
@@ -376,25 +493,48 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="aumesh", description="aumesh: AU (+ head pose) -> MediaPipe FaceMesh, the pipeline's stages "
-                    "and tools. `aumesh COMMAND --help` lists a command's options and their defaults.")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="log the library's progress messages: -v info, -vv debug (default: warnings only)")
-    parser.add_argument("--debug", action="store_true",
-                        help=f"show the traceback of input and configuration errors too (or set {DEBUG_ENV}=1)")
-    parser.add_argument("--version", action="store_true",
-                        help="print aumesh's version and exit; with -v also python, dvc, mlflow, hydra-core, dask, "
-                             "numpy and the other libraries that shape results (as `aumesh info`)")
+    parser = Parser(
+        prog="aumesh",
+        description="aumesh: AU (+ head pose) -> MediaPipe FaceMesh, the pipeline's stages "
+        "and tools. `aumesh COMMAND --help` lists a command's options and their defaults.",
+    )
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=0,
+        help="log the library's progress messages: -v info, -vv debug (default: warnings only)",
+    )
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help=f"show the traceback of input and configuration errors too (or set {DEBUG_ENV}=1)",
+    )
+    parser.add_argument(
+        "--version",
+        action="store_true",
+        help="print aumesh's version and exit; with -v also python, dvc, mlflow, hydra-core, dask, "
+        "numpy and the other libraries that shape results (as `aumesh info`)",
+    )
     # not required=True: `aumesh --version` has no command; main() asks for one otherwise
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("info", help="versions of aumesh, python and the libraries that shape results (dvc, mlflow, "
-                                    "hydra-core, dask, numpy, ...), from the installed package metadata")
+    p = sub.add_parser(
+        "info",
+        help="versions of aumesh, python and the libraries that shape results (dvc, mlflow, "
+        "hydra-core, dask, numpy, ...), from the installed package metadata",
+    )
     p.set_defaults(func=_cmd_info)
 
-    p = sub.add_parser("compose-params", help="compose conf/ (+ Hydra overrides) into params.yaml, as `dvc exp run` does")
-    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
-                   help="Hydra overrides, e.g. model.n_components=40 features=au_pose (default: none, the conf/ defaults)")
+    p = sub.add_parser(
+        "compose-params", help="compose conf/ (+ Hydra overrides) into params.yaml, as `dvc exp run` does"
+    )
+    p.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="KEY=VALUE",
+        help="Hydra overrides, e.g. model.n_components=40 features=au_pose (default: none, the conf/ defaults)",
+    )
     p.add_argument("--config-dir", default="conf", help="the Hydra configuration folder")
     p.add_argument("--out", default="params.yaml", help="the composed configuration file the DVC stages read")
     p.set_defaults(func=_cmd_compose_params)
@@ -404,60 +544,106 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=4000, help="number of frames (table rows) in all")
     p.add_argument("--videos", type=int, default=100, help="number of videos (identities) the frames are spread over")
     p.add_argument("--seed", type=int, default=0, help="random seed: same seed, same tables")
-    p.add_argument("--layout", choices=["columns", "pyfeat"], default="columns",
-                   help="columns: mesh columns x_i, y_i, z_i inside the parquet; pyfeat: py-feat's split layout, "
-                        "an AU/pose parquet plus an [N, 478, 3] <stem>.npy beside it")
-    p.add_argument("--truth", type=Path, default=None,
-                   help="also save the ground-truth map (NPZ) here (default: not saved)")
-    p.add_argument("--reverse", nargs="*", default=[], metavar="AU",
-                   help="AUs whose true direction is deliberately reversed, to test the AU-direction check")
-    p.add_argument("--identity-au-coupling", type=float, default=0.0, metavar="C",
-                   help="couple each video's AU baselines to the person's identity shape, as real detectors do "
-                        "(baseline = C * softplus(resemblance of the identity to the AU's field), e.g. 0.15; default: 0 = off)")
+    p.add_argument(
+        "--layout",
+        choices=["columns", "pyfeat"],
+        default="columns",
+        help="columns: mesh columns x_i, y_i, z_i inside the parquet; pyfeat: py-feat's split layout, "
+        "an AU/pose parquet plus an [N, 478, 3] <stem>.npy beside it",
+    )
+    p.add_argument(
+        "--truth", type=Path, default=None, help="also save the ground-truth map (NPZ) here (default: not saved)"
+    )
+    p.add_argument(
+        "--reverse",
+        nargs="*",
+        default=[],
+        metavar="AU",
+        help="AUs whose true direction is deliberately reversed, to test the AU-direction check",
+    )
+    p.add_argument(
+        "--identity-au-coupling",
+        type=float,
+        default=0.0,
+        metavar="C",
+        help="couple each video's AU baselines to the person's identity shape, as real detectors do "
+        "(baseline = C * softplus(resemblance of the identity to the AU's field), e.g. 0.15; default: 0 = off)",
+    )
     p.set_defaults(func=_cmd_synth)
 
-    for name, func, text in (("ingest", _cmd_ingest, "stage: py-feat's CSV/parquet tables -> clean frame tables"),
-                             ("prepare", _cmd_prepare, "stage: filter and align the frame tables"),
-                             ("evaluate", _cmd_evaluate, "stage: cross-validate and fit; log an MLflow run"),
-                             ("release", _cmd_release, "stage: write the release (NPZ, model card, figures)")):
+    for name, func, text in (
+        ("ingest", _cmd_ingest, "stage: py-feat's CSV/parquet tables -> clean frame tables"),
+        ("prepare", _cmd_prepare, "stage: filter and align the frame tables"),
+        ("evaluate", _cmd_evaluate, "stage: cross-validate and fit; log an MLflow run"),
+        ("release", _cmd_release, "stage: write the release (NPZ, model card, figures)"),
+    ):
         p = sub.add_parser(name, help=text)
-        p.add_argument("--params", default="params.yaml",
-                       help="the composed configuration to read (`aumesh compose-params` or `dvc exp run` write it)")
+        p.add_argument(
+            "--params",
+            default="params.yaml",
+            help="the composed configuration to read (`aumesh compose-params` or `dvc exp run` write it)",
+        )
         p.set_defaults(func=func)
 
     p = sub.add_parser("render", help="render a release NPZ's figures and AU-direction report")
     p.add_argument("npz", type=Path, help="a release NPZ in the card's format (ours or another)")
-    p.add_argument("--out", type=Path, required=True,
-                   help="folder for the PNGs, au_directions.json and au_directions.md (created)")
-    p.add_argument("--cv", type=Path, default=None,
-                   help="CV arrays NPZ with r2_per_vertex and vertex_error or the cumulative error curve, "
-                        "e.g. build/model/cv.npz "
-                        "(default: none, so no R² and error figures)")
+    p.add_argument(
+        "--out", type=Path, required=True, help="folder for the PNGs, au_directions.json and au_directions.md (created)"
+    )
+    p.add_argument(
+        "--cv",
+        type=Path,
+        default=None,
+        help="CV arrays NPZ with r2_per_vertex and vertex_error or the cumulative error curve, "
+        "e.g. build/model/cv.npz "
+        "(default: none, so no R² and error figures)",
+    )
     p.set_defaults(func=_cmd_render)
 
-    p = sub.add_parser("predict", help="meshes from a CSV/parquet table of AU (+ pose) rows (py-feat's own output "
-                                       "too), with a release NPZ")
-    p.add_argument("table", type=Path,
-                   help="CSV or parquet, one row per mesh, columns by name: a whole py-feat table (MPDetector or "
-                        "Detectorv2; only AU01..AU43, Pitch, Yaw, Roll (radians) and FaceScore are read, all 20 AUs "
-                        "needed, AUs 0..1), or input columns only (missing AUs are 0; no Pitch, Yaw, Roll: pose 0). "
-                        "A row without a face (FaceScore 0, or every AU and pose value NaN) gets a NaN mesh and "
-                        "no_face=True; a row only partly NaN is an error. Pose beyond pi/2 is refused as degrees, "
-                        "Pitch/Yaw beyond the training range is a warning")
-    p.add_argument("--out", type=Path, required=True,
-                   help="output file: .npz (meshes (N, 478, 3), no_face (N,)), or .obj / .ply for a one-row table")
+    p = sub.add_parser(
+        "predict",
+        help="meshes from a CSV/parquet table of AU (+ pose) rows (py-feat's own output too), with a release NPZ",
+    )
+    p.add_argument(
+        "table",
+        type=Path,
+        help="CSV or parquet, one row per mesh, columns by name: a whole py-feat table (MPDetector or "
+        "Detectorv2; only AU01..AU43, Pitch, Yaw, Roll (radians) and FaceScore are read, all 20 AUs "
+        "needed, AUs 0..1), or input columns only (missing AUs are 0; no Pitch, Yaw, Roll: pose 0). "
+        "A row without a face (FaceScore 0, or every AU and pose value NaN) gets a NaN mesh and "
+        "no_face=True; a row only partly NaN is an error. Pose beyond pi/2 is refused as degrees, "
+        "Pitch/Yaw beyond the training range is a warning",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="output file: .npz (meshes (N, 478, 3), no_face (N,)), or .obj / .ply for a one-row table",
+    )
     p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
-    p.add_argument("--ignore", nargs="*", default=[], metavar="COLUMN",
-                   help="table columns to leave out, e.g. Pitch Yaw Roll for frontal meshes (default: none)")
-    p.add_argument("--strict", action="store_true",
-                   help="every column (after --ignore) must be an input column, AU01..AU43, Pitch, Yaw, Roll "
-                        "(default: other columns are ignored)")
+    p.add_argument(
+        "--ignore",
+        nargs="*",
+        default=[],
+        metavar="COLUMN",
+        help="table columns to leave out, e.g. Pitch Yaw Roll for frontal meshes (default: none)",
+    )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="every column (after --ignore) must be an input column, AU01..AU43, Pitch, Yaw, Roll "
+        "(default: other columns are ignored)",
+    )
     p.set_defaults(func=_cmd_predict)
 
     p = sub.add_parser("view", help="write an offline interactive viewer (one HTML file) of a release NPZ")
     p.add_argument("npz", type=Path, help="release NPZ, e.g. release/au_to_mesh_pls.npz")
-    p.add_argument("--out", type=Path, default=Path("viewer.html"),
-                   help="HTML file to write (default: %(default)s); needs three.js from `make tools`")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("viewer.html"),
+        help="HTML file to write (default: %(default)s); needs three.js from `make tools`",
+    )
     p.set_defaults(func=_cmd_view)
 
     add_experiment_commands(sub)
@@ -533,9 +719,11 @@ def main(argv: list[str] | None = None) -> int:
             raise
         note = _dvc_note(args)
         where = f" while writing {err.filename}" if err.filename else ""
-        _say(f"aumesh {args.command}: error: no space left on the device{where}; outputs are swapped in only when "
-             f"complete, so the previous ones are intact. Fix: free space (`df -h .`) and run again."
-             + (f"\n{note}" if note else ""))
+        _say(
+            f"aumesh {args.command}: error: no space left on the device{where}; outputs are swapped in only when "
+            f"complete, so the previous ones are intact. Fix: free space (`df -h .`) and run again."
+            + (f"\n{note}" if note else "")
+        )
         return 2
     except BaseException:  # a bug: the traceback stays; still say how to get DVC's removed outputs back
         note = _dvc_note(args)
@@ -584,6 +772,7 @@ def _dvc_note(args) -> str | None:
     from aumesh.pipeline.stages import removed_by_dvc
 
     return removed_by_dvc(args.command)
+
 
 if __name__ == "__main__":
     run()

@@ -10,16 +10,17 @@ are not DVC stages: ``aumesh compose-params`` (what ``make params`` runs after a
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import yaml
 
-from aumesh.utils.errors import ConfigError
-from aumesh.utils.io import atomic_write_text
 from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, N_VERTICES, feature_set_columns
 from aumesh.model.statistics import TARGETS
+from aumesh.utils.errors import ConfigError
+from aumesh.utils.io import atomic_write_text
 
 #: ``data.face_selection``: which face of a frame with several is the video's subject (aumesh.data.ingest).
 FACE_SELECTIONS = ("largest", "identity", "error")
@@ -111,9 +112,11 @@ def _old_features_message(data: Mapping[str, Any]) -> str:
     pose, inter = truthy(data.get("pose", True)), truthy(data.get("interactions", True))
     named = {v: k for k, v in FEATURE_SETS.items()}.get((pose, inter))
     hint = f" (pose={pose}, interactions={inter} is `features={named}`)" if named else ""
-    return ("features.pose / features.interactions were replaced by the features config group: "
-            f"use features=au, features=au_pose or features=au_pose_interactions{hint}; "
-            "in params.yaml: `features: {name: au_pose}`")
+    return (
+        "features.pose / features.interactions were replaced by the features config group: "
+        f"use features=au, features=au_pose or features=au_pose_interactions{hint}; "
+        "in params.yaml: `features: {name: au_pose}`"
+    )
 
 
 @dataclass(frozen=True)
@@ -231,8 +234,12 @@ def _schema():
 
 
 # OmegaConf's reason -> what the key allows
-_ALLOWED = {"to Integer": "an integer, e.g. 10", "valid bool": "true or false",
-            "to Float": "a number, e.g. 0.5", "Incompatible value 'None'": "a value (not null)"}
+_ALLOWED = {
+    "to Integer": "an integer, e.g. 10",
+    "valid bool": "true or false",
+    "to Float": "a number, e.g. 0.5",
+    "Incompatible value 'None'": "a value (not null)",
+}
 
 
 def _typed(data: Mapping[str, Any]) -> dict[str, Any]:
@@ -275,39 +282,52 @@ def validate(cfg: Config) -> Config:
     if not 0.0 < q <= 1.0:
         raise ConfigError(f"preprocess.alignment.outlier_quantile={q}: must be in (0, 1]; 1.0 keeps every frame")
     if not 0.0 <= cfg.preprocess.max_drop_fraction <= 1.0:
-        raise ConfigError(f"preprocess.max_drop_fraction={cfg.preprocess.max_drop_fraction}: must be in [0, 1]; "
-                         "1.0 never stops a run")
+        raise ConfigError(
+            f"preprocess.max_drop_fraction={cfg.preprocess.max_drop_fraction}: must be in [0, 1]; 1.0 never stops a run"
+        )
     if len(cfg.preprocess.alignment.anchor_indices) < 3:
         raise ConfigError("preprocess.alignment.anchor_indices: need at least 3 anchors for a similarity fit")
     anchors = cfg.preprocess.alignment.anchor_indices
     outside = [i for i in anchors if not 0 <= i < N_VERTICES]
     if outside:  # they name mesh columns x_i, y_i, z_i: there are 478 vertices
-        raise ConfigError(f"preprocess.alignment.anchor_indices: {outside} name no vertex (MediaPipe's mesh has vertices "
-                          f"0..{N_VERTICES - 1}: columns x_0..z_{N_VERTICES - 1}). Fix: use vertex numbers in that range "
-                          f"(the card's anchors: {list(ANCHOR_INDICES)}).")
+        raise ConfigError(
+            f"preprocess.alignment.anchor_indices: {outside} name no vertex (MediaPipe's mesh has vertices "
+            f"0..{N_VERTICES - 1}: columns x_0..z_{N_VERTICES - 1}). Fix: use vertex numbers in that range "
+            f"(the card's anchors: {list(ANCHOR_INDICES)})."
+        )
     if len(set(anchors)) != len(anchors):
-        raise ConfigError(f"preprocess.alignment.anchor_indices: {sorted({i for i in anchors if anchors.count(i) > 1})} "
-                          f"named twice. Fix: list each anchor vertex once.")
+        raise ConfigError(
+            f"preprocess.alignment.anchor_indices: {sorted({i for i in anchors if anchors.count(i) > 1})} "
+            f"named twice. Fix: list each anchor vertex once."
+        )
     if cfg.model.n_components < 1:
         raise ConfigError(f"model.n_components={cfg.model.n_components}: must be >= 1")
     p = len(cfg.features.columns) if cfg.features.name in FEATURE_SETS else 0
     if p and cfg.model.n_components > p and not cfg.model.clip_n_components:
-        raise ConfigError(f"model.n_components={cfg.model.n_components} exceeds the {p} features of "
-                          f"features={cfg.features.name}. Fix: lower it, or set model.clip_n_components=true.")
+        raise ConfigError(
+            f"model.n_components={cfg.model.n_components} exceeds the {p} features of "
+            f"features={cfg.features.name}. Fix: lower it, or set model.clip_n_components=true."
+        )
     if cfg.cv.n_splits < 2:
         raise ConfigError(f"cv.n_splits={cfg.cv.n_splits}: must be >= 2")
     if cfg.data.face_selection not in FACE_SELECTIONS:
-        raise ConfigError(f"data.face_selection={cfg.data.face_selection!r}: use one of {', '.join(FACE_SELECTIONS)} "
-                          "(largest: the largest face box of a frame; identity: py-feat's Identity of the video's subject; "
-                          "error: refuse frames with several faces)")
+        raise ConfigError(
+            f"data.face_selection={cfg.data.face_selection!r}: use one of {', '.join(FACE_SELECTIONS)} "
+            "(largest: the largest face box of a frame; identity: py-feat's Identity of the video's subject; "
+            "error: refuse frames with several faces)"
+        )
     if not cfg.preprocess.alignment.max_vertex_iod > 0:
-        raise ConfigError(f"preprocess.alignment.max_vertex_iod={cfg.preprocess.alignment.max_vertex_iod}: must be > 0 "
-                          "(inter-ocular distances; a large value such as 1e9 keeps every frame)")
+        raise ConfigError(
+            f"preprocess.alignment.max_vertex_iod={cfg.preprocess.alignment.max_vertex_iod}: must be > 0 "
+            "(inter-ocular distances; a large value such as 1e9 keeps every frame)"
+        )
     if cfg.data.chunk_rows < 1:
         raise ConfigError(f"data.chunk_rows={cfg.data.chunk_rows}: must be >= 1")
     if cfg.compute.scheduler not in ("synchronous", "threads", "processes", "distributed"):
-        raise ConfigError(f"compute.scheduler={cfg.compute.scheduler!r}: use compute=local (threads), synchronous, "
-                         "processes or distributed (conf/compute/<name>.yaml)")
+        raise ConfigError(
+            f"compute.scheduler={cfg.compute.scheduler!r}: use compute=local (threads), synchronous, "
+            "processes or distributed (conf/compute/<name>.yaml)"
+        )
     if cfg.compute.scheduler == "distributed" and not cfg.compute.address:
         raise ConfigError("compute=distributed needs the scheduler's address: compute.address=tcp://host:8786")
     if cfg.compute.partition_rows < 1:
@@ -315,8 +335,9 @@ def validate(cfg: Config) -> Config:
     if not cfg.compute.connect_timeout > 0:
         raise ConfigError(f"compute.connect_timeout={cfg.compute.connect_timeout}: must be > 0 (seconds)")
     if cfg.features.name not in FEATURE_SETS:
-        raise ConfigError(f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} "
-                         "(conf/features/<name>.yaml)")
+        raise ConfigError(
+            f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} (conf/features/<name>.yaml)"
+        )
     return cfg
 
 
@@ -344,8 +365,9 @@ def load_params(path: str | Path = "params.yaml") -> Config:
         with open(path) as fh:
             data = yaml.safe_load(fh) or {}
     except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML ({str(err).splitlines()[0]}). Fix: `make params` recomposes it "
-                          "from conf/.") from None
+        raise ConfigError(
+            f"{path}: not valid YAML ({str(err).splitlines()[0]}). Fix: `make params` recomposes it from conf/."
+        ) from None
     try:
         return from_dict(data)
     except ConfigError as err:
@@ -364,9 +386,8 @@ def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf", conf
     """Compose ``conf/`` with Hydra overrides into a plain dict (what DVC writes to params.yaml)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
-    from omegaconf import OmegaConf
-
     from hydra.errors import HydraException
+    from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     check_overrides(overrides)

@@ -70,10 +70,11 @@ def local_settings(root: Path | None = None) -> dict[str, Any]:
         raise ConfigError(f"{path}: must be a mapping such as `tracking: {{tracking_uri: http://host:5000}}`.")
     unknown = sorted(set(data) - KNOWN_GROUPS)
     if unknown:
-        raise ConfigError(f"{path}: unknown group(s) {', '.join(unknown)}; it holds {', '.join(sorted(KNOWN_GROUPS))} "
-                          "(where runs are logged, never what they compute).")
+        raise ConfigError(
+            f"{path}: unknown group(s) {', '.join(unknown)}; it holds {', '.join(sorted(KNOWN_GROUPS))} "
+            "(where runs are logged, never what they compute)."
+        )
     return {str(k): dict(v or {}) for k, v in data.items()}
-
 
 
 def local_value(group: str, key: str, root: Path | None = None) -> Any:

@@ -39,10 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.utils.io import atomic_write_json
-from aumesh.geometry import face
 from aumesh.data import schema
 from aumesh.data.schema import AU_COLUMNS, AU_NAMES, N_TARGETS
+from aumesh.geometry import face
+from aumesh.utils.io import atomic_write_json
 
 PASS_COSINE = 0.6
 FAIL_COSINE = 0.0
@@ -52,8 +52,14 @@ MIN_MAGNITUDE = 1e-6  # inter-ocular units; below this an AU "does not move"
 # Face-term unit vectors in local coordinates (lateral, up, toward). "lateral" is
 # subject's left for midline groups and outward for bilateral groups.
 _TERMS: dict[str, tuple[float, float, float]] = {
-    "up": (0, 1, 0), "down": (0, -1, 0), "toward": (0, 0, 1), "away": (0, 0, -1),
-    "outward": (1, 0, 0), "inward": (-1, 0, 0), "left": (1, 0, 0), "right": (-1, 0, 0),
+    "up": (0, 1, 0),
+    "down": (0, -1, 0),
+    "toward": (0, 0, 1),
+    "away": (0, 0, -1),
+    "outward": (1, 0, 0),
+    "inward": (-1, 0, 0),
+    "left": (1, 0, 0),
+    "right": (-1, 0, 0),
 }
 
 # The FACS expectation table (data). Each check: (region group, {term: weight}).
@@ -149,19 +155,29 @@ def au_direction_from_displacement(disp: np.ndarray, au: str) -> dict[str, Any]:
         if top_mag <= MIN_MAGNITUDE:
             verdict, reason = "fail", "no displacement"
         elif cos <= FAIL_COSINE:
-            verdict, reason = "fail", f"{group} moves {_direction_word(local, bilateral)}, against expected {expected} (cos {cos:+.2f})"
+            verdict, reason = (
+                "fail",
+                f"{group} moves {_direction_word(local, bilateral)}, against expected {expected} (cos {cos:+.2f})",
+            )
         elif cos < PASS_COSINE:
             verdict, reason = "doubtful", f"{group} direction only loosely matches {expected} (cos {cos:+.2f})"
         elif rel < PASS_RELATIVE:
             verdict, reason = "doubtful", f"{group} moves {expected} but weakly ({rel:.2f} x top region {top})"
         else:
             verdict, reason = "pass", f"{group} moves {expected} (cos {cos:+.2f})"
-        checks.append({
-            "region": group, "expected": expected, "observed_direction": _direction_word(local, bilateral),
-            "mean_displacement_local": [round(float(v), 6) for v in local],
-            "cosine": round(cos, 4), "magnitude": round(mag, 6), "relative_to_top": round(rel, 4),
-            "verdict": verdict, "reason": reason,
-        })
+        checks.append(
+            {
+                "region": group,
+                "expected": expected,
+                "observed_direction": _direction_word(local, bilateral),
+                "mean_displacement_local": [round(float(v), 6) for v in local],
+                "cosine": round(cos, 4),
+                "magnitude": round(mag, 6),
+                "relative_to_top": round(rel, 4),
+                "verdict": verdict,
+                "reason": reason,
+            }
+        )
     worst = max(checks, key=lambda c: _RANK[c["verdict"]])
     return {
         "name": exp["name"],

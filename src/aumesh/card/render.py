@@ -49,14 +49,19 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.utils.io import atomic_path, atomic_write_text
-from aumesh.geometry import face
 from aumesh.data.schema import AU_COLUMNS, N_VERTICES
+from aumesh.geometry import face
 from aumesh.model.inference import load_release, predict_mesh
+from aumesh.utils.io import atomic_path, atomic_write_text
 
 COMPARE_AUS: tuple[str, ...] = ("AU12", "AU26", "AU04", "AU01")
 POSES_DEG: tuple[tuple[float, float, float], ...] = (
-    (0.0, 0.0, 0.0), (0.0, 30.0, 0.0), (0.0, -30.0, 0.0), (20.0, 0.0, 0.0), (-20.0, 0.0, 0.0), (0.0, 0.0, 20.0),
+    (0.0, 0.0, 0.0),
+    (0.0, 30.0, 0.0),
+    (0.0, -30.0, 0.0),
+    (20.0, 0.0, 0.0),
+    (-20.0, 0.0, 0.0),
+    (0.0, 0.0, 20.0),
 )
 DPI = 110
 SKIN = np.array([0.93, 0.78, 0.66])
@@ -64,8 +69,13 @@ TINT = np.array([0.85, 0.15, 0.10])
 LIGHT = np.array([-0.3, -0.35, -1.0]) / np.linalg.norm([-0.3, -0.35, -1.0])  # face frame, toward the light
 TARGET_VISIBLE = 0.08  # inter-ocular units the largest AU displacement is scaled up to, if smaller
 FIGURE_NAMES: tuple[str, ...] = (
-    "au_solid_panels.png", "au_solid_neutral_vs_activated.png", "au_compare_overlay.png",
-    "au_effect_maps.png", "pose_views.png", "r2_per_vertex.png", "cumulative_vertex_error.png",
+    "au_solid_panels.png",
+    "au_solid_neutral_vs_activated.png",
+    "au_compare_overlay.png",
+    "au_effect_maps.png",
+    "pose_views.png",
+    "r2_per_vertex.png",
+    "cumulative_vertex_error.png",
 )
 
 
@@ -79,8 +89,10 @@ def load_cv(cv_path: str | os.PathLike) -> dict[str, np.ndarray]:
         cv = {k: z[k] for k in z.files}
     known = {"r2_per_vertex", "vertex_error", "cumulative_error_thresholds"}
     if not known & set(cv):
-        raise KeyError(f"{path}: no CV key found; expected 'r2_per_vertex', 'vertex_error' or "
-                       f"'cumulative_error_thresholds' + 'cumulative_error_fraction'; has {sorted(cv)}")
+        raise KeyError(
+            f"{path}: no CV key found; expected 'r2_per_vertex', 'vertex_error' or "
+            f"'cumulative_error_thresholds' + 'cumulative_error_fraction'; has {sorted(cv)}"
+        )
     if "r2_per_vertex" in cv and np.asarray(cv["r2_per_vertex"]).shape != (N_VERTICES,):
         raise ValueError(f"{path}: 'r2_per_vertex' must be ({N_VERTICES},), got {cv['r2_per_vertex'].shape}")
     if "cumulative_error_thresholds" in cv and "cumulative_error_fraction" not in cv:
@@ -159,8 +171,9 @@ def _normal_signs(neutral: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return np.where(n[:, 2] <= 0, 1.0, -1.0)
 
 
-def _draw_solid(ax, mesh: np.ndarray, tri: np.ndarray, signs: np.ndarray,
-                tint: np.ndarray | None = None, cull: bool = False) -> None:
+def _draw_solid(
+    ax, mesh: np.ndarray, tri: np.ndarray, signs: np.ndarray, tint: np.ndarray | None = None, cull: bool = False
+) -> None:
     """Lambert-shaded solid face (face frame, viewed from -z) with optional per-triangle red tint in [0, 1]."""
     from matplotlib.collections import PolyCollection
 
@@ -187,8 +200,15 @@ def _draw_solid(ax, mesh: np.ndarray, tri: np.ndarray, signs: np.ndarray,
 
 
 def _draw_features(ax, mesh: np.ndarray, color: str = "0.2", lw: float = 0.6) -> None:
-    for contour in (face.EYE_CONTOUR_RIGHT, face.EYE_CONTOUR_LEFT, face.LIPS_OUTER, face.LIPS_INNER,
-                    face.BROW_UPPER_RIGHT, face.BROW_UPPER_LEFT, face.FACE_OVAL):
+    for contour in (
+        face.EYE_CONTOUR_RIGHT,
+        face.EYE_CONTOUR_LEFT,
+        face.LIPS_OUTER,
+        face.LIPS_INNER,
+        face.BROW_UPPER_RIGHT,
+        face.BROW_UPPER_LEFT,
+        face.FACE_OVAL,
+    ):
         closed = contour not in (face.BROW_UPPER_RIGHT, face.BROW_UPPER_LEFT)
         idx = list(contour) + ([contour[0]] if closed else [])
         ax.plot(mesh[idx, 0], -mesh[idx, 1], color=color, lw=lw)
@@ -212,8 +232,10 @@ def fig_solid_panels(neutral, disp, tri, factor):
         mesh = neutral + factor * disp[k]
         _draw_solid(ax, mesh, tri, signs, tint=mags[k][tri].mean(axis=1) / vmax)
         _prep_ax(ax, lims, _au_title(au))
-    fig.suptitle(f"AU at intensity 1, pose 0 (frontal); red tint = displacement magnitude; "
-                 f"displacements x{factor:g}", fontsize=12)
+    fig.suptitle(
+        f"AU at intensity 1, pose 0 (frontal); red tint = displacement magnitude; displacements x{factor:g}",
+        fontsize=12,
+    )
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
     return fig
 
@@ -248,11 +270,23 @@ def fig_compare_overlay(neutral, disp, tri, factor):
         mag = np.linalg.norm(disp[k], axis=1)
         sel = np.flatnonzero(mag >= 0.25 * mag.max()) if mag.max() > 0 else np.array([], dtype=int)
         d = factor * disp[k][sel]
-        ax.quiver(neutral[sel, 0], -neutral[sel, 1], d[:, 0], -d[:, 1], angles="xy", scale_units="xy",
-                  scale=1.0, color="tab:red", width=0.006, headwidth=3.5, headlength=4)
+        ax.quiver(
+            neutral[sel, 0],
+            -neutral[sel, 1],
+            d[:, 0],
+            -d[:, 1],
+            angles="xy",
+            scale_units="xy",
+            scale=1.0,
+            color="tab:red",
+            width=0.006,
+            headwidth=3.5,
+            headlength=4,
+        )
         _prep_ax(ax, lims, _au_title(au))
-    fig.suptitle(f"Neutral (grey) vs activated (blue), arrows = displacement (>= 25% of the AU's max); "
-                 f"x{factor:g}", fontsize=12)
+    fig.suptitle(
+        f"Neutral (grey) vs activated (blue), arrows = displacement (>= 25% of the AU's max); x{factor:g}", fontsize=12
+    )
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
     return fig
 
@@ -266,8 +300,9 @@ def fig_effect_maps(neutral, disp, tri, scale):
     axes = fig.subplots(4, 5)
     im = None
     for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
-        im = ax.tripcolor(neutral[:, 0], -neutral[:, 1], tri, mags[k], shading="gouraud",
-                          cmap="magma", vmin=0.0, vmax=vmax)
+        im = ax.tripcolor(
+            neutral[:, 0], -neutral[:, 1], tri, mags[k], shading="gouraud", cmap="magma", vmin=0.0, vmax=vmax
+        )
         _draw_features(ax, neutral, color="0.6", lw=0.4)
         _prep_ax(ax, lims, _au_title(au))
     fig.subplots_adjust(left=0.01, right=0.9, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
@@ -295,10 +330,19 @@ def fig_pose_views(neutral, disp, tri, factor, poses_deg=POSES_DEG):
             posed = ((mesh - centre) @ flip @ R.T) @ flip + centre
             _draw_solid(axes[i, j], posed, tri, signs, cull=True)
             _prep_ax(axes[i, j], lims, f"{label}\npitch {p:g} yaw {y:g} roll {rl:g} deg", fontsize=8)
-    fig.suptitle("Render-time pose: Rotation.from_euler('xyz', [pitch, yaw, roll]) in MP-canonical axes "
-                 "(x subject's left, y up, z out of face)", fontsize=10)
-    fig.text(0.5, 0.01, "SciPy lowercase 'xyz' is EXTRINSIC (R = Rz Ry Rx), whatever the card claims; "
-             f"pose inputs of the model kept at 0; AU12 x{factor:g}", ha="center", fontsize=8)
+    fig.suptitle(
+        "Render-time pose: Rotation.from_euler('xyz', [pitch, yaw, roll]) in MP-canonical axes "
+        "(x subject's left, y up, z out of face)",
+        fontsize=10,
+    )
+    fig.text(
+        0.5,
+        0.01,
+        "SciPy lowercase 'xyz' is EXTRINSIC (R = Rz Ry Rx), whatever the card claims; "
+        f"pose inputs of the model kept at 0; AU12 x{factor:g}",
+        ha="center",
+        fontsize=8,
+    )
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.06, top=0.82, wspace=0.02, hspace=0.3)
     return fig
 
@@ -308,8 +352,16 @@ def fig_r2_per_vertex(neutral, tri, r2):
     fig = _figure(10, 5.5)
     ax, axh = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.2, 1]})
     r2 = np.asarray(r2, dtype=np.float64)
-    im = ax.tripcolor(neutral[:, 0], -neutral[:, 1], tri, r2, shading="gouraud", cmap="viridis",
-                      vmin=min(0.0, float(np.nanmin(r2))), vmax=max(float(np.nanmax(r2)), 1e-6))
+    im = ax.tripcolor(
+        neutral[:, 0],
+        -neutral[:, 1],
+        tri,
+        r2,
+        shading="gouraud",
+        cmap="viridis",
+        vmin=min(0.0, float(np.nanmin(r2))),
+        vmax=max(float(np.nanmax(r2)), 1e-6),
+    )
     _draw_features(ax, neutral, color="w", lw=0.4)
     _prep_ax(ax, _limits(neutral, pad=0.1), "R² per vertex (x, y, z pooled; CV held-out folds)")
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
@@ -360,8 +412,9 @@ def fig_cumulative_error(thresholds, fraction):
 
 
 # --------------------------------------------------------------------------- orchestration
-def render_release(npz_path: str | os.PathLike, out_dir: str | os.PathLike,
-                   cv_path: str | os.PathLike | None = None) -> list[Path]:
+def render_release(
+    npz_path: str | os.PathLike, out_dir: str | os.PathLike, cv_path: str | os.PathLike | None = None
+) -> list[Path]:
     """Render the visual model card from a release NPZ (and optional CV arrays).
 
     Parameters
@@ -428,7 +481,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="aumesh render", description="Render the visual model card of a release NPZ.")
     parser.add_argument("npz", help="release NPZ (card format)")
     parser.add_argument("--out", required=True, help="output folder for the PNGs and au_directions.json")
-    parser.add_argument("--cv", default=None, help="CV arrays NPZ (r2_per_vertex, vertex_error or the cumulative curve)")
+    parser.add_argument(
+        "--cv", default=None, help="CV arrays NPZ (r2_per_vertex, vertex_error or the cumulative curve)"
+    )
     args = parser.parse_args(argv)
     try:
         paths = render_release(args.npz, args.out, args.cv)

@@ -18,8 +18,8 @@ Errors are :class:`~aumesh.utils.errors.TableError` naming the file, the column,
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import pandas as pd
@@ -146,13 +146,16 @@ def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int)
         return row_offset + i, values.iloc[i]
 
     if any(c.startswith("dtype") for c in checks):
-        return TableError(f"{path}: column {column!r} has dtype {values.dtype}, need {METADATA_SCHEMA.columns[column].dtype}. "
-                          f"Fix: write it as py-feat does (video_id text, frame and the AU/pose columns numbers).")
+        return TableError(
+            f"{path}: column {column!r} has dtype {values.dtype}, need {METADATA_SCHEMA.columns[column].dtype}. "
+            f"Fix: write it as py-feat does (video_id text, frame and the AU/pose columns numbers)."
+        )
     if missing.all() and n:
         return TableError(
             f"{path}: column {column!r} is empty (all {n} values are NaN): the detector did not produce it, and "
             f"dropping frames would drop every frame. Fix: re-export the table with a model that outputs "
-            f"{column!r} (py-feat's Detector gives all 20 AUs and pose).")
+            f"{column!r} (py-feat's Detector gives all 20 AUs and pose)."
+        )
     x = values.to_numpy(dtype=np.float64, na_value=np.nan) if values.dtype.kind in "fiub" else np.zeros(n)
     bad = ~np.isfinite(x) | missing
     if bad.any():
@@ -160,14 +163,17 @@ def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int)
         return TableError(
             f"{path}: column {column!r} has {int(bad.sum())} NaN/inf value(s) (first at row {row}: {value}) in rows with a "
             f"face (py-feat's no-face rows, every measurement NaN, are dropped by the ingest stage itself): a corrupt or "
-            f"partial export. Fix: re-export those videos with py-feat, or drop those rows before `dvc add data`.")
+            f"partial export. Fix: re-export those videos with py-feat, or drop those rows before `dvc add data`."
+        )
     if column in AU_COLUMNS:
         bad = (x < AU_RANGE[0]) | (x > AU_RANGE[1])
         row, value = first(bad)
         top = float(np.max(x))
         if AU_RANGE[1] < top <= OPENFACE_MAX and float(np.min(x)) >= 0.0:
-            hint = (f"values reach {top:g}: this looks like OpenFace's 0-5 intensity scale. Fix: divide every AU "
-                    f"column by 5 (py-feat's scale is 0-1) before `dvc add data`.")
+            hint = (
+                f"values reach {top:g}: this looks like OpenFace's 0-5 intensity scale. Fix: divide every AU "
+                f"column by 5 (py-feat's scale is 0-1) before `dvc add data`."
+            )
         else:
             hint = f"Fix: AU intensities are py-feat's probabilities in [{AU_RANGE[0]:g}, {AU_RANGE[1]:g}]."
         return TableError(f"{path}: column {column!r} is outside 0-1 at row {row} ({value:g}); {hint}")
@@ -175,7 +181,8 @@ def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int)
         top = float(np.max(np.abs(x)))
         return TableError(
             f"{path}: column {column!r} reaches {top:.1f}, more than pi: pose looks like degrees. Fix: convert "
-            f"{', '.join(POSE_COLUMNS)} to radians (np.deg2rad) before `dvc add data`.")
+            f"{', '.join(POSE_COLUMNS)} to radians (np.deg2rad) before `dvc add data`."
+        )
     row = int(mine["index"].dropna().iloc[0]) + row_offset if mine["index"].notna().any() else row_offset
     return TableError(f"{path}: column {column!r} fails check {checks[0]} at row {row}.")
 
@@ -216,25 +223,38 @@ def check_pose_medians(median, where: str | Path) -> None:
             raise TableError(
                 f"{where}: column {name!r} has median |{name}| = {m:.2f}: as radians that is {np.rad2deg(m):.0f} degrees, "
                 f"beyond any head pose the card's pose limits keep: the pose looks like degrees. Fix: convert {', '.join(POSE_COLUMNS)} to "
-                f"radians (np.deg2rad) before `dvc add data`.")
+                f"radians (np.deg2rad) before `dvc add data`."
+            )
 
 
 # filter name -> (counted in, what it drops, the likely cause, the option that allows it)
 FILTERS = {
-    "no-face rows": ("rows", "videos where py-feat rarely found a face (occlusion, a face_detection_threshold too high)"),
-    "pose filter": ("frames", "pose in degrees, or pose limits narrower than the data "
-                              "(preprocess.pose_filter)"),
-    "wild values": ("frames", "a corrupt export (coordinates far outside the face), or a mesh in another layout "
-                              "(preprocess.alignment.max_vertex_iod)"),
-    "alignment outlier cut": ("frames", "landmarks in different units or layouts across tables "
-                                        "(preprocess.alignment.outlier_quantile)"),
+    "no-face rows": (
+        "rows",
+        "videos where py-feat rarely found a face (occlusion, a face_detection_threshold too high)",
+    ),
+    "pose filter": ("frames", "pose in degrees, or pose limits narrower than the data (preprocess.pose_filter)"),
+    "wild values": (
+        "frames",
+        "a corrupt export (coordinates far outside the face), or a mesh in another layout "
+        "(preprocess.alignment.max_vertex_iod)",
+    ),
+    "alignment outlier cut": (
+        "frames",
+        "landmarks in different units or layouts across tables (preprocess.alignment.outlier_quantile)",
+    ),
     "empty videos": ("videos", "pose in degrees or filters too narrow for whole videos (preprocess.empty_video)"),
 }
 
 
 # filter name -> its count key in the prepared summary (``<key>_fraction`` is the share)
-FILTER_KEYS = {"no-face rows": "dropped_no_face", "pose filter": "dropped_pose", "wild values": "dropped_wild_values",
-               "alignment outlier cut": "dropped_alignment_outliers", "empty videos": "videos_dropped_no_frames_left"}
+FILTER_KEYS = {
+    "no-face rows": "dropped_no_face",
+    "pose filter": "dropped_pose",
+    "wild values": "dropped_wild_values",
+    "alignment outlier cut": "dropped_alignment_outliers",
+    "empty videos": "videos_dropped_no_frames_left",
+}
 
 
 def filter_shares(counts: Mapping[str, int]) -> dict[str, dict]:
@@ -242,12 +262,18 @@ def filter_shares(counts: Mapping[str, int]) -> dict[str, dict]:
     videos) in ``counts``
     (the prepared summary's counts, or the part known so far)."""
     after_pose = counts["frames_in"] - counts["dropped_pose"]
-    seen = {"no-face rows": counts.get("rows_in", 0), "pose filter": counts["frames_in"], "wild values": after_pose,
-            "alignment outlier cut": after_pose - counts.get("dropped_wild_values", 0),
-            "empty videos": counts.get("videos_in", 0)}
+    seen = {
+        "no-face rows": counts.get("rows_in", 0),
+        "pose filter": counts["frames_in"],
+        "wild values": after_pose,
+        "alignment outlier cut": after_pose - counts.get("dropped_wild_values", 0),
+        "empty videos": counts.get("videos_in", 0),
+    }
     out = {name: (counts[key], seen[name]) for name, key in FILTER_KEYS.items() if key in counts}
-    return {name: {"dropped": int(d), "of": int(n), "fraction": (d / n if n else 0.0), "unit": FILTERS[name][0]}
-            for name, (d, n) in out.items()}
+    return {
+        name: {"dropped": int(d), "of": int(n), "fraction": (d / n if n else 0.0), "unit": FILTERS[name][0]}
+        for name, (d, n) in out.items()
+    }
 
 
 def check_filter_shares(shares: Mapping[str, Mapping], max_fraction: float, where: str | Path) -> None:
@@ -263,4 +289,5 @@ def check_filter_shares(shares: Mapping[str, Mapping], max_fraction: float, wher
             raise TableError(
                 f"{where}: the {name} drops {s['dropped']} of {s['of']} {s['unit']} ({s['fraction']:.1%}), more than "
                 f"preprocess.max_drop_fraction={max_fraction:g}. Likely cause: {FILTERS[name][1]}. Fix the data, or "
-                f"allow it with preprocess.max_drop_fraction={min(1.0, round(s['fraction'] + 0.05, 2)):g}.")
+                f"allow it with preprocess.max_drop_fraction={min(1.0, round(s['fraction'] + 0.05, 2)):g}."
+            )

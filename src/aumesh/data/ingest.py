@@ -23,10 +23,9 @@ from __future__ import annotations
 import csv
 import gzip
 import io
-import os
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -35,10 +34,10 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
 from aumesh.data import pyfeat
+from aumesh.data.pyfeat import video_stem
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.utils.errors import TableError, corrupt_parquet
-from aumesh.data.pyfeat import video_stem
-from aumesh.utils.io import NpyRowFile, absolute, check_npy, npy_layout
+from aumesh.utils.io import NpyRowFile, absolute, check_npy
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
 PARQUET_SUFFIXES = (".parquet",)
@@ -66,10 +65,12 @@ class Source:
     mesh_npy: Path | None = None
     n_rows: int | None = None  # parquet: rows (CSV: unknown until read)
 
-    def absolute(self) -> "Source":
+    def absolute(self) -> Source:
         """The same source named by absolute paths (:func:`aumesh.utils.io.absolute`): what partition tasks get, so a
         cluster worker in another directory reads this workspace's file."""
-        return replace(self, path=absolute(self.path), mesh_npy=None if self.mesh_npy is None else absolute(self.mesh_npy))
+        return replace(
+            self, path=absolute(self.path), mesh_npy=None if self.mesh_npy is None else absolute(self.mesh_npy)
+        )
 
 
 def is_table(path: Path) -> bool:
@@ -77,8 +78,10 @@ def is_table(path: Path) -> bool:
 
 
 #: What to do about a damaged mesh ``.npy`` of ``data/`` (:func:`aumesh.utils.io.check_npy`).
-DATA_NPY_FIX = ("restore it (`dvc checkout data`, or `dvc pull` from the remote), or save py-feat's whole [N, 478, 3] "
-                "landmarks again with np.save.")
+DATA_NPY_FIX = (
+    "restore it (`dvc checkout data`, or `dvc pull` from the remote), or save py-feat's whole [N, 478, 3] "
+    "landmarks again with np.save."
+)
 
 
 def open_source(path: Path, mesh_npy_pattern: str) -> Source:
@@ -92,16 +95,22 @@ def open_source(path: Path, mesh_npy_pattern: str) -> Source:
         raise corrupt_parquet(path, err) from None
     names = md.schema.to_arrow_schema().names
     npy = path.with_name(mesh_npy_pattern.format(stem=path.stem))
-    split = npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
+    split = (
+        npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
+    )
     lay = pyfeat.layout(names, str(path), split_mesh=split)
     if split:
         _, _, shape = check_npy(npy, DATA_NPY_FIX)
         if len(shape) != 3 or shape[1:] != (N_VERTICES, 3):
-            raise TableError(f"{npy}: wrong vertex count: mesh array has shape {shape}, need (N, {N_VERTICES}, 3). Fix: "
-                             f"save the 478-vertex MediaPipe FaceMesh (with irises) as float16/float32 [N, 478, 3].")
+            raise TableError(
+                f"{npy}: wrong vertex count: mesh array has shape {shape}, need (N, {N_VERTICES}, 3). Fix: "
+                f"save the 478-vertex MediaPipe FaceMesh (with irises) as float16/float32 [N, 478, 3]."
+            )
         if shape[0] != md.num_rows:
-            raise TableError(f"{npy}: {shape[0]} meshes but {path} has {md.num_rows} rows. Fix: one mesh per table row, "
-                             f"same order; keep py-feat's no-face rows in both (aumesh drops them itself).")
+            raise TableError(
+                f"{npy}: {shape[0]} meshes but {path} has {md.num_rows} rows. Fix: one mesh per table row, "
+                f"same order; keep py-feat's no-face rows in both (aumesh drops them itself)."
+            )
     return Source(path, "parquet", lay, tuple(names), npy if split else None, md.num_rows)
 
 
@@ -111,8 +120,10 @@ def _csv_header(path: Path) -> list[str]:
         with opener(path, "rt", newline="") as fh:
             header = next(csv.reader(fh), None)
     except (OSError, UnicodeDecodeError, csv.Error) as err:
-        raise TableError(f"{path}: cannot read the CSV header ({err}). Fix: save it with py-feat's detect(..., save=) "
-                         f"or DataFrame.to_csv.") from None
+        raise TableError(
+            f"{path}: cannot read the CSV header ({err}). Fix: save it with py-feat's detect(..., save=) "
+            f"or DataFrame.to_csv."
+        ) from None
     if not header:
         raise TableError(f"{path}: empty CSV (no header). Fix: export frames with py-feat first.")
     return header
@@ -171,15 +182,18 @@ def _frame_boundary(fh, offset: int, key_columns: list[int]) -> int:
         previous = key
 
 
-def _parquet_batches(source: Source, columns: list[str], batch_rows: int | None = None,
-                     reader: pq.ParquetFile | None = None) -> Iterator[pa.Table]:
+def _parquet_batches(
+    source: Source, columns: list[str], batch_rows: int | None = None, reader: pq.ParquetFile | None = None
+) -> Iterator[pa.Table]:
     """The parquet source's ``columns`` a batch of rows at a time (default :data:`PARQUET_RANGE_ROWS`: memory flat in
     the table's rows), typed. ``reader``: the file already open (parsing a py-feat footer of ~2,000 columns costs
     ~40 ms)."""
     types = _types(source.layout)
     try:
         reader = reader or pq.ParquetFile(source.path)
-        for batch in reader.iter_batches(batch_size=batch_rows or PARQUET_RANGE_ROWS, columns=columns, use_threads=False):
+        for batch in reader.iter_batches(
+            batch_size=batch_rows or PARQUET_RANGE_ROWS, columns=columns, use_threads=False
+        ):
             table = pa.Table.from_batches([batch])
             for name in columns:
                 if name in types and table.schema.field(name).type != types[name]:
@@ -245,15 +259,18 @@ def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
         from aumesh.data import contract  # pandera: imported only when a value is not a number
 
         contract.numeric_values(column.to_numpy(zero_copy_only=False), path, name, first_row)
-        raise TableError(f"{path}: column {name!r} cannot be read as {typ}. Fix: write numbers as numbers (missing "
-                         f"values as NaN) before `dvc add data`.") from None
+        raise TableError(
+            f"{path}: column {name!r} cannot be read as {typ}. Fix: write numbers as numbers (missing "
+            f"values as NaN) before `dvc add data`."
+        ) from None
 
 
 def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]) -> pa.Table:
     path = span.source.path
     read = pacsv.ReadOptions(column_names=list(span.source.header), use_threads=True, block_size=8 << 20)
-    convert = pacsv.ConvertOptions(include_columns=columns, column_types=types, strings_can_be_null=True,
-                                   quoted_strings_can_be_null=True)
+    convert = pacsv.ConvertOptions(
+        include_columns=columns, column_types=types, strings_can_be_null=True, quoted_strings_can_be_null=True
+    )
     try:
         if path.name.endswith(".gz"):
             stream = pa.input_stream(str(path), compression="gzip")
@@ -265,9 +282,13 @@ def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]
         return pacsv.read_csv(io.BytesIO(data), read_options=read, convert_options=convert)
     except pa.ArrowInvalid as err:
         message = str(err).splitlines()[0]
-        column = next((c for c in columns if f"'{c}'" in message or f"column #{span.source.header.index(c)}" in message), None)
-        raise TableError(f"{path}: cannot read the CSV{f' (column {column!r})' if column else ''}: {message}. Fix: write "
-                         f"numbers as numbers and missing values as empty fields or NaN (py-feat's to_csv does).") from None
+        column = next(
+            (c for c in columns if f"'{c}'" in message or f"column #{span.source.header.index(c)}" in message), None
+        )
+        raise TableError(
+            f"{path}: cannot read the CSV{f' (column {column!r})' if column else ''}: {message}. Fix: write "
+            f"numbers as numbers and missing values as empty fields or NaN (py-feat's to_csv does)."
+        ) from None
 
 
 # ------------------------------------------------------------------------------------------------------ cleaning
@@ -290,9 +311,14 @@ class Block:
     def __len__(self) -> int:
         return len(self.frame)
 
-    def take(self, rows: np.ndarray) -> "Block":
-        return Block(self.video[rows], self.frame[rows], {k: v[rows] for k, v in self.values.items()},
-                     None if self.identity is None else self.identity[rows], self.mesh[rows])
+    def take(self, rows: np.ndarray) -> Block:
+        return Block(
+            self.video[rows],
+            self.frame[rows],
+            {k: v[rows] for k, v in self.values.items()},
+            None if self.identity is None else self.identity[rows],
+            self.mesh[rows],
+        )
 
 
 def to_block(table: pa.Table, span: Span) -> Block:
@@ -305,10 +331,13 @@ def to_block(table: pa.Table, span: Span) -> Block:
     frame_col = table.column(FRAME_COLUMN)
     if frame_col.null_count:
         row = int(np.flatnonzero(frame_col.is_null().to_numpy(zero_copy_only=False))[0])
-        raise TableError(f"{span.source.path}: column {FRAME_COLUMN!r} is empty at row {row} of this range. Fix: keep "
-                         f"py-feat's frame numbers on every row.")
-    values = {name: table.column(name).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
-              for name in lay.numeric}
+        raise TableError(
+            f"{span.source.path}: column {FRAME_COLUMN!r} is empty at row {row} of this range. Fix: keep "
+            f"py-feat's frame numbers on every row."
+        )
+    values = {
+        name: table.column(name).to_numpy(zero_copy_only=False).astype(np.float64, copy=False) for name in lay.numeric
+    }
     identity = table.column(lay.identity).to_numpy(zero_copy_only=False) if lay.identity else None
     if lay.mesh is not None:
         mesh = np.asarray(table.select(list(lay.mesh)).to_tensor(null_to_nan=True, row_major=True), dtype=np.float32)
@@ -332,21 +361,38 @@ class Counts:
     rows_normalized: int = 0  # rows whose mesh was converted from normalized image units to pixels
     identities: dict[str, dict[str, int]] = field(default_factory=dict)  # video -> Identity -> face rows
 
-    def __add__(self, other: "Counts") -> "Counts":
+    def __add__(self, other: Counts) -> Counts:
         merged = {v: dict(c) for v, c in self.identities.items()}
         for v, c in other.identities.items():
             mine = merged.setdefault(v, {})
             for k, n in c.items():
                 mine[k] = mine.get(k, 0) + n
-        return Counts(*(getattr(self, f) + getattr(other, f) for f in
-                        ("rows_in", "no_face", "extra_faces", "frames_several_faces", "frames_without_subject",
-                         "rows_out", "rows_normalized")), merged)
+        return Counts(
+            *(
+                getattr(self, f) + getattr(other, f)
+                for f in (
+                    "rows_in",
+                    "no_face",
+                    "extra_faces",
+                    "frames_several_faces",
+                    "frames_without_subject",
+                    "rows_out",
+                    "rows_normalized",
+                )
+            ),
+            merged,
+        )
 
     def as_dict(self) -> dict[str, int]:
-        return {"rows_in": self.rows_in, "dropped_no_face": self.no_face, "dropped_extra_faces": self.extra_faces,
-                "frames_with_several_faces": self.frames_several_faces,
-                "dropped_frames_without_subject": self.frames_without_subject, "frames_out": self.rows_out,
-                "rows_converted_from_normalized": self.rows_normalized}
+        return {
+            "rows_in": self.rows_in,
+            "dropped_no_face": self.no_face,
+            "dropped_extra_faces": self.extra_faces,
+            "frames_with_several_faces": self.frames_several_faces,
+            "dropped_frames_without_subject": self.frames_without_subject,
+            "frames_out": self.rows_out,
+            "rows_converted_from_normalized": self.rows_normalized,
+        }
 
 
 def no_face_rows(block: Block, layout: pyfeat.Layout) -> np.ndarray:
@@ -361,7 +407,11 @@ def no_face_rows(block: Block, layout: pyfeat.Layout) -> np.ndarray:
 def frame_groups(block: Block) -> np.ndarray:
     """(n + 1,) starts of the runs of consecutive rows with the same (video, frame), and ``n`` at the end."""
     n = len(block)
-    new = np.r_[True, (block.video[1:] != block.video[:-1]) | (block.frame[1:] != block.frame[:-1])] if n else np.zeros(0, bool)
+    new = (
+        np.r_[True, (block.video[1:] != block.video[:-1]) | (block.frame[1:] != block.frame[:-1])]
+        if n
+        else np.zeros(0, bool)
+    )
     return np.r_[np.flatnonzero(new), n]
 
 
@@ -372,7 +422,9 @@ def face_areas(block: Block, layout: pyfeat.Layout) -> np.ndarray:
         if np.isfinite(area).all():
             return area
     x, y = block.mesh[:, :N_VERTICES], block.mesh[:, N_VERTICES : 2 * N_VERTICES]
-    return (np.nanmax(x, axis=1) - np.nanmin(x, axis=1)).astype(np.float64) * (np.nanmax(y, axis=1) - np.nanmin(y, axis=1))
+    return (np.nanmax(x, axis=1) - np.nanmin(x, axis=1)).astype(np.float64) * (
+        np.nanmax(y, axis=1) - np.nanmin(y, axis=1)
+    )
 
 
 def main_identities(identities: dict[str, dict[str, int]]) -> dict[str, str]:
@@ -380,8 +432,9 @@ def main_identities(identities: dict[str, dict[str, int]]) -> dict[str, str]:
     return {v: sorted(c.items(), key=lambda kv: (-kv[1], kv[0]))[0][0] for v, c in identities.items() if c}
 
 
-def select_faces(block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None,
-                 where: str) -> tuple[np.ndarray, Counts]:
+def select_faces(
+    block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None, where: str
+) -> tuple[np.ndarray, Counts]:
     """Rows kept (one per frame) among face rows, by ``data.face_selection`` (``how``), and what was dropped.
 
     Parameters
@@ -394,8 +447,10 @@ def select_faces(block: Block, layout: pyfeat.Layout, how: str, subjects: dict[s
     counts = Counts(frames_several_faces=int((sizes > 1).sum()))
     if how == "identity":
         if layout.identity is None:
-            raise TableError(f"{where}: data.face_selection=identity needs py-feat's {pyfeat.IDENTITY!r} column. Fix: "
-                             f"keep it (detect computes it), or use data.face_selection=largest.")
+            raise TableError(
+                f"{where}: data.face_selection=identity needs py-feat's {pyfeat.IDENTITY!r} column. Fix: "
+                f"keep it (detect computes it), or use data.face_selection=largest."
+            )
         subject = np.array([subjects.get(v) for v in block.video], dtype=object)
         candidate = block.identity.astype(object) == subject
     else:
@@ -406,7 +461,8 @@ def select_faces(block: Block, layout: pyfeat.Layout, how: str, subjects: dict[s
         raise TableError(
             f"{where}: {int(sizes[g])} faces in frame {block.frame[row]} of video {block.video[row]!r} "
             f"({int((sizes > 1).sum())} such frames); data.face_selection=error keeps one face per frame only. Fix: "
-            f"data.face_selection=largest (the largest face box) or identity (py-feat's Identity of the video's subject).")
+            f"data.face_selection=largest (the largest face box) or identity (py-feat's Identity of the video's subject)."
+        )
     area = np.where(candidate, face_areas(block, layout), -np.inf)
     # the largest candidate of each frame (ties: the first row): argmax within runs, as a sort by (group, -area)
     group_of = np.repeat(np.arange(len(sizes)), sizes)
@@ -441,19 +497,23 @@ def to_pixels(block: Block, layout: pyfeat.Layout, normalized: np.ndarray, where
         raise TableError(
             f"{where}: the mesh is in normalized image units (0-1; median inter-ocular distance {iod:.3g}), and the "
             f"table has no FrameWidth/FrameHeight to convert it. Fix: keep py-feat's FrameWidth and FrameHeight "
-            f"columns, or multiply x and z by the frame width and y by its height before `dvc add data`.")
+            f"columns, or multiply x and z by the frame width and y by its height before `dvc add data`."
+        )
     width, height = (block.values[c][normalized] for c in layout.frame_size)
     bad = ~(np.isfinite(width) & np.isfinite(height) & (width > 0) & (height > 0))
     if bad.any():
-        raise TableError(f"{where}: FrameWidth/FrameHeight are missing or not positive on {int(bad.sum())} rows whose "
-                         f"mesh is in normalized units. Fix: fill them with the video's frame size in pixels.")
+        raise TableError(
+            f"{where}: FrameWidth/FrameHeight are missing or not positive on {int(bad.sum())} rows whose "
+            f"mesh is in normalized units. Fix: fill them with the video's frame size in pixels."
+        )
     scale = np.column_stack([width, height, width]).astype(np.float32)  # (m, 3)
     m = block.mesh[normalized].reshape(-1, 3, N_VERTICES) * scale[:, :, None]
     block.mesh[normalized] = m.reshape(len(m), -1)
 
 
-def clean_block(block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None,
-                where: str) -> tuple[Block, Counts]:
+def clean_block(
+    block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None, where: str
+) -> tuple[Block, Counts]:
     """No-face rows dropped, one face per frame, meshes in pixels (module docstring)."""
     empty = no_face_rows(block, layout)
     faces = block.take(np.flatnonzero(~empty))
@@ -462,8 +522,10 @@ def clean_block(block: Block, layout: pyfeat.Layout, how: str, subjects: dict[st
     normalized = normalized_rows(out.mesh)
     if normalized.any() and not normalized.all():
         row = int(np.flatnonzero(normalized != normalized[0])[0])
-        raise TableError(f"{where}: mixes meshes in pixels and in normalized image units (frame {out.frame[row]} of "
-                         f"video {out.video[row]!r} differs from the first). Fix: export every video the same way.")
+        raise TableError(
+            f"{where}: mixes meshes in pixels and in normalized image units (frame {out.frame[row]} of "
+            f"video {out.video[row]!r} differs from the first). Fix: export every video the same way."
+        )
     to_pixels(out, layout, normalized, where)
     counts.rows_in, counts.no_face, counts.rows_out = len(block), int(empty.sum()), len(out)
     counts.rows_normalized = int(normalized.sum())
@@ -502,8 +564,9 @@ def to_table(block: Block, schema: pa.Schema) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
-def iter_clean_blocks(spans: Sequence[Span], how: str, subjects: dict[str, str] | None
-                      ) -> Iterator[tuple[Block, Counts]]:
+def iter_clean_blocks(
+    spans: Sequence[Span], how: str, subjects: dict[str, str] | None
+) -> Iterator[tuple[Block, Counts]]:
     """Each span read and cleaned (:func:`clean_block`)."""
     for span in spans:
         for rows, table in iter_span_tables(span):
@@ -530,8 +593,15 @@ def span_identities(spans: Sequence[Span]) -> Counts:
     total = Counts()
     for span in spans:
         lay = span.source.layout
-        cols = [lay.video, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *([lay.face_score] if lay.face_score else []),
-                *([lay.identity] if lay.identity else []), *(lay.mesh or ())]
+        cols = [
+            lay.video,
+            FRAME_COLUMN,
+            *AU_COLUMNS,
+            *POSE_COLUMNS,
+            *([lay.face_score] if lay.face_score else []),
+            *([lay.identity] if lay.identity else []),
+            *(lay.mesh or ()),
+        ]
         for rows, table in iter_span_tables(span, cols):
             block = to_block(_with_missing(table, lay), rows)
             total = total + Counts(identities=identity_counts(block, lay))
@@ -572,14 +642,17 @@ def check_clean(source: Source) -> PassThrough:
     except (pa.ArrowException, OSError) as err:
         raise corrupt_parquet(source.path, err) from None
     for table in _parquet_batches(source, cols, reader=reader):  # a batch at a time: memory flat in the table's rows
-        empty = (np.isnan(table.column(AU_COLUMNS[0]).to_numpy(zero_copy_only=False).astype(np.float64))
-                 & np.isnan(table.column(POSE_COLUMNS[0]).to_numpy(zero_copy_only=False).astype(np.float64)))
+        empty = np.isnan(table.column(AU_COLUMNS[0]).to_numpy(zero_copy_only=False).astype(np.float64)) & np.isnan(
+            table.column(POSE_COLUMNS[0]).to_numpy(zero_copy_only=False).astype(np.float64)
+        )
         if lay.face_score:
             empty |= table.column(lay.face_score).to_numpy(zero_copy_only=False) == 0
         no_face += int(empty.sum())
         video, frame, m = table.column(lay.video), table.column(FRAME_COLUMN), table.num_rows
         if m:  # repeated (video, frame) keys, compared in Arrow (no Python string per row)
-            same = pc.and_(pc.equal(video.slice(1), video.slice(0, m - 1)), pc.equal(frame.slice(1), frame.slice(0, m - 1)))
+            same = pc.and_(
+                pc.equal(video.slice(1), video.slice(0, m - 1)), pc.equal(frame.slice(1), frame.slice(0, m - 1))
+            )
             several += int(pc.sum(same).as_py() or 0) + int((video[0].as_py(), frame[0].as_py()) == previous)
             previous = (video[m - 1].as_py(), frame[m - 1].as_py())
     if not n:  # an empty table: nothing to clean (prepare names empty input)

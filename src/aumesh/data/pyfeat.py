@@ -17,8 +17,8 @@ from __future__ import annotations
 import difflib
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.utils.errors import TableError
@@ -102,23 +102,34 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout
     elif INPUT_PATH_COLUMN in present:
         video = INPUT_PATH_COLUMN
     else:
-        raise TableError(f"{where}: column {VIDEO_COLUMN!r} is missing{_suggest(VIDEO_COLUMN, names)}. Fix: keep "
-                         f"py-feat's {INPUT_PATH_COLUMN!r} column (the video path names the video), or add {VIDEO_COLUMN!r}.")
+        raise TableError(
+            f"{where}: column {VIDEO_COLUMN!r} is missing{_suggest(VIDEO_COLUMN, names)}. Fix: keep "
+            f"py-feat's {INPUT_PATH_COLUMN!r} column (the video path names the video), or add {VIDEO_COLUMN!r}."
+        )
     for col in (FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS):
         if col not in present:
             raise TableError(
                 f"{where}: column {col!r} is missing{_suggest(col, names)}. Fix: the table needs py-feat's Fex columns "
-                f"{FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians).")
+                f"{FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians)."
+            )
     mesh, detector = None, "split"
     if set(MESH_NAMES["Detectorv2"]) <= present:
         mesh, detector = MESH_NAMES["Detectorv2"], "Detectorv2"
     elif not split_mesh:
         mesh, detector = mesh_point_columns(names, where), "MPDetector"
+
     def optional(*cols: str):
         return cols if all(c in present for c in cols) else None
-    return Layout(detector=detector, video=video, mesh=None if mesh is None else tuple(mesh),
-                  face_score=FACE_SCORE if FACE_SCORE in present else None, box_size=optional(*FACE_BOX_SIZE),
-                  identity=IDENTITY if IDENTITY in present else None, frame_size=optional(*FRAME_SIZE))
+
+    return Layout(
+        detector=detector,
+        video=video,
+        mesh=None if mesh is None else tuple(mesh),
+        face_score=FACE_SCORE if FACE_SCORE in present else None,
+        box_size=optional(*FACE_BOX_SIZE),
+        identity=IDENTITY if IDENTITY in present else None,
+        frame_size=optional(*FRAME_SIZE),
+    )
 
 
 def mesh_point_columns(names: Sequence[str], where: str) -> list[str]:
@@ -132,21 +143,31 @@ def mesh_point_columns(names: Sequence[str], where: str) -> list[str]:
         raise TableError(
             f"{where}: no mesh columns (MPDetector's x_0..z_477 or Detectorv2's mesh_x_0..mesh_z_477) and no mesh .npy "
             f"beside it. Fix: export with py-feat's MPDetector (landmark_model='mp_facemesh_v2') or Detectorv2, or save "
-            f"the [N, 478, 3] landmarks as an .npy named by data.mesh_npy.")
+            f"the [N, 478, 3] landmarks as an .npy named by data.mesh_npy."
+        )
     if not vertices["z"] and len(vertices["x"]) == 68:
         raise TableError(
             f"{where}: the only landmarks are a 68-point 2-D block (x_0..x_67, y_0..y_67), not the 478-vertex mesh. "
             f"Fix: keep Detectorv2's mesh_x_*/mesh_y_*/mesh_z_* columns, or detect with MPDetector "
-            f"(landmark_model='mp_facemesh_v2').")
+            f"(landmark_model='mp_facemesh_v2')."
+        )
     expected = set(range(N_VERTICES))
     for axis, found in vertices.items():
         if found != expected:
             missing, extra = sorted(expected - found), sorted(found - expected)
-            detail = ([f"missing {axis}_{missing[0]}" + (f" and {len(missing) - 1} more" if len(missing) > 1 else "")]
-                      if missing else [])
-            detail += [f"unexpected {axis}_{extra[0]}" + (f" and {len(extra) - 1} more" if len(extra) > 1 else "")] if extra else []
+            detail = (
+                [f"missing {axis}_{missing[0]}" + (f" and {len(missing) - 1} more" if len(missing) > 1 else "")]
+                if missing
+                else []
+            )
+            detail += (
+                [f"unexpected {axis}_{extra[0]}" + (f" and {len(extra) - 1} more" if len(extra) > 1 else "")]
+                if extra
+                else []
+            )
             raise TableError(
                 f"{where}: wrong vertex count in column {axis}_i: found {len(found)} vertices, need {N_VERTICES} "
                 f"({'; '.join(detail)}). Fix: export the 478-vertex MediaPipe FaceMesh (with irises, py-feat's "
-                f"mp_facemesh_v2), columns x_0..x_477, y_0..y_477, z_0..z_477.")
+                f"mp_facemesh_v2), columns x_0..x_477, y_0..y_477, z_0..z_477."
+            )
     return MESH_NAMES["MPDetector"]

@@ -29,8 +29,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.spatial.transform import Rotation
 
+from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, feature_columns, flatten_axis_major
 from aumesh.utils.io import atomic_path, atomic_savez
-from aumesh.data.schema import flatten_axis_major, ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, feature_columns
 
 
 @dataclass(frozen=True)
@@ -90,7 +90,9 @@ def true_coefficients(spec: SynthSpec) -> tuple[np.ndarray, np.ndarray, list[str
 def _smooth_fields(template: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` smooth random displacement fields, unit RMS, from quadratic polynomials of the template coordinates."""
     c = (template - template.mean(0)) / template.std(0).max()
-    basis = np.column_stack([np.ones(len(c)), c, c**2, c[:, [0]] * c[:, [1]], c[:, [1]] * c[:, [2]], c[:, [0]] * c[:, [2]]])
+    basis = np.column_stack(
+        [np.ones(len(c)), c, c**2, c[:, [0]] * c[:, [1]], c[:, [1]] * c[:, [2]], c[:, [0]] * c[:, [2]]]
+    )
     weights = rng.standard_normal((n, basis.shape[1], 3))
     out = np.einsum("vb,nbk->nvk", basis, weights)
     out -= out.mean(axis=1, keepdims=True)
@@ -117,7 +119,9 @@ def _au_intensities(rng: np.random.Generator, n: int, propensity: np.ndarray) ->
 
 def _frames_per_video(spec: SynthSpec, rng: np.random.Generator) -> np.ndarray:
     if spec.n_videos < 1 or spec.n_frames < spec.n_videos:
-        raise ValueError(f"synth: need n_frames >= n_videos >= 1, got n_frames={spec.n_frames}, n_videos={spec.n_videos}")
+        raise ValueError(
+            f"synth: need n_frames >= n_videos >= 1, got n_frames={spec.n_frames}, n_videos={spec.n_videos}"
+        )
     weights = rng.gamma(4.0, 1.0, size=spec.n_videos)
     counts = 1 + np.floor(weights / weights.sum() * (spec.n_frames - spec.n_videos)).astype(int)
     counts[: spec.n_frames - counts.sum()] += 1
@@ -140,22 +144,33 @@ def identity_resemblance(coef: np.ndarray, identity_basis: np.ndarray) -> np.nda
     return g / np.linalg.norm(g, axis=1, keepdims=True)
 
 
-def generate_video(spec: SynthSpec, video: int, n_frames: int, coef: np.ndarray, intercept: np.ndarray,
-                   identity_basis: np.ndarray, latent_basis: np.ndarray,
-                   resemblance: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def generate_video(
+    spec: SynthSpec,
+    video: int,
+    n_frames: int,
+    coef: np.ndarray,
+    intercept: np.ndarray,
+    identity_basis: np.ndarray,
+    latent_basis: np.ndarray,
+    resemblance: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
     """Frames of one video: AUs as recorded, pose (radians, model order), observed image-space meshes (n, 478, 3)
     and the video's AU baseline (zeros without coupling; ``resemblance`` from :func:`identity_resemblance`)."""
     rng = np.random.default_rng([spec.seed, video])
     propensity = rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS))
     au = _au_intensities(rng, n_frames, propensity)
-    mean_pose = np.deg2rad([rng.normal(0, spec.pitch_sd_deg), rng.normal(0, spec.yaw_sd_deg), rng.normal(0, spec.roll_sd_deg)])
+    mean_pose = np.deg2rad(
+        [rng.normal(0, spec.pitch_sd_deg), rng.normal(0, spec.yaw_sd_deg), rng.normal(0, spec.roll_sd_deg)]
+    )
     walk = np.cumsum(rng.normal(0, np.deg2rad(1.5), size=(n_frames, 3)), axis=0)
     pose = mean_pose + walk - walk.mean(0)  # (n, 3) Pitch, Yaw, Roll
     x = np.column_stack([au, pose, (pose[:, :, None] * au[:, None, :]).reshape(n_frames, -1)])
     identity_sd = spec.identity_scale * spec.px_per_iod
     weights = rng.normal(0, identity_sd, size=identity_basis.shape[0])
     identity = identity_basis.T @ weights
-    latent = rng.normal(0, spec.unexplained_scale * spec.px_per_iod, size=(n_frames, latent_basis.shape[0])) @ latent_basis
+    latent = (
+        rng.normal(0, spec.unexplained_scale * spec.px_per_iod, size=(n_frames, latent_basis.shape[0])) @ latent_basis
+    )
     canonical = x @ coef + intercept + identity + latent  # (n, 1434) axis-major, pixels
     canonical = canonical.reshape(n_frames, 3, N_VERTICES).transpose(0, 2, 1)
     centre = canonical.mean(axis=1, keepdims=True)
@@ -167,7 +182,9 @@ def generate_video(spec: SynthSpec, video: int, n_frames: int, coef: np.ndarray,
     failed = rng.random(n_frames) < spec.landmark_failure_rate
     if failed.any():  # a tracking failure drags part of the face away
         k = int(failed.sum())
-        observed[failed] += rng.normal(0, 0.25 * spec.px_per_iod, size=(k, 1, 3)) * (rng.random((k, N_VERTICES, 1)) < 0.4)
+        observed[failed] += rng.normal(0, 0.25 * spec.px_per_iod, size=(k, 1, 3)) * (
+            rng.random((k, N_VERTICES, 1)) < 0.4
+        )
     baseline = np.zeros(len(AU_COLUMNS))
     if spec.identity_au_coupling:  # the detector reads the resting face as expression; the mesh follows the true AUs
         baseline = spec.identity_au_coupling * np.logaddexp(0.0, resemblance @ weights / identity_sd)
@@ -198,15 +215,23 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     template = face.canonical_template()
     identity_basis = flatten_axis_major(_smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
     latent_basis = flatten_axis_major(_smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
-    latent_basis[:, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]] = 0.0
+    latent_basis[
+        :, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]
+    ] = 0.0
     resemblance = identity_resemblance(coef, identity_basis)
 
     files, failures, file_no, video, baselines = [], 0, 0, 0, []
     while video < spec.n_videos:
         parts, rows = [], 0
         while video < spec.n_videos and (rows == 0 or rows + counts[video] <= spec.frames_per_file):
-            parts.append((video, generate_video(spec, video, int(counts[video]), coef, intercept, identity_basis, latent_basis,
-                                                resemblance)))
+            parts.append(
+                (
+                    video,
+                    generate_video(
+                        spec, video, int(counts[video]), coef, intercept, identity_basis, latent_basis, resemblance
+                    ),
+                )
+            )
             rows += int(counts[video])
             video += 1
         files.append(_write_file(out_dir / f"frames_{file_no:04d}.parquet", parts, spec.layout))
@@ -214,12 +239,24 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
         baselines += [p["au_baseline"] for _, p in parts]
         file_no += 1
     if truth_path is not None:
-        atomic_savez(truth_path, coef=coef, intercept=intercept, feature_columns=np.array(columns),
-                     au_fields=coef[: len(AU_COLUMNS)], au_columns=np.array(AU_COLUMNS), au_baseline=np.array(baselines),
-                     template_px=template * spec.px_per_iod, anchor_indices=np.array(ANCHOR_INDICES, dtype=np.int32),
-                     spec=np.array(repr(asdict(spec))))
-    return {"files": [str(f) for f in files], "n_frames": int(counts.sum()), "n_videos": spec.n_videos,
-            "landmark_failures": failures}
+        atomic_savez(
+            truth_path,
+            coef=coef,
+            intercept=intercept,
+            feature_columns=np.array(columns),
+            au_fields=coef[: len(AU_COLUMNS)],
+            au_columns=np.array(AU_COLUMNS),
+            au_baseline=np.array(baselines),
+            template_px=template * spec.px_per_iod,
+            anchor_indices=np.array(ANCHOR_INDICES, dtype=np.int32),
+            spec=np.array(repr(asdict(spec))),
+        )
+    return {
+        "files": [str(f) for f in files],
+        "n_frames": int(counts.sum()),
+        "n_videos": spec.n_videos,
+        "landmark_failures": failures,
+    }
 
 
 def _write_file(path: Path, parts: list[tuple[int, dict]], layout: str) -> Path:

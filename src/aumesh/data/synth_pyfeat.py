@@ -42,15 +42,58 @@ FACE_RECT_COLUMNS = ("FaceRectX", "FaceRectY", "FaceRectWidth", "FaceRectHeight"
 FEX_POSE_COLUMNS = ("Pitch", "Roll", "Yaw")  # py-feat's Fex order (the model's is Pitch, Yaw, Roll)
 HEAD_POSITION_COLUMNS = ("X", "Y", "Z")
 BLENDSHAPE_COLUMNS: tuple[str, ...] = (
-    "_neutral", "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff",
-    "cheekSquintLeft", "cheekSquintRight", "eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft", "eyeLookDownRight",
-    "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight", "eyeLookUpLeft", "eyeLookUpRight",
-    "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight", "jawForward", "jawLeft", "jawOpen", "jawRight",
-    "mouthClose", "mouthDimpleLeft", "mouthDimpleRight", "mouthFrownLeft", "mouthFrownRight", "mouthFunnel",
-    "mouthLeft", "mouthLowerDownLeft", "mouthLowerDownRight", "mouthPressLeft", "mouthPressRight", "mouthPucker",
-    "mouthRight", "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthSmileLeft",
-    "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight", "mouthUpperUpLeft", "mouthUpperUpRight",
-    "noseSneerLeft", "noseSneerRight",
+    "_neutral",
+    "browDownLeft",
+    "browDownRight",
+    "browInnerUp",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "cheekPuff",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "eyeLookDownLeft",
+    "eyeLookDownRight",
+    "eyeLookInLeft",
+    "eyeLookInRight",
+    "eyeLookOutLeft",
+    "eyeLookOutRight",
+    "eyeLookUpLeft",
+    "eyeLookUpRight",
+    "eyeSquintLeft",
+    "eyeSquintRight",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "jawForward",
+    "jawLeft",
+    "jawOpen",
+    "jawRight",
+    "mouthClose",
+    "mouthDimpleLeft",
+    "mouthDimpleRight",
+    "mouthFrownLeft",
+    "mouthFrownRight",
+    "mouthFunnel",
+    "mouthLeft",
+    "mouthLowerDownLeft",
+    "mouthLowerDownRight",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "mouthPucker",
+    "mouthRight",
+    "mouthRollLower",
+    "mouthRollUpper",
+    "mouthShrugLower",
+    "mouthShrugUpper",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthStretchLeft",
+    "mouthStretchRight",
+    "mouthUpperUpLeft",
+    "mouthUpperUpRight",
+    "noseSneerLeft",
+    "noseSneerRight",
 )
 EMOTION_COLUMNS_MP = ("anger", "disgust", "fear", "happiness", "sadness", "surprise", "neutral")
 EMOTION_COLUMNS_V2 = ("Neutral", "Happy", "Sad", "Surprise", "Fear", "Disgust", "Anger")
@@ -86,18 +129,40 @@ def pyfeat_columns(detector: str = "mp", frame_size: bool = True, mesh: bool = T
     pose = list(FEX_POSE_COLUMNS) + list(HEAD_POSITION_COLUMNS)
     mesh_cols = mesh_columns(detector) if mesh else []
     if detector == "mp":
-        cols = (head + mesh_cols + pose + list(BLENDSHAPE_COLUMNS) + list(AU_COLUMNS) + list(EMOTION_COLUMNS_MP)
-                + list(IDENTITY_COLUMNS) + list(GAZE_COLUMNS))
+        cols = (
+            head
+            + mesh_cols
+            + pose
+            + list(BLENDSHAPE_COLUMNS)
+            + list(AU_COLUMNS)
+            + list(EMOTION_COLUMNS_MP)
+            + list(IDENTITY_COLUMNS)
+            + list(GAZE_COLUMNS)
+        )
     else:
-        cols = (head + landmark68_columns() + pose + list(AU_COLUMNS) + list(EMOTION_COLUMNS_V2) + ["valence", "arousal"]
-                + list(GAZE_COLUMNS) + list(IDENTITY_COLUMNS) + mesh_cols + list(BLENDSHAPE_COLUMNS))
+        cols = (
+            head
+            + landmark68_columns()
+            + pose
+            + list(AU_COLUMNS)
+            + list(EMOTION_COLUMNS_V2)
+            + ["valence", "arousal"]
+            + list(GAZE_COLUMNS)
+            + list(IDENTITY_COLUMNS)
+            + mesh_cols
+            + list(BLENDSHAPE_COLUMNS)
+        )
     return cols + size + list(TRAILING_COLUMNS)
 
 
 def clean_columns() -> list[str]:
     """The hand-cleaned table's columns (synth's ``columns`` layout): video_id, frame, AUs, Pitch, Roll, Yaw, mesh."""
-    return (["video_id", "frame"] + list(AU_COLUMNS) + list(FEX_POSE_COLUMNS)
-            + [f"{a}_{i}" for i in range(N_VERTICES) for a in "xyz"])
+    return (
+        ["video_id", "frame"]
+        + list(AU_COLUMNS)
+        + list(FEX_POSE_COLUMNS)
+        + [f"{a}_{i}" for i in range(N_VERTICES) for a in "xyz"]
+    )
 
 
 def _check_detector(detector: str) -> None:
@@ -114,7 +179,9 @@ def _synth_setup(spec: synth.SynthSpec) -> tuple[np.ndarray, tuple]:
     template = face.canonical_template()
     identity_basis = flatten_axis_major(synth._smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
     latent_basis = flatten_axis_major(synth._smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
-    latent_basis[:, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]] = 0.0
+    latent_basis[
+        :, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]
+    ] = 0.0
     resemblance = synth.identity_resemblance(coef, identity_basis)
     return counts, (coef, intercept, identity_basis, latent_basis, resemblance)
 
@@ -129,7 +196,7 @@ def _runs(rng: np.random.Generator, n: int, target: int, run: tuple[int, int], a
             break
         length = int(min(rng.integers(run[0], run[1] + 1), n, max(target - have, 1)))
         start = int(rng.integers(0, n - length + 1))
-        mask[start:start + length] = True
+        mask[start : start + length] = True
     return mask & allowed
 
 
@@ -148,15 +215,38 @@ def _blendshapes(rng: np.random.Generator, au: np.ndarray) -> np.ndarray:
     m = len(au)
     out = rng.beta(0.5, 6.0, size=(m, len(BLENDSHAPE_COLUMNS)))
     idx = {name: k for k, name in enumerate(BLENDSHAPE_COLUMNS)}
-    follow = {"browInnerUp": "AU01", "browOuterUpLeft": "AU02", "browOuterUpRight": "AU02", "browDownLeft": "AU04",
-              "browDownRight": "AU04", "eyeWideLeft": "AU05", "eyeWideRight": "AU05", "cheekSquintLeft": "AU06",
-              "cheekSquintRight": "AU06", "eyeSquintLeft": "AU07", "eyeSquintRight": "AU07", "noseSneerLeft": "AU09",
-              "noseSneerRight": "AU09", "mouthUpperUpLeft": "AU10", "mouthUpperUpRight": "AU10",
-              "mouthSmileLeft": "AU12", "mouthSmileRight": "AU12", "mouthDimpleLeft": "AU14", "mouthDimpleRight": "AU14",
-              "mouthFrownLeft": "AU15", "mouthFrownRight": "AU15", "mouthShrugLower": "AU17",
-              "mouthStretchLeft": "AU20", "mouthStretchRight": "AU20", "mouthPressLeft": "AU24",
-              "mouthPressRight": "AU24", "jawOpen": "AU26", "mouthRollLower": "AU28", "eyeBlinkLeft": "AU43",
-              "eyeBlinkRight": "AU43"}
+    follow = {
+        "browInnerUp": "AU01",
+        "browOuterUpLeft": "AU02",
+        "browOuterUpRight": "AU02",
+        "browDownLeft": "AU04",
+        "browDownRight": "AU04",
+        "eyeWideLeft": "AU05",
+        "eyeWideRight": "AU05",
+        "cheekSquintLeft": "AU06",
+        "cheekSquintRight": "AU06",
+        "eyeSquintLeft": "AU07",
+        "eyeSquintRight": "AU07",
+        "noseSneerLeft": "AU09",
+        "noseSneerRight": "AU09",
+        "mouthUpperUpLeft": "AU10",
+        "mouthUpperUpRight": "AU10",
+        "mouthSmileLeft": "AU12",
+        "mouthSmileRight": "AU12",
+        "mouthDimpleLeft": "AU14",
+        "mouthDimpleRight": "AU14",
+        "mouthFrownLeft": "AU15",
+        "mouthFrownRight": "AU15",
+        "mouthShrugLower": "AU17",
+        "mouthStretchLeft": "AU20",
+        "mouthStretchRight": "AU20",
+        "mouthPressLeft": "AU24",
+        "mouthPressRight": "AU24",
+        "jawOpen": "AU26",
+        "mouthRollLower": "AU28",
+        "eyeBlinkLeft": "AU43",
+        "eyeBlinkRight": "AU43",
+    }
     for bs, a in follow.items():
         out[:, idx[bs]] = np.clip(0.8 * au[:, AU_COLUMNS.index(a)] + 0.2 * out[:, idx[bs]], 0.0, 1.0)
     out[:, idx["_neutral"]] = np.clip(1.0 - out[:, 1:].max(axis=1), 0.0, 1.0)
@@ -178,8 +268,14 @@ def _emotions(rng: np.random.Generator, au: np.ndarray) -> np.ndarray:
     return p / p.sum(axis=1, keepdims=True)
 
 
-def _faces(rng: np.random.Generator, mesh: np.ndarray, au: np.ndarray, pose_fex: np.ndarray, score: tuple[float, float],
-           identity: np.ndarray | None) -> dict[str, np.ndarray]:
+def _faces(
+    rng: np.random.Generator,
+    mesh: np.ndarray,
+    au: np.ndarray,
+    pose_fex: np.ndarray,
+    score: tuple[float, float],
+    identity: np.ndarray | None,
+) -> dict[str, np.ndarray]:
     """Every measurement of ``m`` detected faces (meshes in pixels): 2-D blocks keyed by group."""
     m = len(mesh)
     lo, hi = mesh[:, :, :2].min(axis=1), mesh[:, :, :2].max(axis=1)
@@ -188,17 +284,29 @@ def _faces(rng: np.random.Generator, mesh: np.ndarray, au: np.ndarray, pose_fex:
     iod_px = np.linalg.norm(mesh[:, 33, :2] - mesh[:, 263, :2], axis=1)
     cm_per_px = 9.0 / np.maximum(iod_px, 1e-6)  # outer eye corners ~9 cm apart
     centre = mesh.mean(axis=1)
-    position = np.column_stack([(centre[:, 0] - FRAME_WIDTH / 2) * cm_per_px, (centre[:, 1] - FRAME_HEIGHT / 2) * cm_per_px,
-                                -FRAME_WIDTH * cm_per_px])
+    position = np.column_stack(
+        [
+            (centre[:, 0] - FRAME_WIDTH / 2) * cm_per_px,
+            (centre[:, 1] - FRAME_HEIGHT / 2) * cm_per_px,
+            -FRAME_WIDTH * cm_per_px,
+        ]
+    )
     gaze = rng.normal(0.0, 0.12, size=(m, 2))
     emotions = _emotions(rng, au)
     out = {
-        "rect": rect, "score": rng.uniform(*score, size=(m, 1)),
+        "rect": rect,
+        "score": rng.uniform(*score, size=(m, 1)),
         "pose": np.column_stack([pose_fex, position]),
-        "au": np.clip(au, 0.0, 1.0), "blend": _blendshapes(rng, au), "emotion": emotions,
+        "au": np.clip(au, 0.0, 1.0),
+        "blend": _blendshapes(rng, au),
+        "emotion": emotions,
         "gaze": np.column_stack([gaze, np.hypot(gaze[:, 0], gaze[:, 1])]),
-        "affect": np.column_stack([emotions[:, 3] - emotions[:, [0, 1, 2, 4]].sum(1),
-                                   np.clip(0.3 + emotions[:, [0, 2, 5]].sum(1) + rng.normal(0, 0.05, m), -1, 1)]),
+        "affect": np.column_stack(
+            [
+                emotions[:, 3] - emotions[:, [0, 1, 2, 4]].sum(1),
+                np.clip(0.3 + emotions[:, [0, 2, 5]].sum(1) + rng.normal(0, 0.05, m), -1, 1),
+            ]
+        ),
         "mesh": mesh,
     }
     if identity is not None:
@@ -207,8 +315,16 @@ def _faces(rng: np.random.Generator, mesh: np.ndarray, au: np.ndarray, pose_fex:
     return out
 
 
-def _video_rows(spec: synth.SynthSpec, video: int, n: int, gen_args: tuple, detector: str, no_face_rate: float,
-                extra_face_rate: float, seed: int) -> dict:
+def _video_rows(
+    spec: synth.SynthSpec,
+    video: int,
+    n: int,
+    gen_args: tuple,
+    detector: str,
+    no_face_rate: float,
+    extra_face_rate: float,
+    seed: int,
+) -> dict:
     """One video's rows: synth's frames, no-face rows, background faces; plus the clean frames."""
     g = synth.generate_video(spec, video, n, *gen_args)
     plan_rng = np.random.default_rng([seed, spec.seed, video, 1])
@@ -217,8 +333,9 @@ def _video_rows(spec: synth.SynthSpec, video: int, n: int, gen_args: tuple, dete
 
     order = [POSE_COLUMNS.index(p) for p in FEX_POSE_COLUMNS]
     v2 = detector == "v2"
-    main = _faces(rng, g["mesh"], g["au"], g["pose"][:, order], (0.9, 1.0),
-                  _unit(rng.standard_normal(512)) if v2 else None)
+    main = _faces(
+        rng, g["mesh"], g["au"], g["pose"][:, order], (0.9, 1.0), _unit(rng.standard_normal(512)) if v2 else None
+    )
     # the background person: the main mesh scaled 0.4 about its centre, ~150 px to the side with more room
     ef = np.flatnonzero(extra)
     centre = g["mesh"][ef].mean(axis=1, keepdims=True)
@@ -238,7 +355,9 @@ def _video_rows(spec: synth.SynthSpec, video: int, n: int, gen_args: tuple, dete
     main_rows, extra_rows = kind == 0, kind == 1
     blocks = {}
     for key, values in main.items():
-        block = np.empty((len(row_frame),) + values.shape[1:], dtype=values.dtype if key in ("mesh", "identity") else np.float64)
+        block = np.empty(
+            (len(row_frame),) + values.shape[1:], dtype=values.dtype if key in ("mesh", "identity") else np.float64
+        )
         block[main_rows] = values
         block[extra_rows] = other[key]
         blocks[key] = block
@@ -253,11 +372,21 @@ def _video_rows(spec: synth.SynthSpec, video: int, n: int, gen_args: tuple, dete
     seconds = row_frame // FPS
     keep = ~no_face
     return {
-        "blocks": blocks, "frame": row_frame, "input": np.full(len(row_frame), f"videos/{vid}.mp4", dtype=object),
-        "approx_time": np.array([f"{s // 60:02d}:{s % 60:02d}" for s in seconds], dtype=object), "Identity": identity,
-        "clean": {"video_id": np.full(int(keep.sum()), vid, dtype=object), "frame": np.flatnonzero(keep),
-                  "au": g["au"][keep], "pose": g["pose"][keep][:, order], "mesh": g["mesh"][keep].astype(np.float32)},
-        "n_frames": n, "n_no_face": int(no_face.sum()), "n_extra": int(extra.sum()),
+        "blocks": blocks,
+        "frame": row_frame,
+        "input": np.full(len(row_frame), f"videos/{vid}.mp4", dtype=object),
+        "approx_time": np.array([f"{s // 60:02d}:{s % 60:02d}" for s in seconds], dtype=object),
+        "Identity": identity,
+        "clean": {
+            "video_id": np.full(int(keep.sum()), vid, dtype=object),
+            "frame": np.flatnonzero(keep),
+            "au": g["au"][keep],
+            "pose": g["pose"][keep][:, order],
+            "mesh": g["mesh"][keep].astype(np.float32),
+        },
+        "n_frames": n,
+        "n_no_face": int(no_face.sum()),
+        "n_extra": int(extra.sum()),
     }
 
 
@@ -267,6 +396,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 def _frame_df(parts: list[dict], detector: str, normalized: bool, frame_size: bool, with_mesh: bool) -> pd.DataFrame:
     """py-feat's DataFrame for some videos' rows (``with_mesh=False``: without the 478-vertex mesh)."""
+
     def cat(key):
         return np.concatenate([p["blocks"][key] for p in parts])
 
@@ -296,8 +426,10 @@ def _frame_df(parts: list[dict], detector: str, normalized: bool, frame_size: bo
         add(mesh[:, list(LANDMARK68_VERTICES), :2].transpose(0, 2, 1).reshape(r, -1), landmark68_columns())
         add(cat("pose"), FEX_POSE_COLUMNS + HEAD_POSITION_COLUMNS)
         add(cat("au"), AU_COLUMNS)
-        mp_to_v2 = [EMOTION_COLUMNS_MP.index(e) for e in ("neutral", "happiness", "sadness", "surprise", "fear",
-                                                          "disgust", "anger")]
+        mp_to_v2 = [
+            EMOTION_COLUMNS_MP.index(e)
+            for e in ("neutral", "happiness", "sadness", "surprise", "fear", "disgust", "anger")
+        ]
         add(cat("emotion")[:, mp_to_v2], EMOTION_COLUMNS_V2)
         add(cat("affect"), ["valence", "arousal"])
         add(cat("gaze"), GAZE_COLUMNS)
@@ -307,10 +439,14 @@ def _frame_df(parts: list[dict], detector: str, normalized: bool, frame_size: bo
         add(cat("blend"), BLENDSHAPE_COLUMNS)
     if frame_size:
         add(np.tile([FRAME_HEIGHT, FRAME_WIDTH], (r, 1)), FRAME_SIZE_COLUMNS)
-    tail = pd.DataFrame({"input": np.concatenate([p["input"] for p in parts]),
-                         "frame": np.concatenate([p["frame"] for p in parts]).astype(np.int64),
-                         "approx_time": np.concatenate([p["approx_time"] for p in parts]),
-                         "Identity": np.concatenate([p["Identity"] for p in parts])})
+    tail = pd.DataFrame(
+        {
+            "input": np.concatenate([p["input"] for p in parts]),
+            "frame": np.concatenate([p["frame"] for p in parts]).astype(np.int64),
+            "approx_time": np.concatenate([p["approx_time"] for p in parts]),
+            "Identity": np.concatenate([p["Identity"] for p in parts]),
+        }
+    )
     frames.append(tail)
     return pd.concat(frames, axis=1)
 
@@ -323,7 +459,7 @@ def _clean_table(parts: list[dict]) -> pa.Table:
     for j, name in enumerate(FEX_POSE_COLUMNS):
         data[name] = pa.array(c["pose"][:, j])
     flat = c["mesh"].reshape(len(c["mesh"]), -1)
-    for k, name in enumerate(clean_columns()[2 + len(AU_COLUMNS) + 3:]):
+    for k, name in enumerate(clean_columns()[2 + len(AU_COLUMNS) + 3 :]):
         data[name] = pa.array(flat[:, k])
     return pa.table(data)
 
@@ -339,9 +475,14 @@ class _ParquetSink:
     def write(self, table: pa.Table | pd.DataFrame) -> None:
         if isinstance(table, pd.DataFrame):
             if self.schema is None:
-                fields = [pa.field(c, pa.string()) if c in ("input", "approx_time", "Identity") else None for c in table.columns]
+                fields = [
+                    pa.field(c, pa.string()) if c in ("input", "approx_time", "Identity") else None
+                    for c in table.columns
+                ]
                 inferred = pa.Schema.from_pandas(table, preserve_index=False)
-                self.schema = pa.schema([f or inferred.field(i) for i, f in enumerate(fields)], metadata=inferred.metadata)
+                self.schema = pa.schema(
+                    [f or inferred.field(i) for i, f in enumerate(fields)], metadata=inferred.metadata
+                )
             table = pa.Table.from_pandas(table, schema=self.schema, preserve_index=False)
         if self.writer is None:
             self.schema = self.schema or table.schema
@@ -357,10 +498,20 @@ class _ParquetSink:
             self._ctx.__exit__(type(error), error, error.__traceback__)
 
 
-def write_pyfeat_tables(out_dir: str | Path, spec: synth.SynthSpec, *, detector: str = "mp", fmt: str = "csv",
-                        no_face_rate: float = 0.03, extra_face_rate: float = 0.05, normalized: bool = False,
-                        frame_size: bool = True, clean_dir: str | Path | None = None,
-                        videos_per_file: int | None = None, seed: int = 0) -> dict:
+def write_pyfeat_tables(
+    out_dir: str | Path,
+    spec: synth.SynthSpec,
+    *,
+    detector: str = "mp",
+    fmt: str = "csv",
+    no_face_rate: float = 0.03,
+    extra_face_rate: float = 0.05,
+    normalized: bool = False,
+    frame_size: bool = True,
+    clean_dir: str | Path | None = None,
+    videos_per_file: int | None = None,
+    seed: int = 0,
+) -> dict:
     """Write synth's videos as py-feat 2.1.5 exports them (``clip_0000.csv`` ...); optionally the hand-cleaned tables.
 
     Parameters
@@ -385,7 +536,9 @@ def write_pyfeat_tables(out_dir: str | Path, spec: synth.SynthSpec, *, detector:
     if fmt == "split" and detector != "mp":
         raise ValueError("fmt='split' (parquet + mesh .npy) is written for detector='mp' only")
     if not (0.0 <= no_face_rate < 1.0 and 0.0 <= extra_face_rate <= 1.0):
-        raise ValueError(f"need 0 <= no_face_rate < 1 and 0 <= extra_face_rate <= 1, got {no_face_rate}, {extra_face_rate}")
+        raise ValueError(
+            f"need 0 <= no_face_rate < 1 and 0 <= extra_face_rate <= 1, got {no_face_rate}, {extra_face_rate}"
+        )
     if videos_per_file is not None and videos_per_file < 1:
         raise ValueError(f"videos_per_file={videos_per_file}: use None or >= 1")
     out_dir = Path(out_dir)
@@ -398,23 +551,59 @@ def write_pyfeat_tables(out_dir: str | Path, spec: synth.SynthSpec, *, detector:
 
     counts, gen_args = _synth_setup(spec)
     per_file = videos_per_file or spec.n_videos
-    summary = {"files": [], "clean_files": [], "n_rows": 0, "n_frames": 0, "n_face_frames": 0, "n_no_face": 0,
-               "n_extra_faces": 0, "n_videos": spec.n_videos}
+    summary = {
+        "files": [],
+        "clean_files": [],
+        "n_rows": 0,
+        "n_frames": 0,
+        "n_face_frames": 0,
+        "n_no_face": 0,
+        "n_extra_faces": 0,
+        "n_videos": spec.n_videos,
+    }
     for file_no, first in enumerate(range(0, spec.n_videos, per_file)):
         videos = range(first, min(first + per_file, spec.n_videos))
         ext = ".csv" if fmt == "csv" else ".parquet"
         path = out_dir / f"clip_{file_no:04d}{ext}"
         clean_path = None if clean_dir is None else clean_dir / f"clip_{file_no:04d}.parquet"
-        _write_one(path, clean_path, videos, counts, spec, gen_args, detector, fmt, no_face_rate, extra_face_rate,
-                   normalized, frame_size, seed, summary)
+        _write_one(
+            path,
+            clean_path,
+            videos,
+            counts,
+            spec,
+            gen_args,
+            detector,
+            fmt,
+            no_face_rate,
+            extra_face_rate,
+            normalized,
+            frame_size,
+            seed,
+            summary,
+        )
         summary["files"].append(str(path))
         if clean_path is not None:
             summary["clean_files"].append(str(clean_path))
     return summary
 
 
-def _write_one(path: Path, clean_path: Path | None, videos: range, counts: np.ndarray, spec, gen_args, detector, fmt,
-               no_face_rate, extra_face_rate, normalized, frame_size, seed, summary) -> None:
+def _write_one(
+    path: Path,
+    clean_path: Path | None,
+    videos: range,
+    counts: np.ndarray,
+    spec,
+    gen_args,
+    detector,
+    fmt,
+    no_face_rate,
+    extra_face_rate,
+    normalized,
+    frame_size,
+    seed,
+    summary,
+) -> None:
     """One output file (and its clean twin), built and written a chunk of whole videos at a time."""
     chunks: list[list[int]] = [[]]
     rows = 0
@@ -433,8 +622,10 @@ def _write_one(path: Path, clean_path: Path | None, videos: range, counts: np.nd
     error = None
     try:
         for k, chunk in enumerate(chunks):
-            parts = [_video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed)
-                     for v in chunk]
+            parts = [
+                _video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed)
+                for v in chunk
+            ]
             df = _frame_df(parts, detector, normalized, frame_size, with_mesh=fmt != "split")
             if fmt == "csv":
                 df.to_csv(csv_tmp, index=False, mode="w" if k == 0 else "a", header=k == 0)
@@ -479,7 +670,7 @@ def _join_npy(path: Path, parts: list[Path]) -> None:
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(n, N_VERTICES, 3))
         start = 0
         for p, s in zip(parts, shapes):
-            out[start:start + s[0]] = np.load(p)
+            out[start : start + s[0]] = np.load(p)
             start += s[0]
         out.flush()
         del out

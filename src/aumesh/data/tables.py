@@ -15,16 +15,17 @@ from __future__ import annotations
 import difflib
 import functools
 import os
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from aumesh.data import contract
+from aumesh.data import contract, pyfeat
+from aumesh.data.pyfeat import video_stem
 from aumesh.data.schema import (
     AU_COLUMNS,
     FRAME_COLUMN,
@@ -34,8 +35,6 @@ from aumesh.data.schema import (
     POSE_COLUMNS,
     VIDEO_COLUMN,
 )
-from aumesh.data import pyfeat
-from aumesh.data.pyfeat import video_stem
 from aumesh.utils.errors import TableError, corrupt_parquet
 from aumesh.utils.io import NpyRowFile, check_npy
 
@@ -62,7 +61,9 @@ def _suggest(name: str, candidates: Sequence[str]) -> str:
     return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
 
 
-def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str, coerce_numeric: bool = False) -> list[FrameTable]:
+def discover(
+    data_dir: str | Path, pattern: str, mesh_npy_pattern: str, coerce_numeric: bool = False
+) -> list[FrameTable]:
     """Find and schema-check every frame table under ``data_dir``.
 
     Raises
@@ -85,7 +86,9 @@ def discover(data_dir: str | Path, pattern: str, mesh_npy_pattern: str, coerce_n
         )
     tables = [_check_schema(p, mesh_npy_pattern, coerce_numeric) for p in paths]
     if sum(t.n_rows for t in tables) == 0:
-        raise TableError(f"{data_dir}/{pattern}: every table has 0 rows (empty input). Fix: export frames with py-feat first.")
+        raise TableError(
+            f"{data_dir}/{pattern}: every table has 0 rows (empty input). Fix: export frames with py-feat first."
+        )
     return tables
 
 
@@ -93,9 +96,11 @@ def check_tables(paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_nume
     """Schema-check the tables the ingest stage lists (its manifest: cleaned tables and clean ones read in place)."""
     tables = [_check_schema(Path(p), mesh_npy_pattern, coerce_numeric) for p in paths]
     if sum(t.n_rows for t in tables) == 0:
-        raise TableError(f"{', '.join(str(p) for p in paths[:3])}: no frame with a face: every table has 0 rows or only "
-                         f"py-feat's no-face rows (empty input). Fix: export frames with py-feat first, or check the videos "
-                         f"and py-feat's face_detection_threshold.")
+        raise TableError(
+            f"{', '.join(str(p) for p in paths[:3])}: no frame with a face: every table has 0 rows or only "
+            f"py-feat's no-face rows (empty input). Fix: export frames with py-feat first, or check the videos "
+            f"and py-feat's face_detection_threshold."
+        )
     return tables
 
 
@@ -131,7 +136,9 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
     if has_mesh:
         pyfeat.mesh_point_columns(names, str(path))  # 478 vertices on every axis, or the error naming the fix
         for field in schema:
-            if _MESH_COLUMN.match(field.name) and not (pa.types.is_floating(field.type) or pa.types.is_integer(field.type)):
+            if _MESH_COLUMN.match(field.name) and not (
+                pa.types.is_floating(field.type) or pa.types.is_integer(field.type)
+            ):
                 values = _read_columns(path, [field.name])[field.name].to_numpy(zero_copy_only=False)
                 contract.numeric_values(values, path, field.name)  # a value that is not a number: always an error
                 if not coerce_numeric:
@@ -146,7 +153,9 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
             )
         from aumesh.data.ingest import DATA_NPY_FIX
 
-        check_npy(mesh_npy, DATA_NPY_FIX)  # numpy's own error for a short file is "mmap length is greater than file size"
+        check_npy(
+            mesh_npy, DATA_NPY_FIX
+        )  # numpy's own error for a short file is "mmap length is greater than file size"
         arr = np.load(mesh_npy, mmap_mode="r")
         if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[1] != N_VERTICES:
             raise TableError(
@@ -160,10 +169,17 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
         if arr.dtype.kind != "f":
             raise TableError(f"{mesh_npy}: dtype {arr.dtype}; need float16, float32 or float64.")
         if not arr.flags.c_contiguous:  # the passes read rows with plain file I/O
-            raise TableError(f"{mesh_npy}: saved in Fortran order (a transposed array). "
-                             f"Fix: np.save(path, np.ascontiguousarray(landmarks)).")
-    return FrameTable(path=path, n_rows=n_rows, mesh_npy=mesh_npy, video_from_input=video_from_input,
-                      text_columns=frozenset(text_columns))
+            raise TableError(
+                f"{mesh_npy}: saved in Fortran order (a transposed array). "
+                f"Fix: np.save(path, np.ascontiguousarray(landmarks))."
+            )
+    return FrameTable(
+        path=path,
+        n_rows=n_rows,
+        mesh_npy=mesh_npy,
+        video_from_input=video_from_input,
+        text_columns=frozenset(text_columns),
+    )
 
 
 #: Parsed parquet footers a process keeps (the most recently used). Partitions are consecutive row groups of the
@@ -202,18 +218,27 @@ def _read_columns(path: Path, columns: list[str]) -> pa.Table:
     try:
         return pq.read_table(path, columns=columns, use_threads=False)  # as _batches
     except (pa.ArrowException, OSError) as err:
-        raise corrupt_parquet(path, err, f" (reading {columns[0]}" + (f" and {len(columns) - 1} more columns)" if len(columns) > 1 else ")")) from None
+        raise corrupt_parquet(
+            path,
+            err,
+            f" (reading {columns[0]}" + (f" and {len(columns) - 1} more columns)" if len(columns) > 1 else ")"),
+        ) from None
 
 
-def _batches(table: FrameTable, chunk_rows: int, columns: list[str],
-             row_groups: Sequence[int] | None = None) -> Iterator[pa.RecordBatch]:
+def _batches(
+    table: FrameTable, chunk_rows: int, columns: list[str], row_groups: Sequence[int] | None = None
+) -> Iterator[pa.RecordBatch]:
     """Parquet row batches of ``columns`` (of ``row_groups`` only, if given); a page that cannot be decoded is a
     corrupt-file error."""
     try:
         # one thread: the partitions already run on every core; Arrow's own pool on top of them cost 1 CPU s and
         # 100k context switches in prepare at 344k frames (0.5 s of wall time)
-        for batch in _parquet(table.path).iter_batches(batch_size=chunk_rows, columns=columns, use_threads=False,
-                                                              row_groups=None if row_groups is None else list(row_groups)):
+        for batch in _parquet(table.path).iter_batches(
+            batch_size=chunk_rows,
+            columns=columns,
+            use_threads=False,
+            row_groups=None if row_groups is None else list(row_groups),
+        ):
             yield batch
     except (pa.ArrowException, OSError) as err:
         raise corrupt_parquet(table.path, err, " (reading the mesh columns)") from None
@@ -291,7 +316,9 @@ def partitions(tables: Sequence[FrameTable], partition_rows: int) -> list[tuple[
     return out
 
 
-def read_metadata(table: FrameTable, coerce_numeric: bool = False, row_groups: Sequence[int] | None = None) -> pd.DataFrame:
+def read_metadata(
+    table: FrameTable, coerce_numeric: bool = False, row_groups: Sequence[int] | None = None
+) -> pd.DataFrame:
     """``video_id``, ``frame``, the 20 AUs and pose (model order Pitch, Yaw, Roll) of every row, validated.
 
     ``row_groups``: only these consecutive parquet row groups (default: the whole table); errors still give
@@ -337,12 +364,16 @@ def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None) -> pd.Dat
         columns = _read_columns(table.path, cols)
     else:
         try:
-            columns = _parquet(table.path).read_row_groups(list(row_groups), columns=cols, use_threads=False)  # as _batches
+            columns = _parquet(table.path).read_row_groups(
+                list(row_groups), columns=cols, use_threads=False
+            )  # as _batches
         except (pa.ArrowException, OSError) as err:
             raise corrupt_parquet(table.path, err, " (reading the metadata columns)") from None
     df = columns.to_pandas(use_threads=False)  # as the reads: the partitions already run on every core
     if table.video_from_input:
-        codes, paths = pd.factorize(df.pop(INPUT_PATH_COLUMN), use_na_sentinel=False)  # one Path per distinct video, not per frame
+        codes, paths = pd.factorize(
+            df.pop(INPUT_PATH_COLUMN), use_na_sentinel=False
+        )  # one Path per distinct video, not per frame
         df[VIDEO_COLUMN] = np.array([video_stem(str(p)) for p in paths], dtype=object)[codes]
     df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
     return df
@@ -377,8 +408,9 @@ def _row_range(table: FrameTable, row_groups: Sequence[int] | None) -> tuple[int
 NPY_READ_ROWS = 1024
 
 
-def _npy_blocks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None,
-                buffers: dict | None = None) -> Iterator[tuple[int, np.ndarray]]:
+def _npy_blocks(
+    table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None, buffers: dict | None = None
+) -> Iterator[tuple[int, np.ndarray]]:
     """``(start, rows)`` of the table's mesh ``.npy``, ``rows`` (m, 478, 3) in the file's dtype, read with ``pread``:
     a memory map would keep every page of the file read so far resident in the process (~70 MiB a py-feat table).
 
@@ -410,8 +442,12 @@ def _all_finite(values: np.ndarray) -> bool:
     return all(np.isfinite(values[lo : lo + _FINITE_BLOCK]).all() for lo in range(0, len(values), _FINITE_BLOCK))
 
 
-def iter_vertices(table: FrameTable, chunk_rows: int, vertex_indices: Sequence[int] | None = None,
-                  row_groups: Sequence[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+def iter_vertices(
+    table: FrameTable,
+    chunk_rows: int,
+    vertex_indices: Sequence[int] | None = None,
+    row_groups: Sequence[int] | None = None,
+) -> Iterator[tuple[int, np.ndarray]]:
     """Stream mesh vertices in bounded chunks (parquet row batches or rows of the .npy).
 
     ``row_groups``: only the rows of these consecutive parquet row groups (default: the whole table).
@@ -467,8 +503,9 @@ class MeshChunk:
         return len(self.vertices) if self.vertices is not None else self.columns.shape[1]
 
 
-def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None,
-                     buffers: dict | None = None) -> Iterator[tuple[int, MeshChunk]]:
+def iter_mesh_chunks(
+    table: FrameTable, chunk_rows: int, row_groups: Sequence[int] | None = None, buffers: dict | None = None
+) -> Iterator[tuple[int, MeshChunk]]:
     """Full meshes chunk by chunk as ``(start, chunk)`` (:class:`MeshChunk`: ``.npy`` rows as stored, or parquet's
     columns ``(1434, m)``, one contiguous row per column: no strided scatter). ``row_groups`` as in
     :func:`iter_vertices`.
@@ -499,7 +536,9 @@ def iter_mesh_chunks(table: FrameTable, chunk_rows: int, row_groups: Sequence[in
             for j, k in enumerate(where):
                 coords[j] = _column(batch, k, columns[j], table, start)
         if not _all_finite(coords):
-            _check_finite_mesh(table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES))
+            _check_finite_mesh(
+                table.path, coords.reshape(3, N_VERTICES, m).transpose(2, 1, 0), start, range(N_VERTICES)
+            )
         yield start, MeshChunk(columns=coords)
         start += m
 

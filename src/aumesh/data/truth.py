@@ -12,9 +12,16 @@ from collections.abc import Mapping
 import numpy as np
 
 from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, flatten_axis_major, unflatten_axis_major
-from aumesh.geometry.face import IRIS_LEFT, IRIS_RIGHT, REGIONS, canonical_template, face_frame, region_side, to_face_frame
+from aumesh.geometry.face import (
+    IRIS_LEFT,
+    IRIS_RIGHT,
+    REGIONS,
+    canonical_template,
+    face_frame,
+    region_side,
+    to_face_frame,
+)
 from aumesh.model.release import release_arrays
-
 
 # --------------------------------------------------------------------------- AU fields
 # Synthetic FACS ground truth. Each AU is a list of components
@@ -46,14 +53,10 @@ AU_FIELD_SPEC: dict[str, list[tuple[str, float, float, float, float, str | None]
     "AU17": [("chin", 0.07, 0.0, -0.02, 0.12, "below_mouth")],
     "AU20": [(f"lip_corner_{s}", -0.01, 0.09, 0.0, 0.10, None) for s in ("left", "right")],
     "AU23": [(f"lip_corner_{s}", 0.0, -0.06, 0.0, 0.08, None) for s in ("left", "right")],
-    "AU24": [("upper_lip", -0.03, 0.0, 0.0, 0.05, "above_mouth"),
-             ("lower_lip", 0.03, 0.0, 0.0, 0.05, "below_mouth")],
-    "AU25": [("upper_lip", 0.015, 0.0, 0.0, 0.05, "above_mouth"),
-             ("lower_lip", -0.06, 0.0, 0.0, 0.07, "below_mouth")],
-    "AU26": [("jaw", -0.15, 0.0, 0.0, 0.30, "below_mouth"),
-             ("lower_lip", -0.05, 0.0, 0.0, 0.08, "below_mouth")],
-    "AU28": [("upper_lip", 0.0, 0.0, 0.06, 0.05, "above_mouth"),
-             ("lower_lip", 0.0, 0.0, 0.06, 0.05, "below_mouth")],
+    "AU24": [("upper_lip", -0.03, 0.0, 0.0, 0.05, "above_mouth"), ("lower_lip", 0.03, 0.0, 0.0, 0.05, "below_mouth")],
+    "AU25": [("upper_lip", 0.015, 0.0, 0.0, 0.05, "above_mouth"), ("lower_lip", -0.06, 0.0, 0.0, 0.07, "below_mouth")],
+    "AU26": [("jaw", -0.15, 0.0, 0.0, 0.30, "below_mouth"), ("lower_lip", -0.05, 0.0, 0.0, 0.08, "below_mouth")],
+    "AU28": [("upper_lip", 0.0, 0.0, 0.06, 0.05, "above_mouth"), ("lower_lip", 0.0, 0.0, 0.06, 0.05, "below_mouth")],
     "AU43": [(f"upper_eyelid_{s}", -0.09, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
 }
 
@@ -137,14 +140,26 @@ def synthetic_release_arrays(template: np.ndarray | None = None) -> dict[str, np
     t = canonical_template() if template is None else np.asarray(template, dtype=np.float64)
     fields = facs_displacement_fields(None if template is None else t)
     anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)
-    reference = {"mean_aligned_mesh": t, "mean_low_au_mesh": t, "reference_anchors": t[anchors], "anchor_indices": anchors}
-    return release_arrays(flatten_axis_major(fields).T, flatten_axis_major(t), list(AU_COLUMNS), len(AU_COLUMNS), reference,
-                          "aumesh synthetic-truth release: coef rows = aumesh.geometry.face.facs_displacement_fields",
-                          {"source": "aumesh.geometry.face.synthetic_release_arrays"})
+    reference = {
+        "mean_aligned_mesh": t,
+        "mean_low_au_mesh": t,
+        "reference_anchors": t[anchors],
+        "anchor_indices": anchors,
+    }
+    return release_arrays(
+        flatten_axis_major(fields).T,
+        flatten_axis_major(t),
+        list(AU_COLUMNS),
+        len(AU_COLUMNS),
+        reference,
+        "aumesh synthetic-truth release: coef rows = aumesh.geometry.face.facs_displacement_fields",
+        {"source": "aumesh.geometry.face.synthetic_release_arrays"},
+    )
 
 
-def au_field_cosines(coef: np.ndarray, feature_columns: list[str], truth: Mapping[str, np.ndarray],
-                     reference_anchors: np.ndarray) -> np.ndarray:
+def au_field_cosines(
+    coef: np.ndarray, feature_columns: list[str], truth: Mapping[str, np.ndarray], reference_anchors: np.ndarray
+) -> np.ndarray:
     """Cosine between each fitted AU field and the true one (``aumesh synth --truth``), per AU.
 
     The truth lives in the generator's canonical frame; it is mapped into the fitted model's aligned frame

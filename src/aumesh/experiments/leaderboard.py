@@ -40,21 +40,23 @@ def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFram
     for i, rid in enumerate(order):
         c = by_id[rid]
         m = c.metrics
-        rows.append({
-            "rank": i + 1 if i < len(ranked) else None,
-            "run_id": rid,
-            "status": c.status,
-            "target": c.params.get("preprocess.target"),
-            "neutral": c.params.get("preprocess.neutral.method"),
-            "features": c.params.get("features.name"),
-            "n_components_requested": c.params.get("model.n_components"),
-            "n_components": int(m["n_components"]) if "n_components" in m else None,
-            "r2_mean": m.get("r2_mean"),
-            "r2_std": m.get("r2_std"),
-            "r2_displacement_mean": m.get("r2_displacement_mean"),
-            "mae_mean": m.get("mae_mean"),
-            "error": (c.error or "")[:90] or None,
-        })
+        rows.append(
+            {
+                "rank": i + 1 if i < len(ranked) else None,
+                "run_id": rid,
+                "status": c.status,
+                "target": c.params.get("preprocess.target"),
+                "neutral": c.params.get("preprocess.neutral.method"),
+                "features": c.params.get("features.name"),
+                "n_components_requested": c.params.get("model.n_components"),
+                "n_components": int(m["n_components"]) if "n_components" in m else None,
+                "r2_mean": m.get("r2_mean"),
+                "r2_std": m.get("r2_std"),
+                "r2_displacement_mean": m.get("r2_displacement_mean"),
+                "mae_mean": m.get("mae_mean"),
+                "error": (c.error or "")[:90] or None,
+            }
+        )
     table = pd.DataFrame(rows, dtype=object)  # object: missing values stay None, integers stay integers
     table.attrs["metric"] = metric
     return table
@@ -71,24 +73,32 @@ def format_runs_table(table: pd.DataFrame) -> str:
     def num(v, fmt: str = "{:.4f}") -> str:
         return "" if missing(v) else fmt.format(float(v))
 
-    lines = [f"ranked by {table.attrs.get('metric', '?')} ({'desc' if not str(table.attrs.get('metric', '')).startswith('mae') else 'asc'}),"
-             " ties -> fewer components; FAILED runs last",
-             f"{'#':>3} {'run':8} {'status':8} {'target':8} {'neutral':7} {'features':20} "
-             f"{'k':>6} {'r2_mean ± std':>17} {'r2_disp':>8} {'mae':>8}  error"]
+    lines = [
+        f"ranked by {table.attrs.get('metric', '?')} ({'desc' if not str(table.attrs.get('metric', '')).startswith('mae') else 'asc'}),"
+        " ties -> fewer components; FAILED runs last",
+        f"{'#':>3} {'run':8} {'status':8} {'target':8} {'neutral':7} {'features':20} "
+        f"{'k':>6} {'r2_mean ± std':>17} {'r2_disp':>8} {'mae':>8}  error",
+    ]
     for r in table.to_dict(orient="records"):
         k = "" if missing(r["n_components_requested"]) else str(r["n_components_requested"])
         if not missing(r["n_components"]) and str(r["n_components"]) != k:
             k += f"->{r['n_components']}"
         r2 = "" if missing(r["r2_mean"]) else f"{num(r['r2_mean'])} ± {num(r['r2_std'])}"
         rank = "" if missing(r["rank"]) else str(r["rank"])
-        lines.append(f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} {str(r['neutral']):7} "
-                     f"{str(r['features']):20} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
-                     f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}")
+        lines.append(
+            f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} {str(r['neutral']):7} "
+            f"{str(r['features']):20} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
+            f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}"
+        )
     return "\n".join(lines)
 
 
-def sweeps_table(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20, user: str | None = None,
-                 workspace: str | None = None) -> pd.DataFrame:
+def sweeps_table(
+    tracking_cfg: Mapping[str, Any] | None = None,
+    limit: int = 20,
+    user: str | None = None,
+    workspace: str | None = None,
+) -> pd.DataFrame:
     """Past sweeps of the configured experiment, newest first, each with its size and best run (``aumesh runs --sweeps``).
 
     Parameters
@@ -118,21 +128,36 @@ def sweeps_table(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20,
         table = runs_table(children) if len(children) else pd.DataFrame()
         best = table.iloc[0].to_dict() if len(table) and table.iloc[0]["rank"] == 1 else None
         metric = table.attrs.get("metric") if best else None
-        rows.append({
-            "sweep": parent["run_id"],
-            "started": pd.to_datetime(parent["start_time"], unit="ms", utc=True),
-            "user": parent["user"],
-            "workspace": parent["workspace"],
-            "status": parent["status"],
-            "n_runs": len(children),
-            "n_failed": int((children["status"] != "FINISHED").sum()) if len(children) else 0,
-            "metric": metric,
-            "best_value": best.get(metric) if best else None,
-            "best_run": best["run_id"] if best else None,
-            "best": (f"{best['target']} {best['features']} k={best['n_components_requested']}" if best else None),
-            "overrides": parent["tags"].get("aumesh.sweep.overrides", ""),
-        })
-    columns = ["sweep", "started", "user", "workspace", "status", "n_runs", "n_failed", "metric", "best_value", "best_run", "best", "overrides"]
+        rows.append(
+            {
+                "sweep": parent["run_id"],
+                "started": pd.to_datetime(parent["start_time"], unit="ms", utc=True),
+                "user": parent["user"],
+                "workspace": parent["workspace"],
+                "status": parent["status"],
+                "n_runs": len(children),
+                "n_failed": int((children["status"] != "FINISHED").sum()) if len(children) else 0,
+                "metric": metric,
+                "best_value": best.get(metric) if best else None,
+                "best_run": best["run_id"] if best else None,
+                "best": (f"{best['target']} {best['features']} k={best['n_components_requested']}" if best else None),
+                "overrides": parent["tags"].get("aumesh.sweep.overrides", ""),
+            }
+        )
+    columns = [
+        "sweep",
+        "started",
+        "user",
+        "workspace",
+        "status",
+        "n_runs",
+        "n_failed",
+        "metric",
+        "best_value",
+        "best_run",
+        "best",
+        "overrides",
+    ]
     return pd.DataFrame(rows, columns=columns, dtype=object)
 
 
@@ -141,12 +166,20 @@ def format_sweeps_table(table: pd.DataFrame) -> str:
     first 8 digits)."""
     if table.empty:
         return "(no sweeps: run `aumesh sweep -m ...`)"
-    lines = [f"{'sweep (--sweep)':32}  {'started (UTC)':16}  {'user':24} {'workspace':9} {'status':8} {'runs':>4} "
-             f"{'failed':>6}  "
-             f"{'best (run)':35} {'best configuration':38}  swept"]
+    lines = [
+        f"{'sweep (--sweep)':32}  {'started (UTC)':16}  {'user':24} {'workspace':9} {'status':8} {'runs':>4} "
+        f"{'failed':>6}  "
+        f"{'best (run)':35} {'best configuration':38}  swept"
+    ]
     for r in table.to_dict(orient="records"):
-        best = f"{r['metric']}={float(r['best_value']):.4f} ({str(r['best_run'])[:8]})" if r["best_value"] is not None else "-"
-        lines.append(f"{r['sweep']:32}  {r['started']:%Y-%m-%d %H:%M}  {str(r['user'] or '-')[:24]:24} "
-                     f"{str(r['workspace'] or '-')[:8]:9} {r['status']:8} {r['n_runs']:>4} {r['n_failed']:>6}  "
-                     f"{best:35} {r['best'] or '-':38}  {r['overrides']}")
+        best = (
+            f"{r['metric']}={float(r['best_value']):.4f} ({str(r['best_run'])[:8]})"
+            if r["best_value"] is not None
+            else "-"
+        )
+        lines.append(
+            f"{r['sweep']:32}  {r['started']:%Y-%m-%d %H:%M}  {str(r['user'] or '-')[:24]:24} "
+            f"{str(r['workspace'] or '-')[:8]:9} {r['status']:8} {r['n_runs']:>4} {r['n_failed']:>6}  "
+            f"{best:35} {r['best'] or '-':38}  {r['overrides']}"
+        )
     return "\n".join(lines)

@@ -93,7 +93,7 @@ def _absolute_local_uri(uri: str, root: Callable[[], Path]) -> str:
     (``benchmarks/*.py --workdir /elsewhere``).
     """
     if uri.startswith("sqlite:///"):
-        rest = uri[len("sqlite:///"):]
+        rest = uri[len("sqlite:///") :]
         path, sep, query = rest.partition("?")
         if path and not path.startswith("/") and path != ":memory:":
             return f"sqlite:///{(root() / path).resolve().as_posix()}{sep}{query}"
@@ -101,7 +101,7 @@ def _absolute_local_uri(uri: str, root: Callable[[], Path]) -> str:
     if uri.startswith("file://"):
         return uri  # file:///abs or file://host/... : already absolute
     if uri.startswith("file:"):
-        path = uri[len("file:"):]
+        path = uri[len("file:") :]
         p = Path(path)
         return (p if p.is_absolute() else (root() / p).resolve()).as_uri()
     if "://" not in uri and ":" not in uri.split("/")[0]:
@@ -172,9 +172,11 @@ def database_uri(uri: str) -> str:
         return f"postgresql+psycopg2://{rest}"
     from aumesh.utils.errors import ConfigError
 
-    raise ConfigError(f"tracking URI {scheme}://...: no PostgreSQL driver is installed. Fix: "
-                      "`pip install 'aumesh[postgres]'` (psycopg2-binary), or point at the team's tracking server "
-                      "(http://host:5000) instead of its database.")
+    raise ConfigError(
+        f"tracking URI {scheme}://...: no PostgreSQL driver is installed. Fix: "
+        "`pip install 'aumesh[postgres]'` (psycopg2-binary), or point at the team's tracking server "
+        "(http://host:5000) instead of its database."
+    )
 
 
 def store_label(uri: str, root: Path | None = None) -> str:
@@ -267,7 +269,7 @@ def sqlite_path(uri: str) -> Path | None:
     """The database file of a ``sqlite:///`` URI (None for other stores and in-memory databases)."""
     if not uri.startswith("sqlite:///"):
         return None
-    path = uri[len("sqlite:///"):].partition("?")[0]
+    path = uri[len("sqlite:///") :].partition("?")[0]
     return Path(os.path.abspath(path)) if path and path != ":memory:" else None
 
 
@@ -286,8 +288,9 @@ def store_fault(exc: BaseException) -> str | None:
         text = str(exc).lower()
         if any(word in text for word in _BUSY):
             return "busy"
-        if any(word in text for word in _DAMAGED) and ("sqlite" in text or type(exc).__module__ == "sqlite3"
-                                                      or "database" in text):
+        if any(word in text for word in _DAMAGED) and (
+            "sqlite" in text or type(exc).__module__ == "sqlite3" or "database" in text
+        ):
             return "damaged"
         exc = exc.__cause__ or exc.__context__
     return None
@@ -306,7 +309,8 @@ def damaged_error(db: Path, exc: BaseException | str) -> TrackingStoreError:
         f"{name}: the MLflow tracking store is damaged ({exc if isinstance(exc, str) else _cause(exc)}). Fix: move it "
         f"aside (`mv {name} {name}.damaged`) and rerun, which starts a new store (the release and DVC's outputs do not "
         "depend on it; past runs stay in the moved file), or restore it from a backup; `sqlite3 "
-        f"{name}.damaged .recover | sqlite3 {name}` may save what is readable.")
+        f"{name}.damaged .recover | sqlite3 {name}` may save what is readable."
+    )
 
 
 def busy_error(db: Path, waited: float, tries: int, limit: float) -> TrackingStoreError:
@@ -314,7 +318,8 @@ def busy_error(db: Path, waited: float, tries: int, limit: float) -> TrackingSto
     return TrackingStoreError(
         f"{name}: the MLflow tracking store is locked by another process (database is locked) and stayed locked for "
         f"{waited:.0f} s ({tries} tries). Fix: let that process finish or stop it (`fuser {name}` names it), then "
-        f"rerun; tracking.busy_timeout_s={limit:g} sets how long to wait.")
+        f"rerun; tracking.busy_timeout_s={limit:g} sets how long to wait."
+    )
 
 
 def _with_store_retry(call: Callable[[], Any], uri: str, limit: float) -> Any:
@@ -339,7 +344,8 @@ def _with_store_retry(call: Callable[[], Any], uri: str, limit: float) -> Any:
                 raise busy_error(db, waited, tries, limit) from exc
             # one word on the console when the wait starts (it may last tracking.busy_timeout_s), the rest in debug
             (log.warning if tries == 1 else log.debug)(
-                "%s is locked by another process: retrying for up to %g s (tracking.busy_timeout_s)", _named(db), limit)
+                "%s is locked by another process: retrying for up to %g s (tracking.busy_timeout_s)", _named(db), limit
+            )
             time.sleep(delay)
             delay = min(2 * delay, 8.0)
 
@@ -390,8 +396,13 @@ class StoreClient:
 
 # --------------------------------------------------------------------------- a copied or moved workspace
 # MLflow's columns that hold artifact locations (schema of MLflow 3.x; a column missing in another version is skipped)
-_LOCATION_COLUMNS = (("experiments", "artifact_location"), ("runs", "artifact_uri"), ("model_versions", "source"),
-                     ("model_versions", "storage_location"), ("logged_models", "artifact_location"))
+_LOCATION_COLUMNS = (
+    ("experiments", "artifact_location"),
+    ("runs", "artifact_uri"),
+    ("model_versions", "source"),
+    ("model_versions", "storage_location"),
+    ("logged_models", "artifact_location"),
+)
 
 
 def relocate_artifacts(uri: str) -> dict[str, int]:
@@ -445,13 +456,20 @@ def relocate_artifacts(uri: str) -> dict[str, int]:
                 for table, column in _LOCATION_COLUMNS:
                     if table not in tables or column not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
                         continue
-                    n += con.execute(f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
-                                     f"WHERE {column} = ? OR substr({column}, 1, ?) = ?",
-                                     (own, len(old) + 1, old, len(old) + 1, old + "/")).rowcount
+                    n += con.execute(
+                        f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
+                        f"WHERE {column} = ? OR substr({column}, 1, ?) = ?",
+                        (own, len(old) + 1, old, len(old) + 1, old + "/"),
+                    ).rowcount
                 moved[old] = n
     for old, n in moved.items():
-        log.warning("this workspace's MLflow store named the artifacts of %s (a copied or moved workspace): "
-                    "%d locations now point to %s", unquote(urlsplit(old).path), n, own)
+        log.warning(
+            "this workspace's MLflow store named the artifacts of %s (a copied or moved workspace): "
+            "%d locations now point to %s",
+            unquote(urlsplit(old).path),
+            n,
+            own,
+        )
     return moved
 
 
@@ -472,7 +490,7 @@ def _store_init_lock(uri: str) -> Iterator[None]:
         return
     from filelock import FileLock
 
-    db_path = Path(os.path.abspath(uri[len("sqlite:///"):].partition("?")[0]))
+    db_path = Path(os.path.abspath(uri[len("sqlite:///") :].partition("?")[0]))
     db_path.parent.mkdir(parents=True, exist_ok=True)
     with FileLock(f"{db_path}.lock"):
         yield
@@ -495,9 +513,16 @@ RUNS_VIEW_KEY = "aumesh-runs"
 
 def runs_view_state(metric: str = SORT_METRICS[0]) -> dict[str, Any]:
     """The runs table aumesh's link opens: best *metric* first; the columns people sort by (metrics, then params)."""
-    return {"searchFilter": "", "orderByKey": f"metrics.`{metric}`", "orderByAsc": False, "startTime": "ALL",
-            "lifecycleFilter": "Active", "modelVersionFilter": "All Runs", "datasetsFilter": [],
-            "selectedColumns": [f"metrics.`{m}`" for m in SORT_METRICS] + [f"params.`{p}`" for p in SORT_PARAMS]}
+    return {
+        "searchFilter": "",
+        "orderByKey": f"metrics.`{metric}`",
+        "orderByAsc": False,
+        "startTime": "ALL",
+        "lifecycleFilter": "Active",
+        "modelVersionFilter": "All Runs",
+        "datasetsFilter": [],
+        "selectedColumns": [f"metrics.`{m}`" for m in SORT_METRICS] + [f"params.`{p}`" for p in SORT_PARAMS],
+    }
 
 
 def experiment_tags(provenance_tags: Mapping[str, str]) -> dict[str, str]:
@@ -519,25 +544,33 @@ def experiment_tags(provenance_tags: Mapping[str, str]) -> dict[str, str]:
     md5 = provenance_tags.get("aumesh.data.md5")
     if md5:
         files = provenance_tags.get("aumesh.data.nfiles")
-        data = (f"the frame tables tracked by DVC in `data.dvc` (`{provenance_tags.get('aumesh.data.path') or 'data'}/`, "
-                f"md5 `{md5}`{f', {files} files' if files else ''}; each run's own is its dataset input and "
-                "`aumesh.data.md5` tag)")
+        data = (
+            f"the frame tables tracked by DVC in `data.dvc` (`{provenance_tags.get('aumesh.data.path') or 'data'}/`, "
+            f"md5 `{md5}`{f', {files} files' if files else ''}; each run's own is its dataset input and "
+            "`aumesh.data.md5` tag)"
+        )
     else:
         data = "frame tables outside a DVC workspace (no data version recorded)"
     note = (
         "**aumesh**: AU (+ head pose) -> MediaPipe FaceMesh. Each run fits the linear PLS model of the "
-        "\"AU+pose -> MP mesh PLS (v2)\" model card on py-feat's per-frame tables (20 FACS AUs, Pitch/Yaw/Roll -> "
+        '"AU+pose -> MP mesh PLS (v2)" model card on py-feat\'s per-frame tables (20 FACS AUs, Pitch/Yaw/Roll -> '
         "the 478-vertex mesh) and cross-validates it by video (GroupKFold).\n\n"
         f"**Data**: {data}.\n\n"
         "**Runs**: `dvc repro` / `dvc exp run` evaluations (tag `aumesh.stage` = evaluate) and `aumesh sweep` parents "
         "with one child per configuration. Sort by "
-        + ", ".join(f"`{m}`" for m in SORT_METRICS) + " (CV R² within one target, the displacement R² across "
+        + ", ".join(f"`{m}`" for m in SORT_METRICS)
+        + " (CV R² within one target, the displacement R² across "
         "targets, AU-field reliability); the configuration is in the params "
-        + ", ".join(f"`{p}`" for p in SORT_PARAMS) + ".\n\n"
-        "**More**: the aumesh README, sections \"Tracking\" and \"Sweeps and promotion\"."
+        + ", ".join(f"`{p}`" for p in SORT_PARAMS)
+        + ".\n\n"
+        '**More**: the aumesh README, sections "Tracking" and "Sweeps and promotion".'
     )
-    tags = {EXPERIMENT_KIND_TAG: MODEL_TRAINING_KIND, NOTE_TAG: note, "aumesh.project": "aumesh",
-            SHARED_VIEW_PREFIX + RUNS_VIEW_KEY: json.dumps(runs_view_state())}
+    tags = {
+        EXPERIMENT_KIND_TAG: MODEL_TRAINING_KIND,
+        NOTE_TAG: note,
+        "aumesh.project": "aumesh",
+        SHARED_VIEW_PREFIX + RUNS_VIEW_KEY: json.dumps(runs_view_state()),
+    }
     for key in ("aumesh.data.md5", "aumesh.version"):
         if provenance_tags.get(key):
             tags[key] = provenance_tags[key]
@@ -552,12 +585,15 @@ def runs_page_url(server: str, experiment_id: str) -> str:
     ``workflowType`` in the page's address, else from the browser's last choice (GenAI by default), not from the
     experiment's kind tag: this address opens the runs table in any browser.
     """
-    return (f"{server.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
-            f"&viewStateShareKey={RUNS_VIEW_KEY}")
+    return (
+        f"{server.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+        f"&viewStateShareKey={RUNS_VIEW_KEY}"
+    )
 
 
-def describe_experiment(client: MlflowClient, experiment_id: str, tags: Mapping[str, str],
-                        current: Mapping[str, str] | None = None) -> None:
+def describe_experiment(
+    client: MlflowClient, experiment_id: str, tags: Mapping[str, str], current: Mapping[str, str] | None = None
+) -> None:
     """Set the experiment *tags* whose value differs (an experiment made before, or by another tool, gets them too).
 
     *current* is the experiment's tags if already fetched. A user's own description (``mlflow.note.content`` not
@@ -573,8 +609,9 @@ def describe_experiment(client: MlflowClient, experiment_id: str, tags: Mapping[
         client.set_experiment_tag(experiment_id, key, value)
 
 
-def ensure_experiment(client: MlflowClient, name: str, artifact_location: str | None = None,
-                      tags: Mapping[str, str] | None = None) -> str:
+def ensure_experiment(
+    client: MlflowClient, name: str, artifact_location: str | None = None, tags: Mapping[str, str] | None = None
+) -> str:
     """Return the id of experiment *name*, creating it if needed (safe under races).
 
     Parameters
@@ -652,10 +689,7 @@ def prepare_params(params: Mapping[str, Any]) -> dict[str, str]:
         ``{dotted.key: str}`` with values truncated to 6000 characters (ending in
         ``"...[truncated]"``) and invalid key characters replaced by ``_``.
     """
-    return {
-        _clean_key(k): _str_value(v, MAX_PARAM_VALUE_LENGTH)
-        for k, v in provenance.flatten(params).items()
-    }
+    return {_clean_key(k): _str_value(v, MAX_PARAM_VALUE_LENGTH) for k, v in provenance.flatten(params).items()}
 
 
 def _metric_value(value: Any) -> float:

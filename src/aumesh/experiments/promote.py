@@ -39,7 +39,7 @@ import shutil
 import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -63,7 +63,7 @@ MODEL_ARTIFACT_DIR = "model"
 CROSS_TARGET_METRICS = ("r2_displacement_mean", "au_reliability_median", "au_reliability_min", "n_aus_facs_pass")
 _METRIC_WORDS = {
     "r2_displacement_mean": "R² of the AU-driven displacement from each test video's neutral, which depends only "
-                            "on the slope and is the same space and the same information for every target",
+    "on the slope and is the same space and the same information for every target",
     "n_aus_facs_pass": "the number of AUs whose field's direction passes the FACS check (slopes only)",
 }
 _RELIABILITY_WORDS = "the cosine between AU fields fitted on different folds (slopes only, the same for every target)"
@@ -156,15 +156,27 @@ def candidates_from_frame(children: pd.DataFrame) -> list[Candidate]:
 
     out = []
     for row in children.to_dict(orient="records"):
-        params = {k[len("params."):]: v for k, v in row.items() if k.startswith("params.") and isinstance(v, str)}
-        metrics = {k[len("metrics."):]: float(v) for k, v in row.items()
-                   if k.startswith("metrics.") and v is not None and v == v}
+        params = {k[len("params.") :]: v for k, v in row.items() if k.startswith("params.") and isinstance(v, str)}
+        metrics = {
+            k[len("metrics.") :]: float(v)
+            for k, v in row.items()
+            if k.startswith("metrics.") and v is not None and v == v
+        }
         start = row.get("start_time")
-        out.append(Candidate(run_id=row["run_id"], run_name=row.get("run_name"), status=row["status"],
-                             params=params, metrics=metrics,
-                             start_time=float(start.timestamp()) if hasattr(start, "timestamp") else 0.0,
-                             error=text(row, "error"), user=text(row, "user"), workspace=text(row, "workspace"),
-                             parent_run_id=text(row, "parent_run_id")))
+        out.append(
+            Candidate(
+                run_id=row["run_id"],
+                run_name=row.get("run_name"),
+                status=row["status"],
+                params=params,
+                metrics=metrics,
+                start_time=float(start.timestamp()) if hasattr(start, "timestamp") else 0.0,
+                error=text(row, "error"),
+                user=text(row, "user"),
+                workspace=text(row, "workspace"),
+                parent_run_id=text(row, "parent_run_id"),
+            )
+        )
     return out
 
 
@@ -193,8 +205,13 @@ def rank(candidates: Sequence[Candidate], metric: str, tie_tolerance: float = TI
     return ranked
 
 
-def choose(candidates: Sequence[Candidate], metric: str | None = None, target: str | None = None,
-           tie_tolerance: float = TIE_TOLERANCE, scope: str = "of the sweep") -> Choice:
+def choose(
+    candidates: Sequence[Candidate],
+    metric: str | None = None,
+    target: str | None = None,
+    tie_tolerance: float = TIE_TOLERANCE,
+    scope: str = "of the sweep",
+) -> Choice:
     """Pick the run to promote (see the module docstring for the criterion).
 
     Parameters
@@ -221,9 +238,11 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
     """
     pool = [c for c in candidates if c.status == "FINISHED" and (target is None or c.target == target)]
     if not pool:
-        raise ValueError(f"no FINISHED run among {len(candidates)} children"
-                         + (f" with preprocess.target={target}" if target else "")
-                         + "; nothing to promote (see `aumesh runs` for their errors).")
+        raise ValueError(
+            f"no FINISHED run among {len(candidates)} children"
+            + (f" with preprocess.target={target}" if target else "")
+            + "; nothing to promote (see `aumesh runs` for their errors)."
+        )
     targets = tuple(sorted({str(c.target) for c in pool}))
     chosen_metric = metric or default_metric(targets)
     if len(targets) > 1 and not cross_target(chosen_metric):
@@ -231,33 +250,50 @@ def choose(candidates: Sequence[Candidate], metric: str | None = None, target: s
             f"--metric {chosen_metric}: candidates differ in preprocess.target ({', '.join(targets)}) and "
             f"{chosen_metric} is measured in each run's own target space, so the values are not comparable. "
             f"Fix: use --metric {' or '.join(CROSS_TARGET_METRICS)} (the same for every target) or restrict with "
-            f"--target {'|'.join(_TARGET_SPACE)}.")
+            f"--target {'|'.join(_TARGET_SPACE)}."
+        )
     ranked = rank(pool, chosen_metric, tie_tolerance)
     if not ranked:
-        raise ValueError(f"metric {chosen_metric!r} is logged by none of the {len(pool)} finished runs; "
-                         f"available: {', '.join(sorted(set().union(*(c.metrics for c in pool))))}")
+        raise ValueError(
+            f"metric {chosen_metric!r} is logged by none of the {len(pool)} finished runs; "
+            f"available: {', '.join(sorted(set().union(*(c.metrics for c in pool))))}"
+        )
     best = ranked[0]
     direction = "highest" if higher_is_better(chosen_metric) else "lowest"
     n_splits = best.params.get("cv.n_splits", "?")
-    criterion = (f"{direction} {chosen_metric} ({n_splits}-fold GroupKFold CV, mean over folds) among {len(ranked)} "
-                 f"FINISHED runs {scope}; values within {tie_tolerance:g} tie and ties go to fewer components")
+    criterion = (
+        f"{direction} {chosen_metric} ({n_splits}-fold GroupKFold CV, mean over folds) among {len(ranked)} "
+        f"FINISHED runs {scope}; values within {tie_tolerance:g} tie and ties go to fewer components"
+    )
     counts = {t: sum(1 for c in ranked if str(c.target) == t) for t in targets}
     if len(targets) == 1:
         space = _TARGET_SPACE.get(targets[0], targets[0])
-        compared = (f"all {len(ranked)} candidates have preprocess.target={targets[0]}: {chosen_metric} is in "
-                    f"{space}, the same space for every candidate")
+        compared = (
+            f"all {len(ranked)} candidates have preprocess.target={targets[0]}: {chosen_metric} is in "
+            f"{space}, the same space for every candidate"
+        )
         if cross_target(chosen_metric):
             compared += f" ({_metric_words(chosen_metric)})"
     else:
-        compared = (f"candidates differ in preprocess.target ({', '.join(f'{t}: {n}' for t, n in counts.items())}); "
-                    f"their r2_mean are in different spaces ({' vs '.join(_TARGET_SPACE.get(t, t) for t in targets)}) "
-                    f"and were not compared. All were scored on {chosen_metric}: {_metric_words(chosen_metric)}")
+        compared = (
+            f"candidates differ in preprocess.target ({', '.join(f'{t}: {n}' for t, n in counts.items())}); "
+            f"their r2_mean are in different spaces ({' vs '.join(_TARGET_SPACE.get(t, t) for t in targets)}) "
+            f"and were not compared. All were scored on {chosen_metric}: {_metric_words(chosen_metric)}"
+        )
     if target is not None:
         compared += f"; restricted to preprocess.target={target}"
     excluded = len(candidates) - len(ranked)
-    return Choice(run_id=best.run_id, metric=chosen_metric, value=float(best.metrics[chosen_metric]),
-                  criterion=criterion, compared=compared, targets=targets, n_candidates=len(ranked),
-                  n_excluded=excluded, ranking=tuple((c.run_id, float(c.metrics[chosen_metric])) for c in ranked))
+    return Choice(
+        run_id=best.run_id,
+        metric=chosen_metric,
+        value=float(best.metrics[chosen_metric]),
+        criterion=criterion,
+        compared=compared,
+        targets=targets,
+        n_candidates=len(ranked),
+        n_excluded=excluded,
+        ranking=tuple((c.run_id, float(c.metrics[chosen_metric])) for c in ranked),
+    )
 
 
 # ------------------------------------------------------------------ configuration
@@ -315,11 +351,14 @@ def promoted_values(run_params: Mapping[str, str], base: Mapping[str, Any]) -> d
         raise ValueError(
             f"the run used paths.data_dir={run_params['paths.data_dir']} but conf/ has {flat.get('paths.data_dir')}: "
             "promoting it would not rebuild that model from the workspace's data. Fix: promote a sweep run on the "
-            "workspace's data.")
+            "workspace's data."
+        )
     unknown = sorted(k for k in run_params if _promotable(k) and k not in flat)
     if unknown:
-        raise ValueError(f"run params {', '.join(unknown)} are not keys of conf/ (configuration changed since the "
-                         "sweep?); re-run the sweep with the current conf/.")
+        raise ValueError(
+            f"run params {', '.join(unknown)} are not keys of conf/ (configuration changed since the "
+            "sweep?); re-run the sweep with the current conf/."
+        )
     values: dict[str, Any] = {}
     for key, text in sorted(run_params.items()):
         if not _promotable(key):
@@ -347,10 +386,12 @@ def experiment_yaml(values: Mapping[str, Any], provenance_lines: Sequence[str] =
         for part in parts[:-1]:
             node = node.setdefault(part, {})
         node[parts[-1]] = list(value) if isinstance(value, tuple) else value
-    header = ["# @package _global_",
-              "# Written by `aumesh promote`: the promoted sweep run's configuration. conf/config.yaml's",
-              f"# defaults list loads it (`{DEFAULTS_ENTRY}`) after the groups, so these values win.",
-              *[f"# {line}" for line in provenance_lines]]
+    header = [
+        "# @package _global_",
+        "# Written by `aumesh promote`: the promoted sweep run's configuration. conf/config.yaml's",
+        f"# defaults list loads it (`{DEFAULTS_ENTRY}`) after the groups, so these values win.",
+        *[f"# {line}" for line in provenance_lines],
+    ]
     return "\n".join(header) + "\n" + yaml.safe_dump(nested, sort_keys=False)
 
 
@@ -369,8 +410,10 @@ def check_defaults_entry(conf_dir: Path) -> None:
     keys = [k for k, _ in names]
     entry = f"optional {EXPERIMENT_GROUP}"
     if (entry, EXPERIMENT_NAME) not in names:
-        raise ValueError(f"{path}: the defaults list has no `- {DEFAULTS_ENTRY}`. Fix: add it after the config "
-                         "groups (before `_self_`) so `aumesh promote`'s conf/experiment/promoted.yaml is loaded.")
+        raise ValueError(
+            f"{path}: the defaults list has no `- {DEFAULTS_ENTRY}`. Fix: add it after the config "
+            "groups (before `_self_`) so `aumesh promote`'s conf/experiment/promoted.yaml is loaded."
+        )
     pos = keys.index(entry)
     late = [k for k in ("paths", "data", "preprocess", "features", "model", "cv", "tracking") if k in keys[pos:]]
     if late:
@@ -402,8 +445,11 @@ def verify_composition(composed: Mapping[str, Any], run_params: Mapping[str, str
         Naming every key whose composed value differs.
     """
     flat = {k: _param_string(v) for k, v in flatten_config(composed).items()}
-    wrong = [f"{k}: run {v!r}, composed {flat.get(k)!r}" for k, v in sorted(run_params.items())
-             if _promotable(k) and flat.get(k) != v]
+    wrong = [
+        f"{k}: run {v!r}, composed {flat.get(k)!r}"
+        for k, v in sorted(run_params.items())
+        if _promotable(k) and flat.get(k) != v
+    ]
     if wrong:
         raise ValueError("the promoted conf/ does not compose to the run's configuration: " + "; ".join(wrong))
 
@@ -445,13 +491,15 @@ def check_finished(parent: Mapping[str, Any], children: pd.DataFrame, partial: b
     if parent.get("status") == "FINISHED" and not tags.get("aumesh.sweep.interrupted"):
         return None
     state = tags.get("aumesh.sweep.interrupted") or {"RUNNING": "is still running (or its process died)"}.get(
-        parent.get("status"), f"ended {parent.get('status')}")
+        parent.get("status"), f"ended {parent.get('status')}"
+    )
     of = f"{len(finished)} of {expected or '?'} configurations finished"
     if not partial:
         raise PromotionError(
             f"sweep {parent['run_id']} did not finish ({state}; {of}): its best run is the best of a part of the "
             "sweep. Fix: rerun the sweep (`aumesh sweep -m ...`), or pass --partial to promote the best of the runs "
-            "that finished.")
+            "that finished."
+        )
     names = ", ".join(f"{r.run_name} ({r.run_id})" for r in finished.itertuples()) if len(finished) else "none"
     return f"partial sweep ({state}; {of}): compared only {names}"
 
@@ -471,7 +519,8 @@ def model_artifacts(run_id: str, tracking_cfg: Mapping[str, Any] | None, root: P
         if store is not None and store.resolve().is_relative_to(root) and not path.resolve().is_relative_to(root):
             raise PromotionError(
                 f"run {run_id}: its artifacts lie outside this workspace ({path}), so registering it would register "
-                f"another workspace's model. Fix: promote from that workspace, or rerun the sweep here.")
+                f"another workspace's model. Fix: promote from that workspace, or rerun the sweep here."
+            )
         present = path.is_dir() and any(path.iterdir())  # what registry.register_model_version asks of the store
         return present, provenance.shareable_location(uri, [root]) or uri
     return bool(client.list_artifacts(run_id, MODEL_ARTIFACT_DIR)), uri
@@ -495,23 +544,37 @@ def check_not_overruled(values: Mapping[str, Any], parent_run_id: str, newer_run
         Some promoted value differs from the newer run's parameter; the message names them and the ways out.
     """
     params = newer_run.get("params", {})
-    differ = [f"{key}={params.get(key, '(absent)')} there, {_param_string(value)} in the sweep's best run"
-              for key, value in values.items() if params.get(key) != _param_string(value)]
+    differ = [
+        f"{key}={params.get(key, '(absent)')} there, {_param_string(value)} in the sweep's best run"
+        for key, value in values.items()
+        if params.get(key) != _param_string(value)
+    ]
     if not differ:
         return
-    started = datetime.fromtimestamp(newer_run["start_time"] / 1000, tz=timezone.utc).strftime("%Y-%m-%d %H:%M")
+    started = datetime.fromtimestamp(newer_run["start_time"] / 1000, tz=UTC).strftime("%Y-%m-%d %H:%M")
     raise OverruleError(
         f"sweep {parent_run_id} is older than evaluate run {newer_run['run_id']} ({newer_run.get('run_name')}, "
         f"started {started} UTC), which evaluated another configuration ({'; '.join(differ)}): promoting the sweep "
         "would overrule it. Fix: run a new sweep, name the sweep to promote with --sweep ID (`aumesh runs --sweeps` "
-        "lists them), or pass --latest to promote your latest sweep anyway.")
+        "lists them), or pass --latest to promote your latest sweep anyway."
+    )
 
 
-def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[str, Any] | None = None,
-            metric: str | None = None, target: str | None = None, model_name: str | None = None,
-            register: bool = True, alias: str = CHAMPION_ALIAS,
-            newer_run: Mapping[str, Any] | None = None, across: bool = False, partial: bool = False,
-            skip_missing: bool = False, say=print) -> dict[str, Any]:
+def promote(
+    parent_run_id: str | None,
+    root: str | Path,
+    tracking_cfg: Mapping[str, Any] | None = None,
+    metric: str | None = None,
+    target: str | None = None,
+    model_name: str | None = None,
+    register: bool = True,
+    alias: str = CHAMPION_ALIAS,
+    newer_run: Mapping[str, Any] | None = None,
+    across: bool = False,
+    partial: bool = False,
+    skip_missing: bool = False,
+    say=print,
+) -> dict[str, Any]:
     """Promote the best child of sweep *parent_run_id* (or, *across*, the best run on this data) in workspace *root*
     (see the module docstring).
 
@@ -550,8 +613,8 @@ def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[s
     dict
         The ``promoted`` record written to the promotion file (with ``user`` and ``workspace``: whose run won).
     """
-    from aumesh.experiments import queries, registry, tracking
     from aumesh.config import from_dict, write_params
+    from aumesh.experiments import queries, registry, tracking
 
     root = Path(root).resolve()
     conf_dir = root / "conf"
@@ -561,8 +624,10 @@ def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[s
         data_md5 = _workspace_data_md5(root)
         candidates = candidates_from_frame(queries.finished_runs_on_data(data_md5, tracking_cfg))
         if not candidates:
-            raise UserError(f"no FINISHED run on this workspace's data (data.dvc md5 {data_md5}) in the tracking store; "
-                            "run a sweep first (`aumesh sweep -m ...`).")
+            raise UserError(
+                f"no FINISHED run on this workspace's data (data.dvc md5 {data_md5}) in the tracking store; "
+                "run a sweep first (`aumesh sweep -m ...`)."
+            )
         scope = f"on this data (DVC {data_md5}), whoever ran them"
     else:
         if parent_run_id is None:
@@ -583,16 +648,20 @@ def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[s
             raise PromotionError(
                 f"run {choice.run_id}, the best {scope} by {choice.metric}, has lost its model "
                 f"artifacts ({where} is missing or empty). Fix: --skip-missing promotes the next best run whose "
-                "artifacts exist, or rerun the sweep; --no-register promotes its configuration without the registry.")
+                "artifacts exist, or rerun the sweep; --no-register promotes its configuration without the registry."
+            )
         skipped.append({"run_id": choice.run_id, "missing": where})
-        say(f"skipped run {choice.run_id} ({choice.metric} = {choice.value:.6f}): its model artifacts are gone "
-            f"({where}); taking the next best")
+        say(
+            f"skipped run {choice.run_id} ({choice.metric} = {choice.value:.6f}): its model artifacts are gone "
+            f"({where}); taking the next best"
+        )
         rest = [c for c in candidates if c.run_id not in {s["run_id"] for s in skipped}]
         try:
             choice = choose(rest, metric=metric, target=target, scope=scope)
         except ValueError as err:
-            raise PromotionError(f"no run {scope} with its model artifacts left ({len(skipped)} "
-                                 f"skipped): {err}") from err
+            raise PromotionError(
+                f"no run {scope} with its model artifacts left ({len(skipped)} skipped): {err}"
+            ) from err
     if skipped:
         say(f"promoting run {choice.run_id} ({choice.metric} = {choice.value:.6f}), the best run whose artifacts exist")
     winner = next(c for c in candidates if c.run_id == choice.run_id)
@@ -604,8 +673,13 @@ def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[s
         check_not_overruled(values, str(sweep_id), newer_run)
     overrides = [hydra_override(k, v) for k, v in values.items()]
     origin = f"run {winner.run_id} of sweep {sweep_id}" if sweep_id else f"evaluate run {winner.run_id}"
-    text = experiment_yaml(values, [origin + (f" (by {winner.user}, across the team's runs)" if across else ""),
-                                    f"criterion: {choice.metric} = {choice.value:.6f}"])
+    text = experiment_yaml(
+        values,
+        [
+            origin + (f" (by {winner.user}, across the team's runs)" if across else ""),
+            f"criterion: {choice.metric} = {choice.value:.6f}",
+        ],
+    )
     composed = compose_with(conf_dir, text)
     verify_composition(composed, winner.params)
     cfg = from_dict(composed)
@@ -614,11 +688,20 @@ def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[s
     name = model_name or DEFAULT_MODEL_NAME
     if register:
         version = registry.register_model_version(
-            winner.run_id, MODEL_ARTIFACT_DIR, name, tracking_cfg, alias=alias,
-            tags={"aumesh.parent_run_id": str(sweep_id), "aumesh.metric": choice.metric,
-                  "aumesh.value": f"{choice.value:.6f}", "aumesh.config_overrides": " ".join(overrides),
-                  "aumesh.user": str(winner.user)},
-            description=f"aumesh promote: {choice.criterion}")
+            winner.run_id,
+            MODEL_ARTIFACT_DIR,
+            name,
+            tracking_cfg,
+            alias=alias,
+            tags={
+                "aumesh.parent_run_id": str(sweep_id),
+                "aumesh.metric": choice.metric,
+                "aumesh.value": f"{choice.value:.6f}",
+                "aumesh.config_overrides": " ".join(overrides),
+                "aumesh.user": str(winner.user),
+            },
+            description=f"aumesh promote: {choice.criterion}",
+        )
 
     exp_path = conf_dir / EXPERIMENT_GROUP / f"{EXPERIMENT_NAME}.yaml"
     exp_path.parent.mkdir(parents=True, exist_ok=True)
@@ -638,8 +721,9 @@ def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[s
         "targets": list(choice.targets),
         "n_candidates": choice.n_candidates,
         "n_excluded": choice.n_excluded,
-        "runner_up": ({"run_id": choice.ranking[1][0], "value": choice.ranking[1][1]}
-                      if len(choice.ranking) > 1 else None),
+        "runner_up": (
+            {"run_id": choice.ranking[1][0], "value": choice.ranking[1][1]} if len(choice.ranking) > 1 else None
+        ),
         "config_overrides": overrides,
         "config_file": str(exp_path.relative_to(root)),
         "registered_model": version["name"] if version else None,
@@ -649,7 +733,7 @@ def promote(parent_run_id: str | None, root: str | Path, tracking_cfg: Mapping[s
         # tracking server's address (the run id finds the run on the team's server)
         "model_source": _model_source(version["source"], winner.run_id, root) if version else None,
         "tracking_uri": tracking.store_label(tracking_cfg),
-        "promoted_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "promoted_at": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     if skipped:
         record["skipped_missing_artifacts"] = skipped

@@ -250,8 +250,9 @@ def git_commit(root: Path | str) -> dict[str, Any]:
     baseline = os.environ.get("DVC_EXP_BASELINE_REV") or None
 
     head = _git(["rev-parse", "HEAD"], exec_dir)
-    status = _git(["status", "--porcelain", "--", ".", *(f":(exclude){p}" for p in dvc_written_paths(exec_dir))],
-                  exec_dir)
+    status = _git(
+        ["status", "--porcelain", "--", ".", *(f":(exclude){p}" for p in dvc_written_paths(exec_dir))], exec_dir
+    )
     branch = _git(["rev-parse", "--abbrev-ref", "HEAD"], root)
     if branch == "HEAD":
         branch = None
@@ -491,7 +492,7 @@ def shareable_location(value: str | None, roots: Sequence[Path | str] | None = N
         return None
 
     if text.startswith("sqlite:///"):
-        path, sep, query = text[len("sqlite:///"):].partition("?")
+        path, sep, query = text[len("sqlite:///") :].partition("?")
         rel = relative(path)
         return f"sqlite:///{rel}{sep}{query}" if rel else text
     if text.startswith("file:"):
@@ -518,7 +519,7 @@ def record_location(value: str | None, roots: Sequence[Path | str] | None = None
     if text is None:
         return None
     if text.startswith("sqlite:///"):
-        path, sep, query = text[len("sqlite:///"):].partition("?")
+        path, sep, query = text[len("sqlite:///") :].partition("?")
         return f"sqlite:///{OUTSIDE}/{Path(path).name}{sep}{query}" if path.startswith("/") else text
     if text.startswith("file:"):
         return f"{OUTSIDE}/{Path(unquote(urlsplit(text).path)).name}"

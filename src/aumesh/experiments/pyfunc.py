@@ -101,8 +101,10 @@ def signature():
     from mlflow.models.signature import ModelSignature
     from mlflow.types.schema import ColSpec, Schema, TensorSpec
 
-    return ModelSignature(inputs=Schema([ColSpec("double", c, required=False) for c in INPUT_COLUMNS]),
-                          outputs=Schema([TensorSpec(np.dtype(np.float64), (-1, N_TARGETS))]))
+    return ModelSignature(
+        inputs=Schema([ColSpec("double", c, required=False) for c in INPUT_COLUMNS]),
+        outputs=Schema([TensorSpec(np.dtype(np.float64), (-1, N_TARGETS))]),
+    )
 
 
 def input_example() -> pd.DataFrame:
@@ -120,8 +122,14 @@ def requirements() -> list[str]:
 
 def save_release_model(npz_path: str | Path, path: str | Path) -> Path:
     """Write the MLflow pyfunc model directory of release NPZ *npz_path* to *path* (must not exist)."""
-    mlflow.pyfunc.save_model(str(path), python_model=str(Path(__file__).with_name("pyfunc_entry.py")), artifacts={NPZ_KEY: str(npz_path)},
-                             signature=signature(), input_example=input_example(), pip_requirements=requirements())
+    mlflow.pyfunc.save_model(
+        str(path),
+        python_model=str(Path(__file__).with_name("pyfunc_entry.py")),
+        artifacts={NPZ_KEY: str(npz_path)},
+        signature=signature(),
+        input_example=input_example(),
+        pip_requirements=requirements(),
+    )
     return Path(path)
 
 

@@ -30,8 +30,7 @@ if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
 #: The columns every run table starts with (:func:`list_child_runs`, :func:`finished_runs_on_data`).
-BASE_COLUMNS = ["run_id", "run_name", "status", "start_time", "end_time", "error", "user", "workspace",
-                "parent_run_id"]
+BASE_COLUMNS = ["run_id", "run_name", "status", "start_time", "end_time", "error", "user", "workspace", "parent_run_id"]
 
 
 # ------------------------------------------------------------------ who is asking
@@ -69,8 +68,9 @@ def _search_all(client, experiment_ids: list[str], filter_string: str, order_by:
     """Every run matching the filter (MLflow pages results 1000 at a time)."""
     token = None
     while True:
-        page = client.search_runs(experiment_ids, filter_string=filter_string, order_by=order_by,
-                                  max_results=1000, page_token=token)
+        page = client.search_runs(
+            experiment_ids, filter_string=filter_string, order_by=order_by, max_results=1000, page_token=token
+        )
         yield from page
         token = page.token
         if not token:
@@ -158,15 +158,23 @@ def finished_runs_on_data(data_md5: str, tracking_cfg: Mapping[str, Any] | None 
     exp = _experiment_id(client, tracking_cfg)
     if exp is None:
         return _frame([])
-    runs = [r for r in _search_all(client, [exp], _filter({DATA_TAG: data_md5}, status="FINISHED"))
-            if r.data.tags.get(ROLE_TAG) == SWEEP_CHILD_ROLE or r.data.tags.get("aumesh.stage") == "evaluate"]
+    runs = [
+        r
+        for r in _search_all(client, [exp], _filter({DATA_TAG: data_md5}, status="FINISHED"))
+        if r.data.tags.get(ROLE_TAG) == SWEEP_CHILD_ROLE or r.data.tags.get("aumesh.stage") == "evaluate"
+    ]
     return _frame(runs)
 
 
 # ------------------------------------------------------------------ newest runs
-def latest_runs_tagged(tag: str, value: str, tracking_cfg: Mapping[str, Any] | None = None,
-                       max_results: int = 20, user: str | None = None,
-                       workspace: str | None = None) -> list[dict[str, Any]]:
+def latest_runs_tagged(
+    tag: str,
+    value: str,
+    tracking_cfg: Mapping[str, Any] | None = None,
+    max_results: int = 20,
+    user: str | None = None,
+    workspace: str | None = None,
+) -> list[dict[str, Any]]:
     """The newest runs of the configured experiment whose *tag* equals *value*, newest first.
 
     Parameters
@@ -188,27 +196,37 @@ def latest_runs_tagged(tag: str, value: str, tracking_cfg: Mapping[str, Any] | N
     exp = _experiment_id(client, tracking_cfg)
     if exp is None:
         return []
-    runs = client.search_runs([exp], filter_string=_filter({tag: value, USER_TAG: user, WORKSPACE_TAG: workspace}),
-                              order_by=["attributes.start_time DESC"], max_results=max_results)
+    runs = client.search_runs(
+        [exp],
+        filter_string=_filter({tag: value, USER_TAG: user, WORKSPACE_TAG: workspace}),
+        order_by=["attributes.start_time DESC"],
+        max_results=max_results,
+    )
     return [_record(run) for run in runs]
 
 
-def sweeps(tracking_cfg: Mapping[str, Any] | None = None, limit: int = 20, user: str | None = None,
-           workspace: str | None = None) -> list[dict[str, Any]]:
+def sweeps(
+    tracking_cfg: Mapping[str, Any] | None = None,
+    limit: int = 20,
+    user: str | None = None,
+    workspace: str | None = None,
+) -> list[dict[str, Any]]:
     """The newest sweep parent runs (of *user* / *workspace* when given), newest first (:func:`run_record` views)."""
     return latest_runs_tagged(ROLE_TAG, SWEEP_PARENT_ROLE, tracking_cfg, limit, user=user, workspace=workspace)
 
 
-def latest_parent_run(tracking_cfg: Mapping[str, Any] | None = None, user: str | None = None,
-                      workspace: str | None = None) -> str | None:
+def latest_parent_run(
+    tracking_cfg: Mapping[str, Any] | None = None, user: str | None = None, workspace: str | None = None
+) -> str | None:
     """Id of the most recently started sweep parent run of the configured experiment (of *user* / *workspace* when
     given); None when there is none."""
     runs = sweeps(tracking_cfg, 1, user=user, workspace=workspace)
     return runs[0]["run_id"] if runs else None
 
 
-def latest_evaluate_run(tracking_cfg: Mapping[str, Any] | None = None,
-                        workspace: str | None = None) -> dict[str, Any] | None:
+def latest_evaluate_run(
+    tracking_cfg: Mapping[str, Any] | None = None, workspace: str | None = None
+) -> dict[str, Any] | None:
     """The newest pipeline evaluate run (of this *workspace* when given), or None."""
     runs = latest_runs_tagged("aumesh.stage", "evaluate", tracking_cfg, 1, workspace=workspace)
     return runs[0] if runs else None

@@ -68,7 +68,9 @@ def register_model_version(
         client.get_registered_model(name)
     except MlflowException:
         try:
-            client.create_registered_model(name, description="aumesh AU(+pose) -> 478-vertex mesh PLS (release-format NPZ)")
+            client.create_registered_model(
+                name, description="aumesh AU(+pose) -> 478-vertex mesh PLS (release-format NPZ)"
+            )
         except MlflowException:
             client.get_registered_model(name)  # created concurrently; re-raise if it still does not exist
     source = f"{run.info.artifact_uri.rstrip('/')}/{artifact_path.strip('/')}"

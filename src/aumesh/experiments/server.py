@@ -15,8 +15,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 
-def server_command(backend_store_uri: str, artifacts_destination: str, host: str = "127.0.0.1", port: int = 5000,
-                   workers: int = 2, allowed_hosts: str | None = None, extra: Sequence[str] = ()) -> list[str]:
+def server_command(
+    backend_store_uri: str,
+    artifacts_destination: str,
+    host: str = "127.0.0.1",
+    port: int = 5000,
+    workers: int = 2,
+    allowed_hosts: str | None = None,
+    extra: Sequence[str] = (),
+) -> list[str]:
     """The ``mlflow server`` command line (this interpreter's MLflow).
 
     Parameters
@@ -40,9 +47,23 @@ def server_command(backend_store_uri: str, artifacts_destination: str, host: str
 
     if "://" not in artifacts_destination:
         artifacts_destination = str(Path(artifacts_destination).expanduser().resolve())
-    cmd = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", database_uri(backend_store_uri),
-           "--serve-artifacts", "--artifacts-destination", artifacts_destination,
-           "--host", host, "--port", str(port), "--workers", str(workers)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "server",
+        "--backend-store-uri",
+        database_uri(backend_store_uri),
+        "--serve-artifacts",
+        "--artifacts-destination",
+        artifacts_destination,
+        "--host",
+        host,
+        "--port",
+        str(port),
+        "--workers",
+        str(workers),
+    ]
     if allowed_hosts:
         cmd += ["--allowed-hosts", allowed_hosts]
     return cmd + list(extra)
@@ -50,5 +71,6 @@ def server_command(backend_store_uri: str, artifacts_destination: str, host: str
 
 def server_environment() -> dict[str, str]:
     """The server's environment: telemetry off, no GenAI job runner (it halves start-up time and CPU)."""
-    return dict(os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true",
-                MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false")
+    return dict(
+        os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true", MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false"
+    )

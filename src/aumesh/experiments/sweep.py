@@ -119,8 +119,7 @@ def prepare_key(signature: Mapping[str, Any]) -> str:
 
 def statistics_key(prepared_id: str, cfg: Config) -> tuple:
     """Cache key of the per-fold statistics: everything :func:`aumesh.pipeline.evaluate.accumulate` depends on."""
-    return (prepared_id, cfg.preprocess.target, cfg.preprocess.neutral.method,
-            cfg.features.name, int(cfg.cv.n_splits))
+    return (prepared_id, cfg.preprocess.target, cfg.preprocess.neutral.method, cfg.features.name, int(cfg.cv.n_splits))
 
 
 def run_name(overrides: Sequence[str]) -> str:
@@ -163,8 +162,11 @@ def resolve_prepared(cfg: Config, workspace: Config | None, root: Path) -> Prepa
     signature = prepare_signature(cfg)
     key = prepare_key(signature)
     own = (root / cfg.paths.prepared_dir).resolve()
-    if workspace is not None and signature == prepare_signature(workspace) and \
-            own == (root / workspace.paths.prepared_dir).resolve():
+    if (
+        workspace is not None
+        and signature == prepare_signature(workspace)
+        and own == (root / workspace.paths.prepared_dir).resolve()
+    ):
         return PreparedSource(own, True, signature, key)
     if workspace is not None and own != (root / workspace.paths.prepared_dir).resolve():
         return PreparedSource(own, False, signature, key)  # the user named the directory
@@ -279,8 +281,9 @@ class SweepCache:
         self.misses += 1
         return stats, False
 
-    def evaluation_for(self, prepared: Prepared, pid: str, cfg: Config,
-                       stats: FoldStatistics) -> tuple[CVResult, FinalModel, bool]:
+    def evaluation_for(
+        self, prepared: Prepared, pid: str, cfg: Config, stats: FoldStatistics
+    ) -> tuple[CVResult, FinalModel, bool]:
         """CV result and final fit of *cfg*; reused when only a clipped ``model.n_components`` differs
         (e.g. 40 and 83 on a 23-feature design are the same 23-component model)."""
         from aumesh.pipeline import evaluate as ev
@@ -318,15 +321,16 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
         A directory stamped with other prepare values (fix: delete it or override
         ``paths.prepared_dir``).
     """
-    from aumesh.pipeline import prepare as prep
     from aumesh.data import tables
+    from aumesh.pipeline import prepare as prep
 
     complete = all((source.path / n).exists() for n in PREPARED_FILES)
     if source.managed_by_dvc:
         if not complete:
             raise FileNotFoundError(
                 f"{source.path}: prepared data missing. It is the prepare stage's output for the workspace's "
-                "params.yaml; run `dvc repro prepare` (or `make demo`) first.")
+                "params.yaml; run `dvc repro prepare` (or `make demo`) first."
+            )
         return source.path
     stamp_path = source.path / PREPARE_STAMP
     from filelock import FileLock
@@ -338,11 +342,15 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
             if stamp.get("signature") != json.loads(json.dumps(source.signature, default=str)):
                 raise ValueError(
                     f"{source.path} was prepared by a sweep with other values of {', '.join(PREPARE_KEYS)}: "
-                    f"{stamp.get('signature')}. Fix: delete it, or override paths.prepared_dir with a new directory.")
+                    f"{stamp.get('signature')}. Fix: delete it, or override paths.prepared_dir with a new directory."
+                )
             return source.path
         if complete:
-            log.warning("%s: prepared data without a sweep stamp; using them as they are (not verified against "
-                        "%s)", source.path, ", ".join(PREPARE_KEYS))
+            log.warning(
+                "%s: prepared data without a sweep stamp; using them as they are (not verified against %s)",
+                source.path,
+                ", ".join(PREPARE_KEYS),
+            )
             return source.path
         log.info("preparing %s from %s (prepare values differ from params.yaml's)", source.path, cfg.paths.data_dir)
         found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy, cfg.data.coerce_numeric)
@@ -358,7 +366,9 @@ def blas_threads(default: int = 1) -> Iterator[None]:
     try:
         n = int(os.environ.get(BLAS_THREADS_ENV, default))
     except ValueError:
-        raise ValueError(f"{BLAS_THREADS_ENV}={os.environ[BLAS_THREADS_ENV]!r}: use a thread count (0 = BLAS default)") from None
+        raise ValueError(
+            f"{BLAS_THREADS_ENV}={os.environ[BLAS_THREADS_ENV]!r}: use a thread count (0 = BLAS default)"
+        ) from None
     if n <= 0:
         yield
         return
@@ -377,8 +387,17 @@ def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistic
         return ev.evaluate_statistics(prepared, cfg, stats)
 
 
-def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, root: Path,
-               cv: CVResult, final: FinalModel, timings: Mapping[str, float], reused: bool) -> dict[str, Any]:
+def _log_child(
+    run,
+    cfg: Config,
+    prepared: Prepared,
+    source: PreparedSource,
+    root: Path,
+    cv: CVResult,
+    final: FinalModel,
+    timings: Mapping[str, float],
+    reused: bool,
+) -> dict[str, Any]:
     """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
     from aumesh.experiments import provenance
     from aumesh.experiments.pyfunc import log_release_model
@@ -386,9 +405,12 @@ def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, roo
 
     metrics = cv.metrics()
     run.log_config(cfg.to_dict())
-    tags = {"aumesh.prepared_dir": str(source.path), "aumesh.prepared.key": source.key,
-            "aumesh.cache.statistics": "reused" if reused else "computed",
-            "aumesh.n_components.effective": final.n_components}
+    tags = {
+        "aumesh.prepared_dir": str(source.path),
+        "aumesh.prepared.key": source.key,
+        "aumesh.cache.statistics": "reused" if reused else "computed",
+        "aumesh.n_components.effective": final.n_components,
+    }
     data_dir = (root / cfg.paths.data_dir).resolve()
     digest = None
     with contextlib.suppress(FileNotFoundError, ValueError):
@@ -396,29 +418,54 @@ def _log_child(run, cfg: Config, prepared: Prepared, source: PreparedSource, roo
     if digest and digest.get("md5") and data_dir == (root / str(digest.get("path") or "data")).resolve():
         run.log_dataset(digest, source=str(data_dir), name="frame_tables")
     else:
-        tags["aumesh.data.note"] = (f"paths.data_dir={cfg.paths.data_dir} is not the DVC-tracked data of data.dvc; "
-                                    "aumesh.data.* tags describe data.dvc, not this run's data")
+        tags["aumesh.data.note"] = (
+            f"paths.data_dir={cfg.paths.data_dir} is not the DVC-tracked data of data.dvc; "
+            "aumesh.data.* tags describe data.dvc, not this run's data"
+        )
     run.set_tags(tags)
-    run.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
-                          "r2_displacement": cv.r2_displacement_folds})
+    run.log_fold_metrics(
+        {
+            "r2": cv.r2_folds,
+            "mae": cv.mae_folds,
+            "vertex_error": cv.vertex_error_folds,
+            "r2_displacement": cv.r2_displacement_folds,
+        }
+    )
     scalars = cv.scalar_metrics()
-    scalars |= {"n_components": float(final.n_components), "n_features": float(len(final.feature_columns)),
-                "n_frames": float(sum(cv.n_frames_folds))} | dict(timings)
+    scalars |= {
+        "n_components": float(final.n_components),
+        "n_features": float(len(final.feature_columns)),
+        "n_frames": float(sum(cv.n_frames_folds)),
+    } | dict(timings)
     run.log_metrics(scalars)
     # the curve as a metric history, step = n_components (one batch)
     run.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
-    title = (f"target={cfg.preprocess.target} neutral={cfg.preprocess.neutral.method} features={cfg.features.name} "
-             f"n_components={final.n_components}")
+    title = (
+        f"target={cfg.preprocess.target} neutral={cfg.preprocess.neutral.method} features={cfg.features.name} "
+        f"n_components={final.n_components}"
+    )
     run.log_figure(r2_curve_figure(cv.r2_path_folds, title), FIGURE_ARTIFACT)
     metadata = {"mlflow_run_id": run.run_id, "config": cfg.to_dict(), "cv": {k: v for k, v in metrics.items()}}
-    arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
-                            prepared.reference, card_text="", metadata=metadata)
+    arrays = release_arrays(
+        final.coef,
+        final.mesh_intercept,
+        final.feature_columns,
+        final.n_components,
+        prepared.reference,
+        card_text="",
+        metadata=metadata,
+    )
     run.log_metrics({"seconds_log_model": log_release_model(run, arrays)})  # MLflow pyfunc model under model/
     return {k: scalars[k] for k in ("r2_mean", "r2_std", "r2_displacement_mean", "mae_mean", "n_components")}
 
 
-def run_configuration(raw: Mapping[str, Any], overrides: Sequence[str] = (), parent_run_id: str | None = None,
-                      cache: SweepCache | None = None, root: Path | None = None) -> dict[str, Any]:
+def run_configuration(
+    raw: Mapping[str, Any],
+    overrides: Sequence[str] = (),
+    parent_run_id: str | None = None,
+    cache: SweepCache | None = None,
+    root: Path | None = None,
+) -> dict[str, Any]:
     """Evaluate and log one configuration as a child run; never raises for a bad configuration.
 
     Parameters
@@ -440,23 +487,26 @@ def run_configuration(raw: Mapping[str, Any], overrides: Sequence[str] = (), par
     dict
         ``run_id``, ``run_name``, ``status`` (``FINISHED``/``FAILED``), ``error`` and summary metrics.
     """
-    from aumesh.experiments import provenance
-    from aumesh.experiments import tracking
     from aumesh.config import from_dict
+    from aumesh.experiments import provenance, tracking
 
     cache = cache or process_cache()
     root = Path(root) if root is not None else provenance.repo_root()
     raw = dict(raw)
     tracking_cfg = dict(raw.get("tracking") or {})
     name = run_name(overrides)
-    tags = {tracking.ROLE_TAG: CHILD_ROLE, "aumesh.stage": "sweep",
-            "aumesh.target": str((raw.get("preprocess") or {}).get("target")),
-            "aumesh.sweep.overrides": " ".join(overrides)}
+    tags = {
+        tracking.ROLE_TAG: CHILD_ROLE,
+        "aumesh.stage": "sweep",
+        "aumesh.target": str((raw.get("preprocess") or {}).get("target")),
+        "aumesh.sweep.overrides": " ".join(overrides),
+    }
     handle = None
     t_start = time.perf_counter()
     try:
-        with tracking.tracked_run(tracking_cfg, run_name=name, params=raw, tags=tags,
-                                  parent_run_id=parent_run_id) as run:
+        with tracking.tracked_run(
+            tracking_cfg, run_name=name, params=raw, tags=tags, parent_run_id=parent_run_id
+        ) as run:
             handle = run
             cfg = from_dict(raw)
             with blas_threads():
@@ -464,11 +514,20 @@ def run_configuration(raw: Mapping[str, Any], overrides: Sequence[str] = (), par
             run.log_metrics({"seconds_job": time.perf_counter() - t_start})
     except Exception as exc:  # recorded as FAILED by tracked_run; the sweep goes on
         log.error("configuration %s failed: %s: %s", name, type(exc).__name__, exc)
-        return {"run_id": getattr(handle, "run_id", None), "run_name": name, "status": "FAILED",
-                "error": f"{type(exc).__name__}: {exc}"}
-    log.info("configuration %s: r2_mean=%.4f r2_displacement_mean=%.4f (%s statistics, %.2f s)", name,
-             summary["r2_mean"], summary["r2_displacement_mean"], "reused" if reused else "computed",
-             time.perf_counter() - t_start)
+        return {
+            "run_id": getattr(handle, "run_id", None),
+            "run_name": name,
+            "status": "FAILED",
+            "error": f"{type(exc).__name__}: {exc}",
+        }
+    log.info(
+        "configuration %s: r2_mean=%.4f r2_displacement_mean=%.4f (%s statistics, %.2f s)",
+        name,
+        summary["r2_mean"],
+        summary["r2_displacement_mean"],
+        "reused" if reused else "computed",
+        time.perf_counter() - t_start,
+    )
     return {"run_id": getattr(handle, "run_id", None), "run_name": name, "status": "FINISHED", "error": None} | summary
 
 
@@ -487,8 +546,17 @@ def _evaluate_in_run(run, cfg: Config, cache: SweepCache, root: Path) -> tuple[d
     t3 = time.perf_counter()
     if same_model:
         run.set_tags({"aumesh.cache.result": "reused (clipped n_components: same model as an earlier configuration)"})
-    summary = _log_child(run, cfg, prepared, source, root, cv, final,
-                         {"seconds_load": t1 - t0, "seconds_statistics": t2 - t1, "seconds_cv_fit": t3 - t2}, reused)
+    summary = _log_child(
+        run,
+        cfg,
+        prepared,
+        source,
+        root,
+        cv,
+        final,
+        {"seconds_load": t1 - t0, "seconds_statistics": t2 - t1, "seconds_cv_fit": t3 - t2},
+        reused,
+    )
     return summary, reused
 
 
@@ -561,13 +629,26 @@ class SweepCallback:
         tracking_cfg = dict(plain.get("tracking") or {})
         launcher = str(config.hydra.launcher.get("_target_", "")) if "launcher" in config.hydra else ""
         parent = tracking.start_parent_run(
-            tracking_cfg, run_name=f"sweep {directory.name}", params=plain,
-            tags={"aumesh.sweep.dir": str(directory.resolve()), "aumesh.sweep.overrides": " ".join(overrides),
-                  "aumesh.sweep.mode": mode, "aumesh.sweep.launcher": launcher,
-                  "aumesh.sweep.n_expected": count_jobs(overrides) if mode == "multirun" else 1})
+            tracking_cfg,
+            run_name=f"sweep {directory.name}",
+            params=plain,
+            tags={
+                "aumesh.sweep.dir": str(directory.resolve()),
+                "aumesh.sweep.overrides": " ".join(overrides),
+                "aumesh.sweep.mode": mode,
+                "aumesh.sweep.launcher": launcher,
+                "aumesh.sweep.n_expected": count_jobs(overrides) if mode == "multirun" else 1,
+            },
+        )
         directory.mkdir(parents=True, exist_ok=True)
-        atomic_write_json(directory / PARENT_FILE, {"run_id": parent, "tracking_uri": tracking.tracking_uri(tracking_cfg)
-                                                    if parent else None, "overrides": overrides})
+        atomic_write_json(
+            directory / PARENT_FILE,
+            {
+                "run_id": parent,
+                "tracking_uri": tracking.tracking_uri(tracking_cfg) if parent else None,
+                "overrides": overrides,
+            },
+        )
         if parent:
             os.environ[PARENT_ENV] = parent
             log.info("sweep parent run %s (%s)", parent, directory)
@@ -584,8 +665,10 @@ class SweepCallback:
         children, tags = tracking.finish_sweep(parent, tracking_cfg, wall)
         if children is None:
             return
-        print(f"\nsweep parent {parent}: {tags['aumesh.sweep.n_children']} configurations, "
-              f"{tags['aumesh.sweep.n_failed']} not finished" + (f", {wall:.1f} s" if wall is not None else ""))
+        print(
+            f"\nsweep parent {parent}: {tags['aumesh.sweep.n_children']} configurations, "
+            f"{tags['aumesh.sweep.n_failed']} not finished" + (f", {wall:.1f} s" if wall is not None else "")
+        )
         if len(children):
             from aumesh.experiments.leaderboard import format_runs_table, runs_table
 
@@ -614,9 +697,11 @@ def _task(config) -> dict[str, Any]:
     parent = read_parent(hc.sweep.dir if multirun else hc.run.dir)
     overrides = list(hc.overrides.task)
     if parent is None:
-        log.warning("no sweep parent run found in %s: is the aumesh SweepCallback configured "
-                    "(conf/hydra/default.yaml)? Logging this configuration without a parent.",
-                    hc.sweep.dir if multirun else hc.run.dir)
+        log.warning(
+            "no sweep parent run found in %s: is the aumesh SweepCallback configured "
+            "(conf/hydra/default.yaml)? Logging this configuration without a parent.",
+            hc.sweep.dir if multirun else hc.run.dir,
+        )
     result = run_configuration(_plain_config(config), overrides, parent)
     atomic_write_json(Path(hc.runtime.output_dir) / RESULT_FILE, result)
     return result
@@ -742,14 +827,23 @@ def interrupted(directory: Path, expected: int, err: KeyboardInterrupt) -> Keybo
             client.set_terminated(row.run_id, "KILLED")
         if row.status in ("RUNNING", "KILLED"):
             killed.append(row.run_name)
-    tracking.set_run_tags(parent, {"aumesh.sweep.interrupted": f"{summary} ({how})",
-                                   "aumesh.sweep.n_children": len(children), "aumesh.sweep.n_finished": finished,
-                                   "aumesh.sweep.n_failed": len(children) - finished,
-                                   tracking.ERROR_TAG: f"sweep {summary} ({how})"}, tracking_cfg)
+    tracking.set_run_tags(
+        parent,
+        {
+            "aumesh.sweep.interrupted": f"{summary} ({how})",
+            "aumesh.sweep.n_children": len(children),
+            "aumesh.sweep.n_finished": finished,
+            "aumesh.sweep.n_failed": len(children) - finished,
+            tracking.ERROR_TAG: f"sweep {summary} ({how})",
+        },
+        tracking_cfg,
+    )
     tracking.end_run(parent, tracking_cfg, "KILLED")
-    return Interrupted(f"{summary} ({how}): sweep {parent} and its running configuration "
-                       f"{', '.join(killed) or '(none)'} marked KILLED; `aumesh promote` refuses it without --partial",
-                       signum)
+    return Interrupted(
+        f"{summary} ({how}): sweep {parent} and its running configuration "
+        f"{', '.join(killed) or '(none)'} marked KILLED; `aumesh promote` refuses it without --partial",
+        signum,
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -51,22 +51,19 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.experiments import provenance
-from aumesh.utils.io import process_gone
-from aumesh.utils.signals import check_supervisor
 from aumesh.experiments.mlflow_store import (
     DEFAULT_EXPERIMENT,
-    MAX_BATCH,
-    MAX_KEY_LENGTH,
-    MAX_DATASET_DIGEST_LENGTH,
-    MAX_INPUT_TAG_VALUE_LENGTH,
-    MAX_METRICS_BATCH,
-    MAX_TAG_VALUE_LENGTH,
     ERROR_TAG,
     HOST_TAG,
+    MAX_BATCH,
+    MAX_DATASET_DIGEST_LENGTH,
+    MAX_INPUT_TAG_VALUE_LENGTH,
+    MAX_KEY_LENGTH,
+    MAX_METRICS_BATCH,
+    MAX_TAG_VALUE_LENGTH,
     PARENT_TAG,
     PID_TAG,
     ROLE_TAG,
-    SWEEP_PARENT_ROLE,
     USER_TAG,
     WORKSPACE_TAG,
     _clean_key,
@@ -79,6 +76,8 @@ from aumesh.experiments.mlflow_store import (
     get_client,
     prepare_params,
 )
+from aumesh.utils.io import process_gone
+from aumesh.utils.signals import check_supervisor
 
 if TYPE_CHECKING:  # pragma: no cover
     from concurrent.futures import Future, ProcessPoolExecutor
@@ -90,9 +89,7 @@ log = logging.getLogger(__name__)
 
 
 # Innermost-last stack of runs opened by tracked_run in this context (for nested=True).
-_ACTIVE_RUNS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar(
-    "aumesh_active_runs", default=()
-)
+_ACTIVE_RUNS: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar("aumesh_active_runs", default=())
 
 
 def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: int | None = None) -> dict[str, str]:
@@ -147,8 +144,11 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: in
     for dist, ver in versions.items():
         if dist != "aumesh":
             tags[f"aumesh.lib.{dist}"] = ver or "not installed"
-    for env, tag in (("DVC_EXP_NAME", "dvc.exp_name"), ("DVC_STAGE", "dvc.stage"),
-                     ("DVC_EXP_BASELINE_REV", "dvc.baseline_rev")):
+    for env, tag in (
+        ("DVC_EXP_NAME", "dvc.exp_name"),
+        ("DVC_STAGE", "dvc.stage"),
+        ("DVC_EXP_BASELINE_REV", "dvc.baseline_rev"),
+    ):
         if os.environ.get(env):
             tags[tag] = os.environ[env]
     tags[HOST_TAG], tags[PID_TAG] = socket.gethostname(), str(owner_pid or os.getpid())
@@ -316,16 +316,23 @@ class TrackedRun:
         name : str, default "frame_tables"
         context : str, default "training"
         """
-        from mlflow.entities import DatasetInput, InputTag
         from mlflow.data.meta_dataset import MetaDataset
+        from mlflow.entities import DatasetInput, InputTag
 
         if not digest.get("md5"):
-            raise ValueError("log_dataset: digest has no 'md5' key; pass aumesh.experiments.provenance.data_digest(...)")
+            raise ValueError(
+                "log_dataset: digest has no 'md5' key; pass aumesh.experiments.provenance.data_digest(...)"
+            )
         md5 = str(digest["md5"])
         dataset = MetaDataset(_dataset_source(source), name=name, digest=md5[:MAX_DATASET_DIGEST_LENGTH])
         tags = [InputTag("mlflow.data.context", context)]
-        for key, tag in (("md5", "dvc.md5"), ("size", "dvc.size"), ("nfiles", "dvc.nfiles"),
-                         ("path", "dvc.path"), ("dvc_file", "dvc.file")):
+        for key, tag in (
+            ("md5", "dvc.md5"),
+            ("size", "dvc.size"),
+            ("nfiles", "dvc.nfiles"),
+            ("path", "dvc.path"),
+            ("dvc_file", "dvc.file"),
+        ):
             if digest.get(key) is not None:
                 tags.append(InputTag(tag, _truncate(str(digest[key]), MAX_INPUT_TAG_VALUE_LENGTH)))
         self.client.log_inputs(self.run_id, datasets=[DatasetInput(dataset._to_mlflow_entity(), tags=tags)])
@@ -407,8 +414,11 @@ def close_orphaned_runs(client: MlflowClient, experiment_id: str, workspace: str
         The run ids marked KILLED (each also tagged ``aumesh.error``).
     """
     host = socket.gethostname()
-    runs = client.search_runs([experiment_id], filter_string=f"attributes.status = 'RUNNING' and tags.`{HOST_TAG}` = '{host}'",
-                              max_results=1000)
+    runs = client.search_runs(
+        [experiment_id],
+        filter_string=f"attributes.status = 'RUNNING' and tags.`{HOST_TAG}` = '{host}'",
+        max_results=1000,
+    )
     killed = []
     for run in runs:
         tags = run.data.tags
@@ -418,17 +428,25 @@ def close_orphaned_runs(client: MlflowClient, experiment_id: str, workspace: str
         if not pid.isdigit() or not process_gone(int(pid), (run.info.start_time or 0) / 1000.0):
             continue
         with contextlib.suppress(Exception):
-            client.set_tag(run.info.run_id, ERROR_TAG, f"process {pid} on {host} ended without closing the run (killed)")
+            client.set_tag(
+                run.info.run_id, ERROR_TAG, f"process {pid} on {host} ended without closing the run (killed)"
+            )
             client.set_terminated(run.info.run_id, "KILLED")
             killed.append(run.info.run_id)
-            log.warning("MLflow run %s was left RUNNING by process %s, which is gone: marked KILLED", run.info.run_id, pid)
+            log.warning(
+                "MLflow run %s was left RUNNING by process %s, which is gone: marked KILLED", run.info.run_id, pid
+            )
     return killed
 
 
 def _failure(exc: BaseException) -> tuple[str, str, str]:
     """``(status, "Type: message", traceback)`` of the exception that ends a run (KILLED for ``KeyboardInterrupt``)."""
     status = "KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED"
-    return status, f"{type(exc).__name__}: {exc}", "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    return (
+        status,
+        f"{type(exc).__name__}: {exc}",
+        "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)),
+    )
 
 
 def _fail(handle: TrackedRun, exc: BaseException) -> None:
@@ -518,7 +536,7 @@ class RunBeside:
 
     enabled = True
 
-    def __init__(self, helper: "ProcessPoolExecutor", opened: "Future") -> None:
+    def __init__(self, helper: ProcessPoolExecutor, opened: Future) -> None:
         self._helper = helper
         self._opened = opened  # of (run_id, experiment_id, tracking_uri)
         self._queued = [opened]
@@ -732,8 +750,9 @@ def set_run_tags(run_id: str, tags: Mapping[str, Any], tracking_cfg: Mapping[str
     run_handle(run_id, tracking_cfg).set_tags(tags)
 
 
-def finish_sweep(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None = None,
-                 wall_seconds: float | None = None) -> tuple[pd.DataFrame | None, dict[str, Any]]:
+def finish_sweep(
+    parent_run_id: str, tracking_cfg: Mapping[str, Any] | None = None, wall_seconds: float | None = None
+) -> tuple[pd.DataFrame | None, dict[str, Any]]:
     """End a sweep's parent run FINISHED, tagged with its children's counts (and ``sweep_wall_seconds``).
 
     Returns
@@ -748,8 +767,11 @@ def finish_sweep(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None = No
     try:
         children = queries.list_child_runs(parent_run_id, tracking_cfg)
         statuses = children["status"].value_counts().to_dict() if len(children) else {}
-        tags = {"aumesh.sweep.n_children": len(children), "aumesh.sweep.n_finished": statuses.get("FINISHED", 0),
-                "aumesh.sweep.n_failed": len(children) - statuses.get("FINISHED", 0)}
+        tags = {
+            "aumesh.sweep.n_children": len(children),
+            "aumesh.sweep.n_finished": statuses.get("FINISHED", 0),
+            "aumesh.sweep.n_failed": len(children) - statuses.get("FINISHED", 0),
+        }
         if wall_seconds is not None:
             tags["aumesh.sweep.wall_seconds"] = f"{wall_seconds:.2f}"
         handle = run_handle(parent_run_id, tracking_cfg)

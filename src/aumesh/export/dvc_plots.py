@@ -29,8 +29,11 @@ from pathlib import Path
 TEMPLATE_FILE = Path(".dvc") / "plots" / "offline.html"
 CONFIG_VALUE = "plots/offline.html"
 #: The npm packages inlined, in load order (vega-embed's UMD build finds ``vega`` and ``vegaLite`` as globals).
-PACKAGES = (("vega", "build/vega.min.js"), ("vega-lite", "build/vega-lite.min.js"),
-            ("vega-embed", "build/vega-embed.min.js"))
+PACKAGES = (
+    ("vega", "build/vega.min.js"),
+    ("vega-lite", "build/vega-lite.min.js"),
+    ("vega-embed", "build/vega-embed.min.js"),
+)
 #: DVC's placeholders: a library's text must not contain them, or DVC would fill them in inside the JavaScript.
 PLACEHOLDERS = ("{plot_divs}", "{scripts}", "{refresh_tag}")
 
@@ -59,8 +62,10 @@ def find_node_modules() -> Path:
     (:func:`aumesh.export.viewer.find_node_modules`: ``$AUMESH_NODE_MODULES``, ``./node_modules``, the repository's)."""
     from aumesh.export.viewer import find_node_modules as find
 
-    return find([f"{name}/{build}" for name, build in PACKAGES],
-                "vega, vega-lite and vega-embed (the DVC plots template inlines them; no CDN)")
+    return find(
+        [f"{name}/{build}" for name, build in PACKAGES],
+        "vega, vega-lite and vega-embed (the DVC plots template inlines them; no CDN)",
+    )
 
 
 def _script(name: str, version: str, text: str) -> str:
@@ -97,8 +102,12 @@ def write_template(out: str | Path = TEMPLATE_FILE, node_modules: Path | None = 
 def main(argv: list[str] | None = None) -> int:
     """``python -m aumesh.export.dvc_plots [--out FILE]`` (what ``make tools`` runs after a change of the lock file)."""
     parser = argparse.ArgumentParser(prog="python -m aumesh.export.dvc_plots", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=TEMPLATE_FILE,
-                        help=f"the template file (default: %(default)s, named by .dvc/config as {CONFIG_VALUE})")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=TEMPLATE_FILE,
+        help=f"the template file (default: %(default)s, named by .dvc/config as {CONFIG_VALUE})",
+    )
     args = parser.parse_args(argv)
     try:
         out = write_template(args.out)

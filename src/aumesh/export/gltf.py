@@ -50,8 +50,12 @@ def rig_arrays(npz: Mapping[str, Any]) -> dict[str, np.ndarray]:
     base = unflatten_axis_major(np.asarray(npz["intercept"], dtype=np.float32)).astype(np.float32)
     targets = np.stack([unflatten_axis_major(coef[columns.index(au)]) for au in AU_COLUMNS]).astype(np.float32)
     triangles = face.outward_triangles(base, face.triangulate(base))
-    return {"base": base, "targets": targets, "triangles": triangles.astype(np.uint16),
-            "normals": vertex_normals(base.astype(np.float64), triangles).astype(np.float32)}
+    return {
+        "base": base,
+        "targets": targets,
+        "triangles": triangles.astype(np.uint16),
+        "normals": vertex_normals(base.astype(np.float64), triangles).astype(np.float32),
+    }
 
 
 def vertex_normals(mesh: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -66,7 +70,9 @@ def vertex_normals(mesh: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return acc / np.linalg.norm(acc, axis=1, keepdims=True)
 
 
-def glb_bytes(npz: Mapping[str, Any], name: str = "aumesh AU-to-mesh", extras: Mapping[str, Any] | None = None) -> bytes:
+def glb_bytes(
+    npz: Mapping[str, Any], name: str = "aumesh AU-to-mesh", extras: Mapping[str, Any] | None = None
+) -> bytes:
     """The rig as a binary glTF 2.0 (GLB) file's bytes; see the module docstring for the contents."""
     import pygltflib as g
 
@@ -84,7 +90,9 @@ def glb_bytes(npz: Mapping[str, Any], name: str = "aumesh AU-to-mesh", extras: M
         blobs.append(data + b"\0" * pad)
         offset += len(data) + pad
         bounds = {"min": array.min(axis=0).tolist(), "max": array.max(axis=0).tolist()} if with_bounds else {}
-        accessors.append(g.Accessor(bufferView=len(views) - 1, componentType=component, count=len(array), type=kind, **bounds))
+        accessors.append(
+            g.Accessor(bufferView=len(views) - 1, componentType=component, count=len(array), type=kind, **bounds)
+        )
         return len(accessors) - 1
 
     position = add(rig["base"], g.FLOAT, g.VEC3, g.ARRAY_BUFFER, True)
@@ -92,17 +100,34 @@ def glb_bytes(npz: Mapping[str, Any], name: str = "aumesh AU-to-mesh", extras: M
     targets = [{"POSITION": add(t, g.FLOAT, g.VEC3, g.ARRAY_BUFFER, True)} for t in rig["targets"]]
     indices = add(rig["triangles"].reshape(-1), g.UNSIGNED_SHORT, g.SCALAR, g.ELEMENT_ARRAY_BUFFER, False)
     binary = b"".join(blobs)
-    primitive = g.Primitive(attributes=g.Attributes(POSITION=position, NORMAL=normal), indices=indices,
-                            targets=targets, material=0, mode=g.TRIANGLES)
+    primitive = g.Primitive(
+        attributes=g.Attributes(POSITION=position, NORMAL=normal),
+        indices=indices,
+        targets=targets,
+        material=0,
+        mode=g.TRIANGLES,
+    )
     gltf = g.GLTF2(
         asset=g.Asset(version="2.0", generator=f"aumesh (pygltflib {g.__version__})", extras=dict(extras or {})),
         scene=0,
         scenes=[g.Scene(nodes=[0])],
         nodes=[g.Node(mesh=0, name=name)],
-        meshes=[g.Mesh(name=name, primitives=[primitive], weights=[0.0] * len(AU_COLUMNS),
-                       extras={"targetNames": list(AU_COLUMNS)})],
-        materials=[g.Material(name="skin", pbrMetallicRoughness=g.PbrMetallicRoughness(
-            baseColorFactor=[0.85, 0.68, 0.58, 1.0], metallicFactor=0.0, roughnessFactor=0.7))],
+        meshes=[
+            g.Mesh(
+                name=name,
+                primitives=[primitive],
+                weights=[0.0] * len(AU_COLUMNS),
+                extras={"targetNames": list(AU_COLUMNS)},
+            )
+        ],
+        materials=[
+            g.Material(
+                name="skin",
+                pbrMetallicRoughness=g.PbrMetallicRoughness(
+                    baseColorFactor=[0.85, 0.68, 0.58, 1.0], metallicFactor=0.0, roughnessFactor=0.7
+                ),
+            )
+        ],
         accessors=accessors,
         bufferViews=views,
         buffers=[g.Buffer(byteLength=len(binary))],
@@ -115,8 +140,11 @@ def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = Non
     """Write the rig of release arrays ``npz`` to ``path`` atomically; ``source`` (the NPZ's name) goes in ``asset.extras``."""
     from aumesh.utils.io import atomic_path
 
-    extras = {"inputs": "morph target weights = AU intensities (AU01..AU43); pose = 0",
-              "units_and_frame": "the release NPZ's (see its model card)", "source": source}
+    extras = {
+        "inputs": "morph target weights = AU intensities (AU01..AU43); pose = 0",
+        "units_and_frame": "the release NPZ's (see its model card)",
+        "source": source,
+    }
     with atomic_path(path, suffix=".glb") as tmp:
         tmp.write_bytes(glb_bytes(npz, extras=extras))
     return Path(path)

@@ -37,8 +37,17 @@ def ply_text(vertices: np.ndarray, triangles: np.ndarray, comment: str = "") -> 
         Written as ``comment`` header lines.
     """
     v, t = np.asarray(vertices, dtype=np.float64), np.asarray(triangles, dtype=np.int64)
-    header = ["ply", "format ascii 1.0", *(f"comment {line}" for line in comment.splitlines()),
-              f"element vertex {len(v)}", "property float x", "property float y", "property float z",
-              f"element face {len(t)}", "property list uchar int vertex_indices", "end_header"]
+    header = [
+        "ply",
+        "format ascii 1.0",
+        *(f"comment {line}" for line in comment.splitlines()),
+        f"element vertex {len(v)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        f"element face {len(t)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
     body = [f"{x:.6f} {y:.6f} {z:.6f}" for x, y, z in v] + [f"3 {i} {j} {k}" for i, j, k in t]
     return "\n".join(header + body) + "\n"

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, AU_NAMES, INPUT_COLUMNS, POSE_COLUMNS, N_VERTICES, unflatten_axis_major
+from aumesh.data.schema import AU_COLUMNS, AU_NAMES, INPUT_COLUMNS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
 from aumesh.geometry import face
 
 VIEWER_NAME = "viewer.html"
@@ -65,22 +65,33 @@ def find_node_modules(required: list[str], what: str) -> Path:
     FileNotFoundError
         Naming ``what`` was looked for, the places searched and the fix (``make tools``).
     """
-    candidates = [Path(os.environ[THREE_ENV]) if os.environ.get(THREE_ENV) else None,
-                  Path.cwd() / "node_modules", Path(__file__).resolve().parents[3] / "node_modules"]
+    candidates = [
+        Path(os.environ[THREE_ENV]) if os.environ.get(THREE_ENV) else None,
+        Path.cwd() / "node_modules",
+        Path(__file__).resolve().parents[3] / "node_modules",
+    ]
     searched = []
     for base in filter(None, candidates):
         searched.append(str(base))
         if all((base / name).is_file() for name in required):
             return base
-    raise FileNotFoundError(f"{what} not found in " + ", ".join(searched)
-                            + f". Fix: run `make tools` (npm ci) in the aumesh repository, or set {THREE_ENV} to a "
-                            "node_modules folder holding it.")
+    raise FileNotFoundError(
+        f"{what} not found in "
+        + ", ".join(searched)
+        + f". Fix: run `make tools` (npm ci) in the aumesh repository, or set {THREE_ENV} to a "
+        "node_modules folder holding it."
+    )
 
 
 def find_three() -> Path:
     """three.js's ``build/`` folder (:func:`find_node_modules`)."""
-    return find_node_modules(["three/build/three.module.js", "three/build/three.core.js"],
-                             "three.js (viewer.html inlines it; no CDN)") / "three" / "build"
+    return (
+        find_node_modules(
+            ["three/build/three.module.js", "three/build/three.core.js"], "three.js (viewer.html inlines it; no CDN)"
+        )
+        / "three"
+        / "build"
+    )
 
 
 def _data_url(text: str) -> str:
@@ -97,20 +108,27 @@ def module_urls(build: Path | None = None) -> dict[str, str]:
     build = build or find_three()
     module = (build / "three.module.js").read_text(encoding="utf-8")
     if _CORE_IMPORT not in module:
-        raise ValueError(f"{build / 'three.module.js'}: no import of {_CORE_IMPORT}; this three.js layout is not "
-                         "supported. Fix: install the version in package-lock.json (`make tools`).")
+        raise ValueError(
+            f"{build / 'three.module.js'}: no import of {_CORE_IMPORT}; this three.js layout is not "
+            "supported. Fix: install the version in package-lock.json (`make tools`)."
+        )
     core = (build / "three.core.js").read_text(encoding="utf-8")
     if "from './" in core:
         raise ValueError(f"{build / 'three.core.js'} imports other files; not supported. Fix: `make tools`.")
     orbit_path = build.parent / _ORBIT_FILE
     if not orbit_path.is_file():
-        raise FileNotFoundError(f"{orbit_path} not found (the viewer's orbit and zoom). Fix: `make tools` "
-                                "(npm ci) installs the whole 'three' package.")
+        raise FileNotFoundError(
+            f"{orbit_path} not found (the viewer's orbit and zoom). Fix: `make tools` "
+            "(npm ci) installs the whole 'three' package."
+        )
     orbit = orbit_path.read_text(encoding="utf-8")
     if re.search(r"""from\s*['"]\.""", orbit):
         raise ValueError(f"{orbit_path} imports relative files; only 'three' can be resolved. Fix: `make tools`.")
-    return {"three": _data_url(module.replace(_CORE_IMPORT, json.dumps(CORE_SPECIFIER))),
-            CORE_SPECIFIER: _data_url(core), ORBIT_SPECIFIER: _data_url(orbit)}
+    return {
+        "three": _data_url(module.replace(_CORE_IMPORT, json.dumps(CORE_SPECIFIER))),
+        CORE_SPECIFIER: _data_url(core),
+        ORBIT_SPECIFIER: _data_url(orbit),
+    }
 
 
 def script_json(value: Any) -> str:
@@ -131,6 +149,7 @@ def _b64(array: np.ndarray) -> str:
 
 def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
     """The card's numbers as (label, text) rows, from ``training_metadata`` (``model_card.json``); absent ones skipped."""
+
     def get(*keys):
         node: Any = metadata
         for k in keys:
@@ -149,8 +168,11 @@ def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
     if "r2_mean" in cv:
         add("CV R² (variance-weighted)", (cv["r2_mean"], cv.get("r2_std", float("nan"))), "{:.4f} ± {:.4f}")
     if "r2_displacement_mean" in cv:
-        add("CV R² of AU displacement", (cv["r2_displacement_mean"], cv.get("r2_displacement_std", float("nan"))),
-            "{:.4f} ± {:.4f}")
+        add(
+            "CV R² of AU displacement",
+            (cv["r2_displacement_mean"], cv.get("r2_displacement_std", float("nan"))),
+            "{:.4f} ± {:.4f}",
+        )
     add("CV MAE (px)", cv.get("mae_mean"), "{:.4f}")
     add("CV per-vertex error (px)", cv.get("vertex_error_mean"), "{:.4f}")
     add("folds", cv.get("r2_folds") and ", ".join(f"{v:.4f}" for v in cv["r2_folds"]))
@@ -188,7 +210,9 @@ def viewer_html(npz: Mapping[str, Any], source: str = "", modules: Mapping[str, 
     """
     columns = [str(c) for c in np.asarray(npz["input_columns"]).tolist()]
     if columns != list(INPUT_COLUMNS):
-        raise ValueError(f"{source or 'release'}: 'input_columns' is {columns}, expected the card's {list(INPUT_COLUMNS)}")
+        raise ValueError(
+            f"{source or 'release'}: 'input_columns' is {columns}, expected the card's {list(INPUT_COLUMNS)}"
+        )
     intercept = np.asarray(npz["intercept"], dtype=np.float32)
     base = unflatten_axis_major(intercept).astype(np.float64)
     metadata = json.loads(str(npz["training_metadata"])) if "training_metadata" in npz else {}
@@ -200,11 +224,17 @@ def viewer_html(npz: Mapping[str, Any], source: str = "", modules: Mapping[str, 
         limits["Yaw"] = round(float(np.radians(pose_filter["max_abs_yaw_deg"])), 2)
     data = {
         "n_vertices": N_VERTICES,
-        "input_columns": list(INPUT_COLUMNS), "au_columns": list(AU_COLUMNS), "pose_columns": list(POSE_COLUMNS),
-        "au_names": dict(AU_NAMES), "au_max": 1.0, "pose_limits": limits,
-        "intercept": _b64(intercept), "coef": _b64(npz["coef"]),
+        "input_columns": list(INPUT_COLUMNS),
+        "au_columns": list(AU_COLUMNS),
+        "pose_columns": list(POSE_COLUMNS),
+        "au_names": dict(AU_NAMES),
+        "au_max": 1.0,
+        "pose_limits": limits,
+        "intercept": _b64(intercept),
+        "coef": _b64(npz["coef"]),
         "triangles": face.outward_triangles(base, face.triangulate(base)).ravel().tolist(),
-        "card": card_rows(metadata), "source": f"release: {source}" if source else "",
+        "card": card_rows(metadata),
+        "source": f"release: {source}" if source else "",
     }
     if "coef_full" in npz:
         data["coef_full"] = _b64(npz["coef_full"])

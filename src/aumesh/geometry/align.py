@@ -53,7 +53,9 @@ def umeyama_batch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, n
     return rotation, scale, translation
 
 
-def apply_similarity(points: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray) -> np.ndarray:
+def apply_similarity(
+    points: np.ndarray, rotation: np.ndarray, scale: np.ndarray, translation: np.ndarray
+) -> np.ndarray:
     """``scale * points @ rotation.T + translation`` per frame; points shape (n_frames, n_points, 3)."""
     return scale[:, None, None] * np.einsum("fpj,fij->fpi", points, rotation) + translation[:, None, :]
 
@@ -63,9 +65,14 @@ def apply_similarity(points: np.ndarray, rotation: np.ndarray, scale: np.ndarray
 SIMILARITY_FRAMES = 64
 
 
-def apply_similarity_columns(columns: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
-                             translation: np.ndarray, frames: np.ndarray | None = None,
-                             out: np.ndarray | None = None) -> np.ndarray:
+def apply_similarity_columns(
+    columns: np.ndarray,
+    rotation: np.ndarray,
+    scale: np.ndarray,
+    translation: np.ndarray,
+    frames: np.ndarray | None = None,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """:func:`apply_similarity` on point sets stored one per column, axis-major, returned as rows.
 
     ``(scale R) p + t`` per point in float64: each frame's ``scale * R`` (3, 3) times its (3, n_points) coordinates
@@ -95,16 +102,35 @@ def apply_similarity_columns(columns: np.ndarray, rotation: np.ndarray, scale: n
     """
     n_coords = columns.shape[0]
     if frames is None:
-        return _moved_rows(lambda lo, hi: np.ascontiguousarray(columns[:, lo:hi].T).reshape(hi - lo, 3, -1),
-                           columns.shape[1], n_coords, rotation, scale, translation, out)
+        return _moved_rows(
+            lambda lo, hi: np.ascontiguousarray(columns[:, lo:hi].T).reshape(hi - lo, 3, -1),
+            columns.shape[1],
+            n_coords,
+            rotation,
+            scale,
+            translation,
+            out,
+        )
     # np.take's (n_coords, k) block is dense (rows of k values), so its transpose stays in cache
-    return _moved_rows(lambda lo, hi: np.take(columns, frames[lo:hi], axis=1).T.copy().reshape(hi - lo, 3, -1),
-                       len(frames), n_coords, rotation, scale, translation, out)
+    return _moved_rows(
+        lambda lo, hi: np.take(columns, frames[lo:hi], axis=1).T.copy().reshape(hi - lo, 3, -1),
+        len(frames),
+        n_coords,
+        rotation,
+        scale,
+        translation,
+        out,
+    )
 
 
-def apply_similarity_vertices(vertices: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
-                              translation: np.ndarray, frames: np.ndarray | None = None,
-                              out: np.ndarray | None = None) -> np.ndarray:
+def apply_similarity_vertices(
+    vertices: np.ndarray,
+    rotation: np.ndarray,
+    scale: np.ndarray,
+    translation: np.ndarray,
+    frames: np.ndarray | None = None,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """:func:`apply_similarity_columns` on point sets stored a frame per row, as a mesh ``.npy`` stores them.
 
     Each frame's points are transposed to (3, n_points) a few frames at a time, widened to at least float32 (exact),
@@ -127,20 +153,43 @@ def apply_similarity_vertices(vertices: np.ndarray, rotation: np.ndarray, scale:
     n_points = vertices.shape[1]
     dtype = np.promote_types(vertices.dtype, np.float32)
     if frames is None:
-        return _moved_rows(lambda lo, hi: np.ascontiguousarray(vertices[lo:hi].transpose(0, 2, 1), dtype=dtype),
-                           len(vertices), 3 * n_points, rotation, scale, translation, out)
-    return _moved_rows(lambda lo, hi: np.ascontiguousarray(vertices[frames[lo:hi]].transpose(0, 2, 1), dtype=dtype),
-                       len(frames), 3 * n_points, rotation, scale, translation, out)
+        return _moved_rows(
+            lambda lo, hi: np.ascontiguousarray(vertices[lo:hi].transpose(0, 2, 1), dtype=dtype),
+            len(vertices),
+            3 * n_points,
+            rotation,
+            scale,
+            translation,
+            out,
+        )
+    return _moved_rows(
+        lambda lo, hi: np.ascontiguousarray(vertices[frames[lo:hi]].transpose(0, 2, 1), dtype=dtype),
+        len(frames),
+        3 * n_points,
+        rotation,
+        scale,
+        translation,
+        out,
+    )
 
 
-def _moved_rows(points_of, n_frames: int, n_coords: int, rotation: np.ndarray, scale: np.ndarray,
-                translation: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+def _moved_rows(
+    points_of,
+    n_frames: int,
+    n_coords: int,
+    rotation: np.ndarray,
+    scale: np.ndarray,
+    translation: np.ndarray,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """``(scale R) p + t`` of frames ``lo:hi`` at a time, ``points_of(lo, hi)`` their (hi - lo, 3, n_points)
     points; returns (n_frames, n_coords) float64 axis-major rows (``out``, when given)."""
     if out is None:
         rows = np.empty((n_frames, n_coords))
     elif out.shape != (n_frames, n_coords) or out.dtype != np.float64 or not out.flags.c_contiguous:
-        raise ValueError(f"out must be C-contiguous float64 of shape {(n_frames, n_coords)}, got {out.dtype} {out.shape}")
+        raise ValueError(
+            f"out must be C-contiguous float64 of shape {(n_frames, n_coords)}, got {out.dtype} {out.shape}"
+        )
     else:
         rows = out
     for lo in range(0, n_frames, SIMILARITY_FRAMES):
@@ -205,7 +254,9 @@ def generalized_procrustes(anchors: np.ndarray, max_iter: int = 50, tol: float =
     """
     anchors = np.asarray(anchors, dtype=np.float64)
     if anchors.ndim != 3 or anchors.shape[0] == 0:
-        raise ValueError(f"generalized_procrustes needs (n_frames, n_anchors, 3) with n_frames > 0, got {anchors.shape}")
+        raise ValueError(
+            f"generalized_procrustes needs (n_frames, n_anchors, 3) with n_frames > 0, got {anchors.shape}"
+        )
     blocks = [anchors[lo : lo + GPA_BLOCK] for lo in range(0, len(anchors), GPA_BLOCK)]
     start = anchors.mean(axis=0)
     reference = start.copy()
@@ -276,7 +327,9 @@ def beyond_radius(flat: np.ndarray, centre: np.ndarray, radius: float) -> np.nda
     deviation = np.zeros(m)
     for axis in range(3):  # reductions only: no temporary of the block (NaN propagates through max and min)
         segment = flat[:, axis * n : (axis + 1) * n]
-        deviation = np.maximum(deviation, np.maximum(segment.max(axis=1) - centre[axis], centre[axis] - segment.min(axis=1)))
+        deviation = np.maximum(
+            deviation, np.maximum(segment.max(axis=1) - centre[axis], centre[axis] - segment.min(axis=1))
+        )
     far = ~(deviation <= radius)
     unsure = np.flatnonzero(~far & (deviation > radius / np.sqrt(3.0)))
     if len(unsure):

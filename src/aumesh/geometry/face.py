@@ -71,41 +71,140 @@ from aumesh.data.schema import N_VERTICES
 FOREHEAD_MIDLINE: tuple[int, ...] = (10, 151, 9, 8)  # top -> down
 NOSE_MIDLINE: tuple[int, ...] = (168, 6, 197, 195, 5, 4, 1)  # bridge -> tip
 # Right eye (subject's right): lower lid outer->inner, then upper lid inner->outer.
-EYE_CONTOUR_RIGHT: tuple[int, ...] = (33, 7, 163, 144, 145, 153, 154, 155, 133,
-                                      173, 157, 158, 159, 160, 161, 246)
-EYE_CONTOUR_LEFT: tuple[int, ...] = (263, 249, 390, 373, 374, 380, 381, 382, 362,
-                                     398, 384, 385, 386, 387, 388, 466)
+EYE_CONTOUR_RIGHT: tuple[int, ...] = (33, 7, 163, 144, 145, 153, 154, 155, 133, 173, 157, 158, 159, 160, 161, 246)
+EYE_CONTOUR_LEFT: tuple[int, ...] = (263, 249, 390, 373, 374, 380, 381, 382, 362, 398, 384, 385, 386, 387, 388, 466)
 BROW_UPPER_RIGHT: tuple[int, ...] = (70, 63, 105, 66, 107)  # outer -> inner
 BROW_LOWER_RIGHT: tuple[int, ...] = (46, 53, 52, 65, 55)
 BROW_UPPER_LEFT: tuple[int, ...] = (300, 293, 334, 296, 336)
 BROW_LOWER_LEFT: tuple[int, ...] = (276, 283, 282, 295, 285)
 # Lips: upper lip from right corner to left corner, then lower lip back.
-LIPS_OUTER: tuple[int, ...] = (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291,
-                               375, 321, 405, 314, 17, 84, 181, 91, 146)
-LIPS_INNER: tuple[int, ...] = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308,
-                               324, 318, 402, 317, 14, 87, 178, 88, 95)
+LIPS_OUTER: tuple[int, ...] = (
+    61,
+    185,
+    40,
+    39,
+    37,
+    0,
+    267,
+    269,
+    270,
+    409,
+    291,
+    375,
+    321,
+    405,
+    314,
+    17,
+    84,
+    181,
+    91,
+    146,
+)
+LIPS_INNER: tuple[int, ...] = (
+    78,
+    191,
+    80,
+    81,
+    82,
+    13,
+    312,
+    311,
+    310,
+    415,
+    308,
+    324,
+    318,
+    402,
+    317,
+    14,
+    87,
+    178,
+    88,
+    95,
+)
 CHIN_MIDLINE: tuple[int, ...] = (18, 200, 199, 175, 152)  # below lower lip -> bottom
 # Face oval, clockwise in the image starting at the forehead top (10) toward the
 # subject's left; 152 (chin bottom) is exactly half-way.
-FACE_OVAL: tuple[int, ...] = (10, 338, 297, 332, 284, 251, 389, 356, 454, 323, 361, 288,
-                              397, 365, 379, 378, 400, 377, 152, 148, 176, 149, 150, 136,
-                              172, 58, 132, 93, 234, 127, 162, 21, 54, 103, 67, 109)
+FACE_OVAL: tuple[int, ...] = (
+    10,
+    338,
+    297,
+    332,
+    284,
+    251,
+    389,
+    356,
+    454,
+    323,
+    361,
+    288,
+    397,
+    365,
+    379,
+    378,
+    400,
+    377,
+    152,
+    148,
+    176,
+    149,
+    150,
+    136,
+    172,
+    58,
+    132,
+    93,
+    234,
+    127,
+    162,
+    21,
+    54,
+    103,
+    67,
+    109,
+)
 IRIS_RIGHT: tuple[int, ...] = (468, 469, 470, 471, 472)  # centre first
 IRIS_LEFT: tuple[int, ...] = (473, 474, 475, 476, 477)
 
 LANDMARKS: dict[str, int] = {
-    "forehead_top": 10, "forehead": 151, "glabella_upper": 9, "glabella": 8,
-    "nose_bridge": 168, "nose_bridge_mid": 6, "nose_dorsum": 197, "nose_dorsum_low": 195,
-    "nose_above_tip": 5, "nose_tip_upper": 4, "nose_tip": 1, "subnasale": 2,
-    "eye_outer_right": 33, "eye_outer_left": 263, "eye_inner_right": 133, "eye_inner_left": 362,
-    "upper_lid_right": 159, "lower_lid_right": 145, "upper_lid_left": 386, "lower_lid_left": 374,
-    "iris_right": 468, "iris_left": 473,
-    "brow_inner_right": 107, "brow_outer_right": 70, "brow_inner_left": 336, "brow_outer_left": 300,
-    "lip_corner_right": 61, "lip_corner_left": 291, "upper_lip_top": 0, "lower_lip_bottom": 17,
-    "upper_lip_inner": 13, "lower_lip_inner": 14,
-    "chin": 152, "chin_upper": 18,
-    "cheek_right": 50, "cheek_left": 280,
-    "face_right": 234, "face_left": 454,
+    "forehead_top": 10,
+    "forehead": 151,
+    "glabella_upper": 9,
+    "glabella": 8,
+    "nose_bridge": 168,
+    "nose_bridge_mid": 6,
+    "nose_dorsum": 197,
+    "nose_dorsum_low": 195,
+    "nose_above_tip": 5,
+    "nose_tip_upper": 4,
+    "nose_tip": 1,
+    "subnasale": 2,
+    "eye_outer_right": 33,
+    "eye_outer_left": 263,
+    "eye_inner_right": 133,
+    "eye_inner_left": 362,
+    "upper_lid_right": 159,
+    "lower_lid_right": 145,
+    "upper_lid_left": 386,
+    "lower_lid_left": 374,
+    "iris_right": 468,
+    "iris_left": 473,
+    "brow_inner_right": 107,
+    "brow_outer_right": 70,
+    "brow_inner_left": 336,
+    "brow_outer_left": 300,
+    "lip_corner_right": 61,
+    "lip_corner_left": 291,
+    "upper_lip_top": 0,
+    "lower_lip_bottom": 17,
+    "upper_lip_inner": 13,
+    "lower_lip_inner": 14,
+    "chin": 152,
+    "chin_upper": 18,
+    "cheek_right": 50,
+    "cheek_left": 280,
+    "face_right": 234,
+    "face_left": 454,
 }
 
 REGIONS: dict[str, np.ndarray] = {
@@ -200,9 +299,17 @@ def _named_uv() -> dict[int, tuple[float, float]]:
     for idx, ti in zip(LIPS_INNER[11:], t9):
         p[idx] = (0.23 * ti, -0.73 - 0.015 * (1 - ti**2))
     # Nose base and cheeks: (right index, left index, |u|, v).
-    for r_i, l_i, u, v in ((48, 278, 0.11, -0.33), (64, 294, 0.15, -0.42), (98, 327, 0.10, -0.46),
-                           (116, 345, 0.62, -0.12), (117, 346, 0.48, -0.16), (123, 352, 0.60, -0.30),
-                           (50, 280, 0.36, -0.30), (187, 411, 0.50, -0.48), (205, 425, 0.34, -0.48)):
+    for r_i, l_i, u, v in (
+        (48, 278, 0.11, -0.33),
+        (64, 294, 0.15, -0.42),
+        (98, 327, 0.10, -0.46),
+        (116, 345, 0.62, -0.12),
+        (117, 346, 0.48, -0.16),
+        (123, 352, 0.60, -0.30),
+        (50, 280, 0.36, -0.30),
+        (187, 411, 0.50, -0.48),
+        (205, 425, 0.34, -0.48),
+    ):
         p[r_i] = (-u, v)
         p[l_i] = (u, v)
     return p
@@ -222,8 +329,7 @@ def _points_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
 def _depth(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Smooth face-depth function, z away from camera, inter-ocular units."""
     z = 0.55 * (u / 0.85) ** 2 + 0.25 * ((v + 0.15) / 1.1) ** 2  # rounded face
-    prof = np.where(v >= -0.42, np.clip((0.12 - v) / 0.54, 0.0, 1.0) ** 1.3,
-                    np.exp(-(((v + 0.42) / 0.07) ** 2)))
+    prof = np.where(v >= -0.42, np.clip((0.12 - v) / 0.54, 0.0, 1.0) ** 1.3, np.exp(-(((v + 0.42) / 0.07) ** 2)))
     width = 0.05 + 0.08 * prof
     z = z - 0.28 * prof * np.exp(-(u**2) / (2 * width**2))  # nose
     for cu in (-0.335, 0.335):
@@ -262,12 +368,18 @@ def mediapipe_triangles() -> np.ndarray | None:
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     edges = None
     for node in ast.walk(tree):
-        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
-                and node.target.id == "FACE_LANDMARKS_TESSELATION" and isinstance(node.value, ast.List)):
+        if (
+            isinstance(node, ast.AnnAssign)
+            and isinstance(node.target, ast.Name)
+            and node.target.id == "FACE_LANDMARKS_TESSELATION"
+            and isinstance(node.value, ast.List)
+        ):
             edges = np.array([[ast.literal_eval(a) for a in call.args] for call in node.value.elts], dtype=np.int64)
     if edges is None or edges.ndim != 2 or edges.shape[1] != 2 or len(edges) % 3:
-        raise RuntimeError(f"{path}: FACE_LANDMARKS_TESSELATION not found as a list of Connection(start, end) triples; "
-                           f"this mediapipe version is not supported (uninstall it to use the fallback template)")
+        raise RuntimeError(
+            f"{path}: FACE_LANDMARKS_TESSELATION not found as a list of Connection(start, end) triples; "
+            f"this mediapipe version is not supported (uninstall it to use the fallback template)"
+        )
     triples = edges.reshape(-1, 3, 2)
     if not np.array_equal(triples[:, :, 1], np.roll(triples[:, :, 0], -1, axis=1)):
         raise RuntimeError(f"{path}: FACE_LANDMARKS_TESSELATION is not a list of closed triangles")
@@ -296,8 +408,9 @@ def _harmonic_uv(named: dict[int, tuple[float, float]], edges: np.ndarray) -> np
     n = N_VERTICES
     i, j = np.concatenate([edges[:, 0], edges[:, 1]]), np.concatenate([edges[:, 1], edges[:, 0]])
     adjacency = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
-    laplacian = (coo_matrix((np.asarray(adjacency.sum(axis=1)).ravel(), (np.arange(n), np.arange(n))),
-                            shape=(n, n)) - adjacency).tocsr()
+    laplacian = (
+        coo_matrix((np.asarray(adjacency.sum(axis=1)).ravel(), (np.arange(n), np.arange(n))), shape=(n, n)) - adjacency
+    ).tocsr()
     fixed = np.array(sorted(named))
     free = np.setdiff1d(np.arange(n), fixed)
     isolated = free[np.asarray(adjacency[free].sum(axis=1)).ravel() == 0]

@@ -184,9 +184,7 @@ class CrossProducts:
             # the block makes them non-finite, so this checks every entry for free.
             if not (np.isfinite(np.diagonal(xtx)).all() and np.isfinite(yty).all()):
                 which = "X" if not np.isfinite(np.diagonal(xtx)).all() else "Y"
-                raise ValueError(
-                    f"Input {which} contains NaN or infinity (rows {start}..{stop - 1} of this chunk)."
-                )
+                raise ValueError(f"Input {which} contains NaN or infinity (rows {start}..{stop - 1} of this chunk).")
             self.xtx += xtx
             self.xty += xs.T @ ys
             self.sum_x += sum_x

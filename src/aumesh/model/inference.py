@@ -120,17 +120,23 @@ def check_release(arrays: Mapping[str, Any], where: str = "<release arrays>") ->
     """
     for key in REQUIRED_KEYS:
         if key not in arrays:
-            raise ReleaseError(f"{where}: missing key {key!r}; a release NPZ has {list(REQUIRED_KEYS)} "
-                               f"(see docs/conventions.md); this one has {sorted(arrays)}")
+            raise ReleaseError(
+                f"{where}: missing key {key!r}; a release NPZ has {list(REQUIRED_KEYS)} "
+                f"(see docs/conventions.md); this one has {sorted(arrays)}"
+            )
     cols = _names(arrays["input_columns"])
     coef, intercept = np.asarray(arrays["coef"]), np.asarray(arrays["intercept"])
     if coef.shape != (len(cols), N_TARGETS):
-        raise ReleaseError(f"{where}: 'coef' must be ({len(cols)}, {N_TARGETS}) (rows = input_columns), got {coef.shape}")
+        raise ReleaseError(
+            f"{where}: 'coef' must be ({len(cols)}, {N_TARGETS}) (rows = input_columns), got {coef.shape}"
+        )
     if intercept.shape != (N_TARGETS,):
         raise ReleaseError(f"{where}: 'intercept' must be ({N_TARGETS},), got {intercept.shape}")
     if np.asarray(arrays["mean_aligned_mesh"]).shape != (N_VERTICES, 3):
-        raise ReleaseError(f"{where}: 'mean_aligned_mesh' must be ({N_VERTICES}, 3), "
-                           f"got {np.asarray(arrays['mean_aligned_mesh']).shape}")
+        raise ReleaseError(
+            f"{where}: 'mean_aligned_mesh' must be ({N_VERTICES}, 3), "
+            f"got {np.asarray(arrays['mean_aligned_mesh']).shape}"
+        )
     missing = [a for a in _names(arrays["au_columns"]) if a not in cols]
     if missing:
         raise ReleaseError(f"{where}: 'input_columns' lacks the AUs {missing} of 'au_columns'")
@@ -139,12 +145,16 @@ def check_release(arrays: Mapping[str, Any], where: str = "<release arrays>") ->
             raise ReleaseError(f"{where}: 'coef_full' needs 'input_columns_full' (its row names)")
         full = _names(arrays["input_columns_full"])
         if np.asarray(arrays["coef_full"]).shape != (len(full), N_TARGETS):
-            raise ReleaseError(f"{where}: 'coef_full' must be ({len(full)}, {N_TARGETS}) (rows = input_columns_full), "
-                               f"got {np.asarray(arrays['coef_full']).shape}")
+            raise ReleaseError(
+                f"{where}: 'coef_full' must be ({len(full)}, {N_TARGETS}) (rows = input_columns_full), "
+                f"got {np.asarray(arrays['coef_full']).shape}"
+            )
     nonfinite = nonfinite_arrays(arrays)
     if nonfinite:
-        raise ReleaseError(f"{where}: {nonfinite}: a release must be finite (every mesh it predicts would be NaN/inf). "
-                           f"Fix: rebuild the release (`dvc repro -f evaluate release`), or use another release NPZ.")
+        raise ReleaseError(
+            f"{where}: {nonfinite}: a release must be finite (every mesh it predicts would be NaN/inf). "
+            f"Fix: rebuild the release (`dvc repro -f evaluate release`), or use another release NPZ."
+        )
 
 
 #: The arrays a prediction is computed from: a release is refused unless every value of them is finite.
@@ -160,8 +170,10 @@ def nonfinite_arrays(arrays: Mapping[str, Any], keys: tuple[str, ...] = FINITE_K
             bad = ~np.isfinite(a) if a.dtype.kind in "fc" else np.zeros(a.shape, bool)
             if bad.any():
                 first = np.unravel_index(int(np.argmax(bad)), a.shape)
-                return (f"{key!r} has {int(bad.sum()):,} NaN/inf value(s) of {a.size:,} "
-                        f"(first at index {first[0] if len(first) == 1 else tuple(int(i) for i in first)})")
+                return (
+                    f"{key!r} has {int(bad.sum()):,} NaN/inf value(s) of {a.size:,} "
+                    f"(first at index {first[0] if len(first) == 1 else tuple(int(i) for i in first)})"
+                )
     return None
 
 
@@ -196,8 +208,14 @@ class ColumnSelection:
         return [*self.inputs, *([self.face_score] if self.face_score else [])]
 
 
-def select_columns(columns: Iterable[Any], au_columns: Sequence[str] = AU_COLUMNS, *, strict: bool = False,
-                   pose_given: bool = False, what: str = "table") -> ColumnSelection:
+def select_columns(
+    columns: Iterable[Any],
+    au_columns: Sequence[str] = AU_COLUMNS,
+    *,
+    strict: bool = False,
+    pose_given: bool = False,
+    what: str = "table",
+) -> ColumnSelection:
     """Pick the model's input columns of a table by name, from its header alone.
 
     Parameters
@@ -232,20 +250,36 @@ def select_columns(columns: Iterable[Any], au_columns: Sequence[str] = AU_COLUMN
     present = [c for c in names if c in known]
     if strict or not others:
         if others:
-            raise _unknown_error(what, others, au_columns, present, fix="rename or drop them (missing AUs count as 0); "
-                                 "without strict (--strict), other columns are ignored")
+            raise _unknown_error(
+                what,
+                others,
+                au_columns,
+                present,
+                fix="rename or drop them (missing AUs count as 0); "
+                "without strict (--strict), other columns are ignored",
+            )
         _check_pose_complete(present, what)
         return ColumnSelection(False, tuple(present))
     missing = [a for a in au_columns if a not in present]
     if missing:
-        raise _missing_error(what, missing, others, f"all {len(au_columns)} AUs ({au_columns[0]} .. {au_columns[-1]})",
-                             "rename the column, or give only input columns (then missing AUs count as 0)")
+        raise _missing_error(
+            what,
+            missing,
+            others,
+            f"all {len(au_columns)} AUs ({au_columns[0]} .. {au_columns[-1]})",
+            "rename the column, or give only input columns (then missing AUs count as 0)",
+        )
     pose_missing = [p for p in POSE_COLUMNS if p not in present]
     if pose_missing:
         partial = len(pose_missing) < len(POSE_COLUMNS)
         if partial or (not pose_given and any(closest_name(p, others) for p in pose_missing)):
-            raise _missing_error(what, pose_missing, others, f"all of {', '.join(POSE_COLUMNS)} (radians) or none",
-                                 "rename the column, or drop every pose column (pose 0)")
+            raise _missing_error(
+                what,
+                pose_missing,
+                others,
+                f"all of {', '.join(POSE_COLUMNS)} (radians) or none",
+                "rename the column, or drop every pose column (pose 0)",
+            )
     face_score = FACE_SCORE_COLUMN if FACE_SCORE_COLUMN in names else None
     return ColumnSelection(True, tuple(present), face_score)
 
@@ -254,8 +288,9 @@ def _check_pose_complete(present: Sequence[str], what: str) -> None:
     named = [p for p in POSE_COLUMNS if p in present]
     if named and len(named) != len(POSE_COLUMNS):
         missing = [p for p in POSE_COLUMNS if p not in present]
-        raise PredictionInputError(f"{what}: has {named} but not {missing}; give all of "
-                                   f"{', '.join(POSE_COLUMNS)} (radians) or none (pose 0)")
+        raise PredictionInputError(
+            f"{what}: has {named} but not {missing}; give all of {', '.join(POSE_COLUMNS)} (radians) or none (pose 0)"
+        )
 
 
 def _key(name: Any) -> str:
@@ -302,18 +337,21 @@ def short_list(names: Sequence[str], n: int = 5) -> str:
     return f"[{', '.join(repr(x) for x in names[:n])}, ... ({len(names)} in all)]"
 
 
-def _unknown_error(what: str, unknown: Sequence[str], au_names: Sequence[str], present: Sequence[str],
-                   fix: str) -> PredictionInputError:
+def _unknown_error(
+    what: str, unknown: Sequence[str], au_names: Sequence[str], present: Sequence[str], fix: str
+) -> PredictionInputError:
     wanted = [c for c in (*au_names, *POSE_COLUMNS) if c not in present]
     hint = next(((u, m) for u in unknown if (m := closest_name(u, wanted))), None)
     meant = f" (did you mean {hint[1]!r} for {hint[0]!r}?)" if hint else ""
     return PredictionInputError(
         f"{what}: unknown name(s) {short_list(unknown)}; the model takes {', '.join(au_names)} "
-        f"and {', '.join(POSE_COLUMNS)} (radians){meant}. Fix: {fix}.")
+        f"and {', '.join(POSE_COLUMNS)} (radians){meant}. Fix: {fix}."
+    )
 
 
-def _missing_error(what: str, missing: Sequence[str], others: Sequence[str], needs: str,
-                   fix: str) -> PredictionInputError:
+def _missing_error(
+    what: str, missing: Sequence[str], others: Sequence[str], needs: str, fix: str
+) -> PredictionInputError:
     """One line: the first missing column that has a near miss in the table (else the first), and that near miss."""
     hint = next(((m, c) for m in missing if (c := closest_name(m, others))), None)
     name, meant = hint if hint else (missing[0], None)
@@ -321,12 +359,19 @@ def _missing_error(what: str, missing: Sequence[str], others: Sequence[str], nee
     near = f"did you mean {meant!r}?" if meant else "no column has a name close to it"
     return PredictionInputError(
         f"{what}: no column {name!r} ({near}){more}. A table with columns besides the model's inputs needs {needs}, "
-        f"by name. Fix: {fix}")
+        f"by name. Fix: {fix}"
+    )
 
 
 # --------------------------------------------------------------------------- inputs
-def input_rows(release: Release, aus: Any = None, pose: Any = None, *, strict: bool = False,
-               selection: ColumnSelection | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
+def input_rows(
+    release: Release,
+    aus: Any = None,
+    pose: Any = None,
+    *,
+    strict: bool = False,
+    selection: ColumnSelection | None = None,
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """AU and pose rows in the release's column order, checked (the inputs of :func:`predict_mesh`).
 
     Parameters
@@ -374,8 +419,10 @@ def input_rows(release: Release, aus: Any = None, pose: Any = None, *, strict: b
     elif isinstance(aus, Mapping):
         several = [str(k) for k, v in aus.items() if np.ndim(v) != 0]
         if several:
-            raise PredictionInputError(f"aus: the mapping's values must be single numbers (one row), not {several}; "
-                                       f"for many rows pass a DataFrame or an (N, {len(au_names)}) array")
+            raise PredictionInputError(
+                f"aus: the mapping's values must be single numbers (one row), not {several}; "
+                f"for many rows pass a DataFrame or an (N, {len(au_names)}) array"
+            )
         au, pose_from_aus = _from_names({k: [v] for k, v in aus.items()}, 1, au_names, "aus")
         single = True
     elif _is_dataframe(aus):
@@ -390,7 +437,8 @@ def input_rows(release: Release, aus: Any = None, pose: Any = None, *, strict: b
     if pose_from_aus is not None:
         if pose is not None:
             raise PredictionInputError(
-                f"pose given twice: aus has {', '.join(POSE_COLUMNS)} and pose= is set too. Fix: pass one of them.")
+                f"pose given twice: aus has {', '.join(POSE_COLUMNS)} and pose= is set too. Fix: pass one of them."
+            )
         pose_rows = pose_from_aus
     elif pose is None:
         pose_rows = np.zeros((len(au), 3))
@@ -402,8 +450,9 @@ def input_rows(release: Release, aus: Any = None, pose: Any = None, *, strict: b
     elif len(au) == 1:
         n = len(pose_rows)
     else:
-        raise PredictionInputError(f"aus has {len(au)} rows but pose has {len(pose_rows)}; "
-                                   f"give pose one row per AU row, or one row for all")
+        raise PredictionInputError(
+            f"aus has {len(au)} rows but pose has {len(pose_rows)}; give pose one row per AU row, or one row for all"
+        )
     no_face = _no_face(au, pose_rows if pose_in_input else None, face_score, n)
     _check_finite(au, au_names, "aus", no_face)
     _check_finite(pose_rows, list(POSE_COLUMNS), "pose", no_face)
@@ -429,8 +478,9 @@ def _is_dataframe(obj: Any) -> bool:
     return type(obj).__name__ == "DataFrame" and hasattr(obj, "columns") and hasattr(obj, "to_numpy")
 
 
-def _table_values(df: Any, selection: ColumnSelection, au_names: list[str],
-                  what: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+def _table_values(
+    df: Any, selection: ColumnSelection, au_names: list[str], what: str
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The selected columns of a DataFrame -> (N, 20) AUs (missing AUs 0), (N, 3) pose or None, FaceScore or None."""
     labels = {str(c): c for c in df.columns}
     absent = [c for c in selection.columns if c not in labels]
@@ -448,14 +498,21 @@ def _table_values(df: Any, selection: ColumnSelection, au_names: list[str],
     return au, pose, score
 
 
-def _from_names(columns: Mapping[Any, Any], n: int, au_names: list[str], what: str) -> tuple[np.ndarray, np.ndarray | None]:
+def _from_names(
+    columns: Mapping[Any, Any], n: int, au_names: list[str], what: str
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Named columns -> (N, 20) AUs (missing AUs are 0) and (N, 3) pose if any pose column is named."""
     known = set(au_names) | set(POSE_COLUMNS)
     names = [str(k) for k in columns]
     unknown = [k for k in names if k not in known]
     if unknown:
-        raise _unknown_error(what, unknown, au_names, [k for k in names if k in known],
-                             fix="rename or drop them (missing AUs count as 0)")
+        raise _unknown_error(
+            what,
+            unknown,
+            au_names,
+            [k for k in names if k in known],
+            fix="rename or drop them (missing AUs count as 0)",
+        )
     values = {str(k): _numeric(v, f"{what}[{str(k)!r}]") for k, v in columns.items()}
     _check_pose_complete(list(values), what)
     au = np.zeros((n, len(au_names)))
@@ -479,13 +536,15 @@ def _from_array(aus: Any, au_names: list[str]) -> tuple[np.ndarray, np.ndarray |
     try:
         a = np.asarray(aus, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise PredictionInputError(f"aus: not numeric ({exc}); pass an array, a mapping {{'AU12': 1.0}} "
-                                   f"or a DataFrame with named columns") from exc
+        raise PredictionInputError(
+            f"aus: not numeric ({exc}); pass an array, a mapping {{'AU12': 1.0}} or a DataFrame with named columns"
+        ) from exc
     n_au, n_in = len(au_names), len(au_names) + len(POSE_COLUMNS)
     if a.ndim not in (1, 2) or a.shape[-1] not in (n_au, n_in):
         raise PredictionInputError(
             f"aus has shape {a.shape}; expected ({n_au},) or (N, {n_au}) in the release's AU order "
-            f"[{', '.join(au_names)}], or ({n_in},) / (N, {n_in}) with {', '.join(POSE_COLUMNS)} (radians) appended")
+            f"[{', '.join(au_names)}], or ({n_in},) / (N, {n_in}) with {', '.join(POSE_COLUMNS)} (radians) appended"
+        )
     single = a.ndim == 1
     a = a.reshape(-1, a.shape[-1])
     if a.shape[1] == n_in:
@@ -498,16 +557,18 @@ def _pose_array(pose: Any) -> tuple[np.ndarray, bool]:
         unknown = [str(k) for k in pose if str(k) not in POSE_COLUMNS]
         missing = [p for p in POSE_COLUMNS if p not in pose]
         if unknown or missing:
-            raise PredictionInputError(f"pose: keys must be {list(POSE_COLUMNS)} (radians); "
-                                       f"unknown {unknown}, missing {missing}")
+            raise PredictionInputError(
+                f"pose: keys must be {list(POSE_COLUMNS)} (radians); unknown {unknown}, missing {missing}"
+            )
         pose = [pose[p] for p in POSE_COLUMNS]
     try:
         p = np.asarray(pose, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise PredictionInputError(f"pose: not numeric ({exc}); pass {', '.join(POSE_COLUMNS)} in radians") from exc
     if p.ndim not in (1, 2) or p.shape[-1] != len(POSE_COLUMNS):
-        raise PredictionInputError(f"pose has shape {p.shape}; expected (3,) or (N, 3): "
-                                   f"{', '.join(POSE_COLUMNS)} in radians, in that order")
+        raise PredictionInputError(
+            f"pose has shape {p.shape}; expected (3,) or (N, 3): {', '.join(POSE_COLUMNS)} in radians, in that order"
+        )
     return p.reshape(-1, 3), p.ndim == 1
 
 
@@ -530,7 +591,8 @@ def _check_finite(values: np.ndarray, names: list[str], what: str, no_face: np.n
         raise PredictionInputError(
             f"{what}: {int(bad.sum())} NaN/inf value(s), first in {names[col]!r} at row {row}. A frame without a face "
             f"has every AU and pose value NaN (or FaceScore 0) and gets a NaN mesh; this row is only partly NaN. "
-            f"Fix: fill or drop it")
+            f"Fix: fill or drop it"
+        )
 
 
 def _check_radians(pose: np.ndarray) -> None:
@@ -541,7 +603,8 @@ def _check_radians(pose: np.ndarray) -> None:
     if biggest[j] > MAX_ABS_POSE_RAD:
         raise PredictionInputError(
             f"pose: {POSE_COLUMNS[j]} reaches {biggest[j]:g}, more than pi/2: pose looks like degrees. "
-            f"Pose is in radians, in the order {', '.join(POSE_COLUMNS)}. Fix: np.deg2rad(pose)")
+            f"Pose is in radians, in the order {', '.join(POSE_COLUMNS)}. Fix: np.deg2rad(pose)"
+        )
 
 
 def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refuse: bool) -> None:
@@ -554,9 +617,12 @@ def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refus
     if refuse:
         raise PredictionInputError(
             f"{where}: py-feat's AU intensities, and the model's, are 0..1 (0..5 is OpenFace's scale). "
-            f"Fix: divide the AU columns by 5")
-    _warn(f"{where}, beyond the 0..1 scale the model was trained on (py-feat's); the mesh is an extrapolation "
-          f"(OpenFace's 0..5 AUs: divide by 5)")
+            f"Fix: divide the AU columns by 5"
+        )
+    _warn(
+        f"{where}, beyond the 0..1 scale the model was trained on (py-feat's); the mesh is an extrapolation "
+        f"(OpenFace's 0..5 AUs: divide by 5)"
+    )
 
 
 def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
@@ -580,7 +646,11 @@ def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
         if isinstance(meta, dict):
             pose_filter = ((meta.get("config") or {}).get("preprocess") or {}).get("pose_filter") or {}
     if pose_filter.get("max_abs_pitch_deg") is not None and pose_filter.get("max_abs_yaw_deg") is not None:
-        pitch, yaw, source = pose_filter["max_abs_pitch_deg"], pose_filter["max_abs_yaw_deg"], "the release's pose filter"
+        pitch, yaw, source = (
+            pose_filter["max_abs_pitch_deg"],
+            pose_filter["max_abs_yaw_deg"],
+            "the release's pose filter",
+        )
     else:
         from aumesh.config import PoseFilterConfig  # the card's defaults, one place
 
@@ -603,9 +673,11 @@ def _warn_pose_range(pose: np.ndarray, face: np.ndarray, release: Release) -> No
     row, j = (int(i) for i in np.argwhere(beyond)[0])
     name, value = POSE_COLUMNS[j], pose[row, j]
     rows = int(beyond.any(axis=1).sum())
-    _warn(f"pose: {name} = {value:.3g} rad ({np.rad2deg(value):.1f} deg) at row {row} is beyond the training range "
-          f"|{name}| <= {np.rad2deg(limits[name]):g} deg ({source}; {rows} row(s) beyond): "
-          f"the mesh there is an extrapolation")
+    _warn(
+        f"pose: {name} = {value:.3g} rad ({np.rad2deg(value):.1f} deg) at row {row} is beyond the training range "
+        f"|{name}| <= {np.rad2deg(limits[name]):g} deg ({source}; {rows} row(s) beyond): "
+        f"the mesh there is an extrapolation"
+    )
 
 
 def _warn(message: str) -> None:
@@ -742,6 +814,21 @@ def _column(values: Mapping[str, np.ndarray], name: str) -> np.ndarray:
     raise ReleaseError(f"release column {name!r} is neither an input ({', '.join(values)}) nor a product 'Pose*AU'")
 
 
-__all__ = ["AU_SCALE_MAX", "FACE_SCORE_COLUMN", "MAX_ABS_POSE_RAD", "ColumnSelection", "InputRangeWarning",
-           "PredictionInputError", "ReleaseError", "check_release", "input_rows", "load_release", "predict_mesh",
-           "closest_name", "predict_rows", "select_columns", "short_list", "training_pose_limits"]
+__all__ = [
+    "AU_SCALE_MAX",
+    "FACE_SCORE_COLUMN",
+    "MAX_ABS_POSE_RAD",
+    "ColumnSelection",
+    "InputRangeWarning",
+    "PredictionInputError",
+    "ReleaseError",
+    "check_release",
+    "input_rows",
+    "load_release",
+    "predict_mesh",
+    "closest_name",
+    "predict_rows",
+    "select_columns",
+    "short_list",
+    "training_pose_limits",
+]

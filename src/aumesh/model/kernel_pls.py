@@ -150,9 +150,20 @@ def fit_statistics(stats: CrossProducts, n_components: int, scale: bool) -> PLSF
     coef = np.zeros((q, p))
     for a in range(A):
         coef += np.multiply.outer(Qr[:, a], Rr[:, a])
-    return PLSFit(x_weights_=W, x_loadings_=P, y_loadings_=Q, x_rotations_=R, coef_=coef, x_mean_=x_mean,
-                  y_mean_=y_mean, x_std_=x_std, y_std_=y_std, raw_intercept_=y_mean - x_mean @ coef.T,
-                  n_components_=n_informative, n_samples_=n)
+    return PLSFit(
+        x_weights_=W,
+        x_loadings_=P,
+        y_loadings_=Q,
+        x_rotations_=R,
+        coef_=coef,
+        x_mean_=x_mean,
+        y_mean_=y_mean,
+        x_std_=x_std,
+        y_std_=y_std,
+        raw_intercept_=y_mean - x_mean @ coef.T,
+        n_components_=n_informative,
+        n_samples_=n,
+    )
 
 
 def coefficient_path(fit) -> np.ndarray:

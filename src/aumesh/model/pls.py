@@ -31,9 +31,7 @@ __all__ = ["PLSRegression"]
 # --------------------------------------------------------------------------- #
 # PLS estimator
 # --------------------------------------------------------------------------- #
-class PLSRegression(
-    ClassNamePrefixFeaturesOutMixin, TransformerMixin, RegressorMixin, MultiOutputMixin, BaseEstimator
-):
+class PLSRegression(ClassNamePrefixFeaturesOutMixin, TransformerMixin, RegressorMixin, MultiOutputMixin, BaseEstimator):
     """PLS regression (PLS2) fitted exactly from sufficient statistics.
 
     Drop-in for :class:`sklearn.cross_decomposition.PLSRegression` (NIPALS,

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import FEATURE_SETS, AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 from aumesh.card.markdown import md_code, md_text
+from aumesh.data.schema import AU_COLUMNS, FEATURE_SETS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
 
 NPZ_NAME = "au_to_mesh_pls.npz"
@@ -37,8 +37,8 @@ FRAME_TEXT = (
     "mean face size)."
 )
 POSE_TEXT = (
-    "Pose at render time: `R = Rotation.from_euler(\"xyz\", [pitch, yaw, roll]).as_matrix(); posed = mesh @ R.T` "
-    "(SciPy's lowercase \"xyz\" is extrinsic: R = Rz Ry Rx). In this frame positive yaw turns the nose toward the "
+    'Pose at render time: `R = Rotation.from_euler("xyz", [pitch, yaw, roll]).as_matrix(); posed = mesh @ R.T` '
+    '(SciPy\'s lowercase "xyz" is extrinsic: R = Rz Ry Rx). In this frame positive yaw turns the nose toward the '
     "subject's left (+x), positive pitch tips the nose down (-y), positive roll raises the subject's left eye "
     "(counter-clockwise as seen from the front)."
 )
@@ -53,8 +53,15 @@ def load_npz(path: str | Path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
-def release_arrays(coef: np.ndarray, intercept: np.ndarray, feature_columns: list[str], n_components: int,
-                   reference: dict[str, np.ndarray], card_text: str, metadata: dict[str, Any]) -> dict[str, np.ndarray]:
+def release_arrays(
+    coef: np.ndarray,
+    intercept: np.ndarray,
+    feature_columns: list[str],
+    n_components: int,
+    reference: dict[str, np.ndarray],
+    card_text: str,
+    metadata: dict[str, Any],
+) -> dict[str, np.ndarray]:
     """The NPZ's arrays, exactly the card's keys and dtypes (+ ``coef_full`` when trained with interactions).
 
     Every geometric array is expressed in the card's canonical frame (x subject's left, y up, z out of the
@@ -112,9 +119,9 @@ TARGET_WORDS = {
     "absolute": "absolute aligned coordinates, pooled over all frames (the card's recipe)",
     "neutral": "aligned coordinates minus each video's neutral mesh ({method}); the AUs stay absolute",
     "within": "design and mesh demeaned per video (fixed effects: only how a face moves within its own video); "
-              "released with the population intercept, mean mesh - mean design @ coef",
+    "released with the population intercept, mean mesh - mean design @ coef",
     "within_neutral": "design and mesh minus the mean of each video's neutral ({method}) frames; released with the "
-                      "population intercept, mean mesh - mean design @ coef",
+    "population intercept, mean mesh - mean design @ coef",
 }
 
 TARGETS_NOTE = (
@@ -130,13 +137,19 @@ TARGETS_NOTE = (
 
 def reliability_section(cv: dict[str, Any]) -> list[str]:
     """Card section: each AU's field reliability (cosine between fields fitted on different folds)."""
-    lines = ["## AU-field reliability", "",
-             "Cosine between each AU's displacement field fitted on each cross-validation fold alone (disjoint videos; "
-             "mean over fold pairs; 1 = every subset of videos agrees). No ground truth needed: it says how far to "
-             "trust each AU's field.", "",
-             f"- median over AUs {cv['au_reliability_median']:.3f}, worst {cv['au_reliability_min']:.3f}"
-             + (f"; {cv['n_aus_facs_pass']} of 20 AUs pass the FACS direction check" if "n_aus_facs_pass" in cv else ""),
-             "", "| AU | reliability |", "|---|---:|"]
+    lines = [
+        "## AU-field reliability",
+        "",
+        "Cosine between each AU's displacement field fitted on each cross-validation fold alone (disjoint videos; "
+        "mean over fold pairs; 1 = every subset of videos agrees). No ground truth needed: it says how far to "
+        "trust each AU's field.",
+        "",
+        f"- median over AUs {cv['au_reliability_median']:.3f}, worst {cv['au_reliability_min']:.3f}"
+        + (f"; {cv['n_aus_facs_pass']} of 20 AUs pass the FACS direction check" if "n_aus_facs_pass" in cv else ""),
+        "",
+        "| AU | reliability |",
+        "|---|---:|",
+    ]
     lines += [f"| {au} | {value:.3f} |" for au, value in cv["au_reliability"].items()]
     return lines + [""]
 
@@ -150,18 +163,28 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
     """The card's lines on py-feat's rows (the ingest stage): no-face rows, other faces, units."""
     if "rows_in" not in counts:
         return []
-    lines = [f"- py-feat rows read: {counts['rows_in']:,} from {counts.get('tables_in', 0):,} table(s); frames without a face "
-             f"(py-feat's no-face rows) dropped: {counts['dropped_no_face']:,}{_share(counts, 'dropped_no_face')}"]
+    lines = [
+        f"- py-feat rows read: {counts['rows_in']:,} from {counts.get('tables_in', 0):,} table(s); frames without a face "
+        f"(py-feat's no-face rows) dropped: {counts['dropped_no_face']:,}{_share(counts, 'dropped_no_face')}"
+    ]
     if counts.get("frames_with_several_faces"):
         how = data_cfg.get("face_selection", "largest")
         rule = {"largest": "the largest face box kept", "identity": "py-feat's Identity of the video's subject kept"}
-        lines.append(f"- Frames with several faces: {counts['frames_with_several_faces']:,} ({md_text(rule.get(how, how))}; "
-                     f"{counts['dropped_extra_faces']:,} other face rows dropped"
-                     + (f", {counts['dropped_frames_without_subject']:,} frames without the subject dropped"
-                        if counts.get("dropped_frames_without_subject") else "") + ")")
+        lines.append(
+            f"- Frames with several faces: {counts['frames_with_several_faces']:,} ({md_text(rule.get(how, how))}; "
+            f"{counts['dropped_extra_faces']:,} other face rows dropped"
+            + (
+                f", {counts['dropped_frames_without_subject']:,} frames without the subject dropped"
+                if counts.get("dropped_frames_without_subject")
+                else ""
+            )
+            + ")"
+        )
     if counts.get("rows_converted_from_normalized"):
-        lines.append(f"- Mesh units: {counts['rows_converted_from_normalized']:,} frames converted from normalized image "
-                     f"units to pixels (x, z by FrameWidth, y by FrameHeight)")
+        lines.append(
+            f"- Mesh units: {counts['rows_converted_from_normalized']:,} frames converted from normalized image "
+            f"units to pixels (x, z by FrameWidth, y by FrameHeight)"
+        )
     else:
         lines.append("- Mesh units: image pixels, as recorded")
     return lines
@@ -173,18 +196,35 @@ def _runs_lines(card: dict[str, Any]) -> list[str]:
     build = (card.get("runs") or {}).get("build") or card.get("mlflow") or {}
     p = card.get("promotion")
     where = f" in {md_code(build['tracking_uri'])}" if build.get("tracking_uri") else ""
-    lines = ["## Runs", "", "This release names two MLflow runs: the one that chose its configuration and the one that "
-             "built its arrays." if p else "This release was built by one MLflow run; no promotion chose its "
-             "configuration (conf/'s own; `aumesh promote` records one).", ""]
+    lines = [
+        "## Runs",
+        "",
+        "This release names two MLflow runs: the one that chose its configuration and the one that built its arrays."
+        if p
+        else "This release was built by one MLflow run; no promotion chose its "
+        "configuration (conf/'s own; `aumesh promote` records one).",
+        "",
+    ]
     if p:
-        registered = (f"; registered as {md_code(p['registered_model'])} version {md_text(p.get('model_version'))}"
-                      + (f" ({md_code('@' + str(p['alias']))})" if p.get("alias") else "") if p.get("registered_model") else "")
-        lines += [f"- **Promoted run** {md_code(p.get('run_id'))}" + (f" ({md_text(p['run_name'])})" if p.get("run_name") else "")
-                  + f" of sweep {md_code(p.get('parent_run_id'))}: how the configuration was chosen. "
-                  f"Criterion: {md_text(p.get('criterion'))}" + registered + ".",
-                  f"  Compared: {md_text(p.get('compared', ''))}"]
-    lines += [f"- **Build run** {md_code(build.get('run_id'))}" + (f" ({md_text(build['run_name'])})" if build.get("run_name") else "")
-              + f"{where}: the evaluate run of `dvc repro` that produced these exact arrays and the numbers above.", ""]
+        registered = (
+            f"; registered as {md_code(p['registered_model'])} version {md_text(p.get('model_version'))}"
+            + (f" ({md_code('@' + str(p['alias']))})" if p.get("alias") else "")
+            if p.get("registered_model")
+            else ""
+        )
+        lines += [
+            f"- **Promoted run** {md_code(p.get('run_id'))}"
+            + (f" ({md_text(p['run_name'])})" if p.get("run_name") else "")
+            + f" of sweep {md_code(p.get('parent_run_id'))}: how the configuration was chosen. "
+            f"Criterion: {md_text(p.get('criterion'))}" + registered + ".",
+            f"  Compared: {md_text(p.get('compared', ''))}",
+        ]
+    lines += [
+        f"- **Build run** {md_code(build.get('run_id'))}"
+        + (f" ({md_text(build['run_name'])})" if build.get("run_name") else "")
+        + f"{where}: the evaluate run of `dvc repro` that produced these exact arrays and the numbers above.",
+        "",
+    ]
     return lines
 
 
@@ -218,19 +258,32 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         # numbers, booleans: typed by the configuration's schema (aumesh.config), printed as they are
         f"- Pose-filtered to |yaw| <= {pre['pose_filter']['max_abs_yaw_deg']} deg, |pitch| <= {pre['pose_filter']['max_abs_pitch_deg']} deg: "
         f"{counts['dropped_pose']:,} frames dropped{_share(counts, 'dropped_pose')}",
-        *([f"- Wild values (a vertex beyond {pre['alignment']['max_vertex_iod']:g} inter-ocular distances after "
-           f"alignment, a corrupt export): {counts['dropped_wild_values']:,} frames dropped"
-           f"{_share(counts, 'dropped_wild_values')}"] if "dropped_wild_values" in counts else []),
+        *(
+            [
+                f"- Wild values (a vertex beyond {pre['alignment']['max_vertex_iod']:g} inter-ocular distances after "
+                f"alignment, a corrupt export): {counts['dropped_wild_values']:,} frames dropped"
+                f"{_share(counts, 'dropped_wild_values')}"
+            ]
+            if "dropped_wild_values" in counts
+            else []
+        ),
         f"- Per-frame Umeyama similarity Procrustes onto a GPA reference of anchors {list(pre['alignment']['anchor_indices'])}; "
         f"frames above the {pre['alignment']['outlier_quantile']:.0%} quantile of max anchor residual dropped: "
         f"{counts['dropped_alignment_outliers']:,}{_share(counts, 'dropped_alignment_outliers')} "
         f"(threshold {counts['alignment_residual_threshold']:.3g})",
         f"- Videos with no frames left (dropped): {counts['videos_dropped_no_frames_left']}"
         f"{_share(counts, 'videos_dropped_no_frames_left')}",
-        *([f"- **Constant inputs**: {md_text(', '.join(f'{c} = {v:g}' for c, v in constant.items()))} in every "
-           f"training frame: the data cannot say what they do, so the model learned nothing from them "
-           f"(their coefficients are exactly 0)"] if constant else []),
-        f"- Target: **{md_text(pre['target'])}**: " + TARGET_WORDS[pre["target"]].format(method=md_text(pre["neutral"]["method"])),
+        *(
+            [
+                f"- **Constant inputs**: {md_text(', '.join(f'{c} = {v:g}' for c, v in constant.items()))} in every "
+                f"training frame: the data cannot say what they do, so the model learned nothing from them "
+                f"(their coefficients are exactly 0)"
+            ]
+            if constant
+            else []
+        ),
+        f"- Target: **{md_text(pre['target'])}**: "
+        + TARGET_WORDS[pre["target"]].format(method=md_text(pre["neutral"]["method"])),
         "",
         TARGETS_NOTE,
         "",
@@ -238,15 +291,24 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         f"- `PLSRegression(n_components={card['model']['n_components']}, scale={model['scale']})` (aumesh's exact kernel-PLS engine)",
         f"- Inputs for training: {inputs} = {card['model']['n_features']} features"
-        + (f", of which {len(dead)} have no variance in the training data (constant inputs, or products with an input "
-           f"that is 0 in every frame) and carry no information: {card['model']['n_features'] - len(dead)} "
-           f"informative" if dead else "")
+        + (
+            f", of which {len(dead)} have no variance in the training data (constant inputs, or products with an input "
+            f"that is 0 in every frame) and carry no information: {card['model']['n_features'] - len(dead)} "
+            f"informative"
+            if dead
+            else ""
+        )
         + "; released `coef`: 23 rows (AU + pose)"
         + ("; full design in `coef_full` / `input_columns_full`" if interactions else ""),
-        *(["- **Pose was not learned**: Pitch, Yaw and Roll were constant in the training data, so every pose and "
-           "pose x AU coefficient is 0; a pose given at inference does not change the mesh, and the pose-conditioned "
-           "claims above (pose covariates, interactions) do not hold for this release"]
-          if pose and dead and not degenerate.get("pose_learned", True) else []),
+        *(
+            [
+                "- **Pose was not learned**: Pitch, Yaw and Roll were constant in the training data, so every pose and "
+                "pose x AU coefficient is 0; a pose given at inference does not change the mesh, and the pose-conditioned "
+                "claims above (pose covariates, interactions) do not hold for this release"
+            ]
+            if pose and dead and not degenerate.get("pose_learned", True)
+            else []
+        ),
         "",
         f"## Out-of-sample performance ({cfg['cv']['n_splits']}-fold GroupKFold by {md_text(cfg['cv']['group'])})",
         "",
@@ -254,10 +316,14 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "|---|---|---|---|",
         f"| variance-weighted R² ({md_text(pre['target'])} target) | {cv['r2_mean']:.4f} | {cv['r2_std']:.4f} | {folds} |",
         f"| R² of AU-driven displacement from neutral | {cv['r2_displacement_mean']:.4f} | {cv['r2_displacement_std']:.4f} | "
-        + ", ".join(f"{v:.4f}" for v in cv["r2_displacement_folds"]) + " |",
-        f"| MAE (px) | {cv['mae_mean']:.4f} | {cv['mae_std']:.4f} | " + ", ".join(f"{v:.4f}" for v in cv["mae_folds"]) + " |",
+        + ", ".join(f"{v:.4f}" for v in cv["r2_displacement_folds"])
+        + " |",
+        f"| MAE (px) | {cv['mae_mean']:.4f} | {cv['mae_std']:.4f} | "
+        + ", ".join(f"{v:.4f}" for v in cv["mae_folds"])
+        + " |",
         f"| mean per-vertex Euclidean error (px) | {cv['vertex_error_mean']:.4f} | {cv['vertex_error_std']:.4f} | "
-        + ", ".join(f"{v:.4f}" for v in cv["vertex_error_folds"]) + " |",
+        + ", ".join(f"{v:.4f}" for v in cv["vertex_error_folds"])
+        + " |",
         "",
     ]
     if "au_reliability" in cv:
@@ -266,7 +332,11 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
     if directions_table:
         lines += ["## AU directions (FACS check)", "", directions_table, ""]
     if figures:
-        lines += ["## Figures", ""] + [f"![{md_text(Path(f).stem)}](figures/{_url_path(Path(f).name)})" for f in figures] + [""]
+        lines += (
+            ["## Figures", ""]
+            + [f"![{md_text(Path(f).stem)}](figures/{_url_path(Path(f).name)})" for f in figures]
+            + [""]
+        )
     lines += [
         "## Inference",
         "",
@@ -287,10 +357,12 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         "## Provenance",
         "",
-        f"- code: git {md_code(card['provenance'].get('git_commit'))}" + (" (dirty)" if card["provenance"].get("dirty") else ""),
+        f"- code: git {md_code(card['provenance'].get('git_commit'))}"
+        + (" (dirty)" if card["provenance"].get("dirty") else ""),
         f"- data: {md_code(data['digest'].get('md5'))}",
         f"- MLflow build run: {md_code(card['mlflow'].get('run_id'))} ({md_text(card['mlflow'].get('tracking_uri'))}"
-        + (f", experiment {md_text(card['mlflow']['experiment'])}" if card["mlflow"].get("experiment") else "") + ")"
+        + (f", experiment {md_text(card['mlflow']['experiment'])}" if card["mlflow"].get("experiment") else "")
+        + ")"
         + (f"; promoted run: {md_code(card['promotion'].get('run_id'))}" if card.get("promotion") else ""),
         "- libraries: " + ", ".join(f"{md_text(k)} {md_text(v)}" for k, v in card["libraries"].items() if v),
         "",

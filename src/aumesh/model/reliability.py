@@ -49,5 +49,8 @@ def field_cosines(coefs: np.ndarray, rows: np.ndarray) -> np.ndarray:
 def summarize(cosines: np.ndarray, names: list[str]) -> dict:
     """``au_reliability_min``, ``au_reliability_median`` and the per-AU table ``au_reliability`` {name: cosine}."""
     cosines = np.asarray(cosines, dtype=np.float64)
-    return {"au_reliability_min": float(cosines.min()), "au_reliability_median": float(np.median(cosines)),
-            "au_reliability": {n: float(c) for n, c in zip(names, cosines)}}
+    return {
+        "au_reliability_min": float(cosines.min()),
+        "au_reliability_median": float(np.median(cosines)),
+        "au_reliability": {n: float(c) for n, c in zip(names, cosines)},
+    }

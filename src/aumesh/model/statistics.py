@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aumesh.model.features import design_matrix
-from aumesh.model.cross_products import CrossProducts
 from aumesh.data.schema import N_TARGETS, feature_columns
+from aumesh.model.cross_products import CrossProducts
+from aumesh.model.features import design_matrix
 
 FULL_DESIGN = feature_columns(True, True)
 
@@ -64,7 +64,7 @@ def fold_order(fold: np.ndarray, n_splits: int) -> tuple[np.ndarray | None, np.n
     return order, bounds
 
 
-def video_indicator(video: np.ndarray) -> tuple[np.ndarray, "scipy.sparse.csr_matrix"]:
+def video_indicator(video: np.ndarray) -> tuple[np.ndarray, scipy.sparse.csr_matrix]:
     """The chunk's distinct videos and a sparse (n_distinct, m) 0/1 matrix: per-video row sums as one product."""
     import scipy.sparse as sp  # here, not at import: config and the CLI import this module for TARGETS
 
@@ -187,7 +187,7 @@ class DesignSums:
             self.squares[:, f] += np.einsum("ij,ij->j", Yf, Yf)
             self.n[f] += hi - lo
 
-    def __add__(self, other: "DesignSums") -> "DesignSums":
+    def __add__(self, other: DesignSums) -> DesignSums:
         out = DesignSums(self.p, self.q, self.K)
         for name in ("cross", "squares", "xtx", "sum_x", "n"):
             setattr(out, name, getattr(self, name) + getattr(other, name))
@@ -209,8 +209,15 @@ class DesignSums:
         return out
 
 
-def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray, n_videos: int, fold: np.ndarray,
-                      n_splits: int, mesh_chunks) -> DesignStatistics:
+def accumulate_design(
+    au: np.ndarray,
+    pose: np.ndarray,
+    video_index: np.ndarray,
+    n_videos: int,
+    fold: np.ndarray,
+    n_splits: int,
+    mesh_chunks,
+) -> DesignStatistics:
     """Pass A over ``mesh_chunks`` (iterable of ``(rows, Y)``, ``Y`` float64 (m, 1434), may be overwritten).
 
     Parameters
@@ -239,9 +246,13 @@ def accumulate_design(au: np.ndarray, pose: np.ndarray, video_index: np.ndarray,
         sums.add(X, Y, fold[rows])
     video_fold = np.full(n_videos, -1, dtype=np.int64)
     video_fold[video_index] = fold
-    return DesignStatistics(folds=sums.folds(a, b), video_fold=video_fold,
-                            video_count=np.bincount(video_index, minlength=n_videos),
-                            video_sum_x=video_sum_x, video_sum_y=video_sum_y)
+    return DesignStatistics(
+        folds=sums.folds(a, b),
+        video_fold=video_fold,
+        video_count=np.bincount(video_index, minlength=n_videos),
+        video_sum_x=video_sum_x,
+        video_sum_y=video_sum_y,
+    )
 
 
 def subset(stats: CrossProducts, columns: np.ndarray) -> CrossProducts:
@@ -275,13 +286,22 @@ class VideoMoments:
     ced: np.ndarray  # (p, q) sum c_v e_v d_v^T
 
     @classmethod
-    def of(cls, count, sum_x, sum_y, d, e) -> "VideoMoments":
+    def of(cls, count, sum_x, sum_y, d, e) -> VideoMoments:
         """Moments of a block of videos: count (k,), sum_x (k, p), sum_y (k, q), d (k, q), e (k, p)."""
         ce_rows = count[:, None] * e
-        return cls(cd=count @ d, ud=sum_x.T @ d, wd=np.einsum("vj,vj->j", sum_y, d), cdd=np.einsum("v,vj,vj->j", count, d, d),
-                   ce=count @ e, ue=sum_x.T @ e, cee=e.T @ ce_rows, ew=e.T @ sum_y, ced=ce_rows.T @ d)
+        return cls(
+            cd=count @ d,
+            ud=sum_x.T @ d,
+            wd=np.einsum("vj,vj->j", sum_y, d),
+            cdd=np.einsum("v,vj,vj->j", count, d, d),
+            ce=count @ e,
+            ue=sum_x.T @ e,
+            cee=e.T @ ce_rows,
+            ew=e.T @ sum_y,
+            ced=ce_rows.T @ d,
+        )
 
-    def __add__(self, other: "VideoMoments") -> "VideoMoments":
+    def __add__(self, other: VideoMoments) -> VideoMoments:
         return VideoMoments(**{k: getattr(self, k) + getattr(other, k) for k in self.__dataclass_fields__})
 
 
@@ -300,7 +320,9 @@ def neutral_subtracted(stats: CrossProducts, m: VideoMoments) -> CrossProducts:
 def displacement(stats: CrossProducts, m: VideoMoments) -> CrossProducts:
     """Statistics of ``(x - xbar_v, y - n_v)``: the AU-driven displacement from each video's neutral (unshifted)."""
     y_part = neutral_subtracted(stats, m)
-    out = CrossProducts(stats.n_features, stats.n_targets, x_shift=np.zeros(stats.n_features), y_shift=np.zeros(stats.n_targets))
+    out = CrossProducts(
+        stats.n_features, stats.n_targets, x_shift=np.zeros(stats.n_features), y_shift=np.zeros(stats.n_targets)
+    )
     out.n = stats.n
     out.sum_x = stats.sum_x - m.ce
     out.xtx = stats.xtx - m.ue - m.ue.T + m.cee  # sum (x - a - e_v)(x - a - e_v)^T
@@ -319,19 +341,32 @@ TARGETS = {
 }
 
 
-def _moments(design: DesignStatistics, idx: np.ndarray, videos: np.ndarray, d_of, e_of, video_block: int) -> VideoMoments:
+def _moments(
+    design: DesignStatistics, idx: np.ndarray, videos: np.ndarray, d_of, e_of, video_block: int
+) -> VideoMoments:
     """:class:`VideoMoments` of ``videos`` in blocks; ``d_of(v)`` (k, q) and ``e_of(v)`` (k, p) give the shifted centres."""
     moments = None
     for lo in range(0, len(videos), video_block):
         v = videos[lo : lo + video_block]
-        block = VideoMoments.of(design.video_count[v].astype(np.float64), design.video_sum_x[v][:, idx],
-                                design.video_sum_y[v], d_of(v), e_of(v))
+        block = VideoMoments.of(
+            design.video_count[v].astype(np.float64),
+            design.video_sum_x[v][:, idx],
+            design.video_sum_y[v],
+            d_of(v),
+            e_of(v),
+        )
         moments = block if moments is None else moments + block
     return moments
 
 
-def configuration_statistics(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,
-                             neutral_design_full: np.ndarray, video_block: int = 256) -> tuple[list[CrossProducts], list[CrossProducts]]:
+def configuration_statistics(
+    design: DesignStatistics,
+    columns: list[str],
+    target: str,
+    neutral: np.ndarray,
+    neutral_design_full: np.ndarray,
+    video_block: int = 256,
+) -> tuple[list[CrossProducts], list[CrossProducts]]:
     """Per-fold (target, displacement) statistics of one configuration, from the design statistics
     (:func:`fold_configuration_statistics` of every fold, in order).
 
@@ -348,22 +383,36 @@ def configuration_statistics(design: DesignStatistics, columns: list[str], targe
         at 256; a block of 2,048 cost the evaluate stage ~110 MiB at 30k videos but ~50 at 2.9k, so its memory grew
         with the frames until a fold held 2,048 videos)
     """
-    per_fold = [fold_configuration_statistics(design, f, columns, target, neutral, neutral_design_full, video_block)
-                for f in range(len(design.folds))]
+    per_fold = [
+        fold_configuration_statistics(design, f, columns, target, neutral, neutral_design_full, video_block)
+        for f in range(len(design.folds))
+    ]
     return [t for t, _ in per_fold], [d for _, d in per_fold]
 
 
-def fold_configuration_statistics(design: DesignStatistics, fold: int, columns: list[str], target: str,
-                                  neutral: np.ndarray, neutral_design_full: np.ndarray,
-                                  video_block: int = 256) -> tuple[CrossProducts, CrossProducts]:
+def fold_configuration_statistics(
+    design: DesignStatistics,
+    fold: int,
+    columns: list[str],
+    target: str,
+    neutral: np.ndarray,
+    neutral_design_full: np.ndarray,
+    video_block: int = 256,
+) -> tuple[CrossProducts, CrossProducts]:
     """Fold ``fold``'s (target, displacement) statistics (:func:`configuration_statistics`); the folds are independent,
     so a caller may compute them at once."""
     if target not in TARGETS:
         raise ValueError(f"preprocess.target={target!r}: use one of {', '.join(TARGETS)}")
     idx = np.array([FULL_DESIGN.index(c) for c in columns])
     videos = np.flatnonzero(design.video_fold == fold)
-    moments = _moments(design, idx, videos, lambda v: np.asarray(neutral[v], dtype=np.float64) - design.y_shift,
-                       lambda v: neutral_design_full[v][:, idx] - design.x_shift[idx], video_block)
+    moments = _moments(
+        design,
+        idx,
+        videos,
+        lambda v: np.asarray(neutral[v], dtype=np.float64) - design.y_shift,
+        lambda v: neutral_design_full[v][:, idx] - design.x_shift[idx],
+        video_block,
+    )
     sub = subset(design.folds[fold], idx)
     disp = displacement(sub, moments)
     if target == "absolute":
@@ -373,13 +422,20 @@ def fold_configuration_statistics(design: DesignStatistics, fold: int, columns: 
     if target == "within_neutral":
         return disp, disp
     # within: each video's own means, d_v = w_v / c_v, e_v = u_v / c_v
-    own = _moments(design, idx, videos, lambda v: design.video_sum_y[v] / _count(design, v),
-                   lambda v: design.video_sum_x[v][:, idx] / _count(design, v), video_block)
+    own = _moments(
+        design,
+        idx,
+        videos,
+        lambda v: design.video_sum_y[v] / _count(design, v),
+        lambda v: design.video_sum_x[v][:, idx] / _count(design, v),
+        video_block,
+    )
     return displacement(sub, own), disp
 
 
-def target_offsets(design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray,
-                   neutral_design_full: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+def target_offsets(
+    design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray, neutral_design_full: np.ndarray
+) -> tuple[np.ndarray | None, np.ndarray | None]:
     """What each video's rows subtract in ``target``'s space: ``(x_offset, y_offset)``.
 
     Returns

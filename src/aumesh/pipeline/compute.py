@@ -30,9 +30,10 @@ import logging
 import os
 import sys
 import uuid
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 from aumesh.config import ComputeConfig
 from aumesh.utils.errors import ClusterError, ConfigError, UserError
@@ -159,16 +160,20 @@ def _connect(cfg: ComputeConfig):
     try:
         client = Client(cfg.address, timeout=cfg.connect_timeout, set_as_default=False)
     except Exception as err:  # OSError (timed out, refused), ValueError (no port), or a peer that is no scheduler
-        raise ClusterError(f"{where}: cannot connect to a Dask scheduler there ({_first_line(err)}). "
-                           f"Fix: start one (`make cluster`, or `dask scheduler` and `dask worker ADDRESS`) or correct "
-                           f"the address, or {_local_fix()}; {timeout} sets the wait.") from None
+        raise ClusterError(
+            f"{where}: cannot connect to a Dask scheduler there ({_first_line(err)}). "
+            f"Fix: start one (`make cluster`, or `dask scheduler` and `dask worker ADDRESS`) or correct "
+            f"the address, or {_local_fix()}; {timeout} sets the wait."
+        ) from None
     try:
         client.wait_for_workers(1, timeout=cfg.connect_timeout)
     except Exception:
         _close(client, quiet=True)
-        raise ClusterError(f"{where}: the scheduler has no worker (none joined within {cfg.connect_timeout:g} s). "
-                           f"Fix: start workers (`dask worker {cfg.address}`, or `make cluster`), or {_local_fix()}; "
-                           f"{timeout} sets the wait.") from None
+        raise ClusterError(
+            f"{where}: the scheduler has no worker (none joined within {cfg.connect_timeout:g} s). "
+            f"Fix: start workers (`dask worker {cfg.address}`, or `make cluster`), or {_local_fix()}; "
+            f"{timeout} sets the wait."
+        ) from None
     return client
 
 
@@ -218,13 +223,17 @@ def _distributed(cfg: ComputeConfig, dask, read: str | Path | None, write: str |
         from distributed.scheduler import KilledWorker
 
         if isinstance(err, KilledWorker):
-            raise ClusterError(f"{where}: a task ended its worker's process {dask.config.get('distributed.scheduler.allowed-failures', 3) + 1} "
-                               f"times ({_first_line(err)}), likely its memory limit. Fix: see the workers' logs; give "
-                               "them more memory (`dask worker --memory-limit`) or lower data.chunk_rows and "
-                               "compute.partition_rows. The previous outputs stand.") from None
-        raise ClusterError(f"{where}: lost the Dask scheduler during the run ({_first_line(err)}). Fix: restart the "
-                           f"scheduler and its workers and run again, or {_local_fix()}. The previous outputs "
-                           "stand.") from None
+            raise ClusterError(
+                f"{where}: a task ended its worker's process {dask.config.get('distributed.scheduler.allowed-failures', 3) + 1} "
+                f"times ({_first_line(err)}), likely its memory limit. Fix: see the workers' logs; give "
+                "them more memory (`dask worker --memory-limit`) or lower data.chunk_rows and "
+                "compute.partition_rows. The previous outputs stand."
+            ) from None
+        raise ClusterError(
+            f"{where}: lost the Dask scheduler during the run ({_first_line(err)}). Fix: restart the "
+            f"scheduler and its workers and run again, or {_local_fix()}. The previous outputs "
+            "stand."
+        ) from None
     finally:
         _close(client, quiet=failed)
 
@@ -285,8 +294,9 @@ def check_workers(client, read: str | Path | None, write: str | Path | None) -> 
         expected = None
     results = client.run(_probe, read, write, token, on_error="return")
     try:
-        problems = (_probe_problem(worker, result, read, write, expected, token)
-                    for worker, result in sorted(results.items()))
+        problems = (
+            _probe_problem(worker, result, read, write, expected, token) for worker, result in sorted(results.items())
+        )
         problem = next((p for p in problems if p), None)
     finally:
         for result in results.values():
@@ -296,18 +306,27 @@ def check_workers(client, read: str | Path | None, write: str | Path | None) -> 
         raise ClusterError(problem)
 
 
-def _probe_problem(worker: str, result: Any, read: str | None, write: str | None,
-                   expected: tuple[int, str] | None, token: str) -> str | None:
+def _probe_problem(
+    worker: str, result: Any, read: str | None, write: str | None, expected: tuple[int, str] | None, token: str
+) -> str | None:
     """What a worker's probe found wrong (:func:`_probe`), as the one line to print; None: nothing."""
     if isinstance(result, BaseException):  # the probe did not run: no aumesh there, or another version of it
-        return (f"worker {worker} cannot run aumesh's probe ({_first_line(result)}): every worker must run the aumesh "
-                f"of this workspace. Fix: start the workers from the project's environment (.venv/bin/dask worker).")
+        return (
+            f"worker {worker} cannot run aumesh's probe ({_first_line(result)}): every worker must run the aumesh "
+            f"of this workspace. Fix: start the workers from the project's environment (.venv/bin/dask worker)."
+        )
     if "read_error" in result:
         return _unseen(worker, "read", read, result["read_error"])
     if expected is not None and tuple(result["read"]) != expected:
         size = result["read"][0]
-        return _unseen(worker, "read", read, f"another file there: {size} bytes, here {expected[0]}" if size != expected[0]
-                       else "another file there: other bytes")
+        return _unseen(
+            worker,
+            "read",
+            read,
+            f"another file there: {size} bytes, here {expected[0]}"
+            if size != expected[0]
+            else "another file there: other bytes",
+        )
     if "write_error" in result:
         return _unseen(worker, "write into", write, result["write_error"])
     if write is not None and not _written_by_probe(Path(write) / result["wrote"], token):
@@ -324,9 +343,11 @@ def _written_by_probe(path: Path, token: str) -> bool:
 
 def _unseen(worker: str, verb: str, path: str, cause: str) -> str:
     folder = path if verb == "write into" else os.path.dirname(path)
-    return (f"worker {worker} cannot {verb} {path} ({cause}): the folder {folder} must be on a filesystem every worker "
-            f"sees at the same path. Fix: start the workers where the workspace is mounted at that path (README, "
-            f"\"Scale out\"), or {_local_fix()}.")
+    return (
+        f"worker {worker} cannot {verb} {path} ({cause}): the folder {folder} must be on a filesystem every worker "
+        f"sees at the same path. Fix: start the workers where the workspace is mounted at that path (README, "
+        f'"Scale out"), or {_local_fix()}.'
+    )
 
 
 #: Arrow's allocator, read once, when pyarrow first allocates (so it is set before pyarrow is imported).
@@ -380,8 +401,11 @@ def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
         if cfg.scheduler == "processes":
             pool = settings["pool"] = _process_pool(settings["num_workers"])
         with dask.config.set(settings):
-            log.info("compute: dask %s scheduler%s", cfg.scheduler,
-                     f", {settings['num_workers']} workers" if "num_workers" in settings else "")
+            log.info(
+                "compute: dask %s scheduler%s",
+                cfg.scheduler,
+                f", {settings['num_workers']} workers" if "num_workers" in settings else "",
+            )
             yield
     finally:
         if pool is not None:

@@ -43,19 +43,31 @@ import pyarrow.parquet as pq
 from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
-from aumesh.utils.errors import ConfigError, UserError
-from aumesh.pipeline import compute, integrity
-from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, PREPARED_FILES, REFERENCE_FILE,
-                                            SUMMARY_FILE, VIDEO_IDS_FILE)
-from aumesh.utils.io import NpyRowFile, NpyRows, absolute, create_npy, read_rows, scratch_directory, write_rows
-from aumesh.model.features import design_matrix
-from aumesh.model.cross_products import CrossProducts
+from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 from aumesh.model import reliability
+from aumesh.model.cross_products import CrossProducts
+from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
-from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, DesignSums, fold_configuration_statistics, fold_order, \
-    VideoSumStream, target_offsets
-from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
+from aumesh.model.statistics import (
+    FULL_DESIGN,
+    DesignStatistics,
+    DesignSums,
+    VideoSumStream,
+    fold_configuration_statistics,
+    fold_order,
+    target_offsets,
+)
+from aumesh.pipeline import compute, integrity
+from aumesh.pipeline.prepared_files import (
+    FRAMES_FILE,
+    MESHES_FILE,
+    NEUTRAL_FILES,
+    PREPARED_FILES,
+    VIDEO_IDS_FILE,
+)
+from aumesh.utils.errors import ConfigError, UserError
+from aumesh.utils.io import NpyRowFile, NpyRows, absolute, create_npy, read_rows, scratch_directory, write_rows
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +91,7 @@ class Prepared:
         return pd.read_parquet(self.directory / FRAMES_FILE)
 
     @cached_property
-    def videos(self) -> "VideoFrames":
+    def videos(self) -> VideoFrames:
         """Per-video frame counts and row groups (one pass over two columns of ``frames.parquet``)."""
         return video_frames(self.directory, self.row_groups(), len(self.video_ids))
 
@@ -125,10 +137,14 @@ def _read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np
     read at once and then copied twice, were the largest step of a task that grew with the partition (the error pass's
     task at 3.1M frames: 35 -> 21 MiB above the trimmed heap with this and its reused block buffers)."""
     with pq.ParquetFile(directory / FRAMES_FILE) as parquet:
+
         def column(name: str) -> np.ndarray:
             # one thread: the partitions already run on every core (as aumesh.data.tables reads the tables)
-            return parquet.read_row_group(group, columns=[name], use_threads=False).column(0).to_numpy(
-                zero_copy_only=False)
+            return (
+                parquet.read_row_group(group, columns=[name], use_threads=False)
+                .column(0)
+                .to_numpy(zero_copy_only=False)
+            )
 
         n_rows = parquet.metadata.row_group(group).num_rows
         au, pose = np.empty((n_rows, len(AU_COLUMNS))), np.empty((n_rows, len(POSE_COLUMNS)))
@@ -154,7 +170,9 @@ class VideoFrames:
         return self.first_group != self.last_group
 
 
-def _video_frames_partition(group: tuple[int, int, int], directory: Path) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+def _video_frames_partition(
+    group: tuple[int, int, int], directory: Path
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     """``(row group, videos, frames, low-AU frames)`` of one row group of ``frames.parquet``."""
     g = group[0]
     t = pq.ParquetFile(directory / FRAMES_FILE).read_row_group(g, columns=["video_index", "low_au"], use_threads=False)
@@ -194,7 +212,6 @@ class _LazyArrays(Mapping):
 
 
 def load_prepared(prepared_dir: str | Path) -> Prepared:
-    import json
 
     d = Path(prepared_dir)
     missing = [n for n in PREPARED_FILES if not (d / n).exists()]
@@ -260,14 +277,22 @@ class CVResult:
         maem, maes = ms(self.mae_folds)
         vem, ves = ms(self.vertex_error_folds)
         return {
-            "r2_mean": r2m, "r2_std": r2s, "r2_folds": [float(v) for v in self.r2_folds],
-            "r2_displacement_mean": dm, "r2_displacement_std": ds,
+            "r2_mean": r2m,
+            "r2_std": r2s,
+            "r2_folds": [float(v) for v in self.r2_folds],
+            "r2_displacement_mean": dm,
+            "r2_displacement_std": ds,
             "r2_displacement_folds": [float(v) for v in self.r2_displacement_folds],
-            "mae_mean": maem, "mae_std": maes, "mae_folds": [float(v) for v in self.mae_folds],
-            "vertex_error_mean": vem, "vertex_error_std": ves, "vertex_error_folds": [float(v) for v in self.vertex_error_folds],
+            "mae_mean": maem,
+            "mae_std": maes,
+            "mae_folds": [float(v) for v in self.mae_folds],
+            "vertex_error_mean": vem,
+            "vertex_error_std": ves,
+            "vertex_error_folds": [float(v) for v in self.vertex_error_folds],
             "n_components": self.n_components,
             "n_features": len(self.feature_columns),
-            "n_frames_folds": self.n_frames_folds, "n_videos_folds": self.n_videos_folds,
+            "n_frames_folds": self.n_frames_folds,
+            "n_videos_folds": self.n_videos_folds,
         } | self.field_metrics()
 
     def field_metrics(self) -> dict:
@@ -305,9 +330,15 @@ def log_clipping(cfg: Config, handle) -> None:
     not only in the card."""
     k = effective_n_components(cfg)
     if k != cfg.model.n_components:
-        log.warning("model.n_components=%d clipped to %d, the number of features of features=%s "
-                    "(model.clip_n_components=true)", cfg.model.n_components, k, cfg.features.name)
-        handle.set_tags({"aumesh.n_components_clipped": f"{cfg.model.n_components} -> {k} (features={cfg.features.name})"})
+        log.warning(
+            "model.n_components=%d clipped to %d, the number of features of features=%s (model.clip_n_components=true)",
+            cfg.model.n_components,
+            k,
+            cfg.features.name,
+        )
+        handle.set_tags(
+            {"aumesh.n_components_clipped": f"{cfg.model.n_components} -> {k} (features={cfg.features.name})"}
+        )
 
 
 def video_folds(video_count: np.ndarray, n_splits: int) -> np.ndarray:
@@ -332,8 +363,9 @@ def video_folds(video_count: np.ndarray, n_splits: int) -> np.ndarray:
     """
     present = np.flatnonzero(np.asarray(video_count) > 0)
     if len(present) < n_splits:
-        raise ConfigError(f"cv.n_splits={n_splits} but only {len(present)} videos are left after filtering. "
-                          "Fix: lower cv.n_splits.")
+        raise ConfigError(
+            f"cv.n_splits={n_splits} but only {len(present)} videos are left after filtering. Fix: lower cv.n_splits."
+        )
     sizes = np.asarray(video_count)[present]
     fold = np.full(len(video_count), -1, dtype=np.int64)
     heap = [(0, f) for f in range(n_splits)]
@@ -351,7 +383,7 @@ class DesignPart:
     sums: DesignSums
     split: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # video -> (sum x - a, sum y - b, low-AU sum x - a)
 
-    def __add__(self, other: "DesignPart") -> "DesignPart":
+    def __add__(self, other: DesignPart) -> DesignPart:
         split = dict(self.split)
         for v, parts in other.split.items():
             split[v] = tuple(a + b for a, b in zip(split[v], parts)) if v in split else parts
@@ -373,8 +405,9 @@ def block_rows(chunk_rows: int) -> int:
     return min(BLOCK_ROWS, compute.task_rows(chunk_rows))
 
 
-def _fold_grouped_block(meshes: NpyRowFile, raw: np.ndarray, lo: int, hi: int, start: int, fold: np.ndarray,
-                        n_splits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fold_grouped_block(
+    meshes: NpyRowFile, raw: np.ndarray, lo: int, hi: int, start: int, fold: np.ndarray, n_splits: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh rows ``lo:hi`` grouped by fold (a stable order: rows of a fold, and of a video, keep their order), read
     run by run in that order so the block is never copied to reorder it.
 
@@ -394,8 +427,17 @@ def _fold_grouped_block(meshes: NpyRowFile, raw: np.ndarray, lo: int, hi: int, s
     return order + (lo - start), bounds, meshes.take(order + lo, raw)
 
 
-def design_partition(group: tuple[int, int, int], directory: Path, video_fold: np.ndarray, a: np.ndarray, b: np.ndarray,
-                     n_splits: int, chunk_rows: int, scratch: Path, split_video: np.ndarray) -> DesignPart:
+def design_partition(
+    group: tuple[int, int, int],
+    directory: Path,
+    video_fold: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    n_splits: int,
+    chunk_rows: int,
+    scratch: Path,
+    split_video: np.ndarray,
+) -> DesignPart:
     """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
     coordinates (shifted by ``a``, ``b``), and the per-video sums; those of videos held whole by this
     partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned."""
@@ -416,13 +458,16 @@ def design_partition(group: tuple[int, int, int], directory: Path, video_fold: n
                 values[k][:] = total
             else:
                 finished[name][v] = total
+
         return store
 
     # per-video sums while a video has rows to come in this partition (not a row per video of the partition: ~12 MiB
     # a task at 3.1M frames), the same float64 additions as a dense array's
-    streams = {"video_sum_x": VideoSumStream(video, done("video_sum_x")),
-               "video_sum_y": VideoSumStream(video, done("video_sum_y")),
-               "video_low_sum_x": VideoSumStream(video[low], done("video_low_sum_x"))}
+    streams = {
+        "video_sum_x": VideoSumStream(video, done("video_sum_x")),
+        "video_sum_y": VideoSumStream(video, done("video_sum_y")),
+        "video_low_sum_x": VideoSumStream(video[low], done("video_low_sum_x")),
+    }
     raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
     centred = np.empty(raw.shape)  # the block's rows minus b, float64 (allocated once a task, as raw)
     with ExitStack() as stack:
@@ -479,25 +524,43 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     videos = prepared.videos
     first = min(BLOCK_ROWS, prepared.n_frames)
     head = _head(prepared, first)
-    a = design_matrix(head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64),
-                      True, True).mean(axis=0)
+    a = design_matrix(
+        head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64), True, True
+    ).mean(axis=0)
     b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
     scratch = scratch_directory(scratch_path(prepared.directory))
     try:
         for name, width in VIDEO_SUMS.items():
             create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
-        part = compute.map_reduce(partial(design_partition, directory=prepared.directory, video_fold=video_fold, a=a, b=b,
-                                          n_splits=n_splits, chunk_rows=block_rows(chunk_rows), scratch=scratch,
-                                          split_video=videos.split),
-                                  DesignPart.__add__, prepared.row_groups(), desc="evaluate: statistics")
+        part = compute.map_reduce(
+            partial(
+                design_partition,
+                directory=prepared.directory,
+                video_fold=video_fold,
+                a=a,
+                b=b,
+                n_splits=n_splits,
+                chunk_rows=block_rows(chunk_rows),
+                scratch=scratch,
+                split_video=videos.split,
+            ),
+            DesignPart.__add__,
+            prepared.row_groups(),
+            desc="evaluate: statistics",
+        )
         for v, values in part.split.items():
             for name, row in zip(VIDEO_SUMS, values):
                 write_rows(scratch / f"{name}.npy", v, row[None])
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
         raise
-    design = DesignStatistics(folds=part.sums.folds(a, b), video_fold=video_fold, video_count=videos.count,
-                              video_sum_x=NpyRows(scratch / "video_sum_x.npy"), video_sum_y=NpyRows(scratch / "video_sum_y.npy"))
+    design = DesignStatistics(
+        folds=part.sums.folds(a, b),
+        video_fold=video_fold,
+        video_count=videos.count,
+        video_sum_x=NpyRows(scratch / "video_sum_x.npy"),
+        video_sum_y=NpyRows(scratch / "video_sum_y.npy"),
+    )
     design.neutral_design = {  # mean design row of each video's neutral frames, per neutral method
         "low_au": NeutralDesign(NpyRows(scratch / "video_low_sum_x.npy"), videos.low_count, a),
         "mean": NeutralDesign(design.video_sum_x, design.video_count, a),
@@ -508,12 +571,19 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
 
 def _head(prepared: Prepared, n: int) -> pd.DataFrame:
     """The first ``n`` rows of ``frames.parquet`` (AU and pose columns)."""
-    batches = pq.ParquetFile(prepared.directory / FRAMES_FILE).iter_batches(batch_size=n, columns=[*AU_COLUMNS, *POSE_COLUMNS])
+    batches = pq.ParquetFile(prepared.directory / FRAMES_FILE).iter_batches(
+        batch_size=n, columns=[*AU_COLUMNS, *POSE_COLUMNS]
+    )
     return next(batches).to_pandas().iloc[:n]
 
 
-def accumulate(prepared: Prepared, cfg: Config, video_fold: np.ndarray, chunk_rows: int | None = None,
-               design: DesignStatistics | None = None) -> FoldStatistics:
+def accumulate(
+    prepared: Prepared,
+    cfg: Config,
+    video_fold: np.ndarray,
+    chunk_rows: int | None = None,
+    design: DesignStatistics | None = None,
+) -> FoldStatistics:
     """Per-fold (target, displacement) statistics of ``cfg``'s features and target; ``video_fold`` (n_videos,)
     is each video's fold (:func:`video_folds`).
 
@@ -526,15 +596,24 @@ def accumulate(prepared: Prepared, cfg: Config, video_fold: np.ndarray, chunk_ro
         raise ValueError("accumulate: the design statistics were built with other folds")
     method = cfg.preprocess.neutral.method
     # the folds' statistics are independent: at once on this machine's cores (single-threaded BLAS each: the same bits)
-    per_fold = compute.local_map(partial(fold_configuration_statistics, design, columns=cfg.features.columns,
-                                         target=cfg.preprocess.target, neutral=prepared.neutral[method],
-                                         neutral_design_full=design.neutral_design[method]),
-                                 range(cfg.cv.n_splits))
+    per_fold = compute.local_map(
+        partial(
+            fold_configuration_statistics,
+            design,
+            columns=cfg.features.columns,
+            target=cfg.preprocess.target,
+            neutral=prepared.neutral[method],
+            neutral_design_full=design.neutral_design[method],
+        ),
+        range(cfg.cv.n_splits),
+    )
     target, displacement = [t for t, _ in per_fold], [d for _, d in per_fold]
-    x_offset, y_offset = target_offsets(design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method],
-                                        design.neutral_design[method])
-    return FoldStatistics(target=target, displacement=displacement, video_fold=video_fold, x_offset=x_offset,
-                          y_offset=y_offset)
+    x_offset, y_offset = target_offsets(
+        design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method], design.neutral_design[method]
+    )
+    return FoldStatistics(
+        target=target, displacement=displacement, video_fold=video_fold, x_offset=x_offset, y_offset=y_offset
+    )
 
 
 def _one_blas_thread():
@@ -577,8 +656,9 @@ def fit_models(cfg: Config, stats: FoldStatistics) -> Fits:
     return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
 
 
-def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, fold_models: list[PLSFit],
-                   chunk_rows: int | None = None) -> CVResult:
+def cross_validate(
+    prepared: Prepared, cfg: Config, stats: FoldStatistics, fold_models: list[PLSFit], chunk_rows: int | None = None
+) -> CVResult:
     """Score each fold's model (``fold_models[f]``, trained without fold ``f``: :func:`fit_models`) from statistics
     (R²) and one streaming pass (MAE, per-vertex error)."""
     chunk_rows = chunk_rows or cfg.data.chunk_rows
@@ -606,13 +686,25 @@ def cross_validate(prepared: Prepared, cfg: Config, stats: FoldStatistics, fold_
     frame_error = scratch / FRAME_ERROR_FILE
     try:
         create_npy(frame_error, np.float32, (prepared.n_frames,))
-        errors = compute.map_reduce(partial(error_partition, directory=prepared.directory, video_fold=video_fold,
-                                            coefs=[np.ascontiguousarray(coef.T) for coef, _ in models],
-                                            intercepts=[intercept for _, intercept in models],
-                                            use_pose=use_pose, interactions=inter,
-                                            n_splits=n_splits, chunk_rows=block_rows(chunk_rows),
-                                            frame_error=frame_error, x_offset=stats.x_offset, y_offset=stats.y_offset),
-                                    ErrorPart.__add__, prepared.row_groups(), desc="evaluate: errors")
+        errors = compute.map_reduce(
+            partial(
+                error_partition,
+                directory=prepared.directory,
+                video_fold=video_fold,
+                coefs=[np.ascontiguousarray(coef.T) for coef, _ in models],
+                intercepts=[intercept for _, intercept in models],
+                use_pose=use_pose,
+                interactions=inter,
+                n_splits=n_splits,
+                chunk_rows=block_rows(chunk_rows),
+                frame_error=frame_error,
+                x_offset=stats.x_offset,
+                y_offset=stats.y_offset,
+            ),
+            ErrorPart.__add__,
+            prepared.row_groups(),
+            desc="evaluate: errors",
+        )
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
         raise
@@ -649,13 +741,24 @@ class ErrorPart:
     abs_sum: np.ndarray  # (K,)
     vertex_sum: np.ndarray  # (K, 478)
 
-    def __add__(self, other: "ErrorPart") -> "ErrorPart":
+    def __add__(self, other: ErrorPart) -> ErrorPart:
         return ErrorPart(self.abs_sum + other.abs_sum, self.vertex_sum + other.vertex_sum)
 
 
-def error_partition(group: tuple[int, int, int], directory: Path, video_fold: np.ndarray, coefs: list[np.ndarray],
-                    intercepts: list[np.ndarray], use_pose: bool, interactions: bool, n_splits: int, chunk_rows: int,
-                    frame_error: Path, x_offset=None, y_offset=None) -> ErrorPart:
+def error_partition(
+    group: tuple[int, int, int],
+    directory: Path,
+    video_fold: np.ndarray,
+    coefs: list[np.ndarray],
+    intercepts: list[np.ndarray],
+    use_pose: bool,
+    interactions: bool,
+    n_splits: int,
+    chunk_rows: int,
+    frame_error: Path,
+    x_offset=None,
+    y_offset=None,
+) -> ErrorPart:
     """Pass B on one row group: each frame's held-out residual under its fold's model (``coefs[f]`` (p, 1434),
     ``intercepts[f]`` (1434,)), and the error sums per fold; each frame's mean per-vertex error is written to its
     row of the ``.npy`` ``frame_error`` (n_frames,) float32. ``x_offset`` (n_videos, p) and ``y_offset``
@@ -733,8 +836,14 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLS
         mesh_intercept += _weighted_mean(stats.y_offset, weights)
     if stats.x_offset is not None:
         mesh_intercept -= model.coef_ @ _weighted_mean(stats.x_offset, weights)
-    return FinalModel(coef=model.coef_.copy(), raw_intercept=model.raw_intercept_.copy(), mesh_intercept=mesh_intercept,
-                      feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions), n_components=A, model=model)
+    return FinalModel(
+        coef=model.coef_.copy(),
+        raw_intercept=model.raw_intercept_.copy(),
+        mesh_intercept=mesh_intercept,
+        feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions),
+        n_components=A,
+        model=model,
+    )
 
 
 def au_field_reliability(alone: list[PLSFit]) -> np.ndarray:
@@ -746,8 +855,13 @@ def facs_passes(prepared: Prepared, final: FinalModel) -> int:
     """Number of AUs of the final model whose direction passes the FACS check (``aumesh.card.directions``)."""
     from aumesh.card import directions
 
-    report = directions.au_direction_report({"coef": final.coef.T, "input_columns": np.array(final.feature_columns),
-                                              "mean_aligned_mesh": prepared.reference["mean_aligned_mesh"]})
+    report = directions.au_direction_report(
+        {
+            "coef": final.coef.T,
+            "input_columns": np.array(final.feature_columns),
+            "mean_aligned_mesh": prepared.reference["mean_aligned_mesh"],
+        }
+    )
     return int(report["summary"]["pass"])
 
 
@@ -814,8 +928,11 @@ def degenerate_inputs(constant: dict[str, float], columns: list[str]) -> dict:
         elif c in constant:
             dead.append(c)
     pose_features = [c for c in columns if c in POSE_COLUMNS or "*" in c]
-    return {"constant_inputs": dict(constant), "constant_features": dead,
-            "pose_learned": bool(pose_features) and any(c not in dead for c in pose_features)}
+    return {
+        "constant_inputs": dict(constant),
+        "constant_features": dead,
+        "pose_learned": bool(pose_features) and any(c not in dead for c in pose_features),
+    }
 
 
 def log_degenerate(prepared: Prepared, cfg: Config, handle) -> dict:
@@ -826,11 +943,21 @@ def log_degenerate(prepared: Prepared, cfg: Config, handle) -> dict:
     if not constant:
         return found
     listed = ", ".join(f"{c}={v:g}" for c, v in constant.items())
-    log.warning("evaluate: %s constant in every one of the %d prepared frames: %d of the %d features of features=%s carry "
-                "no information (kept in the design with coefficients of exactly 0)%s", listed, prepared.n_frames,
-                len(found["constant_features"]), len(cfg.features.columns), cfg.features.name,
-                "" if found["pose_learned"] or not (cfg.features.pose) else "; the model learned nothing from pose")
-    handle.set_tags({"aumesh.constant_inputs": listed,
-                     "aumesh.constant_features": str(len(found["constant_features"])),
-                     "aumesh.pose_learned": str(found["pose_learned"]).lower()})
+    log.warning(
+        "evaluate: %s constant in every one of the %d prepared frames: %d of the %d features of features=%s carry "
+        "no information (kept in the design with coefficients of exactly 0)%s",
+        listed,
+        prepared.n_frames,
+        len(found["constant_features"]),
+        len(cfg.features.columns),
+        cfg.features.name,
+        "" if found["pose_learned"] or not (cfg.features.pose) else "; the model learned nothing from pose",
+    )
+    handle.set_tags(
+        {
+            "aumesh.constant_inputs": listed,
+            "aumesh.constant_features": str(len(found["constant_features"])),
+            "aumesh.pose_learned": str(found["pose_learned"]).lower(),
+        }
+    )
     return found

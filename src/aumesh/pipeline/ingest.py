@@ -45,17 +45,21 @@ def find_sources(data_dir: Path, pattern: str, mesh_npy_pattern: str) -> list[in
     if not data_dir.is_dir():
         raise TableError(
             f"{data_dir}: the data folder does not exist (paths.data_dir). Fix: `dvc pull data.dvc` for the demo tables, "
-            f"or copy py-feat's CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`.")
+            f"or copy py-feat's CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`."
+        )
     paths = sorted(p for p in data_dir.glob(pattern) if p.is_file() and ingest.is_table(p))
     if not paths:
         raise TableError(
             f"{data_dir}/{pattern}: no frame tables found (empty input; CSV, .csv.gz or parquet). Fix: copy py-feat's "
-            f"CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull`.")
+            f"CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull`."
+        )
     return [ingest.open_source(p, mesh_npy_pattern) for p in paths]
 
 
 def _span_rows(span: ingest.Span) -> int:
-    return max(1, (span.stop - span.start) // CSV_BYTES_PER_ROW) if span.source.kind == "csv" else span.stop - span.start
+    return (
+        max(1, (span.stop - span.start) // CSV_BYTES_PER_ROW) if span.source.kind == "csv" else span.stop - span.start
+    )
 
 
 def pack(spans: list[ingest.Span], task_rows: int = TASK_ROWS) -> list[tuple[ingest.Span, ...]]:
@@ -95,19 +99,30 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
     how = cfg.data.face_selection
     with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=sources[0].path, write=tmp):
         parquet = [s for s in sources if s.kind == "parquet"]
-        checks = dict(zip([s.path for s in parquet],
-                          compute.map_gather(ingest.check_clean, parquet, desc="ingest: check parquet")))
+        checks = dict(
+            zip(
+                [s.path for s in parquet], compute.map_gather(ingest.check_clean, parquet, desc="ingest: check parquet")
+            )
+        )
         entries, spans = [], []
         for source in sources:
             check = checks.get(source.path)
             if check is not None and check.clean:
-                entries.append({"source": recorded(source.path), "table": recorded(source.path), "rows": check.rows,
-                                "mesh_npy": None if source.mesh_npy is None else recorded(source.mesh_npy),
-                                "detector": source.layout.detector, "read": "in place"})
+                entries.append(
+                    {
+                        "source": recorded(source.path),
+                        "table": recorded(source.path),
+                        "rows": check.rows,
+                        "mesh_npy": None if source.mesh_npy is None else recorded(source.mesh_npy),
+                        "detector": source.layout.detector,
+                        "read": "in place",
+                    }
+                )
                 continue
             reason = "CSV" if check is None else check.reason
-            entries.append({"source": recorded(source.path), "detector": source.layout.detector,
-                            "read": f"cleaned ({reason})"})
+            entries.append(
+                {"source": recorded(source.path), "detector": source.layout.detector, "read": f"cleaned ({reason})"}
+            )
             # a parquet table is streamed whole by one task (batch by batch: memory flat in its rows)
             spans += ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
         (tmp / TABLES_DIR).mkdir()
@@ -116,7 +131,9 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         if how == "identity" and tasks:  # the video's subject needs every face row first: a second read of the sources
             seen = compute.map_reduce(_identity_task, ingest.Counts.__add__, tasks, desc="ingest: identities")
             subjects = ingest.main_identities(seen.identities)
-        counts = compute.map_gather(partial(_clean_task, how=how, subjects=subjects), tasks, desc="ingest: read + clean")
+        counts = compute.map_gather(
+            partial(_clean_task, how=how, subjects=subjects), tasks, desc="ingest: read + clean"
+        )
         total = ingest.Counts()
         for task, c in zip(tasks, counts):
             total = total + c
@@ -138,7 +155,9 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
 def load_manifest(ingested_dir: str | Path) -> dict:
     path = Path(ingested_dir) / MANIFEST_FILE
     if not path.exists():
-        raise TableError(f"{path}: no ingested tables. Fix: `dvc repro` (runs the ingest stage first), or "
-                         f"`aumesh ingest --params params.yaml`.")
+        raise TableError(
+            f"{path}: no ingested tables. Fix: `dvc repro` (runs the ingest stage first), or "
+            f"`aumesh ingest --params params.yaml`."
+        )
     with open(path) as fh:
         return json.load(fh)

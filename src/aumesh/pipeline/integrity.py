@@ -44,8 +44,10 @@ def prepared_fix(path: str | Path) -> str:
     except OSError:
         return PREPARED_FIX
     if st.st_nlink > 1:
-        return (f"it is hard-linked into DVC's cache, whose copy is damaged too: remove that copy "
-                f"(`find .dvc/cache -inum {st.st_ino} -delete`), then {PREPARED_FIX}")
+        return (
+            f"it is hard-linked into DVC's cache, whose copy is damaged too: remove that copy "
+            f"(`find .dvc/cache -inum {st.st_ino} -delete`), then {PREPARED_FIX}"
+        )
     return PREPARED_FIX
 
 
@@ -78,15 +80,18 @@ def file_record(path: str | Path, blocks: list[tuple[int, int, str]] | None = No
     size = os.path.getsize(path)
     if blocks is None:
         bounds = list(range(0, size, BLOCK_BYTES)) + [size]
-        blocks = [(a, b, hash_range(path, a, b)) for a, b in zip(bounds[:-1], bounds[1:])] or [(0, 0, new_hash().hexdigest())]
+        blocks = [(a, b, hash_range(path, a, b)) for a, b in zip(bounds[:-1], bounds[1:])] or [
+            (0, 0, new_hash().hexdigest())
+        ]
     covered = sorted((int(a), int(b)) for a, b, _ in blocks)
     if covered[0][0] != 0 or covered[-1][1] != size or any(b != c for (_, b), (c, _) in zip(covered[:-1], covered[1:])):
         raise ValueError(f"{path}: checksum blocks do not cover the file's {size} bytes exactly")
     return {"algorithm": ALGORITHM, "size": size, "blocks": [[int(a), int(b), h] for a, b, h in sorted(blocks)]}
 
 
-def verify(directory: str | Path, records: dict[str, dict], names: list[str] | None = None,
-           threads: int | None = None) -> None:
+def verify(
+    directory: str | Path, records: dict[str, dict], names: list[str] | None = None, threads: int | None = None
+) -> None:
     """Check files ``names`` (default: every recorded one) of ``directory`` against ``records``; the first mismatch is a
     :class:`CorruptFileError` naming the file, where it differs and :data:`PREPARED_FIX`."""
     directory = Path(directory)
@@ -95,20 +100,25 @@ def verify(directory: str | Path, records: dict[str, dict], names: list[str] | N
     for name in names:
         rec, path = records[name], directory / name
         if rec.get("algorithm", ALGORITHM) != ALGORITHM:
-            raise CorruptFileError(f"{path}: checksum algorithm {rec.get('algorithm')!r} unknown to this aumesh. "
-                                   f"Fix: {PREPARED_FIX}.")
+            raise CorruptFileError(
+                f"{path}: checksum algorithm {rec.get('algorithm')!r} unknown to this aumesh. Fix: {PREPARED_FIX}."
+            )
         size = path.stat().st_size
         if size != rec["size"]:
-            raise CorruptFileError(f"{path}: {size:,} bytes, but prepare wrote {rec['size']:,} (checksum in summary.json): "
-                                   f"the file was truncated or replaced. Fix: {prepared_fix(path)}.")
+            raise CorruptFileError(
+                f"{path}: {size:,} bytes, but prepare wrote {rec['size']:,} (checksum in summary.json): "
+                f"the file was truncated or replaced. Fix: {prepared_fix(path)}."
+            )
         jobs += [(name, path, a, b, h) for a, b, h in rec["blocks"]]
     with ThreadPoolExecutor(max_workers=threads or min(len(jobs), os.cpu_count() or 1) or 1) as pool:
         got = list(pool.map(lambda j: hash_range(j[1], j[2], j[3]), jobs))
     for (name, path, a, b, want), have in zip(jobs, got):
         if have != want:
-            raise CorruptFileError(f"{path}: bytes {a:,}-{b:,} do not match the {ALGORITHM} checksum prepare recorded "
-                                   f"in summary.json: the file changed after it was written (disk or cache corruption, "
-                                   f"an edit). Fix: {prepared_fix(path)}.")
+            raise CorruptFileError(
+                f"{path}: bytes {a:,}-{b:,} do not match the {ALGORITHM} checksum prepare recorded "
+                f"in summary.json: the file changed after it was written (disk or cache corruption, "
+                f"an edit). Fix: {prepared_fix(path)}."
+            )
 
 
 def load_summary(prepared_dir: str | Path) -> dict:
@@ -137,8 +147,11 @@ def verify_prepared(prepared_dir: str | Path, summary: dict, names: list[str] | 
             check_npy(d / name, prepared_fix(d / name) + ".")
     records = summary.get("checksums")
     if not records:
-        logging.getLogger(__name__).warning("%s: summary.json records no checksums (prepared by an older aumesh): the "
-                                            "files' contents are not verified; `dvc repro -f prepare` records them", d)
+        logging.getLogger(__name__).warning(
+            "%s: summary.json records no checksums (prepared by an older aumesh): the "
+            "files' contents are not verified; `dvc repro -f prepare` records them",
+            d,
+        )
         return
     verify(d, records, names)
 

@@ -37,8 +37,17 @@ import pandas as pd
 from aumesh.data.schema import AU_COLUMNS, POSE_COLUMNS
 from aumesh.export import meshfiles
 from aumesh.geometry import face
-from aumesh.model.inference import (ColumnSelection, InputRangeWarning, PredictionInputError, closest_name, input_rows,
-                                    load_release, predict_rows, select_columns, short_list)
+from aumesh.model.inference import (
+    ColumnSelection,
+    InputRangeWarning,
+    PredictionInputError,
+    closest_name,
+    input_rows,
+    load_release,
+    predict_rows,
+    select_columns,
+    short_list,
+)
 from aumesh.utils.errors import MissingFileError
 from aumesh.utils.io import atomic_savez, atomic_write_text
 
@@ -74,8 +83,9 @@ def table_header(path: str | os.PathLike) -> list[str]:
         raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
 
 
-def read_table(path: str | os.PathLike, au_columns: Sequence[str] = AU_COLUMNS, ignore: Sequence[str] = (), *,
-               strict: bool = False) -> tuple[pd.DataFrame, ColumnSelection]:
+def read_table(
+    path: str | os.PathLike, au_columns: Sequence[str] = AU_COLUMNS, ignore: Sequence[str] = (), *, strict: bool = False
+) -> tuple[pd.DataFrame, ColumnSelection]:
     """The model-input columns of a CSV or parquet table (and ``FaceScore``), chosen from its header.
 
     Parameters
@@ -112,8 +122,9 @@ def read_table(path: str | os.PathLike, au_columns: Sequence[str] = AU_COLUMNS, 
     if absent:
         near = closest_name(absent[0], header)
         hint = f" (did you mean {near!r} for {absent[0]!r}?)" if near else ""
-        raise PredictionInputError(f"{path}: --ignore names column(s) {short_list(absent)} that the table does not "
-                                   f"have{hint}")
+        raise PredictionInputError(
+            f"{path}: --ignore names column(s) {short_list(absent)} that the table does not have{hint}"
+        )
     dropped = set(ignore)
     selection = select_columns([c for c in header if c not in dropped], au_columns, strict=strict, what=str(path))
     wanted = selection.columns
@@ -134,8 +145,14 @@ def read_input_table(path: str | os.PathLike, ignore: Sequence[str] = (), *, str
     return read_table(path, AU_COLUMNS, ignore, strict=strict)[0]
 
 
-def predict_table(release: str | os.PathLike, table: str | os.PathLike, out: str | os.PathLike,
-                  ignore: Sequence[str] = (), *, strict: bool = False) -> tuple[Path, int]:
+def predict_table(
+    release: str | os.PathLike,
+    table: str | os.PathLike,
+    out: str | os.PathLike,
+    ignore: Sequence[str] = (),
+    *,
+    strict: bool = False,
+) -> tuple[Path, int]:
     """Predict one mesh per table row and write them to ``out`` (``.npz``, or ``.obj`` / ``.ply`` for one row).
 
     Parameters
@@ -164,8 +181,9 @@ def predict_table(release: str | os.PathLike, table: str | os.PathLike, out: str
     if suffix not in OUT_SUFFIXES:
         raise PredictionInputError(f"--out {out}: unsupported suffix {out.suffix!r}; use {', '.join(OUT_SUFFIXES)}")
     arrays = load_release(release)
-    df, selection = read_table(table, [str(a) for a in np.asarray(arrays["au_columns"]).tolist()], ignore,
-                               strict=strict)
+    df, selection = read_table(
+        table, [str(a) for a in np.asarray(arrays["au_columns"]).tolist()], ignore, strict=strict
+    )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InputRangeWarning)
         try:
@@ -179,18 +197,34 @@ def predict_table(release: str | os.PathLike, table: str | os.PathLike, out: str
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     no_face = np.isnan(au).all(axis=1)
     if suffix in MESH_SUFFIXES and len(df) != 1:
-        raise PredictionInputError(f"{table} has {len(df)} rows; {suffix} holds one mesh. "
-                                   f"Fix: write .npz, or give a one-row table")
+        raise PredictionInputError(
+            f"{table} has {len(df)} rows; {suffix} holds one mesh. Fix: write .npz, or give a one-row table"
+        )
     if suffix in MESH_SUFFIXES and no_face[0]:
-        raise PredictionInputError(f"{table}: row 0 has no face (FaceScore 0, or every AU and pose value NaN); "
-                                   f"{suffix} needs a mesh. Fix: give a row with a face, or write .npz")
+        raise PredictionInputError(
+            f"{table}: row 0 has no face (FaceScore 0, or every AU and pose value NaN); "
+            f"{suffix} needs a mesh. Fix: give a row with a face, or write .npz"
+        )
     meshes = predict_rows(arrays, au, pose)
     if no_face.any():
-        log.warning("%s: %d of %d row(s) without a face (FaceScore 0, or every AU and pose value NaN): NaN meshes, "
-                    "no_face True in %s", table, int(no_face.sum()), len(no_face), out.name)
+        log.warning(
+            "%s: %d of %d row(s) without a face (FaceScore 0, or every AU and pose value NaN): NaN meshes, "
+            "no_face True in %s",
+            table,
+            int(no_face.sum()),
+            len(no_face),
+            out.name,
+        )
     if suffix == ".npz":
-        atomic_savez(out, meshes=meshes.astype(np.float32), no_face=no_face, au=au, pose=pose,
-                     au_columns=np.asarray(arrays["au_columns"]), pose_columns=np.array(POSE_COLUMNS))
+        atomic_savez(
+            out,
+            meshes=meshes.astype(np.float32),
+            no_face=no_face,
+            au=au,
+            pose=pose,
+            au_columns=np.asarray(arrays["au_columns"]),
+            pose_columns=np.array(POSE_COLUMNS),
+        )
     else:
         mesh = meshes[0]
         tri = face.outward_triangles(mesh, face.triangulate(mesh))

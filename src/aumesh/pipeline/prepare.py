@@ -61,18 +61,49 @@ import pyarrow.parquet as pq
 from aumesh.config import Config, PreprocessConfig
 from aumesh.data import contract
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.data.tables import FrameTable, MeshChunk, Piece, TableError, check_unique_frames, iter_pieces_mesh_chunks, \
-    iter_vertices, partitions, read_pieces_metadata
-from aumesh.geometry.align import (align_to_reference, apply_similarity_columns, apply_similarity_vertices,
-                                   beyond_radius, generalized_procrustes, not_a_face, reference_scale)
+from aumesh.data.tables import (
+    FrameTable,
+    MeshChunk,
+    Piece,
+    TableError,
+    check_unique_frames,
+    iter_pieces_mesh_chunks,
+    iter_vertices,
+    partitions,
+    read_pieces_metadata,
+)
+from aumesh.geometry.align import (
+    align_to_reference,
+    apply_similarity_columns,
+    apply_similarity_vertices,
+    beyond_radius,
+    generalized_procrustes,
+    not_a_face,
+    reference_scale,
+)
 from aumesh.geometry.frame import HANDEDNESS_LANDMARKS, canonical_frame, mirrored
 from aumesh.model.statistics import VideoSumStream
 from aumesh.pipeline import compute, integrity
-from aumesh.pipeline.prepared_files import (FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, SUMMARY_FILE,
-                                            VIDEO_IDS_FILE)
+from aumesh.pipeline.prepared_files import (
+    FRAMES_FILE,
+    MESHES_FILE,
+    NEUTRAL_FILES,
+    REFERENCE_FILE,
+    SUMMARY_FILE,
+    VIDEO_IDS_FILE,
+)
 from aumesh.pipeline.quantiles import exact_quantiles
-from aumesh.utils.io import (NpyRowFile, absolute, atomic_directory, atomic_write_json, create_npy, load_npz,
-                             read_row_set, recorded, write_rows)
+from aumesh.utils.io import (
+    NpyRowFile,
+    absolute,
+    atomic_directory,
+    atomic_write_json,
+    create_npy,
+    load_npz,
+    read_row_set,
+    recorded,
+    write_rows,
+)
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +155,9 @@ def gpa_hash(video: np.ndarray, frame: np.ndarray, seed: int) -> np.ndarray:
     The GPA subsample is the frames of smallest hash, so it depends on the data and the seed only.
     """
     key = hashlib.sha256(f"aumesh-gpa-{seed}".encode()).hexdigest()[:16]
-    keys = pd.DataFrame({VIDEO_COLUMN: np.asarray(video, dtype=object), FRAME_COLUMN: np.asarray(frame, dtype=np.int64)})
+    keys = pd.DataFrame(
+        {VIDEO_COLUMN: np.asarray(video, dtype=object), FRAME_COLUMN: np.asarray(frame, dtype=np.int64)}
+    )
     return pd.util.hash_pandas_object(keys, index=False, hash_key=key).to_numpy(np.uint64)
 
 
@@ -144,16 +177,18 @@ class Candidates:
     part: np.ndarray  # (m,) int32: the partition
     row: np.ndarray  # (m,) int64: the row within its partition
 
-    def take(self, order: np.ndarray) -> "Candidates":
+    def take(self, order: np.ndarray) -> Candidates:
         return Candidates(*(getattr(self, f)[order] for f in self.__dataclass_fields__))
 
-    def smallest(self, k: int) -> "Candidates":
+    def smallest(self, k: int) -> Candidates:
         return self.take(np.lexsort((self.frame, self.video.astype(str), self.hash))[:k])
 
-    def merge(self, other: "Candidates", k: int) -> "Candidates":
-        return Candidates(*(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__)).smallest(k)
+    def merge(self, other: Candidates, k: int) -> Candidates:
+        return Candidates(
+            *(np.concatenate([getattr(self, f), getattr(other, f)]) for f in self.__dataclass_fields__)
+        ).smallest(k)
 
-    def in_table_order(self) -> "Candidates":
+    def in_table_order(self) -> Candidates:
         """The same frames in the tables' order (what the GPA mean sums in: the order of the input). Partitions are
         consecutive row groups of the tables in order, so (partition, row) is that order on any partitioning."""
         return self.take(np.lexsort((self.row, self.part)))
@@ -163,8 +198,12 @@ def anchors_in_table_order(scratch: Path, candidates: Candidates) -> np.ndarray:
     """(m, n_anchors, 3) float32 anchors of ``candidates`` in the tables' order (:meth:`Candidates.in_table_order`:
     partition by partition), read from the partitions' staged anchors."""
     ordered = candidates.in_table_order()
-    return np.concatenate([read_row_set(_staged_anchors_file(scratch, i), ordered.row[ordered.part == i])
-                           for i in np.unique(ordered.part)])
+    return np.concatenate(
+        [
+            read_row_set(_staged_anchors_file(scratch, i), ordered.row[ordered.part == i])
+            for i in np.unique(ordered.part)
+        ]
+    )
 
 
 @dataclass
@@ -181,11 +220,18 @@ class Scan:
     n_checked: int = 0  # frames (not wild) checked for it
     mirrored_table: str | None = None  # the first table (in order) with a mirrored frame
 
-    def __add__(self, other: "Scan") -> "Scan":
-        return Scan(self.n_rows + other.n_rows, self.videos + other.videos, self.n_pose + other.n_pose,
-                    self.n_wild + other.n_wild, self.candidates.merge(other.candidates, self.k), self.k,
-                    self.n_mirrored + other.n_mirrored, self.n_checked + other.n_checked,
-                    self.mirrored_table or other.mirrored_table)
+    def __add__(self, other: Scan) -> Scan:
+        return Scan(
+            self.n_rows + other.n_rows,
+            self.videos + other.videos,
+            self.n_pose + other.n_pose,
+            self.n_wild + other.n_wild,
+            self.candidates.merge(other.candidates, self.k),
+            self.k,
+            self.n_mirrored + other.n_mirrored,
+            self.n_checked + other.n_checked,
+            self.mirrored_table or other.mirrored_table,
+        )
 
 
 def _read_meta(part: Partition, cfg: Config) -> tuple[pd.DataFrame, np.ndarray]:
@@ -253,8 +299,9 @@ def _video_codes(video: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
     return names[order], rank[encoded.indices.to_numpy()]
 
 
-def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path,
-                   exclude: dict[int, np.ndarray] | None = None) -> Scan:
+def scan_partition(
+    item: tuple[int, Partition], cfg: Config, scratch: Path, exclude: dict[int, np.ndarray] | None = None
+) -> Scan:
     """Pass 1 on one partition: validation, the pose filter, the wild-value screen of the anchors and the partition's
     GPA candidates.
 
@@ -283,13 +330,22 @@ def scan_partition(item: tuple[int, Partition], cfg: Config, scratch: Path,
     # fixed-width strings, not the rows' str objects: candidates outlive their partition, and a few surviving
     # objects from each partition's millions kept Python's small-object arenas, and the stage's memory, growing
     # with the partitions (+90 MiB retained after this pass at 1M frames)
-    candidates = Candidates(h[order], video[order].astype(str), frame[order], np.full(len(order), i, np.int32),
-                            pose[order].astype(np.int64))
+    candidates = Candidates(
+        h[order], video[order].astype(str), frame[order], np.full(len(order), i, np.int32), pose[order].astype(np.int64)
+    )
     flipped &= ~wild
     first_flipped = part[int(file_index[np.argmax(flipped)])].table.path if flipped.any() else None
-    return Scan([len(meta)], [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))], int(passing.sum()),
-                int((passing & wild).sum()), candidates, k, int(flipped.sum()), int((~wild).sum()),
-                None if first_flipped is None else str(first_flipped))
+    return Scan(
+        [len(meta)],
+        [np.unique(meta[VIDEO_COLUMN].to_numpy(dtype=str))],
+        int(passing.sum()),
+        int((passing & wild).sum()),
+        candidates,
+        k,
+        int(flipped.sum()),
+        int((~wild).sum()),
+        None if first_flipped is None else str(first_flipped),
+    )
 
 
 @dataclass
@@ -320,8 +376,9 @@ def au_sums(meta: pa.Table, rows: np.ndarray) -> np.ndarray:
     return total
 
 
-def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.ndarray, split_videos: np.ndarray,
-                       scratch: Path) -> Residuals:
+def residual_partition(
+    item: tuple[int, Partition], cfg: Config, reference: np.ndarray, split_videos: np.ndarray, scratch: Path
+) -> Residuals:
     """Pass 2 on one partition: residuals of the pose-passing frames to the reference, and their AU sums.
 
     Staged in ``scratch`` (``<i>.pass2.npz``): ``rows`` (n_pose,) the pose-passing rows, ``residual`` and
@@ -347,18 +404,36 @@ def residual_partition(item: tuple[int, Partition], cfg: Config, reference: np.n
         for lo in range(0, len(rows), RESIDUAL_BLOCK):
             block = slice(lo, lo + RESIDUAL_BLOCK)
             residual[block], (rotation[block], scale[block], translation[block]) = align_to_reference(
-                anchors.take(rows[block], block_anchors), reference)
+                anchors.take(rows[block], block_anchors), reference
+            )
     videos, code = _video_codes(meta.column(VIDEO_COLUMN))
     split = np.isin(videos, split_videos)[code]
     file_index = meta.column("piece").to_numpy()[split]
-    split_rows = pd.DataFrame({VIDEO_COLUMN: meta.column(VIDEO_COLUMN).filter(split).to_numpy(zero_copy_only=False),
-                               FRAME_COLUMN: meta.column(FRAME_COLUMN).to_numpy()[split],
-                               "file": [str(part[k].table.path) for k in file_index]})
+    split_rows = pd.DataFrame(
+        {
+            VIDEO_COLUMN: meta.column(VIDEO_COLUMN).filter(split).to_numpy(zero_copy_only=False),
+            FRAME_COLUMN: meta.column(FRAME_COLUMN).to_numpy()[split],
+            "file": [str(part[k].table.path) for k in file_index],
+        }
+    )
     abs_pose = np.abs(np.column_stack([pitch, yaw, roll])).astype(np.float32)
-    np.savez(_pass2_file(scratch, i), rows=rows.astype(np.int32), residual=residual, au_sum=au_sum, videos=videos,
-             code=code[rows].astype(np.int32), abs_pose=abs_pose, rotation=rotation, scale=scale, translation=translation)
-    return Residuals(float(residual.max()) if len(residual) else -np.inf, split_rows,
-                     (abs_pose > contract.MAX_MEDIAN_ABS_POSE_RAD).sum(axis=0))
+    np.savez(
+        _pass2_file(scratch, i),
+        rows=rows.astype(np.int32),
+        residual=residual,
+        au_sum=au_sum,
+        videos=videos,
+        code=code[rows].astype(np.int32),
+        abs_pose=abs_pose,
+        rotation=rotation,
+        scale=scale,
+        translation=translation,
+    )
+    return Residuals(
+        float(residual.max()) if len(residual) else -np.inf,
+        split_rows,
+        (abs_pose > contract.MAX_MEDIAN_ABS_POSE_RAD).sum(axis=0),
+    )
 
 
 def _staged_residuals(item: tuple[Path, int]) -> np.ndarray:
@@ -394,8 +469,11 @@ def keep_partition(item: tuple[Path, int], threshold: float | None, split_videos
     keep = _keep(residual, threshold)
     kept_code = code[keep]
     split = np.flatnonzero(np.isin(videos, split_videos))
-    return Kept(int(keep.sum()), videos[np.unique(kept_code)],
-                {str(videos[j]): au_sum[keep][kept_code == j] for j in split if (kept_code == j).any()})
+    return Kept(
+        int(keep.sum()),
+        videos[np.unique(kept_code)],
+        {str(videos[j]): au_sum[keep][kept_code == j] for j in split if (kept_code == j).any()},
+    )
 
 
 @dataclass(frozen=True)
@@ -430,9 +508,15 @@ class Written:
     # partition -> (first row, stop row, SHA-256 of those rows of meshes.npy as written: aumesh.pipeline.integrity)
     digests: dict[int, tuple[int, int, str]] = field(default_factory=dict)
 
-    def __add__(self, other: "Written") -> "Written":
-        out = Written(self.sums + other.sums, self.n_low_population + other.n_low_population, dict(self.split),
-                      dict(self.split_counts), {**self.wild, **other.wild}, {**self.digests, **other.digests})
+    def __add__(self, other: Written) -> Written:
+        out = Written(
+            self.sums + other.sums,
+            self.n_low_population + other.n_low_population,
+            dict(self.split),
+            dict(self.split_counts),
+            {**self.wild, **other.wild},
+            {**self.digests, **other.digests},
+        )
         for v, s in other.split.items():
             if v in out.split:
                 out.split[v] = out.split[v] + s
@@ -462,8 +546,17 @@ def kept_frames(scratch: Path, plan: Plan, cuts: Cuts) -> tuple[np.ndarray, np.n
     return rows[keep], plan.video_index[local], au_sum <= thresholds[local], au_sum <= cuts.low_au_population
 
 
-def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: Plan, cuts: Cuts, out_dir: Path,
-                    scratch: Path, chunk_rows: int, wild_radius: tuple[np.ndarray, float]) -> Written:
+def write_partition(
+    part: Partition,
+    cfg: Config,
+    reference: np.ndarray,
+    plan: Plan,
+    cuts: Cuts,
+    out_dir: Path,
+    scratch: Path,
+    chunk_rows: int,
+    wild_radius: tuple[np.ndarray, float],
+) -> Written:
     """Pass 3 on one partition: align and write its kept meshes, metadata and whole videos' neutrals.
 
     Videos with rows in other partitions too (``plan.split``): their sums are returned instead of written. Rows whose
@@ -471,7 +564,9 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     then runs again without them (their sums are in this round's, which is discarded).
     """
     rows, video_index, low_video, low_population = kept_frames(scratch, plan, cuts)
-    pose_rows, rotation, scale, translation = _pass2((scratch, plan.part_index), "rows", "rotation", "scale", "translation")
+    pose_rows, rotation, scale, translation = _pass2(
+        (scratch, plan.part_index), "rows", "rotation", "scale", "translation"
+    )
     transform = np.searchsorted(pose_rows, rows)  # each kept row's transform, as pass 2 solved it (read per block)
     # the kept rows of the staged metadata, in Arrow (pandas' Python strings cost ~300 bytes a row of the task's memory)
     kept = _staged_table(scratch, plan.part_index).drop_columns(["piece", "wild"]).take(rows)
@@ -489,6 +584,7 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
                 result.split_counts.setdefault(v, np.zeros(2, np.int64))[slot] += count
             else:
                 neutrals[NEUTRAL_FILES[name]][v] = (total / count).astype(np.float32)
+
         return done
 
     def write_neutrals(files: dict[str, NpyRowFile]) -> None:
@@ -505,8 +601,10 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
     # the partition's rows of meshes.npy are one contiguous range, written in order: hashed as they are written
     digest, next_row = integrity.new_hash(), 0
     with ExitStack() as stack:  # the output files opened once for the partition's writes
-        files = {name: stack.enter_context(NpyRowFile(out_dir / name, writable=True))
-                 for name in (MESHES_FILE, *NEUTRAL_FILES.values())}
+        files = {
+            name: stack.enter_context(NpyRowFile(out_dir / name, writable=True))
+            for name in (MESHES_FILE, *NEUTRAL_FILES.values())
+        }
         for local, chunk in iter_pieces_mesh_chunks(part, chunk_rows):
             m = len(chunk)
             pos = position[local : local + m]
@@ -519,15 +617,22 @@ def write_partition(part: Partition, cfg: Config, reference: np.ndarray, plan: P
             for lo in range(0, len(pos), ALIGN_BLOCK):
                 rows_out = pos[lo : lo + ALIGN_BLOCK]
                 solved = transform[rows_out]
-                flat = _aligned_rows(chunk, columns[lo : lo + ALIGN_BLOCK], rotation[solved], scale[solved],
-                                     translation[solved], aligned[: len(rows_out)])
+                flat = _aligned_rows(
+                    chunk,
+                    columns[lo : lo + ALIGN_BLOCK],
+                    rotation[solved],
+                    scale[solved],
+                    translation[solved],
+                    aligned[: len(rows_out)],
+                )
                 block = flat.astype(np.float32)
                 far = beyond_radius(block, *wild_radius)  # on the float32 rows written: half the bytes to reduce
                 if far.any():  # preprocess.alignment.max_vertex_iod: the round is rerun without these rows
                     result.wild.setdefault(plan.part_index, []).extend(rows[rows_out[far]].tolist())
                 if int(rows_out[0]) != next_row or int(rows_out[-1]) != next_row + len(rows_out) - 1:
-                    raise RuntimeError(f"partition {plan.part_index}: rows written out of order, the checksum would "
-                                       f"not be the file's")
+                    raise RuntimeError(
+                        f"partition {plan.part_index}: rows written out of order, the checksum would not be the file's"
+                    )
                 files[MESHES_FILE].write(plan.offset + next_row, block)
                 digest.update(memoryview(block).cast("B"))
                 next_row += len(rows_out)
@@ -551,8 +656,14 @@ def _table_of_video(scratch: Path, parts: list[Partition], video: str) -> Path:
     raise KeyError(video)
 
 
-def _aligned_rows(chunk: MeshChunk, frames: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
-                  translation: np.ndarray, out: np.ndarray) -> np.ndarray:
+def _aligned_rows(
+    chunk: MeshChunk,
+    frames: np.ndarray,
+    rotation: np.ndarray,
+    scale: np.ndarray,
+    translation: np.ndarray,
+    out: np.ndarray,
+) -> np.ndarray:
     """(k, 1434) float64 aligned meshes of the chunk's rows ``frames`` (k,), from the layout they were read in, into
     ``out``."""
     if chunk.vertices is not None:
@@ -573,8 +684,9 @@ def _plans(kept: list[Kept], video_ids: np.ndarray, split_names: np.ndarray, qua
             gathered.setdefault(v, []).append(au)
     names = np.array(sorted(gathered), dtype=str)
     au = [np.concatenate(gathered[v]) for v in names]
-    _, split_thresholds = low_au_thresholds(np.concatenate(au) if au else np.empty(0),
-                                            np.repeat(np.arange(len(au)), [len(a) for a in au]), quantile)
+    _, split_thresholds = low_au_thresholds(
+        np.concatenate(au) if au else np.empty(0), np.repeat(np.arange(len(au)), [len(a) for a in au]), quantile
+    )
     offsets = np.r_[0, np.cumsum([k.n_kept for k in kept])]
     plans = []
     for i, k in enumerate(kept):
@@ -603,12 +715,15 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path, ingested: di
     """
     given = [t.path for t in tables]  # what the summary records (as the ingest manifest lists them)
     # the tasks get absolute paths: a cluster's workers run in directories of their own (README, "Scale out")
-    tables = [replace(t, path=absolute(t.path), mesh_npy=None if t.mesh_npy is None else absolute(t.mesh_npy))
-              for t in tables]
+    tables = [
+        replace(t, path=absolute(t.path), mesh_npy=None if t.mesh_npy is None else absolute(t.mesh_npy)) for t in tables
+    ]
     parts = partitions(tables, cfg.compute.partition_rows)
     exclude: dict[int, np.ndarray] = {}
-    with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=tables[0].path if tables else None,
-                                                                  write=tmp):
+    with (
+        atomic_directory(absolute(out_dir)) as tmp,
+        compute.engine(cfg.compute, read=tables[0].path if tables else None, write=tmp),
+    ):
         while True:
             try:
                 summary = _passes(tables, parts, cfg, tmp, exclude, ingested or {})
@@ -616,17 +731,22 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path, ingested: di
                 atomic_write_json(tmp / SUMMARY_FILE, summary)
                 return summary
             except _WildRows as found:
-                log.warning("prepare: %d frame(s) have a vertex beyond %g inter-ocular distances after alignment "
-                            "(preprocess.alignment.max_vertex_iod): dropped, the passes run again without them",
-                            sum(len(r) for r in found.rows.values()), cfg.preprocess.alignment.max_vertex_iod)
+                log.warning(
+                    "prepare: %d frame(s) have a vertex beyond %g inter-ocular distances after alignment "
+                    "(preprocess.alignment.max_vertex_iod): dropped, the passes run again without them",
+                    sum(len(r) for r in found.rows.values()),
+                    cfg.preprocess.alignment.max_vertex_iod,
+                )
                 for i, rows in found.rows.items():
                     exclude[i] = np.union1d(exclude.get(i, np.empty(0, np.int64)), rows).astype(np.int64)
                 for child in tmp.iterdir():
                     shutil.rmtree(child) if child.is_dir() else child.unlink()
 
 
-MIRROR_FIX = ("Fix: the tables' x, y, z must form a right-handed system (py-feat's and MediaPipe's image pixels: x right, "
-              "y down, z into the image): negate one axis (e.g. z) of every mesh, or swap x and y back, and run again.")
+MIRROR_FIX = (
+    "Fix: the tables' x, y, z must form a right-handed system (py-feat's and MediaPipe's image pixels: x right, "
+    "y down, z into the image): negate one axis (e.g. z) of every mesh, or swap x and y back, and run again."
+)
 
 
 def check_handedness(scan: Scan, cfg: Config) -> None:
@@ -638,24 +758,41 @@ def check_handedness(scan: Scan, cfg: Config) -> None:
     alignment's outlier cut drops like any other bad fit (said in the log).
     """
     if scan.n_checked and scan.n_mirrored * 2 > scan.n_checked:
-        raise TableError(f"{scan.mirrored_table}: the meshes are mirrored ({scan.n_mirrored:,} of {scan.n_checked:,} "
-                         f"frames in {cfg.paths.data_dir}): with x = 33 -> 263 (subject's left) and y = chin 152 -> "
-                         f"forehead 10, the nose tip 1 lies behind the eyes in a right-handed frame. {MIRROR_FIX}")
+        raise TableError(
+            f"{scan.mirrored_table}: the meshes are mirrored ({scan.n_mirrored:,} of {scan.n_checked:,} "
+            f"frames in {cfg.paths.data_dir}): with x = 33 -> 263 (subject's left) and y = chin 152 -> "
+            f"forehead 10, the nose tip 1 lies behind the eyes in a right-handed frame. {MIRROR_FIX}"
+        )
     if scan.n_mirrored:
-        log.warning("prepare: %d of %d frames have a mirrored mesh (first in %s): the alignment's outlier cut is "
-                    "expected to drop them", scan.n_mirrored, scan.n_checked, scan.mirrored_table)
+        log.warning(
+            "prepare: %d of %d frames have a mirrored mesh (first in %s): the alignment's outlier cut is "
+            "expected to drop them",
+            scan.n_mirrored,
+            scan.n_checked,
+            scan.mirrored_table,
+        )
 
 
-def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: Path, exclude: dict[int, np.ndarray],
-            ingested: dict) -> dict:
+def _passes(
+    tables: list[FrameTable],
+    parts: list[Partition],
+    cfg: Config,
+    tmp: Path,
+    exclude: dict[int, np.ndarray],
+    ingested: dict,
+) -> dict:
     """One round of the passes into ``tmp`` (module docstring); :class:`_WildRows` when pass 3 finds wild values."""
     pre = cfg.preprocess
     scratch = tmp / "scratch"  # per-partition validated metadata and anchors (pass 1), residuals (pass 2)
     scratch.mkdir()
     staged = [(scratch, i) for i in range(len(parts))]
     # pass 1: validation, pose filter, wild anchors, GPA candidates
-    scan = compute.map_reduce(partial(scan_partition, cfg=cfg, scratch=scratch, exclude=exclude), Scan.__add__,
-                              list(enumerate(parts)), desc="prepare: read + validate")
+    scan = compute.map_reduce(
+        partial(scan_partition, cfg=cfg, scratch=scratch, exclude=exclude),
+        Scan.__add__,
+        list(enumerate(parts)),
+        desc="prepare: read + validate",
+    )
     if scan.n_pose - scan.n_wild == 0:
         raise TableError(
             f"{cfg.paths.data_dir}: no frame passes the pose filter (|yaw| <= {pre.pose_filter.max_abs_yaw_deg} deg, "
@@ -663,8 +800,12 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
             f"(convert with np.deg2rad), or preprocess.pose_filter narrower than the data."
         )
     check_handedness(scan, cfg)
-    partial_counts = {**ingested, "frames_in": int(sum(scan.n_rows)), "dropped_pose": int(sum(scan.n_rows) - scan.n_pose),
-                      "dropped_wild_values": scan.n_wild}
+    partial_counts = {
+        **ingested,
+        "frames_in": int(sum(scan.n_rows)),
+        "dropped_pose": int(sum(scan.n_rows) - scan.n_pose),
+        "dropped_wild_values": scan.n_wild,
+    }
     contract.check_filter_shares(contract.filter_shares(partial_counts), pre.max_drop_fraction, cfg.paths.data_dir)
     # one array of the videos in the stage, not one per partition besides (memory flat in frames)
     every_video, in_parts = np.unique(np.concatenate(scan.videos), return_counts=True)
@@ -676,26 +817,34 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     del sample
 
     # pass 2: residuals and AU sums of the pose-passing frames, staged per partition
-    res = compute.map_gather(partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names,
-                                     scratch=scratch), list(enumerate(parts)), desc="prepare: residuals")
+    res = compute.map_gather(
+        partial(residual_partition, cfg=cfg, reference=reference, split_videos=split_names, scratch=scratch),
+        list(enumerate(parts)),
+        desc="prepare: residuals",
+    )
     # every frame (float32: compared with 1 rad); np.median is np.quantile(.., 0.5) here: the midpoint of two
     # float32 values is exact in float64 either way. The exact medians (nine small passes) only when the counts
     # above the limit leave a median in doubt: pose in radians has almost none there
     if contract.pose_medians_may_exceed(np.sum([r.pose_above for r in res], axis=0), sum(scan.n_rows)):
-        contract.check_pose_medians([exact_quantiles(partial(_staged_abs_pose, j), staged, 0.5) for j in range(3)],
-                                    cfg.paths.data_dir)
+        contract.check_pose_medians(
+            [exact_quantiles(partial(_staged_abs_pose, j), staged, 0.5) for j in range(3)], cfg.paths.data_dir
+        )
     split_rows = pd.concat([r.split_rows for r in res], ignore_index=True)
     if len(split_rows):  # (video, frame) pairs across partitions (within one: checked in pass 1)
         files = sorted(set(split_rows["file"]))
         check_unique_frames(split_rows, [Path(f) for f in files], np.searchsorted(files, split_rows["file"]))
     quantile_cut = pre.alignment.outlier_quantile < 1.0
     # exact and independent of the partitioning: the quantile of the whole vector, which is never gathered
-    threshold = exact_quantiles(_staged_residuals, staged, pre.alignment.outlier_quantile) if quantile_cut \
+    threshold = (
+        exact_quantiles(_staged_residuals, staged, pre.alignment.outlier_quantile)
+        if quantile_cut
         else max(r.residual_max for r in res)
+    )
     outlier = threshold if quantile_cut else None  # what the partitions apply (None: no outlier cut)
     del res, split_rows
-    kept = compute.map_gather(partial(keep_partition, threshold=outlier,
-                                      split_videos=split_names), staged, desc="prepare: outlier cut")
+    kept = compute.map_gather(
+        partial(keep_partition, threshold=outlier, split_videos=split_names), staged, desc="prepare: outlier cut"
+    )
     n_kept_pose = sum(k.n_kept for k in kept)
     n_aligned = scan.n_pose - scan.n_wild
     video_ids = np.unique(np.concatenate([k.videos for k in kept]))
@@ -727,11 +876,21 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     }
     shares = contract.filter_shares(counts)
     for name, share in shares.items():
-        log.info("%s: dropped %d of %d %s (%.1f%%)", name, share["dropped"], share["of"], share["unit"], 100 * share["fraction"])
+        log.info(
+            "%s: dropped %d of %d %s (%.1f%%)",
+            name,
+            share["dropped"],
+            share["of"],
+            share["unit"],
+            100 * share["fraction"],
+        )
         counts[f"{contract.FILTER_KEYS[name]}_fraction"] = share["fraction"]
     if dropped_videos:
-        log.warning("%d video(s) have no frames left after filtering and are dropped (first: %s)",
-                    len(dropped_videos), ", ".join(dropped_videos[:5]))
+        log.warning(
+            "%d video(s) have no frames left after filtering and are dropped (first: %s)",
+            len(dropped_videos),
+            ", ".join(dropped_videos[:5]),
+        )
     contract.check_filter_shares(shares, pre.max_drop_fraction, cfg.paths.data_dir)
     q = pre.neutral.low_au_quantile
     cuts = Cuts(outlier, q, exact_quantiles(partial(_kept_au_sums, outlier), staged, q))
@@ -748,15 +907,28 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     # pass 3: align and write; population sums and split videos' sums reduced in a tree
     radius = pre.alignment.max_vertex_iod * reference_scale(reference, pre.alignment.anchor_indices)
     written = compute.map_reduce(
-        partial(_write_item, cfg=cfg, reference=reference, cuts=cuts, out_dir=tmp, scratch=scratch,
-                chunk_rows=compute.task_rows(cfg.data.chunk_rows), wild_radius=(reference.mean(axis=0), radius)),
-        Written.__add__, list(zip(parts, plans)), desc="prepare: align + write")
+        partial(
+            _write_item,
+            cfg=cfg,
+            reference=reference,
+            cuts=cuts,
+            out_dir=tmp,
+            scratch=scratch,
+            chunk_rows=compute.task_rows(cfg.data.chunk_rows),
+            wild_radius=(reference.mean(axis=0), radius),
+        ),
+        Written.__add__,
+        list(zip(parts, plans)),
+        desc="prepare: align + write",
+    )
     del plans
     if written.wild:
         raise _WildRows({i: np.asarray(rows, np.int64) for i, rows in written.wild.items()})
     for v, total in written.split.items():  # videos with frames in several partitions
         for slot, name in enumerate(("mean", "low_au")):
-            write_rows(tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None])
+            write_rows(
+                tmp / NEUTRAL_FILES[name], v, (total[slot] / written.split_counts[v][slot]).astype(np.float32)[None]
+            )
     _concatenate_parts(tmp / "parts", tmp / FRAMES_FILE)
     shutil.rmtree(scratch)
     n_low_population = written.n_low_population
@@ -765,8 +937,10 @@ def _passes(tables: list[FrameTable], parts: list[Partition], cfg: Config, tmp: 
     try:  # what the release's frame is found from (aumesh.model.release.release_arrays): the same check, here
         canonical_frame(mean_aligned.reshape(3, N_VERTICES).T)
     except ValueError as err:
-        raise TableError(f"{cfg.paths.data_dir}: the mean aligned mesh of the kept frames is mirrored, so no release "
-                         f"can be built from these tables ({str(err).split('. Fix')[0]}). {MIRROR_FIX}") from None
+        raise TableError(
+            f"{cfg.paths.data_dir}: the mean aligned mesh of the kept frames is mirrored, so no release "
+            f"can be built from these tables ({str(err).split('. Fix')[0]}). {MIRROR_FIX}"
+        ) from None
     np.savez(
         tmp / REFERENCE_FILE,
         reference_anchors=reference.astype(np.float32),
@@ -791,7 +965,9 @@ def _checksums(directory: Path, mesh_digests: dict[int, tuple[int, int, str]], m
     frames' metadata)."""
     row_bytes = N_TARGETS * np.dtype(np.float32).itemsize
     blocks = [(0, mesh_offset, integrity.hash_range(directory / MESHES_FILE, 0, mesh_offset))]
-    blocks += [(mesh_offset + a * row_bytes, mesh_offset + b * row_bytes, h) for a, b, h in mesh_digests.values() if b > a]
+    blocks += [
+        (mesh_offset + a * row_bytes, mesh_offset + b * row_bytes, h) for a, b, h in mesh_digests.values() if b > a
+    ]
     records = {MESHES_FILE: integrity.file_record(directory / MESHES_FILE, blocks)}
     for name in (FRAMES_FILE, VIDEO_IDS_FILE, *NEUTRAL_FILES.values(), REFERENCE_FILE):
         records[name] = integrity.file_record(directory / name)

@@ -20,9 +20,10 @@ whatever the partitioning: counts, bins and the gathered values do not depend on
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +48,7 @@ class Interval:
     def edges(self) -> np.ndarray:
         return np.linspace(self.lo, self.hi, BINS + 1)
 
-    def bin(self, j: int, edges: np.ndarray) -> "Interval":
+    def bin(self, j: int, edges: np.ndarray) -> Interval:
         last = j == BINS - 1
         return Interval(float(edges[j]), float(self.hi if last else edges[j + 1]), self.closed if last else False)
 
@@ -134,8 +135,9 @@ class NoValuesError(ValueError):
     """The partitions hold no value, so no quantile exists."""
 
 
-def exact_quantiles(values: Callable[[Any], np.ndarray], partitions: Sequence[Any], q, method: str = "linear",
-                    max_gather: int = 1 << 18) -> np.ndarray:
+def exact_quantiles(
+    values: Callable[[Any], np.ndarray], partitions: Sequence[Any], q, method: str = "linear", max_gather: int = 1 << 18
+) -> np.ndarray:
     """``np.quantile`` of the concatenated ``values(p)`` for ``p`` in ``partitions``, without concatenating them.
 
     Parameters

@@ -16,18 +16,22 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from typing import TYPE_CHECKING
-
-from aumesh.experiments import provenance
 from aumesh.config import Config, PathsConfig
-from aumesh.utils.io import atomic_directory, atomic_savez, atomic_write_json, atomic_write_text, remove_stale_temporaries
+from aumesh.experiments import provenance
 from aumesh.model.release import CARD_JSON, CARD_MD, NPZ_NAME, model_card_markdown, release_arrays
 from aumesh.pipeline import integrity
 from aumesh.pipeline.prepared_files import FRAMES_FILE, REFERENCE_FILE
+from aumesh.utils.io import (
+    atomic_directory,
+    atomic_savez,
+    atomic_write_json,
+    atomic_write_text,
+    remove_stale_temporaries,
+)
 
 if TYPE_CHECKING:
     from aumesh.pipeline import evaluate as ev
@@ -54,10 +58,12 @@ def data_digest(dvc_file: str = "data.dvc") -> dict[str, Any]:
 
 def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
     """The outputs ``dvc.yaml`` declares for ``stage`` (prepare, evaluate, release)."""
-    return {"ingest": [paths.ingested_dir],
-            "prepare": [paths.prepared_dir],
-            "evaluate": [paths.model_dir, paths.metrics_file, paths.error_curve_file, paths.r2_curve_file],
-            "release": [paths.release_dir]}.get(stage, [])
+    return {
+        "ingest": [paths.ingested_dir],
+        "prepare": [paths.prepared_dir],
+        "evaluate": [paths.model_dir, paths.metrics_file, paths.error_curve_file, paths.r2_curve_file],
+        "release": [paths.release_dir],
+    }.get(stage, [])
 
 
 def start_stage(stage: str, cfg: Config) -> None:
@@ -113,12 +119,18 @@ def check_columns(cfg: Config, columns: list[str] | None = None, where: str | No
     import re
 
     mesh = [c for c in columns if re.fullmatch(r"[xyz]_\d+", c)]  # 1,434 mesh columns: named as a range
-    names = ", ".join([repr(c) for c in columns if c not in set(mesh)] + (["the mesh columns x_0..z_477"] if mesh else []))
+    names = ", ".join(
+        [repr(c) for c in columns if c not in set(mesh)] + (["the mesh columns x_0..z_477"] if mesh else [])
+    )
     if group not in columns:
-        raise ConfigError(f"cv.group={group!r} names no column of {where} (its columns: {names}). "
-                          f"Fix: cv.group={VIDEO_COLUMN} (the video column: the only grouping the CV supports).")
-    raise ConfigError(f"cv.group={group!r}: the cross-validation groups frames by video only (each video's frames in "
-                      f"one fold; its per-video neutral meshes need that). Fix: cv.group={VIDEO_COLUMN}.")
+        raise ConfigError(
+            f"cv.group={group!r} names no column of {where} (its columns: {names}). "
+            f"Fix: cv.group={VIDEO_COLUMN} (the video column: the only grouping the CV supports)."
+        )
+    raise ConfigError(
+        f"cv.group={group!r}: the cross-validation groups frames by video only (each video's frames in "
+        f"one fold; its per-video neutral meshes need that). Fix: cv.group={VIDEO_COLUMN}."
+    )
 
 
 # Each stage imports only what it runs (a stage is a process of its own: scikit-learn, MLflow, pandera or
@@ -134,7 +146,8 @@ def ingest_stage(cfg: Config) -> dict:
 
 def prepare_stage(cfg: Config) -> dict:
     from aumesh.data import tables
-    from aumesh.pipeline import ingest, prepare as prep
+    from aumesh.pipeline import ingest
+    from aumesh.pipeline import prepare as prep
 
     start_stage("prepare", cfg)
     manifest = ingest.load_manifest(cfg.paths.ingested_dir)
@@ -159,11 +172,19 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
     cv, final = ev.evaluate(prepared, cfg)
     cv.extra["degenerate"] = degenerate
     timings["evaluate_seconds"] = time.perf_counter() - t0
-    handle.log_fold_metrics({"r2": cv.r2_folds, "mae": cv.mae_folds, "vertex_error": cv.vertex_error_folds,
-                             "r2_displacement": cv.r2_displacement_folds})
+    handle.log_fold_metrics(
+        {
+            "r2": cv.r2_folds,
+            "mae": cv.mae_folds,
+            "vertex_error": cv.vertex_error_folds,
+            "r2_displacement": cv.r2_displacement_folds,
+        }
+    )
     handle.log_metrics(cv.scalar_metrics() | timings)
     counts = prepared.summary.get("counts", {})  # what the filters dropped, as counts and fractions
-    handle.log_metrics({f"data.{k}": float(v) for k, v in counts.items() if k.startswith(("dropped", "videos_dropped"))})
+    handle.log_metrics(
+        {f"data.{k}": float(v) for k, v in counts.items() if k.startswith(("dropped", "videos_dropped"))}
+    )
     # the R²-vs-n_components curve, step = n_components, in one transaction
     handle.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
     return cv, final
@@ -193,40 +214,71 @@ def evaluate_stage(cfg: Config) -> dict:
     params = cfg.to_dict()
     tracking_cfg = params["tracking"]
     if cfg.tracking.enabled:  # a damaged or locked store stops the stage before any work, not after the whole CV
-        mlflow_store.check_store(mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg))
+        mlflow_store.check_store(
+            mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg)
+        )
     check_columns(cfg)
     prepared = ev.load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
     # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
-    with tracking.tracked_run_beside(tracking_cfg, run_name=evaluate_run_name(cfg), params=params,
-                                     tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target}) as run:
+    with tracking.tracked_run_beside(
+        tracking_cfg,
+        run_name=evaluate_run_name(cfg),
+        params=params,
+        tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target},
+    ) as run:
         run.log_config(params)
         if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
             run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
-        arrays = release_arrays(final.coef, final.mesh_intercept, final.feature_columns, final.n_components,
-                                prepared.reference, card_text="", metadata={"mlflow_run_id": run.run_id})
+        arrays = release_arrays(
+            final.coef,
+            final.mesh_intercept,
+            final.feature_columns,
+            final.n_components,
+            prepared.reference,
+            card_text="",
+            metadata={"mlflow_run_id": run.run_id},
+        )
         refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
         run.call(log_release_model, arrays)
-        run_info = {"run_id": run.run_id, "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
-                    "experiment_id": getattr(run, "experiment_id", None),
-                    # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
-                    # never a server's address (the run id finds the run there)
-                    "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None}
+        run_info = {
+            "run_id": run.run_id,
+            "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
+            "experiment_id": getattr(run, "experiment_id", None),
+            # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
+            # never a server's address (the run id finds the run there)
+            "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None,
+        }
         with atomic_directory(out) as tmp:
-            np.savez(tmp / MODEL_NPZ, coef=final.coef, raw_intercept=final.raw_intercept, mesh_intercept=final.mesh_intercept,
-                     feature_columns=np.array(final.feature_columns), n_components=np.array(final.n_components, dtype=np.int32))
+            np.savez(
+                tmp / MODEL_NPZ,
+                coef=final.coef,
+                raw_intercept=final.raw_intercept,
+                mesh_intercept=final.mesh_intercept,
+                feature_columns=np.array(final.feature_columns),
+                n_components=np.array(final.n_components, dtype=np.int32),
+            )
             thresholds, fraction = dvc_metrics.error_curve(cv.frame_vertex_error, CARD_ERROR_CURVE_POINTS)
-            np.savez(tmp / CV_NPZ, r2_per_vertex=cv.r2_per_vertex, r2_per_target=cv.r2_per_target,
-                     r2_path_folds=cv.r2_path_folds, vertex_error_per_vertex=cv.vertex_error_per_vertex,
-                     cumulative_error_thresholds=thresholds, cumulative_error_fraction=fraction)
+            np.savez(
+                tmp / CV_NPZ,
+                r2_per_vertex=cv.r2_per_vertex,
+                r2_per_target=cv.r2_per_target,
+                r2_path_folds=cv.r2_path_folds,
+                vertex_error_per_vertex=cv.vertex_error_per_vertex,
+                cumulative_error_thresholds=thresholds,
+                cumulative_error_fraction=fraction,
+            )
             shutil.copyfile(cv.frame_vertex_error.path, tmp / ev.FRAME_ERROR_FILE)  # per frame, frames.parquet's order
-            atomic_write_json(tmp / TRACKING_JSON, run_info | {"data_digest": digest,
-                                                               "degenerate": cv.extra.get("degenerate", {})})
+            atomic_write_json(
+                tmp / TRACKING_JSON, run_info | {"data_digest": digest, "degenerate": cv.extra.get("degenerate", {})}
+            )
             atomic_write_json(tmp / METRICS_JSON, metrics)
-        dvc_metrics.write(cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds)  # committed: `dvc metrics/plots diff`
+        dvc_metrics.write(
+            cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds
+        )  # committed: `dvc metrics/plots diff`
         run.log_artifact(out / METRICS_JSON)
     return metrics
 
@@ -261,15 +313,25 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         "name": "AU+pose -> MediaPipe mesh PLS (aumesh)",
         "format_version": 2,
         "cv": {k: v for k, v in metrics.items() if k not in ("n_components", "n_features")},
-        "model": {"n_components": metrics["n_components"], "n_features": metrics["n_features"],
-                  "estimator": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)"},
-        "data": {"n_frames": summary["n_frames"], "n_videos": summary["n_videos"], "digest": run_info.get("data_digest"),
-                 "degenerate": run_info.get("degenerate") or {},
-                 "counts": summary["counts"], "n_low_au_frames": summary["n_low_au_population"]},
+        "model": {
+            "n_components": metrics["n_components"],
+            "n_features": metrics["n_features"],
+            "estimator": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)",
+        },
+        "data": {
+            "n_frames": summary["n_frames"],
+            "n_videos": summary["n_videos"],
+            "digest": run_info.get("data_digest"),
+            "degenerate": run_info.get("degenerate") or {},
+            "counts": summary["counts"],
+            "n_low_au_frames": summary["n_low_au_population"],
+        },
         "config": shareable_config(cfg),
         "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
-        "mlflow": {**{k: run_info.get(k) for k in ("run_id", "experiment_id", "tracking_uri")},
-                   "experiment": cfg.tracking.experiment if cfg.tracking.enabled else None},
+        "mlflow": {
+            **{k: run_info.get(k) for k in ("run_id", "experiment_id", "tracking_uri")},
+            "experiment": cfg.tracking.experiment if cfg.tracking.enabled else None,
+        },
         "runs": release_runs(run_info, promotion),
         "libraries": provenance.library_versions(),
         "promotion": promotion,
@@ -295,15 +357,34 @@ def release_runs(run_info: dict, promotion: dict | None) -> dict:
         ``role``, what it stands for. The promoted run is a sweep child: the same configuration fitted by the sweep,
         whose metrics decided; the build run refitted it in the pipeline (the card's arrays and numbers are its).
     """
-    build = {"run_id": run_info.get("run_id"), "run_name": run_info.get("run_name"),
-             "experiment_id": run_info.get("experiment_id"), "tracking_uri": run_info.get("tracking_uri"),
-             "role": "build: the evaluate run of `dvc repro` that produced these exact arrays and the card's metrics"}
+    build = {
+        "run_id": run_info.get("run_id"),
+        "run_name": run_info.get("run_name"),
+        "experiment_id": run_info.get("experiment_id"),
+        "tracking_uri": run_info.get("tracking_uri"),
+        "role": "build: the evaluate run of `dvc repro` that produced these exact arrays and the card's metrics",
+    }
     promoted = None
     if promotion:
-        promoted = {k: promotion.get(k) for k in ("run_id", "run_name", "parent_run_id", "tracking_uri", "criterion",
-                                                  "metric", "value", "registered_model", "model_version", "alias")}
-        promoted["role"] = ("promoted: the sweep run whose configuration this release uses, chosen by `aumesh promote` "
-                            f"({promotion.get('criterion')})")
+        promoted = {
+            k: promotion.get(k)
+            for k in (
+                "run_id",
+                "run_name",
+                "parent_run_id",
+                "tracking_uri",
+                "criterion",
+                "metric",
+                "value",
+                "registered_model",
+                "model_version",
+                "alias",
+            )
+        }
+        promoted["role"] = (
+            "promoted: the sweep run whose configuration this release uses, chosen by `aumesh promote` "
+            f"({promotion.get('criterion')})"
+        )
     return {"build": build, "promoted": promoted}
 
 
@@ -330,15 +411,16 @@ def refuse_nonfinite(arrays: dict, source: Path) -> None:
 
     nonfinite = nonfinite_arrays(arrays)
     if nonfinite:
-        raise ReleaseError(f"{source}: {nonfinite}; nothing written, the previous release is kept. "
-                           f"Fix: rerun the fit (`dvc repro -f evaluate`) and look for degenerate inputs in its log.")
+        raise ReleaseError(
+            f"{source}: {nonfinite}; nothing written, the previous release is kept. "
+            f"Fix: rerun the fit (`dvc repro -f evaluate`) and look for degenerate inputs in its log."
+        )
 
 
 def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
     start_stage("release", cfg)
-    from aumesh.card import directions
-    from aumesh.card import render
+    from aumesh.card import directions, render
     from aumesh.export import gltf, viewer
 
     model_dir, prepared_dir = Path(cfg.paths.model_dir), Path(cfg.paths.prepared_dir)
@@ -350,8 +432,15 @@ def release_stage(cfg: Config) -> Path:
     card = build_card(cfg, model_dir, prepared_dir, promotion)
     model = load_model(model_dir)
     reference = integrity.load_reference(prepared_dir)
-    arrays = release_arrays(model["coef"], model["mesh_intercept"], model["feature_columns"].tolist(),
-                            int(model["n_components"]), reference, card_text="", metadata=card)
+    arrays = release_arrays(
+        model["coef"],
+        model["mesh_intercept"],
+        model["feature_columns"].tolist(),
+        int(model["n_components"]),
+        reference,
+        card_text="",
+        metadata=card,
+    )
     refuse_nonfinite({"coef": model["coef"], "intercept": model["mesh_intercept"]}, model_dir / MODEL_NPZ)
     refuse_nonfinite(arrays, model_dir / MODEL_NPZ)  # before anything is written: the previous release stays
     with atomic_directory(cfg.paths.release_dir) as tmp:

@@ -12,9 +12,10 @@ import shutil
 import socket
 import tempfile
 import threading
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -184,14 +185,19 @@ def disk_full(path: str | Path, written: int) -> Exception:
     exists = path.exists()
     path = Path(recorded(path))  # named as the user names it: relative to the workspace (a stage's paths are absolute)
     folder = path.parent
-    kept = (f"the previous {path} is intact (nothing was swapped in)" if exists
-            else f"nothing was written to {path}")
-    need = (f"a complete one takes about {previous:,} bytes (the previous one's size), {free:,} are free"
-            if previous else f"it needs more than the {free:,} bytes free")
+    kept = f"the previous {path} is intact (nothing was swapped in)" if exists else f"nothing was written to {path}"
+    need = (
+        f"a complete one takes about {previous:,} bytes (the previous one's size), {free:,} are free"
+        if previous
+        else f"it needs more than the {free:,} bytes free"
+    )
     taken = f"the new output had taken {written:,} bytes when the disk filled; " if written else ""
-    err = DiskFullError(errno.ENOSPC, f"{folder}/: no space left on the device while writing {path} ({taken}{need}); "
-                        f"{kept}. Fix: free space on the "
-                        f"device of {folder}/ (`df -h {folder}`) or point the output elsewhere in params.yaml, and run again.")
+    err = DiskFullError(
+        errno.ENOSPC,
+        f"{folder}/: no space left on the device while writing {path} ({taken}{need}); "
+        f"{kept}. Fix: free space on the "
+        f"device of {folder}/ (`df -h {folder}`) or point the output elsewhere in params.yaml, and run again.",
+    )
     return err
 
 
@@ -267,7 +273,11 @@ def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
         prefix = fh.read(12)  # magic (6), version (2), header length (2 in v1.0, 4 in v2/v3)
         if len(prefix) < 10 or prefix[:6] != b"\x93NUMPY":
             raise ValueError(f"{path}: not an .npy file")
-        size = 10 + int.from_bytes(prefix[8:10], "little") if prefix[6] == 1 else 12 + int.from_bytes(prefix[8:12], "little")
+        size = (
+            10 + int.from_bytes(prefix[8:10], "little")
+            if prefix[6] == 1
+            else 12 + int.from_bytes(prefix[8:12], "little")
+        )
         header = prefix + fh.read(size - len(prefix))
     return _parse_npy_header(header, str(path))
 
@@ -283,7 +293,9 @@ def check_npy(path: str | Path, fix: str) -> tuple[int, np.dtype, tuple[int, ...
     try:
         with open(path, "rb") as fh:  # numpy's own header reader: Fortran order is the caller's to refuse
             version = np.lib.format.read_magic(fh)
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            read_header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )
             shape, _, dtype = read_header(fh)
             offset = fh.tell()
     except (ValueError, SyntaxError, EOFError) as err:
@@ -291,8 +303,9 @@ def check_npy(path: str | Path, fix: str) -> tuple[int, np.dtype, tuple[int, ...
     need = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     size = path.stat().st_size
     if size < need:
-        raise TruncatedFileError(f"{path}: truncated: {size:,} bytes on disk, its header ({shape} {dtype}) needs "
-                               f"{need:,}. Fix: {fix}")
+        raise TruncatedFileError(
+            f"{path}: truncated: {size:,} bytes on disk, its header ({shape} {dtype}) needs {need:,}. Fix: {fix}"
+        )
     return offset, dtype, shape
 
 
@@ -340,8 +353,10 @@ class NpyRowFile:
             if not k:  # the file shrank after its size was checked (check_npy), or was never checked
                 from aumesh.utils.errors import TruncatedFileError
 
-                raise TruncatedFileError(f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)} of "
-                                       f"{self.shape[0]}. Fix: restore or rewrite the file")
+                raise TruncatedFileError(
+                    f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)} of "
+                    f"{self.shape[0]}. Fix: restore or rewrite the file"
+                )
             got += k
         return out
 
@@ -373,7 +388,7 @@ class NpyRowFile:
             os.close(self._fd)
             self._fd = -1
 
-    def __enter__(self) -> "NpyRowFile":
+    def __enter__(self) -> NpyRowFile:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -418,8 +433,10 @@ def row_runs(sorted_values: np.ndarray) -> list[tuple[int, tuple[int, int]]]:
     if len(sorted_values) == 0:
         return []
     breaks = np.flatnonzero(np.diff(sorted_values) != 1) + 1
-    return [(int(lo), (int(sorted_values[lo]), int(sorted_values[hi - 1]) + 1))
-            for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(sorted_values)])]
+    return [
+        (int(lo), (int(sorted_values[lo]), int(sorted_values[hi - 1]) + 1))
+        for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(sorted_values)])
+    ]
 
 
 class NpyRows:
@@ -445,7 +462,11 @@ class NpyRows:
             key, rest = key[0], key[1:]
         if isinstance(key, slice):
             start, stop, step = key.indices(self.shape[0])
-            out = read_rows(self.path, start, stop)[::step] if step > 0 else read_row_set(self.path, np.arange(start, stop, step))
+            out = (
+                read_rows(self.path, start, stop)[::step]
+                if step > 0
+                else read_row_set(self.path, np.arange(start, stop, step))
+            )
         elif np.isscalar(key):
             out = read_row_set(self.path, np.array([int(key)]))[0]
         else:

@@ -13,5 +13,12 @@ def bar(total: int | None, desc: str, unit: str = "rows"):
     """A tqdm bar of ``total`` ``unit`` on stderr; disabled (no output at all) when stderr is not a terminal."""
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, unit_scale=unit == "rows", leave=False,
-                dynamic_ncols=True, disable=not sys.stderr.isatty())
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit=unit,
+        unit_scale=unit == "rows",
+        leave=False,
+        dynamic_ncols=True,
+        disable=not sys.stderr.isatty(),
+    )
