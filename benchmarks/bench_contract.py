@@ -58,7 +58,7 @@ def main(argv=None) -> int:
     n = sum(len(m) for m in metas)
 
     def run_contract():
-        checked = [contract.validate_metadata(m, t.path) for m, t in zip(metas, found)]
+        checked = [contract.validate_metadata(m, t.path) for m, t in zip(metas, found, strict=True)]
         for m in checked:
             contract.check_pose_units(m[list(POSE_COLUMNS)].to_numpy(), data)
         contract.check_filter_shares(contract.filter_shares({"frames_in": n, "dropped_pose": 0}), 1.0, data)

@@ -113,7 +113,7 @@ def main(argv=None) -> int:
                 flush=True,
             )
     totals = {name: [sum(m.wall_s for m in run) for run in runs[name]] for name in paths}
-    ratio = statistics.median((c - f) / p for c, f, p in zip(totals["csv"], floors, totals["parquet"]))
+    ratio = statistics.median((c - f) / p for c, f, p in zip(totals["csv"], floors, totals["parquet"], strict=True))
     rows = []
     for name in paths:
         med = [statistics.median(run[i].wall_s for run in runs[name]) for i in range(len(STAGES))]

@@ -188,7 +188,7 @@ def main(argv=None) -> int:
     runs: dict[str, list] = {name: [] for name, _, _ in variants}
     outcome: dict[str, dict] = {}
     for r in range(args.repeats):
-        turns = list(zip(variants, params))
+        turns = list(zip(variants, params, strict=True))
         for (name, src, _), run_params in turns if r % 2 == 0 else turns[::-1]:
             floors.append(read_floor(data)[0])  # beside every run: the floor sees the same machine as the stages
             ms = run_stages(run_dir, run_params, source_env(src))
@@ -223,7 +223,7 @@ def main(argv=None) -> int:
     if len(variants) > 1:  # the first variant against each other, run by run: robust to the machine's drift
         base = [sum(m.wall_s for m in run) for run in runs[variants[0][0]]]
         for name, _, _ in variants[1:]:
-            ratio = statistics.median(sum(m.wall_s for m in run) / b for run, b in zip(runs[name], base))
+            ratio = statistics.median(sum(m.wall_s for m in run) / b for run, b in zip(runs[name], base, strict=True))
             record["variants"][name]["total_wall_ratio"] = ratio
             print(
                 f"{name} / {variants[0][0]}, total wall time: {ratio:.3f}x (median of the {args.repeats} runs' ratios)"

@@ -219,7 +219,7 @@ def test_two_workspaces_share_one_cluster_started_elsewhere_and_equal_their_loca
         )
         for ws in spaces
     ]
-    for ws, proc in zip(spaces, procs):
+    for proc in procs:
         log = proc.communicate(timeout=900)[0]
         assert proc.returncode == 0, log
         assert "Running stage 'prepare'" in log and "Running stage 'evaluate'" in log

@@ -108,7 +108,7 @@ def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):
     assert len({c["meshes.npy"]["size"] for c in checksums}) == 1 and len(checksums[1]["meshes.npy"]["blocks"]) > 2
     for name in ("video_ids.npy", "neutral_mean.npy", "neutral_low_au.npy"):  # written the same, byte for byte
         assert len({c[name]["blocks"][0][2] for c in checksums}) == 1, name
-    for d, c in zip((one, many, some), checksums):
+    for d, c in zip((one, many, some), checksums, strict=True):
         integrity.verify(d, c)
     _assert_same_prepared(one, many)
     _assert_same_prepared(one, some)
@@ -429,8 +429,8 @@ def test_a_pass_returns_freed_memory_when_it_starts_every_few_tasks_and_when_it_
     # a long pass (more than TRIM_AFTER_TASKS partitions) also every k tasks; a short one at its end only
     for n, periodic in ((compute.TRIM_AFTER_TASKS + k + 1, True), (compute.TRIM_AFTER_TASKS, False)):
         for run in (
-            lambda: compute.map_gather(task, list(range(n))) == list(range(n)),
-            lambda: compute.map_reduce(task, lambda a, b: a + b, list(range(n))) == n * (n - 1) // 2,
+            lambda n=n: compute.map_gather(task, list(range(n))) == list(range(n)),
+            lambda n=n: compute.map_reduce(task, lambda a, b: a + b, list(range(n))) == n * (n - 1) // 2,
         ):
             monkeypatch.setattr(compute, "_TASKS_RUN", itertools.count(1))
             events.clear()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -74,7 +76,7 @@ def test_no_triangle_spans_an_eye_or_mouth_opening(tpl, contour):
     for tri in (face.triangulate(), face.delaunay_triangles(tpl)):
         for t in tri:
             on = sorted(pos[v] for v in t if v in pos)
-            for a, b in zip(on, on[1:]):
+            for a, b in pairwise(on):
                 assert min(b - a, len(ring) - (b - a)) == 1, t
 
 
@@ -149,7 +151,7 @@ def test_au_fields_shape_magnitude_and_key_directions(tpl):
     f = truth.facs_displacement_fields()
     assert f.shape == (len(AU_COLUMNS), N_VERTICES, 3)
     mags = np.linalg.norm(f, axis=2).max(axis=1)
-    assert np.all((mags >= 0.02) & (mags <= 0.2)), dict(zip(AU_COLUMNS, mags.round(3)))
+    assert np.all((mags >= 0.02) & (mags <= 0.2)), dict(zip(AU_COLUMNS, mags.round(3), strict=True))
     k = AU_COLUMNS.index
     assert f[k("AU12"), 291, 1] < 0 and f[k("AU12"), 291, 0] > 0 and f[k("AU12"), 61, 0] < 0  # up and out
     assert f[k("AU26"), 152, 1] > 0 and abs(f[k("AU26"), 13, 1]) < 0.01  # jaw drops, upper lip stays

@@ -29,10 +29,10 @@ def _release(tmp_path, features: str, seed: int = 0):
     return path, *in_card_frame(coef, intercept, reference)
 
 
-def _card_snippet(path, au: np.ndarray, pose=np.zeros(3)) -> np.ndarray:
+def _card_snippet(path, au: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
     """The card's inference snippet, verbatim (raw NPZ, x @ coef + intercept, axis-major unflatten)."""
     m = np.load(path, allow_pickle=False)
-    x = np.concatenate([au, pose])
+    x = np.concatenate([au, np.zeros(3) if pose is None else pose])
     flat = x @ m["coef"] + m["intercept"]
     return np.stack([flat[:478], flat[478:956], flat[956:]], axis=1)
 
@@ -81,7 +81,7 @@ def test_pose_conditioned_prediction_uses_the_interactions(card_release):
     rng = np.random.default_rng(2)
     au, pose = rng.uniform(0, 2, size=(4, 20)), rng.uniform(-0.5, 0.5, size=(4, 3))
     # independent reference from the float64 training coefficients: [AU | pose | pose-major pose x AU]
-    x_full = np.stack([np.concatenate([a, p, np.outer(p, a).ravel()]) for a, p in zip(au, pose)])
+    x_full = np.stack([np.concatenate([a, p, np.outer(p, a).ravel()]) for a, p in zip(au, pose, strict=True)])
     expected = (x_full @ coef.T + intercept).reshape(4, 3, 478).transpose(0, 2, 1)
     np.testing.assert_allclose(aumesh.predict_mesh(path, au, pose), expected, rtol=1e-5, atol=1e-3)
     df = pd.DataFrame(au, columns=list(AU_COLUMNS)).assign(
@@ -192,7 +192,7 @@ def test_cli_predict_writes_one_mesh_per_table_row(card_release, tmp_path, capsy
         == 0
     )
     assert "wrote 3 mesh(es)" in capsys.readouterr().out
-    x_full = np.stack([np.concatenate([a, p, np.outer(p, a).ravel()]) for a, p in zip(au, pose)])
+    x_full = np.stack([np.concatenate([a, p, np.outer(p, a).ravel()]) for a, p in zip(au, pose, strict=True)])
     expected = (x_full @ coef.T + intercept).reshape(3, 3, 478).transpose(0, 2, 1)
     with np.load(out, allow_pickle=False) as z:
         assert z["meshes"].shape == (3, 478, 3) and z["meshes"].dtype == np.float32

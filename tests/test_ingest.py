@@ -143,7 +143,7 @@ def test_csv_ranges_never_split_a_frame_and_give_the_same_tables(clean_reference
     spans = ingest_data.csv_spans(source, range_bytes=200_000)  # ~12 rows a range
     assert len(spans) > 10
     assert spans[0].start > 0 and spans[-1].stop == source.path.stat().st_size
-    assert all(a.stop == b.start for a, b in zip(spans[:-1], spans[1:]))
+    assert all(a.stop == b.start for a, b in zip(spans[:-1], spans[1:], strict=True))
     whole = ingest_data.read_span(ingest_data.Span(source, spans[0].start, spans[-1].stop))
     parts = [ingest_data.read_span(s) for s in spans]
     keys = [
@@ -155,7 +155,7 @@ def test_csv_ranges_never_split_a_frame_and_give_the_same_tables(clean_reference
         )
         for p in parts
     ]
-    for (_, _, last_video, last_frame), (first_video, first_frame, _, _) in zip(keys[:-1], keys[1:]):
+    for (_, _, last_video, last_frame), (first_video, first_frame, _, _) in zip(keys[:-1], keys[1:], strict=True):
         assert (last_video, last_frame) != (first_video, first_frame)  # a frame's faces stay in one range
     assert sum(p.num_rows for p in parts) == whole.num_rows
     monkeypatch.setattr(ingest_data, "CSV_RANGE_BYTES", 200_000)
@@ -260,7 +260,7 @@ def test_a_parquet_table_is_streamed_in_batches_without_splitting_a_frames_faces
     monkeypatch.setattr(ingest_data, "PARQUET_RANGE_ROWS", 7)  # batches of 7 rows: frames with 2 faces straddle them
     batches = list(ingest_data.iter_span_tables(whole))
     assert len(batches) > 50 and sum(t.num_rows for _, t in batches) == source.n_rows
-    assert all(a.stop == b.start for (a, _), (b, _) in zip(batches[:-1], batches[1:]))
+    assert all(a.stop == b.start for (a, _), (b, _) in zip(batches[:-1], batches[1:], strict=True))
     counts = ingest_data.write_clean([whole], tmp_path / "many.parquet", "largest", None)
     assert counts.extra_faces > 0
     assert pq.read_table(tmp_path / "many.parquet").equals(pq.read_table(tmp_path / "one.parquet"))

@@ -116,7 +116,7 @@ def test_parent_and_children_over_http(mlflow_server, tmp_path, monkeypatch):
 
     client = MlflowClient(tracking_uri=mlflow_server)
     assert client.get_run(parent).info.status == "FINISHED"
-    for rid, k in zip(children, (2, 4)):
+    for rid, k in zip(children, (2, 4), strict=True):
         got = client.get_run(rid)
         assert got.info.status == "FINISHED"
         assert got.data.tags["mlflow.parentRunId"] == parent

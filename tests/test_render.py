@@ -60,7 +60,7 @@ def test_figures_drawn_in_worker_processes_equal_those_drawn_in_process(release,
     monkeypatch.setattr(render.os, "cpu_count", lambda: 1)
     serial = render.render_release(npz, tmp_path / "serial", cv_path=cv)
     assert [p.name for p in parallel] == [p.name for p in serial]
-    for a, b in zip(parallel, serial):
+    for a, b in zip(parallel, serial, strict=True):
         assert a.read_bytes() == b.read_bytes(), a.name
 
 

@@ -75,7 +75,7 @@ def test_chunking_does_not_change_the_statistics(frames):
     au, pose, video, n_videos, fold, Y, _, _ = frames
     one = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, len(Y)))
     many = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 77))
-    for a, b in zip(one.folds, many.folds):
+    for a, b in zip(one.folds, many.folds, strict=True):
         _assert_same(a.reshifted(b.x_shift, b.y_shift) if hasattr(a, "reshifted") else a, b)
     np.testing.assert_allclose(
         one.video_sum_y + one.y_shift * one.video_count[:, None],
@@ -148,7 +148,7 @@ def test_video_sum_stream_hands_each_video_once_when_its_last_row_is_added():
 
     stream = VideoSumStream(video, done)
     cuts = np.r_[0, np.sort(rng.choice(np.arange(1, len(video)), 25, replace=False)), len(video)]
-    for lo, hi in zip(cuts[:-1], cuts[1:]):
+    for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
         v, sums, _ = video_row_sums(video[lo:hi], rows[lo:hi])
         dense[v] += sums
         stream.add(video[lo:hi], rows[lo:hi])

@@ -228,7 +228,7 @@ def fig_solid_panels(neutral, disp, tri, factor):
     lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
-    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
+    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat, strict=True)):
         mesh = neutral + factor * disp[k]
         _draw_solid(ax, mesh, tri, signs, tint=mags[k][tri].mean(axis=1) / vmax)
         _prep_ax(ax, lims, _au_title(au))
@@ -263,7 +263,7 @@ def fig_compare_overlay(neutral, disp, tri, factor):
     lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
-    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
+    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat, strict=True)):
         act = neutral + factor * disp[k]
         ax.triplot(neutral[:, 0], -neutral[:, 1], tri, color="0.75", lw=0.3)
         ax.triplot(act[:, 0], -act[:, 1], tri, color="tab:blue", lw=0.3, alpha=0.7)
@@ -299,7 +299,7 @@ def fig_effect_maps(neutral, disp, tri, scale):
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
     im = None
-    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat)):
+    for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat, strict=True)):
         im = ax.tripcolor(
             neutral[:, 0], -neutral[:, 1], tri, mags[k], shading="gouraud", cmap="magma", vmin=0.0, vmax=vmax
         )
@@ -471,7 +471,7 @@ def _render_all(jobs: list[tuple[Path, Any, tuple]]) -> list[Path]:
     if workers < 2 or "fork" not in multiprocessing.get_all_start_methods():
         return [_render(*job) for job in jobs]
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-        return list(pool.map(_render, *zip(*jobs)))
+        return list(pool.map(_render, *zip(*jobs, strict=True)))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -218,7 +218,7 @@ def pose_medians_may_exceed(n_above, n: int) -> bool:
 def check_pose_medians(median, where: str | Path) -> None:
     """:func:`check_pose_units` on the medians of |Pitch|, |Yaw|, |Roll| (3,) over the frames (computed elsewhere,
     e.g. by exact quantiles of a vector held in partitions)."""
-    for name, m in zip(POSE_COLUMNS, median):
+    for name, m in zip(POSE_COLUMNS, median, strict=True):
         if m > MAX_MEDIAN_ABS_POSE_RAD:
             raise TableError(
                 f"{where}: column {name!r} has median |{name}| = {m:.2f}: as radians that is {np.rad2deg(m):.0f} degrees, "

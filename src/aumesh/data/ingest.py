@@ -162,7 +162,7 @@ def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
                 bounds.append(cut)
             target = max(cut, bounds[-1]) + range_bytes
     bounds.append(size)
-    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
 def _frame_boundary(fh, offset: int, key_columns: list[int]) -> int:
@@ -538,7 +538,7 @@ def identity_counts(block: Block, layout: pyfeat.Layout) -> dict[str, dict[str, 
         return {}
     face = ~no_face_rows(block, layout)
     out: dict[str, dict[str, int]] = {}
-    for v, ident in zip(block.video[face], block.identity[face]):
+    for v, ident in zip(block.video[face], block.identity[face], strict=True):
         if ident is None or (isinstance(ident, float) and np.isnan(ident)):
             continue
         c = out.setdefault(str(v), {})

@@ -669,7 +669,7 @@ def _join_npy(path: Path, parts: list[Path]) -> None:
     with atomic_path(path, suffix=".npy") as tmp:
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(n, N_VERTICES, 3))
         start = 0
-        for p, s in zip(parts, shapes):
+        for p, s in zip(parts, shapes, strict=True):
             out[start : start + s[0]] = np.load(p)
             start += s[0]
         out.flush()

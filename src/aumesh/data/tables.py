@@ -233,13 +233,12 @@ def _batches(
     try:
         # one thread: the partitions already run on every core; Arrow's own pool on top of them cost 1 CPU s and
         # 100k context switches in prepare at 344k frames (0.5 s of wall time)
-        for batch in _parquet(table.path).iter_batches(
+        yield from _parquet(table.path).iter_batches(
             batch_size=chunk_rows,
             columns=columns,
             use_threads=False,
             row_groups=None if row_groups is None else list(row_groups),
-        ):
-            yield batch
+        )
     except (pa.ArrowException, OSError) as err:
         raise corrupt_parquet(table.path, err, " (reading the mesh columns)") from None
 
@@ -344,7 +343,7 @@ def read_pieces_metadata(pieces: Sequence[Piece], coerce_numeric: bool = False) 
     try:
         return _validated(pd.concat(raw, ignore_index=True), pieces[0].table.path, pieces[0].start, coerce_numeric)
     except TableError as err:
-        for df, piece in zip(raw, pieces):  # the first broken piece, named with its file and row
+        for df, piece in zip(raw, pieces, strict=True):  # the first broken piece, named with its file and row
             _validated(df, piece.table.path, piece.start, coerce_numeric)
         raise err
 

@@ -259,26 +259,26 @@ def _oval_uv(n: int = len(FACE_OVAL)) -> np.ndarray:
 
 def _named_uv() -> dict[int, tuple[float, float]]:
     p: dict[int, tuple[float, float]] = {}
-    for idx, (u, v) in zip(FACE_OVAL, _oval_uv()):
+    for idx, (u, v) in zip(FACE_OVAL, _oval_uv(), strict=True):
         p[idx] = (float(u), float(v))
-    for idx, v in zip((151, 9, 8), (0.66, 0.40, 0.24)):
+    for idx, v in zip((151, 9, 8), (0.66, 0.40, 0.24), strict=True):
         p[idx] = (0.0, v)
-    for idx, v in zip(NOSE_MIDLINE, (0.12, 0.02, -0.10, -0.21, -0.30, -0.37, -0.42)):
+    for idx, v in zip(NOSE_MIDLINE, (0.12, 0.02, -0.10, -0.21, -0.30, -0.37, -0.42), strict=True):
         p[idx] = (0.0, v)
     p[2] = (0.0, -0.50)
-    for idx, v in zip(CHIN_MIDLINE[:-1], (-0.93, -1.00, -1.07, -1.15)):
+    for idx, v in zip(CHIN_MIDLINE[:-1], (-0.93, -1.00, -1.07, -1.15), strict=True):
         p[idx] = (0.0, v)
     # Eyes: lower lid outer->inner (9 pts incl. corners), upper lid inner->outer.
     for contour, iris, sgn in ((EYE_CONTOUR_RIGHT, IRIS_RIGHT, -1), (EYE_CONTOUR_LEFT, IRIS_LEFT, 1)):
         outer, inner = 0.5 * sgn, 0.17 * sgn
         t = np.arange(9) / 8.0
-        for idx, ti in zip(contour[:9], t):
+        for idx, ti in zip(contour[:9], t, strict=True):
             p[idx] = (outer + ti * (inner - outer), -0.045 * np.sin(np.pi * ti))
-        for idx, ti in zip(contour[9:], 1.0 - t[1:8]):
+        for idx, ti in zip(contour[9:], 1.0 - t[1:8], strict=True):
             p[idx] = (outer + ti * (inner - outer), 0.055 * np.sin(np.pi * ti) ** 0.8)
         cu, r = 0.335 * sgn, 0.03
         p[iris[0]] = (cu, 0.002)
-        for idx, ang in zip(iris[1:], (0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi)):
+        for idx, ang in zip(iris[1:], (0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi), strict=True):
             p[idx] = (cu + r * np.cos(ang), 0.002 + r * np.sin(ang))
     # Brows, outer->inner, mirrored.
     bu = np.array([0.58, 0.47, 0.36, 0.25, 0.14])
@@ -289,14 +289,14 @@ def _named_uv() -> dict[int, tuple[float, float]]:
             p[lo[i]] = (sgn * (bu[i] - 0.01), bv[i] - 0.05)
     # Lips. Upper outer / inner: 11 pts right corner -> left corner.
     t = np.linspace(-1.0, 1.0, 11)
-    for idx, ti in zip(LIPS_OUTER[:11], t):
+    for idx, ti in zip(LIPS_OUTER[:11], t, strict=True):
         p[idx] = (0.27 * ti, -0.72 + 0.075 * (1 - ti**2) ** 0.8)
-    for idx, ti in zip(LIPS_INNER[:11], t):
+    for idx, ti in zip(LIPS_INNER[:11], t, strict=True):
         p[idx] = (0.23 * ti, -0.73 + 0.015 * (1 - ti**2))
     t9 = t[1:10][::-1]  # lower lip runs left -> right
-    for idx, ti in zip(LIPS_OUTER[11:], t9):
+    for idx, ti in zip(LIPS_OUTER[11:], t9, strict=True):
         p[idx] = (0.27 * ti, -0.72 - 0.12 * (1 - ti**2) ** 0.8)
-    for idx, ti in zip(LIPS_INNER[11:], t9):
+    for idx, ti in zip(LIPS_INNER[11:], t9, strict=True):
         p[idx] = (0.23 * ti, -0.73 - 0.015 * (1 - ti**2))
     # Nose base and cheeks: (right index, left index, |u|, v).
     for r_i, l_i, u, v in (

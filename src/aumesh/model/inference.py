@@ -29,7 +29,7 @@ import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 
@@ -52,7 +52,7 @@ FACE_SCORE_COLUMN = "FaceScore"
 REQUIRED_KEYS: tuple[str, ...] = ("coef", "intercept", "input_columns", "au_columns", "mean_aligned_mesh")
 
 Release = Mapping[str, Any]
-ReleaseSource = Union[str, os.PathLike, Release]
+ReleaseSource = str | os.PathLike | Release
 
 
 class ReleaseError(UserError, ValueError):

@@ -52,5 +52,5 @@ def summarize(cosines: np.ndarray, names: list[str]) -> dict:
     return {
         "au_reliability_min": float(cosines.min()),
         "au_reliability_median": float(np.median(cosines)),
-        "au_reliability": {n: float(c) for n, c in zip(names, cosines)},
+        "au_reliability": {n: float(c) for n, c in zip(names, cosines, strict=True)},
     }

@@ -25,8 +25,12 @@ float64 rounding (tests/test_statistics.py).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only: scipy.sparse is imported where it is used, not at import time
+    import scipy.sparse
 
 from aumesh.data.schema import N_TARGETS, feature_columns
 from aumesh.model.cross_products import CrossProducts
@@ -104,7 +108,7 @@ def video_row_sums(video: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
         starts = np.flatnonzero(np.r_[True, video[1:] != video[:-1]])
     stops = np.r_[starts[1:], len(video)]
     sums = np.empty((len(starts), rows.shape[1]))
-    for j, (lo, hi) in enumerate(zip(starts.tolist(), stops.tolist())):
+    for j, (lo, hi) in enumerate(zip(starts.tolist(), stops.tolist(), strict=True)):
         np.sum(rows[lo:hi], axis=0, out=sums[j])  # along the rows: one row after another from 0
     return video[starts], sums, (stops - starts).astype(np.int64)
 
@@ -128,7 +132,7 @@ class VideoSumStream:
 
     def __init__(self, video: np.ndarray, done):
         videos, counts = np.unique(video, return_counts=True)
-        self.count = dict(zip(videos.tolist(), counts.tolist()))
+        self.count = dict(zip(videos.tolist(), counts.tolist(), strict=True))
         self.remaining = dict(self.count)
         self.open: dict = {}
         self.done = done
@@ -168,7 +172,7 @@ class DesignSums:
         Rows are grouped by fold (one stable reordering copy), so each fold costs one GEMM of its own
         rows, ``Y_f' [X_f | 1]``, instead of a GEMM of every row against every fold's zero-padded block.
         """
-        K, p = self.K, self.p
+        K = self.K
         order, bounds = fold_order(fold, K)
         if order is not None:
             X, Y = X[order], Y[order]

@@ -120,7 +120,9 @@ def r2_curve(r2_path_folds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _csv(columns: tuple[str, str], x: np.ndarray, y: np.ndarray) -> str:
     rows = [",".join(columns)]
-    rows += [f"{rounded(a) if isinstance(a, float) else a},{rounded(b)}" for a, b in zip(x.tolist(), y.tolist())]
+    rows += [
+        f"{rounded(a) if isinstance(a, float) else a},{rounded(b)}" for a, b in zip(x.tolist(), y.tolist(), strict=True)
+    ]
     return "\n".join(rows) + "\n"
 
 

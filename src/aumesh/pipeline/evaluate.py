@@ -386,7 +386,7 @@ class DesignPart:
     def __add__(self, other: DesignPart) -> DesignPart:
         split = dict(self.split)
         for v, parts in other.split.items():
-            split[v] = tuple(a + b for a, b in zip(split[v], parts)) if v in split else parts
+            split[v] = tuple(a + b for a, b in zip(split[v], parts, strict=True)) if v in split else parts
         return DesignPart(self.sums + other.sums, split)
 
 
@@ -549,7 +549,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
             desc="evaluate: statistics",
         )
         for v, values in part.split.items():
-            for name, row in zip(VIDEO_SUMS, values):
+            for name, row in zip(VIDEO_SUMS, values, strict=True):
                 write_rows(scratch / f"{name}.npy", v, row[None])
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)

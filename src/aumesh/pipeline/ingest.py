@@ -101,7 +101,9 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         parquet = [s for s in sources if s.kind == "parquet"]
         checks = dict(
             zip(
-                [s.path for s in parquet], compute.map_gather(ingest.check_clean, parquet, desc="ingest: check parquet")
+                [s.path for s in parquet],
+                compute.map_gather(ingest.check_clean, parquet, desc="ingest: check parquet"),
+                strict=True,
             )
         )
         entries, spans = [], []
@@ -135,12 +137,14 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             partial(_clean_task, how=how, subjects=subjects), tasks, desc="ingest: read + clean"
         )
         total = ingest.Counts()
-        for task, c in zip(tasks, counts):
+        for task, c in zip(tasks, counts, strict=True):
             total = total + c
             if not c.rows_out:  # every row a no-face row
                 task.out.unlink()
         tables = [e["table"] for e in entries if "table" in e]
-        tables += [recorded(out_dir / TABLES_DIR / t.out.name) for t, c in zip(tasks, counts) if c.rows_out]
+        tables += [
+            recorded(out_dir / TABLES_DIR / t.out.name) for t, c in zip(tasks, counts, strict=True) if c.rows_out
+        ]
         in_place = sum(e["rows"] for e in entries if "table" in e)
         totals = total.as_dict()
         totals["rows_in"] += in_place

@@ -80,11 +80,15 @@ def file_record(path: str | Path, blocks: list[tuple[int, int, str]] | None = No
     size = os.path.getsize(path)
     if blocks is None:
         bounds = list(range(0, size, BLOCK_BYTES)) + [size]
-        blocks = [(a, b, hash_range(path, a, b)) for a, b in zip(bounds[:-1], bounds[1:])] or [
+        blocks = [(a, b, hash_range(path, a, b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)] or [
             (0, 0, new_hash().hexdigest())
         ]
     covered = sorted((int(a), int(b)) for a, b, _ in blocks)
-    if covered[0][0] != 0 or covered[-1][1] != size or any(b != c for (_, b), (c, _) in zip(covered[:-1], covered[1:])):
+    if (
+        covered[0][0] != 0
+        or covered[-1][1] != size
+        or any(b != c for (_, b), (c, _) in zip(covered[:-1], covered[1:], strict=True))
+    ):
         raise ValueError(f"{path}: checksum blocks do not cover the file's {size} bytes exactly")
     return {"algorithm": ALGORITHM, "size": size, "blocks": [[int(a), int(b), h] for a, b, h in sorted(blocks)]}
 
@@ -112,7 +116,7 @@ def verify(
         jobs += [(name, path, a, b, h) for a, b, h in rec["blocks"]]
     with ThreadPoolExecutor(max_workers=threads or min(len(jobs), os.cpu_count() or 1) or 1) as pool:
         got = list(pool.map(lambda j: hash_range(j[1], j[2], j[3]), jobs))
-    for (name, path, a, b, want), have in zip(jobs, got):
+    for (_name, path, a, b, want), have in zip(jobs, got, strict=True):
         if have != want:
             raise CorruptFileError(
                 f"{path}: bytes {a:,}-{b:,} do not match the {ALGORITHM} checksum prepare recorded "

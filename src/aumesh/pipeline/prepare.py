@@ -918,7 +918,7 @@ def _passes(
             wild_radius=(reference.mean(axis=0), radius),
         ),
         Written.__add__,
-        list(zip(parts, plans)),
+        list(zip(parts, plans, strict=True)),
         desc="prepare: align + write",
     )
     del plans

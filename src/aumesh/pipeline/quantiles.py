@@ -174,7 +174,7 @@ def exact_quantiles(
         intervals = tuple(iv for iv, _, _ in pending)
         counts = compute.map_reduce(partial(_histogram, values, intervals), np.add, partitions)
         small, refine = [], []
-        for (iv, below, inside), c in zip(pending, counts):
+        for (iv, below, inside), c in zip(pending, counts, strict=True):
             edges, cum = iv.edges(), np.cumsum(c)
             bins = np.searchsorted(cum, inside - below, side="right")  # the bin of each rank
             for j in np.unique(bins):

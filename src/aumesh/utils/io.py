@@ -435,7 +435,7 @@ def row_runs(sorted_values: np.ndarray) -> list[tuple[int, tuple[int, int]]]:
     breaks = np.flatnonzero(np.diff(sorted_values) != 1) + 1
     return [
         (int(lo), (int(sorted_values[lo]), int(sorted_values[hi - 1]) + 1))
-        for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(sorted_values)])
+        for lo, hi in zip(np.r_[0, breaks], np.r_[breaks, len(sorted_values)], strict=True)
     ]
 
 
