@@ -14,7 +14,7 @@ TOOLS_STAMP := node_modules/.package-lock.json
 # again from the locked vega packages by `make tools` (the same bytes while package-lock.json is unchanged)
 PLOTS_TEMPLATE := .dvc/plots/offline.html
 
-.PHONY: help venv tools demo refresh-demo test test-slow test-all lock params repro clean-build bench mlflow-server mlflow-server-postgres mlflow-ui pyfeat-check
+.PHONY: help venv tools demo refresh-demo test test-slow test-all lint lock params repro clean-build bench mlflow-server mlflow-server-postgres mlflow-ui pyfeat-check
 
 help:
 	@echo "make demo        - create .venv from requirements.lock, pull the demo data and outputs, dvc repro (up to date)"
@@ -22,6 +22,7 @@ help:
 	@echo "make tools       - install the node tools (three.js for the viewer, vega for dvc plots, glTF-Validator) into node_modules/"
 	@echo "make test        - run the test suite (fast tests)"
 	@echo "make test-slow   - run the slow end-to-end and scale tests"
+	@echo "make lint        - ruff (lint + format check) and mypy: fails on any finding (.ci/run runs it)"
 	@echo "make lock        - re-resolve requirements.lock from pyproject.toml"
 	@echo "make params      - recompose params.yaml from conf/ (what dvc exp run does)"
 	@echo "make bench       - run the benchmarks under benchmarks/"
@@ -79,6 +80,13 @@ demo: $(STAMP) $(TOOLS_STAMP)
 
 test: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -n auto
+
+# The checks .pre-commit-config.yaml runs on each commit, over the whole tree; settings in pyproject.toml.
+# `ruff format .` and `ruff check --fix .` repair most findings.
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 test-slow: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/python -m pytest -q -m slow

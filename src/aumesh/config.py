@@ -13,7 +13,7 @@ import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import yaml
 
@@ -255,7 +255,7 @@ def _typed(data: Mapping[str, Any]) -> dict[str, Any]:
         reason = str(getattr(err, "msg", err)).splitlines()[0]
         allowed = next((a for k, a in _ALLOWED.items() if k in reason), None)
         raise ConfigError(f"{err.full_key}={value!r}: " + (f"must be {allowed}" if allowed else reason)) from None
-    return OmegaConf.to_container(merged)
+    return cast(dict[str, Any], OmegaConf.to_container(merged))  # a structured config's container is a dict
 
 
 def _build(cls: type, data: Mapping[str, Any]) -> Any:
@@ -396,7 +396,7 @@ def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf", conf
             cfg = hydra_compose(config_name=config_name, overrides=list(overrides))
     except (HydraException, OmegaConfBaseException) as err:  # an unknown key or group option in an override
         raise ConfigError(f"{config_dir}/ {' '.join(overrides)}: {str(err).splitlines()[0]}") from None
-    return OmegaConf.to_container(cfg, resolve=True)
+    return cast(dict[str, Any], OmegaConf.to_container(cfg, resolve=True))  # compose returns a DictConfig
 
 
 def write_params(data: dict, path: str | Path = "params.yaml") -> Path:

@@ -140,7 +140,7 @@ def au_direction_from_displacement(disp: np.ndarray, au: str) -> dict[str, Any]:
         raise KeyError(f"no FACS expectation for {au!r}; known: {sorted(FACS_EXPECTATIONS)}")
     exp = FACS_EXPECTATIONS[au]
     region_mag = {r: float(np.linalg.norm(disp[idx], axis=1).mean()) for r, idx in face.REGIONS.items()}
-    top = max(region_mag, key=region_mag.get)
+    top = max(region_mag, key=lambda r: region_mag[r])
     top_mag = region_mag[top]
     top_local = _local(disp[face.REGIONS[top]].mean(axis=0), top)
     checks = []
@@ -197,7 +197,7 @@ def _load_arrays(src: str | os.PathLike | Mapping[str, Any]) -> tuple[dict[str, 
         return dict(src), "<arrays>"
     from aumesh.model.release import load_npz
 
-    return load_npz(src), str(src)
+    return load_npz(os.fspath(src)), str(src)
 
 
 def _require(arrays: Mapping[str, Any], key: str, where: str) -> np.ndarray:
@@ -281,7 +281,7 @@ def au_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any
 
 def write_report(report: Mapping[str, Any], path: str | os.PathLike) -> Path:
     """Write a report as JSON atomically (temp file in the same folder, then ``os.replace``)."""
-    return atomic_write_json(path, report)
+    return atomic_write_json(os.fspath(path), report)
 
 
 def report_markdown_table(report: Mapping[str, Any]) -> str:

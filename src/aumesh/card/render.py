@@ -43,7 +43,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -190,7 +190,7 @@ def _draw_solid(
     order = np.argsort(-mesh[tri, 2].mean(axis=1))  # far first (painter's algorithm)
     order = order[keep[order]]
     verts = np.stack([mesh[tri[order], 0], -mesh[tri[order], 1]], axis=-1)
-    pc = PolyCollection(verts, facecolors=colors[order], edgecolors=colors[order], linewidths=0.2)
+    pc = PolyCollection(list(verts), facecolors=colors[order], edgecolors=colors[order], linewidths=0.2)
     ax.add_collection(pc)
     # Irises are not triangulated (they sit in the eye openings): draw them as dots,
     # unless the upper lid has come down past the iris centre (eye closed).
@@ -440,7 +440,7 @@ def render_release(
     neutral, disp, scale = face_frame_meshes(arrays)
     tri = face.triangulate(neutral)
     factor = exaggeration_factor(disp)
-    jobs = [
+    jobs: list[tuple[str, Callable[..., Any], tuple[Any, ...]]] = [
         ("au_solid_panels.png", fig_solid_panels, (neutral, disp, tri, factor)),
         ("au_solid_neutral_vs_activated.png", fig_neutral_vs_activated, (neutral, disp, tri, factor)),
         ("au_compare_overlay.png", fig_compare_overlay, (neutral, disp, tri, factor)),

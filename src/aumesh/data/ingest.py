@@ -24,7 +24,7 @@ import csv
 import gzip
 import io
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -342,6 +342,9 @@ def to_block(table: pa.Table, span: Span) -> Block:
     if lay.mesh is not None:
         mesh = np.asarray(table.select(list(lay.mesh)).to_tensor(null_to_nan=True, row_major=True), dtype=np.float32)
     else:
+        assert span.source.mesh_npy is not None, (
+            span.source
+        )  # open_source pairs a table without mesh columns with its .npy
         with NpyRowFile(span.source.mesh_npy) as f:
             rows = f.read(span.start, span.stop)
         mesh = np.ascontiguousarray(rows.astype(np.float32).transpose(0, 2, 1)).reshape(len(rows), -1)
@@ -367,21 +370,8 @@ class Counts:
             mine = merged.setdefault(v, {})
             for k, n in c.items():
                 mine[k] = mine.get(k, 0) + n
-        return Counts(
-            *(
-                getattr(self, f) + getattr(other, f)
-                for f in (
-                    "rows_in",
-                    "no_face",
-                    "extra_faces",
-                    "frames_several_faces",
-                    "frames_without_subject",
-                    "rows_out",
-                    "rows_normalized",
-                )
-            ),
-            merged,
-        )
+        sums = {f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self) if f.name != "identities"}
+        return Counts(**sums, identities=merged)
 
     def as_dict(self) -> dict[str, int]:
         return {
@@ -451,6 +441,7 @@ def select_faces(
                 f"{where}: data.face_selection=identity needs py-feat's {pyfeat.IDENTITY!r} column. Fix: "
                 f"keep it (detect computes it), or use data.face_selection=largest."
             )
+        assert subjects is not None and block.identity is not None  # identity selection's first pass found them
         subject = np.array([subjects.get(v) for v in block.video], dtype=object)
         candidate = block.identity.astype(object) == subject
     else:
@@ -534,7 +525,7 @@ def clean_block(
 
 def identity_counts(block: Block, layout: pyfeat.Layout) -> dict[str, dict[str, int]]:
     """video -> Identity -> face rows of the block (``data.face_selection=identity``'s first pass)."""
-    if layout.identity is None:
+    if layout.identity is None or block.identity is None:
         return {}
     face = ~no_face_rows(block, layout)
     out: dict[str, dict[str, int]] = {}
@@ -670,6 +661,7 @@ def check_clean(source: Source) -> PassThrough:
         for name in mesh_cols:
             mesh[:, names.index(name)] = part.column(name).to_numpy(zero_copy_only=False)
     else:
+        assert source.mesh_npy is not None, source  # open_source pairs a table without mesh columns with its .npy
         with NpyRowFile(source.mesh_npy) as f:
             rows = f.read(0, sample.stop)
         mesh = rows.astype(np.float64).transpose(0, 2, 1).reshape(len(rows), -1)

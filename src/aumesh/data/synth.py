@@ -187,6 +187,8 @@ def generate_video(
         )
     baseline = np.zeros(len(AU_COLUMNS))
     if spec.identity_au_coupling:  # the detector reads the resting face as expression; the mesh follows the true AUs
+        if resemblance is None:
+            raise ValueError("identity_au_coupling needs resemblance (identity_resemblance(coef, identity_basis))")
         baseline = spec.identity_au_coupling * np.logaddexp(0.0, resemblance @ weights / identity_sd)
         baseline = np.minimum(baseline, 0.9)
         au = baseline + (1.0 - baseline) * au

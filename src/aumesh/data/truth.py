@@ -39,12 +39,18 @@ AU_FIELD_SPEC: dict[str, list[tuple[str, float, float, float, float, str | None]
     "AU02": [(f"brow_outer_{s}", 0.08, 0.01, 0.0, 0.08, "above_eye") for s in ("left", "right")],
     "AU04": [(f"brow_inner_{s}", -0.06, -0.04, 0.0, 0.08, "above_eye") for s in ("left", "right")],
     "AU05": [(f"upper_eyelid_{s}", 0.04, 0.0, 0.0, 0.05, "above_eye") for s in ("left", "right")],
-    "AU06": [(f"cheek_{s}", 0.06, 0.01, -0.01, 0.10, "below_eye") for s in ("left", "right")]
-    + [(f"lower_eyelid_{s}", 0.02, 0.0, 0.0, 0.03, "below_eye") for s in ("left", "right")],
-    "AU07": [(f"lower_eyelid_{s}", 0.035, 0.0, 0.0, 0.04, "below_eye") for s in ("left", "right")]
-    + [(f"upper_eyelid_{s}", -0.01, 0.0, 0.0, 0.03, "above_eye") for s in ("left", "right")],
-    "AU09": [("nose", 0.05, 0.0, 0.0, 0.06, "above_mouth")]
-    + [(f"brow_inner_{s}", -0.02, 0.0, 0.0, 0.06, "above_eye") for s in ("left", "right")],
+    "AU06": [
+        *[(f"cheek_{s}", 0.06, 0.01, -0.01, 0.10, "below_eye") for s in ("left", "right")],
+        *[(f"lower_eyelid_{s}", 0.02, 0.0, 0.0, 0.03, "below_eye") for s in ("left", "right")],
+    ],
+    "AU07": [
+        *[(f"lower_eyelid_{s}", 0.035, 0.0, 0.0, 0.04, "below_eye") for s in ("left", "right")],
+        *[(f"upper_eyelid_{s}", -0.01, 0.0, 0.0, 0.03, "above_eye") for s in ("left", "right")],
+    ],
+    "AU09": [
+        *[("nose", 0.05, 0.0, 0.0, 0.06, "above_mouth")],
+        *[(f"brow_inner_{s}", -0.02, 0.0, 0.0, 0.06, "above_eye") for s in ("left", "right")],
+    ],
     "AU10": [("upper_lip", 0.06, 0.0, -0.01, 0.06, "above_mouth")],
     "AU11": [(f"nasolabial_{s}", 0.035, 0.02, 0.0, 0.06, "above_mouth") for s in ("left", "right")],
     "AU12": [(f"lip_corner_{s}", 0.08, 0.06, 0.0, 0.12, None) for s in ("left", "right")],

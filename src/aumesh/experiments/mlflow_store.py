@@ -20,7 +20,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from aumesh.experiments import provenance
 from aumesh.utils.errors import UserError
@@ -187,6 +187,8 @@ def store_label(uri: str, root: Path | None = None) -> str:
     an address): :data:`EXTERNAL_STORE`. The run id is what finds the run on the team's server.
     """
     label = provenance.shareable_location(uri, [root] if root is not None else None)
+    if label is None:
+        return EXTERNAL_STORE
     if label.startswith("sqlite:///") and not label.startswith("sqlite:////"):  # sqlite:///mlflow.db
         return label
     if ":" not in label and not Path(label).is_absolute():  # a file store inside the workspace, made relative
@@ -244,7 +246,8 @@ def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
         # MlflowClient() builds the store right away: schema creation + migrations
         # for a new SQLite file.
         client = _with_store_retry(lambda: MlflowClient(tracking_uri=uri), uri, limit)
-    return StoreClient(client, uri, limit) if sqlite_path(uri) else client
+    # StoreClient forwards every MlflowClient method (retrying a busy store): an MlflowClient to its callers
+    return cast("MlflowClient", StoreClient(client, uri, limit)) if sqlite_path(uri) else client
 
 
 # --------------------------------------------------------------------------- a damaged or busy store
@@ -280,7 +283,7 @@ def _named(path: Path) -> str:
     return str(path)
 
 
-def store_fault(exc: BaseException) -> str | None:
+def store_fault(exc: BaseException | None) -> str | None:
     """``"busy"`` or ``"damaged"`` when ``exc`` (or an exception it was raised from) is SQLite saying so, else None."""
     seen = set()
     while exc is not None and id(exc) not in seen:
@@ -298,8 +301,9 @@ def store_fault(exc: BaseException) -> str | None:
 
 def _cause(exc: BaseException) -> str:
     """SQLite's own words, the first line of the innermost error (``database disk image is malformed``)."""
-    while (exc.__cause__ or exc.__context__) is not None:
-        exc = exc.__cause__ or exc.__context__
+    inner = exc.__cause__ or exc.__context__
+    while inner is not None:
+        exc, inner = inner, inner.__cause__ or inner.__context__
     return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
 

@@ -490,8 +490,9 @@ def check_finished(parent: Mapping[str, Any], children: pd.DataFrame, partial: b
     finished = children[children["status"] == "FINISHED"] if len(children) else children
     if parent.get("status") == "FINISHED" and not tags.get("aumesh.sweep.interrupted"):
         return None
+    status = str(parent.get("status"))
     state = tags.get("aumesh.sweep.interrupted") or {"RUNNING": "is still running (or its process died)"}.get(
-        parent.get("status"), f"ended {parent.get('status')}"
+        status, f"ended {status}"
     )
     of = f"{len(finished)} of {expected or '?'} configurations finished"
     if not partial:

@@ -39,6 +39,7 @@ import numpy as np
 import pandas as pd
 from mlflow.exceptions import MlflowException
 from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
+from mlflow.pyfunc import PythonModel
 
 from aumesh.data.schema import INPUT_COLUMNS, N_TARGETS, flatten_axis_major
 from aumesh.model.release import NPZ_NAME
@@ -70,7 +71,7 @@ class ServingInputError(MlflowException):
             self._aumesh_message = value
 
 
-class ReleaseModel(mlflow.pyfunc.PythonModel):
+class ReleaseModel(PythonModel):
     """MLflow pyfunc wrapper of a release NPZ: DataFrame of input columns (any of the 23) -> (n, 1434) meshes."""
 
     def load_context(self, context) -> None:

@@ -50,7 +50,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from aumesh.config import flatten as flatten_config
 from aumesh.pipeline.prepared_files import PREPARED_FILES, SUMMARY_FILE
@@ -574,8 +574,9 @@ def _plain_config(config) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     data = OmegaConf.to_container(config, resolve=False)
+    assert isinstance(data, dict), type(data)  # a composed config is a DictConfig
     data.pop("hydra", None)
-    return OmegaConf.to_container(OmegaConf.create(data), resolve=True)
+    return cast(dict[str, Any], OmegaConf.to_container(OmegaConf.create(data), resolve=True))
 
 
 class SweepCallback:

@@ -324,7 +324,11 @@ class TrackedRun:
                 "log_dataset: digest has no 'md5' key; pass aumesh.experiments.provenance.data_digest(...)"
             )
         md5 = str(digest["md5"])
-        dataset = MetaDataset(_dataset_source(source), name=name, digest=md5[:MAX_DATASET_DIGEST_LENGTH])
+        # MLflow's stubs declare MetaDataset.profile abstract, but the class is concrete (it returns None) and MLflow's
+        # own docs construct it this way
+        dataset = MetaDataset(  # type: ignore[abstract]
+            _dataset_source(source), name=name, digest=md5[:MAX_DATASET_DIGEST_LENGTH]
+        )
         tags = [InputTag("mlflow.data.context", context)]
         for key, tag in (
             ("md5", "dvc.md5"),
@@ -347,12 +351,16 @@ class _NullRun(TrackedRun):
         self.client = None  # type: ignore[assignment]
         self.run_id = None  # type: ignore[assignment]
         self.experiment_id = None  # type: ignore[assignment]
-        self.tracking_uri = None  # type: ignore[assignment]
+        self.tracking_uri = None
 
     def __getattribute__(self, item: str) -> Any:
         if item.startswith("log_") or item in ("set_tags", "call"):
             return lambda *a, **k: None
         return object.__getattribute__(self, item)
+
+    def call(self, fn, *args, **kwargs) -> None:
+        """:meth:`RunBeside.call` with tracking off: nothing to run (``__getattribute__`` answers first; declared
+        so that the handle :func:`tracked_run_beside` yields has one interface)."""
 
 
 def _dataset_source(source: str):
@@ -618,6 +626,8 @@ def _call_beside(fn, args, kwargs):
 
 
 def _end_beside(status: str, error: str = "", tb: str = "") -> None:
+    if _BESIDE is None:  # the run never opened: the opening error is what the caller reports
+        return
     if status == "FINISHED":
         _BESIDE.client.set_terminated(_BESIDE.run_id, status)
     else:
@@ -630,7 +640,7 @@ def tracked_run_beside(
     run_name: str | None,
     params: Mapping[str, Any] | None,
     tags: Mapping[str, Any] | None = None,
-) -> Iterator[RunBeside | TrackedRun]:
+) -> Iterator[RunBeside | _NullRun]:
     """:func:`tracked_run` held by a helper process, so MLflow is never imported here and works beside the caller.
 
     MLflow 3's import (its GenAI, gateway and data modules, pandas, SQLAlchemy: ~4 s of CPU) ran on one core before

@@ -374,7 +374,8 @@ def mediapipe_triangles() -> np.ndarray | None:
             and node.target.id == "FACE_LANDMARKS_TESSELATION"
             and isinstance(node.value, ast.List)
         ):
-            edges = np.array([[ast.literal_eval(a) for a in call.args] for call in node.value.elts], dtype=np.int64)
+            calls = [call for call in node.value.elts if isinstance(call, ast.Call)]
+            edges = np.array([[ast.literal_eval(a) for a in call.args] for call in calls], dtype=np.int64)
     if edges is None or edges.ndim != 2 or edges.shape[1] != 2 or len(edges) % 3:
         raise RuntimeError(
             f"{path}: FACE_LANDMARKS_TESSELATION not found as a list of Connection(start, end) triples; "
@@ -439,12 +440,12 @@ def _farthest_point_uv(named: dict[int, tuple[float, float]]) -> np.ndarray:
     cand = cand[keep]
     # Farthest-point sampling seeded with the named landmarks (deterministic).
     d = np.min(np.linalg.norm(cand[:, None, :] - fixed[None, :, :], axis=2), axis=1)
-    chosen = []
+    picked = []
     for _ in range(n_fill):
         k = int(np.argmax(d))
-        chosen.append(cand[k])
+        picked.append(cand[k])
         d = np.minimum(d, np.linalg.norm(cand - cand[k], axis=1))
-    chosen = np.array(chosen)
+    chosen = np.array(picked)
     chosen = chosen[np.lexsort((chosen[:, 0], np.round(-chosen[:, 1], 6)))]  # top->bottom
     uv = np.zeros((N_VERTICES, 2))
     free = [i for i in range(N_VERTICES) if i not in named]

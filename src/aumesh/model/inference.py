@@ -683,7 +683,7 @@ def _warn_pose_range(pose: np.ndarray, face: np.ndarray, release: Release) -> No
 def _warn(message: str) -> None:
     """``warnings.warn`` an :class:`InputRangeWarning` at the first caller outside this module."""
     level, frame = 1, sys._getframe(0)
-    while frame is not None and frame.f_code.co_filename == __file__:
+    while frame.f_code.co_filename == __file__ and frame.f_back is not None:
         frame, level = frame.f_back, level + 1
     warnings.warn(message, InputRangeWarning, stacklevel=level)
 

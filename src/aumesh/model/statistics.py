@@ -248,6 +248,8 @@ def accumulate_design(
         video_sum_x[videos] += indicator @ X
         video_sum_y[videos] += indicator @ Y
         sums.add(X, Y, fold[rows])
+    if a is None or b is None:
+        raise ValueError("design_statistics: mesh_chunks yielded no rows")
     video_fold = np.full(n_videos, -1, dtype=np.int64)
     video_fold[video_index] = fold
     return DesignStatistics(
@@ -360,6 +362,8 @@ def _moments(
             e_of(v),
         )
         moments = block if moments is None else moments + block
+    if moments is None:
+        raise ValueError("video_moments: no videos")
     return moments
 
 

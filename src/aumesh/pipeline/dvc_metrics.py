@@ -126,7 +126,9 @@ def _csv(columns: tuple[str, str], x: np.ndarray, y: np.ndarray) -> str:
     return "\n".join(rows) + "\n"
 
 
-def write(paths, metrics: Mapping[str, Any], frame_vertex_error: np.ndarray, r2_path_folds: np.ndarray) -> None:
+def write(
+    paths, metrics: Mapping[str, Any], frame_vertex_error: NpyRows | np.ndarray, r2_path_folds: np.ndarray
+) -> None:
     """Write the metrics JSON and the two plot CSVs where ``paths`` (the ``paths`` config group) says, atomically."""
     atomic_write_json(paths.metrics_file, rounded(dict(metrics)))
     atomic_write_text(paths.error_curve_file, _csv(ERROR_CURVE_COLUMNS, *error_curve(frame_vertex_error)))

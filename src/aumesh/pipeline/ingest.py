@@ -64,7 +64,9 @@ def _span_rows(span: ingest.Span) -> int:
 
 def pack(spans: list[ingest.Span], task_rows: int = TASK_ROWS) -> list[tuple[ingest.Span, ...]]:
     """Consecutive spans packed into tasks of up to about ``task_rows`` rows (a span is never split)."""
-    tasks, current, rows = [], [], 0
+    tasks: list[tuple[ingest.Span, ...]] = []
+    current: list[ingest.Span] = []
+    rows = 0
     for span in spans:
         n = _span_rows(span)
         if current and rows + n > task_rows:

@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -135,9 +135,21 @@ class NoValuesError(ValueError):
     """The partitions hold no value, so no quantile exists."""
 
 
+@overload
+def exact_quantiles(
+    values: Callable[[Any], np.ndarray], partitions: Sequence[Any], q: float, method: str = ..., max_gather: int = ...
+) -> float: ...
+@overload
+def exact_quantiles(
+    values: Callable[[Any], np.ndarray],
+    partitions: Sequence[Any],
+    q: np.ndarray,
+    method: str = ...,
+    max_gather: int = ...,
+) -> np.ndarray: ...
 def exact_quantiles(
     values: Callable[[Any], np.ndarray], partitions: Sequence[Any], q, method: str = "linear", max_gather: int = 1 << 18
-) -> np.ndarray:
+) -> float | np.ndarray:
     """``np.quantile`` of the concatenated ``values(p)`` for ``p`` in ``partitions``, without concatenating them.
 
     Parameters

@@ -69,7 +69,7 @@ def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
 def start_stage(stage: str, cfg: Config) -> None:
     """Remove what a killed earlier run of ``stage`` left behind (temp folders and files of its outputs, and the
     evaluate passes' scratch folders)."""
-    scratch = []
+    scratch: list[str | Path] = []
     if stage == "evaluate":
         from aumesh.pipeline import evaluate as ev
 

@@ -346,7 +346,7 @@ class NpyRowFile:
         """Rows ``start:stop`` (clipped to the file), into ``out`` (its first rows) when given."""
         n = max(0, min(stop, self.shape[0]) - start)
         out = np.empty((n, *self.shape[1:]), dtype=self.dtype) if out is None else out[:n]
-        view = memoryview(out).cast("B")
+        view = memoryview(out.data).cast("B")
         pos, got = self.offset + start * self.row_bytes, 0
         while got < len(view):
             k = os.preadv(self._fd, [view[got:]], pos + got)
@@ -370,7 +370,7 @@ class NpyRowFile:
 
     def write(self, first_row: int, rows: np.ndarray) -> None:
         """Write ``rows`` (the file's dtype and row shape) from row ``first_row`` on."""
-        view = memoryview(np.ascontiguousarray(rows)).cast("B")
+        view = memoryview(np.ascontiguousarray(rows).data).cast("B")
         pos, done = self.offset + first_row * self.row_bytes, 0
         while done < len(view):
             done += os.pwrite(self._fd, view[done:], pos + done)
