@@ -336,6 +336,9 @@ def fps_from_approx_time(frame: np.ndarray, approx: np.ndarray) -> float | None:
     48, 50, 59.94, 60, 100, 120) in that interval, the one nearest its middle; no common rate but an interval
     narrower than 1%: its middle, to 3 decimals. A clip shorter than a second bounds the rate only from below: then
     None (25) unless 25 is too slow for it. Contradictory values (another video's times) give None.
+
+    With ``skip_frames`` a clip of a few minutes may not tell a rate from its NTSC neighbour (30 and 29.97 are 0.1%
+    apart: 0.06 s in a minute); ``--fps`` settles it.
     """
     parsed = _approx_seconds(np.asarray(approx, dtype=object))
     if parsed is None:
