@@ -11,6 +11,7 @@ from __future__ import annotations
 import gzip
 import json
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -361,3 +362,97 @@ def test_errors_are_one_line(table, release, tmp_path, capsys):
     err = _error(capsys, path, "--out", tmp_path / "x.mp4", "--release", release, "--video", VIDEO)
     assert ".glb" in err
     assert not out.exists() and not list(tmp_path.glob("*.glb"))
+
+
+# ------------------------------------------------------------------------------------------- three.js in Chromium
+
+THREE_PAGE = """<!doctype html><html><head><script type="importmap">
+{"imports": {"three": "/three/build/three.module.js", "three/addons/": "/three/examples/jsm/"}}
+</script></head><body><script type="module">
+import * as THREE from "three";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+const gltf = await new GLTFLoader().loadAsync("/clip.glb");
+let mesh = null;
+gltf.scene.traverse((o) => { if (o.isMesh) mesh = o; });
+const mixer = new THREE.AnimationMixer(gltf.scene);
+const action = mixer.clipAction(gltf.animations[0]);
+action.setLoop(THREE.LoopOnce);
+action.clampWhenFinished = true;
+action.play();
+// the mesh three.js shows at time t: its morph targets (relative, glTF's) blended by the mixer's influences, placed
+// by the node's world matrix (the head's rotation with --pose)
+window.sample = (t) => {
+  mixer.setTime(t);
+  gltf.scene.updateMatrixWorld(true);
+  const pos = mesh.geometry.attributes.position, targets = mesh.geometry.morphAttributes.position;
+  const w = mesh.morphTargetInfluences, v = new THREE.Vector3(), out = [];
+  for (let i = 0; i < pos.count; i++) {
+    v.set(pos.getX(i), pos.getY(i), pos.getZ(i));
+    for (let k = 0; k < targets.length; k++) {
+      v.x += w[k] * targets[k].getX(i); v.y += w[k] * targets[k].getY(i); v.z += w[k] * targets[k].getZ(i);
+    }
+    v.applyMatrix4(mesh.matrixWorld);
+    out.push(v.x, v.y, v.z);
+  }
+  return { weights: Array.from(w), positions: out };
+};
+window.info = {
+  names: Object.keys(mesh.morphTargetDictionary), relative: mesh.geometry.morphTargetsRelative,
+  duration: gltf.animations[0].duration, tracks: gltf.animations[0].tracks.map((t) => t.name),
+};
+window.ready = true;
+</script></body></html>"""
+
+
+def test_three_js_plays_the_clip(table, release, tmp_path, node_tools):
+    from test_viewer import ARGS, CHROMIUM
+
+    if not (node_tools / "three" / "examples" / "jsm" / "loaders" / "GLTFLoader.js").exists():
+        pytest.skip("three.js's GLTFLoader not installed (make tools)")
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
+    from playwright.sync_api import sync_playwright
+
+    path, df = table
+    glb = _animate(tmp_path, path, release, "--video", VIDEO, "--pose", name="three.glb")
+    exp = _expected(df)
+    files = {"/clip.glb": (glb.read_bytes(), "model/gltf-binary"), "/": (THREE_PAGE.encode(), "text/html")}
+
+    def serve(route):  # every request answered from disk: no server, no network
+        url = route.request.url.split("://", 1)[1]
+        local = "/" + url.split("/", 1)[1] if "/" in url else "/"
+        if local in files:
+            body, kind = files[local]
+        elif local.startswith("/three/"):
+            body, kind = (node_tools / local.lstrip("/")).read_bytes(), "text/javascript"
+        else:
+            return route.fulfill(status=404, body="")
+        route.fulfill(status=200, body=body, content_type=kind)
+
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        try:
+            page = browser.new_page()
+            errors = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.route("http://aumesh.test/**", serve)
+            page.goto("http://aumesh.test/")
+            page.wait_for_function("window.ready === true", timeout=30000)
+            info = page.evaluate("window.info")
+            picks = [0, 7, len(exp["face_frames"]) // 2, len(exp["face_frames"]) - 1]
+            times = ((exp["face_frames"][picks] - exp["frames"][0]) / 25.0).astype(np.float32)
+            got = [page.evaluate("(t) => window.sample(t)", float(t)) for t in times]
+        finally:
+            browser.close()
+    assert not errors, errors
+    assert info["names"] == list(AU_COLUMNS) and info["relative"] is True
+    assert info["duration"] == pytest.approx(float(times[-1]), rel=1e-6)
+    assert sorted(name.rsplit(".", 1)[1] for name in info["tracks"]) == ["morphTargetInfluences", "quaternion"]
+    m = aumesh.load_release(release)
+    centre = aumesh.predict_mesh(m).mean(axis=0)  # the head turns about the neutral face's centre
+    for k, sample in zip(picks, got, strict=True):
+        np.testing.assert_allclose(sample["weights"], exp["aus"][k], atol=1e-6)
+        local = aumesh.predict_mesh(m, exp["aus"][k])  # pose 0
+        posed = (local - centre) @ Rotation.from_euler("xyz", exp["pose"][k]).as_matrix().T + centre
+        shown = np.asarray(sample["positions"]).reshape(N_VERTICES, 3)
+        np.testing.assert_allclose(shown, posed, atol=1e-4 * np.abs(posed).max())
