@@ -15,7 +15,7 @@ from aumesh.model.release import load_npz
 from conftest import REPO, upright_truth_release
 
 COMPONENT = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
-WIDTH = {"SCALAR": 1, "VEC3": 3}
+WIDTH = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
 
 
 def parse_glb(path):
