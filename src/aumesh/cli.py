@@ -122,6 +122,22 @@ def _cmd_view(args) -> int:
     return 0
 
 
+def _cmd_animate(args) -> int:
+    from aumesh.animation.gltf_clip import animate
+
+    summary = animate(
+        args.table,
+        args.release,
+        args.out,
+        video=args.video,
+        fps=args.fps,
+        pose=args.pose,
+        smooth_frames=args.smooth,
+    )
+    print(summary.line())
+    return 0
+
+
 # ------------------------------------------------------------------ versions
 #: What ``aumesh --version --verbose`` and ``aumesh info`` list after aumesh itself (distribution names, as pip has them).
 VERSION_LIBRARIES = (
@@ -657,6 +673,46 @@ def build_parser() -> argparse.ArgumentParser:
         "--fps", type=float, help="with --clip: the video's frame rate (default: from approx_time, else 25)"
     )
     p.set_defaults(func=_cmd_view)
+
+    p = sub.add_parser(
+        "animate",
+        help="a video's AUs over time as an animated glTF (.glb): the release's rig with a morph-weight animation",
+    )
+    p.add_argument(
+        "table",
+        type=Path,
+        help="py-feat's table of a video (CSV, .csv.gz or parquet; MPDetector or Detectorv2): one row per frame "
+        "and face; frames without a face are bridged (interpolated up to 0.5 s, held beyond), of several faces "
+        "in a frame the largest is used",
+    )
+    p.add_argument("--out", type=Path, required=True, help="the .glb to write (binary glTF 2.0)")
+    p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
+    p.add_argument(
+        "--video",
+        default=None,
+        help="the video to animate when the table holds several (the stem of py-feat's input, e.g. clip01 for "
+        "videos/clip01.mp4; default: the table's only video)",
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="the video's frame rate; a frame's time is frame / fps (default: from approx_time where it tells, else 25)",
+    )
+    p.add_argument(
+        "--pose",
+        action="store_true",
+        help="also turn the head by Pitch, Yaw, Roll (a rotation channel, Rotation.from_euler('xyz', ...)); "
+        "default: off, the face stays pose-canonical",
+    )
+    p.add_argument(
+        "--smooth",
+        type=int,
+        default=1,
+        metavar="N",
+        help="centred moving average over N frames (odd) against detector jitter (default: 1, no smoothing)",
+    )
+    p.set_defaults(func=_cmd_animate)
 
     add_experiment_commands(sub)
     return parser

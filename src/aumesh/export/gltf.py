@@ -11,11 +11,18 @@ the NPZ's own precision). Target names (``AU01`` ... ``AU43``) are in the mesh's
 Coordinates are the NPZ's, unchanged (the release's frame and units); triangles are the
 project's triangulation of the base mesh, wound so their fronts face out of the face (toward
 the nose tip); normals are the base mesh's area-weighted vertex normals.
+
+With an :class:`Animation` (``aumesh animate``, :mod:`aumesh.animation.gltf_clip`) the file also
+holds one glTF animation: a LINEAR sampler on the mesh node's morph ``weights`` (``n * 20``
+floats, a keyframe per frame) and optionally a LINEAR ``rotation`` sampler (quaternions) on a
+parent node that turns the face about a pivot (the mesh node is moved by ``-pivot``, its parent
+by ``+pivot``: at the identity rotation the vertices are the NPZ's).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -70,10 +77,33 @@ def vertex_normals(mesh: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return acc / np.linalg.norm(acc, axis=1, keepdims=True)
 
 
+@dataclass(frozen=True)
+class Animation:
+    """Keyframes of the rig over time (LINEAR interpolation between them).
+
+    Attributes
+    ----------
+    times : (n,) seconds, strictly increasing (written as float32).
+    weights : (n, 20) morph-target weights (AU intensities, :data:`~aumesh.data.schema.AU_COLUMNS` order).
+    rotations : (n, 4) unit quaternions ``x, y, z, w`` (glTF's order, SciPy's ``as_quat()``) or None (no rotation).
+    pivot : (3,) the point the rotation turns about (NPZ coordinates); needed with ``rotations``.
+    name : the animation's name.
+    """
+
+    times: np.ndarray
+    weights: np.ndarray
+    rotations: np.ndarray | None = None
+    pivot: np.ndarray | None = None
+    name: str = "clip"
+
+
 def glb_bytes(
-    npz: Mapping[str, Any], name: str = "aumesh AU-to-mesh", extras: Mapping[str, Any] | None = None
+    npz: Mapping[str, Any],
+    name: str = "aumesh AU-to-mesh",
+    extras: Mapping[str, Any] | None = None,
+    animation: Animation | None = None,
 ) -> bytes:
-    """The rig as a binary glTF 2.0 (GLB) file's bytes; see the module docstring for the contents."""
+    """The rig as a binary glTF 2.0 (GLB) file's bytes, with ``animation`` when given; see the module docstring."""
     import pygltflib as g
 
     rig = rig_arrays(npz)
@@ -82,14 +112,18 @@ def glb_bytes(
     accessors: list[g.Accessor] = []
     offset = 0
 
-    def add(array: np.ndarray, component: int, kind: str, target: int, with_bounds: bool) -> int:
+    def add(array: np.ndarray, component: int, kind: str, target: int | None, with_bounds: bool) -> int:
         nonlocal offset
         data = np.ascontiguousarray(array).tobytes()
         views.append(g.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
         pad = (-len(data)) % 4
         blobs.append(data + b"\0" * pad)
         offset += len(data) + pad
-        bounds = {"min": array.min(axis=0).tolist(), "max": array.max(axis=0).tolist()} if with_bounds else {}
+        bounds = (
+            {"min": np.atleast_1d(array.min(axis=0)).tolist(), "max": np.atleast_1d(array.max(axis=0)).tolist()}
+            if with_bounds
+            else {}
+        )
         accessors.append(
             g.Accessor(bufferView=len(views) - 1, componentType=component, count=len(array), type=kind, **bounds)
         )
@@ -99,6 +133,29 @@ def glb_bytes(
     normal = add(rig["normals"], g.FLOAT, g.VEC3, g.ARRAY_BUFFER, False)
     targets = [{"POSITION": add(t, g.FLOAT, g.VEC3, g.ARRAY_BUFFER, True)} for t in rig["targets"]]
     indices = add(rig["triangles"].reshape(-1), g.UNSIGNED_SHORT, g.SCALAR, g.ELEMENT_ARRAY_BUFFER, False)
+    nodes, roots, animations = [g.Node(mesh=0, name=name)], [0], []
+    if animation is not None:
+        # animation data: no bufferView target (the spec reserves targets for vertex and index data)
+        times = np.asarray(animation.times, np.float32)
+        weights = np.asarray(animation.weights, np.float32)
+        if times.ndim != 1 or weights.shape != (len(times), len(AU_COLUMNS)) or not len(times):
+            raise ValueError(f"animation: times {times.shape} and weights {weights.shape}: need (n,) and (n, 20)")
+        if (np.diff(times) <= 0).any():
+            raise ValueError("animation: times (as float32) must be strictly increasing")
+        time_acc = add(times, g.FLOAT, g.SCALAR, None, True)
+        samplers = [g.AnimationSampler(input=time_acc, output=add(weights.reshape(-1), g.FLOAT, g.SCALAR, None, False))]
+        channels = [g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=0, path="weights"))]
+        if animation.rotations is not None:
+            pivot = np.asarray(animation.pivot, np.float64).reshape(3).tolist()
+            rotations = np.asarray(animation.rotations, np.float32).reshape(len(times), 4)
+            nodes = [
+                g.Node(mesh=0, name=name, translation=[-v for v in pivot]),
+                g.Node(name="head", children=[0], translation=pivot),
+            ]
+            roots = [1]
+            samplers.append(g.AnimationSampler(input=time_acc, output=add(rotations, g.FLOAT, g.VEC4, None, False)))
+            channels.append(g.AnimationChannel(sampler=1, target=g.AnimationChannelTarget(node=1, path="rotation")))
+        animations = [g.Animation(name=animation.name, samplers=samplers, channels=channels)]
     binary = b"".join(blobs)
     primitive = g.Primitive(
         attributes=g.Attributes(POSITION=position, NORMAL=normal),
@@ -110,8 +167,9 @@ def glb_bytes(
     gltf = g.GLTF2(
         asset=g.Asset(version="2.0", generator=f"aumesh (pygltflib {g.__version__})", extras=dict(extras or {})),
         scene=0,
-        scenes=[g.Scene(nodes=[0])],
-        nodes=[g.Node(mesh=0, name=name)],
+        scenes=[g.Scene(nodes=roots)],
+        nodes=nodes,
+        animations=animations,
         meshes=[
             g.Mesh(
                 name=name,
@@ -150,4 +208,4 @@ def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = Non
     return Path(path)
 
 
-__all__ = ["GLB_NAME", "glb_bytes", "rig_arrays", "write_glb"]
+__all__ = ["GLB_NAME", "Animation", "glb_bytes", "rig_arrays", "write_glb"]

@@ -1,0 +1,437 @@
+"""One video of a py-feat table as a clip over time: its frames, their times, and per frame the AUs, head pose and the
+recorded MediaPipe mesh (NaN where the detector found no face).
+
+The table is read by the ingest's readers (:mod:`aumesh.data.ingest`: py-feat's CSV, ``.csv.gz`` or parquet, either
+detector's mesh layout, the split layout's ``.npy``), and cleaned by its rules, but frame by frame and without
+dropping anything: a frame py-feat wrote only as a no-face row stays in the clip with ``has_face`` False; of several
+faces in a frame one is kept (``face_selection``, as ``data.face_selection``: the largest face box by default). The
+mesh stays in the table's own units and frame (normalized image units are not converted).
+
+**Time.** py-feat numbers a video's frames from 0 (``frame``: the decoder's index, so ``skip_frames=k`` writes
+0, k, 2k, ...) and writes ``approx_time`` as ``"MM:SS"``, the frame's time truncated to whole seconds
+(``feat.data.VideoDataset.calc_approx_frame_time``). A frame's time is ``frame / fps``. The frame rate is ``fps`` when
+given; else the one ``approx_time`` allows (:func:`fps_from_approx_time`); else 25.
+
+**Gaps** (:func:`bridge`): a frame without a face gets the linear interpolation, in time, of the values of the face
+frames before and after it when those two are at most ``max_gap_s`` apart (:data:`MAX_GAP_S`, 0.5 s: a blink, a hand
+passing); in a longer gap it holds the last face frame's values (the face freezes, then moves on to the next face
+frame). Frames before the first face frame hold the first one's values.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from aumesh.data import ingest, pyfeat
+from aumesh.data.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
+from aumesh.utils.errors import MissingFileError, TableError, UserError, corrupt_parquet
+
+log = logging.getLogger(__name__)
+
+APPROX_TIME = "approx_time"
+DEFAULT_FPS = 25.0
+#: A no-face gap whose neighbouring face frames are further apart than this holds the last pose (seconds).
+MAX_GAP_S = 0.5
+#: Frame rates video files have; ``approx_time`` (whole seconds) usually allows only one of them.
+COMMON_FPS = (24000 / 1001, 24.0, 25.0, 30000 / 1001, 30.0, 48.0, 50.0, 60000 / 1001, 60.0, 100.0, 120.0)
+FACE_SELECTIONS = ("largest", "identity", "error")
+_TIME = re.compile(r"^\s*(?:(\d+):)?(\d+):(\d+)(?:\.(\d+))?\s*$")
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One video of a py-feat table, one row per frame (ascending frame numbers).
+
+    Attributes
+    ----------
+    source : the table's file name (no folder: outputs never hold an absolute path).
+    video : the video's name (the stem of py-feat's ``input``, or ``video_id``).
+    frame : (n,) int64 py-feat's frame numbers, ascending, unique.
+    time : (n,) float64 seconds, ``frame / fps`` (``skip_frames`` gaps respected).
+    fps : the frame rate used; ``fps_source`` says where it came from: ``"--fps"``, ``"approx_time"`` or
+        ``"default (25)"``.
+    has_face : (n,) bool.
+    aus : (n, 20) float64 in :data:`~aumesh.data.schema.AU_COLUMNS` order, NaN where no face.
+    pose : (n, 3) float64 radians, the model's order Pitch, Yaw, Roll, NaN where no face.
+    mesh : (n, 478, 3) float64 recorded MediaPipe mesh in the table's own units and frame, NaN rows where no face;
+        None when the table has no mesh.
+    detector : the table's layout (``MPDetector``, ``Detectorv2``, ``split``, or ``none`` without a mesh).
+    frames_several_faces : frames where py-feat found several faces (one kept, by ``face_selection``).
+    """
+
+    source: str
+    video: str
+    frame: np.ndarray
+    time: np.ndarray
+    fps: float
+    fps_source: str
+    has_face: np.ndarray
+    aus: np.ndarray
+    pose: np.ndarray
+    mesh: np.ndarray | None
+    detector: str = ""
+    frames_several_faces: int = 0
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the first frame to the last."""
+        return float(self.time[-1] - self.time[0]) if len(self.time) else 0.0
+
+    def gaps(self, max_gap_s: float = MAX_GAP_S) -> tuple[int, int]:
+        """``(bridged, held)``: runs of no-face frames between two face frames that are interpolated, and those held
+        (their neighbouring face frames more than ``max_gap_s`` apart, or at the clip's start or end)."""
+        runs = _no_face_runs(self.has_face)
+        bridged = sum(0 < a and b < len(self) and self.time[b] - self.time[a - 1] <= max_gap_s for a, b in runs)
+        return int(bridged), len(runs) - int(bridged)
+
+
+def _no_face_runs(has_face: np.ndarray) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` row ranges of consecutive frames without a face."""
+    edges = np.diff(np.r_[0, (~has_face).astype(np.int8), 0])
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
+
+
+# ------------------------------------------------------------------------------------------------------------ reading
+
+
+def read_clip(
+    path: str | Path,
+    *,
+    video: str | None = None,
+    fps: float | None = None,
+    face_selection: str = "largest",
+    mesh_npy: str = "{stem}.npy",
+) -> Clip:
+    """One video of a py-feat table as a :class:`Clip` (module docstring: time, faces, gaps).
+
+    Parameters
+    ----------
+    path : py-feat's CSV (``detect(..., save=)``), ``.csv.gz``, or a Fex saved as parquet (either detector; a
+        parquet without mesh columns with an ``[N, 478, 3]`` ``<stem>.npy`` beside it is the split layout). A table
+        without a mesh is read too (``Clip.mesh`` None).
+    video : the video to read (the stem of ``input``, e.g. ``clip01`` for ``videos/clip01.mp4``); needed when the
+        table holds several.
+    fps : the video's frame rate (default: from ``approx_time`` where it allows one, else 25).
+    face_selection : ``largest`` (the largest face box of a frame), ``identity`` (py-feat's ``Identity`` seen in
+        most of the video's face rows) or ``error``, as the pipeline's ``data.face_selection``.
+
+    Raises
+    ------
+    MissingFileError
+        No such file.
+    TableError
+        Not a table, a required column missing (frame, the 20 AUs, Pitch, Yaw, Roll, input), several videos and no
+        ``video``, an unknown ``video``, no frame with a face, a face row with some AU or pose values missing.
+    UserError
+        ``fps`` not a positive number, unknown ``face_selection``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError(
+            f"{path}: no such file. Fix: give the py-feat table (CSV, .csv.gz or parquet) that "
+            f"detect(..., save=) or Fex.to_parquet wrote."
+        )
+    if not ingest.is_table(path):
+        raise TableError(f"{path}: not a py-feat table. Fix: give a .csv, .csv.gz or .parquet file.")
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise UserError(f"--fps {fps}: the frame rate must be a positive number of frames per second, e.g. 25.")
+    if face_selection not in FACE_SELECTIONS:
+        raise UserError(f"face_selection={face_selection!r}: use one of {', '.join(FACE_SELECTIONS)}.")
+    where = str(path)
+    source, has_mesh = _open(path, mesh_npy)
+    block, approx = _read(source, has_mesh)
+    if not len(block):
+        raise TableError(f"{where}: no rows. Fix: export the video's frames with py-feat first.")
+
+    names = sorted(set(block.video.tolist()))
+    if video is None and len(names) > 1:
+        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+        raise TableError(f"{where}: holds {len(names)} videos ({shown}). Fix: pick one with --video NAME.")
+    if video is not None and video not in names:
+        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+        raise TableError(f"{where}: no video {video!r} (the table holds {shown}). Fix: --video one of those.")
+    name = video if video is not None else names[0]
+    rows = np.flatnonzero(block.video == name)
+    rows = rows[np.argsort(block.frame[rows], kind="stable")]  # select_faces needs a frame's rows consecutive
+    block, approx = block.take(rows), None if approx is None else approx[rows]
+
+    lay = source.layout
+    empty = ingest.no_face_rows(block, lay)
+    faces = block.take(np.flatnonzero(~empty))
+    subjects = ingest.main_identities(ingest.identity_counts(block, lay)) if face_selection == "identity" else None
+    with warnings.catch_warnings():  # a table without face boxes nor mesh: areas are NaN (the first face is kept)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        keep, counts = ingest.select_faces(faces, lay, face_selection, subjects, where)
+    chosen = faces.take(keep)
+    if not len(chosen):
+        raise TableError(
+            f"{where}: video {name!r} has no frame with a face ({len(block)} rows, all without a face). "
+            f"Fix: pick another video (--video) or check py-feat's face detection on it."
+        )
+    aus = np.column_stack([chosen.values[c] for c in AU_COLUMNS])
+    pose = np.column_stack([chosen.values[c] for c in POSE_COLUMNS])
+    bad = np.isnan(np.hstack([aus, pose]))
+    if bad.any():
+        row, col = (int(v[0]) for v in np.nonzero(bad))
+        column = (*AU_COLUMNS, *POSE_COLUMNS)[col]
+        raise TableError(
+            f"{where}: column {column!r} is empty in frame {chosen.frame[row]} of video {name!r}, a row with a "
+            f"face. Fix: a face row needs all 20 AUs and Pitch, Yaw, Roll (py-feat writes them; a frame without "
+            f"a face has every one empty)."
+        )
+
+    frames = np.unique(block.frame).astype(np.int64)
+    at = np.searchsorted(frames, chosen.frame)
+    n = len(frames)
+    has_face = np.zeros(n, bool)
+    has_face[at] = True
+    out_aus = np.full((n, len(AU_COLUMNS)), np.nan)
+    out_pose = np.full((n, len(POSE_COLUMNS)), np.nan)
+    out_aus[at], out_pose[at] = aus, pose
+    mesh = None
+    if has_mesh:
+        mesh = np.full((n, N_VERTICES, 3), np.nan)
+        mesh[at] = chosen.mesh.reshape(len(chosen), 3, N_VERTICES).transpose(0, 2, 1)
+
+    if fps is not None:
+        rate, how = float(fps), "--fps"
+    else:
+        inferred = None if approx is None else fps_from_approx_time(block.frame, approx)
+        rate, how = (inferred, APPROX_TIME) if inferred is not None else (DEFAULT_FPS, f"default ({DEFAULT_FPS:g})")
+    return Clip(
+        source=path.name,
+        video=name,
+        frame=frames,
+        time=frames / rate,
+        fps=rate,
+        fps_source=how,
+        has_face=has_face,
+        aus=out_aus,
+        pose=out_pose,
+        mesh=mesh,
+        detector=lay.detector if has_mesh else "none",
+        frames_several_faces=counts.frames_several_faces,
+    )
+
+
+def _names(path: Path) -> tuple[str, list[str], int | None]:
+    """``(kind, column names, rows)`` of a table (rows: parquet only)."""
+    if path.name.endswith(ingest.CSV_SUFFIXES):
+        return "csv", ingest._csv_header(path), None
+    try:
+        md = pq.read_metadata(path)
+    except Exception as err:  # pyarrow raises several types for a bad file
+        raise corrupt_parquet(path, err) from None
+    return "parquet", md.schema.to_arrow_schema().names, md.num_rows
+
+
+def _open(path: Path, mesh_npy: str) -> tuple[ingest.Source, bool]:
+    """The table as the ingest's :class:`~aumesh.data.ingest.Source`, and whether it has a mesh. A table without one
+    (no 478-vertex columns, no ``.npy`` beside it) is the split layout without its ``.npy``: AUs and pose only."""
+    kind, names, n_rows = _names(path)
+    present = set(names)
+    npy = path.with_name(mesh_npy.format(stem=path.stem))
+    if (
+        set(pyfeat.MESH_NAMES["Detectorv2"]) <= present
+        or "z_0" in present  # MPDetector's mesh (the 68-point block has no z): the ingest checks its 478 vertices
+        or (kind == "parquet" and npy.exists())
+    ):
+        return ingest.open_source(path, mesh_npy), True
+    lay = pyfeat.layout(names, str(path), split_mesh=True)
+    return ingest.Source(path, kind, lay, tuple(names), None, n_rows), False
+
+
+def _read(source: ingest.Source, has_mesh: bool) -> tuple[ingest.Block, np.ndarray | None]:
+    """Every row of the table as one :class:`~aumesh.data.ingest.Block`, and its ``approx_time`` values (None when
+    absent). A table without a mesh gets NaN mesh columns (what the ingest's no-face and face-size rules read)."""
+    lay = source.layout
+    columns = list(lay.columns) + ([APPROX_TIME] if APPROX_TIME in source.header else [])
+    if source.kind == "csv":
+        # approx_time as text: Arrow would infer py-feat's "MM:SS" as a time of day "HH:MM" (60 times too long)
+        types = {k: v for k, v in ingest._types(lay).items() if k in columns} | {APPROX_TIME: pa.string()}
+        parts = [(span, ingest._read_csv_span(span, columns, types)) for span in ingest.csv_spans(source)]
+    else:
+        parts = list(ingest.iter_span_tables(ingest.Span(source, 0, source.n_rows or 0), columns))
+    blocks, approx = [], []
+    for span, table in parts:
+        if not has_mesh:
+            names = pyfeat.MESH_NAMES["MPDetector"]
+            nan = pa.array(np.full(table.num_rows, np.nan, np.float32))
+            table = pa.Table.from_arrays([*table.columns, *([nan] * len(names))], [*table.column_names, *names])
+            span = replace(span, source=replace(source, layout=replace(lay, mesh=tuple(names))))
+        blocks.append(ingest.to_block(table, span))
+        if APPROX_TIME in table.column_names:
+            approx.append(table.column(APPROX_TIME).to_numpy(zero_copy_only=False))
+    block = _concat(blocks)
+    return block, (np.concatenate(approx) if approx else None)
+
+
+def _concat(blocks: Sequence[ingest.Block]) -> ingest.Block:
+    if len(blocks) == 1:
+        return blocks[0]
+    if not blocks:
+        return ingest.Block(
+            np.zeros(0, str), np.zeros(0, np.int64), {}, None, np.zeros((0, 3 * N_VERTICES), np.float32)
+        )
+    first = blocks[0]
+    return ingest.Block(
+        np.concatenate([b.video for b in blocks]),
+        np.concatenate([b.frame for b in blocks]),
+        {k: np.concatenate([b.values[k] for b in blocks]) for k in first.values},
+        None if first.identity is None else np.concatenate([b.identity for b in blocks]),
+        np.concatenate([b.mesh for b in blocks]),
+    )
+
+
+# --------------------------------------------------------------------------------------------------------- frame rate
+
+
+def _approx_seconds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``approx_time`` values as ``(ok, lower, upper)``: each row's true time lies in ``[lower, upper)``. py-feat's
+    ``"MM:SS"`` truncates to whole seconds (``[t, t + 1)``); ``"[HH:]MM:SS.fff"`` or numbers are taken to the last
+    digit (``[t - r, t + r]``). None when a value is neither."""
+    n = len(values)
+    ok, lower, upper = np.zeros(n, bool), np.zeros(n), np.zeros(n)
+    for i, v in enumerate(values):
+        if v is None or (isinstance(v, float) and math.isnan(v)):
+            continue
+        if isinstance(v, (int, float, np.integer, np.floating)):
+            t = float(v)
+            r = 1.0 if float(t).is_integer() else 1e-3
+            lo, hi = (t, t + 1.0) if r == 1.0 else (t - r, t + r)
+        else:
+            m = _TIME.match(str(v))
+            if not m:
+                return None
+            h, mi, s, frac = m.groups()
+            t = int(h or 0) * 3600 + int(mi) * 60 + int(s)
+            if frac:
+                r = 10.0 ** -len(frac)
+                t += int(frac) * r
+                lo, hi = t - r, t + r
+            else:
+                lo, hi = t, t + 1.0
+        ok[i], lower[i], upper[i] = True, lo, hi
+    return ok, lower, upper
+
+
+def fps_from_approx_time(frame: np.ndarray, approx: np.ndarray) -> float | None:
+    """The frame rate py-feat's ``approx_time`` implies, or None when it does not tell.
+
+    Each row says ``lower <= frame / fps < upper`` (whole seconds for py-feat's ``"MM:SS"``), so ``fps`` lies in
+    ``(max frame / upper, min frame / lower]``. Of the common rates (:data:`COMMON_FPS`: 23.976, 24, 25, 29.97, 30,
+    48, 50, 59.94, 60, 100, 120) in that interval, the one nearest its middle; no common rate but an interval
+    narrower than 1%: its middle, to 3 decimals. A clip shorter than a second bounds the rate only from below: then
+    None (25) unless 25 is too slow for it. Contradictory values (another video's times) give None.
+    """
+    parsed = _approx_seconds(np.asarray(approx, dtype=object))
+    if parsed is None:
+        return None
+    ok, lower, upper = parsed
+    f = np.asarray(frame, np.float64)
+    use = ok & (f > 0)
+    if not use.any():
+        return None
+    lo = float(np.max(f[use] / upper[use]))
+    bounded = use & (lower > 0)
+    hi = float(np.min(f[bounded] / lower[bounded])) if bounded.any() else math.inf
+    tol = 1e-9
+    if lo >= hi * (1 + tol):
+        log.warning("approx_time contradicts itself (frame rate above %.4g and at most %.4g): using 25 fps", lo, hi)
+        return None
+    candidates = [c for c in COMMON_FPS if c > lo * (1 + tol) and c <= hi * (1 + tol)]
+    if math.isinf(hi):
+        if DEFAULT_FPS > lo * (1 + tol):
+            return None
+        return candidates[0] if candidates else None
+    if candidates:
+        middle = (lo + hi) / 2
+        return min(candidates, key=lambda c: abs(c - middle))
+    return round((lo + hi) / 2, 3) if hi - lo <= 0.01 * hi else None
+
+
+# -------------------------------------------------------------------------------------------------------------- gaps
+
+
+def bridge(values: np.ndarray, has_face: np.ndarray, time: np.ndarray, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
+    """``values`` (n, k) with the no-face rows filled (module docstring, "Gaps").
+
+    A no-face row between face rows ``p`` and ``q`` (the nearest before and after) gets
+    ``v[p] + (t - t[p]) / (t[q] - t[p]) * (v[q] - v[p])`` when ``t[q] - t[p] <= max_gap_s``, else ``v[p]`` (held).
+    Rows before the first face row hold its values, rows after the last hold the last's.
+    """
+    values = np.asarray(values, np.float64)
+    face = np.flatnonzero(has_face)
+    if not len(face):
+        raise ValueError("no frame with a face: nothing to bridge from")
+    out = values.copy()
+    rows = np.flatnonzero(~np.asarray(has_face, bool))
+    if not len(rows):
+        return out
+    k = np.searchsorted(face, rows)
+    p = face[np.maximum(k - 1, 0)]
+    q = face[np.minimum(k, len(face) - 1)]
+    start, end = k == 0, k == len(face)
+    out[rows] = values[p]
+    out[rows[start]] = values[face[0]]
+    inside = ~start & ~end
+    span = time[q] - time[p]
+    short = inside & (span <= max_gap_s)
+    a = ((time[rows] - time[p]) / np.where(span > 0, span, 1.0))[short, None]
+    out[rows[short]] = (1 - a) * values[p[short]] + a * values[q[short]]
+    return out
+
+
+def bridged_weights(clip: Clip, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
+    """(n_frames, 20) the clip's AU intensities with its no-face frames bridged (:func:`bridge`): the morph-target
+    weights of its animation."""
+    return bridge(clip.aus, clip.has_face, clip.time, max_gap_s)
+
+
+def bridged_pose(clip: Clip, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
+    """(n_frames, 3) Pitch, Yaw, Roll (radians) with the no-face frames bridged as the weights are."""
+    return bridge(clip.pose, clip.has_face, clip.time, max_gap_s)
+
+
+def smooth(values: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving average over ``n`` frames (odd; 1 = unchanged) along axis 0, the window shortened at the ends
+    (the first frame averages itself and the ``n // 2`` after it). Frames, not seconds: ``skip_frames`` rows count
+    as neighbours."""
+    if n < 1 or n % 2 == 0:
+        raise UserError(f"--smooth {n}: use an odd number of frames >= 1 (e.g. 3 or 5; 1 = no smoothing).")
+    values = np.asarray(values, np.float64)
+    if n == 1 or len(values) < 2:
+        return values.copy()
+    half = n // 2
+    c = np.concatenate([np.zeros((1,) + values.shape[1:]), np.cumsum(values, axis=0)])
+    i = np.arange(len(values))
+    a, b = np.maximum(i - half, 0), np.minimum(i + half + 1, len(values))
+    shape = (-1,) + (1,) * (values.ndim - 1)
+    return (c[b] - c[a]) / (b - a).reshape(shape)
+
+
+__all__ = [
+    "APPROX_TIME",
+    "Clip",
+    "DEFAULT_FPS",
+    "MAX_GAP_S",
+    "bridge",
+    "bridged_pose",
+    "bridged_weights",
+    "fps_from_approx_time",
+    "read_clip",
+    "smooth",
+]
