@@ -669,9 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="embed a py-feat table (CSV, .csv.gz or parquet) to play: the AUs over time beside the recorded mesh",
     )
     p.add_argument("--video", help="with --clip: the one video to embed (default: every video of the table)")
-    p.add_argument(
-        "--fps", type=float, help="with --clip: the video's frame rate (default: from approx_time, else 25)"
-    )
+    p.add_argument("--fps", type=float, help="with --clip: the video's frame rate (default: from approx_time, else 25)")
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser(

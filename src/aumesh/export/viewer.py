@@ -323,7 +323,7 @@ def table_videos(path: str | Path) -> tuple[list[str], dict[str, tuple[float, fl
     sizes: dict[str, tuple[float, float]] = {}
     if len(columns) == 3:
         width, height = (table.column(c).to_numpy(zero_copy_only=False) for c in FRAME_SIZE)
-        for v, w, h in zip(raw, width, height):
+        for v, w, h in zip(raw, width, height, strict=True):
             if v is None:
                 continue
             key = v if video == VIDEO_COLUMN else video_stem(v)
@@ -335,7 +335,6 @@ def table_videos(path: str | Path) -> tuple[list[str], dict[str, tuple[float, fl
 def table_clips(path: str | Path, video: str | None = None, fps: float | None = None) -> list[dict]:
     """The page's clips (:func:`clip_data`) of a py-feat table: ``video`` only, or every video it holds."""
     from aumesh.animation.clip import read_clip
-
     from aumesh.utils.errors import TableError
 
     try:
