@@ -666,7 +666,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--clip",
         type=Path,
         metavar="TABLE",
-        help="embed a py-feat table (CSV, .csv.gz or parquet) to play: the AUs over time beside the recorded mesh",
+        help="embed a py-feat table (CSV, .csv.gz or parquet) to play: the AUs over time beside the recorded mesh "
+        "(default: none; the page can still open a CSV itself)",
     )
     p.add_argument("--video", help="with --clip: the one video to embed (default: every video of the table)")
     p.add_argument("--fps", type=float, help="with --clip: the video's frame rate (default: from approx_time, else 25)")

@@ -21,6 +21,17 @@ import of ``./three.core.js``, which a data: URL cannot resolve, is renamed to t
 ``three/core``) and ``examples/jsm/controls/OrbitControls.js`` (it imports only ``three``). No
 network, no CDN: the file works from disk, offline.
 
+**Clips** (issue 36): the page plays a video's py-feat table, opened by a file picker or a drop (CSV or
+``.csv.gz``, decompressed by the browser's ``DecompressionStream``; parsed by column name with
+:func:`aumesh.animation.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
+the frame rate from ``approx_time``, :func:`~aumesh.animation.clip.bridge`'s gap rule), or embedded by ``aumesh view
+NPZ --clip TABLE`` (:func:`table_clips`: ``read_clip`` + ``bridged_weights``, any table format, compact base64
+arrays). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
+pose"); the frame's recorded mesh is turned into the card's frame (``canonical_frame``, ported) and aligned onto the
+model's predicted mesh with the card's similarity Procrustes on the 12 anchors (Horn's quaternion method: JavaScript
+has no SVD; equal to ``umeyama_batch``); the model's face is coloured by the per-vertex distance (viridis, in
+inter-ocular distances of the release's neutral face). ``window.aumeshViewer.clip`` exposes it to scripts and tests.
+
 Every string the page embeds (the card's rows: run names and ids, promotion fields, config
 values; the source name) travels as JSON inside ``<script type="application/json">`` with ``<``,
 ``>``, ``&``, U+2028 and U+2029 written as ``\\uXXXX`` escapes (:func:`script_json`), so no text can
