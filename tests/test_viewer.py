@@ -87,7 +87,7 @@ def _changed(a, b, box):
 def test_sliders_move_the_mouth_not_the_forehead(browser, page_file):
     npz_path, path = page_file
     page, problems, requests = _open(browser, path)
-    assert page.locator('input[type="range"]').evaluate_all("els => els.map(e => e.name)") == list(INPUT_COLUMNS)
+    assert page.locator('#side input[type="range"]').evaluate_all("els => els.map(e => e.name)") == list(INPUT_COLUMNS)
     forehead, mouth = _box(page, FOREHEAD), _box(page, MOUTH)
     neutral = _shot(page, "viewer_neutral.png")
     assert neutral.std() > 10  # a face, not a blank canvas
@@ -150,7 +150,7 @@ VIEW = (1280, 720)
 
 def _ranges_visible(page):
     """Each slider's box, and whether the element at its centre is the slider itself (not covered, not clipped)."""
-    return page.evaluate("""() => [...document.querySelectorAll('input[type=range]')].map((e) => {
+    return page.evaluate("""() => [...document.querySelectorAll('#side input[type=range]')].map((e) => {
         const r = e.getBoundingClientRect();
         const hit = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2);
         return {name: e.name, top: r.top, left: r.left, bottom: r.bottom, right: r.right, hit: hit === e};
@@ -360,7 +360,7 @@ def test_hostile_strings_show_literally(browser, tmp_path, node_tools, text):
     # no element came from the text
     assert page.evaluate("document.scripts.length") == 3 and page.evaluate("document.images.length") == 0
     # every slider works: each moves the mesh, and the mesh is the model's prediction
-    assert page.locator('input[type="range"]').count() == len(INPUT_COLUMNS)
+    assert page.locator('#side input[type="range"]').count() == len(INPUT_COLUMNS)
     moved = "window.aumeshViewer.mesh().reduce((s, v, i) => s + v * (1 + (i % 7)), 0)"  # a cheap fingerprint
     for name in INPUT_COLUMNS:
         before = page.evaluate(moved)

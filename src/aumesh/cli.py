@@ -115,8 +115,10 @@ def _cmd_view(args) -> int:
     from aumesh.export import viewer
     from aumesh.model.inference import load_release
 
-    out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name)
-    print(f"wrote {out} (open it in a browser; works offline)")
+    clips = viewer.table_clips(args.clip, args.video, args.fps) if args.clip else None
+    out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name, clips=clips)
+    played = f"; plays {len(clips)} video(s) of {args.clip.name}" if clips else ""
+    print(f"wrote {out} (open it in a browser; works offline{played})")
     return 0
 
 
@@ -660,6 +662,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=Path("viewer.html"),
         help="HTML file to write (default: %(default)s); needs three.js from `make tools`",
     )
+    p.add_argument(
+        "--clip",
+        type=Path,
+        metavar="TABLE",
+        help="embed a py-feat table (CSV, .csv.gz or parquet) to play: the AUs over time beside the recorded mesh "
+        "(default: none; the page can still open a CSV itself)",
+    )
+    p.add_argument("--video", help="with --clip: the one video to embed (default: every video of the table)")
+    p.add_argument("--fps", type=float, help="with --clip: the video's frame rate (default: from approx_time, else 25)")
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser(

