@@ -13,12 +13,15 @@ import sys
 from collections.abc import Mapping
 from datetime import UTC
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from aumesh.config import Config
 
 DEBUG_ENV = "AUMESH_DEBUG"
 
 
-def _params(args) -> Config:  # noqa: F821
+def _params(args) -> Config:
     from aumesh.config import load_params
 
     return load_params(args.params)
@@ -296,7 +299,9 @@ def _cmd_promote(args) -> int:
     newer = parent = None
     if not args.across:
         parent = _parent_id(args, tracking_cfg)
-    if not args.parent and not args.across:  # your latest sweep: say which, and do not overrule your newer pipeline run
+    if (
+        parent is not None and not args.parent
+    ):  # your latest sweep: say which, and do not overrule your newer pipeline run
         sweep = queries.run_record(parent, tracking_cfg)
         n_runs = sweep["tags"].get("aumesh.sweep.n_children", "?")
         print(

@@ -22,6 +22,7 @@ videos, so ~100k frames in one CSV stay in bounded memory.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -194,7 +195,7 @@ def _runs(rng: np.random.Generator, n: int, target: int, run: tuple[int, int], a
         have = int((mask & allowed).sum())
         if have >= target:
             break
-        length = int(min(rng.integers(run[0], run[1] + 1), n, max(target - have, 1)))
+        length = min(int(rng.integers(run[0], run[1] + 1)), n, max(target - have, 1))
         start = int(rng.integers(0, n - length + 1))
         mask[start : start + length] = True
     return mask & allowed
@@ -468,7 +469,9 @@ class _ParquetSink:
     """A parquet file written chunk by chunk (one schema: text columns stay text when a chunk is all NaN)."""
 
     def __init__(self, path: Path):
-        self.path, self.writer, self.schema = path, None, None
+        self.path = path
+        self.writer: pq.ParquetWriter | None = None
+        self.schema: pa.Schema | None = None
         self._ctx = atomic_path(path, suffix=".parquet")
         self.tmp = self._ctx.__enter__()
 
@@ -551,9 +554,11 @@ def write_pyfeat_tables(
 
     counts, gen_args = _synth_setup(spec)
     per_file = videos_per_file or spec.n_videos
-    summary = {
-        "files": [],
-        "clean_files": [],
+    files: list[str] = []
+    clean_files: list[str] = []
+    summary: dict[str, Any] = {
+        "files": files,
+        "clean_files": clean_files,
         "n_rows": 0,
         "n_frames": 0,
         "n_face_frames": 0,
@@ -630,6 +635,7 @@ def _write_one(
             if fmt == "csv":
                 df.to_csv(csv_tmp, index=False, mode="w" if k == 0 else "a", header=k == 0)
             else:
+                assert sink is not None  # parquet and split write through a sink
                 sink.write(df)
             if fmt == "split":
                 m = np.concatenate([p["blocks"]["mesh"] for p in parts]).astype(np.float64)
