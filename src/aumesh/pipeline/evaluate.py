@@ -117,13 +117,6 @@ class Prepared:
         """``(row_group, first_row, stop_row)`` of ``frames.parquet``: the partitions of the evaluate passes."""
         return row_groups(self.directory)
 
-
-def row_groups(directory: Path) -> list[tuple[int, int, int]]:
-    """``(row_group, first_row, stop_row)`` of ``frames.parquet`` in ``directory``: the partitions of the passes."""
-    md = pq.ParquetFile(directory / FRAMES_FILE).metadata
-    bounds = np.r_[0, np.cumsum([md.row_group(g).num_rows for g in range(md.num_row_groups)])]
-    return [(g, int(bounds[g]), int(bounds[g + 1])) for g in range(md.num_row_groups) if bounds[g + 1] > bounds[g]]
-
     @cached_property
     def au(self) -> np.ndarray:
         """(n, 20) AU intensities, float64 (whole)."""
@@ -133,6 +126,13 @@ def row_groups(directory: Path) -> list[tuple[int, int, int]]:
     def pose(self) -> np.ndarray:
         """(n, 3) Pitch, Yaw, Roll in radians, float64 (whole)."""
         return self.frames[list(POSE_COLUMNS)].to_numpy(np.float64)
+
+
+def row_groups(directory: Path) -> list[tuple[int, int, int]]:
+    """``(row_group, first_row, stop_row)`` of ``frames.parquet`` in ``directory``: the partitions of the passes."""
+    md = pq.ParquetFile(directory / FRAMES_FILE).metadata
+    bounds = np.r_[0, np.cumsum([md.row_group(g).num_rows for g in range(md.num_row_groups)])]
+    return [(g, int(bounds[g]), int(bounds[g + 1])) for g in range(md.num_row_groups) if bounds[g + 1] > bounds[g]]
 
 
 def scratch_path(prepared_dir: str | Path) -> Path:
