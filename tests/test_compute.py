@@ -24,6 +24,7 @@ from aumesh.data.schema import VIDEO_COLUMN
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import integrity, prepare
+from aumesh.utils.errors import CorruptFileError
 from aumesh.utils.io import create_npy
 from conftest import default_config
 
@@ -240,6 +241,15 @@ def test_local_cluster_of_two_worker_processes(split_tables, split_prepared):
         out, _ = _prepare(split_tables, "prepared-cluster", **remote, **{"compute.partition_rows": 1})
         _assert_same_prepared(out, split_prepared)
         _assert_same_model(_evaluate(out, **remote), _evaluate(split_prepared, **{"compute": "synchronous"}))
+        # a byte flipped in a middle row group: the workers hash what they read, the driver refuses it before any fit
+        start, stop = integrity.load_summary(out)["checksums"]["meshes.npy"]["blocks"][5][:2]
+        with open(out / "meshes.npy", "r+b") as fh:
+            fh.seek((start + stop) // 2)
+            byte = fh.read(1)[0]
+            fh.seek((start + stop) // 2)
+            fh.write(bytes([byte ^ 0x10]))
+        with pytest.raises(CorruptFileError, match=f"meshes.npy: bytes {start:,}-{stop:,} do not match"):
+            _evaluate(out, **remote)
 
 
 def test_low_au_thresholds_are_the_lower_quantile_of_each_video():

@@ -10,7 +10,8 @@ Two passes over the prepared meshes:
   absolute coordinates, plus per-video sums; every feature set, target and neutral is derived from
   them exactly, so a sweep needs this pass once. A fold's training statistics are the total minus
   the fold's, so each fold's model, and every smaller ``n_components``, comes from statistics; R² is
-  exact from the held-out fold's statistics;
+  exact from the held-out fold's statistics. Its tasks also hash the bytes of ``meshes.npy`` they read; the driver
+  compares the digests with prepare's checksums before any model is fitted (``aumesh.pipeline.integrity``);
 * pass B streams the rows once through their fold's model (all folds in one product) for MAE and
   the per-vertex Euclidean error; it runs once per configuration.
 
@@ -67,7 +68,17 @@ from aumesh.pipeline.prepared_files import (
     VIDEO_IDS_FILE,
 )
 from aumesh.utils.errors import ConfigError, UserError
-from aumesh.utils.io import NpyRowFile, NpyRows, absolute, create_npy, read_rows, scratch_directory, write_rows
+from aumesh.utils.io import (
+    NpyRowFile,
+    NpyRows,
+    absolute,
+    check_npy,
+    create_npy,
+    read_rows,
+    row_runs,
+    scratch_directory,
+    write_rows,
+)
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +95,8 @@ class Prepared:
     reference: dict[str, np.ndarray]
     summary: dict
     mesh_path: Path | None = None  # meshes.npy: the passes read it with plain file I/O
+    # meshes.npy's checksummed blocks that pass A verifies as it reads them (row group -> blocks; None: not recorded)
+    mesh_check: integrity.StreamedCheck | None = None
 
     @cached_property
     def frames(self) -> pd.DataFrame:
@@ -102,9 +115,7 @@ class Prepared:
 
     def row_groups(self) -> list[tuple[int, int, int]]:
         """``(row_group, first_row, stop_row)`` of ``frames.parquet``: the partitions of the evaluate passes."""
-        md = pq.ParquetFile(self.directory / FRAMES_FILE).metadata
-        bounds = np.r_[0, np.cumsum([md.row_group(g).num_rows for g in range(md.num_row_groups)])]
-        return [(g, int(bounds[g]), int(bounds[g + 1])) for g in range(md.num_row_groups) if bounds[g + 1] > bounds[g]]
+        return row_groups(self.directory)
 
     @cached_property
     def au(self) -> np.ndarray:
@@ -115,6 +126,13 @@ class Prepared:
     def pose(self) -> np.ndarray:
         """(n, 3) Pitch, Yaw, Roll in radians, float64 (whole)."""
         return self.frames[list(POSE_COLUMNS)].to_numpy(np.float64)
+
+
+def row_groups(directory: Path) -> list[tuple[int, int, int]]:
+    """``(row_group, first_row, stop_row)`` of ``frames.parquet`` in ``directory``: the partitions of the passes."""
+    md = pq.ParquetFile(directory / FRAMES_FILE).metadata
+    bounds = np.r_[0, np.cumsum([md.row_group(g).num_rows for g in range(md.num_row_groups)])]
+    return [(g, int(bounds[g]), int(bounds[g + 1])) for g in range(md.num_row_groups) if bounds[g + 1] > bounds[g]]
 
 
 def scratch_path(prepared_dir: str | Path) -> Path:
@@ -218,7 +236,14 @@ def load_prepared(prepared_dir: str | Path) -> Prepared:
     if missing:
         raise UserError(f"{d}: missing {', '.join(missing)}. Fix: run the prepare stage first (`dvc repro prepare`).")
     summary = integrity.load_summary(d)
-    integrity.verify_prepared(d, summary)  # before any file is used: truncated, damaged or edited files are refused
+    # before any file is used, truncated, damaged or edited files are refused: the small ones here, whole (their
+    # readers pick rows anywhere); meshes.npy here but for the blocks pass A reads whole, one row group each, which
+    # are hashed as it reads them (reading the ~2 GB once more here cost the stage 14 % at 344k frames)
+    integrity.verify_prepared(d, summary, [n for n in PREPARED_FILES if n != MESHES_FILE])
+    offset, _, shape = check_npy(d / MESHES_FILE, integrity.prepared_fix(d / MESHES_FILE) + ".")
+    row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * np.dtype(np.float32).itemsize
+    partitions = {g: (offset + start * row_bytes, offset + stop * row_bytes) for g, start, stop in row_groups(d)}
+    streamed = integrity.verify_prepared(d, summary, [MESHES_FILE], streamed={MESHES_FILE: partitions})
     d = absolute(d)  # what the partition tasks read, and the scratch folders' place: a cluster's workers run elsewhere
     return Prepared(
         directory=d,
@@ -228,6 +253,7 @@ def load_prepared(prepared_dir: str | Path) -> Prepared:
         neutral=_LazyArrays({method: d / name for method, name in NEUTRAL_FILES.items()}),
         reference=integrity.load_reference(d),
         summary=summary,
+        mesh_check=streamed.get(MESHES_FILE),
     )
 
 
@@ -382,12 +408,14 @@ class DesignPart:
 
     sums: DesignSums
     split: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # video -> (sum x - a, sum y - b, low-AU sum x - a)
+    # (start, stop) -> digest of those bytes of meshes.npy as the partitions read them (Prepared.mesh_check)
+    digests: dict[tuple[int, int], str] = field(default_factory=dict)
 
     def __add__(self, other: DesignPart) -> DesignPart:
         split = dict(self.split)
         for v, parts in other.split.items():
             split[v] = tuple(a + b for a, b in zip(split[v], parts, strict=True)) if v in split else parts
-        return DesignPart(self.sums + other.sums, split)
+        return DesignPart(self.sums + other.sums, split, {**self.digests, **other.digests})
 
 
 #: Per-video sums pass A writes (rows = video index), in a scratch folder beside the prepared data.
@@ -427,6 +455,13 @@ def _fold_grouped_block(
     return order + (lo - start), bounds, meshes.take(order + lo, raw)
 
 
+def _hash_block(digests: integrity.RangeDigests, meshes: NpyRowFile, file_rows: np.ndarray, Y: np.ndarray) -> None:
+    """Feed the block's rows ``Y`` (file rows ``file_rows``, in the block's order) to ``digests`` in the file's order:
+    a run of consecutive rows at a time, where the read put it (no copy to reorder the block)."""
+    for j, (lo, hi) in sorted(row_runs(file_rows), key=lambda run: run[1][0]):
+        digests.update(meshes.offset + lo * meshes.row_bytes, memoryview(Y[j : j + hi - lo]).cast("B"))
+
+
 def design_partition(
     group: tuple[int, int, int],
     directory: Path,
@@ -437,11 +472,15 @@ def design_partition(
     chunk_rows: int,
     scratch: Path,
     split_video: np.ndarray,
+    check: integrity.StreamedCheck | None = None,
 ) -> DesignPart:
     """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
     coordinates (shifted by ``a``, ``b``), and the per-video sums; those of videos held whole by this
-    partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned."""
+    partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned.
+    The checksummed blocks of ``meshes.npy`` the row group holds (``check``) are hashed from the bytes read, for the
+    driver to compare (:meth:`aumesh.pipeline.integrity.StreamedCheck.check`)."""
     g, start, stop = group
+    digests = integrity.RangeDigests(check.ranges(g), check.algorithm) if check is not None else None
     au, pose, video, low = _read_group(directory, g)
     fold = video_fold[video]
     p, q = len(FULL_DESIGN), N_TARGETS
@@ -475,6 +514,8 @@ def design_partition(
         files = {name: stack.enter_context(NpyRowFile(scratch / f"{name}.npy", writable=True)) for name in VIDEO_SUMS}
         for lo in range(start, stop, chunk_rows):
             rows, _, Y = _fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
+            if digests is not None:
+                _hash_block(digests, meshes, rows + start, Y)
             X = design_matrix(au[rows], pose[rows], True, True)
             X -= a
             Y = np.subtract(Y, b, out=centred[: len(Y)])  # float64 (the float32 rows widen exactly)
@@ -487,7 +528,7 @@ def design_partition(
             for name, rows_of in finished.items():
                 files[name].write_row_map(rows_of)
                 rows_of.clear()
-    return DesignPart(sums, split)
+    return DesignPart(sums, split, digests.digests if digests is not None else {})
 
 
 class NeutralDesign:
@@ -543,11 +584,14 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
                 chunk_rows=block_rows(chunk_rows),
                 scratch=scratch,
                 split_video=videos.split,
+                check=prepared.mesh_check,
             ),
             DesignPart.__add__,
             prepared.row_groups(),
             desc="evaluate: statistics",
         )
+        if prepared.mesh_check is not None:  # the bytes just read are prepare's, or the stage stops before any fit
+            prepared.mesh_check.check(part.digests)
         for v, values in part.split.items():
             for name, row in zip(VIDEO_SUMS, values, strict=True):
                 write_rows(scratch / f"{name}.npy", v, row[None])

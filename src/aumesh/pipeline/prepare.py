@@ -505,7 +505,7 @@ class Written:
     split: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2, 1434) sums (all, low-AU)
     split_counts: dict[int, np.ndarray] = field(default_factory=dict)  # video -> (2,) frames
     wild: dict[int, list[int]] = field(default_factory=dict)  # partition -> its rows with a vertex beyond the radius
-    # partition -> (first row, stop row, SHA-256 of those rows of meshes.npy as written: aumesh.pipeline.integrity)
+    # partition -> (first row, stop row, digest of those rows of meshes.npy as written: aumesh.pipeline.integrity)
     digests: dict[int, tuple[int, int, str]] = field(default_factory=dict)
 
     def __add__(self, other: Written) -> Written:
