@@ -420,6 +420,7 @@ def _npy_blocks(
     (:func:`iter_pieces_mesh_chunks`)."""
     first, stop = _row_range(table, row_groups)
     chunk_rows = min(chunk_rows, NPY_READ_ROWS)
+    assert table.mesh_npy is not None  # called for tables whose mesh is a .npy beside them
     with NpyRowFile(table.mesh_npy) as f:
         n, key = min(chunk_rows, max(stop - first, 0)), (f.dtype.str, f.shape[1:])
         buffer = None if buffers is None else buffers.get(key)
@@ -499,7 +500,10 @@ class MeshChunk:
     columns: np.ndarray | None = None
 
     def __len__(self) -> int:
-        return len(self.vertices) if self.vertices is not None else self.columns.shape[1]
+        if self.vertices is not None:
+            return len(self.vertices)
+        assert self.columns is not None  # a chunk holds its rows in one of the two layouts
+        return self.columns.shape[1]
 
 
 def iter_mesh_chunks(

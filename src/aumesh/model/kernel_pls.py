@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import numbers
 import warnings
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
@@ -54,6 +55,7 @@ from aumesh.model.cross_products import CrossProducts
 __all__ = ["PLSFit", "check_n_components", "coefficient_path", "fit_statistics", "intercept_path", "kernel_pls"]
 
 
+@dataclass(eq=False, repr=False)  # arrays: compared by identity, never printed whole
 class PLSFit:
     """A PLS2 fit from statistics: the fitted attributes of :class:`aumesh.model.pls.PLSRegression`, under the same
     names, on a plain object (no scikit-learn).
@@ -75,8 +77,18 @@ class PLSFit:
     n_samples_ : int
     """
 
-    def __init__(self, **attributes):
-        vars(self).update(attributes)
+    x_weights_: np.ndarray
+    x_loadings_: np.ndarray
+    y_loadings_: np.ndarray
+    x_rotations_: np.ndarray
+    coef_: np.ndarray
+    x_mean_: np.ndarray
+    y_mean_: np.ndarray
+    x_std_: np.ndarray
+    y_std_: np.ndarray
+    raw_intercept_: np.ndarray
+    n_components_: int
+    n_samples_: int
 
     @cached_property
     def coef_path_(self) -> np.ndarray:

@@ -35,6 +35,7 @@ if TYPE_CHECKING:  # annotations only: scipy.sparse is imported where it is used
 from aumesh.data.schema import N_TARGETS, feature_columns
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.features import design_matrix
+from aumesh.utils.io import RowArray
 
 FULL_DESIGN = feature_columns(True, True)
 
@@ -46,8 +47,8 @@ class DesignStatistics:
     folds: list[CrossProducts]  # shifts x_shift = a (83,), y_shift = b (1434,)
     video_fold: np.ndarray  # (n_videos,) fold of each video
     video_count: np.ndarray  # (n_videos,) frames per video
-    video_sum_x: np.ndarray  # (n_videos, 83)  sum over the video's frames of (x - a)
-    video_sum_y: np.ndarray  # (n_videos, 1434) sum over the video's frames of (y - b)
+    video_sum_x: RowArray  # (n_videos, 83)  sum over the video's frames of (x - a)
+    video_sum_y: RowArray  # (n_videos, 1434) sum over the video's frames of (y - b)
     neutral_design: dict = field(default_factory=dict)  # neutral method -> (n_videos, 83) mean design row of its frames
 
     @property
@@ -371,7 +372,7 @@ def configuration_statistics(
     design: DesignStatistics,
     columns: list[str],
     target: str,
-    neutral: np.ndarray,
+    neutral: RowArray,
     neutral_design_full: np.ndarray,
     video_block: int = 256,
 ) -> tuple[list[CrossProducts], list[CrossProducts]]:
@@ -403,7 +404,7 @@ def fold_configuration_statistics(
     fold: int,
     columns: list[str],
     target: str,
-    neutral: np.ndarray,
+    neutral: RowArray,
     neutral_design_full: np.ndarray,
     video_block: int = 256,
 ) -> tuple[CrossProducts, CrossProducts]:
@@ -442,8 +443,8 @@ def fold_configuration_statistics(
 
 
 def target_offsets(
-    design: DesignStatistics, columns: list[str], target: str, neutral: np.ndarray, neutral_design_full: np.ndarray
-) -> tuple[np.ndarray | None, np.ndarray | None]:
+    design: DesignStatistics, columns: list[str], target: str, neutral: RowArray, neutral_design_full: np.ndarray
+) -> tuple[np.ndarray | None, RowArray | None]:
     """What each video's rows subtract in ``target``'s space: ``(x_offset, y_offset)``.
 
     Returns

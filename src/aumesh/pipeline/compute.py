@@ -300,7 +300,7 @@ def check_workers(client, read: str | Path | None, write: str | Path | None) -> 
         problem = next((p for p in problems if p), None)
     finally:
         for result in results.values():
-            if isinstance(result, dict) and "wrote" in result:
+            if write is not None and isinstance(result, dict) and "wrote" in result:
                 (Path(write) / result["wrote"]).unlink(missing_ok=True)
     if problem is not None:
         raise ClusterError(problem)
@@ -341,8 +341,8 @@ def _written_by_probe(path: Path, token: str) -> bool:
         return False
 
 
-def _unseen(worker: str, verb: str, path: str, cause: str) -> str:
-    folder = path if verb == "write into" else os.path.dirname(path)
+def _unseen(worker: str, verb: str, path: str | None, cause: str) -> str:
+    folder = path if verb == "write into" or path is None else os.path.dirname(path)
     return (
         f"worker {worker} cannot {verb} {path} ({cause}): the folder {folder} must be on a filesystem every worker "
         f"sees at the same path. Fix: start the workers where the workspace is mounted at that path (README, "
@@ -443,9 +443,9 @@ def _local_get(scheduler: str) -> Callable:
 
         return get
     if scheduler == "processes":
-        from dask.multiprocessing import get
+        from dask.multiprocessing import get as get_processes
 
-        return get
+        return get_processes
     raise ValueError(f"compute.scheduler={scheduler!r}: use synchronous, threads, processes or distributed")
 
 

@@ -71,6 +71,7 @@ from aumesh.utils.errors import ConfigError, UserError
 from aumesh.utils.io import (
     NpyRowFile,
     NpyRows,
+    RowArray,
     absolute,
     check_npy,
     create_npy,
@@ -265,7 +266,7 @@ class FoldStatistics:
     displacement: list[CrossProducts]  # (X - x̄_v, Y_abs - n_v) per fold
     video_fold: np.ndarray  # (n_videos,) fold of each video (-1: no frames)
     x_offset: np.ndarray | None = None  # (n_videos, p) per-video design centre of the target (None: none)
-    y_offset: np.ndarray | None = None  # (n_videos, 1434) per-video mesh centre of the target (None: none)
+    y_offset: RowArray | None = None  # (n_videos, 1434) per-video mesh centre of the target (None: none)
 
     @property
     def total(self) -> CrossProducts:
@@ -407,7 +408,7 @@ class DesignPart:
     """Pass A of consecutive partitions: per-fold sums, and per-video sums of videos split across partitions."""
 
     sums: DesignSums
-    split: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]  # video -> (sum x - a, sum y - b, low-AU sum x - a)
+    split: dict[int, tuple[np.ndarray, ...]]  # video -> VIDEO_SUMS' rows: (sum x - a, sum y - b, low-AU sum x - a)
     # (start, stop) -> digest of those bytes of meshes.npy as the partitions read them (Prepared.mesh_check)
     digests: dict[tuple[int, int], str] = field(default_factory=dict)
 
@@ -459,7 +460,7 @@ def _hash_block(digests: integrity.RangeDigests, meshes: NpyRowFile, file_rows: 
     """Feed the block's rows ``Y`` (file rows ``file_rows``, in the block's order) to ``digests`` in the file's order:
     a run of consecutive rows at a time, where the read put it (no copy to reorder the block)."""
     for j, (lo, hi) in sorted(row_runs(file_rows), key=lambda run: run[1][0]):
-        digests.update(meshes.offset + lo * meshes.row_bytes, memoryview(Y[j : j + hi - lo]).cast("B"))
+        digests.update(meshes.offset + lo * meshes.row_bytes, memoryview(Y[j : j + hi - lo].data).cast("B"))
 
 
 def design_partition(
@@ -535,7 +536,7 @@ class NeutralDesign:
     """Mean full-design row of each video's neutral frames, ``(n_videos, 83)``, rows computed on demand from
     the per-video sums pass A wrote (``sum / count + a``)."""
 
-    def __init__(self, sums: NpyRows, count: np.ndarray, shift: np.ndarray):
+    def __init__(self, sums: RowArray, count: np.ndarray, shift: np.ndarray):
         self.sums, self.count, self.shift = sums, count, shift
         self.shape = (len(count), len(shift))
 
@@ -568,6 +569,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     a = design_matrix(
         head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64), True, True
     ).mean(axis=0)
+    assert prepared.mesh_path is not None  # load_prepared sets it
     b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
     scratch = scratch_directory(scratch_path(prepared.directory))
     try:
@@ -852,7 +854,7 @@ def error_partition(
 def _weighted_mean(rows, weights: np.ndarray, block: int = 4096) -> np.ndarray:
     """``weights @ rows / weights.sum()`` over per-video rows (an array or :class:`aumesh.utils.io.NpyRows`),
     a block of videos at a time (the rows are never whole in memory)."""
-    total = 0.0
+    total = np.zeros(rows.shape[1:])
     for lo in range(0, len(weights), block):
         total = total + weights[lo : lo + block] @ np.asarray(rows[lo : lo + block], dtype=np.float64)
     return total / weights.sum()

@@ -32,6 +32,7 @@ from collections.abc import Hashable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 from aumesh.utils.errors import CorruptFileError
 
@@ -65,7 +66,14 @@ def prepared_fix(path: str | Path) -> str:
     return PREPARED_FIX
 
 
-def new_hash(algorithm: str = ALGORITHM):
+class StreamingHash(Protocol):
+    """What :func:`new_hash` returns: hashlib's and xxhash's common interface."""
+
+    def update(self, data: Any, /) -> None: ...
+    def hexdigest(self) -> str: ...
+
+
+def new_hash(algorithm: str = ALGORITHM) -> StreamingHash:
     """A streaming hash object (``update``, ``hexdigest``) of ``algorithm`` (one of :data:`ALGORITHMS`)."""
     if algorithm == "xxh3_128":
         import xxhash
@@ -142,7 +150,7 @@ def verify(
     records: dict[str, dict],
     names: list[str] | None = None,
     threads: int | None = None,
-    streamed: Mapping[str, Mapping[Hashable, tuple[int, int]]] | None = None,
+    streamed: Mapping[str, Mapping[Any, tuple[int, int]]] | None = None,
 ) -> dict[str, StreamedCheck]:
     """Check files ``names`` (default: every recorded one) of ``directory`` against ``records``; the first mismatch is a
     :class:`CorruptFileError` naming the file, where it differs and :data:`PREPARED_FIX`.
@@ -220,7 +228,7 @@ class RangeDigests:
         self._ranges = sorted((int(a), int(b)) for a, b in ranges if b > a)
         self._algorithm = algorithm
         self._next = 0  # the range being (or next to be) hashed
-        self._hash = None
+        self._hash: StreamingHash | None = None
         self._pos: int | None = None  # where the next piece must start
         self.digests: dict[tuple[int, int], str] = {}
 
@@ -264,7 +272,7 @@ def verify_prepared(
     prepared_dir: str | Path,
     summary: dict,
     names: list[str] | None = None,
-    streamed: Mapping[str, Mapping[Hashable, tuple[int, int]]] | None = None,
+    streamed: Mapping[str, Mapping[Any, tuple[int, int]]] | None = None,
 ) -> dict[str, StreamedCheck]:
     """Every ``.npy`` of the prepared data complete (:func:`aumesh.utils.io.check_npy`), then files ``names`` (default
     all) against the checksums ``summary`` records, but for the byte ranges ``streamed`` defers to a pass

@@ -634,7 +634,7 @@ def write_partition(
                         f"partition {plan.part_index}: rows written out of order, the checksum would not be the file's"
                     )
                 files[MESHES_FILE].write(plan.offset + next_row, block)
-                digest.update(memoryview(block).cast("B"))
+                digest.update(memoryview(block.data).cast("B"))
                 next_row += len(rows_out)
                 result.sums[0] += flat.sum(axis=0)
                 result.sums[1] += flat[low_population[rows_out]].sum(axis=0)
@@ -668,6 +668,7 @@ def _aligned_rows(
     ``out``."""
     if chunk.vertices is not None:
         return apply_similarity_vertices(chunk.vertices, rotation, scale, translation, frames, out)
+    assert chunk.columns is not None  # a chunk holds its rows in one of the two layouts
     return apply_similarity_columns(chunk.columns, rotation, scale, translation, frames, out)
 
 
@@ -680,8 +681,8 @@ def _plans(kept: list[Kept], video_ids: np.ndarray, split_names: np.ndarray, qua
     thresholds of videos split across partitions (exact over their kept frames in every partition)."""
     gathered: dict[str, list[np.ndarray]] = {}
     for k in kept:
-        for v, au in k.split_au.items():
-            gathered.setdefault(v, []).append(au)
+        for v, video_au in k.split_au.items():
+            gathered.setdefault(v, []).append(video_au)
     names = np.array(sorted(gathered), dtype=str)
     au = [np.concatenate(gathered[v]) for v in names]
     _, split_thresholds = low_au_thresholds(

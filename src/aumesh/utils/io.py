@@ -480,3 +480,7 @@ class NpyRows:
 
     def astype(self, dtype) -> np.ndarray:
         return np.asarray(self).astype(dtype)
+
+
+#: Per-row data a computation reads by rows: an array in memory, or an ``.npy`` read on demand (:class:`NpyRows`).
+RowArray = np.ndarray | NpyRows
