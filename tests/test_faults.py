@@ -24,7 +24,6 @@ from aumesh import cli
 from aumesh.config import write_params
 from aumesh.data.schema import AU_COLUMNS
 from aumesh.data.synth import SynthSpec, write_tables
-from conftest import default_config
 
 TABLE = "data/frames_0000.parquet"
 
@@ -49,28 +48,9 @@ def run_cli(args: list[str], cwd: Path, capsys) -> tuple[int, str]:
     return code, out.err
 
 
-@pytest.fixture(scope="module")
-def good_workspace(tmp_path_factory):
-    """A workspace with tables, params.yaml (the fixed test configuration) and a complete good run."""
-    ws = tmp_path_factory.mktemp("faults") / "ws"
-    ws.mkdir()
-    write_tables(ws / "data", SynthSpec(n_frames=400, n_videos=40, seed=3))
-    write_params(default_config().to_dict(), ws / "params.yaml")
-    old = Path.cwd()
-    os.chdir(ws)
-    try:
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
-            for stage in ("ingest", "prepare", "evaluate", "release"):
-                assert cli.main([stage]) == 0
-    finally:
-        os.chdir(old)
-    return ws
-
-
 @pytest.fixture
 def workspace(good_workspace, tmp_path, monkeypatch):
-    """A copy of the good workspace, its own MLflow store included."""
+    """A copy of the good workspace (conftest.good_workspace, built once per run), its own MLflow store included."""
     ws = tmp_path / "ws"
     shutil.copytree(good_workspace, ws)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
