@@ -30,6 +30,27 @@ def pytest_configure(config):
             os.environ.setdefault(name, "1")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _sqlite_stores_without_fsync():
+    """The tests' SQLite stores (MLflow's, opened through SQLAlchemy in the test process) skip fsync
+    (``PRAGMA synchronous=OFF``): they are thrown away after the run, and MLflow commits a few hundred times to
+    create its schema alone (seconds of waiting for the disk per store on a busy machine). Locking, journaling
+    and what every other connection reads are unchanged; stores written by other processes (``aumesh`` or
+    ``mlflow server`` started by a test) keep SQLite's default."""
+    import sqlite3
+
+    from sqlalchemy import event
+    from sqlalchemy.engine import Engine
+
+    def no_fsync(dbapi_connection, _record):
+        if isinstance(dbapi_connection, sqlite3.Connection):
+            dbapi_connection.execute("PRAGMA synchronous=OFF")
+
+    event.listen(Engine, "connect", no_fsync)
+    yield
+    event.remove(Engine, "connect", no_fsync)
+
+
 @pytest.fixture(autouse=True)
 def _isolated_mlflow(tmp_path_factory, monkeypatch):
     """Every test logs to its own throw-away store, never the workspace's mlflow.db."""
@@ -229,6 +250,34 @@ def node_tools():
     if proc.returncode != 0 or not all(p.exists() for p in wanted):
         pytest.skip(f"npm ci could not install the node tools: {proc.stderr.strip()[-500:]}")
     return REPO / "node_modules"
+
+
+# Debian's chromium, driven headless by Playwright (no browser download); .ci/run installs it
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """A headless :data:`CHROMIUM` (Playwright's ``Browser``), launched once per test module and closed after it
+    (``make test`` keeps a module on one worker: ``--dist loadfile``); skipped, naming the fix, without chromium.
+    Open pages in a fresh ``browser.new_context(offline=True)`` per test, so tests share the process, not state."""
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
 
 
 def upright_truth_release(path: Path) -> Path:

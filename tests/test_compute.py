@@ -229,6 +229,7 @@ def test_models_agree_across_schedulers_and_partitionings(split_tables, split_pr
         _assert_same_model(_evaluate(one_partition, **{"compute": "synchronous", "preprocess.target": target}), ref)
 
 
+@pytest.mark.slow  # a real LocalCluster of 2 worker processes (~8 s of CPU); test_cluster.py's slow tests too
 def test_local_cluster_of_two_worker_processes(split_tables, split_prepared):
     """A real dask.distributed LocalCluster (2 processes, loopback): the same prepared data and model."""
     from distributed import LocalCluster
