@@ -298,6 +298,7 @@ def _with_roll(split_tables, tmp_path, roll):
     return tmp_path
 
 
+@pytest.mark.slow  # three prepare runs over 13 partitions (~8 s of CPU); the median rule itself is checked below
 def test_pose_units_check_fires_across_partitions_at_the_median(split_tables, tmp_path):
     """Roll in degrees (every value below pi, not pose-filtered) stops the run over 13 partitions, with numpy's median
     in the message; the check is on the median: half the frames at 0.5 and half at 1.5 rad (median 1.0) pass,

@@ -926,7 +926,8 @@ def _rendered_card(ws: Path) -> tuple[str, str]:
     return out, text
 
 
-@pytest.mark.parametrize("hostile", HOSTILE)
+# each case runs the release stage (its figures: ~4 s of CPU); the first in the fast suite, the others in the slow one
+@pytest.mark.parametrize("hostile", [HOSTILE[0], *(pytest.param(h, marks=pytest.mark.slow) for h in HOSTILE[1:])])
 def test_strings_from_promotion_and_config_are_text_in_the_card(workspace, hostile, capsys):
     import json
 
@@ -970,7 +971,12 @@ def _all_stages(ws: Path, capsys) -> str:
     return err_all
 
 
-@pytest.mark.parametrize("columns", [("AU07",), ("Pitch", "Yaw", "Roll")], ids=["AU07 always 0", "pose always 0"])
+# each case runs all four stages (~4.5 s of CPU): one AU in the fast suite, the pose columns in the slow one
+@pytest.mark.parametrize(
+    "columns",
+    [("AU07",), pytest.param(("Pitch", "Yaw", "Roll"), marks=pytest.mark.slow)],
+    ids=["AU07 always 0", "pose always 0"],
+)
 def test_constant_inputs_are_said_aloud_and_get_zero_coefficients(workspace, columns, capsys, caplog):
     import json
 

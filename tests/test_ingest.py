@@ -20,7 +20,7 @@ from aumesh.pipeline import ingest, prepare
 from aumesh.utils.errors import TableError
 from conftest import default_config
 
-SPEC = SynthSpec(n_frames=900, n_videos=12, seed=3)
+SPEC = SynthSpec(n_frames=450, n_videos=12, seed=3)  # 12 videos of ~38 frames: every layout, detector and fault
 
 
 def _cfg(data_dir: Path, **overrides):

@@ -73,11 +73,13 @@ def test_figures_drawn_in_worker_processes_equal_those_drawn_in_process(release,
         assert a.read_bytes() == b.read_bytes(), a.name
 
 
+@pytest.mark.slow  # another full render (~4 s of CPU) for the choice of figures
 def test_without_cv_no_cv_figures(release, tmp_path):
     paths = render.render_release(release[0], tmp_path)
     assert sorted(p.name for p in paths) == sorted(ALWAYS)
 
 
+@pytest.mark.slow  # another full render (~4 s of CPU)
 def test_precomputed_cumulative_curve_accepted(release, tmp_path):
     cv = tmp_path / "curve.npz"
     t = np.linspace(0, 1, 50)
