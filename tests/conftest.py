@@ -14,6 +14,42 @@ from aumesh.pipeline import prepare
 
 REPO = Path(__file__).resolve().parents[1]
 
+# the BLAS/OpenMP thread pools of numpy, scipy and scikit-learn (the names aumesh.pipeline.compute limits too)
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def pytest_configure(config):
+    """With pytest-xdist workers (``make test``: ``-n auto``, one worker per core), each worker's BLAS runs on one
+    thread, as aumesh's own Dask workers do (aumesh.pipeline.compute.engine): the workers already use every core,
+    and a BLAS pool per worker only oversubscribes them. OpenBLAS threads spin while they wait, so on a 2-core box
+    a scikit-learn PLS fit took 36 s of CPU with 2 threads per worker against 6 s with one. Set here, in the
+    controller before the workers start, so the workers and the processes the tests start inherit it; a value
+    given in the caller's environment wins. Serial runs (``make test-slow``) keep the BLAS default."""
+    if getattr(config.option, "numprocesses", None) and "PYTEST_XDIST_WORKER" not in os.environ:
+        for name in BLAS_THREAD_VARIABLES:
+            os.environ.setdefault(name, "1")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _sqlite_stores_without_fsync():
+    """The tests' SQLite stores (MLflow's, opened through SQLAlchemy in the test process) skip fsync
+    (``PRAGMA synchronous=OFF``): they are thrown away after the run, and MLflow commits a few hundred times to
+    create its schema alone (seconds of waiting for the disk per store on a busy machine). Locking, journaling
+    and what every other connection reads are unchanged; stores written by other processes (``aumesh`` or
+    ``mlflow server`` started by a test) keep SQLite's default."""
+    import sqlite3
+
+    from sqlalchemy import event
+    from sqlalchemy.engine import Engine
+
+    def no_fsync(dbapi_connection, _record):
+        if isinstance(dbapi_connection, sqlite3.Connection):
+            dbapi_connection.execute("PRAGMA synchronous=OFF")
+
+    event.listen(Engine, "connect", no_fsync)
+    yield
+    event.remove(Engine, "connect", no_fsync)
+
 
 @pytest.fixture(autouse=True)
 def _isolated_mlflow(tmp_path_factory, monkeypatch):
@@ -29,6 +65,47 @@ def _local_compute(monkeypatch):
     (``AUMESH_COMPUTE_ADDRESS``, aumesh.pipeline.compute.effective) is not the tests' to use."""
     for name in [k for k in os.environ if k.startswith("AUMESH_COMPUTE_")]:
         monkeypatch.delenv(name)
+
+
+def shared_build(tmp_path_factory, name: str, build) -> Path:
+    """A folder built once per test run and shared by every pytest-xdist worker: ``build(folder)`` fills
+    ``folder`` the first time any worker asks for ``name``; the others wait for it and get the same folder.
+
+    The pattern of pytest-xdist's documentation ("Making session-scoped fixtures execute only once"): the folder and
+    its :class:`filelock.FileLock` live in the run's base temporary folder (the parent of each worker's own, or the
+    base folder itself without workers), so nothing is shared between runs. The folder is built where it stays
+    (absolute paths recorded inside it, e.g. by MLflow, stay valid) and marked complete last; a build that failed is
+    removed and redone by the next worker that asks. Consumers must treat the folder as read-only (copy it to change
+    it); wrap the call in a ``scope="session"`` fixture so each worker asks once.
+
+    Parameters
+    ----------
+    tmp_path_factory : pytest.TempPathFactory
+    name : str
+        The folder's name, unique in the run.
+    build : callable
+        ``build(folder: Path) -> None``; ``folder`` exists and is empty.
+
+    Returns
+    -------
+    Path
+        The built folder.
+    """
+    import shutil
+
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent
+    folder, done = root / f"shared-{name}", root / f"shared-{name}.complete"
+    with FileLock(str(root / f"shared-{name}.lock")):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            done.touch()
+    return folder
 
 
 _FIXED_CONF: list[Path] = []  # set once per session by the fixed_conf fixture
@@ -67,18 +144,54 @@ RECOVERY_SPEC = synth.SynthSpec(
 
 @pytest.fixture(scope="session")
 def recovery_tables(tmp_path_factory):
-    out = tmp_path_factory.mktemp("recovery")
-    summary = synth.write_tables(out / "data", RECOVERY_SPEC, truth_path=out / "truth.npz")
-    return out, summary
+    """:data:`RECOVERY_SPEC`'s tables in ``out/data`` and the generator's truth in ``out/truth.npz``, built once per
+    run (:func:`shared_build`): ``(out, summary of synth.write_tables)``. Read-only."""
+    import json
+
+    def build(out: Path) -> None:
+        summary = synth.write_tables(out / "data", RECOVERY_SPEC, truth_path=out / "truth.npz")
+        (out / "summary.json").write_text(json.dumps(summary, default=str))
+
+    out = shared_build(tmp_path_factory, "recovery-tables", build)
+    return out, json.loads((out / "summary.json").read_text())
 
 
 @pytest.fixture(scope="session")
-def recovery_prepared(recovery_tables):
+def recovery_prepared(recovery_tables, tmp_path_factory, fixed_conf):
+    """:func:`recovery_tables` prepared by the recipe (fixed configuration) into ``out/prepared``, once per run:
+    ``out``, the tables' folder. Read-only."""
     out, _ = recovery_tables
-    cfg = default_config(**{"paths.data_dir": str(out / "data")})
-    found = tables.discover(out / "data", cfg.data.tables, cfg.data.mesh_npy)
-    prepare.run(found, cfg, out / "prepared")
+
+    def build(folder: Path) -> None:
+        cfg = default_config(**{"paths.data_dir": str(out / "data")})
+        found = tables.discover(out / "data", cfg.data.tables, cfg.data.mesh_npy)
+        prepare.run(found, cfg, out / "prepared")
+
+    shared_build(tmp_path_factory, "recovery-prepared", build)  # the marker: out/prepared is complete
     return out
+
+
+@pytest.fixture(scope="session")
+def good_workspace(tmp_path_factory, fixed_conf) -> Path:
+    """A workspace after a complete good run, built once per test run (:func:`shared_build`): 400 synthetic
+    frames of 40 videos in ``data/``, ``params.yaml`` (the fixed test configuration), the ingest, prepare,
+    evaluate and release stages run by ``aumesh`` in-process, their MLflow runs in the workspace's own
+    ``mlflow.db``. Read-only: tests that change it work on a copy (tests/test_faults.py's ``workspace``)."""
+    from aumesh import cli
+    from aumesh.config import write_params
+
+    def build(root: Path) -> None:
+        ws = root / "ws"
+        ws.mkdir()
+        synth.write_tables(ws / "data", synth.SynthSpec(n_frames=400, n_videos=40, seed=3))
+        write_params(default_config().to_dict(), ws / "params.yaml")
+        with pytest.MonkeyPatch.context() as mp:
+            mp.chdir(ws)
+            mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
+            for stage in ("ingest", "prepare", "evaluate", "release"):
+                assert cli.main([stage]) == 0
+
+    return shared_build(tmp_path_factory, "good-workspace", build) / "ws"
 
 
 @pytest.fixture
@@ -137,6 +250,34 @@ def node_tools():
     if proc.returncode != 0 or not all(p.exists() for p in wanted):
         pytest.skip(f"npm ci could not install the node tools: {proc.stderr.strip()[-500:]}")
     return REPO / "node_modules"
+
+
+# Debian's chromium, driven headless by Playwright (no browser download); .ci/run installs it
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """A headless :data:`CHROMIUM` (Playwright's ``Browser``), launched once per test module and closed after it
+    (``make test`` keeps a module on one worker: ``--dist loadfile``); skipped, naming the fix, without chromium.
+    Open pages in a fresh ``browser.new_context(offline=True)`` per test, so tests share the process, not state."""
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
 
 
 def upright_truth_release(path: Path) -> Path:

@@ -230,6 +230,7 @@ def test_models_agree_across_schedulers_and_partitionings(split_tables, split_pr
         _assert_same_model(_evaluate(one_partition, **{"compute": "synchronous", "preprocess.target": target}), ref)
 
 
+@pytest.mark.slow  # a real LocalCluster of 2 worker processes (~8 s of CPU); test_cluster.py's slow tests too
 def test_local_cluster_of_two_worker_processes(split_tables, split_prepared):
     """A real dask.distributed LocalCluster (2 processes, loopback): the same prepared data and model."""
     from distributed import LocalCluster
@@ -307,6 +308,7 @@ def _with_roll(split_tables, tmp_path, roll):
     return tmp_path
 
 
+@pytest.mark.slow  # three prepare runs over 13 partitions (~8 s of CPU); the median rule itself is checked below
 def test_pose_units_check_fires_across_partitions_at_the_median(split_tables, tmp_path):
     """Roll in degrees (every value below pi, not pose-filtered) stops the run over 13 partitions, with numpy's median
     in the message; the check is on the median: half the frames at 0.5 and half at 1.5 rad (median 1.0) pass,

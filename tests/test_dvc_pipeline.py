@@ -57,6 +57,9 @@ def _digest(ws):
     return yaml.safe_load((ws / "data.dvc").read_text())["outs"][0]["md5"]
 
 
+# slow (make test-slow): three full `dvc repro`s, a `dvc exp run` and two `dvc plots show` (~40 s of CPU, the
+# fast suite's heaviest test); the fast suite keeps DVC's own repro/link check below
+@pytest.mark.slow
 def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and_new_tables(workspace):
     ws = workspace
     _run([BIN / "dvc", "repro"], ws)

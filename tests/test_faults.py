@@ -24,7 +24,6 @@ from aumesh import cli
 from aumesh.config import write_params
 from aumesh.data.schema import AU_COLUMNS
 from aumesh.data.synth import SynthSpec, write_tables
-from conftest import default_config
 
 TABLE = "data/frames_0000.parquet"
 
@@ -49,28 +48,9 @@ def run_cli(args: list[str], cwd: Path, capsys) -> tuple[int, str]:
     return code, out.err
 
 
-@pytest.fixture(scope="module")
-def good_workspace(tmp_path_factory):
-    """A workspace with tables, params.yaml (the fixed test configuration) and a complete good run."""
-    ws = tmp_path_factory.mktemp("faults") / "ws"
-    ws.mkdir()
-    write_tables(ws / "data", SynthSpec(n_frames=400, n_videos=40, seed=3))
-    write_params(default_config().to_dict(), ws / "params.yaml")
-    old = Path.cwd()
-    os.chdir(ws)
-    try:
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
-            for stage in ("ingest", "prepare", "evaluate", "release"):
-                assert cli.main([stage]) == 0
-    finally:
-        os.chdir(old)
-    return ws
-
-
 @pytest.fixture
 def workspace(good_workspace, tmp_path, monkeypatch):
-    """A copy of the good workspace, its own MLflow store included."""
+    """A copy of the good workspace (conftest.good_workspace, built once per run), its own MLflow store included."""
     ws = tmp_path / "ws"
     shutil.copytree(good_workspace, ws)
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
@@ -954,7 +934,8 @@ def _rendered_card(ws: Path) -> tuple[str, str]:
     return out, text
 
 
-@pytest.mark.parametrize("hostile", HOSTILE)
+# each case runs the release stage (its figures: ~4 s of CPU); the first in the fast suite, the others in the slow one
+@pytest.mark.parametrize("hostile", [HOSTILE[0], *(pytest.param(h, marks=pytest.mark.slow) for h in HOSTILE[1:])])
 def test_strings_from_promotion_and_config_are_text_in_the_card(workspace, hostile, capsys):
     import json
 
@@ -998,7 +979,12 @@ def _all_stages(ws: Path, capsys) -> str:
     return err_all
 
 
-@pytest.mark.parametrize("columns", [("AU07",), ("Pitch", "Yaw", "Roll")], ids=["AU07 always 0", "pose always 0"])
+# each case runs all four stages (~4.5 s of CPU): one AU in the fast suite, the pose columns in the slow one
+@pytest.mark.parametrize(
+    "columns",
+    [("AU07",), pytest.param(("Pitch", "Yaw", "Roll"), marks=pytest.mark.slow)],
+    ids=["AU07 always 0", "pose always 0"],
+)
 def test_constant_inputs_are_said_aloud_and_get_zero_coefficients(workspace, columns, capsys, caplog):
     import json
 

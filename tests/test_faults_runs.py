@@ -23,7 +23,7 @@ import yaml
 
 from aumesh import cli
 from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
-from test_faults import good_workspace, mlflow_runs, run_cli, tree_digest, workspace  # noqa: F401 (fixtures)
+from test_faults import mlflow_runs, run_cli, tree_digest, workspace  # noqa: F401 (fixtures)
 
 KEPT = ("release", "build")
 

@@ -8,6 +8,8 @@ import shutil
 import subprocess
 import sys
 
+import pytest
+
 from aumesh import config
 from aumesh.experiments import promote
 from conftest import REPO
@@ -19,6 +21,7 @@ CONFIG_SENSITIVE = [
 ]
 
 
+@pytest.mark.slow  # a second pytest in a subprocess, which builds the 3,000-frame recovery set again
 def test_suite_passes_in_a_checkout_with_a_promoted_experiment(tmp_path):
     repo = tmp_path / "repo"
     repo.mkdir()

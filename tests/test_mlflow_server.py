@@ -97,6 +97,7 @@ def mlflow_server(tmp_path_factory):
         log.close()
 
 
+@pytest.mark.slow  # starting the real server is most of its ~8 s of CPU
 def test_parent_and_children_over_http(mlflow_server, tmp_path, monkeypatch):
     from mlflow import MlflowClient
 

@@ -87,6 +87,7 @@ def test_a_bar_on_a_terminal_none_in_a_pipe():
     assert err == ""
 
 
+@pytest.mark.slow  # three stage processes on a pseudo-terminal; the pipe case above runs in the fast suite
 def test_the_data_passes_show_a_bar_on_a_terminal(stage_ws):
     """Every Dask pass of ingest, prepare and evaluate is named on a terminal (tqdm's Dask callback over its tasks)."""
     _, err = _stage("ingest", stage_ws, tty=True)

@@ -44,6 +44,7 @@ def test_store_of_the_workspace_is_relative_from_a_dvc_temporary_copy(tmp_path, 
     assert provenance.shareable_location(str(copy / "data.dvc")) == "data.dvc"
 
 
+@pytest.mark.slow  # a sweep, a registered promotion, the evaluate and release stages (~7 s of CPU)
 def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkeypatch):
     """A workspace with the default store (ws/mlflow.db, ws/mlartifacts): sweep children -> promote (registered)
     -> evaluate and release stages; every shared record is free of the workspace's absolute path."""

@@ -42,21 +42,30 @@ def release(tmp_path_factory):
     return npz, cv
 
 
-def test_render_release_writes_every_figure_non_blank(release, tmp_path):
+@pytest.fixture(scope="module")
+def rendered(release, tmp_path_factory):
+    """Every figure of :func:`release` drawn once for the module by forked worker processes (3 "cores"), as
+    ``render_release`` draws them on a multi-core machine: (out folder, paths)."""
     npz, cv = release
-    paths = render.render_release(npz, tmp_path / "out", cv_path=cv)
+    out = tmp_path_factory.mktemp("rendered") / "out"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(render.os, "cpu_count", lambda: 3)
+        return out, render.render_release(npz, out, cv_path=cv)
+
+
+def test_render_release_writes_every_figure_non_blank(rendered):
+    out, paths = rendered
     assert sorted(p.name for p in paths) == sorted(ALWAYS + WITH_CV)
     for p in paths:
         assert p.is_file() and p.stat().st_size > 10_000, p.name
         assert _pixel_std(p) > 0.05, f"{p.name} looks uniform"
-    assert not list((tmp_path / "out").glob(".*"))  # no temp files left behind
+    assert not list(out.glob(".*"))  # no temp files left behind
 
 
-def test_figures_drawn_in_worker_processes_equal_those_drawn_in_process(release, tmp_path, monkeypatch):
+def test_figures_drawn_in_worker_processes_equal_those_drawn_in_process(release, rendered, tmp_path, monkeypatch):
     """The figures are drawn on every core (forked workers); the bytes are those of drawing them one by one."""
     npz, cv = release
-    monkeypatch.setattr(render.os, "cpu_count", lambda: 3)
-    parallel = render.render_release(npz, tmp_path / "parallel", cv_path=cv)
+    _, parallel = rendered
     monkeypatch.setattr(render.os, "cpu_count", lambda: 1)
     serial = render.render_release(npz, tmp_path / "serial", cv_path=cv)
     assert [p.name for p in parallel] == [p.name for p in serial]
@@ -64,11 +73,13 @@ def test_figures_drawn_in_worker_processes_equal_those_drawn_in_process(release,
         assert a.read_bytes() == b.read_bytes(), a.name
 
 
+@pytest.mark.slow  # another full render (~4 s of CPU) for the choice of figures
 def test_without_cv_no_cv_figures(release, tmp_path):
     paths = render.render_release(release[0], tmp_path)
     assert sorted(p.name for p in paths) == sorted(ALWAYS)
 
 
+@pytest.mark.slow  # another full render (~4 s of CPU)
 def test_precomputed_cumulative_curve_accepted(release, tmp_path):
     cv = tmp_path / "curve.npz"
     t = np.linspace(0, 1, 50)

@@ -11,33 +11,12 @@ from aumesh import cli
 from aumesh.data.schema import INPUT_COLUMNS, flatten_axis_major
 from aumesh.export import viewer
 from aumesh.model.release import load_npz
-from conftest import upright_truth_release
+from conftest import CHROMIUM, upright_truth_release  # noqa: F401  (CHROMIUM, ARGS: test_mlflow_server imports them)
+from conftest import CHROMIUM_ARGS as ARGS  # noqa: F401
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 FOREHEAD = (10, 151, 9, 67, 297, 109, 338, 103, 332)
 MOUTH = (61, 291, 0, 17, 13, 14, 78, 308, 39, 269, 181, 405)
 SHOTS = Path(__file__).resolve().parents[1] / "build" / "test-screenshots"  # kept for a person to look at
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

@@ -13,19 +13,25 @@ from aumesh.data.synth import SynthSpec
 from aumesh.experiments import promote
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
-from conftest import RECOVERY_SPEC, default_config
+from conftest import RECOVERY_SPEC, default_config, shared_build
 
 COUPLING = 0.15  # AU baseline per unit softplus of the identity's standardized resemblance to the AU field
 
 
-@pytest.fixture(scope="module")
-def coupled(tmp_path_factory):
-    """The recovery set with the default identity differences and AU baselines that follow each person's identity."""
-    out = tmp_path_factory.mktemp("coupled")
-    spec = dataclasses.replace(RECOVERY_SPEC, identity_scale=SynthSpec.identity_scale, identity_au_coupling=COUPLING)
-    synth.write_tables(out / "data", spec, truth_path=out / "truth.npz")
-    cfg = default_config()
-    prepare.run(tables.discover(out / "data", cfg.data.tables, cfg.data.mesh_npy), cfg, out / "prepared")
+@pytest.fixture(scope="session")
+def coupled(tmp_path_factory, fixed_conf):
+    """The recovery set with the default identity differences and AU baselines that follow each person's identity,
+    generated and prepared once per test run (conftest.shared_build: the module's tests may run on two workers)."""
+
+    def build(out):
+        spec = dataclasses.replace(
+            RECOVERY_SPEC, identity_scale=SynthSpec.identity_scale, identity_au_coupling=COUPLING
+        )
+        synth.write_tables(out / "data", spec, truth_path=out / "truth.npz")
+        cfg = default_config()
+        prepare.run(tables.discover(out / "data", cfg.data.tables, cfg.data.mesh_npy), cfg, out / "prepared")
+
+    out = shared_build(tmp_path_factory, "within-coupled", build)
     return ev.load_prepared(out / "prepared"), dict(np.load(out / "truth.npz"))
 
 
