@@ -3,6 +3,13 @@
 from __future__ import annotations
 
 import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -349,3 +356,130 @@ def fresh_clone(tmp_path) -> tuple[Path, dict]:
     subprocess.run(["git", "clone", "-q", str(REPO), str(ws)], check=True, capture_output=True)
     link_venv(ws)
     return ws, clean_env(ws)
+
+
+# ------------------------------------------------------------------ a real MLflow tracking server on loopback
+STARTUP_TIMEOUT_S = 90.0  # ~20 s on a loaded 2-core box; bounded so a broken server fails the test
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def server_healthy(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(f"{url}/health", timeout=2) as resp:
+            return resp.status == 200
+    except (urllib.error.URLError, ConnectionError, OSError):
+        return False
+
+
+def stop_process_group(proc: subprocess.Popen) -> None:
+    """Terminate the server's whole process group (uvicorn workers included), then reap."""
+    if proc.poll() is not None:
+        return
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def mlflow_server(tmp_path_factory):
+    """A real `mlflow server` (SQLite store, artifacts proxied) on a free loopback port for the module: its URL."""
+    tmp = tmp_path_factory.mktemp("mlflow_server")
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    # No job runner (huey consumers for GenAI jobs): halves start-up time and CPU.
+    env = dict(
+        os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true", MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false"
+    )
+    env.pop("MLFLOW_TRACKING_URI", None)
+    log = open(tmp / "server.log", "w")
+    cmd = [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "server",
+        "--backend-store-uri",
+        f"sqlite:///{tmp / 'mlflow.db'}",
+        "--artifacts-destination",
+        str(tmp / "mlartifacts"),
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+        "--workers",
+        "1",
+    ]
+    proc = subprocess.Popen(cmd, cwd=tmp, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not server_healthy(url):
+            if proc.poll() is not None:
+                pytest.fail(f"mlflow server exited with {proc.returncode}:\n{(tmp / 'server.log').read_text()[-3000:]}")
+            if time.monotonic() > deadline:
+                pytest.fail(
+                    f"mlflow server not healthy after {STARTUP_TIMEOUT_S}s:\n{(tmp / 'server.log').read_text()[-3000:]}"
+                )
+            time.sleep(0.25)
+        yield url
+    finally:
+        stop_process_group(proc)
+        log.close()
+
+
+# ------------------------------------------------------------------------------ workspaces the fault tests break
+@pytest.fixture
+def workspace(good_workspace, tmp_path, monkeypatch):
+    """A copy of the good workspace (conftest.good_workspace, built once per run), its own MLflow store included."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    shutil.copytree(good_workspace, ws)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
+    return ws
+
+
+@pytest.fixture(scope="module")
+def dvc_workspace(tmp_path_factory):
+    """A git + DVC workspace (the repo's dvc.yaml, conf/, params) after one complete `dvc repro`."""
+    import shutil
+    import subprocess
+
+    from aumesh.data.synth import SynthSpec, write_tables
+    from test_dvc_pipeline import BIN, _run
+
+    ws = tmp_path_factory.mktemp("dvcfaults") / "ws"
+    ws.mkdir()
+    for name in ("dvc.yaml", "params.yaml", "promotion.json", ".gitignore"):
+        shutil.copy(REPO / name, ws / name)
+    shutil.copytree(REPO / "conf", ws / "conf")
+    shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    for args in (
+        ["git", "init", "-q"],
+        ["git", "config", "user.email", "t@example.com"],
+        ["git", "config", "user.name", "t"],
+        [BIN / "dvc", "init", "-q"],
+    ):
+        _run(args, ws)
+    shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
+    subprocess.run([BIN / "dvc", "remote", "remove", "demo"], cwd=ws, capture_output=True)
+    write_tables(ws / "data", SynthSpec(n_frames=600, n_videos=60, seed=11))
+    _run([BIN / "dvc", "add", "-q", "data"], ws)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
+        _run([BIN / "dvc", "repro"], ws)
+    _run(["git", "add", "-A"], ws)
+    _run(["git", "commit", "-qm", "good release"], ws)
+    return ws

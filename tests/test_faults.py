@@ -48,15 +48,6 @@ def run_cli(args: list[str], cwd: Path, capsys) -> tuple[int, str]:
     return code, out.err
 
 
-@pytest.fixture
-def workspace(good_workspace, tmp_path, monkeypatch):
-    """A copy of the good workspace (conftest.good_workspace, built once per run), its own MLflow store included."""
-    ws = tmp_path / "ws"
-    shutil.copytree(good_workspace, ws)
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
-    return ws
-
-
 def mlflow_runs(ws: Path) -> pd.DataFrame:
     import mlflow
 
@@ -414,39 +405,6 @@ def test_a_run_whose_process_is_gone_is_marked_killed_by_the_next_run(tmp_path, 
 
 
 # ------------------------------------------------------------------------- interrupted and failed dvc repro
-@pytest.fixture(scope="module")
-def dvc_workspace(tmp_path_factory):
-    """A git + DVC workspace (the repo's dvc.yaml, conf/, params) after one complete `dvc repro`."""
-    import subprocess
-
-    from conftest import REPO
-    from test_dvc_pipeline import BIN, _run
-
-    ws = tmp_path_factory.mktemp("dvcfaults") / "ws"
-    ws.mkdir()
-    for name in ("dvc.yaml", "params.yaml", "promotion.json", ".gitignore"):
-        shutil.copy(REPO / name, ws / name)
-    shutil.copytree(REPO / "conf", ws / "conf")
-    shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-    for args in (
-        ["git", "init", "-q"],
-        ["git", "config", "user.email", "t@example.com"],
-        ["git", "config", "user.name", "t"],
-        [BIN / "dvc", "init", "-q"],
-    ):
-        _run(args, ws)
-    shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
-    subprocess.run([BIN / "dvc", "remote", "remove", "demo"], cwd=ws, capture_output=True)
-    write_tables(ws / "data", SynthSpec(n_frames=600, n_videos=60, seed=11))
-    _run([BIN / "dvc", "add", "-q", "data"], ws)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
-        _run([BIN / "dvc", "repro"], ws)
-    _run(["git", "add", "-A"], ws)
-    _run(["git", "commit", "-qm", "good release"], ws)
-    return ws
-
-
 def _stale(ws: Path, stage: str) -> None:
     """Make ``stage`` (and what follows) out of date."""
     params = yaml.safe_load((ws / "params.yaml").read_text())

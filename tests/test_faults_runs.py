@@ -23,7 +23,7 @@ import yaml
 
 from aumesh import cli
 from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
-from test_faults import mlflow_runs, run_cli, tree_digest, workspace  # noqa: F401 (fixtures)
+from test_faults import mlflow_runs, run_cli, tree_digest
 
 KEPT = ("release", "build")
 
@@ -405,9 +405,6 @@ def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspac
         newest = max(runs, key=lambda r: r.info.start_time)
         assert newest.info.status == "KILLED", newest.info
         assert "DVC process" in newest.data.tags[tracking.ERROR_TAG]
-
-
-from test_faults import dvc_workspace  # noqa: E402,F401 (module-scoped fixture: git + DVC workspace after a repro)
 
 
 def test_a_stage_whose_dvc_is_gone_commits_nothing(tmp_path, monkeypatch):

@@ -128,14 +128,6 @@ def good_workspace(tmp_path_factory):
     return ws
 
 
-@pytest.fixture
-def workspace(good_workspace, tmp_path, monkeypatch):
-    ws = tmp_path / "ws"
-    shutil.copytree(good_workspace, ws)
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
-    return ws
-
-
 def _runs(ws: Path) -> pd.DataFrame:
     import mlflow
 

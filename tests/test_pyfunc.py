@@ -19,8 +19,7 @@ import aumesh
 from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, flatten_axis_major
 from aumesh.experiments import registry, tracking
 from aumesh.model.release import load_npz
-from conftest import upright_truth_release
-from test_mlflow_server import _free_port, _stop
+from conftest import free_port, stop_process_group, upright_truth_release
 
 MODEL = "aumesh-au-to-mesh"
 
@@ -106,7 +105,7 @@ def test_pyfunc_input_example_is_a_smile(champion):
 def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_path):
     """`mlflow models serve -m models:/aumesh-au-to-mesh@champion --env-manager local`, a real REST request."""
     npz, _, _, _ = champion
-    port = _free_port()
+    port = free_port()
     bin_dir = Path(sys.executable).parent  # the venv's bin: mlflow execs uvicorn from PATH, as in an activated venv
     env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
     log = open(tmp_path / "serve.log", "w")
@@ -154,7 +153,7 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
         # a head turned 25 "radians": aumesh's degrees error, as a 400 whose message is aumesh's line
         bad_status, bad = _invoke(url, {"dataframe_records": [{"AU12": 1.0, "Pitch": 0.0, "Yaw": 25.0, "Roll": 0.0}]})
     finally:
-        _stop(proc)
+        stop_process_group(proc)
         log.close()
     pred = np.asarray(answer["predictions"], dtype=np.float64)
     assert pred.shape == (3, 1434)

@@ -20,7 +20,6 @@ from aumesh.data import synth, tables
 from aumesh.data.schema import INPUT_COLUMNS
 from aumesh.experiments import mlflow_store, queries, registry, tracking
 from aumesh.pipeline import prepare
-from test_mlflow_server import mlflow_server  # noqa: F401  (module-scoped real server fixture)
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = synth.SynthSpec(n_frames=600, n_videos=60, seed=11)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from test_mlflow_server import STARTUP_TIMEOUT_S, _free_port, _healthy, _stop
+from conftest import STARTUP_TIMEOUT_S, free_port, server_healthy, stop_process_group
 from test_sweep import make_workspace
 
 pytestmark = [pytest.mark.slow, pytest.mark.server]
@@ -76,7 +76,7 @@ def postgres(timings):
     if sudo:
         shutil.chown(home, user=sudo[2])
         shutil.chown(home / "pwfile", user=sudo[2])
-    port = _free_port()
+    port = free_port()
     t0 = time.perf_counter()
     _run(
         [
@@ -128,7 +128,7 @@ def postgres(timings):
 def server(postgres, tmp_path_factory, timings):
     """`aumesh server` on the database (the URI without a driver: aumesh adds psycopg2's), artifacts served."""
     tmp = tmp_path_factory.mktemp("team-server")
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
     env = dict(os.environ, PGPASSWORD=PASSWORD, PYTHONPATH=str(REPO / "src"))
     env.pop("MLFLOW_TRACKING_URI", None)
@@ -157,7 +157,7 @@ def server(postgres, tmp_path_factory, timings):
     )
     try:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
-        while not _healthy(url):
+        while not server_healthy(url):
             if proc.poll() is not None or time.monotonic() > deadline:
                 pytest.fail(
                     f"aumesh server not healthy (exit {proc.poll()}):\n{(tmp / 'server.log').read_text()[-3000:]}"
@@ -166,7 +166,7 @@ def server(postgres, tmp_path_factory, timings):
         timings["aumesh server up (schema created in PostgreSQL)"] = time.perf_counter() - t0
         yield url
     finally:
-        _stop(proc)
+        stop_process_group(proc)
         log.close()
 
 
