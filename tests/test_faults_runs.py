@@ -351,7 +351,7 @@ def _stage_process(dvc_pid: int, stage: str):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stage", ["evaluate", "release"])
+@pytest.mark.parametrize("stage", ["prepare", "evaluate", "release"])
 def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspace, tmp_path, stage):
     """``kill -TERM`` of the `dvc repro` process alone (what `timeout` and CI cancellation send): DVC exits at once
     and does not pass it on; the stage notices DVC is gone and stops within seconds, as after Ctrl-C."""
