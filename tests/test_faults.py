@@ -48,6 +48,18 @@ def run_cli(args: list[str], cwd: Path, capsys) -> tuple[int, str]:
     return code, out.err
 
 
+def dvc_env(ws: Path) -> dict[str, str]:
+    """The environment `dvc repro` runs in a test workspace with: the project's venv first on PATH (its stages run
+    ``aumesh``), the workspace's own MLflow store."""
+    from test_dvc_pipeline import BIN
+
+    return {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}",
+    }
+
+
 def mlflow_runs(ws: Path) -> pd.DataFrame:
     import mlflow
 
@@ -445,11 +457,7 @@ def _interrupt_stage(ws: Path, stage: str, sig: int) -> tuple[int, str]:
 
     from test_dvc_pipeline import BIN
 
-    env = {
-        **os.environ,
-        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
-        "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}",
-    }
+    env = dvc_env(ws)
     # a user's terminal delivers Ctrl-C to processes with the default SIGINT action; a test run started in the
     # background by a non-interactive shell (`cmd &`) inherits SIGINT ignored, which `dvc repro` would inherit too
     proc = subprocess.Popen(
@@ -560,11 +568,7 @@ def test_failed_dvc_repro_keeps_the_release_and_names_the_fault(dvc_workspace, t
     else:
         edit_params(model__n_components="ten")(ws)
         stage, expected = "evaluate", ["model.n_components='ten'", "dvc checkout evaluate"]
-    env = {
-        **os.environ,
-        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
-        "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}",
-    }
+    env = dvc_env(ws)
     proc = subprocess.run([BIN / "dvc", "repro"], cwd=ws, env=env, capture_output=True, text=True)
     assert proc.returncode != 0
     for text in expected:

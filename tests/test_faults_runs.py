@@ -23,7 +23,7 @@ import yaml
 
 from aumesh import cli
 from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
-from test_faults import mlflow_runs, run_cli, tree_digest
+from test_faults import dvc_env, mlflow_runs, run_cli, tree_digest
 
 KEPT = ("release", "build")
 
@@ -366,11 +366,7 @@ def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspac
     release = tree_digest(ws / "release")
     lock = (ws / "dvc.lock").read_bytes()
     _stale(ws, stage)
-    env = {
-        **os.environ,
-        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
-        "MLFLOW_TRACKING_URI": f"sqlite:///{ws / 'mlflow.db'}",
-    }
+    env = dvc_env(ws)
     proc = subprocess.Popen(
         [BIN / "dvc", "repro"],
         cwd=ws,

@@ -67,6 +67,8 @@ class Clip:
         None when the table has no mesh.
     detector : the table's layout (``MPDetector``, ``Detectorv2``, ``split``, or ``none`` without a mesh).
     frames_several_faces : frames where py-feat found several faces (one kept, by ``face_selection``).
+    frame_size : the video's ``FrameWidth, FrameHeight`` in pixels, None when the table has none (what turns a mesh in
+        normalized image units into pixels, as the ingest does).
     """
 
     source: str
@@ -81,6 +83,7 @@ class Clip:
     mesh: np.ndarray | None
     detector: str = ""
     frames_several_faces: int = 0
+    frame_size: tuple[float, float] | None = None
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -138,6 +141,53 @@ def read_clip(
     UserError
         ``fps`` not a positive number, unknown ``face_selection``.
     """
+    _check_options(fps, face_selection)  # before the table is read
+    table = read_table(path, mesh_npy=mesh_npy)
+    where = str(table.path)
+    names = table.videos
+    if video is None and len(names) > 1:
+        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+        raise TableError(f"{where}: holds {len(names)} videos ({shown}). Fix: pick one with --video NAME.")
+    if video is not None and video not in names:
+        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+        raise TableError(f"{where}: no video {video!r} (the table holds {shown}). Fix: --video one of those.")
+    return table.clip(video if video is not None else names[0], fps=fps, face_selection=face_selection)
+
+
+@dataclass(frozen=True)
+class ClipTable:
+    """A py-feat table read once (:func:`read_table`), to cut into one :class:`Clip` per video."""
+
+    path: Path
+    source: ingest.Source
+    has_mesh: bool
+    block: ingest.Block  # every row, in the table's order
+    approx: np.ndarray | None  # approx_time of every row, None when the table has none
+
+    @property
+    def videos(self) -> list[str]:
+        """The videos the table holds, sorted."""
+        return sorted(set(self.block.video.tolist()))
+
+    def clip(self, name: str, *, fps: float | None = None, face_selection: str = "largest") -> Clip:
+        """Video ``name`` (one of :attr:`videos`) as a :class:`Clip`: :func:`read_clip` without reading again.
+
+        Raises
+        ------
+        TableError
+            The video has no frame with a face, or a face row with some AU or pose values missing.
+        """
+        return _video_clip(self, name, fps, face_selection)
+
+
+def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
+    """Every row of a py-feat table, read once (:func:`read_clip`'s formats and checks of the file).
+
+    Raises
+    ------
+    MissingFileError, TableError
+        As :func:`read_clip`.
+    """
     path = Path(path)
     if not path.is_file():
         raise MissingFileError(
@@ -146,24 +196,23 @@ def read_clip(
         )
     if not ingest.is_table(path):
         raise TableError(f"{path}: not a py-feat table. Fix: give a .csv, .csv.gz or .parquet file.")
+    source, has_mesh = _open(path, mesh_npy)
+    block, approx = _read(source, has_mesh)
+    if not len(block):
+        raise TableError(f"{path}: no rows. Fix: export the video's frames with py-feat first.")
+    return ClipTable(path, source, has_mesh, block, approx)
+
+
+def _check_options(fps: float | None, face_selection: str) -> None:
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise UserError(f"--fps {fps}: the frame rate must be a positive number of frames per second, e.g. 25.")
     if face_selection not in FACE_SELECTIONS:
         raise UserError(f"face_selection={face_selection!r}: use one of {', '.join(FACE_SELECTIONS)}.")
-    where = str(path)
-    source, has_mesh = _open(path, mesh_npy)
-    block, approx = _read(source, has_mesh)
-    if not len(block):
-        raise TableError(f"{where}: no rows. Fix: export the video's frames with py-feat first.")
 
-    names = sorted(set(block.video.tolist()))
-    if video is None and len(names) > 1:
-        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
-        raise TableError(f"{where}: holds {len(names)} videos ({shown}). Fix: pick one with --video NAME.")
-    if video is not None and video not in names:
-        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
-        raise TableError(f"{where}: no video {video!r} (the table holds {shown}). Fix: --video one of those.")
-    name = video if video is not None else names[0]
+
+def _video_clip(table: ClipTable, name: str, fps: float | None, face_selection: str) -> Clip:
+    _check_options(fps, face_selection)
+    block, approx, source, has_mesh, where = table.block, table.approx, table.source, table.has_mesh, str(table.path)
     rows = np.flatnonzero(block.video == name)
     rows = rows[np.argsort(block.frame[rows], kind="stable")]  # select_faces needs a frame's rows consecutive
     block, approx = block.take(rows), None if approx is None else approx[rows]
@@ -212,7 +261,7 @@ def read_clip(
         inferred = None if approx is None else fps_from_approx_time(block.frame, approx)
         rate, how = (inferred, APPROX_TIME) if inferred is not None else (DEFAULT_FPS, f"default ({DEFAULT_FPS:g})")
     return Clip(
-        source=path.name,
+        source=table.path.name,
         video=name,
         frame=frames,
         time=frames / rate,
@@ -224,13 +273,23 @@ def read_clip(
         mesh=mesh,
         detector=lay.detector if has_mesh else "none",
         frames_several_faces=counts.frames_several_faces,
+        frame_size=_frame_size(block, lay),
     )
+
+
+def _frame_size(block: ingest.Block, layout: pyfeat.Layout) -> tuple[float, float] | None:
+    """The first finite, positive ``FrameWidth, FrameHeight`` of the rows, None when the table has none."""
+    if layout.frame_size is None:
+        return None
+    width, height = (block.values[c] for c in layout.frame_size)
+    ok = np.flatnonzero(np.isfinite(width) & np.isfinite(height) & (width > 0) & (height > 0))
+    return (float(width[ok[0]]), float(height[ok[0]])) if len(ok) else None
 
 
 def _names(path: Path) -> tuple[str, list[str], int | None]:
     """``(kind, column names, rows)`` of a table (rows: parquet only)."""
     if path.name.endswith(ingest.CSV_SUFFIXES):
-        return "csv", ingest._csv_header(path), None
+        return "csv", ingest.csv_header(path), None
     try:
         md = pq.read_metadata(path)
     except Exception as err:  # pyarrow raises several types for a bad file
@@ -259,12 +318,8 @@ def _read(source: ingest.Source, has_mesh: bool) -> tuple[ingest.Block, np.ndarr
     absent). A table without a mesh gets NaN mesh columns (what the ingest's no-face and face-size rules read)."""
     lay = source.layout
     columns = list(lay.columns) + ([APPROX_TIME] if APPROX_TIME in source.header else [])
-    if source.kind == "csv":
-        # approx_time as text: Arrow would infer py-feat's "MM:SS" as a time of day "HH:MM" (60 times too long)
-        types = {k: v for k, v in ingest._types(lay).items() if k in columns} | {APPROX_TIME: pa.string()}
-        parts = [(span, ingest._read_csv_span(span, columns, types)) for span in ingest.csv_spans(source)]
-    else:
-        parts = list(ingest.iter_span_tables(ingest.Span(source, 0, source.n_rows or 0), columns))
+    spans = ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
+    parts = [part for span in spans for part in ingest.iter_span_tables(span, columns)]
     blocks, approx = [], []
     for span, table in parts:
         if not has_mesh:

@@ -87,7 +87,7 @@ DATA_NPY_FIX = (
 def open_source(path: Path, mesh_npy_pattern: str) -> Source:
     """A source's layout from its header (CSV) or schema (parquet)."""
     if path.name.endswith(CSV_SUFFIXES):
-        header = _csv_header(path)
+        header = csv_header(path)
         return Source(path, "csv", pyfeat.layout(header, str(path)), tuple(header))
     try:
         md = pq.read_metadata(path)
@@ -114,7 +114,7 @@ def open_source(path: Path, mesh_npy_pattern: str) -> Source:
     return Source(path, "parquet", lay, tuple(names), npy if split else None, md.num_rows)
 
 
-def _csv_header(path: Path) -> list[str]:
+def csv_header(path: Path) -> list[str]:
     opener = gzip.open if path.name.endswith(".gz") else open
     try:
         with opener(path, "rt", newline="") as fh:
@@ -227,10 +227,13 @@ def _types(layout: pyfeat.Layout) -> dict[str, pa.DataType]:
 
 
 def read_span(span: Span, columns: Sequence[str] | None = None) -> pa.Table:
-    """A CSV span's rows, ``columns`` only (default: every column the layout needs), with the layout's types."""
+    """A CSV span's rows, ``columns`` only (default: every column the layout needs), with the layout's types; a
+    column the layout does not type is text as written (Arrow would read py-feat's ``approx_time`` "MM:SS" as a time
+    of day, 60 times too long)."""
     lay = span.source.layout
     columns = list(lay.columns if columns is None else columns)
-    return _read_csv_span(span, columns, {k: v for k, v in _types(lay).items() if k in columns})
+    types = _types(lay)
+    return _read_csv_span(span, columns, {k: types.get(k, pa.string()) for k in columns})
 
 
 def iter_span_tables(span: Span, columns: Sequence[str] | None = None) -> Iterator[tuple[Span, pa.Table]]:

@@ -77,9 +77,42 @@ class Layout:
         return out + list(self.mesh or ())
 
 
-def _suggest(name: str, names: Sequence[str]) -> str:
-    close = [c for c in names if c.lower() == name.lower()] or difflib.get_close_matches(name, names, n=1, cutoff=0.6)
+def suggest(name: str, names: Sequence[str]) -> str:
+    """A likely misspelling of column ``name`` among ``names`` (case first, then similar spelling), as the
+    `` (found 'x': rename it to 'name')`` an error appends; "" when none. The required Fex columns are never offered
+    for one another (a missing AU14 is not "AU12 misspelled")."""
+    required = {VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS}
+    loose = [c for c in names if c not in required]
+    close = [c for c in loose if c.lower() == name.lower()] or difflib.get_close_matches(name, loose, n=1, cutoff=0.6)
     return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
+
+
+def fex_video_column(names: Sequence[str], where: str) -> str:
+    """The column naming each row's video (``video_id``, else py-feat's ``input`` path), after checking that the Fex
+    columns every table needs (frame, the 20 AUs, the 3 pose angles) are there.
+
+    Raises
+    ------
+    TableError
+        Naming ``where``, the missing column, a likely misspelling and the fix.
+    """
+    present = set(names)
+    if VIDEO_COLUMN in present:
+        video = VIDEO_COLUMN
+    elif INPUT_PATH_COLUMN in present:
+        video = INPUT_PATH_COLUMN
+    else:
+        raise TableError(
+            f"{where}: column {VIDEO_COLUMN!r} is missing{suggest(VIDEO_COLUMN, names)}. Fix: keep "
+            f"py-feat's {INPUT_PATH_COLUMN!r} column (the video path names the video), or add {VIDEO_COLUMN!r}."
+        )
+    for col in (FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS):
+        if col not in present:
+            raise TableError(
+                f"{where}: column {col!r} is missing{suggest(col, names)}. Fix: the table needs py-feat's Fex columns "
+                f"{FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians)."
+            )
+    return video
 
 
 def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout:
@@ -97,21 +130,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout
         only mesh, or a mesh has the wrong vertex count.
     """
     present = set(names)
-    if VIDEO_COLUMN in present:
-        video = VIDEO_COLUMN
-    elif INPUT_PATH_COLUMN in present:
-        video = INPUT_PATH_COLUMN
-    else:
-        raise TableError(
-            f"{where}: column {VIDEO_COLUMN!r} is missing{_suggest(VIDEO_COLUMN, names)}. Fix: keep "
-            f"py-feat's {INPUT_PATH_COLUMN!r} column (the video path names the video), or add {VIDEO_COLUMN!r}."
-        )
-    for col in (FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS):
-        if col not in present:
-            raise TableError(
-                f"{where}: column {col!r} is missing{_suggest(col, names)}. Fix: the table needs py-feat's Fex columns "
-                f"{FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians)."
-            )
+    video = fex_video_column(names, where)
     mesh, detector = None, "split"
     if set(MESH_NAMES["Detectorv2"]) <= present:
         mesh, detector = MESH_NAMES["Detectorv2"], "Detectorv2"

@@ -12,7 +12,6 @@ Every error names the file, the column and the fix.
 
 from __future__ import annotations
 
-import difflib
 import functools
 import os
 from collections.abc import Iterator, Sequence
@@ -51,14 +50,6 @@ class FrameTable:
     mesh_npy: Path | None  # None: mesh columns are inside the parquet
     video_from_input: bool  # video_id derived from py-feat's `input` column
     text_columns: frozenset[str] = frozenset()  # mesh columns stored as text, converted (data.coerce_numeric)
-
-
-def _suggest(name: str, candidates: Sequence[str]) -> str:
-    """A likely misspelling of ``name`` among the table's columns (case first, then similar spelling)."""
-    required = {VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS}
-    loose = [c for c in candidates if c not in required]
-    close = [c for c in loose if c.lower() == name.lower()] or difflib.get_close_matches(name, loose, n=1, cutoff=0.6)
-    return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
 
 
 def discover(
@@ -114,22 +105,7 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
         raise corrupt_parquet(path, err) from None
     names = schema.names
     n_rows = footer.num_rows
-    present = set(names)
-    video_from_input = False
-    if VIDEO_COLUMN not in present:
-        if INPUT_PATH_COLUMN in present:
-            video_from_input = True
-        else:
-            raise TableError(
-                f"{path}: column {VIDEO_COLUMN!r} is missing{_suggest(VIDEO_COLUMN, names)}. Fix: add a "
-                f"{VIDEO_COLUMN!r} column, or keep py-feat's {INPUT_PATH_COLUMN!r} column (video path) to derive it."
-            )
-    for col in (FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS):
-        if col not in present:
-            raise TableError(
-                f"{path}: column {col!r} is missing{_suggest(col, names)}. Fix: the table needs py-feat's Fex "
-                f"columns {FRAME_COLUMN}, {', '.join(AU_COLUMNS)}, {', '.join(POSE_COLUMNS)} (pose in radians)."
-            )
+    video_from_input = pyfeat.fex_video_column(names, str(path)) == INPUT_PATH_COLUMN
     has_mesh = any(_MESH_COLUMN.match(name) for name in names)
     mesh_npy = None
     text_columns: set[str] = set()

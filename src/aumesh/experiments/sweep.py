@@ -401,7 +401,6 @@ def _log_child(
     """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
     from aumesh.experiments import provenance
     from aumesh.experiments.pyfunc import log_release_model
-    from aumesh.model.release import release_arrays
 
     metrics = cv.metrics()
     run.log_config(cfg.to_dict())
@@ -446,15 +445,7 @@ def _log_child(
     )
     run.log_figure(r2_curve_figure(cv.r2_path_folds, title), FIGURE_ARTIFACT)
     metadata = {"mlflow_run_id": run.run_id, "config": cfg.to_dict(), "cv": {k: v for k, v in metrics.items()}}
-    arrays = release_arrays(
-        final.coef,
-        final.mesh_intercept,
-        final.feature_columns,
-        final.n_components,
-        prepared.reference,
-        card_text="",
-        metadata=metadata,
-    )
+    arrays = final.release_arrays(prepared.reference, metadata=metadata)
     run.log_metrics({"seconds_log_model": log_release_model(run, arrays)})  # MLflow pyfunc model under model/
     return {k: scalars[k] for k in ("r2_mean", "r2_std", "r2_displacement_mean", "mae_mean", "n_components")}
 

@@ -166,14 +166,14 @@ def _b64(array: np.ndarray, dtype: str = "<f4") -> str:
     return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
 
 
-def clip_data(clip: Any, weights: np.ndarray | None = None, frame_size: tuple[float, float] | None = None) -> dict:
+def clip_data(clip: Any, weights: np.ndarray | None = None) -> dict:
     """One :class:`aumesh.animation.clip.Clip` as the page's JSON (``aumesh view NPZ --clip TABLE``).
 
     Frame numbers as a list, ``has_face`` as 0/1; the AUs, pose and ``weights`` (the clip's
     :func:`~aumesh.animation.clip.bridged_weights`, the default) as base64 float64 (the page's sliders show exactly
     what ``aumesh animate`` writes); the recorded mesh, vertex-major ``(n, 478, 3)``, as base64 float32 with NaN
-    rows where no face, like the release's arrays. ``frame_size`` (``FrameWidth, FrameHeight``) lets the page turn
-    a mesh in normalized image units into pixels, as the ingest does. The page times the frames itself
+    rows where no face, like the release's arrays. The clip's ``frame_size`` (``FrameWidth, FrameHeight``) lets the
+    page turn a mesh in normalized image units into pixels, as the ingest does. The page times the frames itself
     (``frame / fps``, the clip's rule) and bridges the pose by the same rule.
     """
     from aumesh.animation.clip import bridged_weights
@@ -190,7 +190,7 @@ def clip_data(clip: Any, weights: np.ndarray | None = None, frame_size: tuple[fl
         "pose": _b64(clip.pose, "<f8"),
         "weights": _b64(weights, "<f8"),
         "mesh": None if clip.mesh is None else _b64(clip.mesh),
-        "frame_size": None if frame_size is None else [float(v) for v in frame_size],
+        "frame_size": None if clip.frame_size is None else [float(v) for v in clip.frame_size],
     }
 
 
@@ -306,61 +306,22 @@ def write_viewer(npz: Mapping[str, Any], path: str | Path, source: str = "", cli
     return atomic_write_text(path, viewer_html(npz, source, clips=clips))
 
 
-def table_videos(path: str | Path) -> tuple[list[str], dict[str, tuple[float, float]]]:
-    """The videos of a py-feat table (sorted, as :func:`aumesh.animation.clip.read_clip` names them: ``video_id``,
-    else the stem of ``input``) and each one's ``FrameWidth, FrameHeight`` where the table has them.
-
-    Reads those columns only (pyarrow; a ``.csv.gz`` is decompressed by it).
-    """
-    import pyarrow as pa
-    import pyarrow.csv as pacsv
-    import pyarrow.parquet as pq
-
-    from aumesh.data.ingest import _csv_header
-    from aumesh.data.pyfeat import FRAME_SIZE, video_stem
-    from aumesh.data.schema import INPUT_PATH_COLUMN, VIDEO_COLUMN
-
-    path = Path(path)
-    names = pq.read_schema(path).names if path.name.endswith(".parquet") else _csv_header(path)
-    video = VIDEO_COLUMN if VIDEO_COLUMN in names else INPUT_PATH_COLUMN
-    columns = [video] + ([*FRAME_SIZE] if all(c in names for c in FRAME_SIZE) else [])
-    if path.name.endswith(".parquet"):
-        table = pq.read_table(path, columns=columns)
-    else:
-        types = {video: pa.string()}
-        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(include_columns=columns, column_types=types))
-    raw = table.column(video).to_pylist()
-    ids = [v if video == VIDEO_COLUMN else video_stem(v) for v in raw if v is not None]
-    sizes: dict[str, tuple[float, float]] = {}
-    if len(columns) == 3:
-        width, height = (table.column(c).to_numpy(zero_copy_only=False) for c in FRAME_SIZE)
-        for v, w, h in zip(raw, width, height, strict=True):
-            if v is None:
-                continue
-            key = v if video == VIDEO_COLUMN else video_stem(v)
-            if key not in sizes and np.isfinite(w) and np.isfinite(h) and w > 0 and h > 0:
-                sizes[key] = (float(w), float(h))
-    return sorted(set(ids)), sizes
-
-
 def table_clips(path: str | Path, video: str | None = None, fps: float | None = None) -> list[dict]:
-    """The page's clips (:func:`clip_data`) of a py-feat table: ``video`` only, or every video it holds."""
-    from aumesh.animation.clip import read_clip
+    """The page's clips (:func:`clip_data`) of a py-feat table, read once: ``video`` only, or every video it holds
+    (a video without a face is left out while others play)."""
+    from aumesh.animation.clip import read_clip, read_table
     from aumesh.utils.errors import TableError
 
-    try:
-        names, sizes = table_videos(path)
-    except Exception:  # not a readable table, no video column, ...: read_clip says which, in one line
-        read_clip(path, video=video, fps=fps)
-        raise
     if video is not None:
-        return [clip_data(read_clip(path, video=video, fps=fps), frame_size=sizes.get(video))]
-    if len(names) <= 1:  # read_clip names the problem (no rows, no face, ...)
-        return [clip_data(read_clip(path, fps=fps), frame_size=sizes.get(names[0]) if names else None)]
+        return [clip_data(read_clip(path, video=video, fps=fps))]
+    table = read_table(path)
+    names = table.videos
+    if len(names) == 1:  # its own error (no face, ...), as read_clip gives it
+        return [clip_data(table.clip(names[0], fps=fps))]
     clips, failed = [], []
-    for name in names:  # every video, for the page's selector; one without a face is left out, the rest play
+    for name in names:  # every video, for the page's selector
         try:
-            clips.append(clip_data(read_clip(path, video=name, fps=fps), frame_size=sizes.get(name)))
+            clips.append(clip_data(table.clip(name, fps=fps)))
         except TableError as err:
             failed.append(err)
     if not clips:

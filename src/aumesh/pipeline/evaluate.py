@@ -37,6 +37,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import cached_property, partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -49,6 +50,7 @@ from aumesh.model import reliability
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
+from aumesh.model.release import release_arrays
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.model.statistics import (
     FULL_DESIGN,
@@ -868,6 +870,19 @@ class FinalModel:
     feature_columns: list[str]
     n_components: int
     model: PLSFit
+
+    def release_arrays(self, reference: dict[str, np.ndarray], metadata: dict[str, Any]) -> dict[str, np.ndarray]:
+        """This fit as the card's NPZ arrays (:func:`aumesh.model.release.release_arrays`; the card's text comes with
+        the release stage), in the frame of ``reference`` (prepare's :func:`~aumesh.pipeline.integrity.load_reference`)."""
+        return release_arrays(
+            self.coef,
+            self.mesh_intercept,
+            self.feature_columns,
+            self.n_components,
+            reference,
+            card_text="",
+            metadata=metadata,
+        )
 
 
 def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLSFit) -> FinalModel:

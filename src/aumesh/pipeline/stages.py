@@ -233,15 +233,7 @@ def evaluate_stage(cfg: Config) -> dict:
             run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
-        arrays = release_arrays(
-            final.coef,
-            final.mesh_intercept,
-            final.feature_columns,
-            final.n_components,
-            prepared.reference,
-            card_text="",
-            metadata={"mlflow_run_id": run.run_id},
-        )
+        arrays = final.release_arrays(prepared.reference, metadata={"mlflow_run_id": run.run_id})
         refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
         run.call(log_release_model, arrays)
         run_info = {
