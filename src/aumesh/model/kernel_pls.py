@@ -48,9 +48,9 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from aumesh.model.cross_products import CrossProducts
+from aumesh.utils.blas import one_blas_thread
 
 __all__ = ["PLSFit", "check_n_components", "coefficient_path", "fit_statistics", "intercept_path", "kernel_pls"]
 
@@ -150,7 +150,7 @@ def fit_statistics(stats: CrossProducts, n_components: int, scale: bool) -> PLSF
 
     # The per-component work is small (p x q) matrices: multi-threaded BLAS only adds
     # synchronisation (10x slower on a busy machine), so run it on one thread.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         W, P, Q, R, n_informative = kernel_pls(C, S, A, zero_var_x)
 
     # Step 8: B = R Q^T in standardized units; back to raw units as sklearn does:

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from aumesh.config import ComputeConfig
+from aumesh.utils.blas import one_blas_thread
 from aumesh.utils.errors import ClusterError, ConfigError, UserError
 
 log = logging.getLogger(__name__)
@@ -123,14 +124,13 @@ def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path
         built in temporary folders, so the previous ones stand.
     """
     import dask
-    from threadpoolctl import threadpool_limits
 
     cfg = effective(cfg)
     token = _ACTIVE.set(cfg)
     try:
         if cfg.scheduler == "threads":  # before the scheduler starts its threads
             limit_malloc_arenas(n_workers(cfg))
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             if cfg.scheduler == "distributed":
                 yield from _distributed(cfg, dask, read, write)
             else:

@@ -42,7 +42,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
-from threadpoolctl import threadpool_limits
 
 from aumesh.config import Config
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
@@ -69,6 +68,7 @@ from aumesh.pipeline.prepared_files import (
     PREPARED_FILES,
     VIDEO_IDS_FILE,
 )
+from aumesh.utils.blas import one_blas_thread
 from aumesh.utils.errors import ConfigError, UserError
 from aumesh.utils.io import (
     NpyRowFile,
@@ -664,21 +664,10 @@ def accumulate(
     )
 
 
-def _one_blas_thread():
-    """Single-threaded BLAS/LAPACK for the statistics passes and the fits.
-
-    On 2 cores shared with other work, threaded OpenBLAS spends its time waking and spinning
-    threads: measured on this machine under load, 83 x 83 products and 83 x 83 eigh per component
-    ran 5-60x slower with 2 threads than with 1 (fits: 14-21 s vs 3 s; a pass's X'X blocks: 6.6 s vs
-    0.1 s), while the wide GEMMs gain at most 2x on an idle machine. One thread is the robust choice.
-    """
-    return threadpool_limits(limits=1, user_api="blas")
-
-
 def fit(stats: CrossProducts, n_components: int, scale: bool) -> PLSFit:
     """The engine's PLS fit from statistics (card: PLSRegression(n_components, scale=True); the fitted attributes
     of :class:`aumesh.model.pls.PLSRegression`, without importing scikit-learn in the stage)."""
-    with _one_blas_thread():
+    with one_blas_thread():
         return fit_statistics(stats, n_components, scale)
 
 
@@ -698,7 +687,7 @@ def fit_models(cfg: Config, stats: FoldStatistics) -> Fits:
     A = effective_n_components(cfg)
     total = stats.total
     training = [total - held_out for held_out in stats.target] + [total] + list(stats.target)
-    with _one_blas_thread():  # held across the threads: one fit's exit does not lift another's limit
+    with one_blas_thread():  # held across the threads: one fit's exit does not lift another's limit
         models = compute.local_map(partial(fit, n_components=A, scale=cfg.model.scale), training)
     k = len(stats.target)
     return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
@@ -714,7 +703,7 @@ def cross_validate(
     n_splits = cfg.cv.n_splits
     r2_folds, r2d_folds, paths, sse_sum, sst_sum = [], [], [], np.zeros(N_TARGETS), np.zeros(N_TARGETS)
     models = [(model.coef_, model.raw_intercept_) for model in fold_models]
-    with _one_blas_thread():
+    with one_blas_thread():
         for f, model in enumerate(fold_models):
             sse, sst = residual_sums(model.coef_, model.raw_intercept_, stats.target[f])
             r2_folds.append(r2_variance_weighted(sse, sst))
