@@ -78,8 +78,14 @@ demo: $(STAMP) $(TOOLS_STAMP)
 	@ls -1 release
 	@$(BIN)/python -c "import json; c=json.load(open('release/model_card.json')); print('CV R2 = %.4f +/- %.4f  (folds %s), MAE = %.4f' % (c['cv']['r2_mean'], c['cv']['r2_std'], c['cv']['r2_folds'], c['cv']['mae_mean']))"
 
+# The tests' Python processes (pytest's workers and every `aumesh`, `dvc` and `mlflow` a test starts) cache their
+# bytecode, Python's default, even where the shell sets PYTHONDONTWRITEBYTECODE (as CI's does): without the cache each
+# worker rewrote every test module's asserts and each process compiled aumesh again (~2 s per worker). The caches are
+# __pycache__/ folders, which git ignores.
+PYTEST := PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest
+
 test: $(STAMP) $(TOOLS_STAMP)
-	$(BIN)/python -m pytest -q -n auto
+	$(PYTEST) -q -n auto
 
 # The checks .pre-commit-config.yaml runs on each commit, over the whole tree; settings in pyproject.toml.
 # `ruff format .` and `ruff check --fix .` repair most findings.
@@ -89,10 +95,10 @@ lint: $(STAMP)
 	$(BIN)/mypy
 
 test-slow: $(STAMP) $(TOOLS_STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(PYTEST) -q -m slow
 
 test-all: $(STAMP) $(TOOLS_STAMP)
-	$(BIN)/python -m pytest -q -m "slow or not slow"
+	$(PYTEST) -q -m "slow or not slow"
 
 repro: $(STAMP) $(TOOLS_STAMP)
 	$(BIN)/dvc repro

@@ -148,6 +148,19 @@ def shared_build(tmp_path_factory, name: str, build) -> Path:
     return folder
 
 
+_SESSION_TMP: list[pytest.TempPathFactory] = []  # set once per session by the _session_tmp fixture
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _session_tmp(tmp_path_factory) -> None:
+    _SESSION_TMP[:] = [tmp_path_factory]
+
+
+def built_once(name: str, build) -> Path:
+    """:func:`shared_build` for helpers that are not fixtures (the run's temporary folder found for them)."""
+    return shared_build(_SESSION_TMP[0], name, build)
+
+
 _FIXED_CONF: list[Path] = []  # set once per session by the fixed_conf fixture
 
 

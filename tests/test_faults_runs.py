@@ -113,7 +113,10 @@ def test_busy_store_is_retried_then_one_line(workspace, capsys):
 
 
 def test_busy_store_that_frees_up_is_waited_for(workspace, capsys):
-    holder = hold_lock(workspace / "mlflow.db", 3)
+    import mlflow
+
+    holder = hold_lock(workspace / "mlflow.db", 1.5)
+    freed = time.time() + 1.5  # at the latest: the holder sleeps 1.5 s after taking the lock, then exits
     try:
         code, err = run_cli(["evaluate"], workspace, capsys)
     finally:
@@ -122,6 +125,8 @@ def test_busy_store_that_frees_up_is_waited_for(workspace, capsys):
     run_id = json.loads((workspace / "build/model/tracking.json").read_text())["run_id"]
     statuses = mlflow_runs(workspace).set_index("run_id")["status"]
     assert statuses[run_id] == "FINISHED" and (statuses != "RUNNING").all()
+    started = mlflow.MlflowClient(f"sqlite:///{workspace / 'mlflow.db'}").get_run(run_id).info.start_time / 1000
+    assert started > freed - 0.5, started - freed  # the run was opened once the lock was gone: it waited
 
 
 def test_store_client_retries_a_write_while_another_writer_holds_the_lock(tmp_path):
