@@ -12,6 +12,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
+from aumesh.config import Config
 from aumesh.data import ingest as ingest_data
 from aumesh.data import tables
 from aumesh.data.synth import SynthSpec
@@ -23,7 +24,7 @@ from conftest import default_config
 SPEC = SynthSpec(n_frames=450, n_videos=12, seed=3)  # 12 videos of ~38 frames: every layout, detector and fault
 
 
-_CONFIGS: dict[tuple, object] = {}  # overrides -> the composed configuration (frozen): Hydra takes ~0.3 s a compose
+_CONFIGS: dict[tuple, Config] = {}  # overrides -> the composed configuration (frozen): Hydra takes ~0.3 s a compose
 
 
 def _cfg(data_dir: Path, **overrides):
