@@ -67,12 +67,14 @@ def fex_table(
     }
     if junk:
         cols |= {"notes": np.full(n, "junk"), "Unnamed: 0": np.arange(n)}
-    df = pd.DataFrame(cols)
-    if no_face_row is not None:
+    if no_face_row is not None:  # in the arrays: df.loc over ~2,000 columns took most of a test's time
         kept = ("input", "frame", "approx_time", "FrameHeight", "FrameWidth", "notes", "Unnamed: 0")
-        df.loc[no_face_row, [c for c in df.columns if c not in kept]] = np.nan
-        df.loc[no_face_row, "FaceScore"] = 0.0 if detector == "mp" else np.nan
-    return df
+        for c in cols:
+            if c not in kept:
+                cols[c] = cols[c].astype(object if cols[c].dtype.kind == "U" else np.float64)
+                cols[c][no_face_row] = np.nan
+        cols["FaceScore"][no_face_row] = 0.0 if detector == "mp" else np.nan
+    return pd.DataFrame(cols)
 
 
 def model_inputs(df: pd.DataFrame) -> np.ndarray:

@@ -276,9 +276,10 @@ def _write_file(path: Path, parts: list[tuple[int, dict]], layout: str) -> Path:
     for name in ("Pitch", "Roll", "Yaw"):  # py-feat's Fex order; the model's is Pitch, Yaw, Roll
         data[name] = pose[:, POSE_COLUMNS.index(name)]
     if layout == "columns":
+        flat = np.asfortranarray(meshes.reshape(len(meshes), -1))  # contiguous columns: Arrow copies none of them
         for i in range(N_VERTICES):  # interleaved, as py-feat stores them
             for a, axis in enumerate("xyz"):
-                data[f"{axis}_{i}"] = meshes[:, i, a]
+                data[f"{axis}_{i}"] = flat[:, 3 * i + a]
     table = pa.table(data)
     with atomic_path(path, suffix=".parquet") as tmp:
         pq.write_table(table, tmp, row_group_size=8192, compression="zstd")

@@ -395,8 +395,62 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def _frame_df(parts: list[dict], detector: str, normalized: bool, frame_size: bool, with_mesh: bool) -> pd.DataFrame:
-    """py-feat's DataFrame for some videos' rows (``with_mesh=False``: without the 478-vertex mesh)."""
+class _Frame:
+    """py-feat's columns for some videos' rows, in order: ``blocks`` of numeric columns, each ``(names, 2-D values)``,
+    then the trailing text and frame columns (``tail``). Rendered as the DataFrame py-feat saves (CSV) or straight
+    as an Arrow table (parquet: ``pa.Table.from_pandas`` spent most of a parquet write walking ~2,000 columns)."""
+
+    def __init__(self, blocks: list[tuple[list[str], np.ndarray]], tail: dict[str, np.ndarray]):
+        self.blocks, self.tail = blocks, tail
+        self.n_rows = len(tail["frame"])
+
+    def to_pandas(self) -> pd.DataFrame:
+        frames = [pd.DataFrame(values, columns=names) for names, values in self.blocks]
+        return pd.concat([*frames, pd.DataFrame(self.tail)], axis=1)
+
+    def key(self) -> tuple:
+        """What the DataFrame's Arrow schema (pandas metadata included) depends on: the names, the numeric dtypes,
+        and what pandas infers from the values of the text columns (all NaN in a chunk of no-face rows only)."""
+        return (
+            tuple((tuple(names), values.dtype.str) for names, values in self.blocks),
+            tuple(
+                (name, v.dtype.str, pd.api.types.infer_dtype(v, skipna=True) if v.dtype == object else None)
+                for name, v in self.tail.items()
+            ),
+        )
+
+    def to_arrow(self, schema: pa.Schema) -> pa.Table:
+        """The table ``pa.Table.from_pandas(self.to_pandas(), schema=schema, preserve_index=False)`` gives (NaN as
+        null, as ``from_pandas`` reads it), built column by column from the blocks."""
+        arrays = []
+        for names, values in self.blocks:
+            columns = np.asfortranarray(values)  # each column contiguous: no copy per column
+            for j, name in enumerate(names):
+                arrays.append(pa.array(columns[:, j], type=schema.field(name).type, from_pandas=True))
+        for name, v in self.tail.items():
+            arrays.append(pa.array(v, type=schema.field(name).type, from_pandas=True))
+        return pa.Table.from_arrays(arrays, schema=schema)
+
+
+# _Frame.key() -> the Arrow schema of the first chunk with that key, for the life of the process
+_SCHEMAS: dict[tuple, pa.Schema] = {}
+
+
+def _frame_schema(frame: _Frame) -> pa.Schema:
+    """The schema a parquet file of py-feat's DataFrame gets: pyarrow's inference, text columns as text even when a
+    chunk is all NaN, and the pandas metadata ``from_pandas`` writes with it. Inferred once per ``_Frame.key()``."""
+    key = frame.key()
+    if key not in _SCHEMAS:
+        df = frame.to_pandas()
+        fields = [pa.field(c, pa.string()) if c in ("input", "approx_time", "Identity") else None for c in df.columns]
+        inferred = pa.Schema.from_pandas(df, preserve_index=False)
+        schema = pa.schema([f or inferred.field(i) for i, f in enumerate(fields)], metadata=inferred.metadata)
+        _SCHEMAS[key] = pa.Table.from_pandas(df, schema=schema, preserve_index=False).schema
+    return _SCHEMAS[key]
+
+
+def _frame(parts: list[dict], detector: str, normalized: bool, frame_size: bool, with_mesh: bool) -> _Frame:
+    """py-feat's columns for some videos' rows (``with_mesh=False``: without the 478-vertex mesh)."""
 
     def cat(key):
         return np.concatenate([p["blocks"][key] for p in parts])
@@ -406,10 +460,10 @@ def _frame_df(parts: list[dict], detector: str, normalized: bool, frame_size: bo
         mesh = mesh / np.array([FRAME_WIDTH, FRAME_HEIGHT, FRAME_WIDTH])
     mesh = mesh.astype(np.float32)
     r = len(mesh)
-    frames: list[pd.DataFrame] = []
+    blocks: list[tuple[list[str], np.ndarray]] = []
 
     def add(values, columns):
-        frames.append(pd.DataFrame(np.asarray(values).reshape(r, -1), columns=list(columns)))
+        blocks.append((list(columns), np.asarray(values).reshape(r, -1)))
 
     add(cat("rect"), FACE_RECT_COLUMNS)
     add(cat("score"), ["FaceScore"])
@@ -440,16 +494,13 @@ def _frame_df(parts: list[dict], detector: str, normalized: bool, frame_size: bo
         add(cat("blend"), BLENDSHAPE_COLUMNS)
     if frame_size:
         add(np.tile([FRAME_HEIGHT, FRAME_WIDTH], (r, 1)), FRAME_SIZE_COLUMNS)
-    tail = pd.DataFrame(
-        {
-            "input": np.concatenate([p["input"] for p in parts]),
-            "frame": np.concatenate([p["frame"] for p in parts]).astype(np.int64),
-            "approx_time": np.concatenate([p["approx_time"] for p in parts]),
-            "Identity": np.concatenate([p["Identity"] for p in parts]),
-        }
-    )
-    frames.append(tail)
-    return pd.concat(frames, axis=1)
+    tail = {
+        "input": np.concatenate([p["input"] for p in parts]),
+        "frame": np.concatenate([p["frame"] for p in parts]).astype(np.int64),
+        "approx_time": np.concatenate([p["approx_time"] for p in parts]),
+        "Identity": np.concatenate([p["Identity"] for p in parts]),
+    }
+    return _Frame(blocks, tail)
 
 
 def _clean_table(parts: list[dict]) -> pa.Table:
@@ -459,7 +510,7 @@ def _clean_table(parts: list[dict]) -> pa.Table:
         data[name] = pa.array(c["au"][:, j])
     for j, name in enumerate(FEX_POSE_COLUMNS):
         data[name] = pa.array(c["pose"][:, j])
-    flat = c["mesh"].reshape(len(c["mesh"]), -1)
+    flat = np.asfortranarray(c["mesh"].reshape(len(c["mesh"]), -1))  # contiguous columns: no copy per column
     for k, name in enumerate(clean_columns()[2 + len(AU_COLUMNS) + 3 :]):
         data[name] = pa.array(flat[:, k])
     return pa.table(data)
@@ -475,18 +526,10 @@ class _ParquetSink:
         self._ctx = atomic_path(path, suffix=".parquet")
         self.tmp = self._ctx.__enter__()
 
-    def write(self, table: pa.Table | pd.DataFrame) -> None:
-        if isinstance(table, pd.DataFrame):
-            if self.schema is None:
-                fields = [
-                    pa.field(c, pa.string()) if c in ("input", "approx_time", "Identity") else None
-                    for c in table.columns
-                ]
-                inferred = pa.Schema.from_pandas(table, preserve_index=False)
-                self.schema = pa.schema(
-                    [f or inferred.field(i) for i, f in enumerate(fields)], metadata=inferred.metadata
-                )
-            table = pa.Table.from_pandas(table, schema=self.schema, preserve_index=False)
+    def write(self, table: pa.Table | _Frame) -> None:
+        if isinstance(table, _Frame):
+            self.schema = self.schema or _frame_schema(table)
+            table = table.to_arrow(self.schema)
         if self.writer is None:
             self.schema = self.schema or table.schema
             self.writer = pq.ParquetWriter(self.tmp, table.schema, compression="zstd")
@@ -631,12 +674,12 @@ def _write_one(
                 _video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed)
                 for v in chunk
             ]
-            df = _frame_df(parts, detector, normalized, frame_size, with_mesh=fmt != "split")
+            frame = _frame(parts, detector, normalized, frame_size, with_mesh=fmt != "split")
             if fmt == "csv":
-                df.to_csv(csv_tmp, index=False, mode="w" if k == 0 else "a", header=k == 0)
+                frame.to_pandas().to_csv(csv_tmp, index=False, mode="w" if k == 0 else "a", header=k == 0)
             else:
                 assert sink is not None  # parquet and split write through a sink
-                sink.write(df)
+                sink.write(frame)
             if fmt == "split":
                 m = np.concatenate([p["blocks"]["mesh"] for p in parts]).astype(np.float64)
                 if normalized:
@@ -646,13 +689,13 @@ def _write_one(
                 npy_parts.append(part)
             if clean_sink is not None:
                 clean_sink.write(_clean_table(parts))
-            summary["n_rows"] += len(df)
+            summary["n_rows"] += frame.n_rows
             for p in parts:
                 summary["n_frames"] += p["n_frames"]
                 summary["n_face_frames"] += p["n_frames"] - p["n_no_face"]
                 summary["n_no_face"] += p["n_no_face"]
                 summary["n_extra_faces"] += p["n_extra"]
-            del df, parts
+            del frame, parts
         if fmt == "split":
             _join_npy(path.with_suffix(".npy"), npy_parts)
     except BaseException as e:
