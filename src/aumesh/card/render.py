@@ -162,7 +162,9 @@ def _prep_ax(ax, lims, title: str | None = None, fontsize: int = 9) -> None:
     ax.set_aspect("equal")
     ax.set_axis_off()
     if title:
-        ax.set_title(title, fontsize=fontsize)
+        # y=1.0 where matplotlib would put it anyway (no tick labels above an axis-off panel), given: matplotlib then
+        # skips measuring the hidden axes' ticks to place it at every draw (a quarter of a release's drawing time)
+        ax.set_title(title, fontsize=fontsize, y=1.0)
 
 
 def _normal_signs(neutral: np.ndarray, tri: np.ndarray) -> np.ndarray:
@@ -190,7 +192,9 @@ def _draw_solid(
     order = np.argsort(-mesh[tri, 2].mean(axis=1))  # far first (painter's algorithm)
     order = order[keep[order]]
     verts = np.stack([mesh[tri[order], 0], -mesh[tri[order], 1]], axis=-1)
-    pc = PolyCollection(list(verts), facecolors=colors[order], edgecolors=colors[order], linewidths=0.2)
+    # an (n, 3, 2) array, not a list of n arrays: matplotlib closes the triangles in one step instead of one Path
+    # construction each (~34,000 per release)
+    pc = PolyCollection(verts, facecolors=colors[order], edgecolors=colors[order], linewidths=0.2)
     ax.add_collection(pc)
     # Irises are not triangulated (they sit in the eye openings): draw them as dots,
     # unless the upper lid has come down past the iris centre (eye closed).
