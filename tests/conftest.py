@@ -282,7 +282,7 @@ def good_workspace(tmp_path_factory, fixed_conf) -> Path:
     def build(root: Path) -> None:
         ws = root / "ws"
         ws.mkdir()
-        synth.write_tables(ws / "data", synth.SynthSpec(n_frames=400, n_videos=40, seed=3))
+        synth.write_tables(ws / "data", SMALL_SPEC)
         write_params(default_config().to_dict(), ws / "params.yaml")
         with pytest.MonkeyPatch.context() as mp:
             mp.chdir(ws)
@@ -293,10 +293,17 @@ def good_workspace(tmp_path_factory, fixed_conf) -> Path:
     return shared_build(tmp_path_factory, "good-workspace", build) / "ws"
 
 
+SMALL_SPEC = synth.SynthSpec(n_frames=400, n_videos=40, seed=3)
+
+
 @pytest.fixture
 def small_tables(tmp_path):
-    """A tiny columns-layout set: 400 frames of 40 videos."""
-    synth.write_tables(tmp_path / "data", synth.SynthSpec(n_frames=400, n_videos=40, seed=3))
+    """A tiny columns-layout set: 400 frames of 40 videos (:data:`SMALL_SPEC`), the test's own copy of the set
+    generated once per run (:func:`built_once`): tests change their copy."""
+    import shutil
+
+    generated = built_once("small-tables", lambda out: synth.write_tables(out / "data", SMALL_SPEC)) / "data"
+    shutil.copytree(generated, tmp_path / "data")
     return tmp_path / "data"
 
 

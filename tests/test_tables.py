@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 
@@ -19,21 +18,6 @@ from aumesh.pipeline import prepare
 from conftest import default_config
 
 PATTERN, NPY = "**/*.parquet", "{stem}.npy"
-
-
-@pytest.fixture(scope="module")
-def _small_tables_once(tmp_path_factory):
-    out = tmp_path_factory.mktemp("small_tables") / "data"
-    write_tables(out, SynthSpec(n_frames=400, n_videos=40, seed=3))
-    return out
-
-
-@pytest.fixture
-def small_tables(_small_tables_once, tmp_path):
-    """conftest's ``small_tables`` (the same 400 frames of 40 videos), generated once for the module and copied for
-    each test, which changes its copy: generating them took most of each of these tests."""
-    shutil.copytree(_small_tables_once, tmp_path / "data")
-    return tmp_path / "data"
 
 
 def _frame(small_tables):
