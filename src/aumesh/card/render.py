@@ -45,7 +45,7 @@ import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -193,8 +193,10 @@ def _draw_solid(
     order = order[keep[order]]
     verts = np.stack([mesh[tri[order], 0], -mesh[tri[order], 1]], axis=-1)
     # an (n, 3, 2) array, not a list of n arrays: matplotlib closes the triangles in one step instead of one Path
-    # construction each (~34,000 per release)
-    pc = PolyCollection(verts, facecolors=colors[order], edgecolors=colors[order], linewidths=0.2)
+    # construction each (~34,000 per release); its stubs name only the list, its code takes both
+    pc = PolyCollection(
+        cast("Sequence[np.ndarray]", verts), facecolors=colors[order], edgecolors=colors[order], linewidths=0.2
+    )
     ax.add_collection(pc)
     # Irises are not triangulated (they sit in the eye openings): draw them as dots,
     # unless the upper lid has come down past the iris centre (eye closed).
