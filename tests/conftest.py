@@ -7,7 +7,6 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 import urllib.error
 import urllib.request
@@ -371,6 +370,9 @@ CHROMIUM_ARGS = [
 ]
 
 
+SCREENSHOTS = REPO / "build" / "test-screenshots"  # browser screenshots kept for a person to look at
+
+
 @pytest.fixture(scope="module")
 def browser():
     """A headless :data:`CHROMIUM` (Playwright's ``Browser``), launched once per test module and closed after it
@@ -496,31 +498,15 @@ def stop_process_group(proc: subprocess.Popen) -> None:
 @pytest.fixture(scope="module")
 def mlflow_server(tmp_path_factory):
     """A real `mlflow server` (SQLite store, artifacts proxied) on a free loopback port for the module: its URL."""
+    from aumesh.experiments.server import server_command, server_environment
+
     tmp = tmp_path_factory.mktemp("mlflow_server")
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    # No job runner (huey consumers for GenAI jobs): halves start-up time and CPU.
-    env = dict(
-        os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true", MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false"
-    )
+    env = server_environment()  # what `aumesh server` runs it with: telemetry and the GenAI job runner off
     env.pop("MLFLOW_TRACKING_URI", None)
     log = open(tmp / "server.log", "w")
-    cmd = [
-        sys.executable,
-        "-m",
-        "mlflow",
-        "server",
-        "--backend-store-uri",
-        f"sqlite:///{tmp / 'mlflow.db'}",
-        "--artifacts-destination",
-        str(tmp / "mlartifacts"),
-        "--host",
-        "127.0.0.1",
-        "--port",
-        str(port),
-        "--workers",
-        "1",
-    ]
+    cmd = server_command(f"sqlite:///{tmp / 'mlflow.db'}", str(tmp / "mlartifacts"), port=port, workers=1)
     proc = subprocess.Popen(cmd, cwd=tmp, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         deadline = time.monotonic() + STARTUP_TIMEOUT_S

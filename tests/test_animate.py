@@ -409,15 +409,9 @@ window.ready = true;
 </script></body></html>"""
 
 
-def test_three_js_plays_the_clip(table, release, tmp_path, node_tools):
-    from test_viewer import ARGS, CHROMIUM
-
+def test_three_js_plays_the_clip(table, release, tmp_path, node_tools, browser):
     if not (node_tools / "three" / "examples" / "jsm" / "loaders" / "GLTFLoader.js").exists():
         pytest.skip("three.js's GLTFLoader not installed (make tools)")
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
-    from playwright.sync_api import sync_playwright
-
     path, df = table
     glb = _animate(tmp_path, path, release, "--video", VIDEO, "--pose", name="three.glb")
     exp = _expected(df)
@@ -434,21 +428,19 @@ def test_three_js_plays_the_clip(table, release, tmp_path, node_tools):
             return route.fulfill(status=404, body="")
         route.fulfill(status=200, body=body, content_type=kind)
 
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        try:
-            page = browser.new_page()
-            errors = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.route("http://aumesh.test/**", serve)
-            page.goto("http://aumesh.test/")
-            page.wait_for_function("window.ready === true", timeout=30000)
-            info = page.evaluate("window.info")
-            picks = [0, 7, len(exp["face_frames"]) // 2, len(exp["face_frames"]) - 1]
-            times = ((exp["face_frames"][picks] - exp["frames"][0]) / 25.0).astype(np.float32)
-            got = [page.evaluate("(t) => window.sample(t)", float(t)) for t in times]
-        finally:
-            browser.close()
+    page = browser.new_page()
+    try:
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.route("http://aumesh.test/**", serve)
+        page.goto("http://aumesh.test/")
+        page.wait_for_function("window.ready === true", timeout=30000)
+        info = page.evaluate("window.info")
+        picks = [0, 7, len(exp["face_frames"]) // 2, len(exp["face_frames"]) - 1]
+        times = ((exp["face_frames"][picks] - exp["frames"][0]) / 25.0).astype(np.float32)
+        got = [page.evaluate("(t) => window.sample(t)", float(t)) for t in times]
+    finally:
+        page.close()
     assert not errors, errors
     assert info["names"] == list(AU_COLUMNS) and info["relative"] is True
     assert info["duration"] == pytest.approx(float(times[-1]), rel=1e-6)

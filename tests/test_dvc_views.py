@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import REPO, clean_env, link_venv
+from conftest import REPO, SCREENSHOTS, clean_env, link_venv
 
 pytestmark = pytest.mark.slow
 
@@ -26,7 +26,6 @@ EXPERIMENTS = {
     "model.n_components=10": ("model", "n_components", 10),
     "features=au_pose": ("features", "name", "au_pose"),
 }
-SHOTS = REPO / "build" / "test-screenshots"
 
 
 def _run(args, cwd: Path, env: dict, timeout: float = 1200.0) -> str:
@@ -117,52 +116,45 @@ def test_readme_exp_show_fits_one_screen_with_every_experiment(demo):
         ], line
 
 
-def test_plots_diff_draws_both_curves_offline(demo):
+def test_plots_diff_draws_both_curves_offline(demo, browser):
     """`dvc plots diff` (the plain command: .dvc/config names the template) in Chromium with every non-file request
     aborted: both plots are drawn, each with the baseline's and the experiment's line, no console error."""
     from PIL import Image
-    from playwright.sync_api import sync_playwright
 
-    from test_viewer import ARGS, CHROMIUM
-
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
     ws, env, head = demo
     experiment = _run(["dvc", "exp", "list", "--name-only"], ws, env).split()[0]
     _run(["dvc", "plots", "diff", head, experiment], ws, env)
     page_html = (ws / "dvc_plots" / "index.html").read_text()
     assert "cdn.jsdelivr" not in page_html and "vegaEmbed(" in page_html
     problems, blocked = [], []
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        try:
-            context = browser.new_context(viewport={"width": 1280, "height": 1000})
-            context.route(
-                "**/*",
-                lambda route: (
-                    route.continue_()
-                    if route.request.url.startswith(("file:", "data:"))
-                    else (blocked.append(route.request.url), route.abort())
-                ),
-            )
-            page = context.new_page()
-            page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
-            page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
-            page.goto((ws / "dvc_plots" / "index.html").as_uri())
-            views = page.locator(".vega-embed canvas, .vega-embed svg.marks")
-            page.wait_for_function(
-                "document.querySelectorAll('.vega-embed canvas, .vega-embed svg.marks').length >= 2", timeout=60_000
-            )
-            page.wait_for_timeout(500)
-            SHOTS.mkdir(parents=True, exist_ok=True)
-            page.screenshot(path=SHOTS / "dvc_plots_diff_offline.png", full_page=True)
-            images = [
-                np.asarray(Image.open(io.BytesIO(views.nth(i).screenshot())).convert("RGB"), dtype=np.int16)
-                for i in range(views.count())
-            ]
-            text = page.inner_text("body")
-        finally:
-            browser.close()
+    context = browser.new_context(viewport={"width": 1280, "height": 1000})
+    try:
+        context.route(
+            "**/*",
+            lambda route: (
+                route.continue_()
+                if route.request.url.startswith(("file:", "data:"))
+                else (blocked.append(route.request.url), route.abort())
+            ),
+        )
+        page = context.new_page()
+        page.on("console", lambda m: problems.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+        page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+        page.goto((ws / "dvc_plots" / "index.html").as_uri())
+        views = page.locator(".vega-embed canvas, .vega-embed svg.marks")
+        page.wait_for_function(
+            "document.querySelectorAll('.vega-embed canvas, .vega-embed svg.marks').length >= 2", timeout=60_000
+        )
+        page.wait_for_timeout(500)
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=SCREENSHOTS / "dvc_plots_diff_offline.png", full_page=True)
+        images = [
+            np.asarray(Image.open(io.BytesIO(views.nth(i).screenshot())).convert("RGB"), dtype=np.int16)
+            for i in range(views.count())
+        ]
+        text = page.inner_text("body")
+    finally:
+        context.close()
     assert problems == [] and blocked == [], (problems, blocked)
     assert len(images) == 2, len(images)
     assert "Cumulative vertex error" in text or "Cumulative vertex error" in page_html

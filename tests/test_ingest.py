@@ -12,7 +12,6 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from aumesh.config import Config
 from aumesh.data import ingest as ingest_data
 from aumesh.data import tables
 from aumesh.data.synth import SynthSpec
@@ -24,14 +23,8 @@ from conftest import default_config
 SPEC = SynthSpec(n_frames=450, n_videos=12, seed=3)  # 12 videos of ~38 frames: every layout, detector and fault
 
 
-_CONFIGS: dict[tuple, Config] = {}  # overrides -> the composed configuration (frozen): Hydra takes ~0.3 s a compose
-
-
 def _cfg(data_dir: Path, **overrides):
-    key = tuple(sorted(overrides.items()))
-    if key not in _CONFIGS:
-        _CONFIGS[key] = default_config(**overrides)
-    cfg = _CONFIGS[key]
+    cfg = default_config(**overrides)  # composed once per worker and overrides (conftest)
     return dataclasses.replace(cfg, paths=dataclasses.replace(cfg.paths, data_dir=str(data_dir)))
 
 

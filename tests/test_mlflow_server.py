@@ -43,17 +43,13 @@ def test_parent_and_children_over_http(mlflow_server, tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_ui_opens_the_experiment_on_its_runs(mlflow_server, monkeypatch):
+def test_ui_opens_the_experiment_on_its_runs(mlflow_server, browser, monkeypatch):
     """MLflow's own UI (Chromium, network limited to the server) on the runs table of a model-training experiment,
     with its description and the columns people sort by; the screenshot is kept for a person to look at."""
     from mlflow import MlflowClient
 
+    from conftest import SCREENSHOTS as SHOTS
     from conftest import default_config
-    from test_viewer import ARGS, CHROMIUM, SHOTS
-
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
-    from playwright.sync_api import sync_playwright
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_server)
     monkeypatch.chdir(Path(__file__).resolve().parents[1])  # provenance (data.dvc's hash) from the project checkout
@@ -69,25 +65,23 @@ def test_ui_opens_the_experiment_on_its_runs(mlflow_server, monkeypatch):
     experiment = MlflowClient(tracking_uri=mlflow_server).get_experiment_by_name("ui-test")
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
     url = mlflow_store.runs_page_url(mlflow_server, experiment.experiment_id)
-    with sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        try:
-            context = browser.new_context(viewport={"width": 1920, "height": 800})
-            context.route(
-                "**/*",
-                lambda route: route.continue_() if route.request.url.startswith(mlflow_server) else route.abort(),
-            )  # nothing but the server: the UI must not need the network
-            page = context.new_page()
-            page.goto(url)
-            best = page.get_by_text(names[run.run_id], exact=True)  # the k=83 run, the best r2_mean
-            best.first.wait_for(timeout=90_000)
-            page.wait_for_timeout(1500)  # the grid's columns settle
-            SHOTS.mkdir(parents=True, exist_ok=True)
-            page.screenshot(path=SHOTS / "mlflow_experiment_runs.png")
-            text = page.inner_text("body")
-            headers = page.locator("[role=columnheader]").all_inner_texts()
-        finally:
-            browser.close()
+    context = browser.new_context(viewport={"width": 1920, "height": 800})
+    try:
+        context.route(
+            "**/*",
+            lambda route: route.continue_() if route.request.url.startswith(mlflow_server) else route.abort(),
+        )  # nothing but the server: the UI must not need the network
+        page = context.new_page()
+        page.goto(url)
+        best = page.get_by_text(names[run.run_id], exact=True)  # the k=83 run, the best r2_mean
+        best.first.wait_for(timeout=90_000)
+        page.wait_for_timeout(1500)  # the grid's columns settle
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=SHOTS / "mlflow_experiment_runs.png")
+        text = page.inner_text("body")
+        headers = page.locator("[role=columnheader]").all_inner_texts()
+    finally:
+        context.close()
     assert "Model training" in text and "/runs" in page.url
     assert "No data available" not in text and "Detect Issues" not in text  # not the GenAI overview of traces
     assert all(name in text for name in names.values())

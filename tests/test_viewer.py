@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,12 +11,11 @@ from aumesh import cli
 from aumesh.data.schema import INPUT_COLUMNS, flatten_axis_major
 from aumesh.export import viewer
 from aumesh.model.release import load_npz
-from conftest import CHROMIUM, upright_truth_release  # noqa: F401  (CHROMIUM, ARGS: test_mlflow_server imports them)
-from conftest import CHROMIUM_ARGS as ARGS  # noqa: F401
+from conftest import SCREENSHOTS as SHOTS
+from conftest import upright_truth_release
 
 FOREHEAD = (10, 151, 9, 67, 297, 109, 338, 103, 332)
 MOUTH = (61, 291, 0, 17, 13, 14, 78, 308, 39, 269, 181, 405)
-SHOTS = Path(__file__).resolve().parents[1] / "build" / "test-screenshots"  # kept for a person to look at
 
 
 @pytest.fixture(scope="module")

@@ -23,27 +23,12 @@ from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS
 from aumesh.geometry.align import apply_similarity, umeyama_batch
 from aumesh.geometry.frame import canonical_frame, to_canonical
 from aumesh.model.release import load_npz
+from conftest import SCREENSHOTS as SHOTS
 from conftest import upright_truth_release
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run"]  # fmt: skip
 VIEW = (1280, 720)
-SHOTS = Path(__file__).resolve().parents[1] / "build" / "test-screenshots"
 F32 = np.finfo(np.float32).eps
 HOSTILE = "</script><script>alert(1)</script>"
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} not installed (apt-get install chromium; .ci/run does it)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")
