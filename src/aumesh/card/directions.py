@@ -44,9 +44,11 @@ from aumesh.data.schema import AU_COLUMNS, AU_NAMES, N_TARGETS
 from aumesh.geometry import face
 from aumesh.utils.io import atomic_write_json
 
-PASS_COSINE = 0.6
+PASS_COSINE = 0.7
 FAIL_COSINE = 0.0
-PASS_RELATIVE = 0.5
+PASS_SHARE = 0.5
+NEARBY_SHARE = 0.4
+FAIL_SHARE = 0.1
 MIN_MAGNITUDE = 1e-6  # inter-ocular units; below this an AU "does not move"
 
 # Face-term unit vectors in local coordinates (lateral, up, toward). "lateral" is
@@ -62,47 +64,112 @@ _TERMS: dict[str, tuple[float, float, float]] = {
     "right": (-1, 0, 0),
 }
 
-# The FACS expectation table (data). Each check: (region group, {term: weight}).
-# A group without a side suffix that names REGIONS "<group>_left/_right" is bilateral.
+# The FACS expectation table (data). "checks": the direction FACS gives in the AU's FACS region(s),
+# (area group, {term: weight}); "regions" (default: the checks' groups): the AU's FACS region(s), where its largest
+# motion must be; "nearby": the other area groups where FACS describes appearance changes of the AU.
+# Groups are aumesh.geometry.face.AREA_SEEDS names without their side.
 FACS_EXPECTATIONS: dict[str, dict[str, Any]] = {
-    "AU01": {"name": AU_NAMES["AU01"], "checks": [("brow_inner", {"up": 1.0})]},
-    "AU02": {"name": AU_NAMES["AU02"], "checks": [("brow_outer", {"up": 1.0})]},
-    "AU04": {"name": AU_NAMES["AU04"], "checks": [("brow_inner", {"down": 1.0, "inward": 0.6})]},
-    "AU05": {"name": AU_NAMES["AU05"], "checks": [("upper_eyelid", {"up": 1.0})]},
-    "AU06": {"name": AU_NAMES["AU06"], "checks": [("cheek", {"up": 1.0})]},
-    "AU07": {"name": AU_NAMES["AU07"], "checks": [("lower_eyelid", {"up": 1.0})]},
-    "AU09": {"name": AU_NAMES["AU09"], "checks": [("nose", {"up": 1.0})]},
-    "AU10": {"name": AU_NAMES["AU10"], "checks": [("upper_lip", {"up": 1.0})]},
-    "AU11": {"name": AU_NAMES["AU11"], "checks": [("nasolabial", {"up": 1.0, "outward": 0.5})]},
-    "AU12": {"name": AU_NAMES["AU12"], "checks": [("lip_corner", {"up": 1.0, "outward": 1.0})]},
-    "AU14": {"name": AU_NAMES["AU14"], "checks": [("lip_corner", {"away": 1.0, "inward": 0.3})]},
-    "AU15": {"name": AU_NAMES["AU15"], "checks": [("lip_corner", {"down": 1.0})]},
-    "AU17": {"name": AU_NAMES["AU17"], "checks": [("chin", {"up": 1.0})]},
-    "AU20": {"name": AU_NAMES["AU20"], "checks": [("lip_corner", {"outward": 1.0})]},
-    "AU23": {"name": AU_NAMES["AU23"], "checks": [("lip_corner", {"inward": 1.0})]},
-    "AU24": {"name": AU_NAMES["AU24"], "checks": [("upper_lip", {"down": 1.0}), ("lower_lip", {"up": 1.0})]},
-    "AU25": {"name": AU_NAMES["AU25"], "checks": [("lower_lip", {"down": 1.0})]},
-    "AU26": {"name": AU_NAMES["AU26"], "checks": [("jaw", {"down": 1.0}), ("lower_lip", {"down": 1.0})]},
-    "AU28": {"name": AU_NAMES["AU28"], "checks": [("upper_lip", {"away": 1.0}), ("lower_lip", {"away": 1.0})]},
-    "AU43": {"name": AU_NAMES["AU43"], "checks": [("upper_eyelid", {"down": 1.0})]},
+    "AU01": {
+        "name": AU_NAMES["AU01"],
+        "checks": [("brow_inner", {"up": 1.0})],
+        "nearby": ("forehead", "glabella", "brow_outer", "upper_eyelid"),
+    },
+    "AU02": {
+        "name": AU_NAMES["AU02"],
+        "checks": [("brow_outer", {"up": 1.0})],
+        "nearby": ("forehead", "temple", "brow_inner", "upper_eyelid"),
+    },
+    "AU04": {
+        "name": AU_NAMES["AU04"],
+        "checks": [("brow_inner", {"down": 1.0, "inward": 0.6})],
+        "nearby": ("glabella", "brow_outer", "upper_eyelid", "forehead"),
+    },
+    "AU05": {"name": AU_NAMES["AU05"], "checks": [("upper_eyelid", {"up": 1.0})], "nearby": ("brow_outer",)},
+    "AU06": {
+        "name": AU_NAMES["AU06"],
+        "checks": [("cheek", {"up": 1.0})],
+        "nearby": ("lower_eyelid", "nasolabial", "temple", "face_side"),
+    },
+    "AU07": {"name": AU_NAMES["AU07"], "checks": [("lower_eyelid", {"up": 1.0})], "nearby": ("upper_eyelid",)},
+    "AU09": {
+        "name": AU_NAMES["AU09"],
+        "checks": [("nose", {"up": 1.0})],
+        "nearby": ("glabella", "brow_inner", "nasolabial", "upper_lip", "cheek"),
+    },
+    "AU10": {
+        "name": AU_NAMES["AU10"],
+        "checks": [("upper_lip", {"up": 1.0})],
+        "nearby": ("nasolabial", "nose", "lip_corner", "cheek"),
+    },
+    "AU11": {
+        "name": AU_NAMES["AU11"],
+        "checks": [("nasolabial", {"up": 1.0, "outward": 0.5})],
+        "nearby": ("nose", "upper_lip", "cheek", "lip_corner"),
+    },
+    "AU12": {
+        "name": AU_NAMES["AU12"],
+        "checks": [("lip_corner", {"up": 1.0, "outward": 1.0})],
+        "nearby": ("nasolabial", "cheek", "upper_lip", "lower_lip"),
+    },
+    "AU14": {
+        "name": AU_NAMES["AU14"],
+        "checks": [("lip_corner", {"away": 1.0, "inward": 0.3})],
+        "nearby": ("upper_lip", "lower_lip", "cheek"),
+    },
+    "AU15": {
+        "name": AU_NAMES["AU15"],
+        "checks": [("lip_corner", {"down": 1.0})],
+        "nearby": ("lower_lip", "upper_lip", "chin", "jaw"),
+    },
+    "AU17": {
+        "name": AU_NAMES["AU17"],
+        "checks": [("chin", {"up": 1.0})],
+        "regions": ("chin", "lower_lip"),
+        "nearby": ("jaw", "lip_corner"),
+    },
+    "AU20": {
+        "name": AU_NAMES["AU20"],
+        "checks": [("lip_corner", {"outward": 1.0})],
+        "nearby": ("upper_lip", "lower_lip", "cheek", "jaw"),
+    },
+    "AU23": {
+        "name": AU_NAMES["AU23"],
+        "checks": [("lip_corner", {"inward": 1.0})],
+        "nearby": ("upper_lip", "lower_lip"),
+    },
+    "AU24": {
+        "name": AU_NAMES["AU24"],
+        "checks": [("upper_lip", {"down": 1.0}), ("lower_lip", {"up": 1.0})],
+        "nearby": ("lip_corner", "chin"),
+    },
+    "AU25": {
+        "name": AU_NAMES["AU25"],
+        "checks": [("lower_lip", {"down": 1.0})],
+        "nearby": ("upper_lip", "lip_corner", "chin"),
+    },
+    "AU26": {
+        "name": AU_NAMES["AU26"],
+        "checks": [("jaw", {"down": 1.0}), ("lower_lip", {"down": 1.0})],
+        "nearby": ("chin", "lip_corner", "face_side"),
+    },
+    "AU28": {
+        "name": AU_NAMES["AU28"],
+        "checks": [("upper_lip", {"away": 1.0}), ("lower_lip", {"away": 1.0})],
+        "nearby": ("lip_corner", "chin"),
+    },
+    "AU43": {"name": AU_NAMES["AU43"], "checks": [("upper_eyelid", {"down": 1.0})], "nearby": ("lower_eyelid",)},
 }
 
 _RANK = {"pass": 0, "doubtful": 1, "fail": 2}
+AREA_NAMES: tuple[str, ...] = tuple(face.AREA_SEEDS)
+AREA_GROUPS: tuple[str, ...] = tuple(dict.fromkeys(face.region_group(a) for a in AREA_NAMES))
 
 
-def _group_regions(group: str) -> list[str]:
-    if group in face.REGIONS:
-        return [group]
-    sides = [f"{group}_left", f"{group}_right"]
-    if all(s in face.REGIONS for s in sides):
-        return sides
-    raise KeyError(f"unknown region group {group!r}; known regions: {sorted(face.REGIONS)}")
-
-
-def _local(vec: np.ndarray, region: str) -> np.ndarray:
-    """Face-frame vector (x left, y down, z away) -> (lateral, up, toward)."""
-    side = face.region_side(region)
-    lateral = vec[..., 0] * side if side else vec[..., 0]
+def _local(vec: np.ndarray, side: np.ndarray | int) -> np.ndarray:
+    """Face-frame vectors (..., 3) (x left, y down, z away) -> (lateral, up, toward); ``side`` +1/-1 for bilateral
+    areas (lateral = outward), 0 for midline (lateral = subject's left)."""
+    side = np.asarray(side)
+    lateral = np.where(side == 0, vec[..., 0], vec[..., 0] * side)
     return np.stack([lateral, -vec[..., 1], -vec[..., 2]], axis=-1)
 
 
@@ -113,15 +180,37 @@ def _direction_word(local: np.ndarray, bilateral: bool) -> str:
     return words[k][0 if local[k] >= 0 else 1]
 
 
-def _group_stats(disp: np.ndarray, group: str) -> tuple[np.ndarray, float, bool]:
-    regions = _group_regions(group)
-    locs = [_local(disp[face.REGIONS[r]].mean(axis=0), r) for r in regions]
-    mags = [float(np.linalg.norm(disp[face.REGIONS[r]], axis=1).mean()) for r in regions]
-    return np.mean(locs, axis=0), float(np.mean(mags)), len(regions) == 2
+class _Areas:
+    """The area partition of one mesh: per vertex its area group and side (+1 left, -1 right, 0 midline)."""
+
+    def __init__(self, mesh: np.ndarray):
+        area = face.face_areas(mesh)
+        self.group = np.array([AREA_GROUPS.index(face.region_group(a)) for a in AREA_NAMES])[area]
+        self.side = np.array([face.region_side(a) for a in AREA_NAMES])[area]
+        self.bilateral = {g: any(face.region_group(a) == g and a != g for a in AREA_NAMES) for g in AREA_GROUPS}
+
+    def mask(self, group: str) -> np.ndarray:
+        if group not in AREA_GROUPS:
+            raise KeyError(f"unknown area group {group!r}; known: {list(AREA_GROUPS)}")
+        return self.group == AREA_GROUPS.index(group)
 
 
-def au_direction_from_displacement(disp: np.ndarray, au: str) -> dict[str, Any]:
-    """Check one AU's displacement field against :data:`FACS_EXPECTATIONS`.
+def _weighted_direction(disp: np.ndarray, areas: _Areas, group: str) -> tuple[np.ndarray, float]:
+    """Displacement-weighted mean of the group's vertices' displacements in local terms, and their mean magnitude.
+
+    Weights are the vertices' displacement magnitudes, so vertices that move most decide the direction and a few
+    near-still vertices of the area do not dilute it (bilateral areas: lateral = outward on each side)."""
+    m = areas.mask(group)
+    local = _local(disp[m], areas.side[m])
+    w = np.linalg.norm(disp[m], axis=1)
+    mean_mag = float(w.mean()) if w.size else 0.0
+    if w.sum() <= MIN_MAGNITUDE:
+        return np.zeros(3), mean_mag
+    return (w[:, None] * local).sum(axis=0) / w.sum(), mean_mag
+
+
+def au_direction_from_displacement(disp: np.ndarray, au: str, mesh: np.ndarray | None = None) -> dict[str, Any]:
+    """Check one AU's displacement field against :data:`FACS_EXPECTATIONS`: where it moves and which way.
 
     Parameters
     ----------
@@ -130,6 +219,9 @@ def au_direction_from_displacement(disp: np.ndarray, au: str) -> dict[str, Any]:
         z away), inter-ocular units.
     au : str
         AU name, a key of :data:`FACS_EXPECTATIONS`.
+    mesh : np.ndarray, shape (478, 3), optional
+        The neutral (mean) mesh the areas are found on (:func:`aumesh.geometry.face.face_areas`);
+        defaults to :func:`aumesh.geometry.face.canonical_template`.
 
     Returns
     -------
@@ -138,57 +230,104 @@ def au_direction_from_displacement(disp: np.ndarray, au: str) -> dict[str, Any]:
     """
     if au not in FACS_EXPECTATIONS:
         raise KeyError(f"no FACS expectation for {au!r}; known: {sorted(FACS_EXPECTATIONS)}")
+    areas = _Areas(face.canonical_template() if mesh is None else mesh)
+    return _judge(np.asarray(disp, dtype=np.float64), au, areas)
+
+
+def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
     exp = FACS_EXPECTATIONS[au]
-    region_mag = {r: float(np.linalg.norm(disp[idx], axis=1).mean()) for r, idx in face.REGIONS.items()}
-    top = max(region_mag, key=lambda r: region_mag[r])
-    top_mag = region_mag[top]
-    top_local = _local(disp[face.REGIONS[top]].mean(axis=0), top)
+    groups = list(exp.get("regions", [g for g, _ in exp["checks"]]))
+    nearby = list(exp["nearby"])
+    energy = (disp**2).sum(axis=1)
+    total = float(energy.sum())
+    moves = float(np.sqrt(energy.max())) > MIN_MAGNITUDE
+    shares_arr = np.bincount(areas.group, weights=energy, minlength=len(AREA_GROUPS)) / (total if moves else 1.0)
+    shares = {g: float(shares_arr[k]) for k, g in enumerate(AREA_GROUPS)}
+    ranked = sorted(AREA_GROUPS, key=lambda g: -shares[g])
+    top = ranked[0]
+    facs_share = sum(shares[g] for g in groups)
+    nearby_share = facs_share + sum(shares[g] for g in nearby)
+    top_local, top_mag = _weighted_direction(disp, areas, top)
+
+    # where: the largest motion in the FACS region, or a majority of the energy there
+    if not moves:
+        where, where_reason = "fail", "no displacement"
+    elif top in groups:
+        where, where_reason = "pass", f"largest motion in {top} ({shares[top]:.0%} of the energy)"
+    elif facs_share >= PASS_SHARE:
+        where, where_reason = "pass", f"{facs_share:.0%} of the energy in {'+'.join(groups)}"
+    elif top in nearby and facs_share >= NEARBY_SHARE:
+        where, where_reason = (
+            "pass",
+            f"largest motion in {top} ({shares[top]:.0%}, FACS: moves with {au}), {facs_share:.0%} in {'+'.join(groups)}",
+        )
+    elif facs_share < FAIL_SHARE:
+        where, where_reason = (
+            "fail",
+            f"largest motion in {top} ({shares[top]:.0%}); {'+'.join(groups)} barely moves ({facs_share:.0%})",
+        )
+    else:
+        where, where_reason = (
+            "doubtful",
+            f"largest motion in {top} ({shares[top]:.0%}), only {facs_share:.0%} in {'+'.join(groups)}",
+        )
+
     checks = []
     for group, terms in exp["checks"]:
         want = sum(w * np.asarray(_TERMS[t], dtype=float) for t, w in terms.items())
         want = want / np.linalg.norm(want)
-        local, mag, bilateral = _group_stats(disp, group)
+        local, mag = _weighted_direction(disp, areas, group)
         norm = float(np.linalg.norm(local))
         cos = float(local @ want / norm) if norm > MIN_MAGNITUDE else 0.0
-        rel = mag / top_mag if top_mag > MIN_MAGNITUDE else 0.0
         expected = " + ".join(terms)
-        if top_mag <= MIN_MAGNITUDE:
+        observed = _direction_word(local, areas.bilateral[group])
+        if not moves:
             verdict, reason = "fail", "no displacement"
+        elif norm <= MIN_MAGNITUDE:
+            verdict, reason = "fail", f"{group} does not move"
         elif cos <= FAIL_COSINE:
-            verdict, reason = (
-                "fail",
-                f"{group} moves {_direction_word(local, bilateral)}, against expected {expected} (cos {cos:+.2f})",
-            )
+            verdict, reason = "fail", f"{group} moves {observed}, against expected {expected} (cos {cos:+.2f})"
         elif cos < PASS_COSINE:
             verdict, reason = "doubtful", f"{group} direction only loosely matches {expected} (cos {cos:+.2f})"
-        elif rel < PASS_RELATIVE:
-            verdict, reason = "doubtful", f"{group} moves {expected} but weakly ({rel:.2f} x top region {top})"
+        elif shares[group] < FAIL_SHARE:
+            verdict, reason = "doubtful", f"{group} moves {expected} but barely ({shares[group]:.0%} of the energy)"
         else:
             verdict, reason = "pass", f"{group} moves {expected} (cos {cos:+.2f})"
         checks.append(
             {
                 "region": group,
                 "expected": expected,
-                "observed_direction": _direction_word(local, bilateral),
+                "observed_direction": observed,
                 "mean_displacement_local": [round(float(v), 6) for v in local],
                 "cosine": round(cos, 4),
                 "magnitude": round(mag, 6),
-                "relative_to_top": round(rel, 4),
+                "share": round(shares[group], 4),
                 "verdict": verdict,
                 "reason": reason,
             }
         )
-    worst = max(checks, key=lambda c: _RANK[c["verdict"]])
+    direction = max((c["verdict"] for c in checks), key=lambda v: _RANK[v])
+    verdict = max(where, direction, key=lambda v: _RANK[v])
+    reasons = [where_reason] if not moves else [where_reason] + [c["reason"] for c in checks]
     return {
         "name": exp["name"],
         "expected": "; ".join(f"{c['region']}: {c['expected']}" for c in checks),
+        "facs_regions": groups,
+        "nearby_regions": nearby,
         "top_region": top,
-        "top_region_direction": _direction_word(top_local, face.region_side(top) != 0),
+        "top_region_direction": _direction_word(top_local, areas.bilateral[top]),
+        "top_regions": [{"region": g, "share": round(shares[g], 4)} for g in ranked[:3]],
+        "facs_share": round(facs_share, 4),
+        "nearby_share": round(nearby_share, 4),
+        "region_shares": {g: round(shares[g], 4) for g in ranked},
         "magnitude": round(top_mag, 6),
-        "max_vertex_displacement": round(float(np.linalg.norm(disp, axis=1).max()), 6),
+        "rms_displacement": round(float(np.sqrt(total / len(disp))), 6),
+        "max_vertex_displacement": round(float(np.sqrt(energy.max())), 6),
         "checks": checks,
-        "verdict": worst["verdict"],
-        "reason": "; ".join(c["reason"] for c in checks),
+        "where": where,
+        "direction": direction,
+        "verdict": verdict,
+        "reason": "; ".join(reasons),
     }
 
 
@@ -265,15 +404,21 @@ def au_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any
         (AU -> entry of :func:`au_direction_from_displacement`).
     """
     arrays, where = _load_arrays(npz_path_or_arrays)
-    disp, _, cols = au_displacements(arrays, where)
+    disp, face_mesh, cols = au_displacements(arrays, where)
     mean = np.asarray(arrays["mean_aligned_mesh"], dtype=np.float64)
-    aus = {au: au_direction_from_displacement(disp[k], au) for k, au in enumerate(cols)}
+    areas = _Areas(face_mesh)
+    aus = {au: _judge(disp[k], au, areas) for k, au in enumerate(cols)}
     summary = {v: sum(1 for e in aus.values() if e["verdict"] == v) for v in _RANK}
     return {
         "source": where,
         "units": "inter-ocular distance (33-263) of mean_aligned_mesh; directions in the subject's face terms",
         "interocular_distance": float(np.linalg.norm(mean[263] - mean[33])),
-        "thresholds": {"pass_cosine": PASS_COSINE, "fail_cosine": FAIL_COSINE, "pass_relative": PASS_RELATIVE},
+        "thresholds": {
+            "pass_cosine": PASS_COSINE,
+            "fail_cosine": FAIL_COSINE,
+            "pass_share": PASS_SHARE,
+            "fail_share": FAIL_SHARE,
+        },
         "summary": summary,
         "aus": aus,
     }

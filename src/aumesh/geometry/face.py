@@ -234,6 +234,43 @@ REGIONS: dict[str, np.ndarray] = {
 
 BILATERAL_SUFFIXES = ("_left", "_right")
 
+# Areas: a partition of all 478 vertices into facial areas, for "where does an AU field move the face" (the
+# AU-direction check, aumesh.card.directions). Each vertex belongs to the area of its nearest seed (3-D distance
+# on the mesh at hand, :func:`face_areas`). Seeds are named landmarks and contour vertices only (their anatomy is
+# fixed by MediaPipe's topology, and this module places them explicitly), disjoint, and include every REGIONS
+# vertex except the few REGIONS share (64/294 and 205/425 seed the nasolabial areas, 152/175 the jaw, 199 the
+# chin). Areas named like a REGIONS entry are that region's neighbourhood; the others cover the rest of the face
+# (forehead, temples, glabella, irises, the face's sides) so that motion there is not credited to a FACS area.
+AREA_SEEDS: dict[str, tuple[int, ...]] = {
+    "forehead": (10, 151, 9, 338, 109, 297, 67),
+    "temple_left": (332, 284, 251, 389),
+    "temple_right": (103, 54, 21, 162),
+    "glabella": (8, 168),
+    "brow_inner_left": (336, 296, 285, 295),
+    "brow_inner_right": (107, 66, 55, 65),
+    "brow_outer_left": (300, 293, 276, 283, 334, 282),
+    "brow_outer_right": (70, 63, 46, 53, 105, 52),
+    "upper_eyelid_left": (384, 385, 386, 387, 388, 398, 466),
+    "upper_eyelid_right": (157, 158, 159, 160, 161, 173, 246),
+    "lower_eyelid_left": (390, 373, 374, 380, 381, 382, 249),
+    "lower_eyelid_right": (163, 144, 145, 153, 154, 155, 7),
+    "iris_left": IRIS_LEFT,
+    "iris_right": IRIS_RIGHT,
+    "nose": (6, 197, 195, 5, 4, 1, 2, 48, 278, 98, 327),
+    "nasolabial_left": (294, 425),
+    "nasolabial_right": (64, 205),
+    "cheek_left": (280, 411, 352, 346, 345),
+    "cheek_right": (50, 187, 123, 117, 116),
+    "face_side_left": (454, 356, 323, 361),
+    "face_side_right": (234, 127, 93, 132),
+    "lip_corner_left": (291, 375, 409, 308),
+    "lip_corner_right": (61, 146, 185, 78),
+    "upper_lip": (0, 37, 267, 39, 269, 13, 82, 312, 40, 270, 80, 310, 81, 311),
+    "lower_lip": (17, 84, 314, 181, 405, 14, 87, 317, 91, 321, 178, 402, 88, 318),
+    "chin": (18, 200, 199),
+    "jaw": (152, 175, 148, 377, 176, 400, 149, 378, 150, 379, 136, 365, 172, 397, 58, 288),
+}
+
 
 def region_side(name: str) -> int:
     """Side of a region: +1 for the subject's left, -1 for right, 0 for midline."""
@@ -242,6 +279,34 @@ def region_side(name: str) -> int:
     if name.endswith("_right"):
         return -1
     return 0
+
+
+def region_group(name: str) -> str:
+    """A region's or area's name without its side: ``"brow_inner_left"`` -> ``"brow_inner"``."""
+    for suffix in BILATERAL_SUFFIXES:
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+def face_areas(mesh: np.ndarray) -> np.ndarray:
+    """Which area of :data:`AREA_SEEDS` each vertex of a mesh belongs to: the area of its nearest seed.
+
+    Parameters
+    ----------
+    mesh : array-like, shape (478, 3)
+        Any orientation / scale (distances are taken in the mesh's own face frame, :func:`to_face_frame`).
+
+    Returns
+    -------
+    np.ndarray, shape (478,), int64
+        Index into ``list(AREA_SEEDS)``. Every seed is in its own area.
+    """
+    m = to_face_frame(mesh)
+    seeds = np.concatenate([np.asarray(s, dtype=np.int64) for s in AREA_SEEDS.values()])
+    label = np.repeat(np.arange(len(AREA_SEEDS)), [len(s) for s in AREA_SEEDS.values()])
+    d2 = ((m[:, None, :] - m[seeds][None, :, :]) ** 2).sum(axis=2)
+    return label[np.argmin(d2, axis=1)]
 
 
 # --------------------------------------------------------------------------- layout
