@@ -142,8 +142,8 @@ def _at_cosine(field: np.ndarray, perturbation: np.ndarray, cosine: float) -> np
 
 def test_fields_perturbed_to_cosine_0_9_pass():
     """Correct fields with noise: smooth random perturbations to cosine exactly 0.9 with the truth (3 kinds x 8
-    seeds per AU). None fails; at least 95 % pass overall and 75 % per AU (measured with 100 seeds: 99.6 %,
-    worst AU 97 %: the module docstring)."""
+    seeds per AU). None fails; at least 98 % pass overall and 85 % per AU (these seeds: 99.6 %, worst AU 96 %;
+    with 100 seeds: 99.6 %, worst AU 97 %, the module docstring)."""
     tpl = face.canonical_template()
     fields = truth.facs_displacement_fields()
     perturbed, aus = [], []
@@ -164,7 +164,7 @@ def test_fields_perturbed_to_cosine_0_9_pass():
         verdicts[au].append(e["verdict"])
     rates = {au: v.count("pass") / len(v) for au, v in verdicts.items()}
     assert not any("fail" in v for v in verdicts.values()), verdicts
-    assert np.mean(list(rates.values())) >= 0.95 and min(rates.values()) >= 0.75, rates
+    assert np.mean(list(rates.values())) >= 0.98 and min(rates.values()) >= 0.85, rates
 
 
 def test_field_in_the_wrong_region_does_not_pass():
@@ -200,6 +200,40 @@ def test_every_au_field_in_another_regions_slot_never_passes():
     entries = directions.judge_fields(fields[[j for _, j in pairs]], [au for au, _ in pairs], tpl)
     passed = [(au, AU_COLUMNS[j]) for (au, j), e in zip(pairs, entries, strict=True) if e["verdict"] == "pass"]
     assert passed == []
+
+
+def test_direction_is_the_displacement_weighted_mean_of_the_region():
+    """The lip corners' landmarks pulled up and out by 0.05 IOD, the rest of their area pushed down by 0.02: the
+    vertices that move most decide (numpy's weighted average, weights |d|): AU12 passes, whereas the plain mean
+    of the area would point mostly sideways and down (cosine 0.2)."""
+    tpl = face.canonical_template()
+    area = face.face_areas(tpl)
+    names = list(face.AREA_SEEDS)
+    disp = np.zeros((478, 3))
+    for side in ("left", "right"):
+        zone = np.flatnonzero(area == names.index(f"lip_corner_{side}"))
+        corner = np.isin(zone, face.REGIONS[f"lip_corner_{side}"])
+        sign = face.region_side(f"lip_corner_{side}")
+        disp[zone[corner]] = 0.05 / np.sqrt(2) * np.array([sign, -1.0, 0.0])  # out and up (y down)
+        disp[zone[~corner]] = [0.0, 0.02, 0.0]  # down
+    e = directions.au_direction_from_displacement(disp, "AU12", tpl)
+    zone = np.isin(area, [names.index("lip_corner_left"), names.index("lip_corner_right")])
+    local = np.column_stack([disp[zone, 0] * np.sign(tpl[zone, 0]), -disp[zone, 1], -disp[zone, 2]])
+    want = np.average(local, axis=0, weights=np.linalg.norm(disp[zone], axis=1))
+    assert np.allclose(e["checks"][0]["mean_displacement_local"], want, atol=1e-6)
+    plain = local.mean(axis=0)
+    assert plain @ [1, 1, 0] / np.sqrt(2) / np.linalg.norm(plain) < 0.5
+    assert e["checks"][0]["cosine"] > 0.8 and e["verdict"] == "pass"
+
+
+def test_lip_corners_pulled_straight_out_are_not_a_lip_corner_puller():
+    """AU20's field (corners outward, not up) in AU12's slot: the right place, a direction 51 degrees off FACS's
+    up-and-out (cosine 0.62): doubtful, not pass; AU12's own field passes."""
+    tpl = face.canonical_template()
+    fields = truth.facs_displacement_fields()
+    e20, e12 = directions.judge_fields(fields[[AU_COLUMNS.index("AU20"), AU_COLUMNS.index("AU12")]], ["AU12"] * 2, tpl)
+    assert e20["where"] == "pass" and e20["verdict"] == "doubtful" and 0.0 < e20["checks"][0]["cosine"] < 0.7
+    assert e12["verdict"] == "pass"
 
 
 @pytest.mark.parametrize("au", AU_COLUMNS)
