@@ -307,6 +307,14 @@ def test_missing_key_error_names_the_key():
         directions.au_direction_report(arrays)
 
 
+def test_non_finite_field_error_names_the_file_key_and_au(tmp_path):
+    arrays = truth.synthetic_release_arrays()
+    arrays["coef"][AU_COLUMNS.index("AU09"), 5] = np.nan
+    np.savez(tmp_path / "broken.npz", **arrays)
+    with pytest.raises(ValueError, match=r"broken\.npz: 'coef' rows \['AU09'\] hold NaN"):
+        directions.au_direction_report(tmp_path / "broken.npz")
+
+
 def test_write_report_and_markdown(tmp_path, truth_npz):
     report = directions.au_direction_report(truth_npz)
     out = directions.write_report(report, tmp_path / "au_directions.json")

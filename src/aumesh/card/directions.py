@@ -29,7 +29,7 @@ where:  ``pass`` when the top region is a FACS region, or the FACS region(s) hol
         the motion, or the top region is a nearby area and the FACS region(s) hold >= ``NEARBY_SHARE`` (40 %);
         ``fail`` when the AU does not move, or the top region is elsewhere and the FACS region(s) hold <
         ``FAIL_SHARE`` (10 %, "barely moves"); ``doubtful`` otherwise.
-which way:  ``fail`` at cosine <= ``FAIL_COSINE`` (0: against FACS) or when the region does not move;
+which way:  ``fail`` at cosine <= ``FAIL_COSINE`` (0: against FACS) or when the region has no net motion;
         ``doubtful`` at cosine < ``PASS_COSINE`` (0.7, about 45 degrees), or when the region holds <
         ``FAIL_SHARE`` of the motion; ``pass`` otherwise.
 
@@ -347,7 +347,7 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
         if not moves:
             verdict, reason = "fail", "no displacement"
         elif norm <= MIN_MAGNITUDE:
-            verdict, reason = "fail", f"{group} does not move"
+            verdict, reason = "fail", f"{group} has no net motion"
         elif cos <= FAIL_COSINE:
             verdict, reason = "fail", f"{group} moves {observed}, against expected {expected} (cos {cos:+.2f})"
         elif cos < PASS_COSINE:
@@ -444,8 +444,12 @@ def au_displacements(arrays: Mapping[str, Any], where: str = "<arrays>") -> tupl
     if missing:
         raise KeyError(f"{where}: {names_key!r} lacks AUs {missing}")
     mean = _require(arrays, "mean_aligned_mesh", where).astype(np.float64)
-    origin, axes, scale = face.face_frame(mean)
     rows = coef[[names.index(a) for a in AU_COLUMNS]]
+    broken = [a for a, row in zip(AU_COLUMNS, rows, strict=True) if not np.all(np.isfinite(row))]
+    if broken or not np.all(np.isfinite(mean)):
+        what = f"'coef' rows {broken}" if broken else "'mean_aligned_mesh'"
+        raise ValueError(f"{where}: {what} hold NaN or inf; the release is broken: fit it again (dvc repro)")
+    origin, axes, scale = face.face_frame(mean)
     disp = schema.unflatten_axis_major(rows) @ axes.T / scale
     return disp, (mean - origin) @ axes.T / scale, list(AU_COLUMNS)
 
@@ -463,18 +467,26 @@ def au_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any
     -------
     dict
         JSON-serialisable: ``units``, ``interocular_distance`` (input units),
+        ``area_vertices`` (area group -> number of vertices in it on this mesh),
         ``thresholds``, ``summary`` (counts per verdict) and ``aus``
-        (AU -> entry of :func:`au_direction_from_displacement`).
+        (AU -> entry of :func:`au_direction_from_displacement`: ``verdict`` in pass / doubtful / fail,
+        ``where`` and ``direction`` (the two halves of the verdict), ``facs_regions``, ``facs_share``,
+        ``nearby_regions``, ``nearby_share``, ``top_region``, ``top_regions`` (the three largest shares),
+        ``region_shares`` (every area group, largest first), ``checks`` (per FACS region: expected and observed
+        direction, cosine, share, verdict), ``reason``).
     """
     arrays, where = _load_arrays(npz_path_or_arrays)
     disp, face_mesh, cols = au_displacements(arrays, where)
     mean = np.asarray(arrays["mean_aligned_mesh"], dtype=np.float64)
     aus = dict(zip(cols, judge_fields(disp, cols, face_mesh), strict=True))
     summary = {v: sum(1 for e in aus.values() if e["verdict"] == v) for v in _RANK}
+    area_groups = _Areas(face_mesh).group
     return {
         "source": where,
-        "units": "inter-ocular distance (33-263) of mean_aligned_mesh; directions in the subject's face terms",
+        "units": "inter-ocular distance (33-263) of mean_aligned_mesh; directions in the subject's face terms; "
+        "shares: fraction of the field's displacement energy (sum of squared vertex displacements) per area group",
         "interocular_distance": float(np.linalg.norm(mean[263] - mean[33])),
+        "area_vertices": {g: int((area_groups == k).sum()) for k, g in enumerate(AREA_GROUPS)},
         "thresholds": {
             "pass_cosine": PASS_COSINE,
             "fail_cosine": FAIL_COSINE,
