@@ -53,6 +53,9 @@ Data in this module
 ``REGIONS``     name -> int array of MediaPipe indices (only named landmarks),
                 used by the AU-direction report. ``*_left`` / ``*_right`` are the
                 **subject's** left / right.
+``AREA_SEEDS``  name -> seed landmarks of a partition of all 478 vertices into facial areas
+                (:func:`face_areas`: each vertex in its nearest seed's area), used by the
+                AU-direction report to say where an AU field moves the face.
 ``EYE_CONTOUR_RIGHT/LEFT``, ``LIPS_OUTER``, ``LIPS_INNER``, ``FACE_OVAL``:
                 closed contours (ordered) of the MediaPipe topology.
 (the synthetic FACS displacement fields live in ``aumesh.data.truth``)
