@@ -133,3 +133,14 @@ def test_reliability_section_says_what_reliability_does_not_detect():
     card = copy.deepcopy(_large_card())
     text = model_card_markdown(card, None, [])
     assert "stability across video subsets" in text and "does not detect a bias" in text
+
+
+def test_a_constant_input_is_one_warning_not_also_unreliable_and_failing_facs():
+    card = _large_card()
+    card["data"]["degenerate"] = {"constant_inputs": {"AU07": 0.0}}
+    card["cv"]["au_reliability"]["AU07"] = 0.0  # a zero field: cosine 0 between folds
+    card["au_directions"]["AU07"] = "fail"  # "no displacement"
+    warnings = limits.release_warnings(card)
+    assert [(w["code"], w["inputs"]) for w in warnings] == [("constant_inputs", ["AU07"])]
+    card["cv"]["au_reliability"]["AU24"] = 0.2  # a real AU is still judged
+    assert [w["code"] for w in limits.release_warnings(card)] == ["low_au_reliability", "constant_inputs"]

@@ -94,6 +94,11 @@ def _fmt_list(names: Sequence[str]) -> str:
     return ", ".join(names)
 
 
+def _verb(names: Sequence[str], one: str, many: str) -> str:
+    """``one`` for a single name, ``many`` for several ("AU09 moves", "AU09, AU43 move")."""
+    return one if len(names) == 1 else many
+
+
 def _data_warnings(data: Mapping[str, Any], n_features: int | None) -> list[dict[str, Any]]:
     out = []
     n_frames, n_videos = data.get("n_frames"), data.get("n_videos")
@@ -105,9 +110,9 @@ def _data_warnings(data: Mapping[str, Any], n_features: int | None) -> list[dict
                     "small_data_frames",
                     f"{n_frames:,} training frames for {n_features} features ({per:.1f} per feature; at least "
                     f"{MIN_FRAMES_PER_FEATURE} wanted, the reference card has ~4,150): the fit can overfit, and "
-                    f"consecutive frames of a video add little information",
-                    "as a general model of how AUs move a face; refit on more data, or with fewer features "
-                    "(features=au or au_pose)",
+                    f"consecutive frames of a video add little information; more data, or fewer features "
+                    f"(features=au or au_pose), would help",
+                    "as a general model of how AUs move a face",
                     n_frames=n_frames,
                     n_features=n_features,
                     frames_per_feature=round(per, 2),
@@ -132,7 +137,7 @@ def _data_warnings(data: Mapping[str, Any], n_features: int | None) -> list[dict
             _warning(
                 "few_people",
                 f"{who} in the training data (py-feat's Identity labels): every AU field mixes what the AU does with "
-                "how these faces are built and move",
+                + ("how this face is built and moves" if people == 1 else "how these faces are built and move"),
                 "as a model of other people's faces, or of a population",
                 identity_labels=people,
                 threshold=MIN_PEOPLE,
@@ -151,9 +156,10 @@ def _unsupported_warning(data: Mapping[str, Any]) -> list[dict[str, Any]]:
     return [
         _warning(
             "unsupported_inputs",
-            f"{_fmt_list(unsupported)} barely occur in the training data (99th percentile below 0.05"
+            f"{_fmt_list(unsupported)} {_verb(unsupported, 'barely occurs', 'barely occur')} in the training data "
+            "(99th percentile below 0.05"
             + (f": {seen}" if seen else "")
-            + "): their fields are extrapolation, unconstrained by the data",
+            + f"): {_verb(unsupported, 'its field is', 'their fields are')} extrapolation, unconstrained by the data",
             f"to drive or interpret {_fmt_list(unsupported)}",
             aus=unsupported,
             p99=p99,
@@ -162,11 +168,16 @@ def _unsupported_warning(data: Mapping[str, Any]) -> list[dict[str, Any]]:
 
 
 def _field_warnings(
-    cv: Mapping[str, Any], au_directions: Mapping[str, str] | None, au_field_iod: Mapping[str, float] | None
+    cv: Mapping[str, Any],
+    au_directions: Mapping[str, str] | None,
+    au_field_iod: Mapping[str, float] | None,
+    constant: Sequence[str] = (),
 ) -> list[dict[str, Any]]:
+    """Reliability, FACS direction and field size; ``constant`` inputs (no field at all, their own warning) are not
+    judged here: their zero field has cosine 0 and no direction, which says nothing about the data's noise."""
     out = []
     reliability = cv.get("au_reliability") or {}
-    low = {au: round(float(v), 3) for au, v in reliability.items() if v < MIN_RELIABILITY}
+    low = {au: round(float(v), 3) for au, v in reliability.items() if v < MIN_RELIABILITY and au not in constant}
     if low:
         out.append(
             _warning(
@@ -182,15 +193,19 @@ def _field_warnings(
         )
     directions = au_directions or {}
     for verdict, code, words in (
-        ("fail", "au_direction_fail", "move against, or away from, the direction FACS describes"),
-        ("doubtful", "au_direction_doubtful", "match FACS only loosely"),
+        (
+            "fail",
+            "au_direction_fail",
+            ("moves against, or away from, what FACS describes", "move against, or away from, what FACS describes"),
+        ),
+        ("doubtful", "au_direction_doubtful", ("matches FACS only loosely", "match FACS only loosely")),
     ):
-        aus = [au for au, v in directions.items() if v == verdict]
+        aus = [au for au, v in directions.items() if v == verdict and au not in constant]
         if aus:
             out.append(
                 _warning(
                     code,
-                    f'{_fmt_list(aus)} {words} (FACS direction check, section "AU directions")',
+                    f"{_fmt_list(aus)} {_verb(aus, *words)} (FACS direction check, section 'AU directions')",
                     f"as FACS-faithful animation or illustration of {_fmt_list(aus)}",
                     aus=aus,
                 )
@@ -205,11 +220,11 @@ def _field_warnings(
             out.append(
                 _warning(
                     "implausible_fields",
-                    f"{_fmt_list(list(big))} move vertices by "
+                    f"{_fmt_list(list(big))} {_verb(list(big), 'moves', 'move')} vertices by "
                     + ", ".join(f"{v:.2f}" for v in big.values())
                     + f" inter-ocular distances at intensity 1, more than {IMPLAUSIBLE_FIELD_FACTOR:g}x the median "
-                    f"AU ({median:.3f}): an AU the data barely varied gets a huge, meaningless field",
-                    f"to drive {_fmt_list(list(big))} (the figures show them greyed out)",
+                    f"AU ({median:.3f}): likely an AU the data barely varied, given a huge and meaningless field",
+                    f"to drive {_fmt_list(list(big))} (the figures show {_verb(list(big), 'it', 'them')} greyed out)",
                     aus=list(big),
                     field_iod=big,
                     median_field_iod=round(median, 4),
@@ -335,7 +350,9 @@ def release_warnings(
     return [
         *_data_warnings(data, n_features),
         *_unsupported_warning(data),
-        *_field_warnings(cv, directions, au_field_iod),
+        *_field_warnings(
+            cv, directions, au_field_iod, list((data.get("degenerate") or {}).get("constant_inputs") or {})
+        ),
         *_cv_warning(cv),
         *_pose_warning(data.get("counts") or {}),
         *_degenerate_warnings(data),
