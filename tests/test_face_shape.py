@@ -61,6 +61,8 @@ def test_the_stage_check_names_the_reference_when_only_it_is_flat(tmp_path):
     with pytest.raises(ReleaseError, match=r"model\.npz: the AU=0 face \(intercept\)"):
         flat = flatten_axis_major(_flattened(tpl, 1e-3))
         refuse_implausible_face(flat, tpl, tmp_path / "model.npz", tmp_path / "reference.npz")
+    with pytest.raises(ReleaseError, match=r"model\.npz: the AU=0 face \(intercept\) .* is not a face"):
+        refuse_implausible_face(np.zeros_like(intercept), tpl, tmp_path / "model.npz", tmp_path / "reference.npz")
 
 
 def test_release_of_a_flat_model_exits_2_and_keeps_the_previous_release_bit_for_bit(workspace, capsys):
@@ -68,6 +70,8 @@ def test_release_of_a_flat_model_exits_2_and_keeps_the_previous_release_bit_for_
     shape = card["data"]["face_shape"]  # the good release records its face's proportions
     low, high = DEPTH_WIDTH_RANGE
     assert low < shape["depth_width"] < high and shape["width_height"] > 0.5
+    md = (workspace / "release/MODEL_CARD.md").read_text()
+    assert f"- Face shape (the AU=0 face): depth/width {shape['depth_width']:.3g}, width/height" in md
     before, runs = tree_digest(workspace / "release"), mlflow_runs(workspace)
     path = workspace / "build/model/model.npz"
     arrays = dict(np.load(path))

@@ -193,6 +193,18 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
     return lines
 
 
+def _face_shape_lines(shape: dict[str, Any] | None) -> list[str]:
+    """The card's line on the AU=0 face's proportions (``data.face_shape``, the release stage's shape guard)."""
+    if not shape:
+        return []
+    low, high = shape.get("accepted_depth_width", (None, None))
+    return [
+        f"- Face shape (the AU=0 face): depth/width {shape['depth_width']:.3g}, width/height "
+        f"{shape['width_height']:.3g} (MediaPipe's canonical face 0.65 and 0.88; a release is refused outside "
+        f"depth/width {low:g}-{high:g}, the mark of z in other units than x and y)"
+    ]
+
+
 def _runs_lines(card: dict[str, Any]) -> list[str]:
     """The card's "Runs" section: the promoted run (how the configuration was chosen) and the build run (what
     produced these arrays), each with its MLflow id; without a promotion, only the build run."""
@@ -277,6 +289,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         f"(threshold {counts['alignment_residual_threshold']:.3g})",
         f"- Videos with no frames left (dropped): {counts['videos_dropped_no_frames_left']}"
         f"{_share(counts, 'videos_dropped_no_frames_left')}",
+        *_face_shape_lines(data.get("face_shape")),
         *(
             [
                 f"- **Constant inputs**: {md_text(', '.join(f'{c} = {v:g}' for c, v in constant.items()))} in every "

@@ -418,7 +418,13 @@ def refuse_implausible_face(
     from aumesh.model.face_shape import au0_face, face_shape_error, face_shape_record
     from aumesh.model.inference import ReleaseError
 
-    record = face_shape_record(au0_face(intercept), mean_aligned_mesh)
+    try:
+        record = face_shape_record(au0_face(intercept), mean_aligned_mesh)
+    except ValueError as err:  # no face frame at all (coincident eye corners, chin on the eye line)
+        raise ReleaseError(
+            f"{model_path}: the AU=0 face (intercept) or {reference_path}'s mean_aligned_mesh is not a face ({err}); "
+            f"nothing written, the previous release is kept. Fix: rerun the fit (`dvc repro -f prepare evaluate`)."
+        ) from None
     for ratio, what, source in (
         (record["depth_width"], "the AU=0 face (intercept)", model_path),
         (record["mean_aligned_mesh"]["depth_width"], "mean_aligned_mesh", reference_path),
