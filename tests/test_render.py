@@ -127,3 +127,116 @@ def test_cli_main_writes_figures_and_directions(release, tmp_path, capsys):
     assert (tmp_path / "au_directions.md").is_file()
     assert render.main([str(tmp_path / "nope.npz"), "--out", str(tmp_path)]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ per-AU scales, unsupported AUs (issue 41)
+def _exploded(arrays: dict, au: str = "AU09", times: float = 40.0, listed: bool = True, fields: float = 1.0) -> dict:
+    """``arrays`` with every AU field scaled by ``fields`` and ``au``'s by ``times`` more; listed unsupported with
+    its training p99 (py-feat's v6 keys) when ``listed``."""
+    out = dict(arrays)
+    coef = out["coef"].astype(np.float64) * fields
+    coef[list(out["input_columns"]).index(au)] *= times
+    out["coef"] = coef.astype(np.float32)
+    if listed:
+        out["unsupported_features"] = np.array([au])
+        p99 = np.full(len(out["input_columns"]), 0.8, dtype=np.float32)
+        p99[list(out["input_columns"]).index(au)] = 0.035
+        out["feature_p99"] = p99
+    return out
+
+
+def _panels(fig) -> list[np.ndarray]:
+    """Each AU panel's RGB pixels (the axes' box in the drawn canvas), ``AU_COLUMNS`` order."""
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float64) / 255.0
+    height = img.shape[0]
+    crops = []
+    for ax in fig.axes[:20]:
+        (x0, y0), (x1, y1) = ax.get_window_extent().get_points()
+        crops.append(img[int(height - y1) + 1 : int(height - y0) - 1, int(x0) + 1 : int(x1) - 1])
+    return crops
+
+
+def _hot(panel: np.ndarray) -> int:
+    """How many of a panel's pixels are in magma's top fifth (yellow-white, not the white of the background)."""
+    r, g, b = panel[..., 0], panel[..., 1], panel[..., 2]
+    return int(np.sum((r > 0.95) & (g > 0.7) & (b < 0.8)))
+
+
+def test_effect_maps_scale_each_au_to_its_own_maximum():
+    tpl = 120.0 * face.canonical_template()
+    arrays = _exploded(truth.synthetic_release_arrays(tpl), times=40.0)
+    neutral, disp, scale = render.face_frame_meshes(arrays)
+    tops = render.effect_map_scales(disp, scale)
+    # independent route: the coef rows themselves, in release units (a rotation keeps each vertex's norm)
+    rows = arrays["coef"][: len(render.AU_COLUMNS)].astype(np.float64).reshape(20, 3, 478)
+    np.testing.assert_allclose(tops, np.linalg.norm(rows, axis=1).max(axis=1), rtol=1e-5)
+    fig = render.fig_effect_maps(neutral, disp, face.triangulate(neutral), scale)
+    for k, (ax, panel) in enumerate(zip(fig.axes[:20], _panels(fig), strict=True)):
+        assert f"max {tops[k]:.3g}" in ax.get_title()
+        assert _hot(panel) >= 5, (render.AU_COLUMNS[k], _hot(panel))  # no panel left black by AU09's scale
+
+
+def test_unsupported_aus_come_from_the_npz_and_from_implausible_fields():
+    arrays = truth.synthetic_release_arrays(120.0 * face.canonical_template())
+    _, disp, _ = render.face_frame_meshes(arrays)
+    assert render.unsupported_aus(arrays, disp) == {}
+    listed = _exploded(arrays, times=1.0)  # listed, field as it was
+    assert render.unsupported_aus(listed, render.face_frame_meshes(listed)[1]) == {
+        "AU09": "not in training data (p99 0.035)"
+    }
+    huge = _exploded(arrays, au="AU26", times=40.0, listed=False)  # not listed, but 40x: AU26 is 3.3x the median
+    got = render.unsupported_aus(huge, render.face_frame_meshes(huge)[1])
+    sizes = np.linalg.norm(render.face_frame_meshes(huge)[1], axis=2).max(axis=1)
+    assert (
+        list(got) == ["AU26"]
+        and got["AU26"] == f"implausible field ({sizes[17] / np.median(sizes):.0f}x the median AU)"
+    )
+
+
+def test_an_exploded_au_is_greyed_and_labelled_and_the_other_panels_are_unchanged():
+    """Small fields (x0.1: the figures exaggerate them) and AU09 x400 listed unsupported: the shared factor and every
+    other panel are those of the release without AU09's explosion, pixel for pixel."""
+    arrays = truth.synthetic_release_arrays(120.0 * face.canonical_template())
+    normal, exploded = (
+        _exploded(arrays, times=1.0, listed=False, fields=0.1),
+        _exploded(arrays, times=400.0, fields=0.1),
+    )
+    drawn = []
+    for a in (normal, exploded):
+        neutral, disp, _ = render.face_frame_meshes(a)
+        unsupported = render.unsupported_aus(a, disp)
+        factor = render.display_factor(disp, unsupported)
+        drawn.append((factor, render.fig_solid_panels(neutral, disp, face.triangulate(neutral), factor, unsupported)))
+    (f_normal, fig_normal), (f_exploded, fig_exploded) = drawn
+    assert f_normal == f_exploded == render.exaggeration_factor(render.face_frame_meshes(normal)[1]) > 1
+    assert render.exaggeration_factor(render.face_frame_meshes(exploded)[1]) == 1.0  # what all AUs would give
+    k = render.AU_COLUMNS.index("AU09")
+    before, after = _panels(fig_normal), _panels(fig_exploded)
+    for j in range(20):
+        if j != k:
+            np.testing.assert_array_equal(before[j], after[j], err_msg=render.AU_COLUMNS[j])
+
+    def skin(p: np.ndarray) -> float:  # skin tones: red > green > blue (not the grey face, not the red label box)
+        r, g, b = p[..., 0], p[..., 1], p[..., 2]
+        return float(np.mean((r - b > 0.15) & (g - b > 0.05)))
+
+    assert skin(before[k]) > 0.2 and skin(after[k]) < 0.01  # AU09's face drawn grey, not exploded
+    assert any("not in training data" in t.get_text() for t in fig_exploded.axes[k].texts)
+
+
+@pytest.mark.parametrize("name", ["fig_neutral_vs_activated", "fig_compare_overlay", "fig_pose_views"])
+def test_every_au_figure_labels_an_unsupported_au(name):
+    arrays = truth.synthetic_release_arrays(120.0 * face.canonical_template())
+    exploded = _exploded(arrays, au="AU12", times=40.0)  # AU12: in every one of these figures
+    neutral, disp, _ = render.face_frame_meshes(exploded)
+    unsupported = render.unsupported_aus(exploded, disp)
+    make = getattr(render, name)
+    factor = render.display_factor(disp, unsupported)
+    extra = {"fig_neutral_vs_activated": (render.COMPARE_AUS,), "fig_pose_views": (render.POSES_DEG,)}.get(name, ())
+    fig = make(neutral, disp, face.triangulate(neutral), factor, *extra, unsupported)
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any("not in training data" in t and "0.035" in t for t in texts), texts
+    for ax in fig.axes:  # no panel's limits stretched by the 40x field: every face is drawn at the normal size
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        assert max(x1 - x0, y1 - y0) < 3.0, (name, ax.get_title())

