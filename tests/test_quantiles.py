@@ -64,3 +64,19 @@ def test_refuses_bad_input():
         exact_quantiles(_identity, [np.arange(3.0)], 1.5)
     with pytest.raises(ValueError, match="no values"):
         exact_quantiles(_identity, [np.array([])], 0.5)
+
+
+def test_columns_in_the_same_passes_equal_numpy_quantile_of_each_column():
+    """exact_column_quantiles: each column's np.quantile, bit for bit, the columns sharing the passes (ties, a
+    constant column, a heavy tail and forced refinement side by side)."""
+    from aumesh.pipeline.quantiles import exact_column_quantiles
+
+    rng = np.random.default_rng(3)
+    n = 5_003
+    x = np.column_stack(
+        [rng.standard_normal(n), rng.integers(0, 3, n).astype(float), np.full(n, 0.5), np.exp(4 * rng.standard_normal(n))]
+    )
+    parts = np.split(x, [0, 17, 2_000, 2_000, 4_500])  # empty partitions too
+    for max_gather in (1, 1 << 18):
+        got = exact_column_quantiles(_identity, parts, PROBS, max_gather=max_gather)
+        np.testing.assert_array_equal(got, np.quantile(x, PROBS, axis=0).T)

@@ -53,15 +53,23 @@ class Interval:
         return Interval(float(edges[j]), float(self.hi if last else edges[j + 1]), self.closed if last else False)
 
 
-def _range(values: Callable[[Any], np.ndarray], part: Any) -> tuple[int, float, float]:
+def _columns(values: Callable[[Any], np.ndarray], part: Any) -> np.ndarray:
+    """``values(part)`` as (m, k) float64 columns (a vector is one column)."""
     v = np.asarray(values(part), dtype=np.float64)
+    return v[:, None] if v.ndim == 1 else v
+
+
+def _range(values: Callable[[Any], np.ndarray], part: Any) -> tuple[int, np.ndarray, np.ndarray]:
+    v = _columns(values, part)
     if not np.isfinite(v).all():
         raise ValueError("exact_quantiles: the values hold NaN or inf (pass finite values only)")
-    return (len(v), float(v.min()), float(v.max())) if len(v) else (0, np.inf, -np.inf)
+    if not len(v):
+        return 0, np.full(v.shape[1], np.inf), np.full(v.shape[1], -np.inf)
+    return len(v), v.min(axis=0), v.max(axis=0)
 
 
 def _merge_range(a, b):
-    return a[0] + b[0], min(a[1], b[1]), max(a[2], b[2])
+    return a[0] + b[0], np.minimum(a[1], b[1]), np.maximum(a[2], b[2])
 
 
 def _locate(v: np.ndarray, intervals: tuple[Interval, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -84,19 +92,38 @@ def _locate(v: np.ndarray, intervals: tuple[Interval, ...]) -> tuple[np.ndarray,
     return v[inside][grouped], np.searchsorted(which[grouped], np.arange(len(intervals) + 1))
 
 
-def _histogram(values: Callable[[Any], np.ndarray], intervals: tuple[Interval, ...], part: Any) -> np.ndarray:
-    """(len(intervals), BINS) counts of the partition's values in each interval's bins."""
-    inside, bounds = _locate(np.asarray(values(part), dtype=np.float64), intervals)
-    out = np.zeros((len(intervals), BINS), dtype=np.int64)
-    for i, iv in enumerate(intervals):
-        j = np.clip(np.searchsorted(iv.edges(), inside[bounds[i] : bounds[i + 1]], side="right") - 1, 0, BINS - 1)
-        out[i] = np.bincount(j, minlength=BINS)
+def _per_column(
+    v: np.ndarray, intervals: tuple[tuple[int, Interval], ...]
+) -> list[tuple[list[int], np.ndarray, np.ndarray]]:
+    """For each column with intervals: (the intervals' positions in ``intervals``, :func:`_locate` of the column)."""
+    out = []
+    for column in sorted({c for c, _ in intervals}):
+        mine = [i for i, (c, _) in enumerate(intervals) if c == column]
+        out.append((mine, *_locate(v[:, column], tuple(intervals[i][1] for i in mine))))
     return out
 
 
-def _gather(values: Callable[[Any], np.ndarray], intervals: tuple[Interval, ...], part: Any) -> list[np.ndarray]:
-    inside, bounds = _locate(np.asarray(values(part), dtype=np.float64), intervals)
-    return [inside[bounds[i] : bounds[i + 1]] for i in range(len(intervals))]
+def _histogram(
+    values: Callable[[Any], np.ndarray], intervals: tuple[tuple[int, Interval], ...], part: Any
+) -> np.ndarray:
+    """(len(intervals), BINS) counts of the partition's values of each ``(column, interval)`` in its bins."""
+    out = np.zeros((len(intervals), BINS), dtype=np.int64)
+    for mine, inside, bounds in _per_column(_columns(values, part), intervals):
+        for j, i in enumerate(mine):
+            iv = intervals[i][1]
+            b = np.clip(np.searchsorted(iv.edges(), inside[bounds[j] : bounds[j + 1]], side="right") - 1, 0, BINS - 1)
+            out[i] = np.bincount(b, minlength=BINS)
+    return out
+
+
+def _gather(
+    values: Callable[[Any], np.ndarray], intervals: tuple[tuple[int, Interval], ...], part: Any
+) -> list[np.ndarray]:
+    out: list[np.ndarray] = [np.empty(0)] * len(intervals)
+    for mine, inside, bounds in _per_column(_columns(values, part), intervals):
+        for j, i in enumerate(mine):
+            out[i] = inside[bounds[j] : bounds[j + 1]]
+    return out
 
 
 def needed_ranks(n: int, q: np.ndarray, method: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -170,7 +197,36 @@ def exact_quantiles(
     float or ndarray of shape (n_q,)
         As ``np.quantile(np.concatenate([values(p) for p in partitions]), q, method=method)``.
     """
-    scalar = np.ndim(q) == 0
+    result = exact_column_quantiles(values, partitions, np.atleast_1d(np.asarray(q, dtype=np.float64)), method, max_gather)
+    return float(result[0, 0]) if np.ndim(q) == 0 else result[0]
+
+
+def exact_column_quantiles(
+    values: Callable[[Any], np.ndarray],
+    partitions: Sequence[Any],
+    q: Any,
+    method: str = "linear",
+    max_gather: int = 1 << 18,
+) -> np.ndarray:
+    """:func:`exact_quantiles` of each column of a partitioned table, in the same passes for every column.
+
+    Parameters
+    ----------
+    values : callable
+        ``values(partition) -> ndarray (m, k)`` of finite floats: the partition's rows of the ``k`` columns (a
+        vector ``(m,)`` is one column).
+    partitions, method, max_gather
+        As :func:`exact_quantiles`.
+    q : array-like of shape (n_q,)
+        Probabilities in [0, 1].
+
+    Returns
+    -------
+    ndarray of shape (k, n_q)
+        Row ``c``: ``np.quantile(np.concatenate([values(p)[:, c] for p in partitions]), q, method=method)``, bit for
+        bit. The passes (counts and ranges, histograms, gathers) serve every column at once: the cost of one column's
+        quantiles, not ``k`` times it, in passes over the partitions.
+    """
     qs = np.atleast_1d(np.asarray(q, dtype=np.float64))
     if ((qs < 0) | (qs > 1)).any():
         raise ValueError("exact_quantiles: probabilities must lie in [0, 1]")
@@ -179,35 +235,40 @@ def exact_quantiles(
         raise NoValuesError("exact_quantiles: no values")
     previous, nxt, gamma = needed_ranks(n, qs, method)
     ranks = np.unique(np.r_[previous, nxt])
-    found: dict[int, float] = {}
-    # (interval, values of the whole vector below it, ranks inside it), refined until each is small enough
-    pending = [(Interval(lo, hi, True), 0, ranks)]
+    k = len(lo)
+    found: list[dict[int, float]] = [{} for _ in range(k)]
+    # (column, interval, values of the whole column below it, ranks inside it), refined until each is small enough
+    pending = [(c, Interval(float(lo[c]), float(hi[c]), True), 0, ranks) for c in range(k)]
     for depth in range(MAX_ROUNDS):
-        intervals = tuple(iv for iv, _, _ in pending)
+        intervals = tuple((c, iv) for c, iv, _, _ in pending)
         counts = compute.map_reduce(partial(_histogram, values, intervals), np.add, partitions)
         small, refine = [], []
-        for (iv, below, inside), c in zip(pending, counts, strict=True):
-            edges, cum = iv.edges(), np.cumsum(c)
+        for (c, iv, below, inside), cnt in zip(pending, counts, strict=True):
+            edges, cum = iv.edges(), np.cumsum(cnt)
             bins = np.searchsorted(cum, inside - below, side="right")  # the bin of each rank
             for j in np.unique(bins):
                 sub = iv.bin(int(j), edges)
                 sub_below = below + (int(cum[j - 1]) if j else 0)
                 sub_ranks = inside[bins == j]
                 if sub.lo == sub.hi or (not sub.closed and np.nextafter(sub.lo, np.inf) >= sub.hi):
-                    found.update({int(r): sub.lo for r in sub_ranks})  # the bin holds one representable value
-                elif c[j] <= max_gather or depth == MAX_ROUNDS - 1:
-                    small.append((sub, sub_below, sub_ranks))
+                    found[c].update({int(r): sub.lo for r in sub_ranks})  # the bin holds one representable value
+                elif cnt[j] <= max_gather or depth == MAX_ROUNDS - 1:
+                    small.append((c, sub, sub_below, sub_ranks))
                 else:
-                    refine.append((sub, sub_below, sub_ranks))
+                    refine.append((c, sub, sub_below, sub_ranks))
         if small:
-            gathered = compute.map_gather(partial(_gather, values, tuple(iv for iv, _, _ in small)), partitions)
-            for i, (_, below, inside) in enumerate(small):
+            gathered = compute.map_gather(
+                partial(_gather, values, tuple((c, iv) for c, iv, _, _ in small)), partitions
+            )
+            for i, (c, _, below, inside) in enumerate(small):
                 v = np.sort(np.concatenate([g[i] for g in gathered]))
-                found.update({int(r): float(v[r - below]) for r in inside})
+                found[c].update({int(r): float(v[r - below]) for r in inside})
         pending = refine
         if not pending:
             break
-    a = np.array([found[int(r)] for r in previous])
-    b = np.array([found[int(r)] for r in nxt])
-    result = a if method == "inverted_cdf" else _lerp(a, b, gamma)
-    return float(result[0]) if scalar else result
+    out = np.empty((k, len(qs)))
+    for c in range(k):
+        a = np.array([found[c][int(r)] for r in previous])
+        b = np.array([found[c][int(r)] for r in nxt])
+        out[c] = a if method == "inverted_cdf" else _lerp(a, b, gamma)
+    return out

@@ -156,7 +156,11 @@ def prepare_stage(cfg: Config) -> dict:
         import pyarrow.parquet as pq
 
         check_columns(cfg, pq.read_schema(found[0].path).names, str(found[0].path))
-    summary = prep.run(found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"])
+    from aumesh.model import support
+
+    summary = prep.run(
+        found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"], detectors=support.detector_counts(manifest)
+    )
     log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
     return summary
 
@@ -233,7 +237,10 @@ def evaluate_stage(cfg: Config) -> dict:
             run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
-        arrays = final.release_arrays(prepared.reference, metadata={"mlflow_run_id": run.run_id})
+        # the run's MLflow model warns beyond the data as the release does: it carries the data's support
+        arrays = final.release_arrays(
+            prepared.reference, metadata={"mlflow_run_id": run.run_id, "data": data_support(prepared.summary)}
+        )
         refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
         run.call(log_release_model, arrays)
         run_info = {
@@ -317,6 +324,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
             "degenerate": run_info.get("degenerate") or {},
             "counts": summary["counts"],
             "n_low_au_frames": summary["n_low_au_population"],
+            **data_support(summary),
         },
         "config": shareable_config(cfg),
         "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
@@ -327,6 +335,21 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         "runs": release_runs(run_info, promotion),
         "libraries": provenance.library_versions(),
         "promotion": promotion,
+    }
+
+
+def data_support(summary: dict) -> dict:
+    """What the training data supports, for the card's ``data`` (and the NPZ's ``feature_p99`` /
+    ``unsupported_features``, made from it by :func:`aumesh.model.release.release_arrays`): ``input_ranges``,
+    ``unsupported_inputs``, ``detector`` and ``people`` from prepare's summary (:mod:`aumesh.model.support`). A
+    summary prepared before they were recorded gives ``detector`` ``unknown``, ``people`` unknown and no ranges."""
+    from aumesh.model import support
+
+    ranges = summary.get("input_ranges") or {}
+    return {
+        **({"input_ranges": ranges, "unsupported_inputs": support.unsupported_inputs(ranges)} if ranges else {}),
+        "detector": summary.get("detector") or support.detector_summary({}),
+        "people": support.people_summary(summary.get("counts") or {}, int(summary.get("n_videos", 0))),
     }
 
 
