@@ -59,3 +59,164 @@ def test_ranges_over_several_partitions_equal_one_quantile_of_the_kept_frames(sm
     assert summary["input_ranges"] == _expected_ranges(frames)
     assert summary["detector"]["name"] == "MPDetector"
     assert summary["detector"]["au_meaning"] == support.AU_MEANING["MPDetector"]
+
+
+# ------------------------------------------------------------------------------------------- a single-person set
+@pytest.fixture(scope="module")
+def single_person(tmp_path_factory):
+    """A small set of one person (three clips, no identity differences) whose AU09 never exceeds 0.035 (the issue's
+    real clips), prepared; and a release made from its summary as the release stage makes it (card data -> NPZ):
+    ``(summary, frames, release arrays)``."""
+    import pyarrow.parquet as pq
+
+    from aumesh.data import synth, tables
+    from aumesh.data.truth import synthetic_release_arrays
+    from aumesh.geometry import face
+    from aumesh.model.release import release_arrays
+    from aumesh.pipeline import prepare
+    from aumesh.pipeline.stages import data_support
+
+    d = tmp_path_factory.mktemp("single")
+    synth.write_tables(d / "data", synth.SynthSpec(n_frames=240, n_videos=3, seed=5, identity_scale=0.0))
+    for path in (d / "data").glob("*.parquet"):
+        t = pq.read_table(path)
+        j = t.schema.get_field_index("AU09")
+        au09 = t.column(j).to_numpy() * 0.035 / max(float(t.column(j).to_numpy().max()), 1e-9)
+        pq.write_table(t.set_column(j, t.schema.field(j), [au09.astype(t.schema.field(j).type.to_pandas_dtype())]), path)
+    cfg = default_config(**{"paths.data_dir": str(d / "data")})
+    found = tables.discover(d / "data", cfg.data.tables, cfg.data.mesh_npy)
+    summary = prepare.run(found, cfg, d / "prepared", detectors={"Detectorv2": 3})
+    frames = pd.read_parquet(d / "prepared" / "frames.parquet")
+    truth = synthetic_release_arrays(120.0 * face.canonical_template() * np.array([1.0, -1.0, -1.0]))
+    reference = {k: truth[k] for k in ("mean_aligned_mesh", "mean_low_au_mesh", "reference_anchors", "anchor_indices")}
+    card = {"data": data_support(summary), "config": cfg.to_dict()}
+    arrays = release_arrays(truth["coef"].T, truth["intercept"], list(INPUT_COLUMNS), 23, reference, "", card)
+    return summary, frames, arrays
+
+
+def test_single_person_set_au09_at_one_warns_in_one_line_and_an_in_range_input_does_not(single_person):
+    import warnings
+
+    import aumesh
+    from aumesh.model.inference import InputRangeWarning
+
+    summary, frames, arrays = single_person
+    assert frames["AU09"].max() <= 0.035 + 1e-6
+    assert summary["detector"]["name"] == "Detectorv2"
+    with pytest.warns(InputRangeWarning) as caught:
+        aumesh.predict_mesh(arrays, {"AU09": 1.0})
+    assert len(caught) == 1  # once per call
+    message = str(caught[0].message)
+    assert "\n" not in message
+    train = summary["input_ranges"]["AU09"]
+    assert f"AU09 up to 1 (training max {train['max']:.3g}, p99 {train['p99']:.3g})" in message
+    assert "AU09 was never expressed in the training data" in message
+    # within every AU's training range (the medians of the frames): silent
+    inside = {a: float(frames[a].median()) for a in AU_COLUMNS}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        aumesh.predict_mesh(arrays, inside)
+        # the training frames themselves, but where the unsupported AU09 is at most py-feat's 0.02
+        aumesh.predict_mesh(arrays, frames.loc[frames["AU09"] <= 0.02, list(AU_COLUMNS)])
+        aumesh.predict_mesh(arrays, {"AU09": 0.02})  # py-feat's threshold for an unsupported input
+
+
+def test_one_warning_per_call_names_every_problem(single_person):
+    """An AU above 1 (as numbers), an AU above its training max and a yaw beyond the pose filter: one line."""
+    import aumesh
+    from aumesh.model.inference import InputRangeWarning
+
+    _, frames, arrays = single_person
+    aus = np.zeros((3, 20))
+    aus[0, AU_COLUMNS.index("AU12")] = 4.0  # OpenFace's scale
+    aus[1, AU_COLUMNS.index("AU26")] = float(frames["AU26"].max()) + 0.2
+    with pytest.warns(InputRangeWarning) as caught:
+        aumesh.predict_mesh(arrays, aus, pose=[0.0, 1.2, 0.0])
+    assert len(caught) == 1
+    message = str(caught[0].message)
+    for part in ("AU12 = 4 at row 0 is above 1", "AU26 up to", "AU12 up to 4", "pose: Yaw = 1.2 rad"):
+        assert part in message, (part, message)
+
+
+def test_release_npz_records_p99_and_unsupported_and_old_releases_still_load(single_person, tmp_path):
+    import warnings
+
+    import aumesh
+    from aumesh.model.inference import ReleaseError
+    from aumesh.utils.io import atomic_savez
+
+    summary, frames, arrays = single_person
+    path = atomic_savez(tmp_path / "release.npz", **arrays)
+    loaded = aumesh.load_release(path)
+    np.testing.assert_array_equal(
+        loaded["feature_p99"], np.quantile(frames[list(INPUT_COLUMNS)].to_numpy(np.float64), 0.99, axis=0).astype(np.float32)
+    )
+    assert loaded["unsupported_features"].tolist() == ["AU09"]
+    meta = json.loads(str(loaded["training_metadata"]))
+    assert meta["data"]["detector"]["au_meaning"] == support.AU_MEANING["Detectorv2"]
+    assert meta["data"]["unsupported_inputs"] == ["AU09"]
+    # an old release (no new keys, no ranges in its metadata) loads, predicts and warns only as before
+    old = {k: v for k, v in arrays.items() if k not in ("feature_p99", "unsupported_features")}
+    old["training_metadata"] = np.array(json.dumps({"config": meta["config"]}))
+    atomic_savez(tmp_path / "old.npz", **old)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        aumesh.predict_mesh(aumesh.load_release(tmp_path / "old.npz"), {"AU09": 1.0})
+    # py-feat's keys alone (no card ranges): p99 is the bound, unsupported still warns
+    bare = dict(old, feature_p99=arrays["feature_p99"], unsupported_features=arrays["unsupported_features"])
+    with pytest.warns(aumesh.InputRangeWarning, match=r"AU09 up to 1 \(training p99 .*never expressed"):
+        aumesh.predict_mesh(bare, {"AU09": 1.0})
+    with pytest.raises(ReleaseError, match="'feature_p99' must be \\(23,\\)"):
+        aumesh.load_release(dict(arrays, feature_p99=np.zeros(20, np.float32)))
+    with pytest.raises(ReleaseError, match="'unsupported_features' must be"):
+        aumesh.load_release(dict(arrays, unsupported_features=np.array(["AU99"])))
+
+
+# ------------------------------------------------------------------------------------------- the AU space
+def test_detector_summary_and_counts_from_a_manifest_with_or_without_detectors():
+    assert support.detector_counts({"sources": [{"detector": "MPDetector"}, {"detector": "MPDetector"}]}) == {
+        "MPDetector": 2
+    }
+    assert support.detector_counts({"detectors": {"Detectorv2": 3, "MPDetector": 0}, "sources": []}) == {
+        "Detectorv2": 3
+    }
+    assert support.detector_summary({"Detectorv2": 3})["name"] == "Detectorv2"
+    assert support.detector_summary({"Detectorv2": 1, "MPDetector": 1})["name"] == "mixed"
+    assert support.detector_summary({"MPDetector": 1, "split": 2})["name"] == "mixed"
+    assert support.detector_summary({"split": 2})["name"] == "unknown"
+    assert support.detector_summary({})["name"] == "unknown"
+    assert "probabilit" in support.AU_MEANING["Detectorv2"] and "blendshape" in support.AU_MEANING["MPDetector"]
+    people = support.people_summary({"identity_labels": 1}, 3)
+    assert people["identity_labels"] == 1 and "Identity" in people["note"]
+    assert support.people_summary({}, 3)["identity_labels"] is None
+
+
+def test_a_real_pipelines_card_npz_and_rig_record_the_datas_support(good_workspace):
+    """The release stage end to end (conftest's good workspace): card JSON, MODEL_CARD.md, NPZ and glb agree with
+    prepare's summary."""
+    from aumesh.export.gltf import GLB_NAME
+    from aumesh.model.release import load_npz
+
+    summary = json.loads((good_workspace / "build" / "prepared" / "summary.json").read_text())
+    card = json.loads((good_workspace / "release" / "model_card.json").read_text())
+    assert card["data"]["input_ranges"] == summary["input_ranges"]
+    expected = [a for a in AU_COLUMNS if summary["input_ranges"][a]["p99"] < support.UNSUPPORTED_P99]
+    assert card["data"]["unsupported_inputs"] == expected
+    assert card["data"]["detector"] == summary["detector"]
+    assert set(card["data"]["people"]) == {"identity_labels", "note"}
+    npz = load_npz(good_workspace / "release" / "au_to_mesh_pls.npz")
+    np.testing.assert_array_equal(
+        npz["feature_p99"], np.array([summary["input_ranges"][c]["p99"] for c in INPUT_COLUMNS], np.float32)
+    )
+    assert npz["unsupported_features"].tolist() == expected
+    assert json.loads(str(npz["training_metadata"]))["data"]["detector"]["name"] == summary["detector"]["name"]
+    md = (good_workspace / "release" / "MODEL_CARD.md").read_text()
+    training = md.split("## Training data")[1].split("\n## ")[0]
+    assert f"- AU space: **{summary['detector']['name']}**" in training
+    glb = (good_workspace / "release" / GLB_NAME).read_bytes()
+    import struct
+
+    length = struct.unpack("<I", glb[12:16])[0]
+    extras = json.loads(glb[20 : 20 + length])["asset"]["extras"]
+    assert extras["training_range"]["AU12"]["max"] == summary["input_ranges"]["AU12"]["max"]
+    assert extras.get("unsupported_targets", []) == expected  # pygltflib leaves an empty list out
