@@ -220,3 +220,107 @@ def test_a_real_pipelines_card_npz_and_rig_record_the_datas_support(good_workspa
     extras = json.loads(glb[20 : 20 + length])["asset"]["extras"]
     assert extras["training_range"]["AU12"]["max"] == summary["input_ranges"]["AU12"]["max"]
     assert extras.get("unsupported_targets", []) == expected  # pygltflib leaves an empty list out
+
+
+# ------------------------------------------------------------------------------------------- predict, animate, pyfunc
+def _release_with_support(tmp_path, detector: str, ranges: dict | None = None):
+    """The upright synthetic-truth release, recording training ranges (AU09 never expressed, AU12 at most 0.6) and
+    the training tables' detector, as the release stage does."""
+    from aumesh.model.release import load_npz
+    from aumesh.utils.io import atomic_savez
+    from conftest import upright_truth_release
+
+    arrays = load_npz(upright_truth_release(tmp_path / "truth.npz"))
+    if ranges is None:
+        ranges = {c: support.range_record([0.0, 0.0, 0.2, 0.95, 1.0], 0.5) for c in INPUT_COLUMNS}
+        ranges["AU09"] = support.range_record([0.0, 0.0, 0.01, 0.03, 0.035], 0.0)
+        ranges["AU12"] = support.range_record([0.0, 0.0, 0.1, 0.5, 0.6], 0.3)
+    meta = {
+        "data": {
+            "input_ranges": ranges,
+            "unsupported_inputs": support.unsupported_inputs(ranges),
+            "detector": support.detector_summary({detector: 1}),
+        }
+    }
+    arrays.update(
+        training_metadata=np.array(json.dumps(meta)),
+        feature_p99=support.feature_p99(ranges),
+        unsupported_features=np.array(support.unsupported_inputs(ranges)),
+    )
+    return atomic_savez(tmp_path / f"support-{detector}.npz", **arrays)
+
+
+def test_predict_npz_joins_back_to_the_fex_rows_and_warns_for_another_detector(tmp_path, caplog):
+    """``aumesh predict``'s NPZ: input, frame and face beside the meshes; a pandas merge on them gives each row's
+    own AUs back (frames with two faces, a no-face row). A Detectorv2 release given an MPDetector table warns once."""
+    from aumesh import cli
+    from aumesh.data.synth import SynthSpec
+    from aumesh.data.synth_pyfeat import write_pyfeat_tables
+
+    written = write_pyfeat_tables(
+        tmp_path / "raw", SynthSpec(n_frames=60, n_videos=2, seed=1), detector="mp", extra_face_rate=0.3, seed=2
+    )
+    table = written["files"][0]
+    release = _release_with_support(tmp_path, "Detectorv2")
+    out = tmp_path / "meshes.npz"
+    with caplog.at_level("WARNING"):
+        assert cli.main(["predict", str(table), "--release", str(release), "--out", str(out)]) == 0
+    lines = [r.getMessage() for r in caplog.records if "MPDetector's but the release was trained on Detectorv2" in r.getMessage()]
+    assert len(lines) == 1 and "\n" not in lines[0]
+    fex = pd.read_csv(table)
+    with np.load(out, allow_pickle=False) as z:
+        got = pd.DataFrame({"input": z["input"], "frame": z["frame"], "face": z["face"]})
+        au = z["au"]
+    assert len(got) == len(fex)
+    # the independent route: py-feat's rows numbered within their (input, frame) in file order
+    fex = fex[["input", "frame", *AU_COLUMNS]].assign(face=fex.groupby(["input", "frame"]).cumcount())
+    assert (fex.groupby(["input", "frame"]).size() > 1).any()  # several faces in some frames
+    assert not got.duplicated().any()
+    got[list(AU_COLUMNS)] = au
+    joined = got.merge(fex[["input", "frame", "face", *AU_COLUMNS]], on=["input", "frame", "face"], suffixes=("", "_fex"))
+    assert len(joined) == len(fex)
+    np.testing.assert_array_equal(
+        joined[list(AU_COLUMNS)].to_numpy(), joined[[f"{a}_fex" for a in AU_COLUMNS]].to_numpy()
+    )
+
+
+def test_predict_of_an_input_columns_table_has_no_keys_and_no_detector_warning(tmp_path, caplog):
+    from aumesh import cli
+
+    release = _release_with_support(tmp_path, "Detectorv2")
+    pd.DataFrame({"AU12": [0.1, 0.9], "AU09": [0.0, 0.0]}).to_csv(tmp_path / "t.csv", index=False)
+    with caplog.at_level("WARNING"):
+        assert cli.main(["predict", str(tmp_path / "t.csv"), "--release", str(release), "--out", str(tmp_path / "o.npz")]) == 0
+    with np.load(tmp_path / "o.npz") as z:
+        assert not {"input", "frame", "face"} & set(z.files)
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 1 and "AU12 up to 0.9 (training max 0.6, p99 0.5)" in messages[0], messages
+
+
+def test_pyfunc_model_logs_the_range_warning_on_every_call(tmp_path, caplog):
+    from aumesh.experiments.pyfunc import ReleaseModel
+    from aumesh.model.inference import load_release
+
+    model = ReleaseModel()
+    model.release_ = load_release(_release_with_support(tmp_path, "MPDetector"))
+    with caplog.at_level("WARNING", logger="aumesh.experiments.pyfunc"):
+        for _ in range(2):
+            model.predict(None, pd.DataFrame({"AU09": [0.5], "AU12": [0.3]}))
+        model.predict(None, pd.DataFrame({"AU12": [0.3]}))  # within the data: silent
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and all("AU09 up to 0.5" in m and "never expressed" in m for m in lines), lines
+
+
+def test_animate_warns_once_for_the_clip_and_for_another_detector(tmp_path, caplog):
+    from aumesh.cli import main
+    from aumesh.data.synth import SynthSpec
+    from aumesh.data.synth_pyfeat import write_pyfeat_tables
+
+    written = write_pyfeat_tables(tmp_path / "raw", SynthSpec(n_frames=40, n_videos=1, seed=4), detector="v2", seed=1)
+    release = _release_with_support(tmp_path, "MPDetector")
+    with caplog.at_level("WARNING"):
+        assert main(["animate", written["files"][0], "--out", str(tmp_path / "c.glb"), "--release", str(release)]) == 0
+    lines = [r.getMessage() for r in caplog.records if r.name == "aumesh.animation.gltf_clip"]
+    assert len(lines) == 2, lines
+    assert "Detectorv2's but the release was trained on MPDetector" in lines[0]
+    assert "AU12 up to" in lines[1] and "training max 0.6" in lines[1] and "never expressed" in lines[1]
