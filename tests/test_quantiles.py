@@ -74,7 +74,12 @@ def test_columns_in_the_same_passes_equal_numpy_quantile_of_each_column():
     rng = np.random.default_rng(3)
     n = 5_003
     x = np.column_stack(
-        [rng.standard_normal(n), rng.integers(0, 3, n).astype(float), np.full(n, 0.5), np.exp(4 * rng.standard_normal(n))]
+        [
+            rng.standard_normal(n),
+            rng.integers(0, 3, n).astype(float),
+            np.full(n, 0.5),
+            np.exp(4 * rng.standard_normal(n)),
+        ]
     )
     parts = np.split(x, [0, 17, 2_000, 2_000, 4_500])  # empty partitions too
     for max_gather in (1, 1 << 18):

@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import default_config
 
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, POSE_COLUMNS
+from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS
 from aumesh.model import support
+from conftest import default_config
 
 
 def _expected_ranges(frames: pd.DataFrame) -> dict:
@@ -82,7 +82,9 @@ def single_person(tmp_path_factory):
         t = pq.read_table(path)
         j = t.schema.get_field_index("AU09")
         au09 = t.column(j).to_numpy() * 0.035 / max(float(t.column(j).to_numpy().max()), 1e-9)
-        pq.write_table(t.set_column(j, t.schema.field(j), [au09.astype(t.schema.field(j).type.to_pandas_dtype())]), path)
+        pq.write_table(
+            t.set_column(j, t.schema.field(j), [au09.astype(t.schema.field(j).type.to_pandas_dtype())]), path
+        )
     cfg = default_config(**{"paths.data_dir": str(d / "data")})
     found = tables.discover(d / "data", cfg.data.tables, cfg.data.mesh_npy)
     summary = prepare.run(found, cfg, d / "prepared", detectors={"Detectorv2": 3})
@@ -149,7 +151,8 @@ def test_release_npz_records_p99_and_unsupported_and_old_releases_still_load(sin
     path = atomic_savez(tmp_path / "release.npz", **arrays)
     loaded = aumesh.load_release(path)
     np.testing.assert_array_equal(
-        loaded["feature_p99"], np.quantile(frames[list(INPUT_COLUMNS)].to_numpy(np.float64), 0.99, axis=0).astype(np.float32)
+        loaded["feature_p99"],
+        np.quantile(frames[list(INPUT_COLUMNS)].to_numpy(np.float64), 0.99, axis=0).astype(np.float32),
     )
     assert loaded["unsupported_features"].tolist() == ["AU09"]
     meta = json.loads(str(loaded["training_metadata"]))
@@ -265,7 +268,11 @@ def test_predict_npz_joins_back_to_the_fex_rows_and_warns_for_another_detector(t
     out = tmp_path / "meshes.npz"
     with caplog.at_level("WARNING"):
         assert cli.main(["predict", str(table), "--release", str(release), "--out", str(out)]) == 0
-    lines = [r.getMessage() for r in caplog.records if "MPDetector's but the release was trained on Detectorv2" in r.getMessage()]
+    lines = [
+        r.getMessage()
+        for r in caplog.records
+        if "MPDetector's but the release was trained on Detectorv2" in r.getMessage()
+    ]
     assert len(lines) == 1 and "\n" not in lines[0]
     fex = pd.read_csv(table)
     with np.load(out, allow_pickle=False) as z:
@@ -277,7 +284,9 @@ def test_predict_npz_joins_back_to_the_fex_rows_and_warns_for_another_detector(t
     assert (fex.groupby(["input", "frame"]).size() > 1).any()  # several faces in some frames
     assert not got.duplicated().any()
     got[list(AU_COLUMNS)] = au
-    joined = got.merge(fex[["input", "frame", "face", *AU_COLUMNS]], on=["input", "frame", "face"], suffixes=("", "_fex"))
+    joined = got.merge(
+        fex[["input", "frame", "face", *AU_COLUMNS]], on=["input", "frame", "face"], suffixes=("", "_fex")
+    )
     assert len(joined) == len(fex)
     np.testing.assert_array_equal(
         joined[list(AU_COLUMNS)].to_numpy(), joined[[f"{a}_fex" for a in AU_COLUMNS]].to_numpy()
@@ -290,7 +299,10 @@ def test_predict_of_an_input_columns_table_has_no_keys_and_no_detector_warning(t
     release = _release_with_support(tmp_path, "Detectorv2")
     pd.DataFrame({"AU12": [0.1, 0.9], "AU09": [0.0, 0.0]}).to_csv(tmp_path / "t.csv", index=False)
     with caplog.at_level("WARNING"):
-        assert cli.main(["predict", str(tmp_path / "t.csv"), "--release", str(release), "--out", str(tmp_path / "o.npz")]) == 0
+        assert (
+            cli.main(["predict", str(tmp_path / "t.csv"), "--release", str(release), "--out", str(tmp_path / "o.npz")])
+            == 0
+        )
     with np.load(tmp_path / "o.npz") as z:
         assert not {"input", "frame", "face"} & set(z.files)
     messages = [r.getMessage() for r in caplog.records]

@@ -407,7 +407,9 @@ def test_unescaped_json_would_run_the_text(tab, tmp_path, node_tools, monkeypatc
 
 def _support_ranges() -> dict:
     """Training ranges of a small set: AU09 never expressed (p99 0.03, max 0.035), AU12 at most 0.6, the rest 0..1."""
-    ranges = {c: {"min": 0.0, "p1": 0.0, "p50": 0.2, "p99": 0.95, "max": 1.0, "active_fraction": 0.5} for c in INPUT_COLUMNS}
+    ranges = {
+        c: {"min": 0.0, "p1": 0.0, "p50": 0.2, "p99": 0.95, "max": 1.0, "active_fraction": 0.5} for c in INPUT_COLUMNS
+    }
     ranges["AU09"] = {"min": 0.0, "p1": 0.0, "p50": 0.01, "p99": 0.03, "max": 0.035, "active_fraction": 0.0}
     ranges["AU12"] = {"min": 0.0, "p1": 0.0, "p50": 0.1, "p99": 0.5, "max": 0.6, "active_fraction": 0.3}
     return ranges

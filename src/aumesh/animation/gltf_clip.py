@@ -196,4 +196,12 @@ def animate(
     )
 
 
-__all__ = ["ClipSummary", "animate", "check_clip_inputs", "clip_animation", "clip_glb_bytes", "pose_quaternions", "write_clip_glb"]
+__all__ = [
+    "ClipSummary",
+    "animate",
+    "check_clip_inputs",
+    "clip_animation",
+    "clip_glb_bytes",
+    "pose_quaternions",
+    "write_clip_glb",
+]

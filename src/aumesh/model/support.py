@@ -118,9 +118,7 @@ def people_summary(counts: Mapping[str, Any], n_videos: int) -> dict[str, Any]:
     ``identity_labels``), with what the number means."""
     labels = counts.get("identity_labels")
     if labels is None:
-        note = (
-            f"unknown: the tables have no py-feat Identity column; {n_videos:,} video(s) may show one person or many"
-        )
+        note = f"unknown: the tables have no py-feat Identity column; {n_videos:,} video(s) may show one person or many"
     else:
         note = (
             f"{int(labels):,} distinct py-feat Identity label(s) among the kept face rows, summed over sources: py-feat "
@@ -236,11 +234,7 @@ def beyond_training(au: np.ndarray, au_names: Sequence[str], face: np.ndarray, s
                 detail += f", p99 {p99:.3g}"
             above.append(f"{name} up to {largest[j]:.3g} ({detail})")
             rows |= face & (au[:, j] > limit + _SLACK)
-    never = [
-        name
-        for j, name in enumerate(au_names)
-        if name in support.unsupported and largest[j] > UNSUPPORTED_GIVEN
-    ]
+    never = [name for j, name in enumerate(au_names) if name in support.unsupported and largest[j] > UNSUPPORTED_GIVEN]
     parts = []
     if above:
         parts.append(

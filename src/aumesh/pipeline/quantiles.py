@@ -197,7 +197,9 @@ def exact_quantiles(
     float or ndarray of shape (n_q,)
         As ``np.quantile(np.concatenate([values(p) for p in partitions]), q, method=method)``.
     """
-    result = exact_column_quantiles(values, partitions, np.atleast_1d(np.asarray(q, dtype=np.float64)), method, max_gather)
+    result = exact_column_quantiles(
+        values, partitions, np.atleast_1d(np.asarray(q, dtype=np.float64)), method, max_gather
+    )
     return float(result[0, 0]) if np.ndim(q) == 0 else result[0]
 
 
@@ -257,9 +259,7 @@ def exact_column_quantiles(
                 else:
                     refine.append((c, sub, sub_below, sub_ranks))
         if small:
-            gathered = compute.map_gather(
-                partial(_gather, values, tuple((c, iv) for c, iv, _, _ in small)), partitions
-            )
+            gathered = compute.map_gather(partial(_gather, values, tuple((c, iv) for c, iv, _, _ in small)), partitions)
             for i, (c, _, below, inside) in enumerate(small):
                 v = np.sort(np.concatenate([g[i] for g in gathered]))
                 found[c].update({int(r): float(v[r - below]) for r in inside})
