@@ -3,8 +3,9 @@
 Reads a CSV or parquet table, one row per mesh, and picks the model's inputs by name:
 
 - a whole detector table (py-feat's output, MPDetector or Detectorv2, 2,000+ columns): only the
-  20 AUs ``AU01 .. AU43``, ``Pitch``, ``Yaw``, ``Roll`` (radians) and ``FaceScore`` are read (the
-  header decides, the rest of the file is never materialised); every other column is ignored;
+  20 AUs ``AU01 .. AU43``, ``Pitch``, ``Yaw``, ``Roll`` (radians) and ``FaceScore`` are read as inputs, and
+  ``input`` and ``frame`` as the rows' keys (the header decides, the rest of the file is never materialised); every
+  other column is ignored;
 - a table of input columns only: missing AUs are 0, no pose columns means pose 0;
 - ``strict``: every column must be an input column (after ``ignore``).
 

@@ -59,17 +59,26 @@ def _columns(values: Callable[[Any], np.ndarray], part: Any) -> np.ndarray:
     return v[:, None] if v.ndim == 1 else v
 
 
-def _range(values: Callable[[Any], np.ndarray], part: Any) -> tuple[int, np.ndarray, np.ndarray]:
+def _range(
+    values: Callable[[Any], np.ndarray], part: Any
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(n, min, max, count at min, count at max)`` of the partition's columns (each (k,))."""
     v = _columns(values, part)
     if not np.isfinite(v).all():
         raise ValueError("exact_quantiles: the values hold NaN or inf (pass finite values only)")
     if not len(v):
-        return 0, np.full(v.shape[1], np.inf), np.full(v.shape[1], -np.inf)
-    return len(v), v.min(axis=0), v.max(axis=0)
+        none = np.zeros(v.shape[1], np.int64)
+        return 0, np.full(v.shape[1], np.inf), np.full(v.shape[1], -np.inf), none, none
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    return len(v), lo, hi, (v == lo).sum(axis=0), (v == hi).sum(axis=0)
 
 
 def _merge_range(a, b):
-    return a[0] + b[0], np.minimum(a[1], b[1]), np.maximum(a[2], b[2])
+    """Two partitions' :func:`_range`: the counts at the extremes follow the extreme that wins (summed on a tie)."""
+    lo, hi = np.minimum(a[1], b[1]), np.maximum(a[2], b[2])
+    at_lo = np.where(a[1] == lo, a[3], 0) + np.where(b[1] == lo, b[3], 0)
+    at_hi = np.where(a[2] == hi, a[4], 0) + np.where(b[2] == hi, b[4], 0)
+    return a[0] + b[0], lo, hi, at_lo, at_hi
 
 
 def _locate(v: np.ndarray, intervals: tuple[Interval, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -232,16 +241,25 @@ def exact_column_quantiles(
     qs = np.atleast_1d(np.asarray(q, dtype=np.float64))
     if ((qs < 0) | (qs > 1)).any():
         raise ValueError("exact_quantiles: probabilities must lie in [0, 1]")
-    n, lo, hi = compute.map_reduce(partial(_range, values), _merge_range, partitions)
+    n, lo, hi, at_lo, at_hi = compute.map_reduce(partial(_range, values), _merge_range, partitions)
     if n == 0:
         raise NoValuesError("exact_quantiles: no values")
     previous, nxt, gamma = needed_ranks(n, qs, method)
     ranks = np.unique(np.r_[previous, nxt])
     k = len(lo)
     found: list[dict[int, float]] = [{} for _ in range(k)]
-    # (column, interval, values of the whole column below it, ranks inside it), refined until each is small enough
-    pending = [(c, Interval(float(lo[c]), float(hi[c]), True), 0, ranks) for c in range(k)]
+    # the ranks among the ties at a column's minimum or maximum are known from the counts (detectors' AUs clipped to
+    # [0, 1] hold most of their frames at exactly 0: without this, the bin of the zeros was split round after round)
+    pending = []  # (column, interval, values of the whole column below it, ranks inside it), refined until small
+    for c in range(k):
+        low, high = ranks < at_lo[c], ranks >= n - at_hi[c]
+        found[c].update({int(r): float(lo[c]) for r in ranks[low]})
+        found[c].update({int(r): float(hi[c]) for r in ranks[high & ~low]})
+        if (~low & ~high).any():
+            pending.append((c, Interval(float(lo[c]), float(hi[c]), True), 0, ranks[~low & ~high]))
     for depth in range(MAX_ROUNDS):
+        if not pending:
+            break
         intervals = tuple((c, iv) for c, iv, _, _ in pending)
         counts = compute.map_reduce(partial(_histogram, values, intervals), np.add, partitions)
         small, refine = [], []
