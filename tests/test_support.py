@@ -336,3 +336,24 @@ def test_animate_warns_once_for_the_clip_and_for_another_detector(tmp_path, capl
     assert len(lines) == 2, lines
     assert "Detectorv2's but the release was trained on MPDetector" in lines[0]
     assert "AU12 up to" in lines[1] and "training max 0.6" in lines[1] and "never expressed" in lines[1]
+
+
+def test_the_build_runs_mlflow_model_carries_the_datas_support(good_workspace, monkeypatch):
+    """The evaluate stage's logged pyfunc model (what promotion registers and `mlflow models serve` serves) has the
+    same feature_p99 and unsupported_features as the release, so serving warns as predict_mesh does."""
+    import mlflow
+
+    from aumesh.experiments.pyfunc import NPZ_ARTIFACT
+    from aumesh.model.release import load_npz
+
+    monkeypatch.chdir(good_workspace)
+    run_id = json.loads((good_workspace / "build" / "model" / "tracking.json").read_text())["run_id"]
+    mlflow.set_tracking_uri(f"sqlite:///{good_workspace / 'mlflow.db'}")
+    logged = load_npz(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=NPZ_ARTIFACT))
+    release = load_npz(good_workspace / "release" / "au_to_mesh_pls.npz")
+    np.testing.assert_array_equal(logged["feature_p99"], release["feature_p99"])
+    np.testing.assert_array_equal(logged["unsupported_features"], release["unsupported_features"])
+    assert (
+        json.loads(str(logged["training_metadata"]))["data"]["input_ranges"]
+        == json.loads(str(release["training_metadata"]))["data"]["input_ranges"]
+    )
