@@ -85,3 +85,18 @@ def test_columns_in_the_same_passes_equal_numpy_quantile_of_each_column():
     for max_gather in (1, 1 << 18):
         got = exact_column_quantiles(_identity, parts, PROBS, max_gather=max_gather)
         np.testing.assert_array_equal(got, np.quantile(x, PROBS, axis=0).T)
+
+
+def test_bin_of_is_the_binary_search_of_the_edges():
+    """The histogram's arithmetic bin index equals searchsorted over the edges, on the edges themselves, their
+    neighbours and random values, for wide, narrow and tiny intervals."""
+    from aumesh.pipeline.quantiles import BINS, Interval, _bin_of
+
+    rng = np.random.default_rng(5)
+    for lo, hi in [(0.0, 1.0), (-3.7, 1e-3), (1.0, 1.0 + 1e-12), (0.0, 5e-324 * 8192), (-1e300, 1e300)]:
+        iv = Interval(lo, hi, True)
+        e = iv.edges()
+        x = np.r_[e, np.nextafter(e, -np.inf), np.nextafter(e, np.inf), rng.uniform(lo, hi, 10_000)]
+        x = x[(x >= lo) & (x <= hi)]
+        expected = np.clip(np.searchsorted(e, x, side="right") - 1, 0, BINS - 1)
+        np.testing.assert_array_equal(_bin_of(x, iv), expected, err_msg=f"[{lo}, {hi}]")

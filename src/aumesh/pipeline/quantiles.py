@@ -88,6 +88,10 @@ def _locate(v: np.ndarray, intervals: tuple[Interval, ...]) -> tuple[np.ndarray,
     One search of each value among the intervals' lower ends, not a mask of the whole vector per interval: the
     error curve asks for 1,001 quantiles, whose gather pass cost ~1,000 passes over every partition's values.
     """
+    if len(intervals) == 1:  # one interval (a column's first round): a mask, no search
+        iv = intervals[0]
+        inside = (v >= iv.lo) & ((v < iv.hi) | (iv.closed & (v == iv.hi)))
+        return v[inside], np.array([0, int(inside.sum())])
     order = np.argsort([iv.lo for iv in intervals], kind="stable")
     lo = np.array([intervals[i].lo for i in order])
     hi = np.array([intervals[i].hi for i in order])
@@ -112,6 +116,23 @@ def _per_column(
     return out
 
 
+def _bin_of(x: np.ndarray, iv: Interval) -> np.ndarray:
+    """Each value's bin among ``iv.edges()``: ``clip(searchsorted(edges, x, side="right") - 1, 0, BINS - 1)``, the
+    largest edge at or below it, exactly. Estimated by arithmetic, then corrected against the edges themselves (the
+    estimate is off by at most one bin in float64), instead of a binary search of 4,097 edges for every value (most of
+    the passes' time on 23 columns)."""
+    edges = iv.edges()
+    width = iv.hi - iv.lo
+    scale = BINS / width if iv.hi > iv.lo else np.inf
+    if not (np.isfinite(scale) and np.isfinite(width) and scale > 0):  # a point, or a width beyond float64
+        return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, BINS - 1)
+    j = np.clip(((x - iv.lo) * scale).astype(np.int64), 0, BINS - 1)
+    for _ in range(2):  # two corrections either way: bit for bit the search's answer even at a rounding tie
+        j = np.clip(j - (x < edges[j]), 0, BINS - 1)
+        j = j + ((j < BINS - 1) & (x >= edges[np.minimum(j + 1, BINS)]))
+    return j
+
+
 def _histogram(
     values: Callable[[Any], np.ndarray], intervals: tuple[tuple[int, Interval], ...], part: Any
 ) -> np.ndarray:
@@ -120,8 +141,7 @@ def _histogram(
     for mine, inside, bounds in _per_column(_columns(values, part), intervals):
         for j, i in enumerate(mine):
             iv = intervals[i][1]
-            b = np.clip(np.searchsorted(iv.edges(), inside[bounds[j] : bounds[j + 1]], side="right") - 1, 0, BINS - 1)
-            out[i] = np.bincount(b, minlength=BINS)
+            out[i] = np.bincount(_bin_of(inside[bounds[j] : bounds[j + 1]], iv), minlength=BINS)
     return out
 
 
