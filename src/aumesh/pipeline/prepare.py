@@ -29,13 +29,17 @@ process holds per-partition and per-video summaries only (memory flat in frames)
    low-AU flags from its scratch files and the thresholds, aligns the kept frames and writes them
    (float32, axis-major) into its rows of ``meshes.npy`` (``pwrite``: partitions write disjoint
    rows), its kept metadata, and the neutral meshes of the videos it holds whole; sums of the
-   population means and of videos split across partitions are reduced in a tree.
+   population means and of videos split across partitions are reduced in a tree;
+4. ``ranges``: each input's range over the kept frames (the ones the model is fitted on), from the partitions' kept
+   metadata of pass 3 (:func:`input_ranges`: exact quantiles of the 23 columns in shared passes, ~0.9 s at 344k
+   frames), for the release's record of what its data supports (:mod:`aumesh.model.support`).
 
 Outputs (in ``paths.prepared_dir``, swapped in atomically as a whole folder):
 ``meshes.npy`` (n_kept, 1434) float32; ``frames.parquet`` (video_id, frame, AUs, pose,
 video_index, low_au per kept frame, same order; a row group per partition); ``video_ids.npy``
 (n_videos,) and ``neutral_mean.npy`` / ``neutral_low_au.npy`` (n_videos, 1434) float32 (per-video
-neutral meshes); ``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts).
+neutral meshes); ``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts, ``input_ranges``,
+the tables' ``detector``).
 The tasks get absolute paths (the tables, the output's temporary folder, its scratch folder: per run, unique names),
 so workers that run elsewhere, for several workspaces, read and write this run's files; on a cluster the tables and the
 output folder must be on a filesystem every worker sees at the same path (a probe checks it when the stage connects).
