@@ -74,7 +74,6 @@ def single_person(tmp_path_factory):
     from aumesh.geometry import face
     from aumesh.model.release import release_arrays
     from aumesh.pipeline import prepare
-    from aumesh.pipeline.stages import data_support
 
     d = tmp_path_factory.mktemp("single")
     synth.write_tables(d / "data", synth.SynthSpec(n_frames=240, n_videos=3, seed=5, identity_scale=0.0))
@@ -91,7 +90,7 @@ def single_person(tmp_path_factory):
     frames = pd.read_parquet(d / "prepared" / "frames.parquet")
     truth = synthetic_release_arrays(120.0 * face.canonical_template() * np.array([1.0, -1.0, -1.0]))
     reference = {k: truth[k] for k in ("mean_aligned_mesh", "mean_low_au_mesh", "reference_anchors", "anchor_indices")}
-    card = {"data": data_support(summary), "config": cfg.to_dict()}
+    card = {"data": support.data_support(summary), "config": cfg.to_dict()}
     arrays = release_arrays(truth["coef"].T, truth["intercept"], list(INPUT_COLUMNS), 23, reference, "", card)
     return summary, frames, arrays
 

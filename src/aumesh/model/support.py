@@ -128,6 +128,19 @@ def people_summary(counts: Mapping[str, Any], n_videos: int) -> dict[str, Any]:
     return {"identity_labels": None if labels is None else int(labels), "note": note}
 
 
+def data_support(summary: Mapping[str, Any]) -> dict[str, Any]:
+    """What the training data supports, for the card's ``data`` (and, through ``training_metadata``, the NPZ's
+    ``feature_p99`` / ``unsupported_features``: :func:`aumesh.model.release.release_arrays`): ``input_ranges``,
+    ``unsupported_inputs``, ``detector`` and ``people``, from prepare's summary. A summary prepared before they were
+    recorded gives no ranges, ``detector`` ``unknown`` and ``people`` unknown."""
+    ranges = summary.get("input_ranges") or {}
+    return {
+        **({"input_ranges": ranges, "unsupported_inputs": unsupported_inputs(ranges)} if ranges else {}),
+        "detector": summary.get("detector") or detector_summary({}),
+        "people": people_summary(summary.get("counts") or {}, int(summary.get("n_videos", 0))),
+    }
+
+
 def feature_p99(input_ranges: Mapping[str, Mapping[str, Any]]) -> np.ndarray:
     """(23,) float32 p99 of each input in :data:`~aumesh.data.schema.INPUT_COLUMNS` order (the NPZ's
     ``feature_p99``, py-feat's name); NaN for an input the ranges lack."""
@@ -286,6 +299,7 @@ __all__ = [
     "UNSUPPORTED_P99",
     "Support",
     "beyond_training",
+    "data_support",
     "detector_counts",
     "detector_mismatch",
     "detector_summary",

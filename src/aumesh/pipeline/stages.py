@@ -238,8 +238,10 @@ def evaluate_stage(cfg: Config) -> dict:
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
         # the run's MLflow model warns beyond the data as the release does: it carries the data's support
+        from aumesh.model import support
+
         arrays = final.release_arrays(
-            prepared.reference, metadata={"mlflow_run_id": run.run_id, "data": data_support(prepared.summary)}
+            prepared.reference, metadata={"mlflow_run_id": run.run_id, "data": support.data_support(prepared.summary)}
         )
         refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
         run.call(log_release_model, arrays)
@@ -301,7 +303,10 @@ def shareable_config(cfg: Config) -> dict:
 
 
 def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict | None) -> dict:
-    """``model_card.json``: CV results, data (counts per filter, digest), config, provenance, MLflow run."""
+    """``model_card.json``: CV results, data (counts per filter, digest, what the data supports:
+    :func:`aumesh.model.support.data_support`), config, provenance, MLflow run."""
+    from aumesh.model import support
+
     with open(model_dir / METRICS_JSON) as fh:
         metrics = json.load(fh)
     with open(model_dir / TRACKING_JSON) as fh:
@@ -324,7 +329,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
             "degenerate": run_info.get("degenerate") or {},
             "counts": summary["counts"],
             "n_low_au_frames": summary["n_low_au_population"],
-            **data_support(summary),
+            **support.data_support(summary),
         },
         "config": shareable_config(cfg),
         "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
@@ -335,21 +340,6 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
         "runs": release_runs(run_info, promotion),
         "libraries": provenance.library_versions(),
         "promotion": promotion,
-    }
-
-
-def data_support(summary: dict) -> dict:
-    """What the training data supports, for the card's ``data`` (and the NPZ's ``feature_p99`` /
-    ``unsupported_features``, made from it by :func:`aumesh.model.release.release_arrays`): ``input_ranges``,
-    ``unsupported_inputs``, ``detector`` and ``people`` from prepare's summary (:mod:`aumesh.model.support`). A
-    summary prepared before they were recorded gives ``detector`` ``unknown``, ``people`` unknown and no ranges."""
-    from aumesh.model import support
-
-    ranges = summary.get("input_ranges") or {}
-    return {
-        **({"input_ranges": ranges, "unsupported_inputs": support.unsupported_inputs(ranges)} if ranges else {}),
-        "detector": summary.get("detector") or support.detector_summary({}),
-        "people": support.people_summary(summary.get("counts") or {}, int(summary.get("n_videos", 0))),
     }
 
 
