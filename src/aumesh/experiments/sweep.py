@@ -401,6 +401,7 @@ def _log_child(
     """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
     from aumesh.experiments import provenance
     from aumesh.experiments.pyfunc import log_release_model
+    from aumesh.model import support
 
     metrics = cv.metrics()
     run.log_config(cfg.to_dict())
@@ -444,8 +445,6 @@ def _log_child(
         f"n_components={final.n_components}"
     )
     run.log_figure(r2_curve_figure(cv.r2_path_folds, title), FIGURE_ARTIFACT)
-    from aumesh.model import support
-
     # the data's support travels with the model (the promoted sweep child's model is the registered one)
     metadata = {
         "mlflow_run_id": run.run_id,

@@ -211,6 +211,7 @@ def evaluate_run_name(cfg: Config) -> str:
 
 def evaluate_stage(cfg: Config) -> dict:
     from aumesh.experiments import mlflow_store, tracking
+    from aumesh.model import support
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
 
@@ -238,8 +239,6 @@ def evaluate_stage(cfg: Config) -> dict:
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
         # the run's MLflow model warns beyond the data as the release does: it carries the data's support
-        from aumesh.model import support
-
         arrays = final.release_arrays(
             prepared.reference, metadata={"mlflow_run_id": run.run_id, "data": support.data_support(prepared.summary)}
         )
