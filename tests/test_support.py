@@ -347,8 +347,10 @@ def test_the_build_runs_mlflow_model_carries_the_datas_support(good_workspace, m
 
     monkeypatch.chdir(good_workspace)
     run_id = json.loads((good_workspace / "build" / "model" / "tracking.json").read_text())["run_id"]
-    mlflow.set_tracking_uri(f"sqlite:///{good_workspace / 'mlflow.db'}")
-    logged = load_npz(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=NPZ_ARTIFACT))
+    store = f"sqlite:///{good_workspace / 'mlflow.db'}"  # given to the call: MLflow's global URI is not the test's
+    logged = load_npz(
+        mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=NPZ_ARTIFACT, tracking_uri=store)
+    )
     release = load_npz(good_workspace / "release" / "au_to_mesh_pls.npz")
     np.testing.assert_array_equal(logged["feature_p99"], release["feature_p99"])
     np.testing.assert_array_equal(logged["unsupported_features"], release["unsupported_features"])
