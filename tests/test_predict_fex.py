@@ -336,5 +336,7 @@ def test_a_csv_is_read_for_the_needed_columns_only(tmp_path, monkeypatch):
     assert run_predict(table, release, tmp_path / "m.npz") == 0
     reads = [c for c in calls if c.get("nrows") != 0]  # the header read has nrows=0
     assert reads and all(
-        sorted(c.get("usecols") or ["every column"]) == sorted([*INPUT_COLUMNS, "FaceScore"]) for c in reads
+        # the inputs, FaceScore, and py-feat's input and frame (the keys the NPZ joins back on)
+        sorted(c.get("usecols") or ["every column"]) == sorted([*INPUT_COLUMNS, "FaceScore", "input", "frame"])
+        for c in reads
     ), reads

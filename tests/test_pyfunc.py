@@ -207,3 +207,23 @@ def test_readme_load_model_snippet_works_from_any_folder(champion, tmp_path, mon
     expected = flatten_axis_major(aumesh.predict_mesh(load_npz(npz), {"AU12": 1.0})[None])
     np.testing.assert_allclose(namespace["flat"], expected, rtol=0, atol=1e-9 * 400)
     assert list(elsewhere.iterdir()) == []
+
+
+def test_the_logged_model_keeps_the_datas_support_and_warns_on_each_call(tmp_path, caplog):
+    """A release that records its training ranges, logged and loaded back as MLflow loads it: every call beyond the
+    data logs one line (as ``aumesh.predict_mesh`` warns); a call within it, none."""
+    import mlflow.pyfunc
+
+    from aumesh.experiments import pyfunc
+    from test_support import _release_with_support
+
+    npz = _release_with_support(tmp_path, "MPDetector")
+    with tracking.tracked_run({}, run_name="pyfunc-support", params=None) as run:
+        pyfunc.log_release_model(run, load_npz(npz))
+    model = mlflow.pyfunc.load_model(f"runs:/{run.run_id}/{pyfunc.MODEL_ARTIFACT_DIR}")
+    with caplog.at_level("WARNING", logger="aumesh.experiments.pyfunc"):
+        model.predict(pd.DataFrame({"AU12": [0.9, 0.2]}))
+        model.predict(pd.DataFrame({"AU12": [0.9]}))
+        model.predict(pd.DataFrame({"AU12": [0.5]}))  # within the training data
+    lines = [r.getMessage() for r in caplog.records if r.name == "aumesh.experiments.pyfunc"]
+    assert len(lines) == 2 and all("AU12 up to 0.9 (training max 0.6, p99 0.5)" in m for m in lines), lines

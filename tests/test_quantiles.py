@@ -64,3 +64,39 @@ def test_refuses_bad_input():
         exact_quantiles(_identity, [np.arange(3.0)], 1.5)
     with pytest.raises(ValueError, match="no values"):
         exact_quantiles(_identity, [np.array([])], 0.5)
+
+
+def test_columns_in_the_same_passes_equal_numpy_quantile_of_each_column():
+    """exact_column_quantiles: each column's np.quantile, bit for bit, the columns sharing the passes (ties, a
+    constant column, a heavy tail and forced refinement side by side)."""
+    from aumesh.pipeline.quantiles import exact_column_quantiles
+
+    rng = np.random.default_rng(3)
+    n = 5_003
+    x = np.column_stack(
+        [
+            rng.standard_normal(n),
+            rng.integers(0, 3, n).astype(float),
+            np.full(n, 0.5),
+            np.exp(4 * rng.standard_normal(n)),
+        ]
+    )
+    parts = np.split(x, [0, 17, 2_000, 2_000, 4_500])  # empty partitions too
+    for max_gather in (1, 1 << 18):
+        got = exact_column_quantiles(_identity, parts, PROBS, max_gather=max_gather)
+        np.testing.assert_array_equal(got, np.quantile(x, PROBS, axis=0).T)
+
+
+def test_bin_of_is_the_binary_search_of_the_edges():
+    """The histogram's arithmetic bin index equals searchsorted over the edges, on the edges themselves, their
+    neighbours and random values, for wide, narrow and tiny intervals."""
+    from aumesh.pipeline.quantiles import BINS, Interval, _bin_of
+
+    rng = np.random.default_rng(5)
+    for lo, hi in [(0.0, 1.0), (-3.7, 1e-3), (1.0, 1.0 + 1e-12), (0.0, 5e-324 * 8192), (-1e300, 1e300)]:
+        iv = Interval(lo, hi, True)
+        e = iv.edges()
+        x = np.r_[e, np.nextafter(e, -np.inf), np.nextafter(e, np.inf), rng.uniform(lo, hi, 10_000)]
+        x = x[(x >= lo) & (x <= hi)]
+        expected = np.clip(np.searchsorted(e, x, side="right") - 1, 0, BINS - 1)
+        np.testing.assert_array_equal(_bin_of(x, iv), expected, err_msg=f"[{lo}, {hi}]")

@@ -194,6 +194,55 @@ def test_layout_fills_the_window_and_every_slider_shows_at_1280x720(tab, page_fi
     assert problems == [] and requests == []
 
 
+def _support_ranges() -> dict:
+    """Training ranges of a small set: AU09 never expressed (p99 0.03, max 0.035), AU12 at most 0.6, the rest 0..1."""
+    ranges = {
+        c: {"min": 0.0, "p1": 0.0, "p50": 0.2, "p99": 0.95, "max": 1.0, "active_fraction": 0.5} for c in INPUT_COLUMNS
+    }
+    ranges["AU09"] = {"min": 0.0, "p1": 0.0, "p50": 0.01, "p99": 0.03, "max": 0.035, "active_fraction": 0.0}
+    ranges["AU12"] = {"min": 0.0, "p1": 0.0, "p50": 0.1, "p99": 0.5, "max": 0.6, "active_fraction": 0.3}
+    return ranges
+
+
+def test_sliders_mark_the_range_beyond_the_training_data(tab, tmp_path, page_file):
+    """A release that records its data's ranges: the track beyond each AU's training max is hatched from that value,
+    the value turns orange past it, the AU the data never expressed says so, and every slider still shows at
+    1280 x 720 and takes the mouse over the hatch. A release without ranges marks nothing."""
+    arrays = _pose_release(tmp_path, metadata={"data": {"input_ranges": _support_ranges()}})
+    assert arrays["unsupported_features"].tolist() == ["AU09"]
+    path = viewer.write_viewer(arrays, tmp_path / "support.html")
+    page, problems, requests = _open(tab, path, VIEW)
+    marks = page.evaluate("""() => [...document.querySelectorAll('#aus .row')].map((r) => {
+        const input = r.querySelector('input').getBoundingClientRect(), hatch = r.querySelector('.beyond');
+        const h = hatch && hatch.getBoundingClientRect();
+        return [r.querySelector('.code').textContent, r.dataset.beyond ?? null, r.dataset.support ?? null,
+                r.querySelector('.name').textContent, h ? (h.left - input.left) / input.width : null,
+                h ? Math.abs(h.right - input.right) : null];
+    })""")
+    by_au = {m[0]: m[1:] for m in marks}
+    assert {au for au, m in by_au.items() if m[0] is not None} == {"AU09", "AU12"}
+    assert float(by_au["AU12"][0]) == 0.6 and float(by_au["AU09"][0]) == 0.035
+    assert by_au["AU12"][3] == pytest.approx(0.6, abs=0.01) and by_au["AU12"][4] <= 1  # hatched from 0.6 to the end
+    assert by_au["AU09"][3] == pytest.approx(0.035, abs=0.01)
+    assert by_au["AU09"][1:3] == ["unsupported", "not in training data"]
+    assert by_au["AU12"][1:3] == [None, "Lip corner puller"]
+    for b in _ranges_visible(page):  # every slider whole in the window and on top of its hatch
+        assert b["bottom"] <= VIEW[1] and b["hit"], b
+    output = page.locator('#aus .row:has(input[name="AU12"]) output')
+    page.locator('input[name="AU12"]').fill("0.5")
+    assert "beyond-data" not in (output.get_attribute("class") or "")
+    page.locator('input[name="AU12"]').fill("0.8")
+    assert "beyond-data" in output.get_attribute("class")
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.locator("#side").screenshot(path=str(SHOTS / "viewer_support_sliders.png"))
+    assert problems == [] and requests == []
+
+    _, plain = page_file  # a release that records no ranges: nothing marked
+    page, problems, _ = _open(tab, plain, VIEW)
+    assert page.evaluate("document.querySelectorAll('#aus .row[data-beyond], #aus .row.unsupported').length") == 0
+    assert problems == []
+
+
 def test_drag_orbits_and_wheel_zooms(tab, page_file):
     _, path = page_file
     page, problems, requests = _open(tab, path, VIEW)

@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,8 @@ import numpy as np
 
 from aumesh.animation.clip import MAX_GAP_S, Clip, bridged_pose, bridged_weights, read_clip, smooth
 from aumesh.export import gltf
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,23 @@ def write_clip_glb(
     )
 
 
+def check_clip_inputs(npz: Mapping[str, Any], clip: Clip, *, pose: bool = False, where: str = "table") -> None:
+    """Log, once for the clip, what :func:`aumesh.predict_mesh` warns of its face frames (AUs beyond the training
+    data, unsupported AUs given, with ``pose`` a pose beyond the training range: one line) and a table from another
+    detector than the release's (:func:`aumesh.model.support.detector_mismatch`, from the table's layout)."""
+    import warnings
+
+    from aumesh.model import support
+    from aumesh.model.inference import InputRangeWarning, input_rows, logged_range_warnings
+
+    face = clip.has_face
+    with logged_range_warnings(log, where):
+        mismatch = support.detector_mismatch(clip.detector, support.release_support(npz), "table")
+        if mismatch:
+            warnings.warn(mismatch, InputRangeWarning, stacklevel=1)
+        input_rows(npz, clip.aus[face], clip.pose[face] if pose else None)
+
+
 def animate(
     table: str | Path,
     release: str | Path,
@@ -170,9 +190,18 @@ def animate(
     smooth(np.zeros((1, 1)), smooth_frames)  # an even --smooth is refused before the table is read
     npz = load_release(release)
     clip = read_clip(table, video=video, fps=fps)
+    check_clip_inputs(npz, clip, pose=pose, where=str(table))
     return write_clip_glb(
         npz, clip, out, pose=pose, smooth_frames=smooth_frames, max_gap_s=max_gap_s, release=Path(release).name
     )
 
 
-__all__ = ["ClipSummary", "animate", "clip_animation", "clip_glb_bytes", "pose_quaternions", "write_clip_glb"]
+__all__ = [
+    "ClipSummary",
+    "animate",
+    "check_clip_inputs",
+    "clip_animation",
+    "clip_glb_bytes",
+    "pose_quaternions",
+    "write_clip_glb",
+]

@@ -15,6 +15,10 @@ one optional, as in :func:`aumesh.predict_mesh`: a missing AU is 0, no pose colu
 pose-conditioned); the output is one row of 1434 axis-major coordinates
 ``[x_0..x_477 | y_0.. | z_0..]`` per input row.
 
+Inputs beyond the training data (AUs above the training max, AUs the data never expressed, pose beyond the pose
+filter: :func:`aumesh.predict_mesh`'s :class:`aumesh.InputRangeWarning`) are logged, one line per call (the server's
+log; ``model.predict``'s stderr), since the REST answer has no place for them.
+
 Input errors are aumesh's own (:class:`aumesh.PredictionInputError`: pose in degrees, a partly NaN
 row, half a pose) raised as :class:`ServingInputError`, an ``MlflowException`` with
 ``INVALID_PARAMETER_VALUE``: ``mlflow models serve`` answers HTTP 400 with aumesh's one-line
@@ -28,6 +32,7 @@ given explicitly (no dependency inference), which keeps logging cheap for every 
 
 from __future__ import annotations
 
+import logging
 import tempfile
 import time
 from collections.abc import Mapping
@@ -43,6 +48,8 @@ from mlflow.pyfunc import PythonModel
 
 from aumesh.data.schema import INPUT_COLUMNS, N_TARGETS, flatten_axis_major
 from aumesh.model.release import NPZ_NAME
+
+log = logging.getLogger(__name__)
 
 MODEL_ARTIFACT_DIR = "model"
 NPZ_KEY = "release_npz"
@@ -85,12 +92,15 @@ class ReleaseModel(PythonModel):
         Columns are taken by name; a missing AU is 0 and no pose columns is pose 0 (``predict_mesh``'s rules);
         other columns are ignored. aumesh's input errors raise :class:`ServingInputError` (HTTP 400 when served).
         """
-        from aumesh.model.inference import PredictionInputError, predict_mesh
+        from aumesh.model.inference import PredictionInputError, logged_range_warnings, predict_mesh
 
         frame = pd.DataFrame(model_input)
         present = [c for c in INPUT_COLUMNS if c in frame.columns]
+        # predict_mesh's checks beyond the training data, one logged line per request (a Python warning would show
+        # once per process: a server's later requests would go unwarned)
         try:
-            meshes = predict_mesh(self.release_, frame[present].astype(np.float64))
+            with logged_range_warnings(log, "aumesh model"):
+                meshes = predict_mesh(self.release_, frame[present].astype(np.float64))
         except PredictionInputError as err:
             raise ServingInputError(str(err)) from None  # the line is the whole story; no chained traceback
         return flatten_axis_major(meshes.reshape(len(frame), -1, 3))

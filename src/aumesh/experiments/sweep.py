@@ -401,6 +401,7 @@ def _log_child(
     """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
     from aumesh.experiments import provenance
     from aumesh.experiments.pyfunc import log_release_model
+    from aumesh.model import support
 
     metrics = cv.metrics()
     run.log_config(cfg.to_dict())
@@ -444,7 +445,13 @@ def _log_child(
         f"n_components={final.n_components}"
     )
     run.log_figure(r2_curve_figure(cv.r2_path_folds, title), FIGURE_ARTIFACT)
-    metadata = {"mlflow_run_id": run.run_id, "config": cfg.to_dict(), "cv": {k: v for k, v in metrics.items()}}
+    # the data's support travels with the model (the promoted sweep child's model is the registered one)
+    metadata = {
+        "mlflow_run_id": run.run_id,
+        "config": cfg.to_dict(),
+        "cv": {k: v for k, v in metrics.items()},
+        "data": support.data_support(prepared.summary),
+    }
     arrays = final.release_arrays(prepared.reference, metadata=metadata)
     run.log_metrics({"seconds_log_model": log_release_model(run, arrays)})  # MLflow pyfunc model under model/
     return {k: scalars[k] for k in ("r2_mean", "r2_std", "r2_displacement_mean", "mae_mean", "n_components")}

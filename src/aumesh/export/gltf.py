@@ -194,6 +194,29 @@ def glb_bytes(
     return b"".join(gltf.save_to_bytes())
 
 
+def support_extras(npz: Mapping[str, Any]) -> dict[str, Any]:
+    """What the rig's ``asset.extras`` says of its training data's support, when the release records it
+    (:func:`aumesh.model.support.release_support`): ``training_range`` ({AU: {"max", "p99"}}: morph weights above
+    ``max`` are beyond the data), ``unsupported_targets`` (AUs the data never expressed) and ``detector``; ``{}`` for
+    a release that records none."""
+    from aumesh.model import support
+
+    found = support.release_support(npz)
+    if found is None:
+        return {}
+    ranges = {
+        a: {found.bound: found.upper[a]}
+        | ({"p99": found.p99[a]} if found.bound == "max" and np.isfinite(found.p99.get(a, np.nan)) else {})
+        for a in AU_COLUMNS
+        if a in found.upper and np.isfinite(found.upper[a])
+    }
+    return {
+        "training_range": ranges,
+        "unsupported_targets": [a for a in AU_COLUMNS if a in found.unsupported],
+        "detector": found.detector,
+    }
+
+
 def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = None) -> Path:
     """Write the rig of release arrays ``npz`` to ``path`` atomically; ``source`` (the NPZ's name) goes in ``asset.extras``."""
     from aumesh.utils.io import atomic_path
@@ -202,6 +225,7 @@ def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = Non
         "inputs": "morph target weights = AU intensities (AU01..AU43); pose = 0",
         "units_and_frame": "the release NPZ's (see its model card)",
         "source": source,
+        **support_extras(npz),
     }
     with atomic_path(path, suffix=".glb") as tmp:
         tmp.write_bytes(glb_bytes(npz, extras=extras))

@@ -32,6 +32,11 @@ model's predicted mesh with the card's similarity Procrustes on the 12 anchors (
 has no SVD; equal to ``umeyama_batch``); the model's face is coloured by the per-vertex distance (viridis, in
 inter-ocular distances of the release's neutral face). ``window.aumeshViewer.clip`` exposes it to scripts and tests.
 
+**Support** (issue 41): when the release records its training data's ranges (:func:`slider_support`), each AU
+slider's track beyond the largest value training saw is hatched, its value turns orange there, and an AU the data
+never expressed (training p99 below 0.05) is labelled "not in training data" (its FACS name in the row's tooltip);
+the marks are on the rows (``data-beyond``, ``data-support``) for scripts and tests.
+
 Every string the page embeds (the card's rows: run names and ids, promotion fields, config
 values; the source name) travels as JSON inside ``<script type="application/json">`` with ``<``,
 ``>``, ``&``, U+2028 and U+2029 written as ``\\uXXXX`` escapes (:func:`script_json`), so no text can
@@ -250,6 +255,28 @@ def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
     return [(label, str(text)) for label, text in rows]
 
 
+def slider_support(npz: Mapping[str, Any]) -> dict | None:
+    """What the page marks on the AU sliders (:func:`aumesh.model.support.release_support`): ``{"bound": "max" |
+    "p99", "upper": {AU: the largest value training saw}, "p99": {AU: p99}, "unsupported": [AU, ...]}``, None for a
+    release that records no ranges (nothing is marked). A slider's track beyond ``upper`` is hatched; an unsupported
+    AU's row says "not in training data"."""
+    from aumesh.model import support
+
+    found = support.release_support(npz)
+    if found is None:
+        return None
+
+    def finite(values: Mapping[str, float]) -> dict[str, float]:
+        return {a: float(v) for a, v in values.items() if a in AU_COLUMNS and np.isfinite(v)}
+
+    return {
+        "bound": found.bound,
+        "upper": finite(found.upper),
+        "p99": finite(found.p99),
+        "unsupported": [a for a in AU_COLUMNS if a in found.unsupported],
+    }
+
+
 def viewer_html(
     npz: Mapping[str, Any],
     source: str = "",
@@ -290,6 +317,7 @@ def viewer_html(
         "clips": list(clips or []),
         "card": card_rows(metadata),
         "source": f"release: {source}" if source else "",
+        "support": slider_support(npz),
     }
     if "coef_full" in npz:
         data["coef_full"] = _b64(npz["coef_full"])

@@ -21,12 +21,13 @@ pose columns are picked by name, and a frame without a face gets a NaN mesh.
 from __future__ import annotations
 
 import difflib
-import json
+import logging
 import os
 import re
 import sys
 import warnings
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
+from aumesh.model import support
 from aumesh.model.release import load_npz
 from aumesh.utils.errors import MissingFileError, UserError
 
@@ -65,7 +67,9 @@ class PredictionInputError(UserError, ValueError):
 
 class InputRangeWarning(UserWarning):
     """Input the model takes but was not trained on (pose beyond the training range, an AU above 1 given as
-    numbers); one line naming the column and the first row. The mesh there is an extrapolation."""
+    numbers, an AU above its training max, an AU the training data never expressed given, a table from another
+    detector than the release's); one line a call, naming the columns, the values and the training range. The mesh
+    there is an extrapolation."""
 
 
 # --------------------------------------------------------------------------- the release
@@ -85,7 +89,9 @@ def load_release(source: ReleaseSource) -> dict[str, np.ndarray]:
         (``AU01 .. AU43, Pitch, Yaw, Roll``), ``intercept`` (1434,), ``au_columns`` (20,),
         ``mean_aligned_mesh`` (478, 3), and ``coef_full`` (83, 1434) with ``input_columns_full``
         when the model was trained with pose x AU interactions. Coordinates are in the release's
-        units (the reference's pixels) and axis-major order.
+        units (the reference's pixels) and axis-major order. Releases that record their data's support
+        also have ``feature_p99`` (23,) and ``unsupported_features`` (k,) (:mod:`aumesh.model.support`);
+        releases without them load as before (nothing is checked against the data then).
 
     Raises
     ------
@@ -148,6 +154,18 @@ def check_release(arrays: Mapping[str, Any], where: str = "<release arrays>") ->
             raise ReleaseError(
                 f"{where}: 'coef_full' must be ({len(full)}, {N_TARGETS}) (rows = input_columns_full), "
                 f"got {np.asarray(arrays['coef_full']).shape}"
+            )
+    if "feature_p99" in arrays and np.asarray(arrays["feature_p99"]).shape != (len(cols),):
+        raise ReleaseError(
+            f"{where}: 'feature_p99' must be ({len(cols)},) (each input's training p99, rows = input_columns), "
+            f"got {np.asarray(arrays['feature_p99']).shape}"
+        )
+    if "unsupported_features" in arrays:
+        unknown = [u for u in _names(np.asarray(arrays["unsupported_features"]).reshape(-1)) if u not in cols]
+        if unknown or np.asarray(arrays["unsupported_features"]).ndim != 1:
+            raise ReleaseError(
+                f"{where}: 'unsupported_features' must be a 1-D list of input_columns names, got "
+                f"{np.asarray(arrays['unsupported_features']).tolist()!r}"
             )
     nonfinite = nonfinite_arrays(arrays)
     if nonfinite:
@@ -403,8 +421,8 @@ def input_rows(
     Warns
     -----
     InputRangeWarning
-        Pose beyond the training range; an AU above 1 given as numbers (array, mapping, a DataFrame of
-        input columns).
+        One line: pose beyond the training range; an AU above 1 given as numbers (array, mapping, a DataFrame of
+        input columns); AUs beyond the training data (:func:`predict_mesh`).
 
     Notes
     -----
@@ -465,8 +483,8 @@ def input_rows(
         au[no_face], pose_rows[no_face] = np.nan, np.nan
     face = ~no_face
     _check_radians(pose_rows[face])
-    _check_au_scale(au, au_names, face, refuse=whole)
-    _warn_pose_range(pose_rows, face, release)
+    scale = _check_au_scale(au, au_names, face, refuse=whole)
+    _warn_beyond_training(au, pose_rows, au_names, face, release, scale)
     return au, pose_rows, single
 
 
@@ -607,11 +625,11 @@ def _check_radians(pose: np.ndarray) -> None:
         )
 
 
-def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refuse: bool) -> None:
-    """An AU above 1: an error in a whole (detector's) table, a warning for numbers given directly."""
+def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refuse: bool) -> str | None:
+    """An AU above 1: an error in a whole (detector's) table; for numbers given directly, the warning's phrase."""
     bad = (au > AU_SCALE_MAX + _AU_SCALE_SLACK) & face[:, None]
     if not bad.any():
-        return
+        return None
     row, col = (int(i) for i in np.argwhere(bad)[0])
     where = f"aus: {au_names[col]} = {au[row, col]:g} at row {row} is above {AU_SCALE_MAX:g}"
     if refuse:
@@ -619,7 +637,7 @@ def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refus
             f"{where}: py-feat's AU intensities, and the model's, are 0..1 (0..5 is OpenFace's scale). "
             f"Fix: divide the AU columns by 5"
         )
-    _warn(
+    return (
         f"{where}, beyond the 0..1 scale the model was trained on (py-feat's); the mesh is an extrapolation "
         f"(OpenFace's 0..5 AUs: divide by 5)"
     )
@@ -637,14 +655,8 @@ def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
     source : str
         ``"the release's pose filter"`` or ``"the card's pose filter"``.
     """
-    pose_filter: dict[str, Any] = {}
-    if "training_metadata" in release:
-        try:
-            meta = json.loads(str(np.asarray(release["training_metadata"])))
-        except ValueError:
-            meta = None
-        if isinstance(meta, dict):
-            pose_filter = ((meta.get("config") or {}).get("preprocess") or {}).get("pose_filter") or {}
+    meta = support.training_metadata(release)
+    pose_filter: dict[str, Any] = ((meta.get("config") or {}).get("preprocess") or {}).get("pose_filter") or {}
     if pose_filter.get("max_abs_pitch_deg") is not None and pose_filter.get("max_abs_yaw_deg") is not None:
         pitch, yaw, source = (
             pose_filter["max_abs_pitch_deg"],
@@ -659,25 +671,58 @@ def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
     return {"Pitch": float(np.deg2rad(float(pitch))), "Yaw": float(np.deg2rad(float(yaw)))}, source
 
 
-def _warn_pose_range(pose: np.ndarray, face: np.ndarray, release: Release) -> None:
-    """One :class:`InputRangeWarning` when a face row's Pitch or Yaw is beyond the training range."""
+def _pose_beyond(pose: np.ndarray, face: np.ndarray, release: Release) -> str | None:
+    """The warning's phrase when a face row's Pitch or Yaw is beyond the training range, else None."""
     if not face.any() or not (np.abs(pose[face]).max(initial=0.0) > 0):
-        return
+        return None
     limits, source = training_pose_limits(release)
     beyond = np.zeros(pose.shape, dtype=bool)
     for name, limit in limits.items():
         j = POSE_COLUMNS.index(name)
         beyond[:, j] = face & (np.abs(pose[:, j]) > limit)
     if not beyond.any():
-        return
+        return None
     row, j = (int(i) for i in np.argwhere(beyond)[0])
     name, value = POSE_COLUMNS[j], pose[row, j]
     rows = int(beyond.any(axis=1).sum())
-    _warn(
+    return (
         f"pose: {name} = {value:.3g} rad ({np.rad2deg(value):.1f} deg) at row {row} is beyond the training range "
         f"|{name}| <= {np.rad2deg(limits[name]):g} deg ({source}; {rows} row(s) beyond): "
         f"the mesh there is an extrapolation"
     )
+
+
+def _warn_beyond_training(
+    au: np.ndarray, pose: np.ndarray, au_names: list[str], face: np.ndarray, release: Release, scale: str | None
+) -> None:
+    """One :class:`InputRangeWarning` (one line) for everything in a call's input beyond what the model was trained
+    on: AUs above 1 given as numbers (``scale``, :func:`_check_au_scale`'s phrase), AUs above the training max or
+    unsupported AUs given (:func:`aumesh.model.support.beyond_training`, from the release's recorded support), pose
+    beyond the training range."""
+    found = support.release_support(release)
+    parts = [
+        scale,
+        None if found is None or not face.any() else support.beyond_training(au, au_names, face, found),
+        _pose_beyond(pose, face, release),
+    ]
+    message = "; ".join(p for p in parts if p)
+    if message:
+        _warn(message)
+
+
+@contextmanager
+def logged_range_warnings(logger: logging.Logger, where: str) -> Iterator[None]:
+    """Inside: :class:`InputRangeWarning` is caught and logged by ``logger``, one line each as ``"<where>: <line>"``
+    (``aumesh predict``, ``aumesh animate``, the served model: a command's output, not Python's warning format);
+    other warnings pass on as they are."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InputRangeWarning)
+        yield
+    for w in caught:
+        if issubclass(w.category, InputRangeWarning):
+            logger.warning("%s: %s", where, w.message)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _warn(message: str) -> None:
@@ -749,7 +794,11 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, s
     Warns
     -----
     InputRangeWarning
-        Pitch or Yaw beyond the training range; an AU above 1 given as numbers.
+        One line a call: Pitch or Yaw beyond the training range; an AU above 1 given as numbers; an AU above
+        the largest value the training data had (named with the largest value given, the training max and p99);
+        an AU the training data never expressed (training p99 below 0.05, the release's
+        ``unsupported_features``) given above 0.02, py-feat's rule (:mod:`aumesh.model.support`). Releases that
+        record no ranges are checked for pose and the 0..1 scale only.
 
     Notes
     -----
@@ -825,6 +874,7 @@ __all__ = [
     "check_release",
     "input_rows",
     "load_release",
+    "logged_range_warnings",
     "predict_mesh",
     "closest_name",
     "predict_rows",

@@ -16,6 +16,7 @@ from aumesh.card.limits import limits_section
 from aumesh.card.markdown import md_code, md_text
 from aumesh.data.schema import AU_COLUMNS, FEATURE_SETS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
+from aumesh.model import support
 
 NPZ_NAME = "au_to_mesh_pls.npz"
 CARD_JSON = "model_card.json"
@@ -82,6 +83,11 @@ def release_arrays(
     reference : dict
         ``reference_anchors`` (12, 3), ``anchor_indices`` (12,), ``mean_aligned_mesh`` and
         ``mean_low_au_mesh`` (478, 3), from the prepare stage (aligned frame).
+    metadata : dict
+        ``training_metadata`` (the card JSON). When its ``data.input_ranges`` is recorded, the NPZ also gets
+        ``feature_p99`` (23,) float32 (each input's training p99, ``input_columns`` order) and
+        ``unsupported_features`` (k,) str (the AUs the data never expressed, :mod:`aumesh.model.support`; shape (0,)
+        when none), py-feat's names.
     """
     coef = np.asarray(coef, dtype=np.float64)
     if coef.shape != (N_TARGETS, len(feature_columns)):
@@ -108,6 +114,12 @@ def release_arrays(
         "model_card": np.array(card_text),
         "training_metadata": np.array(json.dumps(metadata, sort_keys=True, default=str)),
     }
+    ranges = (metadata.get("data") or {}).get("input_ranges") if isinstance(metadata.get("data"), dict) else None
+    if ranges:
+        # py-feat's keys (feat/plotting.py: PLSFeatMeshModel's feature_max is the NPZ's feature_p99, its
+        # unsupported_features the inputs the detector never expressed): the data's support, readable without aumesh
+        arrays["feature_p99"] = support.feature_p99(ranges)
+        arrays["unsupported_features"] = np.array(support.unsupported_inputs(ranges), dtype=str).reshape(-1)
     if len(feature_columns) > len(INPUT_COLUMNS):
         # pose x AU interactions: the full design keeps pose-conditioned prediction exact:
         # flat = x_full @ coef_full + intercept, x_full = [AU | pose | pose x AU] (pose-major products)
@@ -205,6 +217,20 @@ def _face_shape_lines(shape: dict[str, Any] | None) -> list[str]:
     ]
 
 
+def _detector_lines(data: dict[str, Any]) -> list[str]:
+    """The card's line on the AU space: the detector of the training tables and what its AUs mean
+    (``data.detector``, :func:`aumesh.model.support.detector_summary`); none for a card that does not record it."""
+    detector = data.get("detector")
+    if not isinstance(detector, dict) or not detector.get("name"):
+        return []
+    sources = detector.get("sources") or {}
+    listed = ", ".join(f"{md_text(k)} {v:,}" for k, v in sources.items())
+    return [
+        f"- AU space: **{md_text(detector['name'])}**" + (f" (sources: {listed})" if listed else "") + ": "
+        f"{md_text(detector.get('au_meaning', ''))}. Give the model AUs of the same detector."
+    ]
+
+
 def _runs_lines(card: dict[str, Any]) -> list[str]:
     """The card's "Runs" section: the promoted run (how the configuration was chosen) and the build run (what
     produced these arrays), each with its MLflow id; without a promotion, only the build run."""
@@ -270,6 +296,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         f"- {data['n_frames']:,} frames from {data['n_videos']:,} videos (data digest {md_code(data['digest'].get('md5'))})",
         *_ingest_lines(counts, cfg.get("data", {})),
+        *_detector_lines(data),
         f"- Input: {counts['frames_in']:,} frames / {counts['videos_in']:,} videos",
         # numbers, booleans: typed by the configuration's schema (aumesh.config), printed as they are
         f"- Pose-filtered to |yaw| <= {pre['pose_filter']['max_abs_yaw_deg']} deg, |pitch| <= {pre['pose_filter']['max_abs_pitch_deg']} deg: "

@@ -3,8 +3,9 @@
 Reads a CSV or parquet table, one row per mesh, and picks the model's inputs by name:
 
 - a whole detector table (py-feat's output, MPDetector or Detectorv2, 2,000+ columns): only the
-  20 AUs ``AU01 .. AU43``, ``Pitch``, ``Yaw``, ``Roll`` (radians) and ``FaceScore`` are read (the
-  header decides, the rest of the file is never materialised); every other column is ignored;
+  20 AUs ``AU01 .. AU43``, ``Pitch``, ``Yaw``, ``Roll`` (radians) and ``FaceScore`` are read as inputs, and
+  ``input`` and ``frame`` as the rows' keys (the header decides, the rest of the file is never materialised); every
+  other column is ignored;
 - a table of input columns only: missing AUs are 0, no pose columns means pose 0;
 - ``strict``: every column must be an input column (after ``ignore``).
 
@@ -15,12 +16,14 @@ written, by the output's suffix:
 
 - ``.npz``: ``meshes`` (N, 478, 3) float32 in table row order, ``no_face`` (N,) bool, the inputs
   ``au`` (N, 20) and ``pose`` (N, 3) as the model used them (NaN on no-face rows), ``au_columns``
-  and ``pose_columns``;
+  and ``pose_columns``; and, when the table has them, the keys that join each mesh back to its py-feat row
+  (:func:`row_keys`): ``input`` (N,) str (py-feat's video path, or ``video_id``), ``frame`` (N,) and ``face`` (N,)
+  (the face's index within its frame: 0, 1, ... in file order);
 - ``.obj`` / ``.ply``: one row only (with a face), the mesh with the project's triangulation
   (:func:`aumesh.geometry.face.triangulate`), triangles facing out of the face.
 
-Files are written atomically. Input-range warnings (pose beyond the training range) are logged,
-one line each.
+Files are written atomically. Input-range warnings (inputs beyond the training data, a table from another
+detector than the release's: :mod:`aumesh.model.support`) are logged, one line each.
 """
 
 from __future__ import annotations
@@ -34,9 +37,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from aumesh.data.schema import AU_COLUMNS, POSE_COLUMNS
+from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.export import meshfiles
 from aumesh.geometry import face
+from aumesh.model import support
 from aumesh.model.inference import (
     ColumnSelection,
     InputRangeWarning,
@@ -44,6 +48,7 @@ from aumesh.model.inference import (
     closest_name,
     input_rows,
     load_release,
+    logged_range_warnings,
     predict_rows,
     select_columns,
     short_list,
@@ -84,7 +89,12 @@ def table_header(path: str | os.PathLike) -> list[str]:
 
 
 def read_table(
-    path: str | os.PathLike, au_columns: Sequence[str] = AU_COLUMNS, ignore: Sequence[str] = (), *, strict: bool = False
+    path: str | os.PathLike,
+    au_columns: Sequence[str] = AU_COLUMNS,
+    ignore: Sequence[str] = (),
+    *,
+    strict: bool = False,
+    keys: Sequence[str] = (),
 ) -> tuple[pd.DataFrame, ColumnSelection]:
     """The model-input columns of a CSV or parquet table (and ``FaceScore``), chosen from its header.
 
@@ -99,11 +109,14 @@ def read_table(
         table to predict frontal meshes.
     strict : bool
         Every remaining column must be an input column.
+    keys : sequence of str
+        Columns read besides (those the table has), never inputs: py-feat's ``input``, ``frame``
+        (:func:`row_keys`).
 
     Returns
     -------
     df : pd.DataFrame, shape (N, k)
-        Only the ``selection.columns`` (k <= 24), in the file's row order; a 2,045-column py-feat CSV
+        Only the ``selection.columns`` (k <= 24) and ``keys``, in the file's row order; a 2,045-column py-feat CSV
         is parsed for those columns only (``usecols``; parquet: ``columns=``).
     selection : ColumnSelection
         Whether the table is a whole table, and its input columns (:func:`aumesh.model.inference.select_columns`).
@@ -127,7 +140,7 @@ def read_table(
         )
     dropped = set(ignore)
     selection = select_columns([c for c in header if c not in dropped], au_columns, strict=strict, what=str(path))
-    wanted = selection.columns
+    wanted = selection.columns + [k for k in keys if k in header and k not in dropped and k not in selection.columns]
     try:
         if path.suffix.lower() == ".csv":
             df = pd.read_csv(path, usecols=wanted) if wanted else pd.read_csv(path).drop(columns=list(ignore))
@@ -138,6 +151,29 @@ def read_table(
     if df.empty:
         raise PredictionInputError(f"{path}: no rows to predict")
     return df, selection
+
+
+#: The columns that name a py-feat row: the video (py-feat's ``input`` path, else ``video_id``) and the frame.
+KEY_COLUMNS = (INPUT_PATH_COLUMN, VIDEO_COLUMN, FRAME_COLUMN)
+
+
+def row_keys(df: pd.DataFrame) -> dict[str, np.ndarray]:
+    """What joins each mesh back to its py-feat row: ``input`` (N,) str (py-feat's video path, else ``video_id``),
+    ``frame`` (N,) and ``face`` (N,) int64, the row's face index within its frame (0, 1, ... in file order, as py-feat
+    writes a frame's faces one row each). Keys the table lacks are left out (a table of input columns has none); with
+    a frame but no video column, faces are counted within each frame."""
+    out: dict[str, np.ndarray] = {}
+    video = next((c for c in (INPUT_PATH_COLUMN, VIDEO_COLUMN) if c in df.columns), None)
+    if video is not None:
+        out["input"] = df[video].astype(str).to_numpy().astype(str)
+    if FRAME_COLUMN in df.columns:
+        frame = df[FRAME_COLUMN].to_numpy()
+        if np.issubdtype(frame.dtype, np.number) and np.isfinite(frame).all() and (frame == np.round(frame)).all():
+            frame = frame.astype(np.int64)
+        out["frame"] = frame
+        by = [video, FRAME_COLUMN] if video is not None else [FRAME_COLUMN]
+        out["face"] = df.groupby(by, sort=False, dropna=False).cumcount().to_numpy(np.int64)
+    return out
 
 
 def read_input_table(path: str | os.PathLike, ignore: Sequence[str] = (), *, strict: bool = False) -> pd.DataFrame:
@@ -182,19 +218,18 @@ def predict_table(
         raise PredictionInputError(f"--out {out}: unsupported suffix {out.suffix!r}; use {', '.join(OUT_SUFFIXES)}")
     arrays = load_release(release)
     df, selection = read_table(
-        table, [str(a) for a in np.asarray(arrays["au_columns"]).tolist()], ignore, strict=strict
+        table, [str(a) for a in np.asarray(arrays["au_columns"]).tolist()], ignore, strict=strict, keys=KEY_COLUMNS
     )
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", InputRangeWarning)
+    with logged_range_warnings(log, str(table)):
+        mismatch = support.detector_mismatch(
+            support.table_detector(table_header(table), str(table)), support.release_support(arrays), "table"
+        )
+        if mismatch:
+            warnings.warn(mismatch, InputRangeWarning, stacklevel=1)
         try:
             au, pose, _ = input_rows(arrays, df, selection=selection)
         except PredictionInputError as exc:
             raise PredictionInputError(f"{table}: {exc}") from exc
-    for w in caught:
-        if issubclass(w.category, InputRangeWarning):
-            log.warning("%s: %s", table, w.message)
-        else:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     no_face = np.isnan(au).all(axis=1)
     if suffix in MESH_SUFFIXES and len(df) != 1:
         raise PredictionInputError(
@@ -224,6 +259,7 @@ def predict_table(
             pose=pose,
             au_columns=np.asarray(arrays["au_columns"]),
             pose_columns=np.array(POSE_COLUMNS),
+            **row_keys(df),
         )
     else:
         mesh = meshes[0]

@@ -29,13 +29,17 @@ process holds per-partition and per-video summaries only (memory flat in frames)
    low-AU flags from its scratch files and the thresholds, aligns the kept frames and writes them
    (float32, axis-major) into its rows of ``meshes.npy`` (``pwrite``: partitions write disjoint
    rows), its kept metadata, and the neutral meshes of the videos it holds whole; sums of the
-   population means and of videos split across partitions are reduced in a tree.
+   population means and of videos split across partitions are reduced in a tree;
+4. ``ranges``: each input's range over the kept frames (the ones the model is fitted on), from the partitions' kept
+   metadata of pass 3 (:func:`input_ranges`: exact quantiles of the 23 columns in shared passes, ~0.9 s at 344k
+   frames), for the release's record of what its data supports (:mod:`aumesh.model.support`).
 
 Outputs (in ``paths.prepared_dir``, swapped in atomically as a whole folder):
 ``meshes.npy`` (n_kept, 1434) float32; ``frames.parquet`` (video_id, frame, AUs, pose,
 video_index, low_au per kept frame, same order; a row group per partition); ``video_ids.npy``
 (n_videos,) and ``neutral_mean.npy`` / ``neutral_low_au.npy`` (n_videos, 1434) float32 (per-video
-neutral meshes); ``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts).
+neutral meshes); ``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts, ``input_ranges``,
+the tables' ``detector``).
 The tasks get absolute paths (the tables, the output's temporary folder, its scratch folder: per run, unique names),
 so workers that run elsewhere, for several workspaces, read and write this run's files; on a cluster the tables and the
 output folder must be on a filesystem every worker sees at the same path (a probe checks it when the stage connects).
@@ -60,7 +64,15 @@ import pyarrow.parquet as pq
 
 from aumesh.config import Config, PreprocessConfig
 from aumesh.data import contract
-from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, N_TARGETS, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.data.schema import (
+    AU_COLUMNS,
+    FRAME_COLUMN,
+    INPUT_COLUMNS,
+    N_TARGETS,
+    N_VERTICES,
+    POSE_COLUMNS,
+    VIDEO_COLUMN,
+)
 from aumesh.data.tables import (
     FrameTable,
     MeshChunk,
@@ -82,6 +94,7 @@ from aumesh.geometry.align import (
     reference_scale,
 )
 from aumesh.geometry.frame import HANDEDNESS_LANDMARKS, canonical_frame, mirrored
+from aumesh.model import support
 from aumesh.model.statistics import VideoSumStream
 from aumesh.pipeline import compute, integrity
 from aumesh.pipeline.prepared_files import (
@@ -92,7 +105,7 @@ from aumesh.pipeline.prepared_files import (
     SUMMARY_FILE,
     VIDEO_IDS_FILE,
 )
-from aumesh.pipeline.quantiles import exact_quantiles
+from aumesh.pipeline.quantiles import exact_column_quantiles, exact_quantiles
 from aumesh.utils.io import (
     NpyRowFile,
     absolute,
@@ -706,10 +719,18 @@ class _WildRows(Exception):
         self.rows = rows
 
 
-def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path, ingested: dict | None = None) -> dict:
+def run(
+    tables: list[FrameTable],
+    cfg: Config,
+    out_dir: str | Path,
+    ingested: dict | None = None,
+    detectors: dict[str, int] | None = None,
+) -> dict:
     """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary.
 
     ``ingested``: the ingest stage's counts (rows read, no-face rows and other faces dropped), added to the summary's.
+    ``detectors``: ``{detector: n_sources}`` of the ingest manifest (:func:`aumesh.model.support.detector_counts`),
+    recorded as the summary's ``detector`` (:func:`aumesh.model.support.detector_summary`; ``unknown`` when None).
     Frames whose aligned mesh has a vertex beyond ``preprocess.alignment.max_vertex_iod`` are found while pass 3 writes
     them; the passes then run once more without them, so the result is what tables without those frames give (the
     GPA subsample, the thresholds and the means included). Clean data never takes the second round.
@@ -729,6 +750,7 @@ def run(tables: list[FrameTable], cfg: Config, out_dir: str | Path, ingested: di
             try:
                 summary = _passes(tables, parts, cfg, tmp, exclude, ingested or {})
                 summary["tables"] = [recorded(p) for p in given]
+                summary["detector"] = support.detector_summary(detectors or {})
                 atomic_write_json(tmp / SUMMARY_FILE, summary)
                 return summary
             except _WildRows as found:
@@ -925,6 +947,9 @@ def _passes(
     del plans
     if written.wild:
         raise _WildRows({i: np.asarray(rows, np.int64) for i, rows in written.wild.items()})
+    # each input's range over exactly the frames written (the ones the model is fitted on), from the partitions' kept
+    # metadata before it is concatenated: a few small passes over 23 columns, never the frames gathered
+    ranges = input_ranges(sorted((tmp / "parts").glob("*.arrow")))
     for v, total in written.split.items():  # videos with frames in several partitions
         for slot, name in enumerate(("mean", "low_au")):
             write_rows(
@@ -956,8 +981,50 @@ def _passes(
         "n_videos": int(n_videos),
         "n_low_au_population": n_low_population,
         "dropped_videos": dropped_videos[:1000],
+        "input_ranges": ranges,
     }
     return summary
+
+
+def _kept_inputs(path: Path) -> np.ndarray:
+    """(n_kept, 23) float64 input columns of a partition's kept metadata (pass 3's ``parts/<i>.arrow``)."""
+    table = _read_staged(path, list(INPUT_COLUMNS))
+    return np.column_stack([table.column(c).to_numpy().astype(np.float64) for c in INPUT_COLUMNS]).reshape(
+        table.num_rows, len(INPUT_COLUMNS)
+    )
+
+
+def _active_counts(path: Path) -> np.ndarray:
+    """(21,) int64: the partition's kept frames with each AU above :data:`aumesh.model.support.ACTIVE_AU`, then its
+    kept frames."""
+    table = _read_staged(path, list(AU_COLUMNS))
+    counts = [int((table.column(a).to_numpy() > support.ACTIVE_AU).sum()) for a in AU_COLUMNS]
+    return np.array([*counts, table.num_rows], np.int64)
+
+
+def input_ranges(parts: list[Path]) -> dict[str, dict[str, float | None]]:
+    """Each input's range record (:func:`aumesh.model.support.range_record`) over the kept frames of ``parts``
+    (pass 3's per-partition metadata files, in order).
+
+    The quantiles are :func:`aumesh.pipeline.quantiles.exact_column_quantiles` of the 23 columns: ``np.quantile`` of
+    each column over every kept frame, bit for bit, never gathered, the 23 columns in the same three passes (counts
+    and ranges, a histogram, a gather of the needed bins); ``min`` and ``max`` are the 0 and 1 quantiles. The active
+    fractions are one more pass of counts.
+
+    Returns
+    -------
+    dict
+        ``{name: {"min", "p1", "p50", "p99", "max", "active_fraction"}}`` for the 23
+        :data:`~aumesh.data.schema.INPUT_COLUMNS` (``active_fraction`` None for pose).
+    """
+    q = np.array(list(support.RANGE_QUANTILES.values()))
+    counts = compute.map_reduce(_active_counts, np.add, parts)
+    quantiles = exact_column_quantiles(_kept_inputs, parts, q)
+    n = max(int(counts[-1]), 1)
+    return {
+        name: support.range_record(quantiles[j], float(counts[j] / n) if name in AU_COLUMNS else None)
+        for j, name in enumerate(INPUT_COLUMNS)
+    }
 
 
 def _checksums(directory: Path, mesh_digests: dict[int, tuple[int, int, str]], mesh_offset: int) -> dict[str, dict]:

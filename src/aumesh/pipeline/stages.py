@@ -156,7 +156,11 @@ def prepare_stage(cfg: Config) -> dict:
         import pyarrow.parquet as pq
 
         check_columns(cfg, pq.read_schema(found[0].path).names, str(found[0].path))
-    summary = prep.run(found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"])
+    from aumesh.model import support
+
+    summary = prep.run(
+        found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"], detectors=support.detector_counts(manifest)
+    )
     log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
     return summary
 
@@ -207,6 +211,7 @@ def evaluate_run_name(cfg: Config) -> str:
 
 def evaluate_stage(cfg: Config) -> dict:
     from aumesh.experiments import mlflow_store, tracking
+    from aumesh.model import support
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
 
@@ -233,7 +238,10 @@ def evaluate_stage(cfg: Config) -> dict:
             run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
         cv, final = run_evaluation(prepared, cfg, run)
         metrics = cv.metrics()
-        arrays = final.release_arrays(prepared.reference, metadata={"mlflow_run_id": run.run_id})
+        # the run's MLflow model warns beyond the data as the release does: it carries the data's support
+        arrays = final.release_arrays(
+            prepared.reference, metadata={"mlflow_run_id": run.run_id, "data": support.data_support(prepared.summary)}
+        )
         refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
         run.call(log_release_model, arrays)
         run_info = {
@@ -294,7 +302,10 @@ def shareable_config(cfg: Config) -> dict:
 
 
 def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict | None) -> dict:
-    """``model_card.json``: CV results, data (counts per filter, digest), config, provenance, MLflow run."""
+    """``model_card.json``: CV results, data (counts per filter, digest, what the data supports:
+    :func:`aumesh.model.support.data_support`), config, provenance, MLflow run."""
+    from aumesh.model import support
+
     with open(model_dir / METRICS_JSON) as fh:
         metrics = json.load(fh)
     with open(model_dir / TRACKING_JSON) as fh:
@@ -317,6 +328,7 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
             "degenerate": run_info.get("degenerate") or {},
             "counts": summary["counts"],
             "n_low_au_frames": summary["n_low_au_population"],
+            **support.data_support(summary),
         },
         "config": shareable_config(cfg),
         "provenance": {"git_commit": git.get("commit"), "dirty": git.get("dirty"), "branch": git.get("branch")},
