@@ -687,10 +687,9 @@ def z_scale(block: Block, layout: pyfeat.Layout, mesh_units: str, where: str) ->
 def convert_units(block: Block, layout: pyfeat.Layout, mesh_units: str, where: str) -> UnitStats:
     """The kept rows' meshes to frame pixels, in place (module docstring, step 3); what was done, measured.
 
-    The face's depth/height is measured once, as written; a conversion scales it by a known factor per row (z by
-    ``f``: ``ratio * f``; normalized units: ``ratio * FrameWidth / FrameHeight``), so the converted ratios cost no
-    second pass over the mesh. For a detector's export the ratio with z converted by its crop is kept whether or not
-    the conversion was made (``UnitStats.crop``: the guard's "with the conversion").
+    The face's depth/height is measured as written and, after a conversion, again on the mesh as it leaves. For a
+    detector's export the ratio with z converted by its crop (the written ratio x the row's factor: z scales, y does
+    not) is kept whether or not the conversion was made (``UnitStats.crop``: the guard's "with the conversion").
     """
     normalized = normalized_rows(block.mesh, rect_side(block, layout))
     if normalized.any() and not normalized.all():
@@ -705,9 +704,7 @@ def convert_units(block: Block, layout: pyfeat.Layout, mesh_units: str, where: s
     stats.after = stats.before
     if n and normalized[0]:
         to_pixels(block, layout, normalized, where)
-        assert layout.frame_size is not None  # to_pixels refuses a table without the frame size
-        width, height = (block.values[c] for c in layout.frame_size)
-        stats.after = ratio_hist(ratio * width / height)
+        stats.after = ratio_hist(depth_height(shape_extents(block.mesh)))  # measured on the mesh as it leaves
         stats.xy = stats.z = "normalized"
         stats.rows_converted = stats.rows_normalized = n
         return stats
@@ -718,7 +715,7 @@ def convert_units(block: Block, layout: pyfeat.Layout, mesh_units: str, where: s
         stats.xy, stats.z = "pixels", unit
         if factor is not None:
             block.mesh[:, 2 * N_VERTICES :] *= factor.astype(np.float32)[:, None]
-            stats.after = stats.crop
+            stats.after = ratio_hist(depth_height(shape_extents(block.mesh)))
             stats.rows_converted = stats.rows_z_converted = n
     return stats
 

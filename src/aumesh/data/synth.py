@@ -86,9 +86,10 @@ def profile_yaw(spec: SynthSpec, video: int, yaw: np.ndarray) -> np.ndarray:
     turned = np.zeros(n, dtype=bool)
     lo, hi = spec.profile_yaw_deg
     for _ in range(100 * (target + 1)):
-        if int(turned.sum()) >= target:
+        have = int(turned.sum())
+        if have >= target:
             break
-        length = min(int(rng.integers(PROFILE_RUN[0], PROFILE_RUN[1] + 1)), n)
+        length = min(int(rng.integers(PROFILE_RUN[0], PROFILE_RUN[1] + 1)), n, max(target - have, 1))
         start = int(rng.integers(0, n - length + 1))
         deg = rng.choice([-1.0, 1.0]) * np.clip(rng.uniform(lo, hi) + rng.normal(0, 1.0, length), lo, hi)
         out[start : start + length] = np.deg2rad(deg)
