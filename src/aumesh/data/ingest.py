@@ -463,9 +463,9 @@ class Counts:
         units = dict(self.units)
         for k, u in other.units.items():
             units[k] = units[k] + u if k in units else u
-        labels = {k: set(v) for k, v in self.labels.items()}
-        for k, v in other.labels.items():
-            labels.setdefault(k, set()).update(v)
+        labels = {k: set(names) for k, names in self.labels.items()}
+        for k, names in other.labels.items():
+            labels.setdefault(k, set()).update(names)
         dicts = ("identities", "units", "labels")
         sums = {f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self) if f.name not in dicts}
         return Counts(**sums, identities=merged, units=units, labels=labels)

@@ -1,7 +1,9 @@
 """Stage ``ingest``: whatever ``data/`` holds -> the frame tables ``prepare`` reads (``paths.ingested_dir``).
 
 py-feat's CSVs (either detector), a Fex saved as parquet and the card's split layout are all accepted as py-feat
-writes them (:mod:`aumesh.data.ingest`: no-face rows dropped, one face per frame, pixels). The stage writes:
+writes them (:mod:`aumesh.data.ingest`: no-face rows dropped, one face per frame, frame pixels on every axis: z
+converted from the detector's crop units by ``data.mesh_units``). Each source's faces must then have a face's
+proportions (:func:`check_units`). The stage writes:
 
 * ``tables/NNNNNN.parquet``: the cleaned rows of the sources that need it (every CSV; parquet with no-face rows,
   several faces in a frame, Detectorv2's columns or normalized units), only the contract's columns: video_id, frame,
@@ -9,7 +11,8 @@ writes them (:mod:`aumesh.data.ingest`: no-face rows dropped, one face per frame
   packed to at least :data:`TASK_ROWS` rows a file;
 * ``manifest.json``: the tables ``prepare`` reads, in order: those files, and clean parquet tables of ``data/`` in
   place (read as they are: a clean parquet costs only this stage's check, a few columns, not a copy); per source, what
-  it held and what was dropped; the totals.
+  it held, what was dropped and its ``mesh_units`` (what was converted, how, for how many rows); the totals
+  (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``) and ``detectors`` (sources per detector).
 
 Cached by DVC: a change of recipe (``preprocess.*``, ``model.*``) reruns ``prepare`` on these files and never
 re-parses a CSV. CSV ranges are parsed on the compute engine, several at once.
