@@ -184,6 +184,18 @@ def test_a_normalized_parquet_is_cleaned_and_converted(tmp_path):
     assert manifest["counts"]["rows_converted_from_normalized"] == entry["mesh_units"]["rows_converted"] > 0
 
 
+def test_an_mpdetector_parquet_is_converted_unless_its_z_is_pixels(tmp_path):
+    spec = dataclasses.replace(SPEC, n_frames=120, n_videos=3)
+    for z_pixels in (False, True):
+        data = tmp_path / f"data{z_pixels}"
+        write_pyfeat_tables(data, spec, fmt="parquet", z_pixels=z_pixels, no_face_rate=0, extra_face_rate=0)
+        manifest = ingest.run(_cfg(data, **(PIXELS if z_pixels else {})), tmp_path / f"ingested{z_pixels}")
+        (entry,) = manifest["sources"]
+        assert entry["read"] == ("in place" if z_pixels else "cleaned (MPDetector z in its 256-px crop's units)")
+        assert entry["mesh_units"]["z"] == ("pixels" if z_pixels else "crop256")
+        assert 0.25 < entry["face_depth_over_height"]["ingested"] < 0.6
+
+
 def test_a_face_row_without_face_rect_width_is_named_with_the_fix(v2_native, tmp_path):
     data = tmp_path / "data"
     data.mkdir()

@@ -858,9 +858,8 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
     lay = source.layout
     if lay.detector == "Detectorv2":
         return PassThrough(False, source.n_rows or 0, "Detectorv2 mesh columns")
-    if lay.detector in Z_CROP and mesh_units == "detector":
-        unit = Z_CROP[lay.detector][0]
-        return PassThrough(False, source.n_rows or 0, f"{lay.detector} z in its {unit} units")
+    if lay.detector in Z_CROP and mesh_units == "detector":  # z in the crop's units: converted (Detectorv2 above)
+        return PassThrough(False, source.n_rows or 0, "MPDetector z in its 256-px crop's units")
     n = source.n_rows or 0
     # a no-face row has every AU and pose value NaN: a row whose first AU and Pitch are NaN sends the table to be
     # cleaned, where the whole rule applies (a face row with only those missing is then the contract's error)
