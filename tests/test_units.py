@@ -228,3 +228,14 @@ def test_the_mixed_units_message_names_the_video_as_text():
     layout = ingest_data.pyfeat.Layout("table", "video_id", None, None, None, None, None)
     with pytest.raises(TableError, match=r"^t: mixes .* \(frame 3 of video 'clip7' differs"):
         ingest_data.convert_units(block, layout, "detector", "t")
+
+
+def test_the_depth_height_histograms_merge_to_numpys_median():
+    rng = np.random.default_rng(4)
+    ratios = np.exp(rng.normal(np.log(0.5), 0.4, 5001))
+    parts = [ingest_data.ratio_hist(p) for p in np.array_split(ratios, [1000, 3500])]
+    merged = parts[0] + parts[1] + parts[2]
+    assert merged.counts.sum() == len(ratios)
+    assert merged.median() == pytest.approx(np.median(ratios), rel=0.012)  # half a 0.01-decade bin
+    flat = ingest_data.ratio_hist(np.array([0.0, 1e-3, np.nan, np.inf]))  # non-finite values are not faces
+    assert flat.counts.sum() == 2 and flat.median() < 1.1e-3

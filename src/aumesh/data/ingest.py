@@ -75,8 +75,9 @@ Z_CROP: dict[str, tuple[str, float]] = {"Detectorv2": ("chip", 1.0), "MPDetector
 #: a profile face (yaw 90) shows its width as depth, ~1.2. A flat face (z left in Detectorv2's chip units) is
 #: ~0.001. The range is a factor of ~3 beyond the faces: it refuses units, not people.
 DEPTH_HEIGHT_RANGE = (0.1, 3.0)
-#: log10 bin edges of the depth/height histograms (0.01 decade: ~2.3 %), mergeable over a source's blocks.
-RATIO_EDGES = np.linspace(-6.0, 4.0, 1001)
+#: log10 bin width of the depth/height histograms (:class:`RatioHist`: ~2.3 %), and their range (beyond: the end bins).
+RATIO_BIN = 0.01
+RATIO_LOG_RANGE = (-6.0, 4.0)
 #: CSV bytes parsed at a time: py-feat writes ~20 KB a row, so ~3,300 rows (~40 MB of float64 columns) per range.
 CSV_RANGE_BYTES = 64 << 20
 #: Parquet rows read at a time.
@@ -393,13 +394,41 @@ def to_block(table: pa.Table, span: Span) -> Block:
     return Block(video.astype(str), frame_col.to_numpy().astype(np.int64), values, identity, mesh)
 
 
+@dataclass(frozen=True)
+class RatioHist:
+    """A histogram of positive ratios in log10 bins of :data:`RATIO_BIN`, sparse (only the bins with counts: a source's
+    faces fill a few dozen), so a source's measurement costs a few hundred bytes and merges over blocks and tasks.
+
+    ``bins`` (k,) int32 sorted bin numbers (bin b holds log10 values in ``[b, b + 1) * RATIO_BIN``), ``counts`` (k,).
+    """
+
+    bins: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __add__(self, other: RatioHist) -> RatioHist:
+        if not len(other.bins):
+            return self
+        if not len(self.bins):
+            return other
+        bins, inverse = np.unique(np.r_[self.bins, other.bins], return_inverse=True)
+        return RatioHist(bins.astype(np.int32), np.bincount(inverse, np.r_[self.counts, other.counts]).astype(np.int64))
+
+    def median(self) -> float | None:
+        """The median ratio (its bin's geometric centre: within ~1.2 %); None when empty."""
+        total = int(self.counts.sum())
+        if not total:
+            return None
+        k = int(np.searchsorted(np.cumsum(self.counts), (total + 1) / 2))
+        return float(10 ** ((int(self.bins[k]) + 0.5) * RATIO_BIN))
+
+
 @dataclass
 class UnitStats:
     """One source's mesh units, summed over its blocks: what was converted and the face's proportions.
 
     ``xy``: "pixels" | "normalized" (| "mixed" when blocks of one source differ: refused by the ingest stage);
     ``z``: "pixels" | "chip" | "crop256" | "normalized"; the histograms count each face row's depth/height
-    (:func:`depth_height`) in :data:`RATIO_EDGES` bins, as written (``before``), as ingested (``after``) and with z
+    (:func:`depth_height`) in :class:`RatioHist` bins, as written (``before``), as ingested (``after``) and with z
     converted by the detector's crop (``crop``; empty unless the table is a detector's export with FaceRect).
     """
 
@@ -410,9 +439,9 @@ class UnitStats:
     rows_converted: int = 0  # rows whose mesh was rescaled (normalized, or z from a detector's crop units)
     rows_normalized: int = 0
     rows_z_converted: int = 0  # rows whose z was converted from the detector's crop units
-    before: np.ndarray = field(default_factory=lambda: np.zeros(len(RATIO_EDGES) - 1, np.int64))
-    after: np.ndarray = field(default_factory=lambda: np.zeros(len(RATIO_EDGES) - 1, np.int64))
-    crop: np.ndarray = field(default_factory=lambda: np.zeros(len(RATIO_EDGES) - 1, np.int64))
+    before: RatioHist = field(default_factory=lambda: RatioHist())
+    after: RatioHist = field(default_factory=lambda: RatioHist())
+    crop: RatioHist = field(default_factory=lambda: RatioHist())
 
     def __add__(self, other: UnitStats) -> UnitStats:
         def unit(a: str, b: str) -> str:
@@ -434,7 +463,7 @@ class UnitStats:
     def depth_height(self) -> tuple[float | None, float | None, float | None]:
         """Median face depth/height as written, as ingested and with z converted by the detector's crop; None
         where nothing was measured."""
-        return hist_median(self.before), hist_median(self.after), hist_median(self.crop)
+        return self.before.median(), self.after.median(), self.crop.median()
 
 
 @dataclass
@@ -583,21 +612,13 @@ def depth_height(extents: np.ndarray) -> np.ndarray:
         return extents[:, 2] / extents[:, 1]
 
 
-def ratio_hist(ratio: np.ndarray) -> np.ndarray:
-    """Counts of the finite ``ratio`` values in :data:`RATIO_EDGES` (log10) bins; beyond them, in the end bins."""
-    r = ratio[np.isfinite(ratio)]
+def ratio_hist(ratio: np.ndarray) -> RatioHist:
+    """The finite values of ``ratio`` (n,) counted in :class:`RatioHist` bins."""
+    r = np.abs(ratio[np.isfinite(ratio)])
     with np.errstate(divide="ignore"):
-        logs = np.clip(np.log10(np.abs(r)), RATIO_EDGES[0], RATIO_EDGES[-1])
-    return np.histogram(logs, RATIO_EDGES)[0].astype(np.int64)
-
-
-def hist_median(hist: np.ndarray) -> float | None:
-    """The median of a :func:`ratio_hist` (its bin's geometric centre; ~1 % off); None when empty."""
-    total = int(hist.sum())
-    if not total:
-        return None
-    k = int(np.searchsorted(np.cumsum(hist), (total + 1) / 2))
-    return float(10 ** ((RATIO_EDGES[k] + RATIO_EDGES[k + 1]) / 2))
+        logs = np.clip(np.log10(r), *RATIO_LOG_RANGE)
+    bins, counts = np.unique(np.floor(logs / RATIO_BIN).astype(np.int32), return_counts=True)
+    return RatioHist(bins, counts.astype(np.int64))
 
 
 def normalized_rows(mesh: np.ndarray, rect_side: np.ndarray | None = None) -> np.ndarray:
