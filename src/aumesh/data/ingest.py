@@ -596,10 +596,10 @@ def select_faces(
     return np.sort(keep), counts
 
 
-def shape_extents(mesh: np.ndarray) -> np.ndarray:
-    """(n, a) x, y (and z) spans of :data:`SHAPE_VERTICES` of axis-major meshes (n, a * 478), a = 2 or 3 (NaN
-    where a vertex is)."""
-    idx = np.add.outer(np.arange(mesh.shape[1] // N_VERTICES) * N_VERTICES, SHAPE_VERTICES)  # (a, k)
+def shape_extents(mesh: np.ndarray, axes: Sequence[int] = (0, 1, 2)) -> np.ndarray:
+    """(n, len(axes)) spans along ``axes`` (0 x, 1 y, 2 z) of :data:`SHAPE_VERTICES` of axis-major meshes (n, 1434)
+    (NaN where a vertex is)."""
+    idx = np.add.outer(np.asarray(axes) * N_VERTICES, SHAPE_VERTICES)  # (a, k)
     part = np.sort(mesh[:, idx].astype(np.float64), axis=2)  # (n, a, k), NaN last
     # second-largest minus second-smallest: one wild vertex (a corrupt export, dropped later by prepare's
     # max_vertex_iod) neither judges the units nor flattens the face; the oval's vertices are ~5 % of it apart
@@ -621,15 +621,18 @@ def ratio_hist(ratio: np.ndarray) -> RatioHist:
     return RatioHist(bins, counts.astype(np.int64))
 
 
-def normalized_rows(mesh: np.ndarray, rect_side: np.ndarray | None = None) -> np.ndarray:
+def normalized_rows(
+    mesh: np.ndarray, rect_side: np.ndarray | None = None, extents: np.ndarray | None = None
+) -> np.ndarray:
     """(n,) bool: rows whose mesh (n, 1434) is in normalized image units.
 
     The mesh's 2-D extent (the larger of its x and y spans over :data:`SHAPE_VERTICES`) is below
     :data:`NORMALIZED_MAX_EXTENT`, and, where the row has a FaceRect (``rect_side``: its longer side in pixels,
     (n,); NaN or 0 where py-feat wrote none), below :data:`NORMALIZED_MAX_RECT_FRACTION` of it. A face turned to
-    profile keeps its height: its inter-ocular distance can fall below a pixel, its extent does not.
+    profile keeps its height: its inter-ocular distance can fall below a pixel, its extent does not. ``extents``:
+    its x, y spans (n, 2) when already measured (:func:`shape_extents`).
     """
-    extent = shape_extents(mesh[:, : 2 * N_VERTICES])[:, :2].max(axis=1)
+    extent = (shape_extents(mesh, (0, 1)) if extents is None else extents).max(axis=1)
     normalized = extent < NORMALIZED_MAX_EXTENT
     if rect_side is not None:
         has_rect = np.isfinite(rect_side) & (rect_side > 0)
@@ -650,7 +653,7 @@ def to_pixels(block: Block, layout: pyfeat.Layout, normalized: np.ndarray, where
     (MediaPipe's z is on x's scale)."""
     if not normalized.any():
         return
-    extent = float(np.median(shape_extents(block.mesh[normalized])[:, :2].max(axis=1)))
+    extent = float(np.median(shape_extents(block.mesh[normalized], (0, 1)).max(axis=1)))
     if layout.frame_size is None:
         raise TableError(
             f"{where}: the mesh is in normalized image units (0-1; median face extent {extent:.3g}), and the "
@@ -712,14 +715,15 @@ def convert_units(block: Block, layout: pyfeat.Layout, mesh_units: str, where: s
     detector's export the ratio with z converted by its crop (the written ratio x the row's factor: z scales, y does
     not) is kept whether or not the conversion was made (``UnitStats.crop``: the guard's "with the conversion").
     """
-    normalized = normalized_rows(block.mesh, rect_side(block, layout))
+    extents = shape_extents(block.mesh)  # (n, 3): the units' judgement and the face's proportions
+    normalized = normalized_rows(block.mesh, rect_side(block, layout), extents[:, :2])
     if normalized.any() and not normalized.all():
         row = int(np.flatnonzero(normalized != normalized[0])[0])
         raise TableError(
             f"{where}: mixes meshes in pixels and in normalized image units (frame {int(block.frame[row])} of "
             f"video {str(block.video[row])!r} differs from the first). Fix: export every video the same way."
         )
-    ratio = depth_height(shape_extents(block.mesh))
+    ratio = depth_height(extents)
     n = len(block)
     stats = UnitStats(detector=layout.detector, rows=n, before=ratio_hist(ratio))
     stats.after = stats.before
@@ -736,7 +740,8 @@ def convert_units(block: Block, layout: pyfeat.Layout, mesh_units: str, where: s
         stats.xy, stats.z = "pixels", unit
         if factor is not None:
             block.mesh[:, 2 * N_VERTICES :] *= factor.astype(np.float32)[:, None]
-            stats.after = ratio_hist(depth_height(shape_extents(block.mesh)))
+            extents[:, 2:] = shape_extents(block.mesh, (2,))  # measured on the mesh as it leaves (its z)
+            stats.after = ratio_hist(depth_height(extents))
             stats.rows_converted = stats.rows_z_converted = n
     return stats
 
@@ -935,10 +940,12 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
         with NpyRowFile(source.mesh_npy) as f:
             sample = f.read(0, rows)
         mesh = np.ascontiguousarray(sample.astype(np.float32).transpose(0, 2, 1)).reshape(len(sample), -1)
-    finite = np.isfinite(shape_extents(mesh)).all(axis=1)
-    if finite.any() and normalized_rows(mesh[finite], None if rect is None else rect[finite]).any():
+    extents = shape_extents(mesh)
+    finite = np.isfinite(extents).all(axis=1)
+    extents = extents[finite]
+    if finite.any() and normalized_rows(mesh[finite], None if rect is None else rect[finite], extents[:, :2]).any():
         return PassThrough(False, n, "normalized image units", labels=labels)
-    ratio = depth_height(shape_extents(mesh[finite]))
+    ratio = depth_height(extents)
     hist = ratio_hist(ratio)
     units = UnitStats(lay.detector, "pixels", "pixels", rows=n, before=hist, after=hist)
     if lay.detector in Z_CROP and rect is not None:  # z taken as pixels (mesh_units=pixels): the ratio converted
