@@ -90,6 +90,9 @@ def test_the_card_names_the_conversion_and_its_rows(routes):
     line = _ingest_lines(counts, {"mesh_units": "detector"})[-1]
     assert line.startswith("- Mesh units: frame pixels; z of ")
     assert f"{counts['rows_z_from_chip']:,} Detectorv2 face rows converted from its 0-1 chip units" in line
+    assert "other" not in line  # every row converted
+    mixed = counts | {"frames_out": counts["frames_out"] + 7}  # 7 rows of a pixel table beside them
+    assert _ingest_lines(mixed, {})[-1].endswith("; the other 7 rows in pixels as recorded")
     line = _ingest_lines(routes["mp-pixels"][0]["counts"], {"mesh_units": "pixels"})[-1]
     assert line == "- Mesh units: frame pixels, as recorded (data.mesh_units=pixels)"
 

@@ -198,8 +198,13 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
             f"(x, z × FrameWidth, y × FrameHeight)"
         )
     forced = " (data.mesh_units=pixels)" if data_cfg.get("mesh_units") == "pixels" else ""
+    converted = sum(
+        counts.get(k, 0) for k in ("rows_z_from_chip", "rows_z_from_crop256", "rows_converted_from_normalized")
+    )
+    others = counts.get("frames_out", converted) - converted
     if done:
-        lines.append(f"- Mesh units: frame pixels; {'; '.join(done)}; other rows in pixels as recorded{forced}")
+        rest = f"; the other {others:,} rows in pixels as recorded{forced}" if others > 0 else ""
+        lines.append(f"- Mesh units: frame pixels; {'; '.join(done)}{rest}")
     else:
         lines.append(f"- Mesh units: frame pixels, as recorded{forced}")
     return lines
