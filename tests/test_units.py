@@ -39,7 +39,7 @@ def routes(tmp_path_factory):
             write_pyfeat_tables(root / name, SPEC, detector=det, fmt="csv", z_pixels=z_pixels, videos_per_file=6)
             summary, prepared = _prepare(root / name, root / f"{name}-work", **(PIXELS if z_pixels else {}))
             manifest = json.loads((root / f"{name}-work" / "ingested" / ingest.MANIFEST_FILE).read_text())
-            out[name] = (summary, prepared, manifest)
+            out[name] = (summary, prepared, manifest, root / name)
     return out
 
 
@@ -69,7 +69,7 @@ def test_native_units_and_pixels_give_the_same_prepared_meshes_and_release(route
 
 
 def test_the_manifest_says_what_was_converted_per_source(routes):
-    for name, (_, _, manifest) in routes.items():
+    for name, (_, _, manifest, _) in routes.items():
         det = "MPDetector" if name.startswith("mp") else "Detectorv2"
         assert manifest["detectors"] == {det: 2}
         assert manifest["mesh_units"] == ("pixels" if name.endswith("pixels") else "detector")
@@ -115,6 +115,24 @@ def test_native_z_ingested_as_pixels_is_refused_with_the_fix(v2_native, tmp_path
     assert found, message
     flat, converted = float(found.group(1)), float(found.group(2))
     assert flat < 0.01 and 0.25 < converted < 0.6  # both routes measured and named
+
+
+@pytest.mark.parametrize(
+    "route,fix,slope", [("mp-native", "detector", (-0.3, 0.3)), ("mp-pixels", "pixels", (0.8, 1.3))]
+)
+def test_mpdetector_units_are_told_by_how_z_grows_with_the_face(tmp_path, route, fix, slope):
+    """An MPDetector face ~256 px wide has a face's depth/height in either unit: what tells them apart is that a
+    face's depth in pixels grows with its size (slope ~1 of log z-extent on log height over near-frontal faces), and
+    in the 256-px crop's units it does not (~0)."""
+    forced = "pixels" if fix == "detector" else "detector"  # the wrong setting
+    # one file of the 12 videos: ~100 near-frontal faces, sizes spread ~11 % (a file of 6 has too few to tell)
+    write_pyfeat_tables(tmp_path / "data", SPEC, detector="mp", z_pixels=route.endswith("pixels"))
+    with pytest.raises(
+        TableError, match=rf"clip_0000\.csv: z as written grows .* Fix: set data\.mesh_units={fix}"
+    ) as e:
+        ingest.run(_cfg(tmp_path / "data", **{"data.mesh_units": forced}), tmp_path / "ingested")
+    found = re.search(r"grows with the face's size as (\S+) ", str(e.value))
+    assert found and slope[0] < float(found.group(1)) < slope[1]
 
 
 def test_pixels_written_under_a_detectors_columns_are_refused_with_the_fix(tmp_path):

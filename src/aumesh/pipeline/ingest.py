@@ -220,44 +220,65 @@ def units_record(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str
 
 
 def check_units(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str) -> None:
-    """The guard on a source's units: one unit for all its rows, and a face's proportions after the conversion
-    (the median over its faces of depth/height within :data:`aumesh.data.ingest.DEPTH_HEIGHT_RANGE`).
+    """The guard on a source's units: one unit for all its rows; a face's proportions after the conversion (the
+    median over its faces of depth/height within :data:`aumesh.data.ingest.DEPTH_HEIGHT_RANGE`); and, for a
+    detector's export, z as written growing with the face's size as pixels do, or not, as the units say
+    (:func:`aumesh.data.ingest.growth_slope`, where enough near-frontal faces vary enough in size: what sees an
+    MPDetector export taken as pixels, whose depth/height can look like a face's).
 
     Raises
     ------
     TableError
-        One line naming the file, the ratio measured with and without the conversion, and the likely fix.
+        One line naming the file, what was measured (the ratio with and without the conversion, or z's growth) and
+        the likely fix.
     """
+    where = recorded(source.path)
     if stats.xy == "mixed" or stats.z == "mixed":
         raise TableError(
-            f"{recorded(source.path)}: mixes meshes in pixels and in normalized image units (some rows of the file "
-            f"differ from others). Fix: export every video the same way."
+            f"{where}: mixes meshes in pixels and in normalized image units (some rows of the file differ from "
+            f"others). Fix: export every video the same way."
         )
+    det = source.layout.detector
     before, after, crop = stats.depth_height()
     lo, hi = ingest.DEPTH_HEIGHT_RANGE
-    if after is None or lo <= after <= hi:
+    if after is not None and not lo <= after <= hi:
+        if stats.z in ("chip", "crop256"):
+            done = f"after converting z from {det}'s {stats.z} units ({before:.3g} without the conversion)"
+            fix = (
+                f"if this table's z is already in pixels (rescaled after py-feat), set data.mesh_units=pixels; "
+                f"otherwise check that it is {det}'s export as py-feat wrote it (its FaceRect and mesh columns)"
+            )
+        elif det in ingest.Z_CROP and mesh_units == "pixels":
+            with_crop = "" if crop is None else f"; {crop:.3g} with z converted from {det}'s crop units"
+            done = f"with z taken as pixels (data.mesh_units=pixels{with_crop})"
+            fix = f"this is {det}'s export with z in its own units as py-feat writes them: set data.mesh_units=detector"
+        else:
+            done = "with z as written" + (" (normalized units converted)" if stats.z == "normalized" else " (pixels)")
+            fix = (
+                "write z in the same pixels as x (MediaPipe's z is on x's scale), or keep py-feat's FaceRect columns "
+                "so aumesh converts its detector's z"
+            )
+        raise TableError(
+            f"{where}: the faces do not have a face's proportions: median depth/height {after:.3g} {done}; a face is "
+            f"{lo:g}-{hi:g} (MediaPipe's canonical face ~0.55, a flat face ~0.001). Fix: {fix}."
+        )
+    growth = stats.z_growth()
+    if growth is None:
         return
-    det = source.layout.detector
-    if stats.z in ("chip", "crop256"):
-        done = f"after converting z from {det}'s {stats.z} units ({before:.3g} without the conversion)"
-        fix = (
-            f"if this table's z is already in pixels (rescaled after py-feat), set data.mesh_units=pixels; "
-            f"otherwise check that it is {det}'s export as py-feat wrote it (its FaceRect and mesh columns)"
-        )
-    elif det in ingest.Z_CROP and mesh_units == "pixels":
-        with_crop = "" if crop is None else f"; {crop:.3g} with z converted from {det}'s crop units"
-        done = f"with z taken as pixels (data.mesh_units=pixels{with_crop})"
-        fix = f"this is {det}'s export with z in its own units as py-feat writes them: set data.mesh_units=detector"
-    else:
-        done = "with z as written" + (" (normalized units converted)" if stats.z == "normalized" else " (pixels)")
-        fix = (
-            "write z in the same pixels as x (MediaPipe's z is on x's scale), or keep py-feat's FaceRect columns "
-            "so aumesh converts its detector's z"
-        )
-    raise TableError(
-        f"{recorded(source.path)}: the faces do not have a face's proportions: median depth/height {after:.3g} "
-        f"{done}; a face is {lo:g}-{hi:g} (MediaPipe's canonical face ~0.55, a flat face ~0.001). Fix: {fix}."
+    told = (
+        f"{where}: z as written grows with the face's size as {growth:.2f} (slope of log z-extent on log face height "
+        f"over {int(stats.growth[0]):,} near-frontal faces; frame pixels give ~1, {det}'s crop units ~0)"
     )
+    if stats.z in ("chip", "crop256") and growth > 0.5:
+        raise TableError(
+            f"{told}: z is already in pixels, and converting it again would scale each face's depth by its crop. "
+            f"Fix: set data.mesh_units=pixels."
+        )
+    if stats.z == "pixels" and mesh_units == "pixels" and growth < 0.5:
+        raise TableError(
+            f"{told}: z is in {det}'s crop units as py-feat writes them, not pixels. Fix: set "
+            f"data.mesh_units=detector (the default)."
+        )
 
 
 def load_manifest(ingested_dir: str | Path) -> dict:
