@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -169,7 +170,12 @@ def _mesh(df: pd.DataFrame, det: str) -> np.ndarray:
     return df[MESH_V2].to_numpy().reshape(len(df), 3, 478).transpose(0, 2, 1)
 
 
-def _check_clean(df: pd.DataFrame, clean: pd.DataFrame, det: str, units=(1.0, 1.0, 1.0), exact=True):
+#: py-feat's z units (feat/detector_v2.py _mesh_to_original_frame: z unchanged, 0-1 over the chip whose side is
+#: FaceRectWidth; feat/MPDetector.py forward: z left in the 256-px crop's scale, FaceRect the crop box)
+Z_DIVISOR = {"v2": 1.0, "mp": 256.0}
+
+
+def _check_clean(df: pd.DataFrame, clean: pd.DataFrame, det: str, units=(1.0, 1.0, 1.0), exact=True, z_crop=False):
     main = df[df["Identity"] == "Person_0"].copy()
     main["video_id"] = main["input"].map(lambda p: Path(p).stem)
     main = main.sort_values(["video_id", "frame"]).reset_index(drop=True)
@@ -180,6 +186,8 @@ def _check_clean(df: pd.DataFrame, clean: pd.DataFrame, det: str, units=(1.0, 1.
     cols = [*AU_COLUMNS, "Yaw", "Pitch", "Roll"]  # by name: the tables keep Fex order
     np.testing.assert_array_equal(main[cols].to_numpy(), clean[cols].to_numpy())
     px = _mesh(main, det) * np.asarray(units)
+    if z_crop:  # z in the detector's crop units: back to pixels by its FaceRectWidth
+        px[:, :, 2] *= main["FaceRectWidth"].to_numpy()[:, None] / Z_DIVISOR[det]
     want = _mesh(clean, "mp")
     assert clean[MESH_MP].dtypes.eq(np.float32).all()
     if exact:
@@ -200,7 +208,58 @@ def _check_clean(df: pd.DataFrame, clean: pd.DataFrame, det: str, units=(1.0, 1.
 @pytest.mark.parametrize("det", ["mp", "v2"])
 def test_clean_table_is_the_main_face(written, det):
     _, df, clean = written[det]
-    _check_clean(df, clean, det)
+    _check_clean(df, clean, det, exact=False, z_crop=True)
+
+
+@pytest.mark.parametrize("det", ["mp", "v2"])
+def test_z_in_pixels_is_the_clean_mesh_exactly(tmp_path, det):
+    spec = SynthSpec(n_frames=60, n_videos=2)
+    s = write_pyfeat_tables(tmp_path / "t", spec, detector=det, z_pixels=True, clean_dir=tmp_path / "c")
+    _check_clean(pd.read_csv(s["files"][0]), pd.read_parquet(s["clean_files"][0]), det)
+
+
+def test_face_rect_is_each_detectors_crop_box(written):
+    """FaceRect against the face's own extent (the clean mesh): Detectorv2's square chip of side 1.2 x the longer
+    side of a box ~8 % beyond the face (extract_face_square_pad_torch), MPDetector's box x 1.25, whole pixels
+    (extract_face_from_bbox_torch(face_size=256, expand_bbox=1.25) rounds its corners)."""
+    for det in ("mp", "v2"):
+        _, df, clean = written[det]
+        main = df[df["Identity"] == "Person_0"].sort_values(["input", "frame"])
+        mesh = _mesh(clean.sort_values(["video_id", "frame"]), "mp")
+        lo, hi = mesh[:, :, :2].min(axis=1), mesh[:, :, :2].max(axis=1)
+        box = (hi - lo) * 1.16  # the detector's box: the face's extent and 8 % each side
+        x, y, w, h = (main[c].to_numpy() for c in RECT)
+        assert (x < lo[:, 0]).all() and (y < lo[:, 1]).all()  # the face lies inside its crop
+        assert (x + w > hi[:, 0]).all() and (y + h > hi[:, 1]).all()
+        if det == "v2":
+            np.testing.assert_array_equal(w, h)
+            np.testing.assert_allclose(w, 1.2 * box.max(axis=1), rtol=1e-6)
+            np.testing.assert_allclose(x + w / 2, (lo[:, 0] + hi[:, 0]) / 2, atol=1e-6)  # centred
+        else:
+            assert (np.round(x) == x).all() and (np.round(w) == w).all() and (np.round(h) == h).all()
+            np.testing.assert_allclose(w, 1.25 * box[:, 0], atol=1.01)
+            np.testing.assert_allclose(h, 1.25 * box[:, 1], atol=1.01)
+            assert (np.abs(w - h) > 1).mean() > 0.5  # rectangular, not squared
+
+
+def test_profile_frames_turn_only_their_runs(tmp_path):
+    """``profile_rate``: runs of frames at |yaw| 60-85 deg, generated at that pose (the face's 2-D inter-ocular
+    distance shrinks as cos(yaw)); the other frames, the AUs and every other draw as without it."""
+    spec = SynthSpec(n_frames=400, n_videos=4, seed=5)
+    plain = pd.read_parquet(write_tables(tmp_path / "a", spec)["files"][0])
+    turned = pd.read_parquet(write_tables(tmp_path / "b", replace(spec, profile_rate=0.3))["files"][0])
+    yaw = np.rad2deg(turned["Yaw"].to_numpy())
+    profile = np.abs(yaw) >= 60
+    assert 0.15 < profile.mean() < 0.45 and (np.abs(yaw[profile]) <= 85).all()
+    assert (np.diff(np.flatnonzero(profile)) == 1).mean() > 0.8  # in runs
+    same = [*AU_COLUMNS, "Pitch", "Roll"]
+    np.testing.assert_array_equal(plain[same].to_numpy(), turned[same].to_numpy())
+    np.testing.assert_array_equal(plain[~profile].to_numpy(), turned[~profile].to_numpy())
+    m = turned[MESH_MP].to_numpy().reshape(len(turned), 478, 3)
+    iod = np.linalg.norm(m[:, 33, :2] - m[:, 263, :2], axis=1)
+    height = m[:, 10, 1] - m[:, 152, 1]
+    ratio = np.median(iod[profile] / np.abs(height[profile])) / np.median(iod[~profile] / np.abs(height[~profile]))
+    assert ratio < np.cos(np.deg2rad(55))  # the eyes close up, the face keeps its height
 
 
 def test_clean_frames_are_synths(written, tmp_path):
@@ -230,7 +289,7 @@ def test_normalized_units(tmp_path, det):
     assert list(df.columns) == EXPECTED[det]
     mesh = _mesh(df[df["Identity"] == "Person_0"], det)
     assert np.nanmax(np.abs(mesh[..., :2])) < 1.5  # normalized image units
-    _check_clean(df, clean, det, units=(W, H, W), exact=False)
+    _check_clean(df, clean, det, units=(W, H, W), exact=False)  # normalized: z / FrameWidth, not the crop's
     assert (df.loc[df["Identity"].isna(), "FaceScore"] == 0).all() == (det == "mp")
 
 
@@ -247,7 +306,10 @@ def test_split_and_frame_size(written, tmp_path):
         gone = df["Identity"].isna().to_numpy()
         assert np.isnan(mesh[gone]).all() and np.isfinite(mesh[~gone]).all()
         part = csv.iloc[n : n + len(df)]
-        np.testing.assert_array_equal(part[MESH_MP].to_numpy().astype(np.float32).reshape(-1, 478, 3), mesh)
+        px = part[MESH_MP].to_numpy().reshape(-1, 478, 3)  # the CSV: z in the 256-px crop's units; the .npy pixels
+        np.testing.assert_array_equal(px[:, :, :2].astype(np.float32), mesh[:, :, :2])
+        z = px[:, :, 2] * part["FaceRectWidth"].to_numpy()[:, None] / 256
+        np.testing.assert_allclose(z[~gone], mesh[~gone][:, :, 2], rtol=1e-6, atol=1e-4)
         np.testing.assert_array_equal(part[list(AU_COLUMNS)].to_numpy(), df[list(AU_COLUMNS)].to_numpy())
         n += len(df)
     assert n == len(csv) == s["n_rows"]

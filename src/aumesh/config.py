@@ -24,6 +24,8 @@ from aumesh.utils.io import atomic_write_text
 
 #: ``data.face_selection``: which face of a frame with several is the video's subject (aumesh.data.ingest).
 FACE_SELECTIONS = ("largest", "identity", "error")
+#: ``data.mesh_units``: how the mesh's z is read (aumesh.data.ingest; docs/conventions.md "py-feat's mesh units").
+MESH_UNITS = ("detector", "pixels")
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,7 @@ class DataConfig:
     tables: str = "**/*"
     mesh_npy: str = "{stem}.npy"
     face_selection: str = "largest"
+    mesh_units: str = "detector"
     chunk_rows: int = 8192
     coerce_numeric: bool = False
 
@@ -315,6 +318,12 @@ def validate(cfg: Config) -> Config:
             f"data.face_selection={cfg.data.face_selection!r}: use one of {', '.join(FACE_SELECTIONS)} "
             "(largest: the largest face box of a frame; identity: py-feat's Identity of the video's subject; "
             "error: refuse frames with several faces)"
+        )
+    if cfg.data.mesh_units not in MESH_UNITS:
+        raise ConfigError(
+            f"data.mesh_units={cfg.data.mesh_units!r}: use one of {', '.join(MESH_UNITS)} "
+            "(detector: z converted from the units of the py-feat detector the columns name; pixels: every table's "
+            "x, y, z already in pixels)"
         )
     if not cfg.preprocess.alignment.max_vertex_iod > 0:
         raise ConfigError(

@@ -9,9 +9,17 @@ What a block goes through (:func:`clean_block`), in order:
 2. **several faces**: py-feat writes one row per face, the rows of one frame consecutive (same ``input`` and
    ``frame``). ``data.face_selection`` keeps one: ``largest`` (the largest face box), ``identity`` (py-feat's
    ``Identity`` seen in most of the video's face rows; frames without that person are dropped) or ``error``;
-3. **units**: MediaPipe's raw landmarks are normalized image coordinates (x / width, y / height, z on x's scale).
-   Judged from the geometry (the inter-ocular distance, outer canthi 33-263, is below :data:`NORMALIZED_MAX_IOD`: no
-   face in pixels is that small), converted with ``FrameWidth``/``FrameHeight`` or refused when the table lacks them.
+3. **units** (docs/conventions.md, "py-feat's mesh units"): the mesh leaves in frame pixels, x, y and z.
+
+   * MediaPipe's raw landmarks are normalized image coordinates (x / width, y / height, z on x's scale). Judged from
+     the mesh's whole 2-D extent (:func:`normalized_rows`: a face in pixels, even in profile, is tens of pixels tall;
+     one in normalized units spans less than :data:`NORMALIZED_MAX_EXTENT`, and a small fraction of its FaceRect),
+     converted with ``FrameWidth``/``FrameHeight`` or refused when the table lacks them;
+   * py-feat writes x, y in frame pixels but z in its detector's crop units (:data:`Z_CROP`, :func:`z_scale`):
+     Detectorv2's z is in 0-1 of its square chip (``z_px = z * FaceRectWidth``), MPDetector's in pixels of its
+     256-px crop (``z_px = z * FaceRectWidth / 256``). ``data.mesh_units=pixels`` takes every z as pixels;
+   * the face's proportions are measured per source (:func:`depth_height`: face depth over face height, z- over
+     y-extent, stable under yaw) for the ingest stage's guard (:data:`DEPTH_HEIGHT_RANGE`).
 
 Sources: py-feat's CSV (read with pyarrow's multi-threaded CSV reader, only the needed columns, types given, in
 byte ranges of whole frames: bounded memory), a Fex saved as parquet (either detector), and the card's split layout
@@ -36,16 +44,48 @@ import pyarrow.parquet as pq
 from aumesh.data import pyfeat
 from aumesh.data.pyfeat import video_stem
 from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.geometry.face import FACE_OVAL
 from aumesh.utils.errors import TableError, corrupt_parquet
 from aumesh.utils.io import NpyRowFile, absolute, check_npy
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
 PARQUET_SUFFIXES = (".parquet",)
-#: Outer canthi: the inter-ocular distance that judges units (MediaPipe's indices).
-IOD_VERTICES = (33, 263)
-#: An inter-ocular distance below this is normalized image units: the smallest face py-feat detects (a ~20 px box)
-#: has ~8 px between the outer canthi; a whole-frame face in normalized units has ~0.4.
-NORMALIZED_MAX_IOD = 1.0
+#: Vertices whose extents judge the units and measure the face's proportions: the face oval (its top 10 and chin 152
+#: span the face's height at any yaw, its sides 234/454 lie at the back of the face) and the nose tip 1 (the front).
+SHAPE_VERTICES: tuple[int, ...] = (*FACE_OVAL, 1)
+#: A mesh whose 2-D extent (the larger of its x and y spans) is below this is in normalized image units: a face in
+#: pixels is tens of pixels tall even in profile (py-feat's smallest detected face, a ~20 px box), a face in 0-1
+#: units spans at most the frame (1) and a little beyond it.
+NORMALIZED_MAX_EXTENT = 1.5
+#: ... and below this fraction of its FaceRect's longer side, where py-feat wrote one (FaceRect is in pixels in
+#: either detector's export; a mesh in pixels spans ~0.6-0.9 of its crop box, one in 0-1 units ~1/frame size).
+NORMALIZED_MAX_RECT_FRACTION = 0.1
+#: The detectors' z units: name and divisor, z_px = z * FaceRectWidth / divisor (docs/conventions.md).
+#: Detectorv2: ``_mesh_to_original_frame`` (feat/detector_v2.py) maps x, y from 0-1 over the square chip
+#: (``extract_face_square_pad_torch``, feat/utils/image_operations.py: the detector box squared to its longer side x
+#: EXPAND_BBOX 1.2) to frame pixels and returns z unchanged; ``forward`` writes that square (``_crop_affine_to_box``)
+#: divided by the loader's rescale as FaceRect, so FaceRectWidth is the chip's side in frame pixels.
+#: MPDetector: ``detect_faces`` crops ``extract_face_from_bbox_torch(face_size=256, expand_bbox=1.25)`` (the box
+#: expanded 1.25x, resized to 256 x 256), FaceRect is that expanded box in frame pixels, and ``forward`` rescales
+#: only x, y ("leave Z in original scale"): z is in the 256-px crop's pixels, on x's scale (MediaPipe's z).
+Z_CROP: dict[str, tuple[str, float]] = {"Detectorv2": ("chip", 1.0), "MPDetector": ("crop256", 256.0)}
+#: The median over a source's faces of face depth over face height (z- over y-extent of :data:`SHAPE_VERTICES`)
+#: must lie in this range. MediaPipe's canonical face (py-feat's canonical_face_model.pt) has depth/width ~0.65,
+#: width/height ~0.85: depth/height ~0.55; py-feat's v4 release ~0.7 (depth/width 0.81); aumesh's template 0.34;
+#: a profile face (yaw 90) shows its width as depth, ~1.2. A flat face (z left in Detectorv2's chip units) is
+#: ~0.001. The range is a factor of ~3 beyond the faces: it refuses units, not people.
+DEPTH_HEIGHT_RANGE = (0.1, 3.0)
+#: z's growth with the face (:func:`growth_slope`) is judged on at least this many near-frontal faces whose heights
+#: spread at least this much (SD of log face height: ~8 %); with a frontal face's depth varying ~10 % (expression,
+#: the pose left) the slope's standard error is then below ~0.2, a fifth of the gap between py-feat's crop units (0)
+#: and pixels (1); the verdict is at 0.5. (Synthetic faces: 1.06 in pixels, 0.07-0.10 in either crop's units.)
+GROWTH_MIN_ROWS = 50
+GROWTH_MIN_SPREAD = 0.08
+#: ... among near-frontal faces (|pitch| and |yaw| below this, radians: ~11 deg), whose depth/height is the face's.
+GROWTH_MAX_POSE = 0.2
+#: log10 bin width of the depth/height histograms (:class:`RatioHist`: ~2.3 %), and their range (beyond: the end bins).
+RATIO_BIN = 0.01
+RATIO_LOG_RANGE = (-6.0, 4.0)
 #: CSV bytes parsed at a time: py-feat writes ~20 KB a row, so ~3,300 rows (~40 MB of float64 columns) per range.
 CSV_RANGE_BYTES = 64 << 20
 #: Parquet rows read at a time.
@@ -362,6 +402,85 @@ def to_block(table: pa.Table, span: Span) -> Block:
     return Block(video.astype(str), frame_col.to_numpy().astype(np.int64), values, identity, mesh)
 
 
+@dataclass(frozen=True)
+class RatioHist:
+    """A histogram of positive ratios in log10 bins of :data:`RATIO_BIN`, sparse (only the bins with counts: a source's
+    faces fill a few dozen), so a source's measurement costs a few hundred bytes and merges over blocks and tasks.
+
+    ``bins`` (k,) int32 sorted bin numbers (bin b holds log10 values in ``[b, b + 1) * RATIO_BIN``), ``counts`` (k,).
+    """
+
+    bins: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __add__(self, other: RatioHist) -> RatioHist:
+        if not len(other.bins):
+            return self
+        if not len(self.bins):
+            return other
+        bins, inverse = np.unique(np.r_[self.bins, other.bins], return_inverse=True)
+        return RatioHist(bins.astype(np.int32), np.bincount(inverse, np.r_[self.counts, other.counts]).astype(np.int64))
+
+    def median(self) -> float | None:
+        """The median ratio (its bin's geometric centre: within ~1.2 %); None when empty."""
+        total = int(self.counts.sum())
+        if not total:
+            return None
+        k = int(np.searchsorted(np.cumsum(self.counts), (total + 1) / 2))
+        return float(10 ** ((int(self.bins[k]) + 0.5) * RATIO_BIN))
+
+
+@dataclass
+class UnitStats:
+    """One source's mesh units, summed over its blocks: what was converted and the face's proportions.
+
+    ``xy``: "pixels" | "normalized" (| "mixed" when blocks of one source differ: refused by the ingest stage);
+    ``z``: "pixels" | "chip" | "crop256" | "normalized"; the histograms count each face row's depth/height
+    (:func:`depth_height`) in :class:`RatioHist` bins, as written (``before``), as ingested (``after``) and with z
+    converted by the detector's crop (``crop``; empty unless the table is a detector's export with FaceRect).
+    """
+
+    detector: str = ""
+    xy: str = ""
+    z: str = ""
+    rows: int = 0  # face rows kept
+    rows_converted: int = 0  # rows whose mesh was rescaled (normalized, or z from a detector's crop units)
+    rows_normalized: int = 0
+    rows_z_converted: int = 0  # rows whose z was converted from the detector's crop units
+    before: RatioHist = field(default_factory=lambda: RatioHist())
+    after: RatioHist = field(default_factory=lambda: RatioHist())
+    crop: RatioHist = field(default_factory=lambda: RatioHist())
+    growth: np.ndarray = field(default_factory=lambda: np.zeros(5))  # :func:`growth_sums` of the rows
+
+    def __add__(self, other: UnitStats) -> UnitStats:
+        def unit(a: str, b: str) -> str:
+            return a or b if not (a and b) or a == b else "mixed"
+
+        return UnitStats(
+            self.detector or other.detector,
+            unit(self.xy, other.xy),
+            unit(self.z, other.z),
+            self.rows + other.rows,
+            self.rows_converted + other.rows_converted,
+            self.rows_normalized + other.rows_normalized,
+            self.rows_z_converted + other.rows_z_converted,
+            self.before + other.before,
+            self.after + other.after,
+            self.crop + other.crop,
+            self.growth + other.growth,
+        )
+
+    def z_growth(self) -> float | None:
+        """How z as written grows with the face's size (:func:`growth_slope`); None when the faces' sizes vary too
+        little to tell."""
+        return growth_slope(self.growth)
+
+    def depth_height(self) -> tuple[float | None, float | None, float | None]:
+        """Median face depth/height as written, as ingested and with z converted by the detector's crop; None
+        where nothing was measured."""
+        return self.before.median(), self.after.median(), self.crop.median()
+
+
 @dataclass
 class Counts:
     """What a span's cleaning dropped and converted, summed over spans."""
@@ -373,7 +492,11 @@ class Counts:
     frames_without_subject: int = 0  # identity selection: frames where the video's subject is not seen
     rows_out: int = 0
     rows_normalized: int = 0  # rows whose mesh was converted from normalized image units to pixels
+    rows_z_chip: int = 0  # rows whose z was converted from Detectorv2's chip units
+    rows_z_crop256: int = 0  # rows whose z was converted from MPDetector's 256-px crop units
     identities: dict[str, dict[str, int]] = field(default_factory=dict)  # video -> Identity -> face rows
+    units: dict[str, UnitStats] = field(default_factory=dict)  # source path -> its units
+    labels: dict[str, set[str]] = field(default_factory=dict)  # source path -> Identity labels of kept rows
 
     def __add__(self, other: Counts) -> Counts:
         merged = {v: dict(c) for v, c in self.identities.items()}
@@ -381,11 +504,18 @@ class Counts:
             mine = merged.setdefault(v, {})
             for k, n in c.items():
                 mine[k] = mine.get(k, 0) + n
-        sums = {f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self) if f.name != "identities"}
-        return Counts(**sums, identities=merged)
+        units = dict(self.units)
+        for k, u in other.units.items():
+            units[k] = units[k] + u if k in units else u
+        labels = {k: set(names) for k, names in self.labels.items()}
+        for k, names in other.labels.items():
+            labels.setdefault(k, set()).update(names)
+        dicts = ("identities", "units", "labels")
+        sums = {f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self) if f.name not in dicts}
+        return Counts(**sums, identities=merged, units=units, labels=labels)
 
     def as_dict(self) -> dict[str, int]:
-        return {
+        out = {
             "rows_in": self.rows_in,
             "dropped_no_face": self.no_face,
             "dropped_extra_faces": self.extra_faces,
@@ -393,7 +523,12 @@ class Counts:
             "dropped_frames_without_subject": self.frames_without_subject,
             "frames_out": self.rows_out,
             "rows_converted_from_normalized": self.rows_normalized,
+            "rows_z_from_chip": self.rows_z_chip,
+            "rows_z_from_crop256": self.rows_z_crop256,
         }
+        if self.labels:  # py-feat's Identity column in some source
+            out["identity_labels"] = sum(len(v) for v in self.labels.values())
+        return out
 
 
 def no_face_rows(block: Block, layout: pyfeat.Layout) -> np.ndarray:
@@ -476,17 +611,86 @@ def select_faces(
     return np.sort(keep), counts
 
 
-def inter_ocular(mesh: np.ndarray) -> np.ndarray:
-    """(n,) image-plane distance between the outer canthi (MediaPipe 33 and 263) of axis-major meshes (n, 1434)."""
-    a, b = IOD_VERTICES
-    dx = mesh[:, a] - mesh[:, b]
-    dy = mesh[:, N_VERTICES + a] - mesh[:, N_VERTICES + b]
-    return np.hypot(dx.astype(np.float64), dy)
+def shape_extents(mesh: np.ndarray, axes: Sequence[int] = (0, 1, 2)) -> np.ndarray:
+    """(n, len(axes)) spans along ``axes`` (0 x, 1 y, 2 z) of :data:`SHAPE_VERTICES` of axis-major meshes (n, 1434)
+    (NaN where a vertex is)."""
+    idx = np.add.outer(np.asarray(axes) * N_VERTICES, SHAPE_VERTICES)  # (a, k)
+    part = np.sort(mesh[:, idx].astype(np.float64), axis=2)  # (n, a, k), NaN last
+    # second-largest minus second-smallest: one wild vertex (a corrupt export, dropped later by prepare's
+    # max_vertex_iod) neither judges the units nor flattens the face; the oval's vertices are ~5 % of it apart
+    return part[:, :, -2] - part[:, :, 1]
 
 
-def normalized_rows(mesh: np.ndarray) -> np.ndarray:
-    """(n,) bool: rows whose mesh is in normalized image units (inter-ocular distance below 1)."""
-    return inter_ocular(mesh) < NORMALIZED_MAX_IOD
+def depth_height(extents: np.ndarray) -> np.ndarray:
+    """(n,) face depth over face height, z- over y-extent (:func:`shape_extents`): yaw turns x into z, not y."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return extents[:, 2] / extents[:, 1]
+
+
+def frontal(values: dict[str, np.ndarray]) -> np.ndarray:
+    """(n,) bool: faces within :data:`GROWTH_MAX_POSE` radians of frontal in pitch and yaw (py-feat's pose columns)."""
+    return (np.abs(values["Pitch"]) < GROWTH_MAX_POSE) & (np.abs(values["Yaw"]) < GROWTH_MAX_POSE)
+
+
+def growth_sums(z_extent: np.ndarray, height: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(5,) n, sum x, sum y, sum x^2, sum x y of x = log face height (y-extent, pixels), y = log z-extent as written,
+    over ``rows`` (near-frontal faces, :func:`frontal`: pitch turns height into depth, yaw width) where both are
+    finite and positive: the sums of a least-squares slope, mergeable over blocks."""
+    ok = rows & np.isfinite(z_extent) & np.isfinite(height) & (z_extent > 0) & (height > 0)
+    x, y = np.log(height[ok]), np.log(z_extent[ok])
+    return np.array([len(x), x.sum(), y.sum(), (x * x).sum(), (x * y).sum()])
+
+
+def growth_slope(sums: np.ndarray) -> float | None:
+    """The slope of log z-extent on log face height over a source's faces (:func:`growth_sums`), None below
+    :data:`GROWTH_MIN_ROWS` faces or :data:`GROWTH_MIN_SPREAD`. In frame pixels a face's depth grows with its size
+    (slope ~1); in py-feat's crop units it does not (~0: each face's crop is rescaled to the same chip, 0-1 or 256
+    px). The height, not FaceRectWidth: MPDetector's crop width shrinks as the head turns while the depth grows. This
+    tells the units apart where the depth/height ratio cannot (an MPDetector face ~256 px wide looks the same in
+    either)."""
+    n, sx, sy, sxx, sxy = (float(v) for v in sums)
+    if n < GROWTH_MIN_ROWS:
+        return None
+    var = sxx / n - (sx / n) ** 2
+    if var < GROWTH_MIN_SPREAD**2:
+        return None
+    return (sxy / n - sx * sy / n**2) / var
+
+
+def ratio_hist(ratio: np.ndarray) -> RatioHist:
+    """The finite values of ``ratio`` (n,) counted in :class:`RatioHist` bins."""
+    r = np.abs(ratio[np.isfinite(ratio)])
+    with np.errstate(divide="ignore"):
+        logs = np.clip(np.log10(r), *RATIO_LOG_RANGE)
+    bins, counts = np.unique(np.floor(logs / RATIO_BIN).astype(np.int32), return_counts=True)
+    return RatioHist(bins, counts.astype(np.int64))
+
+
+def normalized_rows(
+    mesh: np.ndarray, rect_side: np.ndarray | None = None, extents: np.ndarray | None = None
+) -> np.ndarray:
+    """(n,) bool: rows whose mesh (n, 1434) is in normalized image units.
+
+    The mesh's 2-D extent (the larger of its x and y spans over :data:`SHAPE_VERTICES`) is below
+    :data:`NORMALIZED_MAX_EXTENT`, and, where the row has a FaceRect (``rect_side``: its longer side in pixels,
+    (n,); NaN or 0 where py-feat wrote none), below :data:`NORMALIZED_MAX_RECT_FRACTION` of it. A face turned to
+    profile keeps its height: its inter-ocular distance can fall below a pixel, its extent does not. ``extents``:
+    its x, y spans (n, 2) when already measured (:func:`shape_extents`).
+    """
+    extent = (shape_extents(mesh, (0, 1)) if extents is None else extents).max(axis=1)
+    normalized = extent < NORMALIZED_MAX_EXTENT
+    if rect_side is not None:
+        has_rect = np.isfinite(rect_side) & (rect_side > 0)
+        normalized &= ~has_rect | (extent < NORMALIZED_MAX_RECT_FRACTION * np.where(has_rect, rect_side, 0.0))
+    return normalized
+
+
+def rect_side(block: Block, layout: pyfeat.Layout) -> np.ndarray | None:
+    """(n,) the longer side of each row's FaceRect (None: the table has no FaceRect columns)."""
+    if layout.box_size is None:
+        return None
+    w, h = (block.values[c] for c in layout.box_size)
+    return np.fmax(w, h)
 
 
 def to_pixels(block: Block, layout: pyfeat.Layout, normalized: np.ndarray, where: str) -> None:
@@ -494,10 +698,10 @@ def to_pixels(block: Block, layout: pyfeat.Layout, normalized: np.ndarray, where
     (MediaPipe's z is on x's scale)."""
     if not normalized.any():
         return
-    iod = float(np.median(inter_ocular(block.mesh[normalized])))
+    extent = float(np.median(shape_extents(block.mesh[normalized], (0, 1)).max(axis=1)))
     if layout.frame_size is None:
         raise TableError(
-            f"{where}: the mesh is in normalized image units (0-1; median inter-ocular distance {iod:.3g}), and the "
+            f"{where}: the mesh is in normalized image units (0-1; median face extent {extent:.3g}), and the "
             f"table has no FrameWidth/FrameHeight to convert it. Fix: keep py-feat's FrameWidth and FrameHeight "
             f"columns, or multiply x and z by the frame width and y by its height before `dvc add data`."
         )
@@ -513,25 +717,109 @@ def to_pixels(block: Block, layout: pyfeat.Layout, normalized: np.ndarray, where
     block.mesh[normalized] = m.reshape(len(m), -1)
 
 
+def z_scale(block: Block, layout: pyfeat.Layout, mesh_units: str, where: str) -> tuple[str, np.ndarray | None]:
+    """The unit z is written in and the factor (n,) that takes it to frame pixels (None: z is pixels already).
+
+    ``mesh_units="detector"``: Detectorv2's chip units (``z * FaceRectWidth``) and MPDetector's 256-px crop units
+    (``z * FaceRectWidth / 256``), :data:`Z_CROP`; a ``table`` or ``split`` source, and ``mesh_units="pixels"``,
+    are pixels.
+
+    Raises
+    ------
+    TableError
+        The conversion needs FaceRectWidth and a row has none (or not > 0): naming the file, the row's video and
+        frame, and the fix.
+    """
+    if mesh_units == "pixels" or layout.detector not in Z_CROP:
+        return "pixels", None
+    unit, divisor = Z_CROP[layout.detector]
+    width_col = pyfeat.FACE_BOX_SIZE[0]
+    if layout.box_size is None:
+        raise TableError(
+            f"{where}: column {width_col!r} is missing: {layout.detector}'s z is in its crop's units "
+            f"and FaceRectWidth (the crop in pixels) converts it. Fix: keep py-feat's FaceRect columns, or set "
+            f"data.mesh_units=pixels if z is already in pixels."
+        )
+    width = block.values[width_col]
+    bad = ~(np.isfinite(width) & (width > 0))
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise TableError(
+            f"{where}: column {width_col!r} is {width[row]} on a face row (frame {int(block.frame[row])} of video "
+            f"{str(block.video[row])!r}; {int(bad.sum())} such rows): {layout.detector}'s z is in its crop's units "
+            f"and FaceRectWidth converts it. Fix: keep py-feat's FaceRect values as detect wrote them, or set "
+            f"data.mesh_units=pixels if z is already in pixels."
+        )
+    return unit, width / divisor
+
+
+def convert_units(block: Block, layout: pyfeat.Layout, mesh_units: str, where: str) -> UnitStats:
+    """The kept rows' meshes to frame pixels, in place (module docstring, step 3); what was done, measured.
+
+    The face's depth/height is measured as written and, after a conversion, again on the mesh as it leaves. For a
+    detector's export the ratio with z converted by its crop (the written ratio x the row's factor: z scales, y does
+    not) is kept whether or not the conversion was made (``UnitStats.crop``: the guard's "with the conversion").
+    """
+    extents = shape_extents(block.mesh)  # (n, 3): the units' judgement and the face's proportions
+    normalized = normalized_rows(block.mesh, rect_side(block, layout), extents[:, :2])
+    if normalized.any() and not normalized.all():
+        row = int(np.flatnonzero(normalized != normalized[0])[0])
+        raise TableError(
+            f"{where}: mixes meshes in pixels and in normalized image units (frame {int(block.frame[row])} of "
+            f"video {str(block.video[row])!r} differs from the first). Fix: export every video the same way."
+        )
+    ratio = depth_height(extents)
+    n = len(block)
+    stats = UnitStats(detector=layout.detector, rows=n, before=ratio_hist(ratio))
+    stats.after = stats.before
+    if n and normalized[0]:
+        to_pixels(block, layout, normalized, where)
+        stats.after = ratio_hist(depth_height(shape_extents(block.mesh)))  # measured on the mesh as it leaves
+        stats.xy = stats.z = "normalized"
+        stats.rows_converted = stats.rows_normalized = n
+        return stats
+    if layout.detector in Z_CROP and layout.box_size is not None:
+        width = block.values[pyfeat.FACE_BOX_SIZE[0]]
+        stats.crop = ratio_hist(ratio * width / Z_CROP[layout.detector][1])
+        stats.growth = growth_sums(extents[:, 2], extents[:, 1], frontal(block.values))
+    if n:
+        unit, factor = z_scale(block, layout, mesh_units, where)
+        stats.xy, stats.z = "pixels", unit
+        if factor is not None:
+            block.mesh[:, 2 * N_VERTICES :] *= factor.astype(np.float32)[:, None]
+            extents[:, 2:] = shape_extents(block.mesh, (2,))  # measured on the mesh as it leaves (its z)
+            stats.after = ratio_hist(depth_height(extents))
+            stats.rows_converted = stats.rows_z_converted = n
+    return stats
+
+
 def clean_block(
-    block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None, where: str
+    block: Block,
+    layout: pyfeat.Layout,
+    how: str,
+    subjects: dict[str, str] | None,
+    where: str,
+    mesh_units: str = "detector",
 ) -> tuple[Block, Counts]:
     """No-face rows dropped, one face per frame, meshes in pixels (module docstring)."""
     empty = no_face_rows(block, layout)
     faces = block.take(np.flatnonzero(~empty))
     keep, counts = select_faces(faces, layout, how, subjects, where)
     out = faces.take(keep)
-    normalized = normalized_rows(out.mesh)
-    if normalized.any() and not normalized.all():
-        row = int(np.flatnonzero(normalized != normalized[0])[0])
-        raise TableError(
-            f"{where}: mixes meshes in pixels and in normalized image units (frame {out.frame[row]} of "
-            f"video {out.video[row]!r} differs from the first). Fix: export every video the same way."
-        )
-    to_pixels(out, layout, normalized, where)
+    stats = convert_units(out, layout, mesh_units, where)
     counts.rows_in, counts.no_face, counts.rows_out = len(block), int(empty.sum()), len(out)
-    counts.rows_normalized = int(normalized.sum())
+    counts.rows_normalized = stats.rows_normalized
+    counts.rows_z_chip = stats.rows_z_converted if stats.z == "chip" else 0
+    counts.rows_z_crop256 = stats.rows_z_converted if stats.z == "crop256" else 0
+    counts.units = {where: stats}
+    if layout.identity is not None and out.identity is not None:
+        counts.labels = {where: identity_labels(out.identity)}
     return out, counts
+
+
+def identity_labels(identity: np.ndarray) -> set[str]:
+    """The distinct Identity labels of some rows (py-feat writes NaN where it has none)."""
+    return {str(v) for v in identity if v is not None and not (isinstance(v, float) and np.isnan(v))}
 
 
 def identity_counts(block: Block, layout: pyfeat.Layout) -> dict[str, dict[str, int]]:
@@ -567,21 +855,24 @@ def to_table(block: Block, schema: pa.Schema) -> pa.Table:
 
 
 def iter_clean_blocks(
-    spans: Sequence[Span], how: str, subjects: dict[str, str] | None
+    spans: Sequence[Span], how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
 ) -> Iterator[tuple[Block, Counts]]:
     """Each span read and cleaned (:func:`clean_block`)."""
     for span in spans:
         for rows, table in iter_span_tables(span):
-            yield clean_block(to_block(table, rows), span.source.layout, how, subjects, str(span.source.path))
+            block = to_block(table, rows)
+            yield clean_block(block, span.source.layout, how, subjects, str(span.source.path), mesh_units)
 
 
-def write_clean(spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None) -> Counts:
+def write_clean(
+    spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
+) -> Counts:
     """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed)."""
     schema = output_schema()
     total = Counts()
     writer = pq.ParquetWriter(out, schema, compression="none", use_dictionary=[VIDEO_COLUMN], write_statistics=False)
     try:
-        for block, counts in iter_clean_blocks(spans, how, subjects):
+        for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units):
             total = total + counts
             if len(block):
                 writer.write_table(to_table(block, schema), row_group_size=ROW_GROUP_ROWS)
@@ -620,25 +911,35 @@ def _with_missing(table: pa.Table, lay: pyfeat.Layout) -> pa.Table:
 
 @dataclass(frozen=True)
 class PassThrough:
-    """A parquet table the pipeline reads as it is (already clean: one face row per frame, pixels)."""
+    """A parquet table the pipeline reads as it is (already clean: one face row per frame, pixels).
+
+    ``units``: its mesh units, the face's proportions measured on the rows the check read; ``labels``: py-feat's
+    Identity labels (None without the column)."""
 
     clean: bool
     rows: int
     reason: str = ""
+    units: UnitStats | None = None
+    labels: set[str] | None = None
 
 
-def check_clean(source: Source) -> PassThrough:
-    """Whether a parquet source can be read in place: MPDetector columns or the split layout, no no-face rows, one row
-    per frame, pixels. Reads the id, AU and pose columns a batch at a time and 4 mesh columns (the units, judged on up
-    to the first :data:`ROW_GROUP_ROWS` rows): a fraction of one pass over the table."""
+def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
+    """Whether a parquet source can be read in place: a mesh in pixels (the split layout, a ``table`` without py-feat's
+    FaceRect, or any interleaved table with ``mesh_units="pixels"``), no no-face rows, one row per frame. Reads the id,
+    AU and pose columns (and Identity) a batch at a time and the x, y, z of :data:`SHAPE_VERTICES` on up to the first
+    :data:`ROW_GROUP_ROWS` rows (the units and the face's proportions): a fraction of one pass over the table."""
     lay = source.layout
     if lay.detector == "Detectorv2":
         return PassThrough(False, source.n_rows or 0, "Detectorv2 mesh columns")
+    if lay.detector in Z_CROP and mesh_units == "detector":  # z in the crop's units: converted (Detectorv2 above)
+        return PassThrough(False, source.n_rows or 0, "MPDetector z in its 256-px crop's units")
     n = source.n_rows or 0
     # a no-face row has every AU and pose value NaN: a row whose first AU and Pitch are NaN sends the table to be
     # cleaned, where the whole rule applies (a face row with only those missing is then the contract's error)
     cols = [lay.video, FRAME_COLUMN, AU_COLUMNS[0], POSE_COLUMNS[0], *([lay.face_score] if lay.face_score else [])]
+    cols += [lay.identity] if lay.identity else []
     no_face, several, previous = 0, 0, None
+    labels: set[str] | None = set() if lay.identity else None
     try:
         reader = pq.ParquetFile(source.path)
     except (pa.ArrowException, OSError) as err:
@@ -657,26 +958,49 @@ def check_clean(source: Source) -> PassThrough:
             )
             several += int(pc.sum(same).as_py() or 0) + int((video[0].as_py(), frame[0].as_py()) == previous)
             previous = (video[m - 1].as_py(), frame[m - 1].as_py())
+        if labels is not None and lay.identity:
+            labels |= identity_labels(np.array(pc.unique(table.column(lay.identity)).drop_null().to_pylist()))
     if not n:  # an empty table: nothing to clean (prepare names empty input)
         return PassThrough(True, 0)
     if no_face:
         return PassThrough(False, n, f"{no_face} no-face rows")
     if several:
         return PassThrough(False, n, "several faces in a frame")
-    sample = Span(source, 0, max(1, min(n, ROW_GROUP_ROWS)))
+    rows = max(1, min(n, ROW_GROUP_ROWS))
+    mesh = np.full((rows, 3 * N_VERTICES), np.nan, np.float32)
+    rect = None
     if lay.mesh is not None:
         names = lay.mesh
-        mesh_cols = [names[i] for i in (*IOD_VERTICES, *(N_VERTICES + i for i in IOD_VERTICES))]
-        part = next(_parquet_batches(source, mesh_cols, batch_rows=sample.stop, reader=reader), pa.table({}))
-        mesh = np.zeros((part.num_rows, 2 * N_VERTICES), np.float64)
+        mesh_cols = [names[a * N_VERTICES + i] for a in range(3) for i in SHAPE_VERTICES]
+        part = next(
+            _parquet_batches(
+                source, mesh_cols + list(lay.box_size or ()) + ["Pitch", "Yaw"], batch_rows=rows, reader=reader
+            ),
+            pa.table({}),
+        )
+        mesh = mesh[: part.num_rows]
         for name in mesh_cols:
             mesh[:, names.index(name)] = part.column(name).to_numpy(zero_copy_only=False)
+        if lay.box_size is not None:
+            w, h = (part.column(c).to_numpy(zero_copy_only=False).astype(np.float64) for c in lay.box_size)
+            rect = np.fmax(w, h)
     else:
         assert source.mesh_npy is not None, source  # open_source pairs a table without mesh columns with its .npy
         with NpyRowFile(source.mesh_npy) as f:
-            rows = f.read(0, sample.stop)
-        mesh = rows.astype(np.float64).transpose(0, 2, 1).reshape(len(rows), -1)
-    finite = np.isfinite(inter_ocular(mesh))
-    if finite.any() and normalized_rows(mesh[finite]).any():
-        return PassThrough(False, n, "normalized image units")
-    return PassThrough(True, n)
+            sample = f.read(0, rows)
+        mesh = np.ascontiguousarray(sample.astype(np.float32).transpose(0, 2, 1)).reshape(len(sample), -1)
+    extents = shape_extents(mesh)
+    finite = np.isfinite(extents).all(axis=1)
+    extents = extents[finite]
+    if finite.any() and normalized_rows(mesh[finite], None if rect is None else rect[finite], extents[:, :2]).any():
+        return PassThrough(False, n, "normalized image units", labels=labels)
+    ratio = depth_height(extents)
+    hist = ratio_hist(ratio)
+    units = UnitStats(lay.detector, "pixels", "pixels", rows=n, before=hist, after=hist)
+    if lay.detector in Z_CROP and rect is not None:  # z taken as pixels (mesh_units=pixels): the ratio converted
+        assert lay.box_size is not None
+        width = part.column(lay.box_size[0]).to_numpy(zero_copy_only=False).astype(np.float64)[finite]
+        units.crop = ratio_hist(ratio * width / Z_CROP[lay.detector][1])
+        pose = {c: part.column(c).to_numpy(zero_copy_only=False).astype(np.float64)[finite] for c in ("Pitch", "Yaw")}
+        units.growth = growth_sums(extents[:, 2], extents[:, 1], frontal(pose))
+    return PassThrough(True, n, units=units, labels=labels)

@@ -10,6 +10,11 @@ and the card's training layout, a table without mesh columns plus an ``[N, 478, 
 detectors also write ``FaceRectX/Y/Width/Height``, ``FaceScore``, the 20 AUs, ``Pitch, Roll, Yaw`` (Fex order),
 ``FrameWidth``/``FrameHeight``, ``input`` (the video path), ``frame``, ``approx_time`` and ``Identity``; blendshapes,
 emotions, identity embeddings and gaze (about 2,000 columns) are never read.
+
+The detector is named from the columns (:attr:`Layout.detector`): ``mesh_x_*`` is Detectorv2; the interleaved mesh
+beside py-feat's ``FaceRectWidth``/``FaceRectHeight`` is MPDetector; the interleaved mesh without them is ``table``
+(not a py-feat export: a hand-made or converted table, its mesh taken as pixels); no mesh columns is ``split``. The
+detector decides the units of z (:mod:`aumesh.data.ingest`, docs/conventions.md "py-feat's mesh units").
 """
 
 from __future__ import annotations
@@ -53,7 +58,7 @@ class Layout:
     py-feat's ``input`` (the video's path, whose stem names the video). The optional columns are None when absent.
     """
 
-    detector: str  # MPDetector | Detectorv2 | split
+    detector: str  # MPDetector | Detectorv2 | table | split
     video: str
     mesh: tuple[str, ...] | None
     face_score: str | None
@@ -135,7 +140,10 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout
     if set(MESH_NAMES["Detectorv2"]) <= present:
         mesh, detector = MESH_NAMES["Detectorv2"], "Detectorv2"
     elif not split_mesh:
-        mesh, detector = mesh_point_columns(names, where), "MPDetector"
+        # py-feat's MPDetector always writes its crop box beside the interleaved mesh (MPDetector.forward's
+        # feat_faceboxes): without FaceRect the table is not its export, and nothing says z is in its crop's units
+        mesh = mesh_point_columns(names, where)
+        detector = "MPDetector" if set(FACE_BOX_SIZE) <= present else "table"
 
     def optional(*cols: str):
         return cols if all(c in present for c in cols) else None

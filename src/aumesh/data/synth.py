@@ -8,6 +8,9 @@ The generator is honest about what makes the real problem hard:
   explain, plus coordinate noise;
 * random head rotation (the recorded Pitch, Yaw, Roll), scale and image-space translation,
   some frames outside the card's pose limits, and a few landmark failures;
+* optionally (``profile_rate``), runs of frames with the head turned toward profile (|yaw| in
+  ``profile_yaw_deg``), the mesh generated at that pose: the face's 2-D inter-ocular distance shrinks with
+  cos(yaw), its height does not. Off by default, and then no random draw changes: every table is as before;
 * optionally (``identity_au_coupling``), AU detectors that read a person's resting face as some
   expression: each video's recorded AUs start from a baseline that rises with how much the person's
   identity shape resembles the AU's field (a naturally upturned mouth corner reads as AU12). The mesh
@@ -55,6 +58,43 @@ class SynthSpec:
     reversed_aus: tuple[str, ...] = ()  # truth deliberately reversed (tests of the AU-direction check)
     # AU baseline per unit softplus of the identity's standardized resemblance to the AU field (0 = off)
     identity_au_coupling: float = 0.0
+    # fraction of each video's frames (in runs of PROFILE_RUN frames) turned toward profile (0 = off: no draw)
+    profile_rate: float = 0.0
+    profile_yaw_deg: tuple[float, float] = (60.0, 85.0)  # |yaw| of those frames
+
+
+#: Frames per run of profile frames (``SynthSpec.profile_rate``).
+PROFILE_RUN = (5, 20)
+#: SynthSpec fields added after the truth files' ``spec`` record was fixed: left out of it at their defaults, so
+#: an unchanged spec writes the same truth file as before.
+_LATER_FIELDS = {"profile_rate": 0.0, "profile_yaw_deg": (60.0, 85.0)}
+
+
+def _spec_record(spec: SynthSpec) -> dict:
+    """``asdict(spec)`` without the later fields at their defaults (:data:`_LATER_FIELDS`)."""
+    return {k: v for k, v in asdict(spec).items() if not (k in _LATER_FIELDS and v == _LATER_FIELDS[k])}
+
+
+def profile_yaw(spec: SynthSpec, video: int, yaw: np.ndarray) -> np.ndarray:
+    """``yaw`` (radians, (n,)) with runs of about ``spec.profile_rate`` of the frames turned toward profile: each run
+    at one side's |yaw| drawn in ``spec.profile_yaw_deg``, 1 degree of jitter, kept inside that range. Its own random
+    stream (seeded by the spec's seed and the video), drawn only when the rate is positive."""
+    n = len(yaw)
+    rng = np.random.default_rng([spec.seed, video, 7])
+    target = int(np.floor(spec.profile_rate * n + rng.random()))
+    out = yaw.copy()
+    turned = np.zeros(n, dtype=bool)
+    lo, hi = spec.profile_yaw_deg
+    for _ in range(100 * (target + 1)):
+        have = int(turned.sum())
+        if have >= target:
+            break
+        length = min(int(rng.integers(PROFILE_RUN[0], PROFILE_RUN[1] + 1)), n, max(target - have, 1))
+        start = int(rng.integers(0, n - length + 1))
+        deg = rng.choice([-1.0, 1.0]) * np.clip(rng.uniform(lo, hi) + rng.normal(0, 1.0, length), lo, hi)
+        out[start : start + length] = np.deg2rad(deg)
+        turned[start : start + length] = True
+    return out
 
 
 def true_coefficients(spec: SynthSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -164,6 +204,8 @@ def generate_video(
     )
     walk = np.cumsum(rng.normal(0, np.deg2rad(1.5), size=(n_frames, 3)), axis=0)
     pose = mean_pose + walk - walk.mean(0)  # (n, 3) Pitch, Yaw, Roll
+    if spec.profile_rate > 0:  # off: not a single draw more (every existing table stays bit-identical)
+        pose[:, 1] = profile_yaw(spec, video, pose[:, 1])
     x = np.column_stack([au, pose, (pose[:, :, None] * au[:, None, :]).reshape(n_frames, -1)])
     identity_sd = spec.identity_scale * spec.px_per_iod
     weights = rng.normal(0, identity_sd, size=identity_basis.shape[0])
@@ -251,7 +293,7 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
             au_baseline=np.array(baselines),
             template_px=template * spec.px_per_iod,
             anchor_indices=np.array(ANCHOR_INDICES, dtype=np.int32),
-            spec=np.array(repr(asdict(spec))),
+            spec=np.array(repr(_spec_record(spec))),
         )
     return {
         "files": [str(f) for f in files],

@@ -8,11 +8,22 @@ export holds:
   ``x_0, y_0, z_0, ...``, 52 blendshapes, lower-case emotions, ``Identity_*`` all NaN) or ``Detectorv2``
   (``detector="v2"``: a 68-point block ``x_0..x_67, y_0..y_67``, the mesh axis-major ``mesh_x_*, mesh_y_*,
   mesh_z_*``, capitalised emotions, valence/arousal, identity embeddings);
+* ``FaceRectX/Y/Width/Height``: the crop box the detector cut the face from, in frame pixels, around a detector box
+  (the face's 2-D extent padded 8 %): Detectorv2's square of side 1.2 x the box's longer side, centred
+  (``extract_face_square_pad_torch``, EXPAND_BBOX in feat/multitask/inference.py; ``_crop_affine_to_box``), and
+  MPDetector's box expanded 1.25x about its centre, corners rounded to whole pixels (``extract_face_from_bbox_torch``
+  called by ``MPDetector.detect_faces`` with ``face_size=256, expand_bbox=1.25``);
+* the mesh's x, y in frame pixels and its z in the detector's crop units, as py-feat writes them: Detectorv2's z in
+  0-1 of its chip (``z_px / FaceRectWidth``: ``Detectorv2._mesh_to_original_frame`` returns z unchanged), MPDetector's
+  in pixels of its 256-px crop (``z_px * 256 / FaceRectWidth``: ``MPDetector.forward`` "leave[s] Z in original
+  scale"); optionally z in frame pixels instead (``z_pixels``: the independent route of the ingest's conversion);
 * frames without a face (occlusion, in runs), kept as one row whose measurements are NaN (``FaceScore`` and
   ``FaceRect*`` 0 for "mp", NaN for "v2");
 * a second, smaller face in the background in some runs of frames (``Identity`` "Person_1"), before or after the
   main face's row, as the detector found them;
 * ``input`` (the video path), ``frame``, ``approx_time`` ("MM:SS" at 25 fps), ``FrameHeight``/``FrameWidth``;
+* optionally runs of frames with the head turned toward profile (``profile_rate``: :class:`synth.SynthSpec`'s
+  ``profile_rate``, the mesh generated at that pose);
 * optionally MediaPipe's normalized image units (x / width, y / height, z / width) and no frame-size columns.
 
 Only column names are taken from py-feat; nothing of its code or data. Files are written one at a time, in chunks of
@@ -21,6 +32,7 @@ videos, so ~100k frames in one CSV stay in bounded memory.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -104,6 +116,14 @@ FRAME_SIZE_COLUMNS = ("FrameHeight", "FrameWidth")
 TRAILING_COLUMNS = ("input", "frame", "approx_time", "Identity")
 # v2's 68-point block: a fixed subset of the mesh's vertices (any fixed subset serves the ingest tests).
 LANDMARK68_VERTICES: tuple[int, ...] = tuple(int(i) for i in np.round(np.linspace(0, N_VERTICES - 1, 68)))
+
+#: The detectors' crops (docs/conventions.md "py-feat's mesh units"): Detectorv2's square side over the detector
+#: box's longer side (EXPAND_BBOX, feat/multitask/inference.py), MPDetector's expansion and crop size
+#: (``MPDetector.detect_faces``).
+V2_EXPAND = 1.2
+MP_EXPAND = 1.25
+MP_CROP = 256.0
+_DETECTOR_PAD = 0.08  # the detector box: the face's 2-D extent padded 8 % each side
 
 _CHUNK_ROWS = 4096  # rows per DataFrame written (whole videos; a longer video is one chunk)
 _NO_FACE_RUN = (1, 10)  # occlusions: 1-10 consecutive frames
@@ -269,6 +289,30 @@ def _emotions(rng: np.random.Generator, au: np.ndarray) -> np.ndarray:
     return p / p.sum(axis=1, keepdims=True)
 
 
+def crop_box(mesh: np.ndarray, detector: str) -> np.ndarray:
+    """(m, 4) FaceRectX, Y, Width, Height the detector writes for faces ``mesh`` (m, 478, 3) in pixels: its crop box.
+
+    The detector box is the face's 2-D extent padded :data:`_DETECTOR_PAD`; "v2": the centred square of side
+    :data:`V2_EXPAND` x its longer side; "mp": the box scaled :data:`MP_EXPAND` about its centre, corners rounded.
+    """
+    lo, hi = mesh[:, :, :2].min(axis=1), mesh[:, :, :2].max(axis=1)
+    pad = _DETECTOR_PAD * (hi - lo)
+    lo, hi = lo - pad, hi + pad
+    centre, size = (lo + hi) / 2, hi - lo
+    if detector == "v2":
+        side = V2_EXPAND * size.max(axis=1, keepdims=True)
+        return np.column_stack([centre - side / 2, side, side])
+    corner_lo, corner_hi = np.round(centre - MP_EXPAND * size / 2), np.round(centre + MP_EXPAND * size / 2)
+    return np.column_stack([corner_lo, corner_hi - corner_lo])
+
+
+def z_to_crop(z: np.ndarray, width: np.ndarray, detector: str) -> np.ndarray:
+    """z in frame pixels (m, k) -> the detector's crop units, with FaceRectWidth ``width`` (m,): "v2" z / width,
+    "mp" z * 256 / width (NaN where the width is not positive: py-feat's no-face rows)."""
+    w = np.where(width > 0, width, np.nan)[:, None]
+    return z / w if detector == "v2" else z * MP_CROP / w
+
+
 def _faces(
     rng: np.random.Generator,
     mesh: np.ndarray,
@@ -276,12 +320,11 @@ def _faces(
     pose_fex: np.ndarray,
     score: tuple[float, float],
     identity: np.ndarray | None,
+    detector: str,
 ) -> dict[str, np.ndarray]:
     """Every measurement of ``m`` detected faces (meshes in pixels): 2-D blocks keyed by group."""
     m = len(mesh)
-    lo, hi = mesh[:, :, :2].min(axis=1), mesh[:, :, :2].max(axis=1)
-    pad = 0.08 * (hi - lo)
-    rect = np.column_stack([lo - pad, hi - lo + 2 * pad])  # X, Y, Width, Height
+    rect = crop_box(mesh, detector)  # X, Y, Width, Height
     iod_px = np.linalg.norm(mesh[:, 33, :2] - mesh[:, 263, :2], axis=1)
     cm_per_px = 9.0 / np.maximum(iod_px, 1e-6)  # outer eye corners ~9 cm apart
     centre = mesh.mean(axis=1)
@@ -335,7 +378,13 @@ def _video_rows(
     order = [POSE_COLUMNS.index(p) for p in FEX_POSE_COLUMNS]
     v2 = detector == "v2"
     main = _faces(
-        rng, g["mesh"], g["au"], g["pose"][:, order], (0.9, 1.0), _unit(rng.standard_normal(512)) if v2 else None
+        rng,
+        g["mesh"],
+        g["au"],
+        g["pose"][:, order],
+        (0.9, 1.0),
+        _unit(rng.standard_normal(512)) if v2 else None,
+        detector,
     )
     # the background person: the main mesh scaled 0.4 about its centre, ~150 px to the side with more room
     ef = np.flatnonzero(extra)
@@ -345,7 +394,9 @@ def _video_rows(
     small = centre + 0.4 * (g["mesh"][ef] - centre) + offset + rng.normal(0, 0.3, size=(len(ef), N_VERTICES, 3))
     extra_au = synth._au_intensities(rng, len(ef), rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS)))
     extra_pose = np.deg2rad(rng.normal(0, [10, 7, 18]) + rng.normal(0, 2, size=(len(ef), 3)))  # Fex order
-    other = _faces(rng, small, extra_au, extra_pose, (0.6, 0.9), _unit(rng.standard_normal(512)) if v2 else None)
+    other = _faces(
+        rng, small, extra_au, extra_pose, (0.6, 0.9), _unit(rng.standard_normal(512)) if v2 else None, detector
+    )
 
     # rows: one per frame, two where a background face is; it comes first where extra_first
     per_frame = 1 + extra.astype(int)
@@ -449,7 +500,9 @@ def _frame_schema(frame: _Frame) -> pa.Schema:
     return _SCHEMAS[key]
 
 
-def _frame(parts: list[dict], detector: str, normalized: bool, frame_size: bool, with_mesh: bool) -> _Frame:
+def _frame(
+    parts: list[dict], detector: str, normalized: bool, frame_size: bool, with_mesh: bool, z_pixels: bool = False
+) -> _Frame:
     """py-feat's columns for some videos' rows (``with_mesh=False``: without the 478-vertex mesh)."""
 
     def cat(key):
@@ -458,6 +511,8 @@ def _frame(parts: list[dict], detector: str, normalized: bool, frame_size: bool,
     mesh = cat("mesh").astype(np.float64)
     if normalized:
         mesh = mesh / np.array([FRAME_WIDTH, FRAME_HEIGHT, FRAME_WIDTH])
+    elif not z_pixels:  # z as the detector writes it: in its crop's units
+        mesh[:, :, 2] = z_to_crop(mesh[:, :, 2], cat("rect")[:, 2], detector)
     mesh = mesh.astype(np.float32)
     r = len(mesh)
     blocks: list[tuple[list[str], np.ndarray]] = []
@@ -554,6 +609,8 @@ def write_pyfeat_tables(
     extra_face_rate: float = 0.05,
     normalized: bool = False,
     frame_size: bool = True,
+    z_pixels: bool = False,
+    profile_rate: float | None = None,
     clean_dir: str | Path | None = None,
     videos_per_file: int | None = None,
     seed: int = 0,
@@ -569,6 +626,10 @@ def write_pyfeat_tables(
     extra_face_rate : fraction of the face frames (in runs) with a second, smaller background face ("Person_1").
     normalized : meshes (and v2's 68 points) as x / FrameWidth, y / FrameHeight, z / FrameWidth.
     frame_size : False drops FrameHeight/FrameWidth (a normalized table then cannot be converted to pixels).
+    z_pixels : z in frame pixels, not in the detector's crop units (a table rescaled after py-feat: ingested with
+        ``data.mesh_units=pixels``, the independent route of the conversion).
+    profile_rate : fraction of each video's frames, in runs, with the head turned toward profile (|yaw| 60-85 deg,
+        ``SynthSpec.profile_rate``/``profile_yaw_deg``); None: the spec's. The clean tables hold the same frames.
     clean_dir : also write synth's ``columns`` layout (``clip_0000.parquet``: video_id, frame, AUs, Pitch, Roll, Yaw,
         interleaved pixel mesh as float32) holding the main face of every frame that has one.
     videos_per_file : videos per output file (None: one file for all, as one ``detect`` call over many videos).
@@ -587,6 +648,8 @@ def write_pyfeat_tables(
         )
     if videos_per_file is not None and videos_per_file < 1:
         raise ValueError(f"videos_per_file={videos_per_file}: use None or >= 1")
+    if profile_rate is not None:
+        spec = replace(spec, profile_rate=profile_rate)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if clean_dir is not None:
@@ -627,6 +690,7 @@ def write_pyfeat_tables(
             extra_face_rate,
             normalized,
             frame_size,
+            z_pixels,
             seed,
             summary,
         )
@@ -649,6 +713,7 @@ def _write_one(
     extra_face_rate,
     normalized,
     frame_size,
+    z_pixels,
     seed,
     summary,
 ) -> None:
@@ -674,7 +739,7 @@ def _write_one(
                 _video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed)
                 for v in chunk
             ]
-            frame = _frame(parts, detector, normalized, frame_size, with_mesh=fmt != "split")
+            frame = _frame(parts, detector, normalized, frame_size, with_mesh=fmt != "split", z_pixels=z_pixels)
             if fmt == "csv":
                 frame.to_pandas().to_csv(csv_tmp, index=False, mode="w" if k == 0 else "a", header=k == 0)
             else:

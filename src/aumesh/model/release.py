@@ -195,13 +195,33 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
             )
             + ")"
         )
-    if counts.get("rows_converted_from_normalized"):
-        lines.append(
-            f"- Mesh units: {counts['rows_converted_from_normalized']:,} frames converted from normalized image "
-            f"units to pixels (x, z by FrameWidth, y by FrameHeight)"
+    # the ingest stage's conversions (aumesh.data.ingest; docs/conventions.md "py-feat's mesh units")
+    done = []
+    if counts.get("rows_z_from_chip"):
+        done.append(
+            f"z of {counts['rows_z_from_chip']:,} Detectorv2 face rows converted from its 0-1 chip units "
+            f"(× FaceRectWidth, the square chip's side)"
         )
+    if counts.get("rows_z_from_crop256"):
+        done.append(
+            f"z of {counts['rows_z_from_crop256']:,} MPDetector face rows converted from its 256-px crop units "
+            f"(× FaceRectWidth / 256)"
+        )
+    if counts.get("rows_converted_from_normalized"):
+        done.append(
+            f"{counts['rows_converted_from_normalized']:,} face rows converted from normalized image units "
+            f"(x, z × FrameWidth, y × FrameHeight)"
+        )
+    forced = " (data.mesh_units=pixels)" if data_cfg.get("mesh_units") == "pixels" else ""
+    converted = sum(
+        counts.get(k, 0) for k in ("rows_z_from_chip", "rows_z_from_crop256", "rows_converted_from_normalized")
+    )
+    others = counts.get("frames_out", converted) - converted
+    if done:
+        rest = f"; the other {others:,} rows in pixels as recorded{forced}" if others > 0 else ""
+        lines.append(f"- Mesh units: frame pixels; {'; '.join(done)}{rest}")
     else:
-        lines.append("- Mesh units: image pixels, as recorded")
+        lines.append(f"- Mesh units: frame pixels, as recorded{forced}")
     return lines
 
 

@@ -1,7 +1,9 @@
 """Stage ``ingest``: whatever ``data/`` holds -> the frame tables ``prepare`` reads (``paths.ingested_dir``).
 
 py-feat's CSVs (either detector), a Fex saved as parquet and the card's split layout are all accepted as py-feat
-writes them (:mod:`aumesh.data.ingest`: no-face rows dropped, one face per frame, pixels). The stage writes:
+writes them (:mod:`aumesh.data.ingest`: no-face rows dropped, one face per frame, frame pixels on every axis: z
+converted from the detector's crop units by ``data.mesh_units``). Each source's faces must then have a face's
+proportions (:func:`check_units`). The stage writes:
 
 * ``tables/NNNNNN.parquet``: the cleaned rows of the sources that need it (every CSV; parquet with no-face rows,
   several faces in a frame, Detectorv2's columns or normalized units), only the contract's columns: video_id, frame,
@@ -9,7 +11,8 @@ writes them (:mod:`aumesh.data.ingest`: no-face rows dropped, one face per frame
   packed to at least :data:`TASK_ROWS` rows a file;
 * ``manifest.json``: the tables ``prepare`` reads, in order: those files, and clean parquet tables of ``data/`` in
   place (read as they are: a clean parquet costs only this stage's check, a few columns, not a copy); per source, what
-  it held and what was dropped; the totals.
+  it held, what was dropped and its ``mesh_units`` (what was converted, how, for how many rows); the totals
+  (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``) and ``detectors`` (sources per detector).
 
 Cached by DVC: a change of recipe (``preprocess.*``, ``model.*``) reruns ``prepare`` on these files and never
 re-parses a CSV. CSV ranges are parsed on the compute engine, several at once.
@@ -85,8 +88,8 @@ class Task:
     out: Path
 
 
-def _clean_task(task: Task, how: str, subjects: dict[str, str] | None) -> ingest.Counts:
-    return ingest.write_clean(task.spans, task.out, how, subjects)
+def _clean_task(task: Task, how: str, subjects: dict[str, str] | None, mesh_units: str) -> ingest.Counts:
+    return ingest.write_clean(task.spans, task.out, how, subjects, mesh_units)
 
 
 def _identity_task(task: Task) -> ingest.Counts:
@@ -98,13 +101,15 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
     data_dir, out_dir = Path(cfg.paths.data_dir), Path(out_dir)
     # the tasks get absolute paths (a cluster's workers run elsewhere); the manifest records them as given
     sources = [s.absolute() for s in find_sources(data_dir, cfg.data.tables, cfg.data.mesh_npy)]
-    how = cfg.data.face_selection
+    how, mesh_units = cfg.data.face_selection, cfg.data.mesh_units
     with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=sources[0].path, write=tmp):
         parquet = [s for s in sources if s.kind == "parquet"]
         checks = dict(
             zip(
                 [s.path for s in parquet],
-                compute.map_gather(ingest.check_clean, parquet, desc="ingest: check parquet"),
+                compute.map_gather(
+                    partial(ingest.check_clean, mesh_units=mesh_units), parquet, desc="ingest: check parquet"
+                ),
                 strict=True,
             )
         )
@@ -136,7 +141,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             seen = compute.map_reduce(_identity_task, ingest.Counts.__add__, tasks, desc="ingest: identities")
             subjects = ingest.main_identities(seen.identities)
         counts = compute.map_gather(
-            partial(_clean_task, how=how, subjects=subjects), tasks, desc="ingest: read + clean"
+            partial(_clean_task, how=how, subjects=subjects, mesh_units=mesh_units), tasks, desc="ingest: read + clean"
         )
         total = ingest.Counts()
         for task, c in zip(tasks, counts, strict=True):
@@ -148,14 +153,132 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             recorded(out_dir / TABLES_DIR / t.out.name) for t, c in zip(tasks, counts, strict=True) if c.rows_out
         ]
         in_place = sum(e["rows"] for e in entries if "table" in e)
+        for source in sources:  # the units of the tables read in place, measured by their check
+            check = checks.get(source.path)
+            if check is not None and check.clean:
+                passed = ingest.Counts(
+                    units={str(source.path): check.units} if check.units else {},
+                    labels={str(source.path): check.labels} if check.labels is not None else {},
+                )
+                total = total + passed
+        for source, entry in zip(sources, entries, strict=True):
+            stats = total.units.get(str(source.path)) or ingest.UnitStats(source.layout.detector)
+            check_units(source, stats, mesh_units)
+            entry["mesh_units"] = units_record(source, stats, mesh_units)
+            before, after, _ = stats.depth_height()
+            entry["face_depth_over_height"] = {"as_written": _rounded(before), "ingested": _rounded(after)}
         totals = total.as_dict()
         totals["rows_in"] += in_place
         totals["frames_out"] += in_place
         totals = {"tables_in": len(sources), **totals}
-        manifest = {"tables": tables, "face_selection": how, "counts": totals, "sources": entries[:10000]}
+        detectors: dict[str, int] = {}
+        for source in sources:
+            detectors[source.layout.detector] = detectors.get(source.layout.detector, 0) + 1
+        manifest = {
+            "tables": tables,
+            "face_selection": how,
+            "mesh_units": mesh_units,
+            "counts": totals,
+            "detectors": detectors,
+            "sources": entries[:10000],
+        }
         atomic_write_json(tmp / MANIFEST_FILE, manifest)
     log.info("ingest: %s", totals)
     return manifest
+
+
+#: ``mesh_units.how`` of a source, by its z unit (docs/conventions.md "py-feat's mesh units").
+UNITS_HOW = {
+    "chip": "x, y in frame pixels as written; z converted from Detectorv2's 0-1 chip units: z × FaceRectWidth "
+    "(feat/detector_v2.py _mesh_to_original_frame returns z unchanged; FaceRect is the square chip)",
+    "crop256": "x, y in frame pixels as written; z converted from MPDetector's 256-px crop units: z × "
+    "FaceRectWidth / 256 (feat/MPDetector.py forward leaves z in the crop's scale; FaceRect is the crop box)",
+    "normalized": "converted from normalized image units: x and z × FrameWidth, y × FrameHeight",
+}
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else float(f"{value:.3g}")
+
+
+def units_record(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str) -> dict:
+    """A source's ``mesh_units`` in the manifest: xy, z, rows kept, rows converted and how (one sentence)."""
+    why = {
+        "split": "the split layout's .npy",
+        "table": "an interleaved mesh without py-feat's FaceRect: not a detector export",
+    }.get(source.layout.detector, "data.mesh_units=pixels" if mesh_units == "pixels" else "")
+    how = UNITS_HOW.get(stats.z) or (
+        f"x, y, z in pixels as written ({why})" if stats.rows else "no face rows: nothing measured"
+    )
+    return {
+        "xy": stats.xy or "pixels",
+        "z": stats.z or "pixels",
+        "rows": stats.rows,
+        "rows_converted": stats.rows_converted,
+        "how": how,
+    }
+
+
+def check_units(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str) -> None:
+    """The guard on a source's units: one unit for all its rows; a face's proportions after the conversion (the
+    median over its faces of depth/height within :data:`aumesh.data.ingest.DEPTH_HEIGHT_RANGE`); and, for a
+    detector's export, z as written growing with the face's size as pixels do, or not, as the units say
+    (:func:`aumesh.data.ingest.growth_slope`, where enough near-frontal faces vary enough in size: what sees an
+    MPDetector export taken as pixels, whose depth/height can look like a face's).
+
+    Raises
+    ------
+    TableError
+        One line naming the file, what was measured (the ratio with and without the conversion, or z's growth) and
+        the likely fix.
+    """
+    where = recorded(source.path)
+    if stats.xy == "mixed" or stats.z == "mixed":
+        raise TableError(
+            f"{where}: mixes meshes in pixels and in normalized image units (some rows of the file differ from "
+            f"others). Fix: export every video the same way."
+        )
+    det = source.layout.detector
+    before, after, crop = stats.depth_height()
+    lo, hi = ingest.DEPTH_HEIGHT_RANGE
+    if after is not None and not lo <= after <= hi:
+        if stats.z in ("chip", "crop256"):
+            done = f"after converting z from {det}'s {stats.z} units ({before:.3g} without the conversion)"
+            fix = (
+                f"if this table's z is already in pixels (rescaled after py-feat), set data.mesh_units=pixels; "
+                f"otherwise check that it is {det}'s export as py-feat wrote it (its FaceRect and mesh columns)"
+            )
+        elif det in ingest.Z_CROP and mesh_units == "pixels":
+            with_crop = "" if crop is None else f"; {crop:.3g} with z converted from {det}'s crop units"
+            done = f"with z taken as pixels (data.mesh_units=pixels{with_crop})"
+            fix = f"this is {det}'s export with z in its own units as py-feat writes them: set data.mesh_units=detector"
+        else:
+            done = "with z as written" + (" (normalized units converted)" if stats.z == "normalized" else " (pixels)")
+            fix = (
+                "write z in the same pixels as x (MediaPipe's z is on x's scale), or keep py-feat's FaceRect columns "
+                "so aumesh converts its detector's z"
+            )
+        raise TableError(
+            f"{where}: the faces do not have a face's proportions: median depth/height {after:.3g} {done}; a face is "
+            f"{lo:g}-{hi:g} (MediaPipe's canonical face ~0.55, a flat face ~0.001). Fix: {fix}."
+        )
+    growth = stats.z_growth()
+    if growth is None:
+        return
+    told = (
+        f"{where}: z as written grows with the face's size as {growth:.2f} (slope of log z-extent on log face height "
+        f"over {int(stats.growth[0]):,} near-frontal faces; frame pixels give ~1, {det}'s crop units ~0)"
+    )
+    if stats.z in ("chip", "crop256") and growth > 0.5:
+        raise TableError(
+            f"{told}: z is already in pixels, and converting it again would scale each face's depth by its crop. "
+            f"Fix: set data.mesh_units=pixels."
+        )
+    if stats.z == "pixels" and mesh_units == "pixels" and growth < 0.5:
+        raise TableError(
+            f"{told}: z is in {det}'s crop units as py-feat writes them, not pixels. Fix: set "
+            f"data.mesh_units=detector (the default)."
+        )
 
 
 def load_manifest(ingested_dir: str | Path) -> dict:
