@@ -48,7 +48,9 @@ def ensure_pyfeat_data(workdir: Path, n_frames: int, videos_per_file: int) -> tu
     from aumesh.data.synth import SynthSpec
     from aumesh.data.synth_pyfeat import write_pyfeat_tables
 
-    root = workdir / f"pyfeat_{n_frames}_{videos_per_file}"
+    # "_cropz": z in MPDetector's 256-px crop units, as py-feat writes it (a cache of the generator's earlier tables,
+    # z in pixels, is refused by the ingest's units guard: data.mesh_units=pixels)
+    root = workdir / f"pyfeat_{n_frames}_{videos_per_file}_cropz"
     summary_file = root / "summary.json"
     if not summary_file.exists():
         shutil.rmtree(root, ignore_errors=True)
