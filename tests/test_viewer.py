@@ -49,6 +49,8 @@ def _open(tab, path, viewport=(1100, 700), wait_ready=True):
     without ``wait_ready``, as soon as the browser has the document (the caller waits for what it needs)."""
     page, log = tab
     page.set_viewport_size({"width": viewport[0], "height": viewport[1]})
+    # the previous document unloaded first: an alert or error its timers still raise lands in the old log, not ours
+    page.goto("about:blank")
     log["problems"], log["requests"] = problems, requests = [], []
     page.goto(path.as_uri(), wait_until="load" if wait_ready else "commit")
     if wait_ready:
