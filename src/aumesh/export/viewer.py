@@ -26,7 +26,10 @@ network, no CDN: the file works from disk, offline.
 :func:`aumesh.animation.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
 the frame rate from ``approx_time``, :func:`~aumesh.animation.clip.bridge`'s gap rule), or embedded by ``aumesh view
 NPZ --clip TABLE`` (:func:`table_clips`: ``read_clip`` + ``bridged_weights``, any table format, compact base64
-arrays). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
+arrays). Either way the recorded mesh is in frame pixels on every axis, converted by the ingest's rules (issue 41;
+docs/conventions.md, "py-feat's mesh units"): ``read_clip`` runs the ingest's own functions, the page's port runs the
+numbers :func:`unit_rules` passes it, and both give the ingest's cleaned mesh bit for bit; the status line says what
+was converted (:data:`aumesh.animation.clip.MESH_UNIT_NOTES`). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
 pose"); the frame's recorded mesh is turned into the card's frame (``canonical_frame``, ported) and aligned onto the
 model's predicted mesh with the card's similarity Procrustes on the 12 anchors (Horn's quaternion method: JavaScript
 has no SVD; equal to ``umeyama_batch``); the model's face is coloured by the per-vertex distance (viridis, in
