@@ -442,6 +442,26 @@ def test_recorded_mesh_in_frame_pixels_embedded_and_dropped(tab, clip_files, uni
     assert problems == [] and requests == []
 
 
+def test_an_interleaved_table_without_facerect_is_pixels(tab, clip_files, unit_tables, tmp_path):
+    """An interleaved mesh without py-feat's FaceRect is not MPDetector's export (aumesh.data.pyfeat.layout:
+    "table"): its z is taken as written, by read_clip and by the page alike, and equals the ingest's."""
+    import pandas as pd
+
+    csv, _ = unit_tables["mp-pixels"]
+    df = pd.read_csv(csv)
+    bare = tmp_path / "bare.csv"
+    df.drop(columns=["FaceRectX", "FaceRectY", "FaceRectWidth", "FaceRectHeight"]).to_csv(bare, index=False)
+    clip = read_clip(bare)
+    assert (clip.detector, clip.mesh_units) == ("table", "pixels")
+    _, expected = clip_vs_ingest(clip, ingested_meshes(bare))
+    page, problems, requests = _open(tab, clip_files["plain"])
+    _drop(page, "bare.csv", bare)
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
+    assert page.evaluate("window.aumeshViewer.clip.info().units") == "pixels"
+    np.testing.assert_array_equal(_page_recorded_input(page)[clip.has_face], expected)
+    assert problems == [] and requests == []
+
+
 def test_detectorv2_clip_is_a_face_not_a_sheet(tab, clip_files, unit_tables):
     """Detectorv2's clip, z converted: the aligned recorded mesh has a face's depth (its thinnest spread as the
     release's own face's, not ~0.001), its distances are numpy's, and a screenshot shows it beside the coloured model."""
