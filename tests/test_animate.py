@@ -148,9 +148,71 @@ def test_clip_is_the_videos_frames_with_the_largest_face(table):
     np.testing.assert_array_equal(clip.aus[face], exp["aus"])
     np.testing.assert_array_equal(clip.pose[face], exp["pose"])
     assert np.isnan(clip.aus[~face]).all() and np.isnan(clip.pose[~face]).all()
-    np.testing.assert_array_equal(clip.mesh[face], exp["mesh"].astype(np.float32))
-    assert np.isnan(clip.mesh[~face]).all()
+    # x, y as py-feat wrote them (frame pixels); z converted from MPDetector's crop units (test_recorded_mesh_*)
+    np.testing.assert_array_equal(clip.mesh[face][..., :2], exp["mesh"][..., :2].astype(np.float32))
+    assert np.isnan(clip.mesh[~face]).all() and clip.mesh_units == "crop256"
     assert clip.frames_several_faces >= 3
+
+
+def ingested_meshes(path: Path, mesh_units: str = "detector") -> dict[tuple[str, int], np.ndarray]:
+    """(video, frame) -> (478, 3) float32: the ingest's cleaned mesh of a table (aumesh.data.ingest's readers and
+    clean_block, the pipeline's route, not the clip's), frame pixels."""
+    from aumesh.data import ingest
+
+    source = ingest.open_source(path, "{stem}.npy")
+    spans = ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
+    out = {}
+    for block, _ in ingest.iter_clean_blocks(spans, "largest", None, mesh_units):
+        for video, frame, mesh in zip(block.video, block.frame, block.mesh, strict=True):
+            out[(str(video), int(frame))] = mesh.reshape(3, N_VERTICES).T
+    return out
+
+
+def clip_vs_ingest(clip, ingested: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(clip's face frames' meshes, the ingest's of the same frames)``, both (m, 478, 3)."""
+    frames = clip.frame[clip.has_face]
+    return clip.mesh[clip.has_face], np.stack([ingested[(clip.video, int(f))] for f in frames])
+
+
+@pytest.mark.parametrize("detector,unit", [("mp", "crop256"), ("v2", "chip")])
+def test_recorded_mesh_is_the_ingests_in_frame_pixels(tmp_path, detector, unit):
+    """The clip's recorded mesh of a table in the detector's native units is the ingest's cleaned mesh of the same
+    frames (bit for bit), and the same frames written with z in pixels give it too (read with mesh_units=pixels);
+    the raw z (crop units) is not what the clip holds. Profile frames (2-D inter-ocular distance below 1 px) are
+    not taken for normalized units."""
+    spec = SynthSpec(n_frames=80, n_videos=1, seed=11, identity_scale=0.0, noise_px=0.05, profile_yaw_deg=(89.5, 89.9))
+    native, pixels = tmp_path / "native", tmp_path / "pixels"
+    for out, z_pixels in ((native, False), (pixels, True)):
+        write_pyfeat_tables(out, spec, detector=detector, z_pixels=z_pixels, profile_rate=0.6, extra_face_rate=0.2)
+    csv = native / "clip_0000.csv"
+    clip = read_clip(csv)
+    assert clip.mesh_units == unit and clip.detector == ("MPDetector" if detector == "mp" else "Detectorv2")
+    got, expected = clip_vs_ingest(clip, ingested_meshes(csv))
+    np.testing.assert_array_equal(got, expected)
+    # the independent route: z written in pixels, taken as pixels
+    twin = read_clip(pixels / "clip_0000.csv", mesh_units="pixels")
+    assert twin.mesh_units == "pixels-asked"
+    np.testing.assert_array_equal(twin.has_face, clip.has_face)
+    np.testing.assert_allclose(got, twin.mesh[twin.has_face], rtol=0, atol=1e-4 * np.abs(got).max())
+    # the profile frames are there, and the old inter-ocular judgement would have called them normalized
+    iod = np.hypot(*(got[:, 33, :2] - got[:, 263, :2]).T)
+    assert np.median(iod) < 1.0, np.median(iod)
+    # what read_clip did not do before: z as written is in crop units, a flat face beside pixels
+    raw = read_clip(csv, mesh_units="pixels").mesh[clip.has_face]
+    assert np.abs(raw[..., 2] - got[..., 2]).max() > 10 * 1e-4 * np.abs(got).max()
+
+
+def test_normalized_clip_is_converted_and_without_frame_size_kept(tmp_path):
+    spec = SynthSpec(n_frames=40, n_videos=1, seed=12)
+    write_pyfeat_tables(tmp_path / "a", spec, detector="mp", normalized=True)
+    csv = tmp_path / "a" / "clip_0000.csv"
+    clip = read_clip(csv)
+    assert clip.mesh_units == "normalized"
+    got, expected = clip_vs_ingest(clip, ingested_meshes(csv))
+    np.testing.assert_array_equal(got, expected)
+    write_pyfeat_tables(tmp_path / "b", spec, detector="mp", normalized=True, frame_size=False)
+    bare = read_clip(tmp_path / "b" / "clip_0000.csv")
+    assert bare.mesh_units == "normalized-raw" and np.nanmax(np.abs(bare.mesh)) < 1.5  # as written
 
 
 def test_csv_gz_parquet_and_a_table_without_mesh_read_alike(table, tmp_path):

@@ -25,6 +25,7 @@ from aumesh.geometry.frame import canonical_frame, to_canonical
 from aumesh.model.release import load_npz
 from conftest import SCREENSHOTS as SHOTS
 from conftest import upright_truth_release
+from test_animate import clip_vs_ingest, ingested_meshes
 
 VIEW = (1280, 720)
 F32 = np.finfo(np.float32).eps
@@ -355,9 +356,15 @@ def test_a_dropped_table_is_the_same_clip_as_embedded(tab, clip_files, tmp_path)
     assert problems == [] and requests == []
 
 
+def _page_recorded_input(page) -> np.ndarray:
+    """The open clip's recorded mesh as the page holds it (float32, frame pixels): (n, 478, 3)."""
+    got = page.evaluate("window.aumeshViewer.clip.data()")
+    return np.frombuffer(base64.b64decode(got["mesh"]), dtype="<f4").reshape(-1, 478, 3)
+
+
 def test_detectorv2_layout_and_normalized_units(tab, clip_files, tmp_path):
     """Detectorv2's axis-major mesh_x_* beside its 68-point block, in normalized image units: the page reads the
-    mesh by name, scales it to pixels with FrameWidth/FrameHeight, and aligns it as numpy does."""
+    mesh by name, scales it to pixels with FrameWidth/FrameHeight as the ingest does, and aligns it as numpy does."""
     release = clip_files["release"]
     synth_pyfeat.write_pyfeat_tables(
         tmp_path, synth.SynthSpec(n_frames=60, n_videos=1, seed=7), detector="v2", normalized=True
@@ -366,14 +373,119 @@ def test_detectorv2_layout_and_normalized_units(tab, clip_files, tmp_path):
     page, problems, requests = _open(tab, clip_files["plain"])
     page.set_input_files("#clip-file", str(csv))
     page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
-    assert page.evaluate("window.aumeshViewer.clip.info().units") == "pixels (from normalized)"
+    assert page.evaluate("window.aumeshViewer.clip.info().units") == "normalized"
+    assert "from normalized image units" in page.text_content("#clip-status")
     clip, weights = _clip(csv, None)
+    got, expected = clip_vs_ingest(clip, ingested_meshes(csv))
+    np.testing.assert_array_equal(_page_recorded_input(page)[clip.has_face], expected)
     k = int(np.flatnonzero(clip.has_face)[3])
     page.evaluate(f"window.aumeshViewer.clip.seek({k})")
-    pixels = clip.mesh[k].astype(np.float32) * np.array([640.0, 480.0, 640.0], np.float32)
+    pixels = clip.mesh[k].astype(np.float32)  # (x, z) x 640, y x 480: the ingest's, as the line above checks
     _, _, distances = _expected_distances(release, weights[k], pixels.astype(np.float64))
     iod = page.evaluate("window.aumeshViewer.clip.iod()")
     np.testing.assert_allclose(page.evaluate("window.aumeshViewer.clip.distances()"), distances, atol=1e-5 * iod)
+    assert problems == [] and requests == []
+
+
+@pytest.fixture(scope="module")
+def unit_tables(clip_files):
+    """The same synthetic frames as Detectorv2 and MPDetector CSVs, z in the detector's units and in pixels, with
+    profile runs (|yaw| 89.5-89.9 deg: 2-D inter-ocular distance below a pixel); each embedded by `aumesh view`."""
+    d = clip_files["dir"] / "units"
+    spec = synth.SynthSpec(
+        n_frames=60, n_videos=1, seed=13, identity_scale=0.0, noise_px=0.05, profile_yaw_deg=(89.5, 89.9)
+    )
+    out = {}
+    for det in ("v2", "mp"):
+        for z_pixels in (False, True):
+            name = f"{det}-{'pixels' if z_pixels else 'native'}"
+            synth_pyfeat.write_pyfeat_tables(
+                d / name, spec, detector=det, z_pixels=z_pixels, profile_rate=0.3 if det == "mp" else 0.0
+            )
+            csv = d / name / "clip_0000.csv"
+            html = d / f"{name}.html"
+            units = ["--mesh-units", "pixels"] if z_pixels else []
+            assert cli.main(["view", str(clip_files["npz"]), "--clip", str(csv), "--out", str(html), *units]) == 0
+            out[name] = (csv, html)
+    return out
+
+
+@pytest.mark.parametrize("det,unit,words", [("v2", "chip", "Detectorv2's chip units"), ("mp", "crop256", "256-px")])
+def test_recorded_mesh_in_frame_pixels_embedded_and_dropped(tab, clip_files, unit_tables, det, unit, words):
+    """A table in the detector's native units: the recorded mesh the page holds, embedded (`aumesh view --clip`)
+    and dropped (the page's own reader), is the ingest's cleaned mesh of the same frames; the same frames with z in
+    pixels (embedded with --mesh-units pixels) give it too; the status line says what was converted. The MPDetector
+    table has profile frames: converted by its crop like any other, not taken for normalized units."""
+    csv, html = unit_tables[f"{det}-native"]
+    ingested = ingested_meshes(csv)
+    clip, _ = _clip(csv, None)
+    _, expected = clip_vs_ingest(clip, ingested)
+    if det == "mp":  # the profile frames the old inter-ocular judgement took for normalized coordinates
+        iod = np.hypot(*(expected[:, 33, :2] - expected[:, 263, :2]).T)
+        assert (iod < 1.0).sum() >= 5, np.sort(iod)[:5]
+    page, problems, requests = _open(tab, html)
+    assert page.evaluate("window.aumeshViewer.clip.info().units") == unit and words in page.text_content("#clip-status")
+    np.testing.assert_array_equal(_page_recorded_input(page)[clip.has_face], expected)
+    _drop(page, "dropped.csv", csv)
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
+    assert page.evaluate("window.aumeshViewer.clip.info().units") == unit and words in page.text_content("#clip-status")
+    dropped = _page_recorded_input(page)
+    np.testing.assert_array_equal(dropped[clip.has_face], expected)
+    assert np.isnan(dropped[~clip.has_face]).all()
+    # the independent route: z written in pixels, embedded as pixels
+    _, twin_html = unit_tables[f"{det}-pixels"]
+    twin, _, _ = _open(tab, twin_html)
+    assert twin.evaluate("window.aumeshViewer.clip.info().units") == "pixels-asked"
+    np.testing.assert_allclose(
+        _page_recorded_input(twin)[clip.has_face], expected, rtol=0, atol=1e-4 * np.abs(expected).max()
+    )
+    assert problems == [] and requests == []
+
+
+def test_an_interleaved_table_without_facerect_is_pixels(tab, clip_files, unit_tables, tmp_path):
+    """An interleaved mesh without py-feat's FaceRect is not MPDetector's export (aumesh.data.pyfeat.layout:
+    "table"): its z is taken as written, by read_clip and by the page alike, and equals the ingest's."""
+    import pandas as pd
+
+    csv, _ = unit_tables["mp-pixels"]
+    df = pd.read_csv(csv)
+    bare = tmp_path / "bare.csv"
+    df.drop(columns=["FaceRectX", "FaceRectY", "FaceRectWidth", "FaceRectHeight"]).to_csv(bare, index=False)
+    clip = read_clip(bare)
+    assert (clip.detector, clip.mesh_units) == ("table", "pixels")
+    _, expected = clip_vs_ingest(clip, ingested_meshes(bare))
+    page, problems, requests = _open(tab, clip_files["plain"])
+    _drop(page, "bare.csv", bare)
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
+    assert page.evaluate("window.aumeshViewer.clip.info().units") == "pixels"
+    np.testing.assert_array_equal(_page_recorded_input(page)[clip.has_face], expected)
+    assert problems == [] and requests == []
+
+
+def test_detectorv2_clip_is_a_face_not_a_sheet(tab, clip_files, unit_tables):
+    """Detectorv2's clip, z converted: the aligned recorded mesh has a face's depth (its thinnest spread as the
+    release's own face's, not ~0.001), its distances are numpy's, and a screenshot shows it beside the coloured model."""
+    release = clip_files["release"]
+    csv, html = unit_tables["v2-native"]
+    clip, weights = _clip(csv, None)
+    page, problems, requests = _open(tab, html)
+    k = int(np.flatnonzero(clip.has_face)[5])
+    page.evaluate(f"window.aumeshViewer.clip.seek({k})")
+    _, aligned, distances = _expected_distances(release, weights[k], clip.mesh[k])
+    got = np.array(page.evaluate("window.aumeshViewer.clip.recorded()")).reshape(478, 3)
+    iod = page.evaluate("window.aumeshViewer.clip.iod()")
+    np.testing.assert_allclose(got, aligned, rtol=0, atol=1e-5 * iod)
+    np.testing.assert_allclose(page.evaluate("window.aumeshViewer.clip.distances()"), distances, atol=1e-5 * iod)
+    model = aumesh.predict_mesh(release, weights[k])
+    # thickness: the smallest over the largest principal spread (turn-free: a tilted sheet is still ~0.001)
+    thickness = [(lambda v: v[2] / v[0])(np.linalg.svd(m - m.mean(axis=0), compute_uv=False)) for m in (got, model)]
+    assert thickness[0] > 0.5 * thickness[1], thickness
+    assert distances.mean() < 0.05 * iod  # the same synthetic face: close to the model's, not a flattened one
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.evaluate("window.aumeshViewer.clip.pause()")
+    (SHOTS / "clip_detectorv2_beside_1280x720.png").write_bytes(page.screenshot())
+    page.locator("input[name=Yaw]").fill("0.6")  # both heads turned: a sheet would show as a cut-out
+    (SHOTS / "clip_detectorv2_turned_1280x720.png").write_bytes(page.screenshot())
     assert problems == [] and requests == []
 
 

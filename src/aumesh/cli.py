@@ -120,7 +120,7 @@ def _cmd_view(args) -> int:
     from aumesh.export import viewer
     from aumesh.model.inference import load_release
 
-    clips = viewer.table_clips(args.clip, args.video, args.fps) if args.clip else None
+    clips = viewer.table_clips(args.clip, args.video, args.fps, args.mesh_units) if args.clip else None
     out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name, clips=clips)
     played = f"; plays {len(clips)} video(s) of {args.clip.name}" if clips else ""
     print(f"wrote {out} (open it in a browser; works offline{played})")
@@ -678,6 +678,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--video", help="with --clip: the one video to embed (default: every video of the table)")
     p.add_argument("--fps", type=float, help="with --clip: the video's frame rate (default: from approx_time, else 25)")
+    p.add_argument(
+        "--mesh-units",
+        choices=("detector", "pixels"),
+        default="detector",
+        help="with --clip: z of the recorded mesh as the detector writes it, converted to frame pixels "
+        "(Detectorv2: z x FaceRectWidth; MPDetector: z x FaceRectWidth / 256), or 'pixels': z already in pixels "
+        "(a table rescaled after py-feat), as the ingest's data.mesh_units (default: %(default)s)",
+    )
     p.set_defaults(func=_cmd_view)
 
     p = sub.add_parser(

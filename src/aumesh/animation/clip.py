@@ -4,8 +4,18 @@ recorded MediaPipe mesh (NaN where the detector found no face).
 The table is read by the ingest's readers (:mod:`aumesh.data.ingest`: py-feat's CSV, ``.csv.gz`` or parquet, either
 detector's mesh layout, the split layout's ``.npy``), and cleaned by its rules, but frame by frame and without
 dropping anything: a frame py-feat wrote only as a no-face row stays in the clip with ``has_face`` False; of several
-faces in a frame one is kept (``face_selection``, as ``data.face_selection``: the largest face box by default). The
-mesh stays in the table's own units and frame (normalized image units are not converted).
+faces in a frame one is kept (``face_selection``, as ``data.face_selection``: the largest face box by default).
+
+**Units** (docs/conventions.md, "py-feat's mesh units"): the recorded mesh leaves in frame pixels on every axis, by
+the ingest's own functions on the clip's face rows (:func:`aumesh.data.ingest.convert_units`), so it equals the
+ingest's cleaned mesh of the same frames: Detectorv2's z (0-1 of its chip) x FaceRectWidth, MPDetector's z (pixels of
+its 256-px crop) x FaceRectWidth / 256, each row by its own FaceRect; normalized image units, judged from the face's
+2-D extent against its FaceRect (:func:`~aumesh.data.ingest.normalized_rows`: a profile face is tens of pixels tall
+even where its inter-ocular distance is below a pixel), x and z x FrameWidth, y x FrameHeight. ``mesh_units="pixels"``
+takes a detector's z as pixels (a table rescaled after py-feat). What was done is :attr:`Clip.mesh_units`
+(:data:`MESH_UNIT_NOTES` says it in words). One difference from the ingest: a mesh in normalized units in a table
+without FrameWidth/FrameHeight is kept as written (``"normalized-raw"``) where the ingest refuses it: the clip still
+plays, and the viewer says the comparison is skewed.
 
 **Time.** py-feat numbers a video's frames from 0 (``frame``: the decoder's index, so ``skip_frames=k`` writes
 0, k, 2k, ...) and writes ``approx_time`` as ``"MM:SS"``, the frame's time truncated to whole seconds
@@ -45,6 +55,19 @@ MAX_GAP_S = 0.5
 #: Frame rates video files have; ``approx_time`` (whole seconds) usually allows only one of them.
 COMMON_FPS = (24000 / 1001, 24.0, 25.0, 30000 / 1001, 30.0, 48.0, 50.0, 60000 / 1001, 60.0, 100.0, 120.0)
 FACE_SELECTIONS = ("largest", "identity", "error")
+#: How a clip reads z (``--mesh-units`` of ``aumesh view --clip``), as the ingest's ``data.mesh_units``.
+MESH_UNITS = ("detector", "pixels")
+#: :attr:`Clip.mesh_units` -> what was done to the recorded mesh, in words (the viewer's status line shows it).
+MESH_UNIT_NOTES = {
+    "chip": "in frame pixels: z from Detectorv2's chip units \u00d7 FaceRectWidth",
+    "crop256": "in frame pixels: z from MPDetector's 256-px crop units \u00d7 FaceRectWidth / 256",
+    "normalized": "in frame pixels: x, z \u00d7 FrameWidth and y \u00d7 FrameHeight, from normalized image units",
+    "pixels": "in frame pixels as written (not a detector's export: no crop units to convert)",
+    "pixels-asked": "z taken as frame pixels as written (--mesh-units pixels)",
+    "normalized-raw": "in normalized image units, not converted (the table has no FrameWidth/FrameHeight): the "
+    "comparison is skewed by the frame's aspect ratio",
+    "none": "none",
+}
 _TIME = re.compile(r"^\s*(?:(\d+):)?(\d+):(\d+)(?:\.(\d+))?\s*$")
 
 
@@ -63,12 +86,15 @@ class Clip:
     has_face : (n,) bool.
     aus : (n, 20) float64 in :data:`~aumesh.data.schema.AU_COLUMNS` order, NaN where no face.
     pose : (n, 3) float64 radians, the model's order Pitch, Yaw, Roll, NaN where no face.
-    mesh : (n, 478, 3) float64 recorded MediaPipe mesh in the table's own units and frame, NaN rows where no face;
-        None when the table has no mesh.
-    detector : the table's layout (``MPDetector``, ``Detectorv2``, ``split``, or ``none`` without a mesh).
+    mesh : (n, 478, 3) float64 recorded MediaPipe mesh in frame pixels on every axis (the image's frame: x right,
+        y down), converted as the ingest converts it (module docstring, "Units"), NaN rows where no face; None when
+        the table has no mesh (or ``mesh_units=None`` was asked).
+    detector : the table's layout (``MPDetector``, ``Detectorv2``, ``table``, ``split``, or ``none`` without a mesh).
     frames_several_faces : frames where py-feat found several faces (one kept, by ``face_selection``).
-    frame_size : the video's ``FrameWidth, FrameHeight`` in pixels, None when the table has none (what turns a mesh in
-        normalized image units into pixels, as the ingest does).
+    frame_size : the video's ``FrameWidth, FrameHeight`` in pixels (the first row's that has them), None when the
+        table has none.
+    mesh_units : what was done to the mesh, a key of :data:`MESH_UNIT_NOTES`: ``chip``, ``crop256``, ``normalized``,
+        ``pixels``, ``pixels-asked``, ``normalized-raw`` or ``none``.
     """
 
     source: str
@@ -84,6 +110,7 @@ class Clip:
     detector: str = ""
     frames_several_faces: int = 0
     frame_size: tuple[float, float] | None = None
+    mesh_units: str = "none"
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -117,6 +144,7 @@ def read_clip(
     fps: float | None = None,
     face_selection: str = "largest",
     mesh_npy: str = "{stem}.npy",
+    mesh_units: str | None = "detector",
 ) -> Clip:
     """One video of a py-feat table as a :class:`Clip` (module docstring: time, faces, gaps).
 
@@ -130,6 +158,9 @@ def read_clip(
     fps : the video's frame rate (default: from ``approx_time`` where it allows one, else 25).
     face_selection : ``largest`` (the largest face box of a frame), ``identity`` (py-feat's ``Identity`` seen in
         most of the video's face rows) or ``error``, as the pipeline's ``data.face_selection``.
+    mesh_units : ``detector`` (z converted by the detector the columns name) or ``pixels`` (z as written), as the
+        ingest's ``data.mesh_units``; None: the recorded mesh is not needed (``aumesh animate``): ``Clip.mesh`` None,
+        nothing converted, so nothing about it can refuse the table.
 
     Raises
     ------
@@ -137,11 +168,12 @@ def read_clip(
         No such file.
     TableError
         Not a table, a required column missing (frame, the 20 AUs, Pitch, Yaw, Roll, input), several videos and no
-        ``video``, an unknown ``video``, no frame with a face, a face row with some AU or pose values missing.
+        ``video``, an unknown ``video``, no frame with a face, a face row with some AU or pose values missing; the
+        ingest's unit errors (a detector's z without FaceRectWidth to convert it, pixels and normalized units mixed).
     UserError
-        ``fps`` not a positive number, unknown ``face_selection``.
+        ``fps`` not a positive number, unknown ``face_selection`` or ``mesh_units``.
     """
-    _check_options(fps, face_selection)  # before the table is read
+    _check_options(fps, face_selection, mesh_units)  # before the table is read
     table = read_table(path, mesh_npy=mesh_npy)
     where = str(table.path)
     names = table.videos
@@ -151,7 +183,9 @@ def read_clip(
     if video is not None and video not in names:
         shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
         raise TableError(f"{where}: no video {video!r} (the table holds {shown}). Fix: --video one of those.")
-    return table.clip(video if video is not None else names[0], fps=fps, face_selection=face_selection)
+    return table.clip(
+        video if video is not None else names[0], fps=fps, face_selection=face_selection, mesh_units=mesh_units
+    )
 
 
 @dataclass(frozen=True)
@@ -169,15 +203,23 @@ class ClipTable:
         """The videos the table holds, sorted."""
         return sorted(set(self.block.video.tolist()))
 
-    def clip(self, name: str, *, fps: float | None = None, face_selection: str = "largest") -> Clip:
+    def clip(
+        self,
+        name: str,
+        *,
+        fps: float | None = None,
+        face_selection: str = "largest",
+        mesh_units: str | None = "detector",
+    ) -> Clip:
         """Video ``name`` (one of :attr:`videos`) as a :class:`Clip`: :func:`read_clip` without reading again.
 
         Raises
         ------
         TableError
-            The video has no frame with a face, or a face row with some AU or pose values missing.
+            The video has no frame with a face, or a face row with some AU or pose values missing, or a unit error
+            (:func:`read_clip`).
         """
-        return _video_clip(self, name, fps, face_selection)
+        return _video_clip(self, name, fps, face_selection, mesh_units)
 
 
 def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
@@ -203,15 +245,46 @@ def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
     return ClipTable(path, source, has_mesh, block, approx)
 
 
-def _check_options(fps: float | None, face_selection: str) -> None:
+def _check_options(fps: float | None, face_selection: str, mesh_units: str | None = "detector") -> None:
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise UserError(f"--fps {fps}: the frame rate must be a positive number of frames per second, e.g. 25.")
     if face_selection not in FACE_SELECTIONS:
         raise UserError(f"face_selection={face_selection!r}: use one of {', '.join(FACE_SELECTIONS)}.")
+    if mesh_units is not None and mesh_units not in MESH_UNITS:
+        raise UserError(f"--mesh-units {mesh_units}: use one of {', '.join(MESH_UNITS)}.")
 
 
-def _video_clip(table: ClipTable, name: str, fps: float | None, face_selection: str) -> Clip:
-    _check_options(fps, face_selection)
+def to_frame_pixels(faces: ingest.Block, layout: pyfeat.Layout, mesh_units: str, where: str) -> str:
+    """The face rows' meshes ``faces.mesh`` (m, 1434) axis-major to frame pixels in place, by the ingest's
+    :func:`~aumesh.data.ingest.convert_units` (the same rows give the ingest's cleaned meshes, bit for bit); returns
+    what was done, a key of :data:`MESH_UNIT_NOTES`.
+
+    A mesh in normalized units without FrameWidth/FrameHeight columns is left as written (``"normalized-raw"``).
+
+    Raises
+    ------
+    TableError
+        The ingest's: pixels and normalized rows mixed, a detector's z without a FaceRectWidth (> 0) to convert it,
+        normalized rows without a frame size; the fix named for ``aumesh view``'s ``--mesh-units``.
+    """
+    if not len(faces):
+        return "none"
+    normalized = ingest.normalized_rows(faces.mesh, ingest.rect_side(faces, layout))
+    if normalized.all() and layout.frame_size is None:
+        return "normalized-raw"
+    try:
+        stats = ingest.convert_units(faces, layout, mesh_units, where)
+    except TableError as err:  # the ingest names its config key; here the same choice is a command-line option
+        raise TableError(str(err).replace("data.mesh_units=pixels", "--mesh-units pixels")) from None
+    if stats.z in ("chip", "crop256", "normalized"):
+        return stats.z
+    return "pixels-asked" if layout.detector in ingest.Z_CROP else "pixels"
+
+
+def _video_clip(
+    table: ClipTable, name: str, fps: float | None, face_selection: str, mesh_units: str | None = "detector"
+) -> Clip:
+    _check_options(fps, face_selection, mesh_units)
     block, approx, source, has_mesh, where = table.block, table.approx, table.source, table.has_mesh, str(table.path)
     rows = np.flatnonzero(block.video == name)
     rows = rows[np.argsort(block.frame[rows], kind="stable")]  # select_faces needs a frame's rows consecutive
@@ -250,8 +323,9 @@ def _video_clip(table: ClipTable, name: str, fps: float | None, face_selection: 
     out_aus = np.full((n, len(AU_COLUMNS)), np.nan)
     out_pose = np.full((n, len(POSE_COLUMNS)), np.nan)
     out_aus[at], out_pose[at] = aus, pose
-    mesh = None
-    if has_mesh:
+    mesh, units = None, "none"
+    if has_mesh and mesh_units is not None:
+        units = to_frame_pixels(chosen, lay, mesh_units, where)  # chosen is a copy (take): the table is untouched
         mesh = np.full((n, N_VERTICES, 3), np.nan)
         mesh[at] = chosen.mesh.reshape(len(chosen), 3, N_VERTICES).transpose(0, 2, 1)
 
@@ -274,6 +348,7 @@ def _video_clip(table: ClipTable, name: str, fps: float | None, face_selection: 
         detector=lay.detector if has_mesh else "none",
         frames_several_faces=counts.frames_several_faces,
         frame_size=_frame_size(block, lay),
+        mesh_units=units,
     )
 
 
@@ -486,6 +561,8 @@ __all__ = [
     "Clip",
     "DEFAULT_FPS",
     "MAX_GAP_S",
+    "MESH_UNITS",
+    "MESH_UNIT_NOTES",
     "bridge",
     "bridged_pose",
     "bridged_weights",

@@ -189,7 +189,7 @@ def animate(
         raise UserError(f"--out {out}: write a .glb (binary glTF 2.0) file, e.g. --out clip.glb.")
     smooth(np.zeros((1, 1)), smooth_frames)  # an even --smooth is refused before the table is read
     npz = load_release(release)
-    clip = read_clip(table, video=video, fps=fps)
+    clip = read_clip(table, video=video, fps=fps, mesh_units=None)  # the recorded mesh is not animated
     check_clip_inputs(npz, clip, pose=pose, where=str(table))
     return write_clip_glb(
         npz, clip, out, pose=pose, smooth_frames=smooth_frames, max_gap_s=max_gap_s, release=Path(release).name

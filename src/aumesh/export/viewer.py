@@ -26,7 +26,10 @@ network, no CDN: the file works from disk, offline.
 :func:`aumesh.animation.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
 the frame rate from ``approx_time``, :func:`~aumesh.animation.clip.bridge`'s gap rule), or embedded by ``aumesh view
 NPZ --clip TABLE`` (:func:`table_clips`: ``read_clip`` + ``bridged_weights``, any table format, compact base64
-arrays). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
+arrays). Either way the recorded mesh is in frame pixels on every axis, converted by the ingest's rules (issue 41;
+docs/conventions.md, "py-feat's mesh units"): ``read_clip`` runs the ingest's own functions, the page's port runs the
+numbers :func:`unit_rules` passes it, and both give the ingest's cleaned mesh bit for bit; the status line says what
+was converted (:data:`aumesh.animation.clip.MESH_UNIT_NOTES`). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
 pose"); the frame's recorded mesh is turned into the card's frame (``canonical_frame``, ported) and aligned onto the
 model's predicted mesh with the card's similarity Procrustes on the 12 anchors (Horn's quaternion method: JavaScript
 has no SVD; equal to ``umeyama_batch``); the model's face is coloured by the per-vertex distance (viridis, in
@@ -177,8 +180,9 @@ def clip_data(clip: Any, weights: np.ndarray | None = None) -> dict:
     Frame numbers as a list, ``has_face`` as 0/1; the AUs, pose and ``weights`` (the clip's
     :func:`~aumesh.animation.clip.bridged_weights`, the default) as base64 float64 (the page's sliders show exactly
     what ``aumesh animate`` writes); the recorded mesh, vertex-major ``(n, 478, 3)``, as base64 float32 with NaN
-    rows where no face, like the release's arrays. The clip's ``frame_size`` (``FrameWidth, FrameHeight``) lets the
-    page turn a mesh in normalized image units into pixels, as the ingest does. The page times the frames itself
+    rows where no face, like the release's arrays: already in frame pixels (``read_clip`` converts it with the
+    ingest's functions; ``mesh_units`` says how, a key of :data:`~aumesh.animation.clip.MESH_UNIT_NOTES`), so the
+    page converts only the tables dropped on it (:func:`unit_rules`). The page times the frames itself
     (``frame / fps``, the clip's rule) and bridges the pose by the same rule.
     """
     from aumesh.animation.clip import bridged_weights
@@ -196,6 +200,28 @@ def clip_data(clip: Any, weights: np.ndarray | None = None) -> dict:
         "weights": _b64(weights, "<f8"),
         "mesh": None if clip.mesh is None else _b64(clip.mesh),
         "frame_size": None if clip.frame_size is None else [float(v) for v in clip.frame_size],
+        "mesh_units": str(clip.mesh_units),
+    }
+
+
+def unit_rules() -> dict:
+    """The ingest's unit rules as the page's JSON, so a table dropped on the page is converted by the same numbers
+    as ``read_clip`` converts an embedded one (docs/conventions.md, "py-feat's mesh units"): the vertices whose
+    spans judge the units (:data:`aumesh.data.ingest.SHAPE_VERTICES`), :data:`~aumesh.data.ingest.NORMALIZED_MAX_EXTENT`,
+    :data:`~aumesh.data.ingest.NORMALIZED_MAX_RECT_FRACTION`, the detectors' z units (:data:`~aumesh.data.ingest.Z_CROP`:
+    name and divisor), the FaceRect and frame-size columns, and the words for each outcome
+    (:data:`~aumesh.animation.clip.MESH_UNIT_NOTES`)."""
+    from aumesh.animation.clip import MESH_UNIT_NOTES
+    from aumesh.data import ingest, pyfeat
+
+    return {
+        "shape_vertices": [int(i) for i in ingest.SHAPE_VERTICES],
+        "normalized_max_extent": float(ingest.NORMALIZED_MAX_EXTENT),
+        "normalized_max_rect_fraction": float(ingest.NORMALIZED_MAX_RECT_FRACTION),
+        "z_crop": {det: [unit, float(divisor)] for det, (unit, divisor) in ingest.Z_CROP.items()},
+        "face_box_size": list(pyfeat.FACE_BOX_SIZE),
+        "frame_size": list(pyfeat.FRAME_SIZE),
+        "notes": dict(MESH_UNIT_NOTES),
     }
 
 
@@ -318,6 +344,7 @@ def viewer_html(
         "card": card_rows(metadata),
         "source": f"release: {source}" if source else "",
         "support": slider_support(npz),
+        "units": unit_rules(),  # a dropped table's mesh converted by the ingest's rules (clip_data's are already)
     }
     if "coef_full" in npz:
         data["coef_full"] = _b64(npz["coef_full"])
@@ -334,22 +361,25 @@ def write_viewer(npz: Mapping[str, Any], path: str | Path, source: str = "", cli
     return atomic_write_text(path, viewer_html(npz, source, clips=clips))
 
 
-def table_clips(path: str | Path, video: str | None = None, fps: float | None = None) -> list[dict]:
+def table_clips(
+    path: str | Path, video: str | None = None, fps: float | None = None, mesh_units: str = "detector"
+) -> list[dict]:
     """The page's clips (:func:`clip_data`) of a py-feat table, read once: ``video`` only, or every video it holds
-    (a video without a face is left out while others play)."""
+    (a video without a face is left out while others play). ``mesh_units``: ``detector`` (z converted by the
+    detector's crop) or ``pixels`` (z as written), as :func:`~aumesh.animation.clip.read_clip`'s."""
     from aumesh.animation.clip import read_clip, read_table
     from aumesh.utils.errors import TableError
 
     if video is not None:
-        return [clip_data(read_clip(path, video=video, fps=fps))]
+        return [clip_data(read_clip(path, video=video, fps=fps, mesh_units=mesh_units))]
     table = read_table(path)
     names = table.videos
     if len(names) == 1:  # its own error (no face, ...), as read_clip gives it
-        return [clip_data(table.clip(names[0], fps=fps))]
+        return [clip_data(table.clip(names[0], fps=fps, mesh_units=mesh_units))]
     clips, failed = [], []
     for name in names:  # every video, for the page's selector
         try:
-            clips.append(clip_data(table.clip(name, fps=fps)))
+            clips.append(clip_data(table.clip(name, fps=fps, mesh_units=mesh_units)))
         except TableError as err:
             failed.append(err)
     if not clips:
