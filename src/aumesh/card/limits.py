@@ -79,10 +79,27 @@ def implausible_fields(sizes: np.ndarray, factor: float = IMPLAUSIBLE_FIELD_FACT
         False everywhere when fewer than 3 AUs move (no median to compare with).
     """
     s = np.asarray(sizes, dtype=np.float64)
-    moving = s[s > 0]
-    if moving.size < 3:
+    if np.count_nonzero(s > 0) < 3:
         return np.zeros(s.shape, dtype=bool)
-    return s > factor * float(np.median(moving))
+    return s > factor * moving_median(s)
+
+
+def moving_median(sizes: np.ndarray) -> float:
+    """The median size of the fields that move at all (``sizes`` > 0; 0.0 when none does): what
+    :func:`implausible_fields` compares each field with, and what the card and figures quote."""
+    s = np.asarray(sizes, dtype=np.float64)
+    moving = s[s > 0]
+    return float(np.median(moving)) if moving.size else 0.0
+
+
+def au_field_iod(arrays: Mapping[str, Any]) -> dict[str, float]:
+    """Each AU's largest vertex displacement at intensity 1 (:func:`au_field_sizes`), in inter-ocular distances of the
+    release's ``mean_aligned_mesh`` (:func:`aumesh.card.directions.au_displacements`): the sizes
+    :func:`release_warnings` judges."""
+    from aumesh.card.directions import au_displacements
+
+    disp, _, columns = au_displacements(arrays)
+    return {au: round(float(size), 6) for au, size in zip(columns, au_field_sizes(disp), strict=True)}
 
 
 # ---------------------------------------------------------------------------------------------------- warnings
@@ -215,7 +232,7 @@ def _field_warnings(
         sizes = np.array([au_field_iod[n] for n in names], dtype=np.float64)
         flagged = implausible_fields(sizes)
         if flagged.any():
-            median = float(np.median(sizes[sizes > 0]))
+            median = moving_median(sizes)
             big = {n: round(float(s), 3) for n, s, f in zip(names, sizes, flagged, strict=True) if f}
             out.append(
                 _warning(

@@ -157,7 +157,7 @@ def unsupported_aus(arrays: Mapping[str, Any], disp: np.ndarray) -> dict[str, st
         AU -> label, e.g. ``"not in training data (p99 0.035)"`` or ``"implausible field (26x the median AU)"``,
         in ``AU_COLUMNS`` order; empty when every AU is supported.
     """
-    from aumesh.card.limits import au_field_sizes, implausible_fields
+    from aumesh.card.limits import au_field_sizes, implausible_fields, moving_median
 
     listed = {str(a) for a in np.asarray(arrays.get("unsupported_features", np.array([], dtype=str))).ravel()}
     p99: dict[str, float] = {}
@@ -168,8 +168,7 @@ def unsupported_aus(arrays: Mapping[str, Any], disp: np.ndarray) -> dict[str, st
             p99 = dict(zip(names, values.tolist(), strict=True))
     sizes = au_field_sizes(disp)
     implausible = implausible_fields(sizes)
-    moving = sizes[sizes > 0]
-    median = float(np.median(moving)) if moving.size else 0.0
+    median = moving_median(sizes)
     out: dict[str, str] = {}
     for k, au in enumerate(AU_COLUMNS):
         if au in listed:

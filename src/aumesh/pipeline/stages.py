@@ -447,15 +447,6 @@ def refuse_implausible_face(
     return record
 
 
-def au_field_iod(arrays: dict) -> dict[str, float]:
-    """Each AU's largest vertex displacement at intensity 1, in inter-ocular distances of ``mean_aligned_mesh``."""
-    from aumesh.card.directions import au_displacements
-    from aumesh.card.limits import au_field_sizes
-
-    disp, _, columns = au_displacements(arrays)
-    return {au: round(float(size), 6) for au, size in zip(columns, au_field_sizes(disp), strict=True)}
-
-
 def release_stage(cfg: Config) -> Path:
     """Write the release folder atomically: a failure leaves the previous release as it was."""
     start_stage("release", cfg)
@@ -493,7 +484,7 @@ def release_stage(cfg: Config) -> Path:
         report["source"] = NPZ_NAME  # not the temp folder it was read from
         directions.write_report(report, tmp / "au_directions.json")
         card["au_directions"] = {au: r["verdict"] for au, r in report["aus"].items()}
-        card["warnings"] = limits.release_warnings(card, card["au_directions"], au_field_iod(arrays))
+        card["warnings"] = limits.release_warnings(card, card["au_directions"], limits.au_field_iod(arrays))
         markdown = model_card_markdown(card, directions.report_markdown_table(report), [str(f) for f in figures])
         arrays["model_card"] = np.array(markdown)
         arrays["training_metadata"] = np.array(json.dumps(card, sort_keys=True, default=str))
