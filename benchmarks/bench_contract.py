@@ -40,8 +40,8 @@ def _seconds(fn, repeats: int) -> float:
 
 
 def main(argv=None) -> int:
+    from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
     from aumesh.data import contract, tables
-    from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=344_418)

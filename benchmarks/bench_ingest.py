@@ -1,7 +1,7 @@
 """py-feat's CSVs through the pipeline, beside one pyarrow CSV read of the same files and the parquet path.
 
 Generates (or reuses, cached under ``--workdir``) py-feat-shaped CSVs of ``--frames`` frames with MPDetector's full
-column set (~2,045 columns: blendshapes, emotions, 512 identity columns, gaze...; ``aumesh.data.synth_pyfeat``), with
+column set (~2,045 columns: blendshapes, emotions, 512 identity columns, gaze...; ``aumesh.synthetic.pyfeat``), with
 no-face runs and background faces, and the same frames cleaned by hand as parquet (the main face of every frame with a
 face). Then, run by run, alternating the order:
 
@@ -45,8 +45,8 @@ from _common import (  # noqa: E402
 
 def ensure_pyfeat_data(workdir: Path, n_frames: int, videos_per_file: int) -> tuple[Path, Path, dict]:
     """(CSV folder, hand-cleaned parquet folder, generation summary), generated once and cached."""
-    from aumesh.data.synth import SynthSpec
-    from aumesh.data.synth_pyfeat import write_pyfeat_tables
+    from aumesh.synthetic.pyfeat import write_pyfeat_tables
+    from aumesh.synthetic.tables import SynthSpec
 
     # "_cropz": z in MPDetector's 256-px crop units, as py-feat writes it (a cache of the generator's earlier tables,
     # z in pixels, is refused by the ingest's units guard: data.mesh_units=pixels)

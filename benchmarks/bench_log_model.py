@@ -1,6 +1,6 @@
 """Cost of logging a run's model as an MLflow pyfunc model (every evaluate run and sweep child does it).
 
-Prints, per run, the wall time of ``aumesh.experiments.pyfunc.log_release_model`` (save_model with
+Prints, per run, the wall time of ``aumesh.tracking.pyfunc.log_release_model`` (save_model with
 signature, input example and its validation, explicit requirements; then the directory logged as
 artifacts) against the plain NPZ artifact it replaced (``log_artifact`` of the same NPZ), into a
 throw-away SQLite store. The release has the card's 83-column ``coef_full`` (the default feature set).
@@ -27,11 +27,12 @@ def main() -> None:
 
     import os
 
-    from aumesh.data.schema import feature_columns
-    from aumesh.data.truth import synthetic_release_arrays
-    from aumesh.experiments import pyfunc, tracking
+    from aumesh.core.io import atomic_savez
+    from aumesh.core.schema import feature_columns
     from aumesh.model.release import release_arrays
-    from aumesh.utils.io import atomic_savez
+    from aumesh.synthetic.truth import synthetic_release_arrays
+    from aumesh.tracking import pyfunc
+    from aumesh.tracking import runs as tracking
 
     work = Path(tempfile.mkdtemp(prefix="aumesh-bench-log-", dir=args.workdir))
     os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{work / 'mlflow.db'}"

@@ -19,10 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from aumesh import config
-from aumesh.data import synth, tables, truth
-from aumesh.data.schema import AU_COLUMNS
+from aumesh.core.schema import AU_COLUMNS
+from aumesh.data import tables
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
+from aumesh.synthetic import tables as synth
+from aumesh.synthetic import truth
 
 REPO = Path(__file__).resolve().parents[1]
 TARGETS = ("absolute", "neutral", "within", "within_neutral")

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 from aumesh import config
-from aumesh.data import synth, tables
+from aumesh.data import tables
 from aumesh.pipeline import prepare
+from aumesh.synthetic import tables as synth
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -392,10 +393,10 @@ def upright_truth_release(path: Path) -> Path:
     """A synthetic-truth release NPZ in the card's canonical frame (y up, z out of the face), pixel-like units.
 
     The template's face frame (x to the subject's left, y down, z away) turned half a turn about x,
-    then scaled and moved: the AU rows are the known synthetic FACS fields (aumesh.data.truth).
+    then scaled and moved: the AU rows are the known synthetic FACS fields (aumesh.synthetic.truth).
     """
-    from aumesh.data import truth
     from aumesh.geometry import face
+    from aumesh.synthetic import truth
 
     tpl = 120.0 * face.canonical_template() * np.array([1.0, -1.0, -1.0]) + np.array([320.0, 240.0, 10.0])
     np.savez(path, **truth.synthetic_release_arrays(tpl))
@@ -498,7 +499,7 @@ def stop_process_group(proc: subprocess.Popen) -> None:
 @pytest.fixture(scope="module")
 def mlflow_server(tmp_path_factory):
     """A real `mlflow server` (SQLite store, artifacts proxied) on a free loopback port for the module: its URL."""
-    from aumesh.experiments.server import server_command, server_environment
+    from aumesh.tracking.server import server_command, server_environment
 
     tmp = tmp_path_factory.mktemp("mlflow_server")
     port = free_port()
@@ -542,7 +543,7 @@ def dvc_workspace(tmp_path_factory):
     import shutil
     import subprocess
 
-    from aumesh.data.synth import SynthSpec, write_tables
+    from aumesh.synthetic.tables import SynthSpec, write_tables
     from test_dvc_pipeline import BIN, _run
 
     ws = tmp_path_factory.mktemp("dvcfaults") / "ws"

@@ -19,11 +19,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import aumesh
-from aumesh.animation.clip import MAX_GAP_S, bridge, fps_from_approx_time, read_clip, smooth
 from aumesh.cli import main
-from aumesh.data.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
-from aumesh.data.synth import SynthSpec
-from aumesh.data.synth_pyfeat import write_pyfeat_tables
+from aumesh.core.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
+from aumesh.data.clip import MAX_GAP_S, bridge, fps_from_approx_time, read_clip, smooth
+from aumesh.synthetic.pyfeat import write_pyfeat_tables
+from aumesh.synthetic.tables import SynthSpec
 from conftest import REPO, upright_truth_release
 from test_gltf import parse_glb
 

@@ -1,4 +1,4 @@
-"""aumesh.utils.blas.one_blas_thread: nested blocks share one threadpoolctl limit, restored by the outermost."""
+"""aumesh.core.blas.one_blas_thread: nested blocks share one threadpoolctl limit, restored by the outermost."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from aumesh.utils import blas
+from aumesh.core import blas
 
 
 def _blas_threads() -> set[int]:

@@ -9,8 +9,10 @@ import json
 import pytest
 
 from aumesh import cli, config
-from aumesh.experiments import mlflow_store, promote, queries
-from aumesh.pipeline import stages
+from aumesh.experiments import promote
+from aumesh.pipeline.model_files import TRACKING_JSON
+from aumesh.stages import evaluate
+from aumesh.tracking import mlflow_store, queries
 from test_sweep import workspace_with_store
 
 FAILING = ["features=au", "model.n_components=2,25", "model.clip_n_components=false"]  # 25 > 20 features: FAILED
@@ -33,8 +35,8 @@ def sweeps(workspace):
 
 
 def _evaluate(workspace) -> dict:
-    stages.evaluate_stage(config.load_params(workspace / "params.yaml"))
-    run_id = json.loads((workspace / "build" / "model" / stages.TRACKING_JSON).read_text())["run_id"]
+    evaluate.main(config.load_params(workspace / "params.yaml"))
+    run_id = json.loads((workspace / "build" / "model" / TRACKING_JSON).read_text())["run_id"]
     return queries.run_record(run_id, {})
 
 
@@ -91,7 +93,7 @@ def test_evaluate_runs_are_named_by_what_tells_them_apart(newer_evaluate, worksp
             config_dir=workspace / "conf",
         )
     )
-    assert stages.evaluate_run_name(neutral) == "neutral(mean) au k=5"
+    assert evaluate.evaluate_run_name(neutral) == "neutral(mean) au k=5"
 
 
 def test_promote_names_its_sweep_and_refuses_to_overrule_a_newer_evaluate_run(

@@ -28,9 +28,9 @@ import pytest
 import aumesh
 from aumesh import cli
 from aumesh.config import ComputeConfig, compose, write_params
-from aumesh.data.synth import SynthSpec, write_tables
+from aumesh.core.errors import ClusterError, ConfigError
 from aumesh.pipeline import compute
-from aumesh.utils.errors import ClusterError, ConfigError
+from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import REPO
 
 BIN = Path(sys.executable).parent
@@ -404,8 +404,8 @@ def test_the_environment_chooses_where_the_passes_run_over_params(monkeypatch):
 def test_tasks_get_absolute_paths_and_the_records_keep_the_workspace_relative_ones(tmp_path, monkeypatch):
     """Ingest and prepare in a workspace with relative paths (params.yaml's): the partition tasks are handed absolute
     paths (what a worker elsewhere needs), the manifest and the summary record ``data/...`` as before."""
+    from aumesh.core.io import recorded
     from aumesh.pipeline import prepare
-    from aumesh.utils.io import recorded
     from conftest import default_config
 
     write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=30, seed=2, frames_per_file=150))

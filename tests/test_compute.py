@@ -19,13 +19,14 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from aumesh.data import contract, synth, tables
-from aumesh.data.schema import VIDEO_COLUMN
+from aumesh.core.errors import CorruptFileError
+from aumesh.core.io import create_npy
+from aumesh.core.schema import VIDEO_COLUMN
+from aumesh.data import contract, tables
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import integrity, prepare
-from aumesh.utils.errors import CorruptFileError
-from aumesh.utils.io import create_npy
+from aumesh.synthetic import tables as synth
 from conftest import default_config
 
 ROW_GROUP = 97  # cuts videos across row groups, so across partitions

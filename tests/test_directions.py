@@ -9,9 +9,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aumesh.card import directions
-from aumesh.data import schema, synth, truth
-from aumesh.data.schema import AU_COLUMNS
+from aumesh.core import schema
+from aumesh.core.schema import AU_COLUMNS
 from aumesh.geometry import face
+from aumesh.synthetic import tables as synth
+from aumesh.synthetic import truth
 
 
 def _verdicts(report):

@@ -32,8 +32,8 @@ def test_error_curve_of_a_vector_on_disk_read_in_blocks_is_bit_equal_to_numpys(t
     """float32 errors on disk (ties: a coarse grid; unscored NaN frames), read 97 values at a time: the curve equals
     np.quantile of the whole vector and the exact fraction <= each value, bit for bit."""
     from aumesh.config import ComputeConfig
+    from aumesh.core.io import NpyRows
     from aumesh.pipeline import compute
-    from aumesh.utils.io import NpyRows
 
     rng = np.random.default_rng(5)
     e = np.round(rng.gamma(2.0, 1.3, size=5003) * 20).astype(np.float32) / 20

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from aumesh.config import compose, write_params
-from aumesh.data.synth import SynthSpec, write_tables
+from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import REPO
 
 BIN = Path(sys.executable).parent
@@ -151,7 +151,7 @@ def test_dvc_links_a_stage_output_into_its_cache_without_copying_it(tmp_path):
 def test_pyfeat_csvs_copied_into_data_train_with_dvc_repro_as_the_hand_cleaned_tables(workspace, tmp_path):
     """The README's own-data path: py-feat's CSVs of both detectors copied into data/ unchanged, `dvc add data`,
     `dvc repro`; the release matches the same frames cleaned by hand; a recipe change never re-reads the CSVs."""
-    from aumesh.data.synth_pyfeat import write_pyfeat_tables
+    from aumesh.synthetic.pyfeat import write_pyfeat_tables
 
     ws = workspace
     spec = SynthSpec(n_frames=1200, n_videos=40, seed=21)

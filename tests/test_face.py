@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aumesh.data import truth
-from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES
+from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES
 from aumesh.geometry import face
+from aumesh.synthetic import truth
 
 
 @pytest.fixture(scope="module")

@@ -22,8 +22,8 @@ import yaml
 
 from aumesh import cli
 from aumesh.config import write_params
-from aumesh.data.schema import AU_COLUMNS
-from aumesh.data.synth import SynthSpec, write_tables
+from aumesh.core.schema import AU_COLUMNS
+from aumesh.synthetic.tables import SynthSpec, write_tables
 
 TABLE = "data/frames_0000.parquet"
 
@@ -225,7 +225,7 @@ def test_bad_table_exits_2_naming_file_and_column_and_keeps_outputs(workspace, c
 
 def test_debug_flag_and_env_show_the_traceback(workspace, capsys, monkeypatch):
     all_nan("AU07")(workspace)
-    from aumesh.utils.errors import TableError
+    from aumesh.core.errors import TableError
 
     with pytest.raises(TableError, match="AU07"):
         run_cli(["--debug", "prepare"], workspace, capsys)
@@ -360,7 +360,7 @@ def test_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
     import subprocess
     import sys
 
-    from aumesh.utils.io import atomic_directory, remove_stale_temporaries
+    from aumesh.core.io import atomic_directory, remove_stale_temporaries
 
     host = socket.gethostname()
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
@@ -392,12 +392,12 @@ def test_a_run_whose_process_is_gone_is_marked_killed_by_the_next_run(tmp_path, 
 
     import mlflow
 
-    from aumesh.experiments import tracking
+    from aumesh.tracking import runs as tracking
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     code = (
-        "from aumesh.experiments import tracking; import os, time\n"
+        "from aumesh.tracking import runs as tracking; import os, time\n"
         "with tracking.tracked_run({'experiment': 'e'}, 'victim', {'a': 1}) as run:\n"
         "    print(run.run_id, flush=True); time.sleep(600)\n"
     )
@@ -507,8 +507,8 @@ def test_interrupted_dvc_repro_keeps_the_release_bit_for_bit(dvc_workspace, tmp_
     import mlflow
 
     from aumesh.config import load_params
-    from aumesh.experiments import tracking
-    from aumesh.pipeline import stages
+    from aumesh.stages import common
+    from aumesh.tracking import runs as tracking
 
     ws = tmp_path / "ws"
     shutil.copytree(dvc_workspace, ws, symlinks=True)
@@ -522,17 +522,17 @@ def test_interrupted_dvc_repro_keeps_the_release_bit_for_bit(dvc_workspace, tmp_
     cfg = load_params(ws / "params.yaml")
     os.chdir(ws)
     try:
-        removed = [o for o in stages.stage_outputs(stage, cfg.paths) if not (ws / o).exists()]
+        removed = [o for o in common.stage_outputs(stage, cfg.paths) if not (ws / o).exists()]
         if signame == "SIGINT" and removed:  # the stage said how to get DVC's removed outputs back
             assert f"`dvc checkout {stage}` brings back the last good one" in out, out
         debris = sorted(
-            p.name for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")
+            p.name for o in common.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")
         )
         if signame == "SIGINT":
             assert not debris, debris  # cleaned up on the way out
-        stages.start_stage(stage, cfg)  # what the next run does first
+        common.start_stage(stage, cfg)  # what the next run does first
         assert not [
-            p for o in stages.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")
+            p for o in common.stage_outputs(stage, cfg.paths) for p in (ws / o).parent.glob(f".{Path(o).name}.*-*")
         ]
         client = mlflow.MlflowClient(f"sqlite:///{ws / 'mlflow.db'}")
         with pytest.MonkeyPatch.context() as mp:
@@ -547,7 +547,7 @@ def test_interrupted_dvc_repro_keeps_the_release_bit_for_bit(dvc_workspace, tmp_
             assert sum(r.info.status == "KILLED" for r in runs) == 1
         if removed:
             _dvc(ws, "checkout", stage)
-            assert all((ws / o).exists() for o in stages.stage_outputs(stage, cfg.paths)), _dvc(ws, "status")
+            assert all((ws / o).exists() for o in common.stage_outputs(stage, cfg.paths)), _dvc(ws, "status")
     finally:
         os.chdir(Path(__file__).parent)
 
@@ -587,7 +587,7 @@ def test_a_killed_unreaped_child_counts_as_gone():
 
     import psutil
 
-    from aumesh.utils.io import process_gone
+    from aumesh.core.signals import process_gone
 
     child = subprocess.Popen(["sleep", "30"])
     child.kill()
@@ -863,7 +863,7 @@ def test_full_disk_inside_a_pass_is_one_line(workspace, capsys, monkeypatch):
     """Without root: ENOSPC from the OS call that writes the aligned meshes (pass 3's pwrite, in a worker thread)."""
     import errno
 
-    from aumesh.utils import io as aio
+    from aumesh.core import io as aio
 
     def full(fd, data, offset):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))

@@ -22,7 +22,9 @@ import pytest
 import yaml
 
 from aumesh import cli
-from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
+from aumesh.experiments import sweep
+from aumesh.tracking import mlflow_store, queries, registry
+from aumesh.tracking import runs as tracking
 from conftest import new_store
 from test_faults import dvc_env, mlflow_runs, run_cli, tree_digest
 
@@ -323,7 +325,7 @@ def test_sigterm_stops_a_stage_as_ctrl_c_does(workspace, tmp_path):
 def test_interrupt_between_the_two_renames_puts_the_previous_folder_back(tmp_path, monkeypatch):
     """Ctrl-C or SIGTERM after the old release was moved aside and before the new one moved in: the old one goes
     back (it used to stay under ``.release.old-*`` with no ``release/`` at all)."""
-    from aumesh.utils import io
+    from aumesh.core import io
 
     (tmp_path / "release").mkdir()
     (tmp_path / "release" / "card.md").write_text("previous")
@@ -412,8 +414,8 @@ def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspac
 
 def test_a_stage_whose_dvc_is_gone_commits_nothing(tmp_path, monkeypatch):
     """Quicker than the watcher's poll: the commit points themselves check that DVC still runs."""
-    from aumesh.utils import signals
-    from aumesh.utils.io import atomic_directory, atomic_path
+    from aumesh.core import signals
+    from aumesh.core.io import atomic_directory, atomic_path
 
     dead = subprocess.Popen(["true"])
     dead.wait()

@@ -10,14 +10,16 @@ import pyarrow.parquet as pq
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aumesh.data import synth, tables, truth
-from aumesh.data.schema import AU_COLUMNS, N_VERTICES, unflatten_axis_major
+from aumesh.core.schema import AU_COLUMNS, N_VERTICES, unflatten_axis_major
+from aumesh.data import tables
 from aumesh.geometry import face
 from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
 from aumesh.model.inference import predict_mesh
 from aumesh.model.release import release_arrays
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
+from aumesh.synthetic import tables as synth
+from aumesh.synthetic import truth
 from conftest import default_config
 
 EYES = [33, 263, 133, 362]

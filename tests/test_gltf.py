@@ -9,7 +9,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from aumesh.data.schema import AU_COLUMNS
+from aumesh.core.schema import AU_COLUMNS
 from aumesh.export import gltf
 from aumesh.model.release import load_npz
 from conftest import REPO, upright_truth_release

@@ -9,10 +9,10 @@ import pandas as pd
 import pytest
 
 import aumesh
-from aumesh.data.schema import AU_COLUMNS, N_TARGETS, feature_set_columns
+from aumesh.core.io import atomic_savez
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS, feature_set_columns
 from aumesh.model.inference import PredictionInputError, ReleaseError
 from aumesh.model.release import release_arrays
-from aumesh.utils.io import atomic_savez
 from conftest import face_reference, in_card_frame
 
 
@@ -213,8 +213,8 @@ def test_cli_predict_writes_one_mesh_per_table_row(card_release, tmp_path, capsy
 @pytest.mark.parametrize("suffix", [".obj", ".ply"])
 def test_cli_predict_one_row_as_a_mesh_file_facing_out_of_the_face(tmp_path, suffix):
     from aumesh import cli
-    from aumesh.data import truth
     from aumesh.geometry import face
+    from aumesh.synthetic import truth
 
     release = tmp_path / "face.npz"
     np.savez(release, **truth.synthetic_release_arrays())

@@ -12,12 +12,12 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
+from aumesh.core.errors import TableError
 from aumesh.data import ingest as ingest_data
 from aumesh.data import tables
-from aumesh.data.synth import SynthSpec
-from aumesh.data.synth_pyfeat import write_pyfeat_tables
 from aumesh.pipeline import ingest, prepare
-from aumesh.utils.errors import TableError
+from aumesh.synthetic.pyfeat import write_pyfeat_tables
+from aumesh.synthetic.tables import SynthSpec
 from conftest import default_config
 
 SPEC = SynthSpec(n_frames=450, n_videos=12, seed=3)  # 12 videos of ~38 frames: every layout, detector and fault

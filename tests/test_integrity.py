@@ -21,11 +21,11 @@ import xxhash
 
 from aumesh import cli
 from aumesh.config import write_params
-from aumesh.data.synth import SynthSpec, write_tables
+from aumesh.core.errors import CorruptFileError
+from aumesh.core.io import create_npy
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import integrity
-from aumesh.utils.errors import CorruptFileError
-from aumesh.utils.io import create_npy
+from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import default_config, new_store
 
 PREPARED = "build/prepared"

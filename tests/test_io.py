@@ -1,11 +1,11 @@
-"""Row I/O on .npy files (aumesh.utils.io), checked against NumPy's own reader and writer."""
+"""Row I/O on .npy files (aumesh.core.io), checked against NumPy's own reader and writer."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from aumesh.utils.io import NpyRowFile, NpyRows, create_npy, read_row_set, read_rows, row_runs, write_rows
+from aumesh.core.io import NpyRowFile, NpyRows, create_npy, read_row_set, read_rows, row_runs, write_rows
 
 
 @pytest.mark.parametrize("dtype, row_shape", [(np.float32, (1434,)), (np.float64, (3, 5)), (np.int64, ())])
@@ -77,7 +77,7 @@ def test_npy_reads_in_threads_never_parse_two_headers_at_once(tmp_path, reader):
     import sys
     import threading
 
-    from aumesh.utils import io as aio
+    from aumesh.core import io as aio
 
     np.save(tmp_path / "a.npy", np.arange(3.0))
     np.save(tmp_path / "b.npy", np.zeros((2, 5), np.float32))

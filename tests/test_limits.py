@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from aumesh.card import limits
-from aumesh.data.schema import AU_COLUMNS
-from aumesh.model.release import model_card_markdown
+from aumesh.card.model_card import model_card_markdown
+from aumesh.core.schema import AU_COLUMNS
 from test_release import _card
 
 

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from aumesh.experiments import mlflow_store, queries, tracking
+from aumesh.tracking import mlflow_store, queries
+from aumesh.tracking import runs as tracking
 
 pytestmark = pytest.mark.server
 

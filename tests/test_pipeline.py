@@ -8,11 +8,11 @@ from sklearn.cross_decomposition import PLSRegression as SkPLS
 from sklearn.metrics import mean_absolute_error, r2_score
 from sklearn.model_selection import GroupKFold
 
-from aumesh.data.schema import AU_COLUMNS, N_VERTICES
+from aumesh.core.errors import ConfigError
+from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.geometry.align import umeyama_batch
 from aumesh.model.features import design_matrix
 from aumesh.pipeline import evaluate as ev
-from aumesh.utils.errors import ConfigError
 from conftest import default_config
 
 
@@ -176,9 +176,10 @@ def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(
     import dataclasses
 
     from aumesh.card import directions
-    from aumesh.data import synth, tables
+    from aumesh.data import tables
     from aumesh.model.release import release_arrays
     from aumesh.pipeline import prepare
+    from aumesh.synthetic import tables as synth
     from conftest import RECOVERY_SPEC
 
     spec = dataclasses.replace(RECOVERY_SPEC, n_frames=2000, n_videos=200, reversed_aus=("AU12",))
@@ -272,25 +273,26 @@ def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vect
 
     from aumesh import config
     from aumesh.card import render
-    from aumesh.pipeline import stages
+    from aumesh.pipeline import model_files
+    from aumesh.stages import evaluate
     from test_sweep import workspace_with_store
 
     with workspace_with_store(tmp_path_factory, "frame-error") as ws:
         cfg = config.load_params(ws / "params.yaml")
-        metrics = stages.evaluate_stage(cfg)
+        metrics = evaluate.main(cfg)
         model = ws / cfg.paths.model_dir
         errors = np.load(model / ev.FRAME_ERROR_FILE)
         video = pd.read_parquet(ws / cfg.paths.prepared_dir / "frames.parquet", columns=["video_index"])["video_index"]
         curve = pd.read_csv(ws / cfg.paths.error_curve_file)
-        with np.load(model / stages.CV_NPZ) as z:
+        with np.load(model / model_files.CV_NPZ) as z:
             assert "vertex_error" not in z.files  # no per-frame vector in cv.npz
-            cv = render.load_cv(model / stages.CV_NPZ)
+            cv = render.load_cv(model / model_files.CV_NPZ)
     assert errors.dtype == np.float32 and errors.shape == (len(video),)
     fold = _group_kfold(video.to_numpy(), cfg.cv.n_splits)
     for f in range(cfg.cv.n_splits):
         assert errors[fold == f].astype(np.float64).mean() == pytest.approx(metrics["vertex_error_folds"][f], rel=1e-6)
     e = np.sort(errors.astype(np.float64))
-    q = np.linspace(0, 1, stages.CARD_ERROR_CURVE_POINTS)
+    q = np.linspace(0, 1, model_files.CARD_ERROR_CURVE_POINTS)
     np.testing.assert_array_equal(cv["cumulative_error_thresholds"], np.quantile(e, q, method="inverted_cdf"))
     np.testing.assert_array_equal(
         cv["cumulative_error_fraction"], np.searchsorted(e, cv["cumulative_error_thresholds"], side="right") / e.size
@@ -316,15 +318,15 @@ def test_the_evaluate_stage_never_imports_mlflow_its_run_is_logged_beside(tmp_pa
     from mlflow import MlflowClient
 
     from aumesh import config
-    from aumesh.experiments import tracking
-    from aumesh.pipeline import stages
+    from aumesh.pipeline import model_files
+    from aumesh.tracking import runs as tracking
     from test_sweep import workspace_with_store
 
     code = (
         "import json, os, sys\n"
         "from aumesh import config\n"
-        "from aumesh.pipeline import stages\n"
-        "stages.evaluate_stage(config.load_params('params.yaml'))\n"
+        "from aumesh.stages import evaluate\n"
+        "evaluate.main(config.load_params('params.yaml'))\n"
         "print(json.dumps({'pid': os.getpid(), 'mlflow': sorted(m for m in sys.modules if m.split('.')[0] == 'mlflow'),\n"
         "                  'pandera': sorted(m for m in sys.modules if m.split('.')[0] == 'pandera')}))\n"
     )
@@ -333,7 +335,7 @@ def test_the_evaluate_stage_never_imports_mlflow_its_run_is_logged_beside(tmp_pa
         assert out.returncode == 0, out.stderr
         stage = json.loads(out.stdout.strip().splitlines()[-1])
         cfg = config.load_params(ws / "params.yaml")
-        run_info = json.loads((ws / cfg.paths.model_dir / stages.TRACKING_JSON).read_text())
+        run_info = json.loads((ws / cfg.paths.model_dir / model_files.TRACKING_JSON).read_text())
         client = MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
         run = client.get_run(run_info["run_id"])
         artifacts = {a.path for a in client.list_artifacts(run.info.run_id, "model")}
@@ -353,7 +355,7 @@ def test_the_passes_scratch_goes_with_its_result_or_with_the_next_stage_after_a_
     import subprocess
     import sys
 
-    from aumesh.pipeline import stages
+    from aumesh.stages import common
 
     host = socket.gethostname()
     prepared = ev.load_prepared(recovery_prepared / "prepared")
@@ -376,7 +378,7 @@ def test_the_passes_scratch_goes_with_its_result_or_with_the_next_stage_after_a_
     )
     for d in (killed, live):
         d.mkdir(parents=True)
-    stages.start_stage(
+    common.start_stage(
         "evaluate",
         default_config(**{"paths.prepared_dir": str(build / "prepared"), "paths.model_dir": str(build / "model")}),
     )

@@ -15,11 +15,11 @@ import pytest
 
 import aumesh
 from aumesh import cli
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_set_columns
-from aumesh.data.synth_pyfeat import BLENDSHAPE_COLUMNS
+from aumesh.core.io import atomic_savez
+from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_set_columns
 from aumesh.model.inference import PredictionInputError
 from aumesh.model.release import release_arrays
-from aumesh.utils.io import atomic_savez
+from aumesh.synthetic.pyfeat import BLENDSHAPE_COLUMNS
 from conftest import face_reference
 
 BLENDSHAPES = list(BLENDSHAPE_COLUMNS)

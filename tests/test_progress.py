@@ -15,7 +15,7 @@ import threading
 import pytest
 
 from aumesh.config import compose, write_params
-from aumesh.data.synth import SynthSpec, write_tables
+from aumesh.synthetic.tables import SynthSpec, write_tables
 
 
 def _stage(stage: str, ws, tty: bool) -> tuple[str, str]:
@@ -80,7 +80,7 @@ def test_one_summary_line_per_stage_and_no_noise_in_a_pipe(stage_ws):
 
 
 def test_a_bar_on_a_terminal_none_in_a_pipe():
-    code = "from aumesh.utils import progress\nwith progress.bar(1000, 'statistics pass') as b: b.update(1000)"
+    code = "from aumesh.core import progress\nwith progress.bar(1000, 'statistics pass') as b: b.update(1000)"
     _, err = _run([sys.executable, "-c", code], tty=True)
     assert "statistics pass" in err and "/1.00k" in err, err  # rows counted with SI prefixes
     _, err = _run([sys.executable, "-c", code], tty=False)

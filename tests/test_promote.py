@@ -12,9 +12,12 @@ import pytest
 import yaml
 
 from aumesh import config
-from aumesh.data.schema import INPUT_COLUMNS
-from aumesh.experiments import promote, provenance, registry, tracking
+from aumesh.core import provenance
+from aumesh.core.schema import INPUT_COLUMNS
+from aumesh.experiments import promote
 from aumesh.experiments.promote import Candidate
+from aumesh.tracking import registry
+from aumesh.tracking import runs as tracking
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -221,7 +224,9 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     """sweep children -> promote -> the evaluate stage on the recomposed params.yaml: same coefficients as the
     registered NPZ, and the card built by the release stage names the promoted run."""
     from aumesh.experiments import sweep
-    from aumesh.pipeline import stages
+    from aumesh.pipeline import model_files
+    from aumesh.pipeline.release import build_card
+    from aumesh.stages import evaluate
     from test_sweep import make_workspace
 
     ws = make_workspace(tmp_path / "ws")
@@ -236,8 +241,8 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     cfg = config.load_params(ws / "params.yaml")
     assert record["run_id"] == registry.model_version_by_alias("aumesh-au-to-mesh")["run_id"]
     with sweep.blas_threads():
-        stages.evaluate_stage(cfg)
-    model = np.load(ws / cfg.paths.model_dir / stages.MODEL_NPZ)
+        evaluate.main(cfg)
+    model = np.load(ws / cfg.paths.model_dir / model_files.MODEL_NPZ)
     npz = np.load(
         registry.download_run_artifacts(record["run_id"], "model/artifacts/au_to_mesh_pls.npz", tmp_path / "dl")
     )
@@ -259,7 +264,7 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     np.testing.assert_array_equal(fresh["coef"], npz["coef"])
     np.testing.assert_array_equal(fresh["intercept"], npz["intercept"])
     promotion = json.loads((ws / cfg.paths.promotion_file).read_text())["promoted"]
-    card = stages.build_card(cfg, ws / cfg.paths.model_dir, ws / cfg.paths.prepared_dir, promotion)
+    card = build_card(cfg, ws / cfg.paths.model_dir, ws / cfg.paths.prepared_dir, promotion)
     assert card["promotion"]["run_id"] == record["run_id"]
     assert card["promotion"]["parent_run_id"] == parent
     assert card["promotion"]["criterion"] and card["promotion"]["compared"]

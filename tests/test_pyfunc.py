@@ -16,9 +16,10 @@ import pandas as pd
 import pytest
 
 import aumesh
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, flatten_axis_major
-from aumesh.experiments import registry, tracking
+from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, flatten_axis_major
 from aumesh.model.release import load_npz
+from aumesh.tracking import registry
+from aumesh.tracking import runs as tracking
 from conftest import free_port, stop_process_group, upright_truth_release
 
 MODEL = "aumesh-au-to-mesh"
@@ -40,7 +41,7 @@ def _card_snippet(npz_path: Path, df: pd.DataFrame) -> np.ndarray:
 @pytest.fixture
 def champion(tmp_path):
     """A run that logs a synthetic-truth release as its pyfunc model, registered with alias champion."""
-    from aumesh.experiments import pyfunc
+    from aumesh.tracking import pyfunc
 
     npz = upright_truth_release(tmp_path / "release.npz")
     with tracking.tracked_run({}, run_name="pyfunc-test", params=None) as run:
@@ -214,16 +215,16 @@ def test_the_logged_model_keeps_the_datas_support_and_warns_on_each_call(tmp_pat
     data logs one line (as ``aumesh.predict_mesh`` warns); a call within it, none."""
     import mlflow.pyfunc
 
-    from aumesh.experiments import pyfunc
+    from aumesh.tracking import pyfunc
     from test_support import _release_with_support
 
     npz = _release_with_support(tmp_path, "MPDetector")
     with tracking.tracked_run({}, run_name="pyfunc-support", params=None) as run:
         pyfunc.log_release_model(run, load_npz(npz))
     model = mlflow.pyfunc.load_model(f"runs:/{run.run_id}/{pyfunc.MODEL_ARTIFACT_DIR}")
-    with caplog.at_level("WARNING", logger="aumesh.experiments.pyfunc"):
+    with caplog.at_level("WARNING", logger="aumesh.tracking.pyfunc"):
         model.predict(pd.DataFrame({"AU12": [0.9, 0.2]}))
         model.predict(pd.DataFrame({"AU12": [0.9]}))
         model.predict(pd.DataFrame({"AU12": [0.5]}))  # within the training data
-    lines = [r.getMessage() for r in caplog.records if r.name == "aumesh.experiments.pyfunc"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "aumesh.tracking.pyfunc"]
     assert len(lines) == 2 and all("AU12 up to 0.9 (training max 0.6, p99 0.5)" in m for m in lines), lines

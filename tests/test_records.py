@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from aumesh import config
-from aumesh.experiments import provenance
+from aumesh.core import provenance
 
 
 @pytest.mark.parametrize(
@@ -48,8 +48,9 @@ def test_store_of_the_workspace_is_relative_from_a_dvc_temporary_copy(tmp_path, 
 def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkeypatch):
     """A workspace with the default store (ws/mlflow.db, ws/mlartifacts): sweep children -> promote (registered)
     -> evaluate and release stages; every shared record is free of the workspace's absolute path."""
-    from aumesh.experiments import promote, sweep, tracking
-    from aumesh.pipeline import stages
+    from aumesh.experiments import promote, sweep
+    from aumesh.stages import evaluate, release
+    from aumesh.tracking import runs as tracking
     from test_sweep import make_workspace
 
     ws = make_workspace(tmp_path / "ws")
@@ -70,8 +71,8 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     record = promote.promote(parent, ws, {})
     cfg = config.load_params(ws / "params.yaml")
     with sweep.blas_threads():
-        stages.evaluate_stage(cfg)
-    release = stages.release_stage(cfg)
+        evaluate.main(cfg)
+    release = release.main(cfg)
 
     assert (ws / "mlflow.db").is_file() and (ws / "mlartifacts").is_dir()  # the store really is in the workspace
     card = json.loads((release / "model_card.json").read_text())
@@ -89,7 +90,7 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     assert record["run_id"] in texts["promotion.json"] and parent in texts["promotion.json"]
     assert record["tracking_uri"] == "sqlite:///mlflow.db"
     assert record["model_source"].startswith("mlartifacts/") and record["model_source"].endswith("/model")
-    assert (ws / record["model_source"] / "MLmodel").is_file()  # an MLflow pyfunc model (aumesh.experiments.pyfunc)
+    assert (ws / record["model_source"] / "MLmodel").is_file()  # an MLflow pyfunc model (aumesh.tracking.pyfunc)
     assert (ws / record["model_source"] / "artifacts" / "au_to_mesh_pls.npz").is_file()
     assert card["mlflow"]["tracking_uri"] == "sqlite:///mlflow.db" and card["mlflow"]["run_id"]
     assert card["data"]["digest"]["dvc_file"] == "data.dvc"

@@ -7,10 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
+from aumesh.card.model_card import model_card_markdown
+from aumesh.core.io import atomic_directory, atomic_savez
+from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_columns
 from aumesh.model.inference import predict_mesh
-from aumesh.model.release import model_card_markdown, release_arrays
-from aumesh.utils.io import atomic_directory, atomic_savez
+from aumesh.model.release import release_arrays
 from conftest import face_reference, in_card_frame
 
 CARD_KEYS = {
@@ -168,7 +169,7 @@ def test_model_card_markdown_names_the_promoted_run():
 def test_card_names_both_runs_the_promoted_and_the_build():
     """One release, two runs: the sweep child that chose the configuration and the `dvc repro` run that built the
     arrays, each with its MLflow id and what it stands for (model_card.json's `runs`, MODEL_CARD.md's "Runs")."""
-    from aumesh.pipeline.stages import release_runs
+    from aumesh.pipeline.release import release_runs
 
     promotion = {
         "run_id": "child42",

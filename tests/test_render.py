@@ -7,9 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aumesh.card import render
-from aumesh.data import truth
 from aumesh.geometry import face
 from aumesh.model.inference import ReleaseError
+from aumesh.synthetic import truth
 
 ALWAYS = (
     "au_solid_panels.png",

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from aumesh.data.schema import N_TARGETS, feature_columns
+from aumesh.core.schema import N_TARGETS, feature_columns
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.features import design_matrix
 from aumesh.model.statistics import (

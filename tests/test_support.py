@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS
+from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS
 from aumesh.model import support
 from conftest import default_config
 
@@ -69,11 +69,12 @@ def single_person(tmp_path_factory):
     ``(summary, frames, release arrays)``."""
     import pyarrow.parquet as pq
 
-    from aumesh.data import synth, tables
-    from aumesh.data.truth import synthetic_release_arrays
+    from aumesh.data import tables
     from aumesh.geometry import face
     from aumesh.model.release import release_arrays
     from aumesh.pipeline import prepare
+    from aumesh.synthetic import tables as synth
+    from aumesh.synthetic.truth import synthetic_release_arrays
 
     d = tmp_path_factory.mktemp("single")
     synth.write_tables(d / "data", synth.SynthSpec(n_frames=240, n_videos=3, seed=5, identity_scale=0.0))
@@ -143,8 +144,8 @@ def test_release_npz_records_p99_and_unsupported_and_old_releases_still_load(sin
     import warnings
 
     import aumesh
+    from aumesh.core.io import atomic_savez
     from aumesh.model.inference import ReleaseError
-    from aumesh.utils.io import atomic_savez
 
     summary, frames, arrays = single_person
     path = atomic_savez(tmp_path / "release.npz", **arrays)
@@ -228,8 +229,8 @@ def test_a_real_pipelines_card_npz_and_rig_record_the_datas_support(good_workspa
 def _release_with_support(tmp_path, detector: str, ranges: dict | None = None):
     """The upright synthetic-truth release, recording training ranges (AU09 never expressed, AU12 at most 0.6) and
     the training tables' detector, as the release stage does."""
+    from aumesh.core.io import atomic_savez
     from aumesh.model.release import load_npz
-    from aumesh.utils.io import atomic_savez
     from conftest import upright_truth_release
 
     arrays = load_npz(upright_truth_release(tmp_path / "truth.npz"))
@@ -256,8 +257,8 @@ def test_predict_npz_joins_back_to_the_fex_rows_and_warns_for_another_detector(t
     """``aumesh predict``'s NPZ: input, frame and face beside the meshes; a pandas merge on them gives each row's
     own AUs back (frames with two faces, a no-face row). A Detectorv2 release given an MPDetector table warns once."""
     from aumesh import cli
-    from aumesh.data.synth import SynthSpec
-    from aumesh.data.synth_pyfeat import write_pyfeat_tables
+    from aumesh.synthetic.pyfeat import write_pyfeat_tables
+    from aumesh.synthetic.tables import SynthSpec
 
     written = write_pyfeat_tables(
         tmp_path / "raw", SynthSpec(n_frames=60, n_videos=2, seed=1), detector="mp", extra_face_rate=0.3, seed=2
@@ -309,12 +310,12 @@ def test_predict_of_an_input_columns_table_has_no_keys_and_no_detector_warning(t
 
 
 def test_pyfunc_model_logs_the_range_warning_on_every_call(tmp_path, caplog):
-    from aumesh.experiments.pyfunc import ReleaseModel
     from aumesh.model.inference import load_release
+    from aumesh.tracking.pyfunc import ReleaseModel
 
     model = ReleaseModel()
     model.release_ = load_release(_release_with_support(tmp_path, "MPDetector"))
-    with caplog.at_level("WARNING", logger="aumesh.experiments.pyfunc"):
+    with caplog.at_level("WARNING", logger="aumesh.tracking.pyfunc"):
         for _ in range(2):
             model.predict(None, pd.DataFrame({"AU09": [0.5], "AU12": [0.3]}))
         model.predict(None, pd.DataFrame({"AU12": [0.3]}))  # within the data: silent
@@ -324,14 +325,14 @@ def test_pyfunc_model_logs_the_range_warning_on_every_call(tmp_path, caplog):
 
 def test_animate_warns_once_for_the_clip_and_for_another_detector(tmp_path, caplog):
     from aumesh.cli import main
-    from aumesh.data.synth import SynthSpec
-    from aumesh.data.synth_pyfeat import write_pyfeat_tables
+    from aumesh.synthetic.pyfeat import write_pyfeat_tables
+    from aumesh.synthetic.tables import SynthSpec
 
     written = write_pyfeat_tables(tmp_path / "raw", SynthSpec(n_frames=40, n_videos=1, seed=4), detector="v2", seed=1)
     release = _release_with_support(tmp_path, "MPDetector")
     with caplog.at_level("WARNING"):
         assert main(["animate", written["files"][0], "--out", str(tmp_path / "c.glb"), "--release", str(release)]) == 0
-    lines = [r.getMessage() for r in caplog.records if r.name == "aumesh.animation.gltf_clip"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "aumesh.export.gltf_clip"]
     assert len(lines) == 2, lines
     assert "Detectorv2's but the release was trained on MPDetector" in lines[0]
     assert "AU12 up to" in lines[1] and "training max 0.6" in lines[1] and "never expressed" in lines[1]
@@ -342,8 +343,8 @@ def test_the_build_runs_mlflow_model_carries_the_datas_support(good_workspace, m
     same feature_p99 and unsupported_features as the release, so serving warns as predict_mesh does."""
     import mlflow
 
-    from aumesh.experiments.pyfunc import NPZ_ARTIFACT
     from aumesh.model.release import load_npz
+    from aumesh.tracking.pyfunc import NPZ_ARTIFACT
 
     monkeypatch.chdir(good_workspace)
     run_id = json.loads((good_workspace / "build" / "model" / "tracking.json").read_text())["run_id"]

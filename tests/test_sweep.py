@@ -18,10 +18,12 @@ import numpy as np
 import pytest
 
 from aumesh import config
-from aumesh.data import synth, tables
-from aumesh.data.schema import INPUT_COLUMNS
-from aumesh.experiments import mlflow_store, queries, registry, tracking
+from aumesh.core.schema import INPUT_COLUMNS
+from aumesh.data import tables
 from aumesh.pipeline import prepare
+from aumesh.synthetic import tables as synth
+from aumesh.tracking import mlflow_store, queries, registry
+from aumesh.tracking import runs as tracking
 from conftest import built_once, new_store
 
 REPO = Path(__file__).resolve().parents[1]

@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from aumesh.data.schema import AU_COLUMNS
-from aumesh.data.synth import SynthSpec, write_tables
-from aumesh.data.synth_pyfeat import pyfeat_columns, write_pyfeat_tables
+from aumesh.core.schema import AU_COLUMNS
+from aumesh.synthetic.pyfeat import pyfeat_columns, write_pyfeat_tables
+from aumesh.synthetic.tables import SynthSpec, write_tables
 
 SPEC = SynthSpec(n_frames=300, n_videos=6)
 W, H = 640.0, 480.0

@@ -10,11 +10,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from aumesh.core.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
 from aumesh.data import tables
-from aumesh.data.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
-from aumesh.data.synth import SynthSpec, write_tables
 from aumesh.geometry.align import apply_similarity_vertices
 from aumesh.pipeline import prepare
+from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import default_config
 
 PATTERN, NPY = "**/*.parquet", "{stem}.npy"
@@ -138,7 +138,7 @@ def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tm
     interpreter, against the compressed size of the 8 row groups' mesh columns (what pre-buffering holds)."""
     import pyarrow.parquet as pq
 
-    from aumesh.data.schema import mesh_columns_axis_major
+    from aumesh.core.schema import mesh_columns_axis_major
     from aumesh.pipeline.compute import ARROW_POOL_ENV
 
     write_tables(tmp_path / "raw", SynthSpec(n_frames=8000, n_videos=40, seed=3, frames_per_file=8000))

@@ -17,7 +17,10 @@ import pytest
 import yaml
 
 from aumesh import cli, config
-from aumesh.experiments import mlflow_store, promote, provenance, queries, sweep, tracking
+from aumesh.core import provenance
+from aumesh.experiments import promote, sweep
+from aumesh.tracking import mlflow_store, queries
+from aumesh.tracking import runs as tracking
 from conftest import new_store
 from test_sweep import make_workspace
 
@@ -232,7 +235,7 @@ def test_store_order_environment_then_local_settings_then_conf_then_default(tmp_
     # a broken settings file is one line naming it
     monkeypatch.delenv("MLFLOW_TRACKING_URI")
     (ws / "aumesh.local.yaml").write_text("trackng:\n  tracking_uri: x\n")
-    from aumesh.utils.errors import ConfigError
+    from aumesh.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match="aumesh.local.yaml: unknown group.*trackng"):
         resolve({})
@@ -264,7 +267,7 @@ def test_postgresql_uri_gets_the_installed_driver():
 
     uri = "postgresql://mlflow:pw@127.0.0.1:5432/mlflow"
     if importlib.util.find_spec("psycopg") is None and importlib.util.find_spec("psycopg2") is None:
-        from aumesh.utils.errors import ConfigError
+        from aumesh.core.errors import ConfigError
 
         with pytest.raises(ConfigError, match=r"aumesh\[postgres\]"):
             mlflow_store.database_uri(uri)

@@ -225,7 +225,7 @@ def swept(clones, server, timings):
 def test_two_sweeps_at_once_land_whole_under_their_parents_with_owners(swept, clones, server):
     from mlflow import MlflowClient
 
-    from aumesh.experiments import provenance
+    from aumesh.core import provenance
 
     client = MlflowClient(tracking_uri=server)
     for name, parent in swept.items():
@@ -273,8 +273,8 @@ def test_promote_registers_in_postgres_and_the_other_clone_loads_the_champion(sw
     t0 = time.perf_counter()
     code = (
         "import json, sys, numpy as np, pandas as pd, mlflow\n"
-        "from aumesh.experiments import mlflow_store, registry\n"
-        "from aumesh.data.schema import INPUT_COLUMNS\n"
+        "from aumesh.tracking import mlflow_store, registry\n"
+        "from aumesh.core.schema import INPUT_COLUMNS\n"
         "mlflow.set_tracking_uri(mlflow_store.resolve_tracking_uri())\n"
         "model = mlflow.pyfunc.load_model('models:/aumesh-au-to-mesh@champion')\n"
         "df = pd.DataFrame(np.random.default_rng(0).uniform(0, 1, (4, 23)), columns=list(INPUT_COLUMNS))\n"

@@ -1,4 +1,4 @@
-"""Offline tests of aumesh.experiments.tracking / aumesh.experiments.provenance against a temporary SQLite store."""
+"""Offline tests of aumesh.tracking.runs / aumesh.core.provenance against a temporary SQLite store."""
 
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from aumesh.experiments import mlflow_store, provenance, queries, tracking
+from aumesh.core import provenance
+from aumesh.tracking import mlflow_store, queries
+from aumesh.tracking import runs as tracking
 from conftest import new_store
 
 MD5 = "0123456789abcdef0123456789abcdef.dir"
@@ -256,11 +258,11 @@ def test_the_helper_ends_with_its_caller_and_the_next_run_marks_the_run_killed(c
     import sys
     import time
 
-    from aumesh.utils.io import process_gone
+    from aumesh.core.signals import process_gone
 
     code = (
         "import os, signal, sys\n"
-        "from aumesh.experiments import tracking\n"
+        "from aumesh.tracking import runs as tracking\n"
         "from test_tracking import _pid\n"
         "with tracking.tracked_run_beside({'experiment': sys.argv[1]}, 'victim', {'a': 1}) as run:\n"
         "    print(run.run_id, run.call(_pid).result(), flush=True)\n"
@@ -411,7 +413,7 @@ def test_concurrent_first_use_of_a_fresh_sqlite_store(tmp_path, workspace):
 
     uri = f"sqlite:///{tmp_path / 'fresh.db'}"
     script = (
-        "import sys\nfrom aumesh.experiments import tracking\n"
+        "import sys\nfrom aumesh.tracking import runs as tracking\n"
         "with tracking.tracked_run({'experiment': 'conc'}, 'w' + sys.argv[1], {'i': sys.argv[1]}) as r:\n"
         "    r.log_fold_metrics({'r2': [0.1, 0.2]})\n"
     )

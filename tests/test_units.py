@@ -13,14 +13,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from aumesh.card.model_card import _ingest_lines
+from aumesh.core.errors import TableError
+from aumesh.core.schema import N_VERTICES
 from aumesh.data import ingest as ingest_data
-from aumesh.data.schema import N_VERTICES
-from aumesh.data.synth_pyfeat import write_pyfeat_tables
-from aumesh.model.release import _ingest_lines
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import ingest
 from aumesh.pipeline.integrity import load_reference
-from aumesh.utils.errors import TableError
+from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from conftest import default_config
 from test_ingest import SPEC, Z_ROUND_TRIP, _prepare, _same_prepared
 
@@ -171,8 +171,8 @@ def test_profile_faces_ingest_and_the_pose_filter_drops_them(tmp_path):
 
 
 def test_the_unit_judgement_sees_a_profile_face_in_pixels_and_any_face_in_normalized_units():
-    from aumesh.data.synth import SynthSpec, generate_video
-    from aumesh.data.synth_pyfeat import _synth_setup
+    from aumesh.synthetic.pyfeat import _synth_setup
+    from aumesh.synthetic.tables import SynthSpec, generate_video
 
     spec = SynthSpec(
         n_frames=40,

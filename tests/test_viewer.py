@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from aumesh import cli
-from aumesh.data.schema import INPUT_COLUMNS, flatten_axis_major
+from aumesh.core.schema import INPUT_COLUMNS, flatten_axis_major
 from aumesh.export import viewer
 from aumesh.model.release import load_npz
 from conftest import SCREENSHOTS as SHOTS
@@ -112,7 +112,7 @@ def test_sliders_move_the_mouth_not_the_forehead(tab, page_file):
 
 def _pose_release(tmp_path, metadata=None, card_text=""):
     """Release arrays with pose x AU terms (``coef_full``): the synthetic truth's AU rows, random pose terms."""
-    from aumesh.data.schema import feature_columns
+    from aumesh.core.schema import feature_columns
     from aumesh.model.release import release_arrays
 
     truth = load_npz(upright_truth_release(tmp_path / "truth.npz"))
@@ -165,7 +165,7 @@ def _ranges_visible(page):
 
 
 def test_layout_fills_the_window_and_every_slider_shows_at_1280x720(tab, page_file):
-    from aumesh.data.schema import AU_NAMES
+    from aumesh.core.schema import AU_NAMES
 
     _, path = page_file
     page, problems, requests = _open(tab, path, VIEW)
@@ -381,7 +381,7 @@ def test_script_json_escapes_what_could_leave_the_script():
     import json
 
     from aumesh.card.directions import FACS_EXPECTATIONS
-    from aumesh.data.schema import AU_COLUMNS, AU_NAMES
+    from aumesh.core.schema import AU_COLUMNS, AU_NAMES
 
     for text in HOSTILE + ("a & b", "line\u2028sep\u2029par", "</SCRIPT >", "]]>"):
         out = viewer.script_json({"k": [text]})

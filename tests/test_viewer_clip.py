@@ -17,12 +17,13 @@ import pytest
 
 import aumesh
 from aumesh import cli
-from aumesh.animation.clip import bridged_pose, bridged_weights, read_clip
-from aumesh.data import synth, synth_pyfeat
-from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS
+from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS
+from aumesh.data.clip import bridged_pose, bridged_weights, read_clip
 from aumesh.geometry.align import apply_similarity, umeyama_batch
 from aumesh.geometry.frame import canonical_frame, to_canonical
 from aumesh.model.release import load_npz
+from aumesh.synthetic import pyfeat as synth_pyfeat
+from aumesh.synthetic import tables as synth
 from conftest import SCREENSHOTS as SHOTS
 from conftest import upright_truth_release
 from test_animate import clip_vs_ingest, ingested_meshes

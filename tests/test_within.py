@@ -8,11 +8,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from aumesh.data import synth, tables, truth
-from aumesh.data.synth import SynthSpec
+from aumesh.data import tables
 from aumesh.experiments import promote
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
+from aumesh.synthetic import tables as synth
+from aumesh.synthetic import truth
+from aumesh.synthetic.tables import SynthSpec
 from conftest import RECOVERY_SPEC, default_config, shared_build
 
 COUPLING = 0.15  # AU baseline per unit softplus of the identity's standardized resemblance to the AU field

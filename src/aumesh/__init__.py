@@ -25,11 +25,11 @@ _EXPORTS = {
     "ReleaseError": "aumesh.model.inference",
     "PLSRegression": "aumesh.model.pls",
     "CrossProducts": "aumesh.model.cross_products",
-    "SynthSpec": "aumesh.data.synth",
-    "write_tables": "aumesh.data.synth",
-    "AU_COLUMNS": "aumesh.data.schema",
-    "POSE_COLUMNS": "aumesh.data.schema",
-    "INPUT_COLUMNS": "aumesh.data.schema",
+    "SynthSpec": "aumesh.synthetic.tables",
+    "write_tables": "aumesh.synthetic.tables",
+    "AU_COLUMNS": "aumesh.core.schema",
+    "POSE_COLUMNS": "aumesh.core.schema",
+    "INPUT_COLUMNS": "aumesh.core.schema",
 }
 
 __all__ = sorted(_EXPORTS)

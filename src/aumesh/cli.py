@@ -38,7 +38,7 @@ def _cmd_compose_params(args) -> int:
 
 
 def _cmd_synth(args) -> int:
-    from aumesh.data.synth import SynthSpec, write_tables
+    from aumesh.synthetic.tables import SynthSpec, write_tables
 
     spec = SynthSpec(
         n_frames=args.frames,
@@ -53,10 +53,10 @@ def _cmd_synth(args) -> int:
 
 
 def _cmd_ingest(args) -> int:
-    from aumesh.pipeline.stages import ingest_stage
+    from aumesh.stages import ingest
 
     cfg = _params(args)
-    c = ingest_stage(cfg)["counts"]
+    c = ingest.main(cfg)["counts"]
     print(
         f"ingest: {c['frames_out']:,} frames from {c['rows_in']:,} rows of {c['tables_in']:,} tables "
         f"(no face -{c['dropped_no_face']:,}, other faces -{c['dropped_extra_faces']:,} in "
@@ -69,10 +69,10 @@ def _cmd_ingest(args) -> int:
 
 
 def _cmd_prepare(args) -> int:
-    from aumesh.pipeline.stages import prepare_stage
+    from aumesh.stages import prepare
 
     cfg = _params(args)
-    c = prepare_stage(cfg)["counts"]
+    c = prepare.main(cfg)["counts"]
     print(
         f"prepare: kept {c['frames_kept']:,} of {c['frames_in']:,} frames, {c['videos_kept']:,} of {c['videos_in']:,} videos "
         f"(pose filter -{c['dropped_pose']:,}, alignment outliers -{c['dropped_alignment_outliers']:,}) "
@@ -82,10 +82,10 @@ def _cmd_prepare(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from aumesh.pipeline.stages import evaluate_stage
+    from aumesh.stages import evaluate
 
     cfg = _params(args)
-    m = evaluate_stage(cfg)
+    m = evaluate.main(cfg)
     print(
         f"evaluate: CV R2 = {m['r2_mean']:.4f} +/- {m['r2_std']:.4f} (folds {' '.join(f'{v:.4f}' for v in m['r2_folds'])}), "
         f"MAE = {m['mae_mean']:.4f}, n_components = {m['n_components']} -> {cfg.paths.model_dir}, {cfg.paths.metrics_file}"
@@ -94,9 +94,9 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_release(args) -> int:
-    from aumesh.pipeline.stages import release_stage
+    from aumesh.stages import release
 
-    out = release_stage(_params(args))
+    out = release.main(_params(args))
     files = [f for f in out.rglob("*") if f.is_file()]
     print(f"release: {out} ({len(files)} files, {sum(f.suffix == '.png' for f in files)} figures)")
     return 0
@@ -128,7 +128,7 @@ def _cmd_view(args) -> int:
 
 
 def _cmd_animate(args) -> int:
-    from aumesh.animation.gltf_clip import animate
+    from aumesh.export.gltf_clip import animate
 
     summary = animate(
         args.table,
@@ -201,7 +201,7 @@ def _cmd_info(args) -> int:
 def _tracking_cfg(args) -> dict[str, Any]:
     """The tracking group of the workspace's params.yaml (defaults if absent), ``--experiment`` wins."""
     from aumesh.config import load_params
-    from aumesh.experiments import provenance
+    from aumesh.core import provenance
 
     cfg: dict[str, Any] = {}
     with contextlib.suppress(FileNotFoundError, ValueError):
@@ -213,8 +213,8 @@ def _tracking_cfg(args) -> dict[str, Any]:
 
 def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
     """The sweep a command is about: ``--sweep ID``, else this clone's latest sweep (never a teammate's)."""
-    from aumesh.experiments import queries
-    from aumesh.utils.errors import UserError
+    from aumesh.core.errors import UserError
+    from aumesh.tracking import queries
 
     if args.parent:
         return args.parent
@@ -257,7 +257,8 @@ def _utc(ms: float) -> str:
 
 
 def _cmd_runs(args) -> int:
-    from aumesh.experiments import leaderboard, queries
+    from aumesh.experiments import leaderboard
+    from aumesh.tracking import queries
 
     tracking_cfg = _tracking_cfg(args)
     if args.sweeps:
@@ -270,7 +271,7 @@ def _cmd_runs(args) -> int:
         )
         return 0
     if args.mine or args.user:
-        from aumesh.utils.errors import UserError
+        from aumesh.core.errors import UserError
 
         raise UserError("--mine and --user filter the list of sweeps: `aumesh runs --sweeps --mine`.")
     parent = _parent_id(args, tracking_cfg)
@@ -294,7 +295,9 @@ def _cmd_runs(args) -> int:
 
 
 def _cmd_promote(args) -> int:
-    from aumesh.experiments import promote, provenance, queries
+    from aumesh.core import provenance
+    from aumesh.experiments import promote
+    from aumesh.tracking import queries
 
     tracking_cfg = _tracking_cfg(args)
     root = provenance.repo_root()
@@ -344,7 +347,7 @@ def _cmd_promote(args) -> int:
 
 
 def _cmd_server(args) -> int:
-    from aumesh.experiments import server
+    from aumesh.tracking import server
 
     cmd = server.server_command(
         args.backend_store_uri,
@@ -362,7 +365,7 @@ def _cmd_server(args) -> int:
 
 def add_experiment_commands(subparsers) -> None:
     """Add ``sweep``, ``runs`` and ``promote`` to the ``aumesh`` command."""
-    from aumesh.model.statistics import TARGETS
+    from aumesh.core.schema import TARGETS
 
     p = subparsers.add_parser(
         "sweep",
@@ -759,7 +762,7 @@ def _configure_logging(level: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run one command. An input, configuration or path error (``UserError``) prints its message and
     returns 2, with the traceback only under ``--debug`` or ``AUMESH_DEBUG=1``; other errors keep theirs."""
-    from aumesh.utils.errors import UserError
+    from aumesh.core.errors import UserError
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -771,7 +774,7 @@ def main(argv: list[str] | None = None) -> int:
     _configure_logging((logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)])
     debug = args.debug or os.environ.get(DEBUG_ENV, "").strip() not in ("", "0")
     if args.command in STOPPABLE:
-        from aumesh.utils.signals import install_stage_signals
+        from aumesh.core.signals import install_stage_signals
 
         install_stage_signals()  # SIGTERM as Ctrl-C; under DVC, stop when DVC is gone
     try:
@@ -783,7 +786,7 @@ def main(argv: list[str] | None = None) -> int:
         _say(f"aumesh {args.command}: error: {err}" + (f"\n{note}" if note else ""))
         return 2
     except KeyboardInterrupt as err:  # Ctrl-C, SIGTERM, DVC gone: cleaned up on the way out (temporaries, run KILLED)
-        from aumesh.utils.signals import Interrupted, Terminated
+        from aumesh.core.signals import Interrupted, Terminated
 
         note = _dvc_note(args)
         if debug:
@@ -851,7 +854,7 @@ def _dvc_note(args) -> str | None:
     """Under ``dvc repro``: the command that restores the outputs DVC removed before this stage (None otherwise)."""
     if args.command not in ("ingest", "prepare", "evaluate", "release") or not os.environ.get("DVC_STAGE"):
         return None
-    from aumesh.pipeline.stages import removed_by_dvc
+    from aumesh.stages.common import removed_by_dvc
 
     return removed_by_dvc(args.command)
 

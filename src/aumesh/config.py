@@ -17,10 +17,17 @@ from typing import Any, cast
 
 import yaml
 
-from aumesh.data.schema import ANCHOR_INDICES, FEATURE_SETS, N_VERTICES, feature_set_columns
-from aumesh.model.statistics import TARGETS
-from aumesh.utils.errors import ConfigError
-from aumesh.utils.io import atomic_write_text
+from aumesh.core.errors import ConfigError
+from aumesh.core.io import atomic_write_text
+from aumesh.core.schema import (
+    ANCHOR_INDICES,
+    FEATURE_SETS,
+    MAX_ABS_PITCH_DEG,
+    MAX_ABS_YAW_DEG,
+    N_VERTICES,
+    TARGETS,
+    feature_set_columns,
+)
 
 #: ``data.face_selection``: which face of a frame with several is the video's subject (aumesh.data.ingest).
 FACE_SELECTIONS = ("largest", "identity", "error")
@@ -53,8 +60,8 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class PoseFilterConfig:
-    max_abs_yaw_deg: float = 40.0
-    max_abs_pitch_deg: float = 30.0
+    max_abs_yaw_deg: float = MAX_ABS_YAW_DEG
+    max_abs_pitch_deg: float = MAX_ABS_PITCH_DEG
 
 
 @dataclass(frozen=True)

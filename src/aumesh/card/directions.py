@@ -33,9 +33,9 @@ which way:  ``fail`` at cosine <= ``FAIL_COSINE`` (0: against FACS) or when the 
         ``doubtful`` at cosine < ``PASS_COSINE`` (0.7, about 45 degrees), or when the region holds <
         ``FAIL_SHARE`` of the motion; ``pass`` otherwise.
 
-Calibration (measured on the synthetic truth, :mod:`aumesh.data.truth`; ``tests/test_directions.py`` checks
+Calibration (measured on the synthetic truth, :mod:`aumesh.synthetic.truth`; ``tests/test_directions.py`` checks
 the same properties on fewer seeds). The truth's own 20 fields pass in every tested frame (rotated, scaled,
-translated, y-up, mirrored, pixel units, anchors held rigid as ``aumesh.data.synth.true_coefficients`` does, on a
+translated, y-up, mirrored, pixel units, anchors held rigid as ``aumesh.synthetic.tables.true_coefficients`` does, on a
 mean mesh shifted by mean AU activity, on the fallback template); their FACS-region shares are 0.45-0.99
 (lowest: AU12's lip corners). Fields perturbed to cosine 0.9 with the truth (smooth random
 perturbations: global quadratic fields, 1-3 local Gaussian bumps, leakage of other AUs' fields; 100 seeds each per
@@ -77,10 +77,10 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data import schema
-from aumesh.data.schema import AU_COLUMNS, AU_NAMES, N_TARGETS, N_VERTICES
+from aumesh.core import schema
+from aumesh.core.io import atomic_write_json
+from aumesh.core.schema import AU_COLUMNS, AU_NAMES, N_TARGETS, N_VERTICES
 from aumesh.geometry import face
-from aumesh.utils.io import atomic_write_json
 
 PASS_COSINE = 0.7
 FAIL_COSINE = 0.0
@@ -426,7 +426,7 @@ def au_displacements(arrays: Mapping[str, Any], where: str = "<arrays>") -> tupl
     Returns
     -------
     disp : np.ndarray, shape (20, 478, 3)
-        ``aumesh.data.schema.AU_COLUMNS`` order, face frame, inter-ocular units.
+        ``aumesh.core.schema.AU_COLUMNS`` order, face frame, inter-ocular units.
     mesh : np.ndarray, shape (478, 3)
         ``mean_aligned_mesh`` in the face frame.
     columns : list of str

@@ -3,7 +3,7 @@
 :func:`release_warnings` reads a ``model_card.json`` dict (and, when given, the FACS direction verdicts and the
 size of each AU's field) and returns one ``{"code", "message", "do_not", ...details}`` per limit found;
 :func:`limits_section` turns them into the card's Markdown section. Both are pure; the release stage
-(:func:`aumesh.pipeline.stages.release_stage`) calls them after the direction report.
+(:func:`aumesh.stages.release.main`) calls them after the direction report.
 
 Fields written by other parts of the pipeline (``data.people``, ``data.unsupported_inputs``, ``data.input_ranges``,
 ``data.detector``) are read when present; a card without them simply gets no warning of that kind.
@@ -346,7 +346,7 @@ def release_warnings(
     Parameters
     ----------
     card : mapping
-        ``model_card.json`` (:func:`aumesh.pipeline.stages.build_card`): ``data`` (``n_frames``, ``n_videos``,
+        ``model_card.json`` (:func:`aumesh.pipeline.release.build_card`): ``data`` (``n_frames``, ``n_videos``,
         ``counts``, ``degenerate``, and when present ``people``, ``unsupported_inputs``, ``input_ranges``,
         ``detector``), ``cv`` (``r2_folds``, ``r2_mean``, ``r2_std``, ``au_reliability``), ``model.n_features``.
     au_directions : mapping, optional

@@ -57,10 +57,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, N_VERTICES
+from aumesh.core.io import atomic_path, atomic_write_text
+from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.geometry import face
 from aumesh.model.inference import load_release, predict_mesh
-from aumesh.utils.io import atomic_path, atomic_write_text
 
 COMPARE_AUS: tuple[str, ...] = ("AU12", "AU26", "AU04", "AU01")
 POSES_DEG: tuple[tuple[float, float, float], ...] = (

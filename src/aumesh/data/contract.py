@@ -12,7 +12,7 @@ Every pass over the tables (pandas today, Dask partitions tomorrow) calls the sa
 * :func:`check_filter_shares` — a filter that drops more than ``preprocess.max_drop_fraction``
   of what it sees points at wrong units or scale, not at the data.
 
-Errors are :class:`~aumesh.utils.errors.TableError` naming the file, the column, the first bad row
+Errors are :class:`~aumesh.core.errors.TableError` naming the file, the column, the first bad row
 (0-based within the file) and value, and the fix.
 """
 
@@ -25,8 +25,8 @@ import numpy as np
 import pandas as pd
 import pandera.pandas as pa
 
-from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.utils.errors import TableError
+from aumesh.core.errors import TableError
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
 
 AU_RANGE = (0.0, 1.0)  # py-feat's AU intensities (OpenFace's are 0-5)
 OPENFACE_MAX = 5.0

@@ -41,12 +41,12 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from aumesh.core.errors import TableError, corrupt_parquet
+from aumesh.core.io import NpyRowFile, absolute, check_npy
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.data import pyfeat
 from aumesh.data.pyfeat import video_stem
-from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.geometry.face import FACE_OVAL
-from aumesh.utils.errors import TableError, corrupt_parquet
-from aumesh.utils.io import NpyRowFile, absolute, check_npy
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
 PARQUET_SUFFIXES = (".parquet",)
@@ -106,7 +106,7 @@ class Source:
     n_rows: int | None = None  # parquet: rows (CSV: unknown until read)
 
     def absolute(self) -> Source:
-        """The same source named by absolute paths (:func:`aumesh.utils.io.absolute`): what partition tasks get, so a
+        """The same source named by absolute paths (:func:`aumesh.core.io.absolute`): what partition tasks get, so a
         cluster worker in another directory reads this workspace's file."""
         return replace(
             self, path=absolute(self.path), mesh_npy=None if self.mesh_npy is None else absolute(self.mesh_npy)
@@ -117,7 +117,7 @@ def is_table(path: Path) -> bool:
     return path.name.endswith(CSV_SUFFIXES + PARQUET_SUFFIXES)
 
 
-#: What to do about a damaged mesh ``.npy`` of ``data/`` (:func:`aumesh.utils.io.check_npy`).
+#: What to do about a damaged mesh ``.npy`` of ``data/`` (:func:`aumesh.core.io.check_npy`).
 DATA_NPY_FIX = (
     "restore it (`dvc checkout data`, or `dvc pull` from the remote), or save py-feat's whole [N, 478, 3] "
     "landmarks again with np.save."

@@ -25,8 +25,8 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.utils.errors import TableError
+from aumesh.core.errors import TableError
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 
 FACE_SCORE = "FaceScore"
 FACE_BOX_SIZE = ("FaceRectWidth", "FaceRectHeight")

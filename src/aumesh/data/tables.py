@@ -23,9 +23,9 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from aumesh.data import contract, pyfeat
-from aumesh.data.pyfeat import video_stem
-from aumesh.data.schema import (
+from aumesh.core.errors import TableError, corrupt_parquet
+from aumesh.core.io import NpyRowFile, check_npy
+from aumesh.core.schema import (
     AU_COLUMNS,
     FRAME_COLUMN,
     INPUT_PATH_COLUMN,
@@ -34,8 +34,8 @@ from aumesh.data.schema import (
     POSE_COLUMNS,
     VIDEO_COLUMN,
 )
-from aumesh.utils.errors import TableError, corrupt_parquet
-from aumesh.utils.io import NpyRowFile, check_npy
+from aumesh.data import contract, pyfeat
+from aumesh.data.pyfeat import video_stem
 
 _MESH_COLUMN = pyfeat.POINT_COLUMN
 META_COLUMNS = (VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS)

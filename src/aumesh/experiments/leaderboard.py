@@ -15,7 +15,7 @@ def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFram
     Parameters
     ----------
     children : DataFrame
-        :func:`aumesh.experiments.queries.list_child_runs` output.
+        :func:`aumesh.tracking.queries.list_child_runs` output.
     metric : str, optional
         Ranking metric; default: :func:`aumesh.experiments.promote.default_metric` of the finished runs' targets.
 
@@ -120,7 +120,7 @@ def sweeps_table(
     """
     import pandas as pd
 
-    from aumesh.experiments import queries
+    from aumesh.tracking import queries
 
     rows = []
     for parent in queries.sweeps(tracking_cfg, limit, user=user, workspace=workspace):

@@ -24,7 +24,7 @@ version (DVC hash), whoever ran it, and says whose run won.
    file is composed and every run parameter (except ``paths.*``, ``tracking.*``, ``compute.*``,
    ``data.chunk_rows``: where a run lived, was logged and computed is not what it is) must compose to the run's value;
 3. registers the run's MLflow pyfunc model (artifact ``model/``: the release-format NPZ with a
-   signature, :mod:`aumesh.experiments.pyfunc`) as a new version of the
+   signature, :mod:`aumesh.tracking.pyfunc`) as a new version of the
    registered model (default ``aumesh-au-to-mesh``) and points the alias ``champion`` at it;
 4. recomposes ``params.yaml`` and writes ``promotion.json`` (``{"promoted": {...}}``, read by the
    release stage into ``model_card.json["promotion"]`` and the card's "Promotion" section).
@@ -46,8 +46,8 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from aumesh.config import flatten as flatten_config
-from aumesh.utils.errors import UserError
-from aumesh.utils.io import atomic_write_json, atomic_write_text
+from aumesh.core.errors import UserError
+from aumesh.core.io import atomic_write_json, atomic_write_text
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -148,7 +148,7 @@ class Choice:
 
 
 def candidates_from_frame(children: pd.DataFrame) -> list[Candidate]:
-    """Candidates from :func:`aumesh.experiments.queries.list_child_runs` output (``params.*``/``metrics.*`` columns)."""
+    """Candidates from :func:`aumesh.tracking.queries.list_child_runs` output (``params.*``/``metrics.*`` columns)."""
 
     def text(row, key):
         value = row.get(key)
@@ -298,8 +298,8 @@ def choose(
 
 # ------------------------------------------------------------------ configuration
 def _param_string(value: Any) -> str:
-    """A value as MLflow stores it in params (``aumesh.experiments.mlflow_store.prepare_params``)."""
-    from aumesh.experiments.mlflow_store import prepare_params
+    """A value as MLflow stores it in params (``aumesh.tracking.mlflow_store.prepare_params``)."""
+    from aumesh.tracking.mlflow_store import prepare_params
 
     return prepare_params({"v": value})["v"]
 
@@ -469,9 +469,9 @@ def check_finished(parent: Mapping[str, Any], children: pd.DataFrame, partial: b
     Parameters
     ----------
     parent : Mapping
-        The sweep's parent run (:func:`aumesh.experiments.queries.run_record`).
+        The sweep's parent run (:func:`aumesh.tracking.queries.run_record`).
     children : DataFrame
-        Its child runs (:func:`aumesh.experiments.queries.list_child_runs`).
+        Its child runs (:func:`aumesh.tracking.queries.list_child_runs`).
     partial : bool
         Promote from what finished anyway.
 
@@ -510,7 +510,8 @@ def model_artifacts(run_id: str, tracking_cfg: Mapping[str, Any] | None, root: P
     when local). A local artifact folder outside the workspace is refused: a record must not point there."""
     from urllib.parse import unquote, urlsplit
 
-    from aumesh.experiments import mlflow_store, provenance
+    from aumesh.core import provenance
+    from aumesh.tracking import mlflow_store
 
     client = mlflow_store.get_client(tracking_cfg)
     uri = f"{client.get_run(run_id).info.artifact_uri.rstrip('/')}/{MODEL_ARTIFACT_DIR}"
@@ -537,7 +538,7 @@ def check_not_overruled(values: Mapping[str, Any], parent_run_id: str, newer_run
     parent_run_id : str
         The sweep.
     newer_run : Mapping
-        A :func:`aumesh.experiments.queries.run_record` of an evaluate run that started after the sweep.
+        A :func:`aumesh.tracking.queries.run_record` of an evaluate run that started after the sweep.
 
     Raises
     ------
@@ -595,11 +596,11 @@ def promote(
         Register the run's NPZ and set *alias*; False leaves the registry alone.
     alias : str, default "champion"
     newer_run : Mapping, optional
-        An evaluate run (:func:`aumesh.experiments.queries.run_record`) that started after the sweep; if the
+        An evaluate run (:func:`aumesh.tracking.queries.run_record`) that started after the sweep; if the
         winner's configuration differs from it, nothing is written (:func:`check_not_overruled`).
     across : bool, default False
         Rank every FINISHED model run (sweep children and pipeline evaluate runs) of the experiment whose data is
-        the workspace's (the DVC hash of ``data.dvc``), whoever ran it (:func:`aumesh.experiments.queries.finished_runs_on_data`).
+        the workspace's (the DVC hash of ``data.dvc``), whoever ran it (:func:`aumesh.tracking.queries.finished_runs_on_data`).
     partial : bool, default False
         Promote from a sweep that did not finish (interrupted, killed); without it that is refused
         (:func:`check_finished`). The record's ``partial`` names the runs compared.
@@ -615,7 +616,8 @@ def promote(
         The ``promoted`` record written to the promotion file (with ``user`` and ``workspace``: whose run won).
     """
     from aumesh.config import from_dict, write_params
-    from aumesh.experiments import queries, registry, tracking
+    from aumesh.tracking import queries, registry
+    from aumesh.tracking import runs as tracking
 
     root = Path(root).resolve()
     conf_dir = root / "conf"
@@ -747,7 +749,7 @@ def promote(
 def _model_source(source: str, run_id: str, root: Path) -> str:
     """The registered model's source as promotion.json holds it: repo-relative inside the workspace, a server's
     ``mlflow-artifacts:/`` URI as it is; a path elsewhere (another machine's) as ``runs:/<run id>/model``."""
-    from aumesh.experiments import provenance
+    from aumesh.core import provenance
 
     shared = provenance.shareable_location(source, [root]) or source
     if shared.startswith("file:") or Path(shared).is_absolute():
@@ -756,7 +758,7 @@ def _model_source(source: str, run_id: str, root: Path) -> str:
 
 
 def _workspace_data_md5(root: Path) -> str:
-    from aumesh.experiments import provenance
+    from aumesh.core import provenance
 
     try:
         md5 = provenance.data_digest(root).get("md5")

@@ -27,11 +27,11 @@ prepared from and reuses it across sweeps; a stamped directory with other values
 MLflow layout. A Hydra callback (:class:`SweepCallback`, configured in ``conf/hydra/default.yaml``)
 opens the parent run when the (multi)run starts and writes its id to ``<sweep dir>/mlflow_parent.json``,
 where every job (in this process, a joblib worker or a cluster node) finds it. Each job opens a
-child run (``aumesh.experiments.tracking.tracked_run``): flattened params, provenance tags (git commit, data
+child run (``aumesh.tracking.runs.tracked_run``): flattened params, provenance tags (git commit, data
 digest), per-fold ``r2``/``mae``/``vertex_error``/``r2_displacement`` (step = fold) and their means,
 the R²-vs-n_components curve (metric ``r2_by_n_components``, step = k, and the figure
 ``plots/r2_vs_n_components.png``) and the model as an MLflow pyfunc model under ``model/`` (the
-release-format NPZ, signature and input example: :mod:`aumesh.experiments.pyfunc`; what ``aumesh
+release-format NPZ, signature and input example: :mod:`aumesh.tracking.pyfunc`; what ``aumesh
 promote`` registers; metric ``seconds_log_model``). A configuration that raises (e.g. a data or config error) is recorded as a
 FAILED child with the error and the sweep goes on. When the sweep ends the parent is FINISHED with tags counting its children.
 """
@@ -53,8 +53,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 from aumesh.config import flatten as flatten_config
+from aumesh.core.io import atomic_write_json
 from aumesh.pipeline.prepared_files import PREPARED_FILES, SUMMARY_FILE
-from aumesh.utils.io import atomic_write_json
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -399,9 +399,9 @@ def _log_child(
     reused: bool,
 ) -> dict[str, Any]:
     """Everything a child run records (metrics, curve, figure, NPZ); returns the summary metrics."""
-    from aumesh.experiments import provenance
-    from aumesh.experiments.pyfunc import log_release_model
+    from aumesh.core import provenance
     from aumesh.model import support
+    from aumesh.tracking.pyfunc import log_release_model
 
     metrics = cv.metrics()
     run.log_config(cfg.to_dict())
@@ -478,7 +478,7 @@ def run_configuration(
     cache : SweepCache, optional
         Defaults to :func:`process_cache`.
     root : Path, optional
-        Workspace root; defaults to :func:`aumesh.experiments.provenance.repo_root`.
+        Workspace root; defaults to :func:`aumesh.core.provenance.repo_root`.
 
     Returns
     -------
@@ -486,7 +486,8 @@ def run_configuration(
         ``run_id``, ``run_name``, ``status`` (``FINISHED``/``FAILED``), ``error`` and summary metrics.
     """
     from aumesh.config import from_dict
-    from aumesh.experiments import provenance, tracking
+    from aumesh.core import provenance
+    from aumesh.tracking import runs as tracking
 
     cache = cache or process_cache()
     root = Path(root) if root is not None else provenance.repo_root()
@@ -598,7 +599,7 @@ class SweepCallback:
         self._end(config, Path(str(config.hydra.run.dir)))
 
     def on_multirun_start(self, config, **kwargs: Any) -> None:
-        from aumesh.utils import progress
+        from aumesh.core import progress
 
         overrides = list(config.hydra.overrides.task)
         self._start(config, Path(str(config.hydra.sweep.dir)), overrides, "multirun")
@@ -621,7 +622,7 @@ class SweepCallback:
 
     # -- implementation
     def _start(self, config, directory: Path, overrides: list[str], mode: str) -> None:
-        from aumesh.experiments import tracking
+        from aumesh.tracking import runs as tracking
 
         self._t0 = time.perf_counter()
         plain = _plain_config(config)
@@ -653,7 +654,7 @@ class SweepCallback:
             log.info("sweep parent run %s (%s)", parent, directory)
 
     def _end(self, config, directory: Path) -> None:
-        from aumesh.experiments import tracking
+        from aumesh.tracking import runs as tracking
 
         parent = read_parent(directory)
         os.environ.pop(PARENT_ENV, None)
@@ -708,7 +709,7 @@ def _task(config) -> dict[str, Any]:
 
 def conf_dir(root: Path | None = None) -> Path:
     """The repo's ``conf/`` (absolute)."""
-    from aumesh.experiments import provenance
+    from aumesh.core import provenance
 
     path = (root or provenance.repo_root()) / "conf"
     if not (path / "config.yaml").exists():
@@ -768,7 +769,7 @@ def run_sweep(argv: Sequence[str]) -> SweepOutcome:
     """
     import hydra
 
-    from aumesh.experiments import provenance
+    from aumesh.core import provenance
 
     root = provenance.repo_root()
     conf = conf_dir(root)
@@ -797,11 +798,12 @@ def run_sweep(argv: Sequence[str]) -> SweepOutcome:
 def interrupted(directory: Path, expected: int, err: KeyboardInterrupt) -> KeyboardInterrupt:
     """Mark an interrupted sweep's parent, and any child still RUNNING, KILLED (tag ``aumesh.sweep.interrupted``:
     ``aumesh promote`` refuses the sweep without ``--partial``); return the one-line
-    :class:`aumesh.utils.signals.Interrupted` to raise."""
+    :class:`aumesh.core.signals.Interrupted` to raise."""
     import signal
 
-    from aumesh.experiments import queries, tracking
-    from aumesh.utils.signals import Interrupted, Terminated
+    from aumesh.core.signals import Interrupted, Terminated
+    from aumesh.tracking import queries
+    from aumesh.tracking import runs as tracking
 
     signum = signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT
     how = f"stopped: {err}" if isinstance(err, Terminated) else "Ctrl-C"

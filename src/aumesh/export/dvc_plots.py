@@ -92,7 +92,7 @@ def template_html(node_modules: Path | None = None) -> str:
 
 def write_template(out: str | Path = TEMPLATE_FILE, node_modules: Path | None = None) -> Path:
     """Write the template to *out* atomically (folders created); returns the path."""
-    from aumesh.utils.io import atomic_write_text
+    from aumesh.core.io import atomic_write_text
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

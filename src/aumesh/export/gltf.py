@@ -12,7 +12,7 @@ Coordinates are the NPZ's, unchanged (the release's frame and units); triangles 
 project's triangulation of the base mesh, wound so their fronts face out of the face (toward
 the nose tip); normals are the base mesh's area-weighted vertex normals.
 
-With an :class:`Animation` (``aumesh animate``, :mod:`aumesh.animation.gltf_clip`) the file also
+With an :class:`Animation` (``aumesh animate``, :mod:`aumesh.export.gltf_clip`) the file also
 holds one glTF animation: a LINEAR sampler on the mesh node's morph ``weights`` (``n * 20``
 floats, a keyframe per frame) and optionally a LINEAR ``rotation`` sampler (quaternions) on a
 parent node that turns the face about a pivot (the mesh node is moved by ``-pivot``, its parent
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS, unflatten_axis_major
+from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, unflatten_axis_major
 from aumesh.geometry import face
 
 GLB_NAME = "au_to_mesh.glb"
@@ -84,7 +84,7 @@ class Animation:
     Attributes
     ----------
     times : (n,) seconds, strictly increasing (written as float32).
-    weights : (n, 20) morph-target weights (AU intensities, :data:`~aumesh.data.schema.AU_COLUMNS` order).
+    weights : (n, 20) morph-target weights (AU intensities, :data:`~aumesh.core.schema.AU_COLUMNS` order).
     rotations : (n, 4) unit quaternions ``x, y, z, w`` (glTF's order, SciPy's ``as_quat()``) or None (no rotation).
     pivot : (3,) the point the rotation turns about (NPZ coordinates); needed with ``rotations``.
     name : the animation's name.
@@ -219,7 +219,7 @@ def support_extras(npz: Mapping[str, Any]) -> dict[str, Any]:
 
 def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = None) -> Path:
     """Write the rig of release arrays ``npz`` to ``path`` atomically; ``source`` (the NPZ's name) goes in ``asset.extras``."""
-    from aumesh.utils.io import atomic_path
+    from aumesh.core.io import atomic_path
 
     extras = {
         "inputs": "morph target weights = AU intensities (AU01..AU43); pose = 0",

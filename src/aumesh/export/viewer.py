@@ -10,7 +10,7 @@ y up: the card's canonical frame.
 
 The canvas fills the window beside the panel; three.js's own ``OrbitControls`` (drag turns the
 view, the wheel zooms, right-drag pans) move the camera, never the model. The panel has the FACS
-names beside the AU codes (:data:`aumesh.data.schema.AU_NAMES`), "Copy as JSON" (the current
+names beside the AU codes (:data:`aumesh.core.schema.AU_NAMES`), "Copy as JSON" (the current
 values as ``{"AU01": 0, ..., "Pitch": 0, "Yaw": 0, "Roll": 0}``, ready for
 ``aumesh.predict_mesh(m, json.loads(text))``) and a PNG snapshot of the canvas.
 
@@ -23,13 +23,13 @@ network, no CDN: the file works from disk, offline.
 
 **Clips** (issue 36): the page plays a video's py-feat table, opened by a file picker or a drop (CSV or
 ``.csv.gz``, decompressed by the browser's ``DecompressionStream``; parsed by column name with
-:func:`aumesh.animation.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
-the frame rate from ``approx_time``, :func:`~aumesh.animation.clip.bridge`'s gap rule), or embedded by ``aumesh view
+:func:`aumesh.data.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
+the frame rate from ``approx_time``, :func:`~aumesh.data.clip.bridge`'s gap rule), or embedded by ``aumesh view
 NPZ --clip TABLE`` (:func:`table_clips`: ``read_clip`` + ``bridged_weights``, any table format, compact base64
 arrays). Either way the recorded mesh is in frame pixels on every axis, converted by the ingest's rules (issue 41;
 docs/conventions.md, "py-feat's mesh units"): ``read_clip`` runs the ingest's own functions, the page's port runs the
 numbers :func:`unit_rules` passes it, and both give the ingest's cleaned mesh bit for bit; the status line says what
-was converted (:data:`aumesh.animation.clip.MESH_UNIT_NOTES`). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
+was converted (:data:`aumesh.data.clip.MESH_UNIT_NOTES`). One code path does the rest for both: the frame's bridged weights drive the sliders (pose 0 unless "follow
 pose"); the frame's recorded mesh is turned into the card's frame (``canonical_frame``, ported) and aligned onto the
 model's predicted mesh with the card's similarity Procrustes on the 12 anchors (Horn's quaternion method: JavaScript
 has no SVD; equal to ``umeyama_batch``); the model's face is coloured by the per-vertex distance (viridis, in
@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import (
+from aumesh.core.schema import (
     ANCHOR_INDICES,
     AU_COLUMNS,
     AU_NAMES,
@@ -175,17 +175,17 @@ def _b64(array: np.ndarray, dtype: str = "<f4") -> str:
 
 
 def clip_data(clip: Any, weights: np.ndarray | None = None) -> dict:
-    """One :class:`aumesh.animation.clip.Clip` as the page's JSON (``aumesh view NPZ --clip TABLE``).
+    """One :class:`aumesh.data.clip.Clip` as the page's JSON (``aumesh view NPZ --clip TABLE``).
 
     Frame numbers as a list, ``has_face`` as 0/1; the AUs, pose and ``weights`` (the clip's
-    :func:`~aumesh.animation.clip.bridged_weights`, the default) as base64 float64 (the page's sliders show exactly
+    :func:`~aumesh.data.clip.bridged_weights`, the default) as base64 float64 (the page's sliders show exactly
     what ``aumesh animate`` writes); the recorded mesh, vertex-major ``(n, 478, 3)``, as base64 float32 with NaN
     rows where no face, like the release's arrays: already in frame pixels (``read_clip`` converts it with the
-    ingest's functions; ``mesh_units`` says how, a key of :data:`~aumesh.animation.clip.MESH_UNIT_NOTES`), so the
+    ingest's functions; ``mesh_units`` says how, a key of :data:`~aumesh.data.clip.MESH_UNIT_NOTES`), so the
     page converts only the tables dropped on it (:func:`unit_rules`). The page times the frames itself
     (``frame / fps``, the clip's rule) and bridges the pose by the same rule.
     """
-    from aumesh.animation.clip import bridged_weights
+    from aumesh.data.clip import bridged_weights
 
     weights = bridged_weights(clip) if weights is None else np.asarray(weights, dtype=np.float64)
     return {
@@ -210,9 +210,9 @@ def unit_rules() -> dict:
     spans judge the units (:data:`aumesh.data.ingest.SHAPE_VERTICES`), :data:`~aumesh.data.ingest.NORMALIZED_MAX_EXTENT`,
     :data:`~aumesh.data.ingest.NORMALIZED_MAX_RECT_FRACTION`, the detectors' z units (:data:`~aumesh.data.ingest.Z_CROP`:
     name and divisor), the FaceRect and frame-size columns, and the words for each outcome
-    (:data:`~aumesh.animation.clip.MESH_UNIT_NOTES`)."""
-    from aumesh.animation.clip import MESH_UNIT_NOTES
+    (:data:`~aumesh.data.clip.MESH_UNIT_NOTES`)."""
     from aumesh.data import ingest, pyfeat
+    from aumesh.data.clip import MESH_UNIT_NOTES
 
     return {
         "shape_vertices": [int(i) for i in ingest.SHAPE_VERTICES],
@@ -356,7 +356,7 @@ def viewer_html(
 
 def write_viewer(npz: Mapping[str, Any], path: str | Path, source: str = "", clips: list[dict] | None = None) -> Path:
     """Write :func:`viewer_html` to ``path`` atomically."""
-    from aumesh.utils.io import atomic_write_text
+    from aumesh.core.io import atomic_write_text
 
     return atomic_write_text(path, viewer_html(npz, source, clips=clips))
 
@@ -366,9 +366,9 @@ def table_clips(
 ) -> list[dict]:
     """The page's clips (:func:`clip_data`) of a py-feat table, read once: ``video`` only, or every video it holds
     (a video without a face is left out while others play). ``mesh_units``: ``detector`` (z converted by the
-    detector's crop) or ``pixels`` (z as written), as :func:`~aumesh.animation.clip.read_clip`'s."""
-    from aumesh.animation.clip import read_clip, read_table
-    from aumesh.utils.errors import TableError
+    detector's crop) or ``pixels`` (z as written), as :func:`~aumesh.data.clip.read_clip`'s."""
+    from aumesh.core.errors import TableError
+    from aumesh.data.clip import read_clip, read_table
 
     if video is not None:
         return [clip_data(read_clip(path, video=video, fps=fps, mesh_units=mesh_units))]

@@ -58,7 +58,7 @@ Data in this module
                 AU-direction report to say where an AU field moves the face.
 ``EYE_CONTOUR_RIGHT/LEFT``, ``LIPS_OUTER``, ``LIPS_INNER``, ``FACE_OVAL``:
                 closed contours (ordered) of the MediaPipe topology.
-(the synthetic FACS displacement fields live in ``aumesh.data.truth``)
+(the synthetic FACS displacement fields live in ``aumesh.synthetic.truth``)
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aumesh.data.schema import N_VERTICES
+from aumesh.core.schema import N_VERTICES
 
 # --------------------------------------------------------------------------- contours
 FOREHEAD_MIDLINE: tuple[int, ...] = (10, 151, 9, 8)  # top -> down

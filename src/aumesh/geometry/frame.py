@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aumesh.data.schema import N_VERTICES
+from aumesh.core.schema import N_VERTICES
 from aumesh.geometry.face import face_frame
 
 # face frame (x subject's left, y down, z away from the camera) -> card frame (x left, y up, z out of face)

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import unflatten_axis_major
+from aumesh.core.schema import unflatten_axis_major
 from aumesh.geometry.face import face_proportions
 
 #: Depth/width of faces measured the same way (:func:`aumesh.geometry.face.face_proportions`): the numbers the

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, POSE_COLUMNS, feature_columns
+from aumesh.core.schema import AU_COLUMNS, POSE_COLUMNS, feature_columns
 
 
 def design_matrix(au: np.ndarray, pose: np.ndarray, use_pose: bool, interactions: bool) -> np.ndarray:

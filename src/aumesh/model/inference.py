@@ -34,10 +34,18 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, unflatten_axis_major
+from aumesh.core.errors import MissingFileError, UserError
+from aumesh.core.schema import (
+    AU_COLUMNS,
+    MAX_ABS_PITCH_DEG,
+    MAX_ABS_YAW_DEG,
+    N_TARGETS,
+    N_VERTICES,
+    POSE_COLUMNS,
+    unflatten_axis_major,
+)
 from aumesh.model import support
 from aumesh.model.release import load_npz
-from aumesh.utils.errors import MissingFileError, UserError
 
 # A head turned more than 90 degrees is no longer a face seen from the front: any pose value above
 # this (in radians) means the caller passed degrees. Training keeps |yaw| <= 40 deg, |pitch| <= 30 deg
@@ -664,9 +672,7 @@ def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
             "the release's pose filter",
         )
     else:
-        from aumesh.config import PoseFilterConfig  # the card's defaults, one place
-
-        pitch, yaw = PoseFilterConfig.max_abs_pitch_deg, PoseFilterConfig.max_abs_yaw_deg
+        pitch, yaw = MAX_ABS_PITCH_DEG, MAX_ABS_YAW_DEG  # the card's defaults (core.schema, one place)
         source = "the card's pose filter (the release records none)"
     return {"Pitch": float(np.deg2rad(float(pitch))), "Yaw": float(np.deg2rad(float(yaw)))}, source
 

@@ -49,8 +49,8 @@ from functools import cached_property
 
 import numpy as np
 
+from aumesh.core.blas import one_blas_thread
 from aumesh.model.cross_products import CrossProducts
-from aumesh.utils.blas import one_blas_thread
 
 __all__ = ["PLSFit", "check_n_components", "coefficient_path", "fit_statistics", "intercept_path", "kernel_pls"]
 

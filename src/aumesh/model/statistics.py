@@ -32,10 +32,10 @@ import numpy as np
 if TYPE_CHECKING:  # annotations only: scipy.sparse is imported where it is used, not at import time
     import scipy.sparse
 
-from aumesh.data.schema import N_TARGETS, feature_columns
+from aumesh.core.io import RowArray
+from aumesh.core.schema import N_TARGETS, TARGETS, feature_columns
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.features import design_matrix
-from aumesh.utils.io import RowArray
 
 FULL_DESIGN = feature_columns(True, True)
 
@@ -71,7 +71,7 @@ def fold_order(fold: np.ndarray, n_splits: int) -> tuple[np.ndarray | None, np.n
 
 def video_indicator(video: np.ndarray) -> tuple[np.ndarray, scipy.sparse.csr_matrix]:
     """The chunk's distinct videos and a sparse (n_distinct, m) 0/1 matrix: per-video row sums as one product."""
-    import scipy.sparse as sp  # here, not at import: config and the CLI import this module for TARGETS
+    import scipy.sparse as sp  # here, not at import: scipy.sparse is slow to import
 
     videos, inverse = np.unique(video, return_inverse=True)
     m = len(video)
@@ -337,15 +337,6 @@ def displacement(stats: CrossProducts, m: VideoMoments) -> CrossProducts:
     out.sum_y = y_part.sum_y
     out.yty_diag = y_part.yty_diag
     return out
-
-
-#: ``preprocess.target`` values: what each video's rows have subtracted before the fit (design, mesh).
-TARGETS = {
-    "absolute": (None, None),  # the card's default: pooled absolute coordinates
-    "neutral": (None, "neutral"),  # the card's neutral subtraction: the video's neutral mesh, from the mesh only
-    "within": ("video_mean", "video_mean"),  # fixed effects: design and mesh demeaned per video
-    "within_neutral": ("neutral", "neutral"),  # the video's neutral frames' mean design and mesh, from both sides
-}
 
 
 def _moments(

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.data.schema import AU_COLUMNS, INPUT_COLUMNS
+from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS
 
 #: An AU whose training p99 is below this was "never expressed" by the data: its field is the fit's guess, not
 #: something the data showed (py-feat's ``unsupported_features``).
@@ -142,7 +142,7 @@ def data_support(summary: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def feature_p99(input_ranges: Mapping[str, Mapping[str, Any]]) -> np.ndarray:
-    """(23,) float32 p99 of each input in :data:`~aumesh.data.schema.INPUT_COLUMNS` order (the NPZ's
+    """(23,) float32 p99 of each input in :data:`~aumesh.core.schema.INPUT_COLUMNS` order (the NPZ's
     ``feature_p99``, py-feat's name); NaN for an input the ranges lack."""
     return np.array([float(input_ranges[c]["p99"]) if c in input_ranges else np.nan for c in INPUT_COLUMNS], np.float32)
 
@@ -267,8 +267,8 @@ def table_detector(columns: Sequence[str], where: str = "table") -> str | None:
     """The py-feat detector a table's columns come from (:func:`aumesh.data.pyfeat.layout`: Detectorv2's
     ``mesh_x_*`` or MPDetector's ``x_i/y_i/z_i``), None when the columns are not a detector's export (input columns
     only, the split layout, or a table the layout does not recognise)."""
+    from aumesh.core.errors import TableError
     from aumesh.data import pyfeat
-    from aumesh.utils.errors import TableError
 
     try:
         found = pyfeat.layout(list(columns), where).detector

@@ -16,7 +16,7 @@ tcp://host:8786`` alone selects the cluster) overrides the ``compute`` group of 
 ``dvc repro -f`` runs on a cluster without a change to a tracked file. One cluster serves many workspaces: the stages
 hand their tasks absolute paths and per-run scratch folders, and a probe on every worker checks, when the stage
 connects, that it reads the data and writes the output folder at those paths (:func:`check_workers`). A scheduler that
-does not answer, or is lost mid-run, is one line (:class:`aumesh.utils.errors.ClusterError`, exit 2).
+does not answer, or is lost mid-run, is one line (:class:`aumesh.core.errors.ClusterError`, exit 2).
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from aumesh.config import ComputeConfig
-from aumesh.utils.blas import one_blas_thread
-from aumesh.utils.errors import ClusterError, ConfigError, UserError
+from aumesh.core.blas import one_blas_thread
+from aumesh.core.errors import ClusterError, ConfigError, UserError
 
 log = logging.getLogger(__name__)
 

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.core.io import NpyRows, atomic_write_json, atomic_write_text, read_rows
 from aumesh.pipeline import compute
 from aumesh.pipeline.quantiles import NoValuesError, exact_quantiles
-from aumesh.utils.io import NpyRows, atomic_write_json, atomic_write_text, read_rows
 
 #: Significant digits of every float in the committed metrics and plot files.
 SIGNIFICANT_DIGITS = 6
@@ -77,7 +77,7 @@ def error_curve(frame_vertex_error, n_points: int = ERROR_CURVE_POINTS) -> tuple
 
     Parameters
     ----------
-    frame_vertex_error : ndarray of shape (n_frames,), or :class:`aumesh.utils.io.NpyRows` of one on disk
+    frame_vertex_error : ndarray of shape (n_frames,), or :class:`aumesh.core.io.NpyRows` of one on disk
         Mean per-vertex Euclidean error of each held-out frame (``CVResult.frame_vertex_error``); frames
         whose error is not finite are left out.
     n_points : int, default 101

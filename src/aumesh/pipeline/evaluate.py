@@ -44,7 +44,21 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from aumesh.config import Config
-from aumesh.data.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
+from aumesh.core.blas import one_blas_thread
+from aumesh.core.errors import ConfigError, UserError
+from aumesh.core.io import (
+    NpyRowFile,
+    NpyRows,
+    RowArray,
+    absolute,
+    check_npy,
+    create_npy,
+    read_rows,
+    row_runs,
+    scratch_directory,
+    write_rows,
+)
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
 from aumesh.model import reliability
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.features import design_matrix
@@ -67,20 +81,7 @@ from aumesh.pipeline.prepared_files import (
     NEUTRAL_FILES,
     PREPARED_FILES,
     VIDEO_IDS_FILE,
-)
-from aumesh.utils.blas import one_blas_thread
-from aumesh.utils.errors import ConfigError, UserError
-from aumesh.utils.io import (
-    NpyRowFile,
-    NpyRows,
-    RowArray,
-    absolute,
-    check_npy,
-    create_npy,
-    read_rows,
-    row_runs,
-    scratch_directory,
-    write_rows,
+    scratch_path,
 )
 
 log = logging.getLogger(__name__)
@@ -136,13 +137,6 @@ def row_groups(directory: Path) -> list[tuple[int, int, int]]:
     md = pq.ParquetFile(directory / FRAMES_FILE).metadata
     bounds = np.r_[0, np.cumsum([md.row_group(g).num_rows for g in range(md.num_row_groups)])]
     return [(g, int(bounds[g]), int(bounds[g + 1])) for g in range(md.num_row_groups) if bounds[g + 1] > bounds[g]]
-
-
-def scratch_path(prepared_dir: str | Path) -> Path:
-    """What the passes' scratch folders (per-video sums, each frame's error) are the temporaries of: a sibling of the
-    prepared data (``.evaluate-scratch.tmp-<pid>-<host>-*``, :func:`aumesh.utils.io.scratch_directory`), so a killed
-    run's are removed when the next evaluate stage starts."""
-    return Path(prepared_dir).parent / "evaluate-scratch"
 
 
 def workers_check(prepared: Prepared) -> dict[str, Path]:
@@ -217,7 +211,7 @@ def video_frames(directory: Path, groups: list[tuple[int, int, int]], n_videos: 
 
 
 class _LazyArrays(Mapping):
-    """Read-only mapping onto per-video ``.npy`` arrays, rows read on demand (:class:`aumesh.utils.io.NpyRows`)."""
+    """Read-only mapping onto per-video ``.npy`` arrays, rows read on demand (:class:`aumesh.core.io.NpyRows`)."""
 
     def __init__(self, paths: dict[str, Path]):
         self._paths = paths
@@ -561,7 +555,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     ``video_fold`` (n_videos,) is each video's fold (:func:`video_folds`). The provisional shift ``(a, b)`` is the
     mean of the first :data:`BLOCK_ROWS` rows (a centre, not a statistic: reading ``chunk_rows`` rows for it cost the
     stage 0.2 s of fresh memory), shared by every fold and partition. The per-video sums stay on disk
-    (:class:`aumesh.utils.io.NpyRows`) in a scratch folder beside the prepared data, removed with the returned
+    (:class:`aumesh.core.io.NpyRows`) in a scratch folder beside the prepared data, removed with the returned
     statistics.
     """
     n_videos = len(prepared.video_ids)
@@ -799,7 +793,7 @@ def error_partition(
     """Pass B on one row group: each frame's held-out residual under its fold's model (``coefs[f]`` (p, 1434),
     ``intercepts[f]`` (1434,)), and the error sums per fold; each frame's mean per-vertex error is written to its
     row of the ``.npy`` ``frame_error`` (n_frames,) float32. ``x_offset`` (n_videos, p) and ``y_offset``
-    (n_videos, 1434), arrays or :class:`aumesh.utils.io.NpyRows`, are the target's per-video centres (None: none);
+    (n_videos, 1434), arrays or :class:`aumesh.core.io.NpyRows`, are the target's per-video centres (None: none);
     only the partition's videos' rows are read."""
     g, start, stop = group
     au, pose, video, _ = _read_group(directory, g)
@@ -843,7 +837,7 @@ def error_partition(
 
 
 def _weighted_mean(rows, weights: np.ndarray, block: int = 4096) -> np.ndarray:
-    """``weights @ rows / weights.sum()`` over per-video rows (an array or :class:`aumesh.utils.io.NpyRows`),
+    """``weights @ rows / weights.sum()`` over per-video rows (an array or :class:`aumesh.core.io.NpyRows`),
     a block of videos at a time (the rows are never whole in memory)."""
     total = np.zeros(rows.shape[1:])
     for lo in range(0, len(weights), block):

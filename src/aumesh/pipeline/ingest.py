@@ -27,10 +27,10 @@ from functools import partial
 from pathlib import Path
 
 from aumesh.config import Config
+from aumesh.core.errors import TableError
+from aumesh.core.io import absolute, atomic_directory, atomic_write_json, recorded
 from aumesh.data import ingest
 from aumesh.pipeline import compute
-from aumesh.utils.errors import TableError
-from aumesh.utils.io import absolute, atomic_directory, atomic_write_json, recorded
 
 log = logging.getLogger(__name__)
 

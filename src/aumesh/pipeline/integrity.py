@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from aumesh.utils.errors import CorruptFileError
+from aumesh.core.errors import CorruptFileError
 
 #: The algorithm of new records (:func:`new_hash`); :data:`ALGORITHMS` are the ones a record may name.
 ALGORITHM = "xxh3_128"
@@ -274,14 +274,14 @@ def verify_prepared(
     names: list[str] | None = None,
     streamed: Mapping[str, Mapping[Any, tuple[int, int]]] | None = None,
 ) -> dict[str, StreamedCheck]:
-    """Every ``.npy`` of the prepared data complete (:func:`aumesh.utils.io.check_npy`), then files ``names`` (default
+    """Every ``.npy`` of the prepared data complete (:func:`aumesh.core.io.check_npy`), then files ``names`` (default
     all) against the checksums ``summary`` records, but for the byte ranges ``streamed`` defers to a pass
     (:func:`verify`: their checks are returned). Prepared data from before the checksums were recorded is checked
     for completeness only (a warning says so; nothing is returned)."""
     import logging
 
+    from aumesh.core.io import check_npy
     from aumesh.pipeline.prepared_files import MESHES_FILE, NEUTRAL_FILES, VIDEO_IDS_FILE
-    from aumesh.utils.io import check_npy
 
     d = Path(prepared_dir)
     for name in (MESHES_FILE, VIDEO_IDS_FILE, *NEUTRAL_FILES.values()):

@@ -37,7 +37,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from aumesh.data.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.core.errors import MissingFileError
+from aumesh.core.io import atomic_savez, atomic_write_text
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.export import meshfiles
 from aumesh.geometry import face
 from aumesh.model import support
@@ -53,8 +55,6 @@ from aumesh.model.inference import (
     select_columns,
     short_list,
 )
-from aumesh.utils.errors import MissingFileError
-from aumesh.utils.io import atomic_savez, atomic_write_text
 
 log = logging.getLogger(__name__)
 

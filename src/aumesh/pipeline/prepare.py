@@ -63,8 +63,18 @@ import pyarrow.feather as feather
 import pyarrow.parquet as pq
 
 from aumesh.config import Config, PreprocessConfig
-from aumesh.data import contract
-from aumesh.data.schema import (
+from aumesh.core.io import (
+    NpyRowFile,
+    absolute,
+    atomic_directory,
+    atomic_write_json,
+    create_npy,
+    load_npz,
+    read_row_set,
+    recorded,
+    write_rows,
+)
+from aumesh.core.schema import (
     AU_COLUMNS,
     FRAME_COLUMN,
     INPUT_COLUMNS,
@@ -73,6 +83,7 @@ from aumesh.data.schema import (
     POSE_COLUMNS,
     VIDEO_COLUMN,
 )
+from aumesh.data import contract
 from aumesh.data.tables import (
     FrameTable,
     MeshChunk,
@@ -106,17 +117,6 @@ from aumesh.pipeline.prepared_files import (
     VIDEO_IDS_FILE,
 )
 from aumesh.pipeline.quantiles import exact_column_quantiles, exact_quantiles
-from aumesh.utils.io import (
-    NpyRowFile,
-    absolute,
-    atomic_directory,
-    atomic_write_json,
-    create_npy,
-    load_npz,
-    read_row_set,
-    recorded,
-    write_rows,
-)
 
 log = logging.getLogger(__name__)
 
@@ -1015,7 +1015,7 @@ def input_ranges(parts: list[Path]) -> dict[str, dict[str, float | None]]:
     -------
     dict
         ``{name: {"min", "p1", "p50", "p99", "max", "active_fraction"}}`` for the 23
-        :data:`~aumesh.data.schema.INPUT_COLUMNS` (``active_fraction`` None for pose).
+        :data:`~aumesh.core.schema.INPUT_COLUMNS` (``active_fraction`` None for pose).
     """
     q = np.array(list(support.RANGE_QUANTILES.values()))
     counts = compute.map_reduce(_active_counts, np.add, parts)

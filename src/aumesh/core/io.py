@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.utils.signals import check_supervisor
+from aumesh.core.signals import check_supervisor, process_gone
 
 
 @contextmanager
@@ -47,18 +47,6 @@ def _temp_prefix(path: Path, kind: str) -> str:
     """``.<name>.<kind>-<pid>-<host>-``: the temporaries of ``path`` carry their process, so the next run can tell
     whether it is gone (:func:`remove_stale_temporaries`)."""
     return f".{path.name}.{kind}-{os.getpid()}-{socket.gethostname()}-"
-
-
-def process_gone(pid: int, started_s: float) -> bool:
-    """No process ``pid`` on this host, a zombie (a killed child that nobody reaped, common in containers) or a
-    process created after ``started_s`` (epoch seconds; the pid was reused)."""
-    import psutil
-
-    try:
-        proc = psutil.Process(pid)
-        return proc.status() == psutil.STATUS_ZOMBIE or proc.create_time() > started_s + 1.0
-    except psutil.NoSuchProcess:
-        return True
 
 
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
@@ -145,7 +133,7 @@ def _no_space(err: BaseException) -> bool:
 
 
 def _is_disk_full_error(err: BaseException) -> bool:
-    from aumesh.utils.errors import DiskFullError
+    from aumesh.core.errors import DiskFullError
 
     return isinstance(err, DiskFullError)
 
@@ -174,7 +162,7 @@ def disk_full(path: str | Path, written: int) -> Exception:
     the folder, what the new output had taken and what it needs, and that the previous output is intact."""
     import errno
 
-    from aumesh.utils.errors import DiskFullError
+    from aumesh.core.errors import DiskFullError
 
     path = Path(path)
     try:
@@ -285,9 +273,9 @@ def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
 def check_npy(path: str | Path, fix: str) -> tuple[int, np.dtype, tuple[int, ...]]:
     """:func:`npy_layout` of an ``.npy`` whose data is all on disk: a header numpy cannot parse, or a file shorter
     than its header's shape needs (a truncated copy, an interrupted ``np.save``), is a
-    :class:`aumesh.utils.errors.CorruptFileError` naming the file, both sizes and ``fix`` (instead of numpy's
+    :class:`aumesh.core.errors.CorruptFileError` naming the file, both sizes and ``fix`` (instead of numpy's
     "mmap length is greater than file size" or an ``EOFError`` deep inside a pass)."""
-    from aumesh.utils.errors import CorruptFileError, TruncatedFileError
+    from aumesh.core.errors import CorruptFileError, TruncatedFileError
 
     path = Path(path)
     try:
@@ -351,7 +339,7 @@ class NpyRowFile:
         while got < len(view):
             k = os.preadv(self._fd, [view[got:]], pos + got)
             if not k:  # the file shrank after its size was checked (check_npy), or was never checked
-                from aumesh.utils.errors import TruncatedFileError
+                from aumesh.core.errors import TruncatedFileError
 
                 raise TruncatedFileError(
                     f"{self.path}: truncated at row {start + got // max(self.row_bytes, 1)} of "

@@ -2,6 +2,6 @@
 
 import mlflow.models
 
-from aumesh.experiments.pyfunc import ReleaseModel
+from aumesh.tracking.pyfunc import ReleaseModel
 
 mlflow.models.set_model(ReleaseModel())

@@ -1,9 +1,9 @@
 """Reading the tracking store: sweeps, their child runs, runs by tag, by owner and by data version.
 
-The other side of :mod:`aumesh.experiments.tracking` (which writes runs): ``aumesh runs``, ``aumesh promote`` and
+The other side of :mod:`aumesh.tracking.runs` (which writes runs): ``aumesh runs``, ``aumesh promote`` and
 the sweep's summary read through these. Every function takes the ``tracking`` config group (store and experiment,
-:func:`aumesh.experiments.mlflow_store.resolve_tracking_uri`) and returns plain dicts or a DataFrame, never MLflow
-objects. Owner filters use the tags every run carries (:func:`aumesh.experiments.tracking.provenance_tags`):
+:func:`aumesh.tracking.mlflow_store.resolve_tracking_uri`) and returns plain dicts or a DataFrame, never MLflow
+objects. Owner filters use the tags every run carries (:func:`aumesh.tracking.runs.provenance_tags`):
 ``aumesh.user`` (git ``user.email``, else the login) and ``aumesh.workspace.id`` (a stable id of the clone).
 """
 
@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from aumesh.experiments.mlflow_store import (
+from aumesh.tracking.mlflow_store import (
     DATA_TAG,
     DEFAULT_EXPERIMENT,
     ERROR_TAG,
@@ -36,7 +36,7 @@ BASE_COLUMNS = ["run_id", "run_name", "status", "start_time", "end_time", "error
 # ------------------------------------------------------------------ who is asking
 def current_owner(root: Path | None = None) -> dict[str, str]:
     """This caller's ``user`` and ``workspace`` (id), as the tags of their runs hold them."""
-    from aumesh.experiments import provenance
+    from aumesh.core import provenance
 
     root = Path(root) if root is not None else provenance.repo_root()
     return {"user": provenance.user_identity(root), "workspace": provenance.workspace_id(root)}

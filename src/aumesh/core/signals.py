@@ -81,12 +81,22 @@ def dvc_process():
     return fallback
 
 
+def process_gone(pid: int, started_s: float) -> bool:
+    """No process ``pid`` on this host, a zombie (a killed child that nobody reaped, common in containers) or a
+    process created after ``started_s`` (epoch seconds; the pid was reused)."""
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        return proc.status() == psutil.STATUS_ZOMBIE or proc.create_time() > started_s + 1.0
+    except psutil.NoSuchProcess:
+        return True
+
+
 _WATCHED: list[tuple[int, float, str]] = []  # (pid, start time, what) of the processes this stage runs under
 
 
 def _gone(watched: list[tuple[int, float, str]]) -> str | None:
-    from aumesh.utils.io import process_gone
-
     for pid, started, what in watched:
         if process_gone(pid, started):
             return f"{what} (pid {pid}) is gone"

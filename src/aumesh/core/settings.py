@@ -7,7 +7,7 @@ Where a run executes (the tracking server, a cluster) is not what it computes, s
     tracking:
       tracking_uri: http://mlflow.lab.example:5000
 
-Which tracking store a run uses (:func:`aumesh.experiments.mlflow_store.resolve_tracking_uri`), first found wins:
+Which tracking store a run uses (:func:`aumesh.tracking.mlflow_store.resolve_tracking_uri`), first found wins:
 
 1. the ``MLFLOW_TRACKING_URI`` environment variable;
 2. ``tracking.tracking_uri`` in ``aumesh.local.yaml``;
@@ -38,7 +38,7 @@ def settings_path(root: Path | None = None) -> Path | None:
     if os.environ.get(SETTINGS_ENV):
         return Path(os.environ[SETTINGS_ENV]).expanduser()
     if root is None:
-        from aumesh.experiments import provenance
+        from aumesh.core import provenance
 
         try:
             root = provenance.repo_root()
@@ -52,12 +52,12 @@ def local_settings(root: Path | None = None) -> dict[str, Any]:
 
     Raises
     ------
-    aumesh.utils.errors.ConfigError
+    aumesh.core.errors.ConfigError
         The file is not YAML, not a mapping, or has a key aumesh does not read; the message names the file.
     """
     import yaml
 
-    from aumesh.utils.errors import ConfigError
+    from aumesh.core.errors import ConfigError
 
     path = settings_path(root)
     if path is None or not path.is_file():

@@ -42,9 +42,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from aumesh.core.errors import MissingFileError, TableError, UserError, corrupt_parquet
+from aumesh.core.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
 from aumesh.data import ingest, pyfeat
-from aumesh.data.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
-from aumesh.utils.errors import MissingFileError, TableError, UserError, corrupt_parquet
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +84,7 @@ class Clip:
     fps : the frame rate used; ``fps_source`` says where it came from: ``"--fps"``, ``"approx_time"`` or
         ``"default (25)"``.
     has_face : (n,) bool.
-    aus : (n, 20) float64 in :data:`~aumesh.data.schema.AU_COLUMNS` order, NaN where no face.
+    aus : (n, 20) float64 in :data:`~aumesh.core.schema.AU_COLUMNS` order, NaN where no face.
     pose : (n, 3) float64 radians, the model's order Pitch, Yaw, Roll, NaN where no face.
     mesh : (n, 478, 3) float64 recorded MediaPipe mesh in frame pixels on every axis (the image's frame: x right,
         y down), converted as the ingest converts it (module docstring, "Units"), NaN rows where no face; None when

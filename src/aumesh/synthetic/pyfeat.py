@@ -1,6 +1,6 @@
 """Synthetic frame tables shaped as py-feat 2.1.5 writes them, for tests and benchmarks of the ingest of real output.
 
-The faces are :mod:`aumesh.data.synth`'s: the same videos (counts, identity and latent bases, seeds), so the clean
+The faces are :mod:`aumesh.synthetic.tables`'s: the same videos (counts, identity and latent bases, seeds), so the clean
 frames equal those of ``write_tables(spec)`` with layout ``columns``. Around them, what a real ``detect(..., save=)``
 export holds:
 
@@ -41,9 +41,9 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from aumesh.data import synth
-from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, flatten_axis_major
-from aumesh.utils.io import atomic_path
+from aumesh.core.io import atomic_path
+from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, flatten_axis_major
+from aumesh.synthetic import tables as synth
 
 FRAME_WIDTH = 640.0
 FRAME_HEIGHT = 480.0

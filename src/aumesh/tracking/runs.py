@@ -2,13 +2,13 @@
 
 Design
 ------
-* The store, its client and its value limits are :mod:`aumesh.experiments.mlflow_store`;
-  the model registry is :mod:`aumesh.experiments.registry`. No fluent "active run", no
+* The store, its client and its value limits are :mod:`aumesh.tracking.mlflow_store`;
+  the model registry is :mod:`aumesh.tracking.registry`. No fluent "active run", no
   ``mlflow.set_tracking_uri``: use the handle yielded by :func:`tracked_run` to log.
 * The evaluate stage logs through :func:`tracked_run_beside`: a helper process imports MLflow and holds
   the run while the stage computes (the stage process never imports MLflow); sweeps, which log many
   runs from one process, use :func:`tracked_run`.
-* The store: ``MLFLOW_TRACKING_URI``, else the git-ignored ``aumesh.local.yaml`` (:mod:`aumesh.settings`), else
+* The store: ``MLFLOW_TRACKING_URI``, else the git-ignored ``aumesh.local.yaml`` (:mod:`aumesh.core.settings`), else
   ``tracking.tracking_uri``, else ``sqlite:///<workspace>/mlflow.db`` with artifacts in
   ``<workspace>/mlartifacts``, both absolute so runs started from a
   subdirectory or from a DVC queued temp copy (``<ws>/.dvc/tmp/exps/tmpXXX``,
@@ -23,11 +23,11 @@ The interface of the pipeline's stages and sweeps (nothing else of MLflow's is t
 :func:`tracked_run_beside` (the evaluate stage), :func:`tracked_run` (one sweep configuration),
 :func:`start_parent_run` / :func:`finish_sweep` (a sweep), :func:`tracking_uri` and :func:`store_label` (where runs
 go, and how a shareable record names it). Reading runs back (sweeps, children, owners, data versions) is
-:mod:`aumesh.experiments.queries`.
+:mod:`aumesh.tracking.queries`.
 
 Whose and where: every run is tagged ``aumesh.user`` (and ``mlflow.user``, which the UI shows) with git's
 ``user.email`` (else the login) and ``aumesh.workspace.id`` with a stable id of the clone
-(:func:`aumesh.experiments.provenance.workspace_id`), so a team's runs on one server can be told apart.
+(:func:`aumesh.core.provenance.workspace_id`), so a team's runs on one server can be told apart.
 
 Config keys (``tracking`` group, all optional): ``enabled`` (default True; when
 False :func:`tracked_run` yields a no-op handle), ``tracking_uri``,
@@ -50,8 +50,9 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from aumesh.experiments import provenance
-from aumesh.experiments.mlflow_store import (
+from aumesh.core import provenance
+from aumesh.core.signals import check_supervisor, process_gone
+from aumesh.tracking.mlflow_store import (
     DEFAULT_EXPERIMENT,
     ERROR_TAG,
     HOST_TAG,
@@ -76,8 +77,6 @@ from aumesh.experiments.mlflow_store import (
     get_client,
     prepare_params,
 )
-from aumesh.utils.io import process_gone
-from aumesh.utils.signals import check_supervisor
 
 if TYPE_CHECKING:  # pragma: no cover
     from concurrent.futures import Future, ProcessPoolExecutor
@@ -113,8 +112,8 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: in
         ``aumesh.workspace``, ``dvc.exp_name``/``dvc.stage``/``dvc.baseline_rev``
         when DVC set them, ``aumesh.host``/``aumesh.pid`` (the process running it, see
         :func:`close_orphaned_runs`), ``mlflow.source.name``/``mlflow.source.type``, ``aumesh.user`` = ``mlflow.user``
-        (:func:`aumesh.experiments.provenance.user_identity`) and ``aumesh.workspace.id``
-        (:func:`aumesh.experiments.provenance.workspace_id`).
+        (:func:`aumesh.core.provenance.user_identity`) and ``aumesh.workspace.id``
+        (:func:`aumesh.core.provenance.workspace_id`).
     """
     tags: dict[str, str] = {}
     try:
@@ -310,7 +309,7 @@ class TrackedRun:
         Parameters
         ----------
         digest : Mapping
-            Output of :func:`aumesh.experiments.provenance.data_digest`.
+            Output of :func:`aumesh.core.provenance.data_digest`.
         source : str
             Where the data lives (e.g. the ``data`` directory).
         name : str, default "frame_tables"
@@ -320,9 +319,7 @@ class TrackedRun:
         from mlflow.entities import DatasetInput, InputTag
 
         if not digest.get("md5"):
-            raise ValueError(
-                "log_dataset: digest has no 'md5' key; pass aumesh.experiments.provenance.data_digest(...)"
-            )
+            raise ValueError("log_dataset: digest has no 'md5' key; pass aumesh.core.provenance.data_digest(...)")
         md5 = str(digest["md5"])
         # MLflow's stubs declare MetaDataset.profile abstract, but the class is concrete (it returns None) and MLflow's
         # own docs construct it this way
@@ -592,7 +589,7 @@ def _start_helper(owner_pid: int) -> None:
     import signal
     import threading
 
-    # SIGTERM/SIGHUP too: a stage stops on them as on Ctrl-C (aumesh.utils.signals), and this helper, forked after the
+    # SIGTERM/SIGHUP too: a stage stops on them as on Ctrl-C (aumesh.core.signals), and this helper, forked after the
     # stage installed that handler, must stay to mark the run KILLED when a whole process group is told to stop
     for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
         if sig is not None:
@@ -768,10 +765,10 @@ def finish_sweep(
     Returns
     -------
     (DataFrame or None, dict)
-        The children (:func:`aumesh.experiments.queries.list_child_runs`; None if they could not be read) and the
+        The children (:func:`aumesh.tracking.queries.list_child_runs`; None if they could not be read) and the
         tags set. The parent is ended even when counting fails.
     """
-    from aumesh.experiments import queries
+    from aumesh.tracking import queries
 
     children, tags = None, {}
     try:
@@ -794,15 +791,15 @@ def finish_sweep(
 
 
 def tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
-    """The store runs go to (environment, ``aumesh.local.yaml``, ``conf/``, default: see :mod:`aumesh.settings`)."""
-    from aumesh.experiments.mlflow_store import resolve_tracking_uri
+    """The store runs go to (environment, ``aumesh.local.yaml``, ``conf/``, default: see :mod:`aumesh.core.settings`)."""
+    from aumesh.tracking.mlflow_store import resolve_tracking_uri
 
     return resolve_tracking_uri(tracking_cfg)
 
 
 def store_label(tracking_cfg: Mapping[str, Any] | None = None) -> str:
     """The store as shareable records name it: ``sqlite:///mlflow.db`` for the workspace's own, never a server's
-    address or a path outside the workspace (:func:`aumesh.experiments.mlflow_store.store_label`)."""
-    from aumesh.experiments.mlflow_store import store_label as label
+    address or a path outside the workspace (:func:`aumesh.tracking.mlflow_store.store_label`)."""
+    from aumesh.tracking.mlflow_store import store_label as label
 
     return label(tracking_uri(tracking_cfg))

@@ -3,7 +3,7 @@
 
 * **weights**: a LINEAR sampler on the mesh's morph ``weights``, one keyframe per frame of the clip (py-feat's rows:
   ``skip_frames`` leaves longer steps, which the player interpolates linearly), the frame's AU intensities; no-face
-  frames bridged by :func:`aumesh.animation.clip.bridge` (interpolated in a gap up to ``max_gap_s``, held in a longer
+  frames bridged by :func:`aumesh.data.clip.bridge` (interpolated in a gap up to ``max_gap_s``, held in a longer
   one). Sampled at a keyframe, the rig is ``base + sum_k w_k target_k``: the frame's ``predict_mesh`` at pose 0.
 * **time**: keyframe ``i`` at ``time[i] - time[0]`` seconds (float32): the animation starts at 0 at the clip's first
   row, whatever its frame number; ``asset.extras`` records the first frame and its time in the video.
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.animation.clip import MAX_GAP_S, Clip, bridged_pose, bridged_weights, read_clip, smooth
+from aumesh.data.clip import MAX_GAP_S, Clip, bridged_pose, bridged_weights, read_clip, smooth
 from aumesh.export import gltf
 
 log = logging.getLogger(__name__)
@@ -132,7 +132,7 @@ def write_clip_glb(
     release: str | None = None,
 ) -> ClipSummary:
     """Write the clip's animated GLB to ``path`` atomically (never half-written); what was written."""
-    from aumesh.utils.io import atomic_path
+    from aumesh.core.io import atomic_path
 
     data = clip_glb_bytes(npz, clip, pose=pose, smooth_frames=smooth_frames, max_gap_s=max_gap_s, release=release)
     with atomic_path(path, suffix=".glb") as tmp:
@@ -179,10 +179,10 @@ def animate(
     smooth_frames: int = 1,
     max_gap_s: float = MAX_GAP_S,
 ) -> ClipSummary:
-    """``aumesh animate``: read one video of a py-feat table (:func:`~aumesh.animation.clip.read_clip`), write its
+    """``aumesh animate``: read one video of a py-feat table (:func:`~aumesh.data.clip.read_clip`), write its
     animated GLB with release ``release``'s rig to ``out``."""
+    from aumesh.core.errors import UserError
     from aumesh.model.inference import load_release
-    from aumesh.utils.errors import UserError
 
     out = Path(out)
     if out.suffix.lower() != ".glb":

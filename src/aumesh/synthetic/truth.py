@@ -11,7 +11,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, flatten_axis_major, unflatten_axis_major
+from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, flatten_axis_major, unflatten_axis_major
 from aumesh.geometry.face import (
     IRIS_LEFT,
     IRIS_RIGHT,
@@ -96,7 +96,7 @@ def facs_displacement_fields(template: np.ndarray | None = None) -> np.ndarray:
     -------
     np.ndarray, shape (20, 478, 3), float64
         ``fields[k]`` is the displacement of every vertex for AU
-        ``aumesh.data.schema.AU_COLUMNS[k]`` at intensity 1, in the template's own
+        ``aumesh.core.schema.AU_COLUMNS[k]`` at intensity 1, in the template's own
         orientation and units (inter-ocular units times the template's scale).
         Recipe: :data:`AU_FIELD_SPEC` (smooth Gaussian falloff from each region);
         the iris vertices 468-477 do not move.
@@ -183,7 +183,7 @@ def au_field_cosines(
     Returns
     -------
     ndarray, shape (20,)
-        ``aumesh.data.schema.AU_COLUMNS`` order.
+        ``aumesh.core.schema.AU_COLUMNS`` order.
     """
     from aumesh.geometry.align import umeyama_batch
 

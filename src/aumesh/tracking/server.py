@@ -3,8 +3,8 @@
 One ``mlflow server`` with a database backend (PostgreSQL for a team; SQLite works for one person) and served
 artifacts: clients upload and download run artifacts through the server (``mlflow-artifacts:/``), so nobody needs the
 server's disk mounted. The backend URI gets the installed PostgreSQL driver
-(:func:`aumesh.experiments.mlflow_store.database_uri`). Clients point at it with ``MLFLOW_TRACKING_URI`` or
-``aumesh.local.yaml`` (:mod:`aumesh.settings`).
+(:func:`aumesh.tracking.mlflow_store.database_uri`). Clients point at it with ``MLFLOW_TRACKING_URI`` or
+``aumesh.local.yaml`` (:mod:`aumesh.core.settings`).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def server_command(
     extra : sequence of str
         More ``mlflow server`` options, as they are.
     """
-    from aumesh.experiments.mlflow_store import database_uri
+    from aumesh.tracking.mlflow_store import database_uri
 
     if "://" not in artifacts_destination:
         artifacts_destination = str(Path(artifacts_destination).expanduser().resolve())

@@ -32,8 +32,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.spatial.transform import Rotation
 
-from aumesh.data.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, feature_columns, flatten_axis_major
-from aumesh.utils.io import atomic_path, atomic_savez
+from aumesh.core.io import atomic_path, atomic_savez
+from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, feature_columns, flatten_axis_major
 
 
 @dataclass(frozen=True)
@@ -109,8 +109,8 @@ def true_coefficients(spec: SynthSpec) -> tuple[np.ndarray, np.ndarray, list[str
         Template mesh in pixels (the canonical face at AU = 0, pose = 0, mean identity).
     columns : list of str
     """
-    from aumesh.data import truth
     from aumesh.geometry import face
+    from aumesh.synthetic import truth
 
     template = face.canonical_template()
     fields = np.array(truth.facs_displacement_fields(template), dtype=np.float64)  # (20, 478, 3)

@@ -118,3 +118,17 @@ def unflatten_axis_major(flat: np.ndarray, n_vertices: int = N_VERTICES) -> np.n
     if f.shape[-1] != 3 * n_vertices:
         raise ValueError(f"expected last axis of length {3 * n_vertices}, got {f.shape}")
     return np.swapaxes(f.reshape(*f.shape[:-1], 3, n_vertices), -1, -2)
+
+
+#: ``preprocess.target`` values: what each video's rows have subtracted before the fit (design, mesh).
+TARGETS = {
+    "absolute": (None, None),  # the card's default: pooled absolute coordinates
+    "neutral": (None, "neutral"),  # the card's neutral subtraction: the video's neutral mesh, from the mesh only
+    "within": ("video_mean", "video_mean"),  # fixed effects: design and mesh demeaned per video
+    "within_neutral": ("neutral", "neutral"),  # the video's neutral frames' mean design and mesh, from both sides
+}
+
+#: The card's pose filter (``preprocess.pose_filter``): frames beyond these |Pitch| and |Yaw| (degrees) are not
+#: trained on; predictions beyond them warn (``aumesh.model.inference``).
+MAX_ABS_PITCH_DEG = 30.0
+MAX_ABS_YAW_DEG = 40.0

@@ -22,8 +22,8 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
-from aumesh.experiments import provenance
-from aumesh.utils.errors import UserError
+from aumesh.core import provenance
+from aumesh.core.errors import UserError
 
 if TYPE_CHECKING:  # pragma: no cover
     from mlflow import MlflowClient
@@ -42,7 +42,7 @@ MAX_DATASET_DIGEST_LENGTH = 36
 MAX_INPUT_TAG_VALUE_LENGTH = 500
 TRUNCATION_MARK = "...[truncated]"
 
-# Run tags both sides read (the logging side writes them, :mod:`aumesh.experiments.queries` filters on them).
+# Run tags both sides read (the logging side writes them, :mod:`aumesh.tracking.queries` filters on them).
 PARENT_TAG = "mlflow.parentRunId"
 ROLE_TAG = "aumesh.role"
 ERROR_TAG = "aumesh.error"
@@ -121,7 +121,7 @@ def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
     Returns
     -------
     str
-        The first of (see :mod:`aumesh.settings`):
+        The first of (see :mod:`aumesh.core.settings`):
 
         1. ``MLFLOW_TRACKING_URI`` from the environment;
         2. ``tracking.tracking_uri`` in the workspace's git-ignored ``aumesh.local.yaml``;
@@ -129,10 +129,10 @@ def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
         4. ``sqlite:///<repo_root()>/mlflow.db``.
 
         Relative ``sqlite:///``, ``file:`` or plain paths are made absolute against
-        :func:`aumesh.experiments.provenance.repo_root`; a driverless ``postgresql://`` gets the driver that is
+        :func:`aumesh.core.provenance.repo_root`; a driverless ``postgresql://`` gets the driver that is
         installed (:func:`database_uri`).
     """
-    from aumesh import settings
+    from aumesh.core import settings
 
     env = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
     uri = env or settings.local_value("tracking", "tracking_uri") or (tracking_cfg or {}).get("tracking_uri")
@@ -158,7 +158,7 @@ def database_uri(uri: str) -> str:
 
     Raises
     ------
-    aumesh.utils.errors.ConfigError
+    aumesh.core.errors.ConfigError
         A PostgreSQL URI and no driver installed; the message says what to install.
     """
     import importlib.util
@@ -170,7 +170,7 @@ def database_uri(uri: str) -> str:
         return f"postgresql+psycopg://{rest}"
     if importlib.util.find_spec("psycopg2") is not None:
         return f"postgresql+psycopg2://{rest}"
-    from aumesh.utils.errors import ConfigError
+    from aumesh.core.errors import ConfigError
 
     raise ConfigError(
         f"tracking URI {scheme}://...: no PostgreSQL driver is installed. Fix: "
@@ -415,7 +415,7 @@ def relocate_artifacts(uri: str) -> dict[str, int]:
     MLflow stores absolute artifact locations (``file:///old/ws/mlartifacts/...``). After ``cp -a`` or ``mv`` of a
     workspace, its ``mlflow.db`` still names the old folder: new runs would log, and ``aumesh promote`` register, the
     *old* workspace's artifacts (or nothing, once it is deleted). When the store is the workspace's own (its file
-    inside :func:`aumesh.experiments.provenance.repo_root`) and an experiment's artifact location is another folder's
+    inside :func:`aumesh.core.provenance.repo_root`) and an experiment's artifact location is another folder's
     ``mlartifacts``, every location under that folder is rewritten to this workspace's ``mlartifacts`` (one
     transaction, under the store's creation lock). Stores outside the workspace (shared stores) are left alone.
 
@@ -535,7 +535,7 @@ def experiment_tags(provenance_tags: Mapping[str, str]) -> dict[str, str]:
     Parameters
     ----------
     provenance_tags : Mapping
-        :func:`aumesh.experiments.tracking.provenance_tags` (``aumesh.data.md5``, ``.nfiles``, ``.path``,
+        :func:`aumesh.tracking.runs.provenance_tags` (``aumesh.data.md5``, ``.nfiles``, ``.path``,
         ``aumesh.version``).
 
     Returns

@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from aumesh.experiments.mlflow_store import MAX_TAG_VALUE_LENGTH, _str_value, get_client
+from aumesh.tracking.mlflow_store import MAX_TAG_VALUE_LENGTH, _str_value, get_client
 
 CHAMPION_ALIAS = "champion"
 
@@ -26,7 +26,7 @@ def register_model_version(
     run's artifact directory for a local store, an ``mlflow-artifacts:/`` URI for a
     tracking server; both pass MLflow's source-in-run validation and need no network
     beyond the tracking URI. aumesh runs log an MLflow pyfunc model there
-    (:mod:`aumesh.experiments.pyfunc`), so ``models:/<name>@<alias>`` loads with
+    (:mod:`aumesh.tracking.pyfunc`), so ``models:/<name>@<alias>`` loads with
     ``mlflow.pyfunc.load_model``.
 
     Parameters
@@ -62,7 +62,7 @@ def register_model_version(
     if not client.list_artifacts(run_id, artifact_path):
         raise FileNotFoundError(
             f"run {run_id} has no artifacts under {artifact_path!r} ({run.info.artifact_uri}); "
-            "evaluate runs and sweep children log their model there (aumesh.experiments.pyfunc)."
+            "evaluate runs and sweep children log their model there (aumesh.tracking.pyfunc)."
         )
     try:
         client.get_registered_model(name)

@@ -1,0 +1,147 @@
+"""The evaluate stage: cross-validation and the final fit (``paths.model_dir``, metrics, plots), tracked in MLflow."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from aumesh.config import Config
+from aumesh.core.io import atomic_directory, atomic_write_json
+from aumesh.pipeline.model_files import CARD_ERROR_CURVE_POINTS, CV_NPZ, METRICS_JSON, MODEL_NPZ, TRACKING_JSON
+from aumesh.pipeline.release import refuse_nonfinite
+from aumesh.stages.common import check_columns, data_digest, start_stage
+
+if TYPE_CHECKING:
+    from aumesh.pipeline import evaluate as ev
+
+
+def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVResult, ev.FinalModel]:
+    """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
+    from aumesh.pipeline import evaluate as ev
+
+    timings = {}
+    ev.log_clipping(cfg, handle)
+    degenerate = ev.log_degenerate(prepared, cfg, handle)
+    t0 = time.perf_counter()
+    cv, final = ev.evaluate(prepared, cfg)
+    cv.extra["degenerate"] = degenerate
+    timings["evaluate_seconds"] = time.perf_counter() - t0
+    handle.log_fold_metrics(
+        {
+            "r2": cv.r2_folds,
+            "mae": cv.mae_folds,
+            "vertex_error": cv.vertex_error_folds,
+            "r2_displacement": cv.r2_displacement_folds,
+        }
+    )
+    handle.log_metrics(cv.scalar_metrics() | timings)
+    counts = prepared.summary.get("counts", {})  # what the filters dropped, as counts and fractions
+    handle.log_metrics(
+        {f"data.{k}": float(v) for k, v in counts.items() if k.startswith(("dropped", "videos_dropped"))}
+    )
+    # the R²-vs-n_components curve, step = n_components, in one transaction
+    handle.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
+    return cv, final
+
+
+def evaluate_run_name(cfg: Config) -> str:
+    """The MLflow run name of a pipeline evaluation: what tells it apart in the run list.
+
+    ``"<target> <features> k=<n_components>"`` (``neutral`` adds its neutral method), prefixed with the DVC
+    experiment's name when DVC runs the stage as an experiment (``DVC_EXP_NAME``, set by ``dvc exp run``
+    and queued runs), e.g. ``"bumpy-tods: absolute au_pose_interactions k=40"``.
+    """
+    target = cfg.preprocess.target
+    if target == "neutral":
+        target += f"({cfg.preprocess.neutral.method})"
+    name = f"{target} {cfg.features.name} k={cfg.model.n_components}"
+    exp = os.environ.get("DVC_EXP_NAME")
+    return f"{exp}: {name}" if exp else name
+
+
+def main(cfg: Config) -> dict:
+    from aumesh.model import support
+    from aumesh.pipeline import dvc_metrics
+    from aumesh.pipeline import evaluate as ev
+    from aumesh.tracking import mlflow_store
+    from aumesh.tracking import runs as tracking
+
+    start_stage("evaluate", cfg)
+    params = cfg.to_dict()
+    tracking_cfg = params["tracking"]
+    if cfg.tracking.enabled:  # a damaged or locked store stops the stage before any work, not after the whole CV
+        mlflow_store.check_store(
+            mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg)
+        )
+    check_columns(cfg)
+    prepared = ev.load_prepared(cfg.paths.prepared_dir)
+    digest = data_digest()
+    out = Path(cfg.paths.model_dir)
+    # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
+    with tracking.tracked_run_beside(
+        tracking_cfg,
+        run_name=evaluate_run_name(cfg),
+        params=params,
+        tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target},
+    ) as run:
+        run.log_config(params)
+        if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
+            run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
+        cv, final = run_evaluation(prepared, cfg, run)
+        metrics = cv.metrics()
+        # the run's MLflow model warns beyond the data as the release does: it carries the data's support
+        arrays = final.release_arrays(
+            prepared.reference, metadata={"mlflow_run_id": run.run_id, "data": support.data_support(prepared.summary)}
+        )
+        refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
+        run.call(log_release_model, arrays)
+        run_info = {
+            "run_id": run.run_id,
+            "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
+            "experiment_id": getattr(run, "experiment_id", None),
+            # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
+            # never a server's address (the run id finds the run there)
+            "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None,
+        }
+        with atomic_directory(out) as tmp:
+            np.savez(
+                tmp / MODEL_NPZ,
+                coef=final.coef,
+                raw_intercept=final.raw_intercept,
+                mesh_intercept=final.mesh_intercept,
+                feature_columns=np.array(final.feature_columns),
+                n_components=np.array(final.n_components, dtype=np.int32),
+            )
+            thresholds, fraction = dvc_metrics.error_curve(cv.frame_vertex_error, CARD_ERROR_CURVE_POINTS)
+            np.savez(
+                tmp / CV_NPZ,
+                r2_per_vertex=cv.r2_per_vertex,
+                r2_per_target=cv.r2_per_target,
+                r2_path_folds=cv.r2_path_folds,
+                vertex_error_per_vertex=cv.vertex_error_per_vertex,
+                cumulative_error_thresholds=thresholds,
+                cumulative_error_fraction=fraction,
+            )
+            shutil.copyfile(cv.frame_vertex_error.path, tmp / ev.FRAME_ERROR_FILE)  # per frame, frames.parquet's order
+            atomic_write_json(
+                tmp / TRACKING_JSON, run_info | {"data_digest": digest, "degenerate": cv.extra.get("degenerate", {})}
+            )
+            atomic_write_json(tmp / METRICS_JSON, metrics)
+        dvc_metrics.write(
+            cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds
+        )  # committed: `dvc metrics/plots diff`
+        run.log_artifact(out / METRICS_JSON)
+    return metrics
+
+
+def log_release_model(handle, arrays: dict) -> None:
+    """Log the release arrays as the open run's MLflow pyfunc model, and the seconds it took (``seconds_log_model``);
+    ``handle`` is the tracking helper's :class:`aumesh.tracking.runs.TrackedRun`."""
+    from aumesh.tracking import pyfunc
+
+    handle.log_metrics({"seconds_log_model": pyfunc.log_release_model(handle, arrays)})

@@ -1,0 +1,31 @@
+"""The prepare stage: the ingested tables -> aligned, filtered frames and their reference (``paths.prepared_dir``)."""
+
+from __future__ import annotations
+
+import logging
+
+from aumesh.config import Config
+from aumesh.stages.common import check_columns, start_stage
+
+log = logging.getLogger(__name__)
+
+
+def main(cfg: Config) -> dict:
+    from aumesh.data import tables
+    from aumesh.pipeline import ingest
+    from aumesh.pipeline import prepare as prep
+
+    start_stage("prepare", cfg)
+    manifest = ingest.load_manifest(cfg.paths.ingested_dir)
+    found = tables.check_tables(manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric)
+    if found:  # keys naming a column, before the passes (the first table's columns: the contract makes them alike)
+        import pyarrow.parquet as pq
+
+        check_columns(cfg, pq.read_schema(found[0].path).names, str(found[0].path))
+    from aumesh.model import support
+
+    summary = prep.run(
+        found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"], detectors=support.detector_counts(manifest)
+    )
+    log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
+    return summary
