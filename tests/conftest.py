@@ -112,12 +112,54 @@ def new_store(db: Path) -> Path:
     return db
 
 
+_FAILED = pytest.StashKey[bool]()  # set on a test item whose setup or call failed (pytest_runtest_makereport)
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item, call):
+    """Remember on the item that it failed, for fixtures that keep a failed test's files (:func:`remove_unless_failed`)."""
+    report = yield
+    if report.failed:
+        item.stash[_FAILED] = True
+    return report
+
+
+def remove_unless_failed(request: pytest.FixtureRequest, folder: Path, failures_before: int | None = None) -> None:
+    """Empty ``folder`` (made by ``tmp_path_factory.mktemp``) at a fixture's teardown, but keep it when the test
+    failed, as pytest keeps a failed test's ``tmp_path`` (``tmp_path_retention_policy = "failed"``, pyproject.toml);
+    for a module-scoped fixture, pass ``failures_before`` (``request.session.testsfailed`` at its setup): kept when
+    a test of the module failed.
+
+    pytest removes ``mktemp`` folders only with the whole run, and only when it passed: a run with two failures kept
+    357 per-test stores (920 MB) in /tmp. The empty folder stays until then, so its name is not handed out again
+    (``mktemp`` numbers after the highest existing one): a later test must not get the path of a store that a cached
+    MLflow client or SQLAlchemy engine of this process may still hold open."""
+    import shutil
+
+    if failures_before is None:
+        failed = request.node.stash.get(_FAILED, False)
+    else:
+        failed = request.session.testsfailed > failures_before
+    if failed or not folder.is_dir():
+        return
+    for child in folder.iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child, ignore_errors=True)
+        else:
+            child.unlink(missing_ok=True)
+
+
 @pytest.fixture(autouse=True)
-def _isolated_mlflow(tmp_path_factory, monkeypatch):
-    """Every test logs to its own throw-away store (:func:`new_store`), never the workspace's mlflow.db."""
-    if "MLFLOW_TRACKING_URI" not in os.environ or "aumesh-test" not in os.environ["MLFLOW_TRACKING_URI"]:
-        db = new_store(tmp_path_factory.mktemp("aumesh-test-mlflow") / "mlflow.db")
-        monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
+def _isolated_mlflow(request, tmp_path_factory, monkeypatch):
+    """Every test logs to its own throw-away store (:func:`new_store`), never the workspace's mlflow.db; the store's
+    folder is removed when the test ends (kept if it failed: :func:`remove_unless_failed`)."""
+    if "MLFLOW_TRACKING_URI" in os.environ and "aumesh-test" in os.environ["MLFLOW_TRACKING_URI"]:
+        yield
+        return
+    folder = tmp_path_factory.mktemp("aumesh-test-mlflow")
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{new_store(folder / 'mlflow.db')}")
+    yield
+    remove_unless_failed(request, folder)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -496,10 +538,12 @@ def stop_process_group(proc: subprocess.Popen) -> None:
 
 
 @pytest.fixture(scope="module")
-def mlflow_server(tmp_path_factory):
-    """A real `mlflow server` (SQLite store, artifacts proxied) on a free loopback port for the module: its URL."""
+def mlflow_server(request, tmp_path_factory):
+    """A real `mlflow server` (SQLite store, artifacts proxied) on a free loopback port for the module: its URL.
+    Its folder is removed after the module (:func:`remove_unless_failed`)."""
     from aumesh.experiments.server import server_command, server_environment
 
+    failures = request.session.testsfailed
     tmp = tmp_path_factory.mktemp("mlflow_server")
     port = free_port()
     url = f"http://127.0.0.1:{port}"
@@ -522,6 +566,7 @@ def mlflow_server(tmp_path_factory):
     finally:
         stop_process_group(proc)
         log.close()
+    remove_unless_failed(request, tmp, failures)
 
 
 # ------------------------------------------------------------------------------ workspaces the fault tests break
@@ -537,14 +582,16 @@ def workspace(good_workspace, tmp_path, monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def dvc_workspace(tmp_path_factory):
-    """A git + DVC workspace (the repo's dvc.yaml, conf/, params) after one complete `dvc repro`."""
+def dvc_workspace(request, tmp_path_factory):
+    """A git + DVC workspace (the repo's dvc.yaml, conf/, params) after one complete `dvc repro`; removed after the
+    module (:func:`remove_unless_failed`)."""
     import shutil
     import subprocess
 
     from aumesh.data.synth import SynthSpec, write_tables
     from test_dvc_pipeline import BIN, _run
 
+    failures = request.session.testsfailed
     ws = tmp_path_factory.mktemp("dvcfaults") / "ws"
     ws.mkdir()
     for name in ("dvc.yaml", "params.yaml", "promotion.json", ".gitignore"):
@@ -567,4 +614,5 @@ def dvc_workspace(tmp_path_factory):
         _run([BIN / "dvc", "repro"], ws)
     _run(["git", "add", "-A"], ws)
     _run(["git", "commit", "-qm", "good release"], ws)
-    return ws
+    yield ws
+    remove_unless_failed(request, ws.parent, failures)
