@@ -152,7 +152,7 @@ def remove_unless_failed(request: pytest.FixtureRequest, folder: Path, failures_
 @pytest.fixture(autouse=True)
 def _isolated_mlflow(request, tmp_path_factory, monkeypatch):
     """Every test logs to its own throw-away store (:func:`new_store`), never the workspace's mlflow.db; the store's
-    folder is removed when the test ends (kept if it failed: :func:`remove_unless_failed`)."""
+    folder is emptied when the test ends (kept if it failed: :func:`remove_unless_failed`)."""
     if "MLFLOW_TRACKING_URI" in os.environ and "aumesh-test" in os.environ["MLFLOW_TRACKING_URI"]:
         yield
         return
@@ -160,6 +160,23 @@ def _isolated_mlflow(request, tmp_path_factory, monkeypatch):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{new_store(folder / 'mlflow.db')}")
     yield
     remove_unless_failed(request, folder)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _module_folders(request, tmp_path_factory):
+    """The folders a test module made in the worker's temporary folder (its module fixtures' ``mktemp``: workspaces,
+    tables, stores, a server's files), emptied when the module ends (:func:`remove_unless_failed`; all kept when one
+    of its tests failed). pytest would remove them only with the whole run, and only when it passed.
+
+    Set up before, so torn down after, the module's own fixtures (an autouse fixture comes first in its scope):
+    their servers and browsers are gone by then. Session-scoped fixtures set up before it (:func:`fixed_conf`) and
+    ``shared-*`` folders (:func:`shared_build`, the way for a session-scoped fixture to keep a folder) stay."""
+    base = tmp_path_factory.getbasetemp()
+    before, failures = set(base.iterdir()), request.session.testsfailed
+    yield
+    for folder in sorted(set(base.iterdir()) - before):
+        if folder.is_dir() and not folder.is_symlink() and not folder.name.startswith("shared-"):
+            remove_unless_failed(request, folder, failures)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -538,12 +555,10 @@ def stop_process_group(proc: subprocess.Popen) -> None:
 
 
 @pytest.fixture(scope="module")
-def mlflow_server(request, tmp_path_factory):
-    """A real `mlflow server` (SQLite store, artifacts proxied) on a free loopback port for the module: its URL.
-    Its folder is removed after the module (:func:`remove_unless_failed`)."""
+def mlflow_server(tmp_path_factory):
+    """A real `mlflow server` (SQLite store, artifacts proxied) on a free loopback port for the module: its URL."""
     from aumesh.experiments.server import server_command, server_environment
 
-    failures = request.session.testsfailed
     tmp = tmp_path_factory.mktemp("mlflow_server")
     port = free_port()
     url = f"http://127.0.0.1:{port}"
@@ -566,7 +581,6 @@ def mlflow_server(request, tmp_path_factory):
     finally:
         stop_process_group(proc)
         log.close()
-    remove_unless_failed(request, tmp, failures)
 
 
 # ------------------------------------------------------------------------------ workspaces the fault tests break
@@ -582,16 +596,14 @@ def workspace(good_workspace, tmp_path, monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def dvc_workspace(request, tmp_path_factory):
-    """A git + DVC workspace (the repo's dvc.yaml, conf/, params) after one complete `dvc repro`; removed after the
-    module (:func:`remove_unless_failed`)."""
+def dvc_workspace(tmp_path_factory):
+    """A git + DVC workspace (the repo's dvc.yaml, conf/, params) after one complete `dvc repro`."""
     import shutil
     import subprocess
 
     from aumesh.data.synth import SynthSpec, write_tables
     from test_dvc_pipeline import BIN, _run
 
-    failures = request.session.testsfailed
     ws = tmp_path_factory.mktemp("dvcfaults") / "ws"
     ws.mkdir()
     for name in ("dvc.yaml", "params.yaml", "promotion.json", ".gitignore"):
@@ -614,5 +626,4 @@ def dvc_workspace(request, tmp_path_factory):
         _run([BIN / "dvc", "repro"], ws)
     _run(["git", "add", "-A"], ws)
     _run(["git", "commit", "-qm", "good release"], ws)
-    yield ws
-    remove_unless_failed(request, ws.parent, failures)
+    return ws
