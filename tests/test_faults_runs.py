@@ -23,7 +23,6 @@ import yaml
 
 from aumesh import cli
 from aumesh.experiments import mlflow_store, queries, registry, sweep, tracking
-from aumesh.pipeline import compute
 from conftest import new_store
 from test_faults import dvc_env, mlflow_runs, run_cli, tree_digest
 
@@ -80,6 +79,8 @@ def damage(db: Path, how: str) -> None:
 
 @pytest.mark.parametrize("how", ["truncated", "bytes overwritten", "header"])
 def test_damaged_store_is_one_line_before_any_work(workspace, how, capsys, monkeypatch):
+    from aumesh.pipeline import compute
+
     damage(workspace / "mlflow.db", how)
     before = {d: tree_digest(workspace / d) for d in KEPT}
     store = (workspace / "mlflow.db").read_bytes()
