@@ -113,12 +113,71 @@ def new_store(db: Path) -> Path:
     return db
 
 
+_FAILED = pytest.StashKey[bool]()  # set on a test item whose setup or call failed (pytest_runtest_makereport)
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item, call):
+    """Remember on the item that it failed, for fixtures that keep a failed test's files (:func:`remove_unless_failed`)."""
+    report = yield
+    if report.failed:
+        item.stash[_FAILED] = True
+    return report
+
+
+def remove_unless_failed(request: pytest.FixtureRequest, folder: Path, failures_before: int | None = None) -> None:
+    """Empty ``folder`` (made by ``tmp_path_factory.mktemp``) at a fixture's teardown, but keep it when the test
+    failed, as pytest keeps a failed test's ``tmp_path`` (``tmp_path_retention_policy = "failed"``, pyproject.toml);
+    for a module-scoped fixture, pass ``failures_before`` (``request.session.testsfailed`` at its setup): kept when
+    a test of the module failed.
+
+    pytest removes ``mktemp`` folders only with the whole run, and only when it passed: a run with two failures kept
+    357 per-test stores (920 MB) in /tmp. The empty folder stays until then, so its name is not handed out again
+    (``mktemp`` numbers after the highest existing one): a later test must not get the path of a store that a cached
+    MLflow client or SQLAlchemy engine of this process may still hold open."""
+    import shutil
+
+    if failures_before is None:
+        failed = request.node.stash.get(_FAILED, False)
+    else:
+        failed = request.session.testsfailed > failures_before
+    if failed or not folder.is_dir():
+        return
+    for child in folder.iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child, ignore_errors=True)
+        else:
+            child.unlink(missing_ok=True)
+
+
 @pytest.fixture(autouse=True)
-def _isolated_mlflow(tmp_path_factory, monkeypatch):
-    """Every test logs to its own throw-away store (:func:`new_store`), never the workspace's mlflow.db."""
-    if "MLFLOW_TRACKING_URI" not in os.environ or "aumesh-test" not in os.environ["MLFLOW_TRACKING_URI"]:
-        db = new_store(tmp_path_factory.mktemp("aumesh-test-mlflow") / "mlflow.db")
-        monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
+def _isolated_mlflow(request, tmp_path_factory, monkeypatch):
+    """Every test logs to its own throw-away store (:func:`new_store`), never the workspace's mlflow.db; the store's
+    folder is emptied when the test ends (kept if it failed: :func:`remove_unless_failed`)."""
+    if "MLFLOW_TRACKING_URI" in os.environ and "aumesh-test" in os.environ["MLFLOW_TRACKING_URI"]:
+        yield
+        return
+    folder = tmp_path_factory.mktemp("aumesh-test-mlflow")
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{new_store(folder / 'mlflow.db')}")
+    yield
+    remove_unless_failed(request, folder)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _module_folders(request, tmp_path_factory):
+    """The folders a test module made in the worker's temporary folder (its module fixtures' ``mktemp``: workspaces,
+    tables, stores, a server's files), emptied when the module ends (:func:`remove_unless_failed`; all kept when one
+    of its tests failed). pytest would remove them only with the whole run, and only when it passed.
+
+    Set up before, so torn down after, the module's own fixtures (an autouse fixture comes first in its scope):
+    their servers and browsers are gone by then. Session-scoped fixtures set up before it (:func:`fixed_conf`) and
+    ``shared-*`` folders (:func:`shared_build`, the way for a session-scoped fixture to keep a folder) stay."""
+    base = tmp_path_factory.getbasetemp()
+    before, failures = set(base.iterdir()), request.session.testsfailed
+    yield
+    for folder in sorted(set(base.iterdir()) - before):
+        if folder.is_dir() and not folder.is_symlink() and not folder.name.startswith("shared-"):
+            remove_unless_failed(request, folder, failures)
 
 
 @pytest.hookimpl(hookwrapper=True)

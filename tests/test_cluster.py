@@ -291,9 +291,8 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stag
             assert time.monotonic() < deadline
             time.sleep(0.05)
         c.scheduler.send_signal(signal.SIGKILL)
-        t0 = time.monotonic()
-        out, err = proc.communicate(timeout=120)
-        assert time.monotonic() - t0 < 60
+        # the stage notices the lost scheduler and stops: a cap for a stage that hangs, not a time it must keep
+        out, err = proc.communicate(timeout=300)
     finally:
         c.stop()
     line = _one_line(err)
@@ -312,17 +311,30 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stag
 
 # ------------------------------------------------------------------------------------------------------- fast cases
 def test_an_address_nobody_answers_is_one_line_and_exit_2_within_the_connect_timeout(tmp_path, monkeypatch, capsys):
+    """The wait is the configured connect timeout, observed, not timed (a loaded machine takes longer to get there):
+    the client is asked for AUMESH_COMPUTE_CONNECT_TIMEOUT's 1 s (compute.connect_timeout's default is 10 s), and
+    ``distributed``'s own message says it gave up after 1 s."""
+    import distributed
+
     address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
     monkeypatch.setenv("AUMESH_COMPUTE_ADDRESS", address)
     monkeypatch.setenv("AUMESH_COMPUTE_CONNECT_TIMEOUT", "1")
-    t0 = time.monotonic()
+    asked = []
+
+    class Client(distributed.Client):  # distributed's client, its arguments recorded
+        def __init__(self, *args, **kwargs):
+            asked.append((args, kwargs))
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "Client", Client)
     with pytest.raises(ClusterError) as err, compute.engine(ComputeConfig()):
         pytest.fail("the engine must not start")
-    assert time.monotonic() - t0 < 5
+    assert len(asked) == 1 and asked[0][0] == (address,) and asked[0][1]["timeout"] == 1.0, asked
     assert str(err.value).startswith(
         f"AUMESH_COMPUTE_ADDRESS={address}: cannot connect to a Dask scheduler there "
-        f"(OSError: Timed out trying to connect"
+        f"(OSError: Timed out trying to connect to {address} after 1 s)"
     )
+    assert "\n" not in str(err.value)
     assert "AUMESH_COMPUTE_CONNECT_TIMEOUT sets the wait" in str(err.value)
 
     # through the command: a stage that reaches its passes stops with the one line, exit 2

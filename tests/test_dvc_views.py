@@ -12,6 +12,7 @@ import io
 import json
 import re
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -126,6 +127,14 @@ def test_plots_diff_draws_both_curves_offline(demo, browser):
     _run(["dvc", "plots", "diff", head, experiment], ws, env)
     page_html = (ws / "dvc_plots" / "index.html").read_text()
     assert "cdn.jsdelivr" not in page_html and "vegaEmbed(" in page_html
+    # each plot: the baseline's and the experiment's lines, in the first two colours DVC gives revisions
+    from dvc_render.vega import OPTIONAL_ANCHOR_RANGES
+
+    colours = [tuple(int(c[i : i + 2], 16) for i in (1, 3, 5)) for c in OPTIONAL_ANCHOR_RANGES["color"][:2]]
+
+    def near(image):  # pixels of each revision's colour in a view (a drawn line; the legend's swatch is ~50)
+        return [int((np.abs(image - np.array(colour)).sum(axis=-1) < 60).sum()) for colour in colours]
+
     problems, blocked = [], []
     context = browser.new_context(viewport={"width": 1280, "height": 1000})
     try:
@@ -145,24 +154,24 @@ def test_plots_diff_draws_both_curves_offline(demo, browser):
         page.wait_for_function(
             "document.querySelectorAll('.vega-embed canvas, .vega-embed svg.marks').length >= 2", timeout=60_000
         )
-        page.wait_for_timeout(500)
+        # vega draws a view after its element appears: shot again until both lines show in each (the state the
+        # checks below assert), not after a settling time; 60 s is a cap for a page that never draws them
+        deadline = time.monotonic() + 60
+        while True:
+            images = [
+                np.asarray(Image.open(io.BytesIO(views.nth(i).screenshot())).convert("RGB"), dtype=np.int16)
+                for i in range(views.count())
+            ]
+            if all(min(near(image)) > 150 for image in images) or time.monotonic() > deadline:
+                break
+            page.wait_for_timeout(250)
         SCREENSHOTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=SCREENSHOTS / "dvc_plots_diff_offline.png", full_page=True)
-        images = [
-            np.asarray(Image.open(io.BytesIO(views.nth(i).screenshot())).convert("RGB"), dtype=np.int16)
-            for i in range(views.count())
-        ]
         text = page.inner_text("body")
     finally:
         context.close()
     assert problems == [] and blocked == [], (problems, blocked)
     assert len(images) == 2, len(images)
     assert "Cumulative vertex error" in text or "Cumulative vertex error" in page_html
-    # each plot: the baseline's and the experiment's lines, in the first two colours DVC gives revisions
-    from dvc_render.vega import OPTIONAL_ANCHOR_RANGES
-
-    colours = [tuple(int(c[i : i + 2], 16) for i in (1, 3, 5)) for c in OPTIONAL_ANCHOR_RANGES["color"][:2]]
-    for image in images:
-        for colour in colours:
-            near = int((np.abs(image - np.array(colour)).sum(axis=-1) < 60).sum())
-            assert near > 150, (colour, near)  # a drawn line (the legend's swatch is ~50 pixels)
+    for image in images:  # each plot: the baseline's and the experiment's lines
+        assert min(near(image)) > 150, (colours, near(image))

@@ -76,7 +76,15 @@ def test_ui_opens_the_experiment_on_its_runs(mlflow_server, browser, monkeypatch
         page.goto(url)
         best = page.get_by_text(names[run.run_id], exact=True)  # the k=83 run, the best r2_mean
         best.first.wait_for(timeout=90_000)
-        page.wait_for_timeout(1500)  # the grid's columns settle
+        # the grid's columns and the best run's r2_mean shown: waited for, not a settling time (90 s: a cap)
+        page.wait_for_function(
+            """([columns, value]) => {
+                const shown = [...document.querySelectorAll("[role=columnheader]")].map((h) => h.innerText);
+                return columns.every((c) => shown.includes(c)) && document.body.innerText.includes(value);
+            }""",
+            arg=[[*mlflow_store.SORT_METRICS, *mlflow_store.SORT_PARAMS], "0.587654"],
+            timeout=90_000,
+        )
         SHOTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=SHOTS / "mlflow_experiment_runs.png")
         text = page.inner_text("body")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import base64
 import gzip
-import time
 from pathlib import Path
 
 import numpy as np
@@ -54,12 +53,10 @@ def clip_files(tmp_path_factory, node_tools):
     return {"npz": npz, "release": release, "csv": csv, "html": html, "plain": plain, "dir": d, "clips": clips}
 
 
-@pytest.fixture(scope="module")
-def tab(browser):
-    """One page for the module's browser tests, each of which loads its file afresh in it (``_open``: a new
-    document, so no page state carries over). Reusing the tab's renderer process, which keeps three.js compiled,
-    halves each load of the page against a new context per test. The page's problems and the requests it was
-    refused go to ``log``, emptied by each ``_open``."""
+def _new_tab(browser):
+    """A new context's page at :data:`VIEW` and its ``log``: the page's problems (console errors, page errors,
+    dialogs) and the requests it was refused (anything but the page itself and its data: URLs), emptied by each
+    ``_open``. Returns ``(context, page, log)``."""
     context = browser.new_context(viewport={"width": VIEW[0], "height": VIEW[1]})
     page = context.new_page()
     log: dict[str, list] = {"problems": [], "requests": []}
@@ -75,6 +72,28 @@ def tab(browser):
         return route.abort()
 
     page.route("**/*", deny)
+    return context, page, log
+
+
+@pytest.fixture(scope="module")
+def tab(browser):
+    """One page for the module's browser tests, each of which loads its file afresh in it (``_open``: a new
+    document, so no page state carries over). Reusing the tab's renderer process, which keeps three.js compiled,
+    halves each load of the page against a new context per test. The page's problems and the requests it was
+    refused go to ``log``, emptied by each ``_open``."""
+    context, page, log = _new_tab(browser)
+    yield page, log
+    context.close()
+
+
+@pytest.fixture
+def clock_tab(browser):
+    """A page of its own on Playwright's fake clock (``Date``, ``performance.now``, ``requestAnimationFrame`` and the
+    timers of the page), installed before the page loads: playback moves only when the test runs the clock
+    (``page.clock.run_for``), so what the test sees does not depend on how fast a loaded machine gets to it. Not the
+    module's ``tab``: the other tests play in real time."""
+    context, page, log = _new_tab(browser)
+    context.clock.install(time=0)
     yield page, log
     context.close()
 
@@ -181,37 +200,53 @@ def test_scrubbing_shows_predict_mesh_and_sliders_follow(tab, clip_files):
     assert problems == [] and requests == []
 
 
-def test_playing_changes_the_face_over_time(tab, clip_files):
+def test_playing_changes_the_face_over_time(clock_tab, clip_files):
+    """Playing at speed 1 shows, as the page's clock runs, the frame whose time has come (the clip's times), with the
+    face ``aumesh.predict_mesh`` gives for its bridged weights; Pause stops it; played to the end it stops on the
+    last frame. The page's clock is Playwright's fake one (``clock_tab``): it moves by the milliseconds the test
+    runs it, so nothing here races a click against real time."""
     release, csv = clip_files["release"], clip_files["csv"]
-    page, problems, requests = _open(tab, clip_files["html"])
+    page, problems, requests = _open(clock_tab, clip_files["html"])
+    page.clock.pause_at(10_000)  # from here the page's time moves only by run_for (ms)
     clip, weights = _clip(csv, page.evaluate("window.aumeshViewer.clip.info().video"), clip_files["clips"])
-    # real time: 68 frames last 2.7 s, the pause below comes well before the end (after ~10 frames)
     page.select_option("#clip-speed", "1")
-    snap = (
-        "({k: window.aumeshViewer.clip.frame(), t: window.aumeshViewer.clip.time(), mesh: window.aumeshViewer.mesh()})"
-    )
+    snap = "({k: window.aumeshViewer.clip.frame(), t: window.aumeshViewer.clip.time(), "
+    snap += "playing: window.aumeshViewer.clip.playing(), mesh: window.aumeshViewer.mesh()})"
+    start = page.evaluate(snap)
+    assert start["k"] == 0 and start["t"] == clip.time[0] and not start["playing"]
     page.click("#clip-play")
     assert page.text_content("#clip-play") == "Pause" and page.evaluate("window.aumeshViewer.clip.playing()")
-    page.wait_for_function("window.aumeshViewer.clip.frame() >= 3")
-    first = page.evaluate(snap)
-    page.wait_for_function(f"window.aumeshViewer.clip.frame() >= {first['k'] + 6}")
-    second = page.evaluate(snap)
-    page.click("#clip-play")  # pause
-    assert not page.evaluate("window.aumeshViewer.clip.playing()")
-    assert second["t"] > first["t"] and second["k"] > first["k"]
-    a, b = (np.array(s["mesh"]).reshape(478, 3) for s in (first, second))
-    assert np.abs(a - b).max() > 0.1  # the face moved
-    for s, mesh in ((first, a), (second, b)):
+    shots = []
+    for elapsed_ms in (200, 600):  # 5 and 15 frames of the 68 at 25 fps: before the end
+        page.clock.run_for(elapsed_ms - (shots[-1][0] if shots else 0))
+        shots.append((elapsed_ms, page.evaluate(snap)))
+    for elapsed_ms, s in shots:
+        assert s["playing"]
+        # the clip's clock ran as the page's, at speed 1: to the last animation frame (every 16 ms) before now
+        assert elapsed_ms / 1000 - 0.017 < s["t"] - clip.time[0] <= elapsed_ms / 1000 + 1e-9, (elapsed_ms, s["t"])
+        # the frame shown is the last one whose time has come (searched here in the clip's own times)
+        assert s["k"] == np.searchsorted(clip.time, s["t"], side="right") - 1, (s["k"], s["t"])
+        mesh = np.array(s["mesh"]).reshape(478, 3)
         expected = aumesh.predict_mesh(release, weights[s["k"]])
         np.testing.assert_allclose(mesh, expected, rtol=0, atol=2 * F32 * np.abs(expected).max())
-        assert (
-            clip.time[s["k"]] <= s["t"] < clip.time[min(s["k"] + 1, len(clip) - 1)] + 1e-9
-        )  # the frame whose time came
+    first, second = (s for _, s in shots)
+    assert 0 < first["k"] < second["k"] < len(clip) - 1
+    a, b = (np.array(s["mesh"]).reshape(478, 3) for s in (first, second))
+    assert np.abs(a - b).max() > 0.1  # the face moved
+    page.click("#clip-play")  # pause
+    assert page.text_content("#clip-play") == "Play"
+    paused = page.evaluate(snap)
+    assert not paused["playing"]
+    page.clock.run_for(1000)  # a second later (25 frames at speed 1): still that frame
+    assert page.evaluate(snap) == paused
     # played to the end it stops on the last frame
     page.evaluate(f"window.aumeshViewer.clip.seek({len(clip) - 3})")
     page.click("#clip-play")
-    page.wait_for_function("!window.aumeshViewer.clip.playing()")
+    assert page.evaluate("window.aumeshViewer.clip.playing()")
+    page.clock.run_for(int(1000 * (clip.time[-1] - clip.time[-3])) + 100)
+    assert not page.evaluate("window.aumeshViewer.clip.playing()")
     assert page.evaluate("window.aumeshViewer.clip.frame()") == len(clip) - 1
+    assert page.text_content("#clip-play") == "Play"
     assert problems == [] and requests == []
 
 
@@ -510,7 +545,6 @@ def test_hostile_video_name_stays_text(tab, clip_files, tmp_path):
     assert source.lower().count("<script") == 3 and HOSTILE not in source
     for path, opened in ((html, False), (clip_files["plain"], True)):
         page, problems, requests = _open(tab, path)
-        loaded = time.monotonic()
         if opened:  # the same names through the page's own reader
             page.set_input_files("#clip-file", str(hostile))
             page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
@@ -520,9 +554,10 @@ def test_hostile_video_name_stays_text(tab, clip_files, tmp_path):
         page.select_option("#clip-video", "1")
         assert "video <img src=x onerror=alert(2)>," in page.text_content("#clip-status")
         assert page.evaluate("document.scripts.length") == 3 and page.evaluate("document.images.length") == 0
-        # an onerror or a timer a name set would have fired by now: 200 ms after the load (the checks above took
-        # part of it)
-        page.wait_for_timeout(max(0.0, 200 - 1000 * (time.monotonic() - loaded)))
+        # no element came from the names (the page's 3 scripts, no image), so none can fire later; what the page
+        # queued while it loaded and showed them (errors, dialogs) is delivered before a task queued after it, and a
+        # frame (no wall-clock wait: the page's own queue, however slow the machine)
+        page.evaluate("() => new Promise((done) => setTimeout(() => requestAnimationFrame(() => done()), 0))")
         assert problems == [] and requests == []
 
 
