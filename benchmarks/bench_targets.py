@@ -22,7 +22,8 @@ from aumesh import config
 from aumesh.core.schema import AU_COLUMNS
 from aumesh.data import tables
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import prepare
+from aumesh.pipeline import prepare, statistics_pass
+from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic import truth
 
@@ -57,11 +58,11 @@ def main(argv: list[str] | None = None) -> None:
         t = time.perf_counter()
         prepare.run(tables.discover(data, cfg.data.tables, cfg.data.mesh_npy), cfg, prepared_dir)
         print(f"prepare: {time.perf_counter() - t:.1f} s", flush=True)
-    prepared = ev.load_prepared(prepared_dir)
+    prepared = load_prepared(prepared_dir)
     true = dict(np.load(truth_path))
     fold = ev.video_folds(prepared.videos.count, cfg.cv.n_splits)
     t = time.perf_counter()
-    design = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
+    design = statistics_pass.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
     print(
         f"{prepared.n_frames:,} frames, {len(prepared.video_ids):,} videos, coupling {args.coupling:g}; "
         f"the shared statistics pass: {time.perf_counter() - t:.1f} s\n",
@@ -78,13 +79,13 @@ def main(argv: list[str] | None = None) -> None:
             config.compose([f"paths.data_dir={data}", f"preprocess.target={target}"], config_dir=REPO / "conf")
         )
         t = time.perf_counter()
-        stats = ev.accumulate(prepared, tcfg, fold, design=design)
+        stats = statistics_pass.accumulate(prepared, tcfg, fold, design=design)
         t_stats = time.perf_counter() - t
         t = time.perf_counter()
-        cv, final = ev.evaluate(prepared, tcfg)
+        cv, final = ev.cross_validate_and_fit(prepared, tcfg)
         t_eval = time.perf_counter() - t
         t = time.perf_counter()
-        ev.au_field_reliability(tcfg, stats)
+        ev.au_field_reliability(ev.fit_models(tcfg, stats).alone)
         ev.facs_passes(prepared, final)
         t_checks = time.perf_counter() - t
         cos = truth.au_field_cosines(final.coef, final.feature_columns, true, prepared.reference["reference_anchors"])

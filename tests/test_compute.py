@@ -25,7 +25,8 @@ from aumesh.core.schema import VIDEO_COLUMN
 from aumesh.data import contract, tables
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import integrity, prepare
+from aumesh.pipeline import integrity, prepare, statistics_pass
+from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from conftest import default_config
 
@@ -163,7 +164,7 @@ def test_outlier_threshold_and_gpa_subsample_follow_their_definitions(split_tabl
 
 def _evaluate(prepared_dir, **overrides):
     cfg = default_config(**{"model.n_components": 12, **overrides})
-    return ev.evaluate(ev.load_prepared(prepared_dir), cfg)
+    return ev.cross_validate_and_fit(load_prepared(prepared_dir), cfg)
 
 
 def _assert_same_model(a, b, rtol=1e-12):
@@ -189,7 +190,7 @@ def split_prepared(split_tables):
 def test_per_video_counts_and_row_groups_equal_those_of_the_whole_columns(split_prepared):
     """Row groups cutting videos: the per-video pass equals bincount / min / max of the whole video_index and low_au
     columns and of each row's row group (from the file's metadata)."""
-    prepared = ev.load_prepared(split_prepared)
+    prepared = load_prepared(split_prepared)
     frames = pq.read_table(split_prepared / "frames.parquet", columns=["video_index", "low_au"]).to_pandas()
     video, low, n_videos = frames["video_index"].to_numpy(), frames["low_au"].to_numpy(), len(prepared.video_ids)
     md = pq.ParquetFile(split_prepared / "frames.parquet").metadata
@@ -206,13 +207,13 @@ def test_per_video_counts_and_row_groups_equal_those_of_the_whole_columns(split_
 def test_pass_a_results_own_their_rows(split_prepared, tmp_path):
     """A partition's result holds its split videos' sums as rows of their own, not views of the partition's
     per-video arrays (a view keeps the whole array alive until the reduction adds the result)."""
-    prepared = ev.load_prepared(split_prepared)
+    prepared = load_prepared(split_prepared)
     videos = prepared.videos
-    for name, width in ev.VIDEO_SUMS.items():
+    for name, width in statistics_pass.VIDEO_SUMS.items():
         create_npy(tmp_path / f"{name}.npy", np.float64, (len(prepared.video_ids), width))
     fold = ev.video_folds(videos.count, 3)
     parts = [
-        ev.design_partition(
+        statistics_pass.design_partition(
             group, prepared.directory, fold, np.zeros(83), np.zeros(1434), 3, 64, tmp_path, videos.split
         )
         for group in prepared.row_groups()

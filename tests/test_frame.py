@@ -18,6 +18,7 @@ from aumesh.model.inference import predict_mesh
 from aumesh.model.release import release_arrays
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
+from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic import truth
 from conftest import default_config
@@ -117,8 +118,8 @@ def _convert_tables(src: Path, dst: Path, rotation: np.ndarray) -> None:
 def _release_from(data_dir: Path, work: Path):
     cfg = default_config(**{"paths.data_dir": str(data_dir)})
     prepare.run(tables.discover(data_dir, cfg.data.tables, cfg.data.mesh_npy), cfg, work)
-    prepared = ev.load_prepared(work)
-    cv, final = ev.evaluate(prepared, cfg)
+    prepared = load_prepared(work)
+    cv, final = ev.cross_validate_and_fit(prepared, cfg)
     arrays = release_arrays(
         final.coef, final.mesh_intercept, final.feature_columns, final.n_components, prepared.reference, "", {}
     )

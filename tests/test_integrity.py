@@ -24,7 +24,8 @@ from aumesh.config import write_params
 from aumesh.core.errors import CorruptFileError
 from aumesh.core.io import create_npy
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import integrity
+from aumesh.pipeline import integrity, statistics_pass
+from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import default_config, new_store
 
@@ -222,16 +223,16 @@ def test_the_first_pass_hashes_every_byte_of_meshes_it_reads(good_workspace, tmp
     """The row groups' blocks are all deferred to pass A, and its digests are those of the file's bytes (blocks of 37
     rows, reordered by fold: fed back in the file's order)."""
     d = good_workspace / PREPARED
-    prepared = ev.load_prepared(d)
+    prepared = load_prepared(d)
     check = prepared.mesh_check
     ranges = _row_group_bytes(d)
     assert [r for g in range(4) for r in check.ranges(g)] == ranges
-    for name, width in ev.VIDEO_SUMS.items():
+    for name, width in statistics_pass.VIDEO_SUMS.items():
         create_npy(tmp_path / f"{name}.npy", np.float64, (len(prepared.video_ids), width))
     fold = ev.video_folds(prepared.videos.count, 3)
     digests: dict = {}
     for group in prepared.row_groups():
-        part = ev.design_partition(
+        part = statistics_pass.design_partition(
             group, d, fold, np.zeros(83), np.zeros(1434), 3, 37, tmp_path, prepared.videos.split, check
         )
         digests |= part.digests
@@ -249,4 +250,4 @@ def test_every_scheduler_refuses_a_flipped_partition(good_workspace, tmp_path, s
     _flip(d / "meshes.npy", a + 3)
     cfg = default_config(**{"compute": scheduler, "compute.n_workers": 2} if scheduler != "synchronous" else {})
     with pytest.raises(CorruptFileError, match=f"meshes.npy: bytes {a:,}-{b:,} do not match"):
-        ev.evaluate(ev.load_prepared(d), cfg)
+        ev.cross_validate_and_fit(load_prepared(d), cfg)

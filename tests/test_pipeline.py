@@ -13,6 +13,7 @@ from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.geometry.align import umeyama_batch
 from aumesh.model.features import design_matrix
 from aumesh.pipeline import evaluate as ev
+from aumesh.pipeline.prepared_data import load_prepared
 from conftest import default_config
 
 
@@ -33,9 +34,9 @@ def _group_kfold(video, n_splits=3):
 
 
 def test_fold_r2_and_mae_equal_sklearn_pls_on_the_same_split(recovery_prepared):
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    prepared = load_prepared(recovery_prepared / "prepared")
     cfg = default_config(**{"model.n_components": 10})
-    cv, _ = ev.evaluate(prepared, cfg)
+    cv, _ = ev.cross_validate_and_fit(prepared, cfg)
     X, Y = _arrays(prepared)
     fold = _group_kfold(prepared.frames["video_index"].to_numpy())
     for f in (0, 2):
@@ -65,7 +66,7 @@ def test_video_folds_from_frame_counts_equal_group_kfold_on_the_frames(n_splits)
 
 
 def test_video_folds_of_the_prepared_data_equal_group_kfold(recovery_prepared):
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    prepared = load_prepared(recovery_prepared / "prepared")
     video = prepared.frames["video_index"].to_numpy()
     np.testing.assert_array_equal(prepared.videos.count, np.bincount(video, minlength=len(prepared.video_ids)))
     for n_splits in (2, 3, 5):
@@ -97,8 +98,8 @@ def _truth_in_reference_frame(truth_npz, prepared):
 
 @pytest.fixture(scope="module")
 def default_evaluation(recovery_prepared):
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
-    return prepared, *ev.evaluate(prepared, default_config())
+    prepared = load_prepared(recovery_prepared / "prepared")
+    return prepared, *ev.cross_validate_and_fit(prepared, default_config())
 
 
 def test_recovered_au_displacement_fields_match_the_truth(recovery_tables, default_evaluation):
@@ -128,9 +129,9 @@ def test_cv_r2_is_close_to_what_the_true_model_achieves(recovery_tables, default
 def test_neutral_target_equals_explicit_subtraction(recovery_prepared):
     from aumesh.model.pls import PLSRegression
 
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    prepared = load_prepared(recovery_prepared / "prepared")
     cfg = default_config(**{"preprocess.target": "neutral", "model.n_components": 12})
-    cv, final = ev.evaluate(prepared, cfg)
+    cv, final = ev.cross_validate_and_fit(prepared, cfg)
     X, Y = _arrays(prepared, target="neutral")
     fold = _group_kfold(prepared.frames["video_index"].to_numpy())
     model = PLSRegression(n_components=12).fit(X[fold != 1], Y[fold != 1])
@@ -163,7 +164,7 @@ def test_same_inputs_give_identical_coefficients_twice(recovery_tables, tmp_path
     for run in range(2):
         found = tables.discover(out / "data", cfg.data.tables, cfg.data.mesh_npy)
         prepare.run(found, cfg, tmp_path / f"prepared{run}")
-        _, final = ev.evaluate(ev.load_prepared(tmp_path / f"prepared{run}"), cfg)
+        _, final = ev.cross_validate_and_fit(load_prepared(tmp_path / f"prepared{run}"), cfg)
         coefs.append(final.coef)
     assert np.array_equal(coefs[0], coefs[1])
     assert np.array_equal(
@@ -186,8 +187,8 @@ def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(
     synth.write_tables(tmp_path / "data", spec)
     cfg = default_config()
     prepare.run(tables.discover(tmp_path / "data", cfg.data.tables, cfg.data.mesh_npy), cfg, tmp_path / "prepared")
-    prepared = ev.load_prepared(tmp_path / "prepared")
-    _, final = ev.evaluate(prepared, cfg)
+    prepared = load_prepared(tmp_path / "prepared")
+    _, final = ev.cross_validate_and_fit(prepared, cfg)
     arrays = release_arrays(
         final.coef, final.mesh_intercept, final.feature_columns, final.n_components, prepared.reference, "", {}
     )
@@ -206,8 +207,8 @@ def _per_video_demeaned(A, video):
 def test_within_target_is_ols_on_per_video_demeaned_data(recovery_prepared):
     """Full rank: the within coefficients are numpy lstsq on demeaned design and mesh; the released intercept
     is the population's (mean mesh - mean design @ slopes); CV demeans each held-out video by its own means."""
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
-    cv, final = ev.evaluate(prepared, default_config(**{"preprocess.target": "within"}))
+    prepared = load_prepared(recovery_prepared / "prepared")
+    cv, final = ev.cross_validate_and_fit(prepared, default_config(**{"preprocess.target": "within"}))
     X, Y = _arrays(prepared)
     video = prepared.frames["video_index"].to_numpy()
     Xd, Yd = _per_video_demeaned(X, video), _per_video_demeaned(Y, video)
@@ -233,8 +234,8 @@ def test_within_target_is_ols_on_per_video_demeaned_data(recovery_prepared):
 
 
 def test_within_neutral_target_is_ols_on_both_sides_minus_the_neutral_frames(recovery_prepared):
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
-    _, final = ev.evaluate(prepared, default_config(**{"preprocess.target": "within_neutral"}))
+    prepared = load_prepared(recovery_prepared / "prepared")
+    _, final = ev.cross_validate_and_fit(prepared, default_config(**{"preprocess.target": "within_neutral"}))
     X, Y = _arrays(prepared)
     video = prepared.frames["video_index"].to_numpy()
     low = prepared.frames["low_au"].to_numpy()
@@ -246,8 +247,8 @@ def test_within_neutral_target_is_ols_on_both_sides_minus_the_neutral_frames(rec
 
 
 def test_au_field_reliability_is_the_cosine_between_fields_fitted_on_each_fold_alone(recovery_prepared):
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
-    cv, _ = ev.evaluate(prepared, default_config(**{"model.n_components": 30}))
+    prepared = load_prepared(recovery_prepared / "prepared")
+    cv, _ = ev.cross_validate_and_fit(prepared, default_config(**{"model.n_components": 30}))
     X, Y = _arrays(prepared)
     fold = _group_kfold(prepared.frames["video_index"].to_numpy())
     fields = [
@@ -358,9 +359,9 @@ def test_the_passes_scratch_goes_with_its_result_or_with_the_next_stage_after_a_
     from aumesh.stages import common
 
     host = socket.gethostname()
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    prepared = load_prepared(recovery_prepared / "prepared")
     before = set(recovery_prepared.glob(".evaluate-scratch*"))  # of results other tests still hold
-    cv, _ = ev.evaluate(prepared, default_config(**{"model.n_components": 5}))
+    cv, _ = ev.cross_validate_and_fit(prepared, default_config(**{"model.n_components": 5}))
     scratch = cv.frame_vertex_error.path.parent
     assert scratch.parent == (recovery_prepared / "prepared").parent
     assert scratch.name.startswith(f".evaluate-scratch.tmp-{os.getpid()}-{host}-")

@@ -176,10 +176,11 @@ def test_statistics_are_reused_across_n_components(swept):
 
 
 def test_child_equals_a_fresh_fit(swept, workspace):
-    """A sweep child's metrics and NPZ coefficients equal evaluate.evaluate of the same configuration."""
+    """A sweep child's metrics and NPZ coefficients equal evaluate.cross_validate_and_fit of the same configuration."""
     from aumesh.experiments import sweep
     from aumesh.model.release import release_arrays
     from aumesh.pipeline import evaluate as ev
+    from aumesh.pipeline.prepared_data import load_prepared
 
     _, children = swept
     row = children[
@@ -193,9 +194,9 @@ def test_child_equals_a_fresh_fit(swept, workspace):
             config_dir=workspace / "conf",
         )
     )
-    prepared = ev.load_prepared(workspace / cfg.paths.prepared_dir)
+    prepared = load_prepared(workspace / cfg.paths.prepared_dir)
     with sweep.blas_threads():
-        cv, final = ev.evaluate(prepared, cfg)
+        cv, final = ev.cross_validate_and_fit(prepared, cfg)
     assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
     local = registry.download_run_artifacts(
         row["run_id"], "model/artifacts/au_to_mesh_pls.npz", workspace / "build" / "dl"

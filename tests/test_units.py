@@ -20,6 +20,7 @@ from aumesh.data import ingest as ingest_data
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import ingest
 from aumesh.pipeline.integrity import load_reference
+from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from conftest import default_config
 from test_ingest import SPEC, Z_ROUND_TRIP, _prepare, _same_prepared
@@ -46,8 +47,8 @@ def routes(tmp_path_factory):
 def _release(prepared: Path) -> dict[str, np.ndarray]:
     """The release's arrays (AU=0 face, AU fields) of the card's recipe fitted on ``prepared``."""
     cfg = default_config(**{"cv.n_splits": 3})
-    data = ev.load_prepared(prepared)
-    _, final = ev.evaluate(data, cfg)
+    data = load_prepared(prepared)
+    _, final = ev.cross_validate_and_fit(data, cfg)
     return final.release_arrays(load_reference(prepared), metadata={})
 
 

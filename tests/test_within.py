@@ -12,6 +12,7 @@ from aumesh.data import tables
 from aumesh.experiments import promote
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
+from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic import truth
 from aumesh.synthetic.tables import SynthSpec
@@ -34,11 +35,11 @@ def coupled(tmp_path_factory, fixed_conf):
         prepare.run(tables.discover(out / "data", cfg.data.tables, cfg.data.mesh_npy), cfg, out / "prepared")
 
     out = shared_build(tmp_path_factory, "within-coupled", build)
-    return ev.load_prepared(out / "prepared"), dict(np.load(out / "truth.npz"))
+    return load_prepared(out / "prepared"), dict(np.load(out / "truth.npz"))
 
 
 def _fit(prepared, target):
-    cv, final = ev.evaluate(prepared, default_config(**{"preprocess.target": target}))
+    cv, final = ev.cross_validate_and_fit(prepared, default_config(**{"preprocess.target": target}))
     return cv, final
 
 
@@ -69,7 +70,7 @@ def test_pooled_au_fields_are_biased_on_coupled_data_and_within_recovers_them(co
 
 
 def test_without_coupling_pooled_and_within_agree(recovery_prepared, recovery_tables):
-    prepared = ev.load_prepared(recovery_prepared / "prepared")
+    prepared = load_prepared(recovery_prepared / "prepared")
     true = dict(np.load(recovery_tables[0] / "truth.npz"))
     pooled = _cosines(prepared, _fit(prepared, "absolute")[1], true)
     within = _cosines(prepared, _fit(prepared, "within")[1], true)

@@ -61,7 +61,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.figure import Figure
 
     from aumesh.config import Config
-    from aumesh.pipeline.evaluate import CVResult, FinalModel, FoldStatistics, Prepared
+    from aumesh.pipeline.evaluation_results import CVResult, FinalModel, FoldStatistics
+    from aumesh.pipeline.prepared_data import Prepared
 
 log = logging.getLogger(__name__)
 
@@ -237,13 +238,13 @@ class SweepCache:
 
     def load(self, source: PreparedSource, cfg: Config) -> tuple[Prepared, str]:
         """The prepared data for *source* (preparing them first if needed); returns (data, cache id)."""
-        from aumesh.pipeline import evaluate as ev
+        from aumesh.pipeline.prepared_data import load_prepared
 
         ensure_prepared(source, cfg)
         summary = source.path / SUMMARY_FILE
         pid = f"{source.path}@{summary.stat().st_mtime_ns}"
         if pid not in self.prepared:
-            self.prepared = {pid: ev.load_prepared(source.path)}  # one prepared set at a time
+            self.prepared = {pid: load_prepared(source.path)}  # one prepared set at a time
             self.folds.clear()
             self.designs.clear()
             self.statistics.clear()
@@ -260,7 +261,8 @@ class SweepCache:
 
     def statistics_for(self, prepared: Prepared, pid: str, cfg: Config) -> tuple[FoldStatistics, bool]:
         """Per-fold statistics of *cfg*'s design and target; (stats, True if reused)."""
-        from aumesh.pipeline import evaluate as ev
+        from aumesh.pipeline import statistics_pass
+        from aumesh.pipeline.prepared_data import workers_check
 
         key = statistics_key(pid, cfg)
         if key in self.statistics:
@@ -272,9 +274,11 @@ class SweepCache:
         if design_key not in self.designs:  # the one pass over the meshes; every target/feature set derives from it
             from aumesh.pipeline import compute
 
-            with compute.engine(cfg.compute, **ev.workers_check(prepared)):
-                self.designs[design_key] = ev.design_statistics(prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows)
-        stats = ev.accumulate(prepared, cfg, fold, design=self.designs[design_key])
+            with compute.engine(cfg.compute, **workers_check(prepared)):
+                self.designs[design_key] = statistics_pass.design_statistics(
+                    prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows
+                )
+        stats = statistics_pass.accumulate(prepared, cfg, fold, design=self.designs[design_key])
         self.statistics[key] = stats
         while len(self.statistics) > MAX_CACHED_STATISTICS:
             self.statistics.popitem(last=False)
@@ -382,9 +386,10 @@ def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistic
     """Cross-validation and final fit of one configuration from (possibly shared) statistics."""
     from aumesh.pipeline import compute
     from aumesh.pipeline import evaluate as ev
+    from aumesh.pipeline.prepared_data import workers_check
 
-    with compute.engine(cfg.compute, **ev.workers_check(prepared)):
-        return ev.evaluate_statistics(prepared, cfg, stats)
+    with compute.engine(cfg.compute, **workers_check(prepared)):
+        return ev.cross_validate_and_fit_from_statistics(prepared, cfg, stats)
 
 
 def _log_child(

@@ -17,10 +17,11 @@ from aumesh.pipeline.release import refuse_nonfinite
 from aumesh.stages.common import check_columns, data_digest, start_stage
 
 if TYPE_CHECKING:
-    from aumesh.pipeline import evaluate as ev
+    from aumesh.pipeline.evaluation_results import CVResult, FinalModel
+    from aumesh.pipeline.prepared_data import Prepared
 
 
-def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVResult, ev.FinalModel]:
+def run_evaluation(prepared: Prepared, cfg: Config, handle) -> tuple[CVResult, FinalModel]:
     """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
     from aumesh.pipeline import evaluate as ev
 
@@ -28,7 +29,7 @@ def run_evaluation(prepared: ev.Prepared, cfg: Config, handle) -> tuple[ev.CVRes
     ev.log_clipping(cfg, handle)
     degenerate = ev.log_degenerate(prepared, cfg, handle)
     t0 = time.perf_counter()
-    cv, final = ev.evaluate(prepared, cfg)
+    cv, final = ev.cross_validate_and_fit(prepared, cfg)
     cv.extra["degenerate"] = degenerate
     timings["evaluate_seconds"] = time.perf_counter() - t0
     handle.log_fold_metrics(
@@ -68,6 +69,7 @@ def main(cfg: Config) -> dict:
     from aumesh.model import support
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
+    from aumesh.pipeline.prepared_data import load_prepared
     from aumesh.tracking import mlflow_store
     from aumesh.tracking import runs as tracking
 
@@ -79,7 +81,7 @@ def main(cfg: Config) -> dict:
             mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg)
         )
     check_columns(cfg)
-    prepared = ev.load_prepared(cfg.paths.prepared_dir)
+    prepared = load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
     # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it

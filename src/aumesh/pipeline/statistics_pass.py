@@ -1,0 +1,273 @@
+"""Pass A of the evaluate stage: one pass over the prepared meshes that accumulates, per fold, the cross-products of
+the full design with the absolute coordinates, and per video the sums every target's centres come from
+(:func:`design_statistics`); :func:`accumulate` derives a configuration's :class:`FoldStatistics` from them exactly
+(``aumesh.model.statistics``), so a sweep needs this pass once. Its tasks also hash the bytes of ``meshes.npy`` they
+read; the driver compares the digests with prepare's checksums before any model is fitted
+(``aumesh.pipeline.integrity``).
+"""
+
+from __future__ import annotations
+
+import shutil
+import weakref
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+
+from aumesh.config import Config
+from aumesh.core.io import (
+    NpyRowFile,
+    NpyRows,
+    RowArray,
+    create_npy,
+    read_rows,
+    row_runs,
+    scratch_directory,
+    write_rows,
+)
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS, POSE_COLUMNS
+from aumesh.model.features import design_matrix
+from aumesh.model.statistics import (
+    FULL_DESIGN,
+    DesignStatistics,
+    DesignSums,
+    VideoSumStream,
+    fold_configuration_statistics,
+    target_offsets,
+)
+from aumesh.pipeline import compute, integrity
+from aumesh.pipeline.evaluation_results import FoldStatistics
+from aumesh.pipeline.prepared_data import BLOCK_ROWS, Prepared, block_rows, fold_grouped_block, read_group
+from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
+
+
+@dataclass
+class DesignPart:
+    """Pass A of consecutive partitions: per-fold sums, and per-video sums of videos split across partitions."""
+
+    sums: DesignSums
+    split: dict[int, tuple[np.ndarray, ...]]  # video -> VIDEO_SUMS' rows: (sum x - a, sum y - b, low-AU sum x - a)
+    # (start, stop) -> digest of those bytes of meshes.npy as the partitions read them (Prepared.mesh_check)
+    digests: dict[tuple[int, int], str] = field(default_factory=dict)
+
+    def __add__(self, other: DesignPart) -> DesignPart:
+        split = dict(self.split)
+        for v, parts in other.split.items():
+            split[v] = tuple(a + b for a, b in zip(split[v], parts, strict=True)) if v in split else parts
+        return DesignPart(self.sums + other.sums, split, {**self.digests, **other.digests})
+
+
+#: Per-video sums pass A writes (rows = video index), in a scratch folder beside the prepared data.
+VIDEO_SUMS = {"video_sum_x": len(FULL_DESIGN), "video_sum_y": N_TARGETS, "video_low_sum_x": len(FULL_DESIGN)}
+
+
+def _hash_block(digests: integrity.RangeDigests, meshes: NpyRowFile, file_rows: np.ndarray, Y: np.ndarray) -> None:
+    """Feed the block's rows ``Y`` (file rows ``file_rows``, in the block's order) to ``digests`` in the file's order:
+    a run of consecutive rows at a time, where the read put it (no copy to reorder the block)."""
+    for j, (lo, hi) in sorted(row_runs(file_rows), key=lambda run: run[1][0]):
+        digests.update(meshes.offset + lo * meshes.row_bytes, memoryview(Y[j : j + hi - lo].data).cast("B"))
+
+
+def design_partition(
+    group: tuple[int, int, int],
+    directory: Path,
+    video_fold: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    n_splits: int,
+    chunk_rows: int,
+    scratch: Path,
+    split_video: np.ndarray,
+    check: integrity.StreamedCheck | None = None,
+) -> DesignPart:
+    """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
+    coordinates (shifted by ``a``, ``b``), and the per-video sums; those of videos held whole by this
+    partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned.
+    The checksummed blocks of ``meshes.npy`` the row group holds (``check``) are hashed from the bytes read, for the
+    driver to compare (:meth:`aumesh.pipeline.integrity.StreamedCheck.check`)."""
+    g, start, stop = group
+    digests = integrity.RangeDigests(check.ranges(g), check.algorithm) if check is not None else None
+    au, pose, video, low = read_group(directory, g)
+    fold = video_fold[video]
+    p, q = len(FULL_DESIGN), N_TARGETS
+    sums = DesignSums(p, q, n_splits)
+    split: dict[int, tuple[np.ndarray, ...]] = {}
+    finished: dict[str, dict[int, np.ndarray]] = {name: {} for name in VIDEO_SUMS}  # whole videos, until written
+
+    def done(name: str):
+        k = list(VIDEO_SUMS).index(name)
+
+        def store(v: int, total: np.ndarray, _n_rows: int) -> None:
+            if split_video[v]:  # a split video without low-AU rows here adds zeros for them
+                values = split.setdefault(v, tuple(np.zeros(width) for width in VIDEO_SUMS.values()))
+                values[k][:] = total
+            else:
+                finished[name][v] = total
+
+        return store
+
+    # per-video sums while a video has rows to come in this partition (not a row per video of the partition: ~12 MiB
+    # a task at 3.1M frames), the same float64 additions as a dense array's
+    streams = {
+        "video_sum_x": VideoSumStream(video, done("video_sum_x")),
+        "video_sum_y": VideoSumStream(video, done("video_sum_y")),
+        "video_low_sum_x": VideoSumStream(video[low], done("video_low_sum_x")),
+    }
+    raw = np.empty((min(chunk_rows, stop - start), q), dtype=np.float32)
+    centred = np.empty(raw.shape)  # the block's rows minus b, float64 (allocated once a task, as raw)
+    with ExitStack() as stack:
+        meshes = stack.enter_context(NpyRowFile(directory / MESHES_FILE))
+        files = {name: stack.enter_context(NpyRowFile(scratch / f"{name}.npy", writable=True)) for name in VIDEO_SUMS}
+        for lo in range(start, stop, chunk_rows):
+            rows, _, Y = fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
+            if digests is not None:
+                _hash_block(digests, meshes, rows + start, Y)
+            X = design_matrix(au[rows], pose[rows], True, True)
+            X -= a
+            Y = np.subtract(Y, b, out=centred[: len(Y)])  # float64 (the float32 rows widen exactly)
+            # a video's rows stay consecutive in the fold-grouped block (a video is in one fold): summed in place
+            block_video, neutral = video[rows], low[rows]
+            streams["video_sum_x"].add(block_video, X)
+            streams["video_sum_y"].add(block_video, Y)
+            streams["video_low_sum_x"].add(block_video[neutral], X[neutral])
+            sums.add(X, Y, fold[rows])
+            for name, rows_of in finished.items():
+                files[name].write_row_map(rows_of)
+                rows_of.clear()
+    return DesignPart(sums, split, digests.digests if digests is not None else {})
+
+
+class NeutralDesign:
+    """Mean full-design row of each video's neutral frames, ``(n_videos, 83)``, rows computed on demand from
+    the per-video sums pass A wrote (``sum / count + a``)."""
+
+    def __init__(self, sums: RowArray, count: np.ndarray, shift: np.ndarray):
+        self.sums, self.count, self.shift = sums, count, shift
+        self.shape = (len(count), len(shift))
+
+    def __getitem__(self, key):
+        rest = ()
+        if isinstance(key, tuple):
+            key, rest = key[0], key[1:]
+        v = np.arange(self.shape[0])[key]
+        out = self.sums[v] / np.maximum(self.count[v], 1).astype(np.float64)[..., None] + self.shift
+        return out[(slice(None), *rest)] if rest else out
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+
+def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int, chunk_rows: int) -> DesignStatistics:
+    """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration).
+
+    ``video_fold`` (n_videos,) is each video's fold (:func:`aumesh.pipeline.evaluate.video_folds`). The provisional
+    shift ``(a, b)`` is the mean of the first :data:`~aumesh.pipeline.prepared_data.BLOCK_ROWS` rows (a centre, not a
+    statistic: reading ``chunk_rows`` rows for it cost the stage 0.2 s of fresh memory), shared by every fold and
+    partition. The per-video sums stay on disk
+    (:class:`aumesh.core.io.NpyRows`) in a scratch folder beside the prepared data, removed with the returned
+    statistics.
+    """
+    n_videos = len(prepared.video_ids)
+    videos = prepared.videos
+    first = min(BLOCK_ROWS, prepared.n_frames)
+    head = _head(prepared, first)
+    a = design_matrix(
+        head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64), True, True
+    ).mean(axis=0)
+    assert prepared.mesh_path is not None  # load_prepared sets it
+    b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
+    scratch = scratch_directory(scratch_path(prepared.directory))
+    try:
+        for name, width in VIDEO_SUMS.items():
+            create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
+        part = compute.map_reduce(
+            partial(
+                design_partition,
+                directory=prepared.directory,
+                video_fold=video_fold,
+                a=a,
+                b=b,
+                n_splits=n_splits,
+                chunk_rows=block_rows(chunk_rows),
+                scratch=scratch,
+                split_video=videos.split,
+                check=prepared.mesh_check,
+            ),
+            DesignPart.__add__,
+            prepared.row_groups(),
+            desc="evaluate: statistics",
+        )
+        if prepared.mesh_check is not None:  # the bytes just read are prepare's, or the stage stops before any fit
+            prepared.mesh_check.check(part.digests)
+        for v, values in part.split.items():
+            for name, row in zip(VIDEO_SUMS, values, strict=True):
+                write_rows(scratch / f"{name}.npy", v, row[None])
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    design = DesignStatistics(
+        folds=part.sums.folds(a, b),
+        video_fold=video_fold,
+        video_count=videos.count,
+        video_sum_x=NpyRows(scratch / "video_sum_x.npy"),
+        video_sum_y=NpyRows(scratch / "video_sum_y.npy"),
+    )
+    design.neutral_design = {  # mean design row of each video's neutral frames, per neutral method
+        "low_au": NeutralDesign(NpyRows(scratch / "video_low_sum_x.npy"), videos.low_count, a),
+        "mean": NeutralDesign(design.video_sum_x, design.video_count, a),
+    }
+    weakref.finalize(design, shutil.rmtree, scratch, True)
+    return design
+
+
+def _head(prepared: Prepared, n: int) -> pd.DataFrame:
+    """The first ``n`` rows of ``frames.parquet`` (AU and pose columns)."""
+    batches = pq.ParquetFile(prepared.directory / FRAMES_FILE).iter_batches(
+        batch_size=n, columns=[*AU_COLUMNS, *POSE_COLUMNS]
+    )
+    return next(batches).to_pandas().iloc[:n]
+
+
+def accumulate(
+    prepared: Prepared,
+    cfg: Config,
+    video_fold: np.ndarray,
+    chunk_rows: int | None = None,
+    design: DesignStatistics | None = None,
+) -> FoldStatistics:
+    """Per-fold (target, displacement) statistics of ``cfg``'s features and target; ``video_fold`` (n_videos,)
+    is each video's fold (:func:`aumesh.pipeline.evaluate.video_folds`).
+
+    ``design`` (from :func:`design_statistics` with the same folds) is reused when given: then no
+    pass over the meshes is needed (aumesh.model.statistics derives every configuration from it).
+    """
+    if design is None:
+        design = design_statistics(prepared, video_fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows)
+    elif not np.array_equal(design.video_fold, video_fold):
+        raise ValueError("accumulate: the design statistics were built with other folds")
+    method = cfg.preprocess.neutral.method
+    # the folds' statistics are independent: at once on this machine's cores (single-threaded BLAS each: the same bits)
+    per_fold = compute.local_map(
+        partial(
+            fold_configuration_statistics,
+            design,
+            columns=cfg.features.columns,
+            target=cfg.preprocess.target,
+            neutral=prepared.neutral[method],
+            neutral_design_full=design.neutral_design[method],
+        ),
+        range(cfg.cv.n_splits),
+    )
+    target, displacement = [t for t, _ in per_fold], [d for _, d in per_fold]
+    x_offset, y_offset = target_offsets(
+        design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method], design.neutral_design[method]
+    )
+    return FoldStatistics(
+        target=target, displacement=displacement, video_fold=video_fold, x_offset=x_offset, y_offset=y_offset
+    )
