@@ -11,7 +11,7 @@ from conftest import REPO
 def test_committed_template_is_the_locked_packages_inlined(node_tools):
     committed = (REPO / dvc_plots.TEMPLATE_FILE).read_text(encoding="utf-8")
     assert committed == dvc_plots.template_html(node_tools), (
-        "stale .dvc/plots/offline.html: run `make tools` (python -m aumesh.export.dvc_plots) and commit it"
+        "stale .dvc/plots/offline.html: run `make tools` (python -m aumesh dvc-plots-template) and commit it"
     )
     assert "{plot_divs}" in committed and "{scripts}" not in committed  # where DVC would put its CDN <script> tags
     assert "cdn.jsdelivr" not in committed and "<script src" not in committed
