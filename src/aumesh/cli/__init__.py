@@ -6,8 +6,7 @@ handlers: :mod:`~aumesh.cli.stages` (``compose-params``, ``synth``, ``ingest``, 
 (``sweep``, ``runs``, ``promote``, ``server``), :mod:`~aumesh.cli.info` (``info``, ``--version``); and
 :mod:`~aumesh.cli.console` (stderr and logging). This module builds the parser and holds :func:`main`, the one place
 an error becomes an exit status, and :func:`run`, the console script and ``python -m aumesh``. ``cli/`` is the only
-package that prints and the only importer of ``argparse``; the handlers import the library lazily, so ``aumesh
---help`` imports none of it.
+package that prints and the only importer of ``argparse``; the handlers import the library when they run.
 """
 
 from __future__ import annotations
@@ -55,6 +54,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``aumesh`` parser: the global options, then each family's commands in the order ``aumesh --help`` lists."""
     parser = Parser(
         prog="aumesh",
         description="aumesh: AU (+ head pose) -> MediaPipe FaceMesh, the pipeline's stages "

@@ -43,6 +43,7 @@ def versions(libraries: tuple[str, ...] = VERSION_LIBRARIES) -> dict[str, str]:
 
 
 def print_versions(verbose: bool) -> None:
+    """``aumesh VERSION`` on stdout; with ``verbose``, python's and each library's below (:func:`versions`)."""
     found = versions()
     print(f"aumesh {found.pop('aumesh')}")
     if verbose:
