@@ -46,7 +46,7 @@ $(TOOLS_STAMP): package.json package-lock.json
 	touch $(TOOLS_STAMP)
 
 $(PLOTS_TEMPLATE): $(TOOLS_STAMP) $(STAMP) src/aumesh/export/dvc_plots.py
-	$(BIN)/python -m aumesh.export.dvc_plots --out $@
+	$(BIN)/python -m aumesh dvc-plots-template --out $@
 
 tools: $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 

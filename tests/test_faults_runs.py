@@ -324,7 +324,7 @@ def test_sigterm_stops_a_stage_as_ctrl_c_does(workspace, tmp_path):
     """``aumesh release`` told to stop (SIGTERM) in the middle of its work: exit 143, one line, the temporaries
     removed, the release bit for bit."""
     before = tree_digest(workspace / "release")
-    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).parents[2])}
     proc = subprocess.Popen(
         [sys.executable, "-m", "aumesh", "release"],
         cwd=workspace,

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from aumesh.card import render
+from aumesh.card import release_figures, render
+from aumesh.core.schema import AU_COLUMNS
 from aumesh.geometry import face
 from aumesh.model.inference import ReleaseError
 from aumesh.synthetic import truth
@@ -96,7 +99,7 @@ def test_frontal_view_has_up_at_top_for_y_down_and_y_up_releases():
         assert neutral[10, 1] < neutral[152, 1]  # forehead drawn above chin (plotted as -y)
         assert neutral[263, 0] > neutral[33, 0]  # subject's left on image right
         assert neutral[1, 2] == neutral[:, 2].min()
-        k = render.AU_COLUMNS.index("AU12")
+        k = AU_COLUMNS.index("AU12")
         assert disp[k, 291, 1] < 0  # smile corners go up on screen
 
 
@@ -117,16 +120,25 @@ def test_missing_key_error_names_key_and_file(tmp_path, key):
     assert "bad.npz" in str(exc.value)
 
 
-def test_cli_main_writes_figures_and_directions(release, tmp_path, capsys):
+def test_cli_render_writes_figures_and_directions(release, tmp_path, capsys):
+    """``aumesh render NPZ --out DIR --cv CV`` (:func:`render.render_card`): every figure and the AU-direction report,
+    each file it wrote printed; a missing NPZ is a one-line error with exit 2."""
     import json
 
+    from aumesh import cli
+
     npz, cv = release
-    assert render.main([str(npz), "--out", str(tmp_path), "--cv", str(cv)]) == 0
+    assert cli.main(["render", str(npz), "--out", str(tmp_path), "--cv", str(cv)]) == 0
+    out, err = capsys.readouterr()
     report = json.loads((tmp_path / "au_directions.json").read_text())
     assert report["summary"]["pass"] == 20
-    assert (tmp_path / "au_directions.md").is_file()
-    assert render.main([str(tmp_path / "nope.npz"), "--out", str(tmp_path)]) == 2
-    assert "not found" in capsys.readouterr().err
+    written = sorted(p.name for p in tmp_path.iterdir())
+    assert written == sorted([*ALWAYS, *WITH_CV, "au_directions.json", "au_directions.md"])
+    assert sorted(Path(line).name for line in out.splitlines()) == written
+    assert "AU directions: 20 pass, 0 doubtful, 0 fail" in err
+    assert cli.main(["render", str(tmp_path / "nope.npz"), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("aumesh render: error:") and "nope.npz" in err and "not found" in err
 
 
 # ------------------------------------------------------------------ per-AU scales, unsupported AUs (issue 41)
@@ -167,14 +179,14 @@ def test_effect_maps_scale_each_au_to_its_own_maximum():
     tpl = 120.0 * face.canonical_template()
     arrays = _exploded(truth.synthetic_release_arrays(tpl), times=40.0)
     neutral, disp, scale = render.face_frame_meshes(arrays)
-    tops = render.effect_map_scales(disp, scale)
+    tops = release_figures.effect_map_scales(disp, scale)
     # independent route: the coef rows themselves, in release units (a rotation keeps each vertex's norm)
-    rows = arrays["coef"][: len(render.AU_COLUMNS)].astype(np.float64).reshape(20, 3, 478)
+    rows = arrays["coef"][: len(AU_COLUMNS)].astype(np.float64).reshape(20, 3, 478)
     np.testing.assert_allclose(tops, np.linalg.norm(rows, axis=1).max(axis=1), rtol=1e-5)
-    fig = render.fig_effect_maps(neutral, disp, face.triangulate(neutral), scale)
+    fig = release_figures.fig_effect_maps(neutral, disp, face.triangulate(neutral), scale)
     for k, (ax, panel) in enumerate(zip(fig.axes[:20], _panels(fig), strict=True)):
         assert f"max {tops[k]:.3g}" in ax.get_title()
-        assert _hot(panel) >= 5, (render.AU_COLUMNS[k], _hot(panel))  # no panel left black by AU09's scale
+        assert _hot(panel) >= 5, (AU_COLUMNS[k], _hot(panel))  # no panel left black by AU09's scale
 
 
 def test_unsupported_aus_come_from_the_npz_and_from_implausible_fields():
@@ -207,15 +219,17 @@ def test_an_exploded_au_is_greyed_and_labelled_and_the_other_panels_are_unchange
         neutral, disp, _ = render.face_frame_meshes(a)
         unsupported = render.unsupported_aus(a, disp)
         factor = render.display_factor(disp, unsupported)
-        drawn.append((factor, render.fig_solid_panels(neutral, disp, face.triangulate(neutral), factor, unsupported)))
+        drawn.append(
+            (factor, release_figures.fig_solid_panels(neutral, disp, face.triangulate(neutral), factor, unsupported))
+        )
     (f_normal, fig_normal), (f_exploded, fig_exploded) = drawn
     assert f_normal == f_exploded == render.exaggeration_factor(render.face_frame_meshes(normal)[1]) > 1
     assert render.exaggeration_factor(render.face_frame_meshes(exploded)[1]) == 1.0  # what all AUs would give
-    k = render.AU_COLUMNS.index("AU09")
+    k = AU_COLUMNS.index("AU09")
     before, after = _panels(fig_normal), _panels(fig_exploded)
     for j in range(20):
         if j != k:
-            np.testing.assert_array_equal(before[j], after[j], err_msg=render.AU_COLUMNS[j])
+            np.testing.assert_array_equal(before[j], after[j], err_msg=AU_COLUMNS[j])
 
     def skin(p: np.ndarray) -> float:  # skin tones: red > green > blue (not the grey face, not the red label box)
         r, g, b = p[..., 0], p[..., 1], p[..., 2]
@@ -231,9 +245,12 @@ def test_every_au_figure_labels_an_unsupported_au(name):
     exploded = _exploded(arrays, au="AU12", times=40.0)  # AU12: in every one of these figures
     neutral, disp, _ = render.face_frame_meshes(exploded)
     unsupported = render.unsupported_aus(exploded, disp)
-    make = getattr(render, name)
+    make = getattr(release_figures, name)
     factor = render.display_factor(disp, unsupported)
-    extra = {"fig_neutral_vs_activated": (render.COMPARE_AUS,), "fig_pose_views": (render.POSES_DEG,)}.get(name, ())
+    extra = {
+        "fig_neutral_vs_activated": (release_figures.COMPARE_AUS,),
+        "fig_pose_views": (release_figures.POSES_DEG,),
+    }.get(name, ())
     fig = make(neutral, disp, face.triangulate(neutral), factor, *extra, unsupported)
     texts = [t.get_text() for ax in fig.axes for t in ax.texts]
     assert any("not in training data" in t and "0.035" in t for t in texts), texts

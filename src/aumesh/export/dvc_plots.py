@@ -10,8 +10,8 @@ Vega-Lite v5 specs are written for), as :mod:`aumesh.export.viewer` inlines thre
 commands use it. It is committed (0.8 MB), as DVC's own custom plot templates in ``.dvc/plots/`` are: a clone
 draws offline whatever made its environment (make, conda, ``pip install -e .``), and a missing file would give
 DVC's cryptic "HTML template has to contain '{plot_divs}'". ``make tools`` writes it again from the locked
-packages (the same bytes while ``package-lock.json`` is unchanged; ``tests/test_dvc_plots_template.py`` holds
-the two together).
+packages with the unlisted command ``aumesh dvc-plots-template [--out FILE]`` (:mod:`aumesh.cli.tools`): the same
+bytes while ``package-lock.json`` is unchanged (``tests/test_dvc_plots_template.py`` holds the two together).
 
 The template has DVC's ``{plot_divs}`` and ``{refresh_tag}`` placeholders and deliberately no ``{scripts}``:
 that is where DVC would put its CDN ``<script>`` tags.
@@ -19,10 +19,8 @@ that is where DVC would put its CDN ``<script>`` tags.
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
-import sys
 from pathlib import Path
 
 #: Where the template is written (from the repository root) and how ``.dvc/config`` names it (from ``.dvc/``).
@@ -97,26 +95,3 @@ def write_template(out: str | Path = TEMPLATE_FILE, node_modules: Path | None = 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     return atomic_write_text(out, template_html(node_modules))
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m aumesh.export.dvc_plots [--out FILE]`` (what ``make tools`` runs after a change of the lock file)."""
-    parser = argparse.ArgumentParser(prog="python -m aumesh.export.dvc_plots", description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--out",
-        type=Path,
-        default=TEMPLATE_FILE,
-        help=f"the template file (default: %(default)s, named by .dvc/config as {CONFIG_VALUE})",
-    )
-    args = parser.parse_args(argv)
-    try:
-        out = write_template(args.out)
-    except FileNotFoundError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB: vega, vega-lite, vega-embed inlined)")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
