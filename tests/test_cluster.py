@@ -29,7 +29,7 @@ import aumesh
 from aumesh import cli
 from aumesh.config import ComputeConfig, compose, write_params
 from aumesh.core.errors import ClusterError, ConfigError
-from aumesh.pipeline import compute
+from aumesh.pipeline import compute, compute_probe, compute_settings
 from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import REPO
 
@@ -45,7 +45,7 @@ def _free_port() -> int:
 
 
 def _env(**extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(compute.ENV_PREFIX)}
+    env = {k: v for k, v in os.environ.items() if not k.startswith(compute_settings.ENV_PREFIX)}
     env["PATH"] = f"{BIN}{os.pathsep}{env['PATH']}"
     env["PYTHONPATH"] = os.pathsep.join([str(SRC), *filter(None, [os.environ.get("PYTHONPATH")])])
     return {**env, **extra}
@@ -372,10 +372,10 @@ def test_the_probe_names_the_worker_and_the_path_it_cannot_read_or_write(tmp_pat
         Client(lc, set_as_default=False) as client,
     ):
         (worker,) = client.scheduler_info()["workers"]
-        compute.check_workers(client, table, out)  # passes, and leaves no probe file
+        compute_probe.check_workers(client, table, out)  # passes, and leaves no probe file
         assert list(out.iterdir()) == []
         with pytest.raises(ClusterError) as err:
-            compute.check_workers(client, tmp_path / "elsewhere" / "frames_0000.parquet", out)
+            compute_probe.check_workers(client, tmp_path / "elsewhere" / "frames_0000.parquet", out)
         assert str(err.value).startswith(
             f"worker {worker} cannot read {tmp_path}/elsewhere/frames_0000.parquet (FileNotFoundError: "
         )
@@ -387,37 +387,37 @@ def test_the_probe_names_the_worker_and_the_path_it_cannot_read_or_write(tmp_pat
             match=rf"^worker {worker} cannot write into {tmp_path}/missing "
             r"\(FileNotFoundError: .*\): the folder .* must be on a filesystem",
         ):
-            compute.check_workers(client, table, tmp_path / "missing")
+            compute_probe.check_workers(client, table, tmp_path / "missing")
         assert list(out.iterdir()) == []
 
 
 def test_the_environment_chooses_where_the_passes_run_over_params(monkeypatch):
     cfg = ComputeConfig(scheduler="threads", partition_rows=500)
-    assert compute.effective(cfg, {}) is cfg
-    remote = compute.effective(
+    assert compute_settings.effective(cfg, {}) is cfg
+    remote = compute_settings.effective(
         cfg, {"AUMESH_COMPUTE_ADDRESS": "tcp://10.0.0.5:8786", "AUMESH_COMPUTE_CONNECT_TIMEOUT": "2.5"}
     )
     assert remote == ComputeConfig(
         scheduler="distributed", address="tcp://10.0.0.5:8786", partition_rows=500, connect_timeout=2.5
     )
-    assert compute.effective(cfg, {"AUMESH_COMPUTE_SCHEDULER": "synchronous"}).scheduler == "synchronous"
+    assert compute_settings.effective(cfg, {"AUMESH_COMPUTE_SCHEDULER": "synchronous"}).scheduler == "synchronous"
     with pytest.raises(
         ConfigError,
         match=r"^AUMESH_COMPUTE_CONNECT_TIMEOUT=soon \(environment\): "
         r"compute.connect_timeout='soon': must be a number",
     ):
-        compute.effective(cfg, {"AUMESH_COMPUTE_CONNECT_TIMEOUT": "soon"})
+        compute_settings.effective(cfg, {"AUMESH_COMPUTE_CONNECT_TIMEOUT": "soon"})
     with pytest.raises(ConfigError, match="compute.connect_timeout=0.0: must be > 0"):
-        compute.effective(cfg, {"AUMESH_COMPUTE_CONNECT_TIMEOUT": "0"})
-    assert compute.source_of("address", {"AUMESH_COMPUTE_ADDRESS": "tcp://h:1"}) == "AUMESH_COMPUTE_ADDRESS"
-    assert compute.source_of("address", {}) == "compute.address"
+        compute_settings.effective(cfg, {"AUMESH_COMPUTE_CONNECT_TIMEOUT": "0"})
+    assert compute_settings.source_of("address", {"AUMESH_COMPUTE_ADDRESS": "tcp://h:1"}) == "AUMESH_COMPUTE_ADDRESS"
+    assert compute_settings.source_of("address", {}) == "compute.address"
 
 
 def test_tasks_get_absolute_paths_and_the_records_keep_the_workspace_relative_ones(tmp_path, monkeypatch):
     """Ingest and prepare in a workspace with relative paths (params.yaml's): the partition tasks are handed absolute
     paths (what a worker elsewhere needs), the manifest and the summary record ``data/...`` as before."""
     from aumesh.core.io import recorded
-    from aumesh.pipeline import prepare
+    from aumesh.pipeline import prepare_tasks
     from conftest import default_config
 
     write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=30, seed=2, frames_per_file=150))
@@ -425,13 +425,13 @@ def test_tasks_get_absolute_paths_and_the_records_keep_the_workspace_relative_on
         default_config(**{"compute": "synchronous", "compute.partition_rows": 100}).to_dict(), tmp_path / "params.yaml"
     )
     seen = []
-    scan = prepare.scan_partition
+    scan = prepare_tasks.scan_partition
 
     def spy(item, cfg, scratch, exclude=None):
         seen.append((scratch, [p.table.path for p in item[1]]))
         return scan(item, cfg, scratch, exclude)
 
-    monkeypatch.setattr(prepare, "scan_partition", spy)
+    monkeypatch.setattr(prepare_tasks, "scan_partition", spy)
     monkeypatch.chdir(tmp_path)
     assert cli.main(["ingest"]) == 0 and cli.main(["prepare"]) == 0
     assert len(seen) > 1 and all(s.is_absolute() and all(p.is_absolute() for p in paths) for s, paths in seen)

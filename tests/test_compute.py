@@ -25,7 +25,8 @@ from aumesh.core.schema import VIDEO_COLUMN
 from aumesh.data import contract, tables
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import integrity, prepare, statistics_pass
+from aumesh.pipeline import integrity, prepare, prepare_tasks, statistics_pass
+from aumesh.pipeline.prepare_selection import gpa_hash, low_au_thresholds, pose_mask
 from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from conftest import default_config
@@ -122,7 +123,7 @@ def test_alignment_block_size_changes_no_bit(split_tables, monkeypatch):
     last block in every partition, give the prepared data of one block a partition, bit for bit."""
     sync = {"compute": "synchronous", "compute.partition_rows": 300, "preprocess.alignment.gpa_max_frames": 300}
     whole, s1 = _prepare(split_tables, "block-whole", **sync)
-    monkeypatch.setattr(prepare, "RESIDUAL_BLOCK", 7)
+    monkeypatch.setattr(prepare_tasks, "RESIDUAL_BLOCK", 7)
     blocks, s2 = _prepare(split_tables, "block-7", **sync)
     assert s1 == s2
     _assert_same_prepared(whole, blocks)
@@ -140,12 +141,10 @@ def test_outlier_threshold_and_gpa_subsample_follow_their_definitions(split_tabl
     frames = pd.concat(
         [pq.read_table(f).to_pandas() for f in sorted((split_tables / "data").glob("*.parquet"))], ignore_index=True
     )
-    pose = prepare.pose_mask(frames["Pitch"].to_numpy(), frames["Yaw"].to_numpy(), cfg.preprocess)
+    pose = pose_mask(frames["Pitch"].to_numpy(), frames["Yaw"].to_numpy(), cfg.preprocess)
     idx = list(cfg.preprocess.alignment.anchor_indices)
     anchors = np.stack([frames[[f"{a}_{i}" for i in idx]].to_numpy() for a in "xyz"], axis=2).astype(np.float32)
-    h = prepare.gpa_hash(
-        frames.loc[pose, VIDEO_COLUMN].to_numpy(object), frames.loc[pose, "frame"].to_numpy(), cfg.seed
-    )
+    h = gpa_hash(frames.loc[pose, VIDEO_COLUMN].to_numpy(object), frames.loc[pose, "frame"].to_numpy(), cfg.seed)
     chosen = np.sort(np.argsort(h)[:k])  # summed in the tables' order
     reference = generalized_procrustes(
         anchors[pose][chosen], cfg.preprocess.alignment.gpa_max_iter, cfg.preprocess.alignment.gpa_tol
@@ -157,8 +156,8 @@ def test_outlier_threshold_and_gpa_subsample_follow_their_definitions(split_tabl
     assert summary["counts"]["frames_kept"] == int((residual <= threshold).sum())
     # another seed draws another subsample
     assert not np.array_equal(
-        np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object), frames["frame"].to_numpy(), 1))[:k],
-        np.argsort(prepare.gpa_hash(frames[VIDEO_COLUMN].to_numpy(object), frames["frame"].to_numpy(), 0))[:k],
+        np.argsort(gpa_hash(frames[VIDEO_COLUMN].to_numpy(object), frames["frame"].to_numpy(), 1))[:k],
+        np.argsort(gpa_hash(frames[VIDEO_COLUMN].to_numpy(object), frames["frame"].to_numpy(), 0))[:k],
     )
 
 
@@ -261,7 +260,7 @@ def test_low_au_thresholds_are_the_lower_quantile_of_each_video():
     video = rng.integers(0, 40, size=900)
     au_sum = np.round(rng.random(900) * 4, 1)  # many ties
     for q in (0.0, 0.1, 0.37, 1.0):
-        videos, thresholds = prepare.low_au_thresholds(au_sum, video, q)
+        videos, thresholds = low_au_thresholds(au_sum, video, q)
         np.testing.assert_array_equal(videos, np.unique(video))
         np.testing.assert_array_equal(thresholds, [np.quantile(au_sum[video == v], q, method="lower") for v in videos])
 
@@ -429,7 +428,7 @@ def test_a_pass_returns_freed_memory_when_it_starts_every_few_tasks_and_when_it_
     import threading
 
     from aumesh.config import ComputeConfig
-    from aumesh.pipeline import compute
+    from aumesh.pipeline import compute, compute_memory
 
     events, lock = [], threading.Lock()
 
@@ -439,7 +438,7 @@ def test_a_pass_returns_freed_memory_when_it_starts_every_few_tasks_and_when_it_
         return x
 
     k = compute.TRIM_EVERY_TASKS
-    monkeypatch.setattr(compute, "release_freed_memory", lambda: events.append("release"))
+    monkeypatch.setattr(compute_memory, "release_freed_memory", lambda: events.append("release"))
     # a long pass (more than TRIM_AFTER_TASKS partitions) also every k tasks; a short one at its end only
     for n, periodic in ((compute.TRIM_AFTER_TASKS + k + 1, True), (compute.TRIM_AFTER_TASKS, False)):
         for run in (
@@ -525,7 +524,7 @@ def _worker_pid(_):
 def test_stage_processes_allocate_arrow_buffers_with_the_system_allocator(preset, expected):
     """The ``aumesh`` entry point selects Arrow's system pool before pyarrow is imported (mimalloc, pyarrow's default,
     kept freed partition buffers resident); a user's ``ARROW_DEFAULT_MEMORY_POOL`` stands."""
-    from aumesh.pipeline.compute import ARROW_POOL_ENV
+    from aumesh.pipeline.compute_memory import ARROW_POOL_ENV
 
     code = (
         "import aumesh.cli as cli\ncli.main = lambda: 0\ntry:\n    cli.run()\nexcept SystemExit:\n    pass\n"

@@ -392,12 +392,12 @@ def test_staged_video_codes_and_au_sums_equal_numpy_unique_and_pandas_row_sums()
     import pandas as pd
     import pyarrow as pa
 
-    from aumesh.pipeline import prepare
+    from aumesh.pipeline import prepare_tasks
 
     rng = np.random.default_rng(7)
     names = np.array(["b", "a", "c10", "c9", "été", "a"], dtype=object)[rng.integers(0, 6, 500)]
     chunked = pa.chunked_array([pa.array(names[:200]), pa.array(names[200:])])  # two chunks, as a table may hold
-    videos, code = prepare._video_codes(chunked)
+    videos, code = prepare_tasks._video_codes(chunked)
     expected_videos, expected_code = np.unique(names.astype(str), return_inverse=True)
     np.testing.assert_array_equal(videos, expected_videos)
     np.testing.assert_array_equal(code, expected_code)
@@ -406,5 +406,5 @@ def test_staged_video_codes_and_au_sums_equal_numpy_unique_and_pandas_row_sums()
     frame.insert(0, "Pitch", rng.random(500))  # another float column in the same pandas block, as staged
     rows = np.flatnonzero(rng.random(500) < 0.9)
     pandas_sums = frame.loc[frame.index[rows], list(AU_COLUMNS)].to_numpy().sum(axis=1)
-    assert np.array_equal(prepare.au_sums(pa.Table.from_pandas(frame), rows), pandas_sums)
+    assert np.array_equal(prepare_tasks.au_sums(pa.Table.from_pandas(frame), rows), pandas_sums)
     assert not np.array_equal(np.ascontiguousarray(frame[list(AU_COLUMNS)].to_numpy()[rows]).sum(axis=1), pandas_sums)

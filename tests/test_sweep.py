@@ -20,7 +20,7 @@ import pytest
 from aumesh import config
 from aumesh.core.schema import INPUT_COLUMNS
 from aumesh.data import tables
-from aumesh.pipeline import prepare
+from aumesh.pipeline import integrity, prepare
 from aumesh.synthetic import tables as synth
 from aumesh.tracking import mlflow_store, queries, registry
 from aumesh.tracking import runs as tracking
@@ -247,8 +247,8 @@ def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     prepared_dir = Path(run.data.tags["aumesh.prepared_dir"])
     assert prepared_dir.parent == (workspace / sweep.PREPARED_CACHE_DIR).resolve()
     assert (prepared_dir / sweep.PREPARE_STAMP).exists()
-    summary = prepare.load_summary(prepared_dir)
-    assert summary["n_frames"] < prepare.load_summary(workspace / "build" / "prepared")["n_frames"]
+    summary = integrity.load_summary(prepared_dir)
+    assert summary["n_frames"] < integrity.load_summary(workspace / "build" / "prepared")["n_frames"]
     raw2 = config.compose(
         ["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=4"], config_dir=workspace / "conf"
     )

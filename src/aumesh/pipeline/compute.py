@@ -12,32 +12,38 @@ on a running ``dask.distributed`` scheduler (``compute.address``), e.g. a SLURM 
 with ``dask-jobqueue`` (README, "Scale out").
 
 Where a run executes is not what it computes: the environment's ``AUMESH_COMPUTE_<KEY>`` (``AUMESH_COMPUTE_ADDRESS=
-tcp://host:8786`` alone selects the cluster) overrides the ``compute`` group of ``params.yaml`` (:func:`effective`), so
-``dvc repro -f`` runs on a cluster without a change to a tracked file. One cluster serves many workspaces: the stages
-hand their tasks absolute paths and per-run scratch folders, and a probe on every worker checks, when the stage
-connects, that it reads the data and writes the output folder at those paths (:func:`check_workers`). A scheduler that
-does not answer, or is lost mid-run, is one line (:class:`aumesh.core.errors.ClusterError`, exit 2).
+tcp://host:8786`` alone selects the cluster) overrides the ``compute`` group of ``params.yaml``
+(:func:`aumesh.pipeline.compute_settings.effective`), so ``dvc repro -f`` runs on a cluster without a change to a
+tracked file. One cluster serves many workspaces: the stages hand their tasks absolute paths and per-run scratch
+folders, and a probe on every worker checks, when the stage connects, that it reads the data and writes the output
+folder at those paths (:func:`aumesh.pipeline.compute_probe.check_workers`). A scheduler that does not answer, or is
+lost mid-run, is one line (:class:`aumesh.core.errors.ClusterError`, exit 2).
+
+This module is the engine (the scheduler a run uses, the cluster's client) and the map helpers the passes call
+(:func:`map_gather`, :func:`map_reduce`, :func:`local_map`, :func:`task_rows`): every import of ``dask`` and
+``dask.distributed`` is here. The environment's settings are :mod:`aumesh.pipeline.compute_settings`, the workers'
+probe :mod:`aumesh.pipeline.compute_probe`, the process's allocators and freed memory
+:mod:`aumesh.pipeline.compute_memory`.
 """
 
 from __future__ import annotations
 
 import contextvars
-import dataclasses
-import functools
-import hashlib
 import itertools
 import logging
 import os
 import sys
-import uuid
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any
 
 from aumesh.config import ComputeConfig
 from aumesh.core.blas import one_blas_thread
-from aumesh.core.errors import ClusterError, ConfigError, UserError
+from aumesh.core.errors import ClusterError, UserError
+from aumesh.pipeline import compute_memory
+from aumesh.pipeline.compute_probe import check_workers, first_line
+from aumesh.pipeline.compute_settings import effective, local_fix, source_of
 
 log = logging.getLogger(__name__)
 
@@ -50,60 +56,10 @@ def n_workers(cfg: ComputeConfig) -> int:
     return int(cfg.n_workers or os.cpu_count() or 1)
 
 
-#: The environment variables that override the ``compute`` group: ``AUMESH_COMPUTE_<KEY>`` (e.g.
-#: ``AUMESH_COMPUTE_ADDRESS``, ``AUMESH_COMPUTE_CONNECT_TIMEOUT``, ``AUMESH_COMPUTE_SCHEDULER``).
-ENV_PREFIX = "AUMESH_COMPUTE_"
-
-
-def _from_environment(environ: Mapping[str, str] | None = None) -> dict[str, str]:
-    env = os.environ if environ is None else environ
-    given = {}
-    for f in dataclasses.fields(ComputeConfig):
-        value = env.get(ENV_PREFIX + f.name.upper(), "").strip()
-        if value:
-            given[f.name] = value
-    return given
-
-
-def effective(cfg: ComputeConfig, environ: Mapping[str, str] | None = None) -> ComputeConfig:
-    """``cfg`` with the environment's ``AUMESH_COMPUTE_<KEY>`` over it (the environment wins); an address alone means
-    ``scheduler=distributed``.
-
-    Where a computation runs is not what it computes (the scheduler changes no result beyond float64 summation
-    order), so a cluster's address belongs to the shell, not to ``params.yaml``: ``AUMESH_COMPUTE_ADDRESS=tcp://h:8786
-    dvc repro -f`` leaves every tracked file as it is, and the address never reaches a record (the MLflow run's
-    parameters, the model card), which hold the configuration read from ``params.yaml``.
-
-    Raises
-    ------
-    ConfigError
-        A value of the wrong type or outside what the key allows, named by its variable.
-    """
-    given = _from_environment(environ)
-    if not given:
-        return cfg
-    if "address" in given and "scheduler" not in given:
-        given["scheduler"] = "distributed"
-    from aumesh import config
-
-    try:
-        return config.from_dict({"compute": {**dataclasses.asdict(cfg), **given}}).compute
-    except ConfigError as err:
-        names = ", ".join(f"{ENV_PREFIX}{k.upper()}={v}" for k, v in given.items())
-        raise ConfigError(f"{names} (environment): {err}") from None
-
-
-def source_of(key: str, environ: Mapping[str, str] | None = None) -> str:
-    """Where the ``compute`` key ``key`` is set, for messages: its environment variable if set, else ``compute.<key>``."""
-    name = ENV_PREFIX + key.upper()
-    env = os.environ if environ is None else environ
-    return name if env.get(name, "").strip() else f"compute.{key}"
-
-
 @contextmanager
 def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path | None = None) -> Iterator[None]:
-    """Run the enclosed passes on ``cfg``'s scheduler (:func:`effective`: the environment's settings over ``cfg``),
-    with single-threaded BLAS in every worker.
+    """Run the enclosed passes on ``cfg``'s scheduler (:func:`~aumesh.pipeline.compute_settings.effective`: the
+    environment's settings over ``cfg``), with single-threaded BLAS in every worker.
 
     The partitions already use every core; a BLAS thread pool per task would only oversubscribe
     them (``dask.distributed`` workers set ``OPENBLAS_NUM_THREADS=1`` themselves).
@@ -114,7 +70,7 @@ def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path
     read, write : path, optional
         On a ``dask.distributed`` cluster, a file every worker must read (the data) and a folder every worker must
         write (the output's temporary folder), checked on each worker when the client connects
-        (:func:`check_workers`); absolute paths, as the tasks get them.
+        (:func:`~aumesh.pipeline.compute_probe.check_workers`); absolute paths, as the tasks get them.
 
     Raises
     ------
@@ -129,7 +85,7 @@ def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path
     token = _ACTIVE.set(cfg)
     try:
         if cfg.scheduler == "threads":  # before the scheduler starts its threads
-            limit_malloc_arenas(n_workers(cfg))
+            compute_memory.limit_malloc_arenas(n_workers(cfg))
         with one_blas_thread():
             if cfg.scheduler == "distributed":
                 yield from _distributed(cfg, dask, read, write)
@@ -137,18 +93,6 @@ def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path
                 yield from _scheduler(cfg, dask)
     finally:
         _ACTIVE.reset(token)
-
-
-def _local_fix() -> str:
-    """How to run without the cluster, in the words of where it was chosen."""
-    key = source_of("address")
-    return f"unset {key} to run here" if key.startswith(ENV_PREFIX) else "compute=local runs here"
-
-
-def _first_line(err: BaseException) -> str:
-    reason = getattr(err, "reason", None)  # distributed's FutureCancelledError: its reason, not its task's key
-    text = [reason] if isinstance(reason, str) and reason else str(err).strip().splitlines()
-    return f"{type(err).__name__}: {text[0]}" if text else type(err).__name__
 
 
 def _connect(cfg: ComputeConfig):
@@ -161,9 +105,9 @@ def _connect(cfg: ComputeConfig):
         client = Client(cfg.address, timeout=cfg.connect_timeout, set_as_default=False)
     except Exception as err:  # OSError (timed out, refused), ValueError (no port), or a peer that is no scheduler
         raise ClusterError(
-            f"{where}: cannot connect to a Dask scheduler there ({_first_line(err)}). "
+            f"{where}: cannot connect to a Dask scheduler there ({first_line(err)}). "
             f"Fix: start one (`make cluster`, or `dask scheduler` and `dask worker ADDRESS`) or correct "
-            f"the address, or {_local_fix()}; {timeout} sets the wait."
+            f"the address, or {local_fix()}; {timeout} sets the wait."
         ) from None
     try:
         client.wait_for_workers(1, timeout=cfg.connect_timeout)
@@ -171,7 +115,7 @@ def _connect(cfg: ComputeConfig):
         _close(client, quiet=True)
         raise ClusterError(
             f"{where}: the scheduler has no worker (none joined within {cfg.connect_timeout:g} s). "
-            f"Fix: start workers (`dask worker {cfg.address}`, or `make cluster`), or {_local_fix()}; "
+            f"Fix: start workers (`dask worker {cfg.address}`, or `make cluster`), or {local_fix()}; "
             f"{timeout} sets the wait."
         ) from None
     return client
@@ -225,165 +169,17 @@ def _distributed(cfg: ComputeConfig, dask, read: str | Path | None, write: str |
         if isinstance(err, KilledWorker):
             raise ClusterError(
                 f"{where}: a task ended its worker's process {dask.config.get('distributed.scheduler.allowed-failures', 3) + 1} "
-                f"times ({_first_line(err)}), likely its memory limit. Fix: see the workers' logs; give "
+                f"times ({first_line(err)}), likely its memory limit. Fix: see the workers' logs; give "
                 "them more memory (`dask worker --memory-limit`) or lower data.chunk_rows and "
                 "compute.partition_rows. The previous outputs stand."
             ) from None
         raise ClusterError(
-            f"{where}: lost the Dask scheduler during the run ({_first_line(err)}). Fix: restart the "
-            f"scheduler and its workers and run again, or {_local_fix()}. The previous outputs "
+            f"{where}: lost the Dask scheduler during the run ({first_line(err)}). Fix: restart the "
+            f"scheduler and its workers and run again, or {local_fix()}. The previous outputs "
             "stand."
         ) from None
     finally:
         _close(client, quiet=failed)
-
-
-#: Bytes of the data file's start and end the probe compares (a parquet table's first pages and its footer).
-_PROBE_BYTES = 65536
-
-
-def _fingerprint(path: str) -> tuple[int, str]:
-    """``(size, sha256 of the first and last 64 KiB)`` of a file: the same file, or another at the same path."""
-    with open(path, "rb") as fh:
-        size = os.fstat(fh.fileno()).st_size
-        digest = hashlib.sha256(fh.read(_PROBE_BYTES))
-        if size > _PROBE_BYTES:
-            fh.seek(max(_PROBE_BYTES, size - _PROBE_BYTES))
-            digest.update(fh.read())
-    return size, digest.hexdigest()
-
-
-def _probe(read: str | None, write: str | None, token: str) -> dict[str, Any]:
-    """On a worker (``Client.run``): the fingerprint of ``read``, and a file written into ``write`` (named by ``token``
-    and this process), or the error of each."""
-    out: dict[str, Any] = {}
-    if read is not None:
-        try:
-            out["read"] = _fingerprint(read)
-        except OSError as err:
-            out["read_error"] = _first_line(err)
-    if write is not None:
-        name = f".aumesh-probe-{token}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        try:
-            with open(os.path.join(write, name), "x") as fh:
-                fh.write(token)
-            out["wrote"] = name
-        except OSError as err:
-            out["write_error"] = _first_line(err)
-    return out
-
-
-def check_workers(client, read: str | Path | None, write: str | Path | None) -> None:
-    """A probe on every worker of ``client``'s cluster: it reads ``read`` (the same bytes as this process: the first
-    and last 64 KiB and the size) and writes a file into ``write`` that this process then sees.
-
-    Raises
-    ------
-    ClusterError
-        The first worker that cannot, named with the path: the folder must be on a filesystem every worker sees at
-        the same path.
-    """
-    if read is None and write is None:
-        return
-    read = None if read is None else os.path.abspath(read)
-    write = None if write is None else os.path.abspath(write)
-    token = uuid.uuid4().hex
-    try:  # what the workers must read; a file this process cannot read is the stage's own error, when it reads it
-        expected = _fingerprint(read) if read is not None else None
-    except OSError:
-        expected = None
-    results = client.run(_probe, read, write, token, on_error="return")
-    try:
-        problems = (
-            _probe_problem(worker, result, read, write, expected, token) for worker, result in sorted(results.items())
-        )
-        problem = next((p for p in problems if p), None)
-    finally:
-        for result in results.values():
-            if write is not None and isinstance(result, dict) and "wrote" in result:
-                (Path(write) / result["wrote"]).unlink(missing_ok=True)
-    if problem is not None:
-        raise ClusterError(problem)
-
-
-def _probe_problem(
-    worker: str, result: Any, read: str | None, write: str | None, expected: tuple[int, str] | None, token: str
-) -> str | None:
-    """What a worker's probe found wrong (:func:`_probe`), as the one line to print; None: nothing."""
-    if isinstance(result, BaseException):  # the probe did not run: no aumesh there, or another version of it
-        return (
-            f"worker {worker} cannot run aumesh's probe ({_first_line(result)}): every worker must run the aumesh "
-            f"of this workspace. Fix: start the workers from the project's environment (.venv/bin/dask worker)."
-        )
-    if "read_error" in result:
-        return _unseen(worker, "read", read, result["read_error"])
-    if expected is not None and tuple(result["read"]) != expected:
-        size = result["read"][0]
-        return _unseen(
-            worker,
-            "read",
-            read,
-            f"another file there: {size} bytes, here {expected[0]}"
-            if size != expected[0]
-            else "another file there: other bytes",
-        )
-    if "write_error" in result:
-        return _unseen(worker, "write into", write, result["write_error"])
-    if write is not None and not _written_by_probe(Path(write) / result["wrote"], token):
-        return _unseen(worker, "write into", write, "what it wrote there is not seen here")
-    return None
-
-
-def _written_by_probe(path: Path, token: str) -> bool:
-    try:
-        return path.read_text() == token
-    except OSError:
-        return False
-
-
-def _unseen(worker: str, verb: str, path: str | None, cause: str) -> str:
-    folder = path if verb == "write into" or path is None else os.path.dirname(path)
-    return (
-        f"worker {worker} cannot {verb} {path} ({cause}): the folder {folder} must be on a filesystem every worker "
-        f"sees at the same path. Fix: start the workers where the workspace is mounted at that path (README, "
-        f'"Scale out"), or {_local_fix()}.'
-    )
-
-
-#: Arrow's allocator, read once, when pyarrow first allocates (so it is set before pyarrow is imported).
-ARROW_POOL_ENV = "ARROW_DEFAULT_MEMORY_POOL"
-
-
-def prefer_system_arrow_pool() -> None:
-    """Arrow's buffers from the C library's allocator rather than Arrow's bundled mimalloc, unless
-    ``ARROW_DEFAULT_MEMORY_POOL`` is already set. The stage processes' entry point calls it (:func:`aumesh.cli.run`);
-    a local process pool inherits it, a ``dask.distributed`` worker takes its own environment's (README, "Scale out").
-
-    The passes allocate and free a partition's Arrow buffers on worker threads, task after task. mimalloc kept their
-    pages resident with nothing allocated (its arena at the start of prepare's pass 3: 13 MiB at 100k frames, 35 MiB at
-    3.1M, from /proc/self/smaps), so the stage's memory grew with the partitions; glibc's free pages go back to the
-    system at each pass's end (:func:`release_freed_memory`). Prepare's peak at 3.1M frames: 475 -> 420 MiB.
-    """
-    os.environ.setdefault(ARROW_POOL_ENV, "system")
-
-
-#: glibc's ``mallopt`` parameter of the most malloc arenas (``M_ARENA_MAX`` in malloc.h).
-_M_ARENA_MAX = -8
-
-
-def limit_malloc_arenas(n: int) -> bool:
-    """At most ``n`` glibc malloc arenas for the threads that allocate from now on (process-wide, not undone: glibc
-    fixes its limit the first time it needs one); False where the C library is not glibc.
-
-    Every thread that allocates gets an arena of its own up to glibc's limit (8 per core), and each arena keeps the
-    holes its freed partition arrays leave: with the threads scheduler (its workers, Arrow's and BLAS's pools)
-    a stage's resident memory grew with the partitions it streamed, e.g. evaluate at 2.95M frames retained
-    ~90 MiB after its statistics pass (~25 MiB at 1M) and peaked at 621 MiB; with one arena per worker 574 MiB.
-    """
-    libc = _libc()
-    if libc is None or not hasattr(libc, "mallopt"):
-        return False
-    return bool(libc.mallopt(_M_ARENA_MAX, max(1, int(n))))
 
 
 def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
@@ -464,14 +260,16 @@ def task_rows(chunk_rows: int) -> int:
 
 @contextmanager
 def _releasing_freed_memory() -> Iterator[None]:
-    """Hand freed memory back to the operating system when a pass starts and ends (:func:`release_freed_memory`).
+    """Hand freed memory back to the operating system when a pass starts and ends
+    (:func:`aumesh.pipeline.compute_memory.release_freed_memory`).
 
     At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks of a long pass, :class:`_Task`), not after each
     task of a short pass: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in
     its arena reuses them, where pages returned after every task were faulted in again by the next (prepare's pass 3
     on 344k frames of parquet mesh columns: 1.3M page faults and 6.7 s of system time; at the pass's end: 0.4M and
     3.6 s, wall 0.87x, peak +30 MiB). With glibc's arenas capped at the workers
-    (:func:`limit_malloc_arenas`) and Arrow on the same allocator (:func:`prefer_system_arrow_pool`), the reuse does
+    (:func:`aumesh.pipeline.compute_memory.limit_malloc_arenas`) and Arrow on the same allocator
+    (:func:`aumesh.pipeline.compute_memory.prefer_system_arrow_pool`), the reuse does
     not grow with the partitions: the peaks at 100k and 3.1M frames were 390 / 409 and 390 / 417 MiB in two runs.
 
     It trims the stage process, whose threads run the local passes. A local process pool's workers keep their freed
@@ -484,37 +282,11 @@ def _releasing_freed_memory() -> Iterator[None]:
     (100k and 344k frames, side by side, 2 runs: 8.4 / 14.5 s either way) and lowers their peaks (243 -> 228 and
     256 -> 248 MiB).
     """
-    release_freed_memory()
+    compute_memory.release_freed_memory()
     try:
         yield
     finally:
-        release_freed_memory()
-
-
-def release_freed_memory() -> None:
-    """Return freed heap memory to the operating system (glibc's ``malloc_trim``, Arrow's pool); no-op elsewhere.
-
-    Arrow's system pool's ``release_unused`` is ``malloc_trim(0)`` itself; another pool (mimalloc, jemalloc) has its
-    own to release."""
-    if "pyarrow" in sys.modules:
-        pool = sys.modules["pyarrow"].default_memory_pool()
-        if pool.backend_name != "system":
-            pool.release_unused()
-    libc = _libc()
-    if libc is not None:
-        libc.malloc_trim(0)
-
-
-@functools.lru_cache(maxsize=1)
-def _libc():
-    """glibc, for ``malloc_trim`` (as ``dask.distributed``'s ``trim_memory``), or None on another C library."""
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return None
-    return libc if hasattr(libc, "malloc_trim") else None
+        compute_memory.release_freed_memory()
 
 
 def _bag(partitions: Sequence[Any]):
@@ -551,15 +323,15 @@ def local_map(fn: Callable, items: Sequence[Any]) -> list:
         return list(pool.map(fn, items))
 
 
-#: Tasks a process runs between two returns of its freed memory to the system (:func:`release_freed_memory`), in a
-#: pass of more than :data:`TRIM_AFTER_TASKS` partitions, besides the return at each pass's end. Each task's freed
-#: buffers stay in glibc's arenas for the next tasks to reuse, but the holes they leave are rarely the next task's
-#: sizes, so the resident pages crept up with the tasks a pass ran: a pass of 96 partitions (3.1M frames) peaked
-#: 20-25 MiB higher than one of 4, all else equal. Every 4 tasks: prepare's peak at 3.1M frames 305 -> 287 MiB,
-#: evaluate's 321 -> 298 and 326 -> 305 MiB, the same wall time (single runs). After every task (the count is
-#: process-wide, so with 2 threads every 4 was every 2 tasks of a thread): prepare at 3.1M 275-295 -> 261-271 MiB
-#: (4 runs each, alternating), the same wall time; the tasks of a long pass are ~0.5-1 s, so faulting their working
-#: set in again costs them little.
+#: Tasks a process runs between two returns of its freed memory to the system
+#: (:func:`aumesh.pipeline.compute_memory.release_freed_memory`), in a pass of more than :data:`TRIM_AFTER_TASKS`
+#: partitions, besides the return at each pass's end. Each task's freed buffers stay in glibc's arenas for the next
+#: tasks to reuse, but the holes they leave are rarely the next task's sizes, so the resident pages crept up with the
+#: tasks a pass ran: a pass of 96 partitions (3.1M frames) peaked 20-25 MiB higher than one of 4, all else equal.
+#: Every 4 tasks: prepare's peak at 3.1M frames 305 -> 287 MiB, evaluate's 321 -> 298 and 326 -> 305 MiB, the same
+#: wall time (single runs). After every task (the count is process-wide, so with 2 threads every 4 was every 2 tasks of
+#: a thread): prepare at 3.1M 275-295 -> 261-271 MiB (4 runs each, alternating), the same wall time; the tasks of a
+#: long pass are ~0.5-1 s, so faulting their working set in again costs them little.
 TRIM_EVERY_TASKS = 1
 #: Passes of at most this many partitions return freed memory at their end only: they creep little, and each return
 #: costs the next tasks the page faults of their working set again (prepare at 344k frames in the columns layout,
@@ -581,7 +353,7 @@ class _Task:
             return self.fn(item)
         finally:
             if self.trims and next(_TASKS_RUN) % TRIM_EVERY_TASKS == 0:
-                release_freed_memory()
+                compute_memory.release_freed_memory()
 
 
 def map_gather(fn: Callable, partitions: Sequence[Any], desc: str = "") -> list:
