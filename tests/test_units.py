@@ -172,7 +172,7 @@ def test_profile_faces_ingest_and_the_pose_filter_drops_them(tmp_path):
 
 
 def test_the_unit_judgement_sees_a_profile_face_in_pixels_and_any_face_in_normalized_units():
-    from aumesh.synthetic.pyfeat import _synth_setup
+    from aumesh.synthetic.pyfeat_faces import synth_setup
     from aumesh.synthetic.tables import SynthSpec, generate_video
 
     spec = SynthSpec(
@@ -184,7 +184,7 @@ def test_the_unit_judgement_sees_a_profile_face_in_pixels_and_any_face_in_normal
         noise_px=0.05,
         profile_yaw_deg=(89.5, 89.9),
     )
-    counts, args = _synth_setup(spec)
+    counts, args = synth_setup(spec)
     mesh = generate_video(spec, 0, 40, *args)["mesh"]  # (40, 478, 3) pixels, every frame in profile
     iod = np.linalg.norm(mesh[:, 33, :2] - mesh[:, 263, :2], axis=1)
     assert (iod < 1.0).mean() > 0.5  # what the inter-ocular test took for normalized coordinates
