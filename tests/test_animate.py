@@ -155,12 +155,12 @@ def test_clip_is_the_videos_frames_with_the_largest_face(table):
 
 
 def ingested_meshes(path: Path, mesh_units: str = "detector") -> dict[tuple[str, int], np.ndarray]:
-    """(video, frame) -> (478, 3) float32: the ingest's cleaned mesh of a table (aumesh.data.ingest's readers and
-    clean_block, the pipeline's route, not the clip's), frame pixels."""
-    from aumesh.data import ingest
+    """(video, frame) -> (478, 3) float32: the ingest's cleaned mesh of a table (aumesh.data.readers and
+    aumesh.data.ingest's clean_block, the pipeline's route, not the clip's), frame pixels."""
+    from aumesh.data import ingest, readers
 
-    source = ingest.open_source(path, "{stem}.npy")
-    spans = ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
+    source = readers.open_source(path, "{stem}.npy")
+    spans = readers.csv_spans(source) if source.kind == "csv" else [readers.Span(source, 0, source.n_rows or 0)]
     out = {}
     for block, _ in ingest.iter_clean_blocks(spans, "largest", None, mesh_units):
         for video, frame, mesh in zip(block.video, block.frame, block.mesh, strict=True):

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from aumesh.card import directions
 from aumesh.core import schema
 from aumesh.core.schema import AU_COLUMNS
-from aumesh.geometry import face
+from aumesh.geometry import face, landmarks, measures
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic import truth
 
@@ -73,8 +73,8 @@ def test_energy_shares_are_the_fields_squared_displacements_per_area():
     """Shares against numpy on the same partition: one field moving only the outer brows' vertices (all of its
     energy there) and the truth's AU12 field (shares sum to 1, top = the largest bincount)."""
     tpl = face.canonical_template()
-    area = face.face_areas(tpl)
-    names = list(face.AREA_SEEDS)
+    area = measures.face_areas(tpl)
+    names = list(landmarks.AREA_SEEDS)
     outer = np.isin(area, [names.index("brow_outer_left"), names.index("brow_outer_right")])
     brows = np.zeros((478, 3))
     brows[outer, 1] = -0.05  # up (y is down in the face frame)
@@ -86,7 +86,7 @@ def test_energy_shares_are_the_fields_squared_displacements_per_area():
     au12 = truth.facs_displacement_fields()[AU_COLUMNS.index("AU12")]
     e = directions.au_direction_from_displacement(au12, "AU12", tpl)
     energy = (au12**2).sum(axis=1)
-    group = np.array([face.region_group(names[a]) for a in area])
+    group = np.array([landmarks.region_group(names[a]) for a in area])
     want = {g: energy[group == g].sum() / energy.sum() for g in set(group)}
     assert sum(e["region_shares"].values()) == pytest.approx(1.0, abs=1e-3)
     for g, share in e["region_shares"].items():
@@ -98,24 +98,24 @@ def test_energy_shares_are_the_fields_squared_displacements_per_area():
 def test_areas_partition_the_face_from_named_landmarks_in_any_frame():
     """Seeds are disjoint named landmarks on the right side; every seed is in its own area; the partition is the
     same on a rotated, scaled, y-up mesh; each REGIONS region's landmarks fall in its own area group."""
-    seeds = [i for s in face.AREA_SEEDS.values() for i in s]
+    seeds = [i for s in landmarks.AREA_SEEDS.values() for i in s]
     assert len(seeds) == len(set(seeds))
     tpl = face.canonical_template()
-    named = set(face._named_uv()) | set(face.IRIS_LEFT + face.IRIS_RIGHT)
+    named = set(face._named_uv()) | set(landmarks.IRIS_LEFT + landmarks.IRIS_RIGHT)
     assert set(seeds) <= named, sorted(set(seeds) - named)
-    area = face.face_areas(tpl)
-    names = list(face.AREA_SEEDS)
-    for k, (name, idx) in enumerate(face.AREA_SEEDS.items()):
+    area = measures.face_areas(tpl)
+    names = list(landmarks.AREA_SEEDS)
+    for k, (name, idx) in enumerate(landmarks.AREA_SEEDS.items()):
         assert np.all(area[list(idx)] == k), name
-        side = face.region_side(name)
+        side = landmarks.region_side(name)
         if side:
             assert np.all(np.sign(tpl[list(idx), 0]) == side), name
     R = Rotation.from_euler("xyz", [0.3, -0.6, 1.2]).as_matrix()
-    assert np.array_equal(face.face_areas(250.0 * tpl @ R.T + 9.0), area)
-    assert np.array_equal(face.face_areas(tpl * np.array([1.0, -1.0, -1.0])), area)
-    for region, idx in face.REGIONS.items():
-        groups = {face.region_group(names[a]) for a in area[idx]}
-        assert face.region_group(region) in groups, (region, groups)
+    assert np.array_equal(measures.face_areas(250.0 * tpl @ R.T + 9.0), area)
+    assert np.array_equal(measures.face_areas(tpl * np.array([1.0, -1.0, -1.0])), area)
+    for region, idx in landmarks.REGIONS.items():
+        groups = {landmarks.region_group(names[a]) for a in area[idx]}
+        assert landmarks.region_group(region) in groups, (region, groups)
 
 
 def _smooth_perturbation(kind: str, rng: np.random.Generator, k: int, tpl: np.ndarray, fields: np.ndarray):
@@ -209,13 +209,13 @@ def test_direction_is_the_displacement_weighted_mean_of_the_region():
     vertices that move most decide (numpy's weighted average, weights |d|): AU12 passes, whereas the plain mean
     of the area would point mostly sideways and down (cosine 0.2)."""
     tpl = face.canonical_template()
-    area = face.face_areas(tpl)
-    names = list(face.AREA_SEEDS)
+    area = measures.face_areas(tpl)
+    names = list(landmarks.AREA_SEEDS)
     disp = np.zeros((478, 3))
     for side in ("left", "right"):
         zone = np.flatnonzero(area == names.index(f"lip_corner_{side}"))
-        corner = np.isin(zone, face.REGIONS[f"lip_corner_{side}"])
-        sign = face.region_side(f"lip_corner_{side}")
+        corner = np.isin(zone, landmarks.REGIONS[f"lip_corner_{side}"])
+        sign = landmarks.region_side(f"lip_corner_{side}")
         disp[zone[corner]] = 0.05 / np.sqrt(2) * np.array([sign, -1.0, 0.0])  # out and up (y down)
         disp[zone[~corner]] = [0.0, 0.02, 0.0]  # down
     e = directions.au_direction_from_displacement(disp, "AU12", tpl)

@@ -1,4 +1,4 @@
-"""Template, landmark orientation, triangulation and synthetic AU fields of aumesh.geometry.face."""
+"""Template, landmark orientation, triangulation and synthetic AU fields of aumesh.geometry.face and .landmarks."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES
-from aumesh.geometry import face
+from aumesh.geometry import face, landmarks
 from aumesh.synthetic import truth
 
 
@@ -45,9 +45,9 @@ def test_anchors_distinct_and_regions_valid(tpl):
     anchors = tpl[list(ANCHOR_INDICES)]
     d = np.linalg.norm(anchors[:, None] - anchors[None], axis=2) + np.eye(len(anchors))
     assert d.min() > 0.02
-    for name, idx in face.REGIONS.items():
+    for name, idx in landmarks.REGIONS.items():
         assert idx.size and idx.min() >= 0 and idx.max() < N_VERTICES, name
-        side = face.region_side(name)
+        side = landmarks.region_side(name)
         if side:
             assert np.all(np.sign(tpl[idx, 0]) == side), f"{name} on the wrong side"
 
@@ -57,13 +57,13 @@ def test_triangulation_indices_valid_and_covers_face(tpl):
     assert tri.ndim == 2 and tri.shape[1] == 3 and len(tri) > 700
     assert tri.min() >= 0 and tri.max() < N_VERTICES
     used = set(np.unique(tri).tolist())
-    iris = set(face.IRIS_RIGHT + face.IRIS_LEFT)
+    iris = set(landmarks.IRIS_RIGHT + landmarks.IRIS_LEFT)
     assert set(range(N_VERTICES)) - iris <= used  # every non-iris vertex is in a triangle
     # Total area close to the face oval's area.
     xy = tpl[:, :2]
     a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
     area = 0.5 * np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]).sum()
-    oval = xy[list(face.FACE_OVAL)]
+    oval = xy[list(landmarks.FACE_OVAL)]
     oval_area = 0.5 * abs(np.dot(oval[:, 0], np.roll(oval[:, 1], -1)) - np.dot(oval[:, 1], np.roll(oval[:, 0], -1)))
     assert 0.9 * oval_area < area <= oval_area * 1.0001
 
@@ -83,7 +83,7 @@ def test_no_triangle_spans_an_eye_or_mouth_opening(tpl, contour):
 def test_project_triangulation_has_no_triangle_inside_an_opening(tpl):
     tri = face.delaunay_triangles(tpl)
     cen = tpl[tri, :2].mean(axis=1)
-    for contour in (face.EYE_CONTOUR_RIGHT, face.EYE_CONTOUR_LEFT, face.LIPS_INNER):
+    for contour in (landmarks.EYE_CONTOUR_RIGHT, landmarks.EYE_CONTOUR_LEFT, landmarks.LIPS_INNER):
         assert not face._points_in_polygon(cen, tpl[list(contour), :2]).any()
 
 

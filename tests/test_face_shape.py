@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from aumesh.core.schema import flatten_axis_major
-from aumesh.geometry import face
+from aumesh.geometry import face, measures
 from aumesh.model.face_shape import DEPTH_WIDTH_RANGE, au0_face, face_shape_error
 from aumesh.model.inference import ReleaseError
 from aumesh.pipeline.release import refuse_implausible_face
@@ -29,10 +29,10 @@ def test_face_proportions_are_the_extents_of_the_surface_in_any_pose_and_units()
     extent = np.ptp(tpl[:468], axis=0)
     R = Rotation.from_euler("xyz", [0.3, -0.5, 2.0]).as_matrix()
     posed = 57.0 * tpl @ R.T + np.array([300.0, -20.0, 5.0])  # pixels, turned, moved
-    got = face.face_proportions(posed)
+    got = measures.face_proportions(posed)
     assert got["depth_width"] == pytest.approx(extent[2] / extent[0], rel=1e-9)
     assert got["width_height"] == pytest.approx(extent[0] / extent[1], rel=1e-9)
-    squashed = face.face_proportions(_flattened(posed, 1e-3))
+    squashed = measures.face_proportions(_flattened(posed, 1e-3))
     assert squashed["depth_width"] == pytest.approx(1e-3 * got["depth_width"], rel=1e-6)
     assert squashed["width_height"] == pytest.approx(got["width_height"], rel=1e-9)
 
@@ -40,8 +40,8 @@ def test_face_proportions_are_the_extents_of_the_surface_in_any_pose_and_units()
 def test_flat_face_is_refused_naming_file_ratio_range_and_cause_and_a_face_passes():
     tpl = 120.0 * face.canonical_template() + 300.0
     low, high = DEPTH_WIDTH_RANGE
-    assert face_shape_error(face.face_proportions(tpl)["depth_width"], "the AU=0 face", "m.npz") is None
-    ratio = face.face_proportions(_flattened(tpl, 1e-3))["depth_width"]
+    assert face_shape_error(measures.face_proportions(tpl)["depth_width"], "the AU=0 face", "m.npz") is None
+    ratio = measures.face_proportions(_flattened(tpl, 1e-3))["depth_width"]
     msg = face_shape_error(ratio, "the AU=0 face (intercept)", "build/model/model.npz")
     assert msg is not None and "\n" not in msg
     for text in ("build/model/model.npz", f"{ratio:.4g}", f"[{low:g}, {high:g}]", "crop units", "mesh_units"):
@@ -54,7 +54,7 @@ def test_the_stage_check_names_the_reference_when_only_it_is_flat(tmp_path):
     tpl = 120.0 * face.canonical_template() + 300.0
     intercept = flatten_axis_major(tpl)
     record = refuse_implausible_face(intercept, tpl, tmp_path / "model.npz", tmp_path / "reference.npz")
-    assert record["depth_width"] == pytest.approx(face.face_proportions(tpl)["depth_width"], rel=1e-3)
+    assert record["depth_width"] == pytest.approx(measures.face_proportions(tpl)["depth_width"], rel=1e-3)
     assert np.allclose(au0_face(intercept), tpl)
     with pytest.raises(ReleaseError, match=r"reference\.npz: mean_aligned_mesh has depth/width"):
         refuse_implausible_face(intercept, _flattened(tpl, 1e-3), tmp_path / "model.npz", tmp_path / "reference.npz")

@@ -14,7 +14,7 @@ import pytest
 
 from aumesh.core.errors import TableError
 from aumesh.data import ingest as ingest_data
-from aumesh.data import tables
+from aumesh.data import readers, tables
 from aumesh.pipeline import ingest, prepare
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from aumesh.synthetic.tables import SynthSpec
@@ -147,7 +147,7 @@ def test_face_selection_identity_keeps_the_videos_subject(clean_reference, pyfea
 
 
 def test_identity_selection_picks_the_person_seen_most_not_the_largest_face():
-    block = ingest_data.Block(
+    block = readers.Block(
         video=np.array(["v", "v", "v", "v"]),
         frame=np.array([0, 0, 1, 2]),
         values={"FaceRectWidth": np.array([10.0, 50, 10, 10]), "FaceRectHeight": np.array([10.0, 50, 10, 10])},
@@ -166,13 +166,13 @@ def test_identity_selection_picks_the_person_seen_most_not_the_largest_face():
 
 def test_csv_ranges_never_split_a_frame_and_give_the_same_tables(clean_reference, tmp_path, monkeypatch):
     root, *_ = clean_reference
-    source = ingest_data.open_source(sorted((root / "mp_csv").glob("*.csv"))[0], "{stem}.npy")
-    spans = ingest_data.csv_spans(source, range_bytes=200_000)  # ~12 rows a range
+    source = readers.open_source(sorted((root / "mp_csv").glob("*.csv"))[0], "{stem}.npy")
+    spans = readers.csv_spans(source, range_bytes=200_000)  # ~12 rows a range
     assert len(spans) > 10
     assert spans[0].start > 0 and spans[-1].stop == source.path.stat().st_size
     assert all(a.stop == b.start for a, b in zip(spans[:-1], spans[1:], strict=True))
-    whole = ingest_data.read_span(ingest_data.Span(source, spans[0].start, spans[-1].stop))
-    parts = [ingest_data.read_span(s) for s in spans]
+    whole = readers.read_span(readers.Span(source, spans[0].start, spans[-1].stop))
+    parts = [readers.read_span(s) for s in spans]
     keys = [
         (
             str(p.column("input")[0]),
@@ -185,11 +185,11 @@ def test_csv_ranges_never_split_a_frame_and_give_the_same_tables(clean_reference
     for (_, _, last_video, last_frame), (first_video, first_frame, _, _) in zip(keys[:-1], keys[1:], strict=True):
         assert (last_video, last_frame) != (first_video, first_frame)  # a frame's faces stay in one range
     assert sum(p.num_rows for p in parts) == whole.num_rows
-    monkeypatch.setattr(ingest_data, "CSV_RANGE_BYTES", 200_000)
+    monkeypatch.setattr(readers, "CSV_RANGE_BYTES", 200_000)
     out_small = tmp_path / "small.parquet"
     out_whole = tmp_path / "whole.parquet"
     ingest_data.write_clean(spans, out_small, "largest", None)
-    ingest_data.write_clean([ingest_data.Span(source, spans[0].start, spans[-1].stop)], out_whole, "largest", None)
+    ingest_data.write_clean([readers.Span(source, spans[0].start, spans[-1].stop)], out_whole, "largest", None)
     assert pq.read_table(out_small).equals(pq.read_table(out_whole))
 
 
@@ -285,11 +285,11 @@ def test_a_parquet_table_is_streamed_in_batches_without_splitting_a_frames_faces
     path = sorted((tmp_path / "data").glob("*.parquet"))[0]
     if pq.read_metadata(path).num_row_groups != 1:  # one row group, as pandas writes (the generator's already is)
         pq.write_table(pq.read_table(path), path, row_group_size=1 << 20)
-    source = ingest_data.open_source(path, "{stem}.npy")
-    whole = ingest_data.Span(source, 0, source.n_rows)
+    source = readers.open_source(path, "{stem}.npy")
+    whole = readers.Span(source, 0, source.n_rows)
     ingest_data.write_clean([whole], tmp_path / "one.parquet", "largest", None)
-    monkeypatch.setattr(ingest_data, "PARQUET_RANGE_ROWS", 7)  # batches of 7 rows: frames with 2 faces straddle them
-    batches = list(ingest_data.iter_span_tables(whole))
+    monkeypatch.setattr(readers, "PARQUET_RANGE_ROWS", 7)  # batches of 7 rows: frames with 2 faces straddle them
+    batches = list(readers.iter_span_tables(whole))
     assert len(batches) > 20 and sum(t.num_rows for _, t in batches) == source.n_rows
     assert any(t.num_rows != 7 for _, t in batches[:-1])  # a frame's faces were carried into the next batch
     assert all(a.stop == b.start for (a, _), (b, _) in zip(batches[:-1], batches[1:], strict=True))

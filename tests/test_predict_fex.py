@@ -19,7 +19,7 @@ from aumesh.core.io import atomic_savez
 from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_set_columns
 from aumesh.model.inference import PredictionInputError
 from aumesh.model.release import release_arrays
-from aumesh.synthetic.pyfeat import BLENDSHAPE_COLUMNS
+from aumesh.synthetic.pyfeat_columns import BLENDSHAPE_COLUMNS
 from conftest import face_reference
 
 BLENDSHAPES = list(BLENDSHAPE_COLUMNS)

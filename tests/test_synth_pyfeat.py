@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 
 from aumesh.core.schema import AU_COLUMNS
-from aumesh.synthetic.pyfeat import pyfeat_columns, write_pyfeat_tables
+from aumesh.synthetic.pyfeat import write_pyfeat_tables
+from aumesh.synthetic.pyfeat_columns import pyfeat_columns
 from aumesh.synthetic.tables import SynthSpec, write_tables
 
 SPEC = SynthSpec(n_frames=300, n_videos=6)

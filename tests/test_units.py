@@ -16,7 +16,8 @@ import pytest
 from aumesh.card.model_card import _ingest_lines
 from aumesh.core.errors import TableError
 from aumesh.core.schema import N_VERTICES
-from aumesh.data import ingest as ingest_data
+from aumesh.data import pyfeat, readers
+from aumesh.data import units as data_units
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import ingest
 from aumesh.pipeline.integrity import load_reference
@@ -172,7 +173,7 @@ def test_profile_faces_ingest_and_the_pose_filter_drops_them(tmp_path):
 
 
 def test_the_unit_judgement_sees_a_profile_face_in_pixels_and_any_face_in_normalized_units():
-    from aumesh.synthetic.pyfeat import _synth_setup
+    from aumesh.synthetic.pyfeat_faces import synth_setup
     from aumesh.synthetic.tables import SynthSpec, generate_video
 
     spec = SynthSpec(
@@ -184,16 +185,16 @@ def test_the_unit_judgement_sees_a_profile_face_in_pixels_and_any_face_in_normal
         noise_px=0.05,
         profile_yaw_deg=(89.5, 89.9),
     )
-    counts, args = _synth_setup(spec)
+    counts, args = synth_setup(spec)
     mesh = generate_video(spec, 0, 40, *args)["mesh"]  # (40, 478, 3) pixels, every frame in profile
     iod = np.linalg.norm(mesh[:, 33, :2] - mesh[:, 263, :2], axis=1)
     assert (iod < 1.0).mean() > 0.5  # what the inter-ocular test took for normalized coordinates
     flat = mesh.transpose(0, 2, 1).reshape(len(mesh), -1)
-    assert not ingest_data.normalized_rows(flat).any()
+    assert not data_units.normalized_rows(flat).any()
     normalized = (mesh / [640.0, 480.0, 640.0]).transpose(0, 2, 1).reshape(len(mesh), -1)
-    assert ingest_data.normalized_rows(normalized).all()
+    assert data_units.normalized_rows(normalized).all()
     side = np.ptp(mesh[:, :, 1], axis=1) * 1.3  # a FaceRect around the face, in pixels
-    assert ingest_data.normalized_rows(normalized, side).all() and not ingest_data.normalized_rows(flat, side).any()
+    assert data_units.normalized_rows(normalized, side).all() and not data_units.normalized_rows(flat, side).any()
 
 
 def test_a_normalized_parquet_is_cleaned_and_converted(tmp_path):
@@ -244,20 +245,18 @@ def test_the_mixed_units_message_names_the_video_as_text():
     mesh[0, :N_VERTICES] = np.linspace(0, 200, N_VERTICES)  # pixels
     mesh[0, N_VERTICES : 2 * N_VERTICES] = np.linspace(0, 300, N_VERTICES)
     mesh[1, : 2 * N_VERTICES] = np.linspace(0, 0.4, 2 * N_VERTICES)  # normalized
-    block = ingest_data.Block(
-        video=np.array(["a", "clip7"]), frame=np.array([0, 3]), values={}, identity=None, mesh=mesh
-    )
-    layout = ingest_data.pyfeat.Layout("table", "video_id", None, None, None, None, None)
+    block = readers.Block(video=np.array(["a", "clip7"]), frame=np.array([0, 3]), values={}, identity=None, mesh=mesh)
+    layout = pyfeat.Layout("table", "video_id", None, None, None, None, None)
     with pytest.raises(TableError, match=r"^t: mixes .* \(frame 3 of video 'clip7' differs"):
-        ingest_data.convert_units(block, layout, "detector", "t")
+        data_units.convert_units(block, layout, "detector", "t")
 
 
 def test_the_depth_height_histograms_merge_to_numpys_median():
     rng = np.random.default_rng(4)
     ratios = np.exp(rng.normal(np.log(0.5), 0.4, 5001))
-    parts = [ingest_data.ratio_hist(p) for p in np.array_split(ratios, [1000, 3500])]
+    parts = [data_units.ratio_hist(p) for p in np.array_split(ratios, [1000, 3500])]
     merged = parts[0] + parts[1] + parts[2]
     assert merged.counts.sum() == len(ratios)
     assert merged.median() == pytest.approx(np.median(ratios), rel=0.012)  # half a 0.01-decade bin
-    flat = ingest_data.ratio_hist(np.array([0.0, 1e-3, np.nan, np.inf]))  # non-finite values are not faces
+    flat = data_units.ratio_hist(np.array([0.0, 1e-3, np.nan, np.inf]))  # non-finite values are not faces
     assert flat.counts.sum() == 2 and flat.median() < 1.1e-3

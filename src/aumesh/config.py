@@ -31,7 +31,7 @@ from aumesh.core.schema import (
 
 #: ``data.face_selection``: which face of a frame with several is the video's subject (aumesh.data.ingest).
 FACE_SELECTIONS = ("largest", "identity", "error")
-#: ``data.mesh_units``: how the mesh's z is read (aumesh.data.ingest; docs/conventions.md "py-feat's mesh units").
+#: ``data.mesh_units``: how the mesh's z is read (aumesh.data.units; docs/conventions.md "py-feat's mesh units").
 MESH_UNITS = ("detector", "pixels")
 
 

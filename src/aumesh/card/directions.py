@@ -8,7 +8,7 @@ scaled releases all give the same answer) in inter-ocular units (IOD), then judg
 
 Where the motion is
 -------------------
-The face is cut into areas (:data:`aumesh.geometry.face.AREA_SEEDS`, :func:`aumesh.geometry.face.face_areas`:
+The face is cut into areas (:data:`aumesh.geometry.landmarks.AREA_SEEDS`, :func:`aumesh.geometry.measures.face_areas`:
 every vertex belongs to the area of its nearest seed landmark on the release's own mean mesh; 17 groups once
 left and right are joined: forehead, temple, glabella, brow_inner, brow_outer, upper_eyelid, lower_eyelid, iris,
 nose, nasolabial, cheek, face_side, lip_corner, upper_lip, lower_lip, chin, jaw). The field's **share of motion** in
@@ -80,7 +80,7 @@ import numpy as np
 from aumesh.core import schema
 from aumesh.core.io import atomic_write_json
 from aumesh.core.schema import AU_COLUMNS, AU_NAMES, N_TARGETS, N_VERTICES
-from aumesh.geometry import face
+from aumesh.geometry import face, landmarks, measures
 
 PASS_COSINE = 0.7
 FAIL_COSINE = 0.0
@@ -105,7 +105,7 @@ _TERMS: dict[str, tuple[float, float, float]] = {
 # The FACS expectation table (data). "checks": the direction FACS gives in the AU's FACS region(s),
 # (area group, {term: weight}); "regions" (default: the checks' groups): the AU's FACS region(s), where its largest
 # motion must be; "nearby": the other area groups where FACS describes appearance changes of the AU.
-# Groups are aumesh.geometry.face.AREA_SEEDS names without their side.
+# Groups are aumesh.geometry.landmarks.AREA_SEEDS names without their side.
 FACS_EXPECTATIONS: dict[str, dict[str, Any]] = {
     "AU01": {
         "name": AU_NAMES["AU01"],
@@ -199,8 +199,8 @@ FACS_EXPECTATIONS: dict[str, dict[str, Any]] = {
 }
 
 _RANK = {"pass": 0, "doubtful": 1, "fail": 2}
-AREA_NAMES: tuple[str, ...] = tuple(face.AREA_SEEDS)
-AREA_GROUPS: tuple[str, ...] = tuple(dict.fromkeys(face.region_group(a) for a in AREA_NAMES))
+AREA_NAMES: tuple[str, ...] = tuple(landmarks.AREA_SEEDS)
+AREA_GROUPS: tuple[str, ...] = tuple(dict.fromkeys(landmarks.region_group(a) for a in AREA_NAMES))
 
 
 def _local(vec: np.ndarray, side: np.ndarray | int) -> np.ndarray:
@@ -222,10 +222,10 @@ class _Areas:
     """The area partition of one mesh: per vertex its area group and side (+1 left, -1 right, 0 midline)."""
 
     def __init__(self, mesh: np.ndarray):
-        area = face.face_areas(mesh)
-        self.group = np.array([AREA_GROUPS.index(face.region_group(a)) for a in AREA_NAMES])[area]
-        self.side = np.array([face.region_side(a) for a in AREA_NAMES])[area]
-        self.bilateral = {g: any(face.region_group(a) == g and a != g for a in AREA_NAMES) for g in AREA_GROUPS}
+        area = measures.face_areas(mesh)
+        self.group = np.array([AREA_GROUPS.index(landmarks.region_group(a)) for a in AREA_NAMES])[area]
+        self.side = np.array([landmarks.region_side(a) for a in AREA_NAMES])[area]
+        self.bilateral = {g: any(landmarks.region_group(a) == g and a != g for a in AREA_NAMES) for g in AREA_GROUPS}
 
     def mask(self, group: str) -> np.ndarray:
         if group not in AREA_GROUPS:
@@ -258,7 +258,7 @@ def au_direction_from_displacement(disp: np.ndarray, au: str, mesh: np.ndarray |
     au : str
         AU name, a key of :data:`FACS_EXPECTATIONS`.
     mesh : np.ndarray, shape (478, 3), optional
-        The neutral (mean) mesh the areas are found on (:func:`aumesh.geometry.face.face_areas`);
+        The neutral (mean) mesh the areas are found on (:func:`aumesh.geometry.measures.face_areas`);
         defaults to :func:`aumesh.geometry.face.canonical_template`.
 
     Returns

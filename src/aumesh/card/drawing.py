@@ -19,7 +19,7 @@ import numpy as np
 
 from aumesh.core.io import atomic_path
 from aumesh.core.schema import AU_COLUMNS
-from aumesh.geometry import face
+from aumesh.geometry import landmarks
 
 DPI = 110
 SKIN = np.array([0.93, 0.78, 0.66])
@@ -110,15 +110,15 @@ def draw_solid(
 
 def draw_features(ax, mesh: np.ndarray, color: str = "0.2", lw: float = 0.6) -> None:
     for contour in (
-        face.EYE_CONTOUR_RIGHT,
-        face.EYE_CONTOUR_LEFT,
-        face.LIPS_OUTER,
-        face.LIPS_INNER,
-        face.BROW_UPPER_RIGHT,
-        face.BROW_UPPER_LEFT,
-        face.FACE_OVAL,
+        landmarks.EYE_CONTOUR_RIGHT,
+        landmarks.EYE_CONTOUR_LEFT,
+        landmarks.LIPS_OUTER,
+        landmarks.LIPS_INNER,
+        landmarks.BROW_UPPER_RIGHT,
+        landmarks.BROW_UPPER_LEFT,
+        landmarks.FACE_OVAL,
     ):
-        closed = contour not in (face.BROW_UPPER_RIGHT, face.BROW_UPPER_LEFT)
+        closed = contour not in (landmarks.BROW_UPPER_RIGHT, landmarks.BROW_UPPER_LEFT)
         idx = list(contour) + ([contour[0]] if closed else [])
         ax.plot(mesh[idx, 0], -mesh[idx, 1], color=color, lw=lw)
 

@@ -101,7 +101,7 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
             )
             + ")"
         )
-    # the ingest stage's conversions (aumesh.data.ingest; docs/conventions.md "py-feat's mesh units")
+    # the ingest stage's conversions (aumesh.data.units; docs/conventions.md "py-feat's mesh units")
     done = []
     if counts.get("rows_z_from_chip"):
         done.append(

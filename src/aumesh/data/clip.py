@@ -1,16 +1,16 @@
 """One video of a py-feat table as a clip over time: its frames, their times, and per frame the AUs, head pose and the
 recorded MediaPipe mesh (NaN where the detector found no face).
 
-The table is read by the ingest's readers (:mod:`aumesh.data.ingest`: py-feat's CSV, ``.csv.gz`` or parquet, either
+The table is read by the ingest's readers (:mod:`aumesh.data.readers`: py-feat's CSV, ``.csv.gz`` or parquet, either
 detector's mesh layout, the split layout's ``.npy``), and cleaned by its rules, but frame by frame and without
 dropping anything: a frame py-feat wrote only as a no-face row stays in the clip with ``has_face`` False; of several
 faces in a frame one is kept (``face_selection``, as ``data.face_selection``: the largest face box by default).
 
 **Units** (docs/conventions.md, "py-feat's mesh units"): the recorded mesh leaves in frame pixels on every axis, by
-the ingest's own functions on the clip's face rows (:func:`aumesh.data.ingest.convert_units`), so it equals the
+the ingest's own functions on the clip's face rows (:func:`aumesh.data.units.convert_units`), so it equals the
 ingest's cleaned mesh of the same frames: Detectorv2's z (0-1 of its chip) x FaceRectWidth, MPDetector's z (pixels of
 its 256-px crop) x FaceRectWidth / 256, each row by its own FaceRect; normalized image units, judged from the face's
-2-D extent against its FaceRect (:func:`~aumesh.data.ingest.normalized_rows`: a profile face is tens of pixels tall
+2-D extent against its FaceRect (:func:`~aumesh.data.units.normalized_rows`: a profile face is tens of pixels tall
 even where its inter-ocular distance is below a pixel), x and z x FrameWidth, y x FrameHeight. ``mesh_units="pixels"``
 takes a detector's z as pixels (a table rescaled after py-feat). What was done is :attr:`Clip.mesh_units`
 (:data:`MESH_UNIT_NOTES` says it in words). One difference from the ingest: a mesh in normalized units in a table
@@ -44,7 +44,8 @@ import pyarrow.parquet as pq
 
 from aumesh.core.errors import MissingFileError, TableError, UserError, corrupt_parquet
 from aumesh.core.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
-from aumesh.data import ingest, pyfeat
+from aumesh.data import ingest, pyfeat, readers
+from aumesh.data.units import Z_CROP, convert_units, normalized_rows, rect_side
 
 log = logging.getLogger(__name__)
 
@@ -193,9 +194,9 @@ class ClipTable:
     """A py-feat table read once (:func:`read_table`), to cut into one :class:`Clip` per video."""
 
     path: Path
-    source: ingest.Source
+    source: readers.Source
     has_mesh: bool
-    block: ingest.Block  # every row, in the table's order
+    block: readers.Block  # every row, in the table's order
     approx: np.ndarray | None  # approx_time of every row, None when the table has none
 
     @property
@@ -236,7 +237,7 @@ def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
             f"{path}: no such file. Fix: give the py-feat table (CSV, .csv.gz or parquet) that "
             f"detect(..., save=) or Fex.to_parquet wrote."
         )
-    if not ingest.is_table(path):
+    if not readers.is_table(path):
         raise TableError(f"{path}: not a py-feat table. Fix: give a .csv, .csv.gz or .parquet file.")
     source, has_mesh = _open(path, mesh_npy)
     block, approx = _read(source, has_mesh)
@@ -254,9 +255,9 @@ def _check_options(fps: float | None, face_selection: str, mesh_units: str | Non
         raise UserError(f"--mesh-units {mesh_units}: use one of {', '.join(MESH_UNITS)}.")
 
 
-def to_frame_pixels(faces: ingest.Block, layout: pyfeat.Layout, mesh_units: str, where: str) -> str:
+def to_frame_pixels(faces: readers.Block, layout: pyfeat.Layout, mesh_units: str, where: str) -> str:
     """The face rows' meshes ``faces.mesh`` (m, 1434) axis-major to frame pixels in place, by the ingest's
-    :func:`~aumesh.data.ingest.convert_units` (the same rows give the ingest's cleaned meshes, bit for bit); returns
+    :func:`~aumesh.data.units.convert_units` (the same rows give the ingest's cleaned meshes, bit for bit); returns
     what was done, a key of :data:`MESH_UNIT_NOTES`.
 
     A mesh in normalized units without FrameWidth/FrameHeight columns is left as written (``"normalized-raw"``).
@@ -269,16 +270,16 @@ def to_frame_pixels(faces: ingest.Block, layout: pyfeat.Layout, mesh_units: str,
     """
     if not len(faces):
         return "none"
-    normalized = ingest.normalized_rows(faces.mesh, ingest.rect_side(faces, layout))
+    normalized = normalized_rows(faces.mesh, rect_side(faces, layout))
     if normalized.all() and layout.frame_size is None:
         return "normalized-raw"
     try:
-        stats = ingest.convert_units(faces, layout, mesh_units, where)
+        stats = convert_units(faces, layout, mesh_units, where)
     except TableError as err:  # the ingest names its config key; here the same choice is a command-line option
         raise TableError(str(err).replace("data.mesh_units=pixels", "--mesh-units pixels")) from None
     if stats.z in ("chip", "crop256", "normalized"):
         return stats.z
-    return "pixels-asked" if layout.detector in ingest.Z_CROP else "pixels"
+    return "pixels-asked" if layout.detector in Z_CROP else "pixels"
 
 
 def _video_clip(
@@ -352,7 +353,7 @@ def _video_clip(
     )
 
 
-def _frame_size(block: ingest.Block, layout: pyfeat.Layout) -> tuple[float, float] | None:
+def _frame_size(block: readers.Block, layout: pyfeat.Layout) -> tuple[float, float] | None:
     """The first finite, positive ``FrameWidth, FrameHeight`` of the rows, None when the table has none."""
     if layout.frame_size is None:
         return None
@@ -363,8 +364,8 @@ def _frame_size(block: ingest.Block, layout: pyfeat.Layout) -> tuple[float, floa
 
 def _names(path: Path) -> tuple[str, list[str], int | None]:
     """``(kind, column names, rows)`` of a table (rows: parquet only)."""
-    if path.name.endswith(ingest.CSV_SUFFIXES):
-        return "csv", ingest.csv_header(path), None
+    if path.name.endswith(readers.CSV_SUFFIXES):
+        return "csv", readers.csv_header(path), None
     try:
         md = pq.read_metadata(path)
     except Exception as err:  # pyarrow raises several types for a bad file
@@ -372,8 +373,8 @@ def _names(path: Path) -> tuple[str, list[str], int | None]:
     return "parquet", md.schema.to_arrow_schema().names, md.num_rows
 
 
-def _open(path: Path, mesh_npy: str) -> tuple[ingest.Source, bool]:
-    """The table as the ingest's :class:`~aumesh.data.ingest.Source`, and whether it has a mesh. A table without one
+def _open(path: Path, mesh_npy: str) -> tuple[readers.Source, bool]:
+    """The table as the ingest's :class:`~aumesh.data.readers.Source`, and whether it has a mesh. A table without one
     (no 478-vertex columns, no ``.npy`` beside it) is the split layout without its ``.npy``: AUs and pose only."""
     kind, names, n_rows = _names(path)
     present = set(names)
@@ -383,18 +384,18 @@ def _open(path: Path, mesh_npy: str) -> tuple[ingest.Source, bool]:
         or "z_0" in present  # MPDetector's mesh (the 68-point block has no z): the ingest checks its 478 vertices
         or (kind == "parquet" and npy.exists())
     ):
-        return ingest.open_source(path, mesh_npy), True
+        return readers.open_source(path, mesh_npy), True
     lay = pyfeat.layout(names, str(path), split_mesh=True)
-    return ingest.Source(path, kind, lay, tuple(names), None, n_rows), False
+    return readers.Source(path, kind, lay, tuple(names), None, n_rows), False
 
 
-def _read(source: ingest.Source, has_mesh: bool) -> tuple[ingest.Block, np.ndarray | None]:
-    """Every row of the table as one :class:`~aumesh.data.ingest.Block`, and its ``approx_time`` values (None when
+def _read(source: readers.Source, has_mesh: bool) -> tuple[readers.Block, np.ndarray | None]:
+    """Every row of the table as one :class:`~aumesh.data.readers.Block`, and its ``approx_time`` values (None when
     absent). A table without a mesh gets NaN mesh columns (what the ingest's no-face and face-size rules read)."""
     lay = source.layout
     columns = list(lay.columns) + ([APPROX_TIME] if APPROX_TIME in source.header else [])
-    spans = ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
-    parts = [part for span in spans for part in ingest.iter_span_tables(span, columns)]
+    spans = readers.csv_spans(source) if source.kind == "csv" else [readers.Span(source, 0, source.n_rows or 0)]
+    parts = [part for span in spans for part in readers.iter_span_tables(span, columns)]
     blocks, approx = [], []
     for span, table in parts:
         if not has_mesh:
@@ -402,22 +403,22 @@ def _read(source: ingest.Source, has_mesh: bool) -> tuple[ingest.Block, np.ndarr
             nan = pa.array(np.full(table.num_rows, np.nan, np.float32))
             table = pa.Table.from_arrays([*table.columns, *([nan] * len(names))], [*table.column_names, *names])
             span = replace(span, source=replace(source, layout=replace(lay, mesh=tuple(names))))
-        blocks.append(ingest.to_block(table, span))
+        blocks.append(readers.to_block(table, span))
         if APPROX_TIME in table.column_names:
             approx.append(table.column(APPROX_TIME).to_numpy(zero_copy_only=False))
     block = _concat(blocks)
     return block, (np.concatenate(approx) if approx else None)
 
 
-def _concat(blocks: Sequence[ingest.Block]) -> ingest.Block:
+def _concat(blocks: Sequence[readers.Block]) -> readers.Block:
     if len(blocks) == 1:
         return blocks[0]
     if not blocks:
-        return ingest.Block(
+        return readers.Block(
             np.zeros(0, str), np.zeros(0, np.int64), {}, None, np.zeros((0, 3 * N_VERTICES), np.float32)
         )
     first = blocks[0]
-    return ingest.Block(
+    return readers.Block(
         np.concatenate([b.video for b in blocks]),
         np.concatenate([b.frame for b in blocks]),
         {k: np.concatenate([b.values[k] for b in blocks]) for k in first.values},

@@ -14,7 +14,7 @@ emotions, identity embeddings and gaze (about 2,000 columns) are never read.
 The detector is named from the columns (:attr:`Layout.detector`): ``mesh_x_*`` is Detectorv2; the interleaved mesh
 beside py-feat's ``FaceRectWidth``/``FaceRectHeight`` is MPDetector; the interleaved mesh without them is ``table``
 (not a py-feat export: a hand-made or converted table, its mesh taken as pixels); no mesh columns is ``split``. The
-detector decides the units of z (:mod:`aumesh.data.ingest`, docs/conventions.md "py-feat's mesh units").
+detector decides the units of z (:mod:`aumesh.data.units`, docs/conventions.md "py-feat's mesh units").
 """
 
 from __future__ import annotations

@@ -127,7 +127,7 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
                 f"{path}: no mesh columns (x_0..z_477) and no mesh file {mesh_npy}. Fix: add the mesh columns, "
                 f"or save py-feat's [N, 478, 3] landmarks as {mesh_npy.name} (pattern data.mesh_npy)."
             )
-        from aumesh.data.ingest import DATA_NPY_FIX
+        from aumesh.data.readers import DATA_NPY_FIX
 
         check_npy(
             mesh_npy, DATA_NPY_FIX

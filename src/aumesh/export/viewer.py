@@ -207,18 +207,18 @@ def clip_data(clip: Any, weights: np.ndarray | None = None) -> dict:
 def unit_rules() -> dict:
     """The ingest's unit rules as the page's JSON, so a table dropped on the page is converted by the same numbers
     as ``read_clip`` converts an embedded one (docs/conventions.md, "py-feat's mesh units"): the vertices whose
-    spans judge the units (:data:`aumesh.data.ingest.SHAPE_VERTICES`), :data:`~aumesh.data.ingest.NORMALIZED_MAX_EXTENT`,
-    :data:`~aumesh.data.ingest.NORMALIZED_MAX_RECT_FRACTION`, the detectors' z units (:data:`~aumesh.data.ingest.Z_CROP`:
+    spans judge the units (:data:`aumesh.data.units.SHAPE_VERTICES`), :data:`~aumesh.data.units.NORMALIZED_MAX_EXTENT`,
+    :data:`~aumesh.data.units.NORMALIZED_MAX_RECT_FRACTION`, the detectors' z units (:data:`~aumesh.data.units.Z_CROP`:
     name and divisor), the FaceRect and frame-size columns, and the words for each outcome
     (:data:`~aumesh.data.clip.MESH_UNIT_NOTES`)."""
-    from aumesh.data import ingest, pyfeat
+    from aumesh.data import pyfeat, units
     from aumesh.data.clip import MESH_UNIT_NOTES
 
     return {
-        "shape_vertices": [int(i) for i in ingest.SHAPE_VERTICES],
-        "normalized_max_extent": float(ingest.NORMALIZED_MAX_EXTENT),
-        "normalized_max_rect_fraction": float(ingest.NORMALIZED_MAX_RECT_FRACTION),
-        "z_crop": {det: [unit, float(divisor)] for det, (unit, divisor) in ingest.Z_CROP.items()},
+        "shape_vertices": [int(i) for i in units.SHAPE_VERTICES],
+        "normalized_max_extent": float(units.NORMALIZED_MAX_EXTENT),
+        "normalized_max_rect_fraction": float(units.NORMALIZED_MAX_RECT_FRACTION),
+        "z_crop": {det: [unit, float(divisor)] for det, (unit, divisor) in units.Z_CROP.items()},
         "face_box_size": list(pyfeat.FACE_BOX_SIZE),
         "frame_size": list(pyfeat.FRAME_SIZE),
         "notes": dict(MESH_UNIT_NOTES),

@@ -4,7 +4,7 @@ A face measured in mixed units still fits, cross-validates and renders: a mesh w
 units (py-feat's Detectorv2 maps x and y back to the frame and passes the mesh head's [0, 1] z through,
 ``feat/detector_v2.py`` ``_mesh_to_original_frame``; MPDetector leaves z in its 256 px crop, ``feat/MPDetector.py``
 ``forward``) gives a flat face, depth/width ~0.001, that nothing else notices. The release stage measures its AU=0
-face (:func:`aumesh.geometry.face.face_proportions`) and refuses one outside :data:`DEPTH_WIDTH_RANGE`.
+face (:func:`aumesh.geometry.measures.face_proportions`) and refuses one outside :data:`DEPTH_WIDTH_RANGE`.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 
 from aumesh.core.schema import unflatten_axis_major
-from aumesh.geometry.face import face_proportions
+from aumesh.geometry.measures import face_proportions
 
-#: Depth/width of faces measured the same way (:func:`aumesh.geometry.face.face_proportions`): the numbers the
+#: Depth/width of faces measured the same way (:func:`aumesh.geometry.measures.face_proportions`): the numbers the
 #: card and the refusal quote.
 REFERENCE_DEPTH_WIDTH = {
     "MediaPipe canonical face": 0.65,  # py-feat 2.1.5 resources/canonical_face_model.pt
@@ -68,7 +68,7 @@ def face_shape_error(depth_width: float, what: str, source: str) -> str | None:
     Parameters
     ----------
     depth_width : float
-        :func:`aumesh.geometry.face.face_proportions`'s ``depth_width`` of the face.
+        :func:`aumesh.geometry.measures.face_proportions`'s ``depth_width`` of the face.
     what : str
         Which face it is ("the AU=0 face (intercept)", "mean_aligned_mesh").
     source : str

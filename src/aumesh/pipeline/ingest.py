@@ -29,7 +29,7 @@ from pathlib import Path
 from aumesh.config import Config
 from aumesh.core.errors import TableError
 from aumesh.core.io import absolute, atomic_directory, atomic_write_json, recorded
-from aumesh.data import ingest
+from aumesh.data import ingest, readers, units
 from aumesh.pipeline import compute
 
 log = logging.getLogger(__name__)
@@ -43,32 +43,32 @@ TASK_ROWS = 32768
 CSV_BYTES_PER_ROW = 20_000
 
 
-def find_sources(data_dir: Path, pattern: str, mesh_npy_pattern: str) -> list[ingest.Source]:
+def find_sources(data_dir: Path, pattern: str, mesh_npy_pattern: str) -> list[readers.Source]:
     """Every table under ``data_dir`` that ``data.tables`` matches (CSV, gzipped CSV, parquet), sorted by path."""
     if not data_dir.is_dir():
         raise TableError(
             f"{data_dir}: the data folder does not exist (paths.data_dir). Fix: `dvc pull data.dvc` for the demo tables, "
             f"or copy py-feat's CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`."
         )
-    paths = sorted(p for p in data_dir.glob(pattern) if p.is_file() and ingest.is_table(p))
+    paths = sorted(p for p in data_dir.glob(pattern) if p.is_file() and readers.is_table(p))
     if not paths:
         raise TableError(
             f"{data_dir}/{pattern}: no frame tables found (empty input; CSV, .csv.gz or parquet). Fix: copy py-feat's "
             f"CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull`."
         )
-    return [ingest.open_source(p, mesh_npy_pattern) for p in paths]
+    return [readers.open_source(p, mesh_npy_pattern) for p in paths]
 
 
-def _span_rows(span: ingest.Span) -> int:
+def _span_rows(span: readers.Span) -> int:
     return (
         max(1, (span.stop - span.start) // CSV_BYTES_PER_ROW) if span.source.kind == "csv" else span.stop - span.start
     )
 
 
-def pack(spans: list[ingest.Span], task_rows: int = TASK_ROWS) -> list[tuple[ingest.Span, ...]]:
+def pack(spans: list[readers.Span], task_rows: int = TASK_ROWS) -> list[tuple[readers.Span, ...]]:
     """Consecutive spans packed into tasks of up to about ``task_rows`` rows (a span is never split)."""
-    tasks: list[tuple[ingest.Span, ...]] = []
-    current: list[ingest.Span] = []
+    tasks: list[tuple[readers.Span, ...]] = []
+    current: list[readers.Span] = []
     rows = 0
     for span in spans:
         n = _span_rows(span)
@@ -84,7 +84,7 @@ def pack(spans: list[ingest.Span], task_rows: int = TASK_ROWS) -> list[tuple[ing
 
 @dataclass(frozen=True)
 class Task:
-    spans: tuple[ingest.Span, ...]
+    spans: tuple[readers.Span, ...]
     out: Path
 
 
@@ -133,7 +133,9 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
                 {"source": recorded(source.path), "detector": source.layout.detector, "read": f"cleaned ({reason})"}
             )
             # a parquet table is streamed whole by one task (batch by batch: memory flat in its rows)
-            spans += ingest.csv_spans(source) if source.kind == "csv" else [ingest.Span(source, 0, source.n_rows or 0)]
+            spans += (
+                readers.csv_spans(source) if source.kind == "csv" else [readers.Span(source, 0, source.n_rows or 0)]
+            )
         (tmp / TABLES_DIR).mkdir()
         tasks = [Task(group, tmp / TABLES_DIR / f"{i:06d}.parquet") for i, group in enumerate(pack(spans))]
         subjects = None
@@ -162,7 +164,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
                 )
                 total = total + passed
         for source, entry in zip(sources, entries, strict=True):
-            stats = total.units.get(str(source.path)) or ingest.UnitStats(source.layout.detector)
+            stats = total.units.get(str(source.path)) or units.UnitStats(source.layout.detector)
             check_units(source, stats, mesh_units)
             entry["mesh_units"] = units_record(source, stats, mesh_units)
             before, after, _ = stats.depth_height()
@@ -201,7 +203,7 @@ def _rounded(value: float | None) -> float | None:
     return None if value is None else float(f"{value:.3g}")
 
 
-def units_record(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str) -> dict:
+def units_record(source: readers.Source, stats: units.UnitStats, mesh_units: str) -> dict:
     """A source's ``mesh_units`` in the manifest: xy, z, rows kept, rows converted and how (one sentence)."""
     why = {
         "split": "the split layout's .npy",
@@ -219,11 +221,11 @@ def units_record(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str
     }
 
 
-def check_units(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str) -> None:
+def check_units(source: readers.Source, stats: units.UnitStats, mesh_units: str) -> None:
     """The guard on a source's units: one unit for all its rows; a face's proportions after the conversion (the
-    median over its faces of depth/height within :data:`aumesh.data.ingest.DEPTH_HEIGHT_RANGE`); and, for a
+    median over its faces of depth/height within :data:`aumesh.data.units.DEPTH_HEIGHT_RANGE`); and, for a
     detector's export, z as written growing with the face's size as pixels do, or not, as the units say
-    (:func:`aumesh.data.ingest.growth_slope`, where enough near-frontal faces vary enough in size: what sees an
+    (:func:`aumesh.data.units.growth_slope`, where enough near-frontal faces vary enough in size: what sees an
     MPDetector export taken as pixels, whose depth/height can look like a face's).
 
     Raises
@@ -240,7 +242,7 @@ def check_units(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str)
         )
     det = source.layout.detector
     before, after, crop = stats.depth_height()
-    lo, hi = ingest.DEPTH_HEIGHT_RANGE
+    lo, hi = units.DEPTH_HEIGHT_RANGE
     if after is not None and not lo <= after <= hi:
         if stats.z in ("chip", "crop256"):
             done = f"after converting z from {det}'s {stats.z} units ({before:.3g} without the conversion)"
@@ -248,7 +250,7 @@ def check_units(source: ingest.Source, stats: ingest.UnitStats, mesh_units: str)
                 f"if this table's z is already in pixels (rescaled after py-feat), set data.mesh_units=pixels; "
                 f"otherwise check that it is {det}'s export as py-feat wrote it (its FaceRect and mesh columns)"
             )
-        elif det in ingest.Z_CROP and mesh_units == "pixels":
+        elif det in units.Z_CROP and mesh_units == "pixels":
             with_crop = "" if crop is None else f"; {crop:.3g} with z converted from {det}'s crop units"
             done = f"with z taken as pixels (data.mesh_units=pixels{with_crop})"
             fix = f"this is {det}'s export with z in its own units as py-feat writes them: set data.mesh_units=detector"

@@ -27,7 +27,9 @@ export holds:
 * optionally MediaPipe's normalized image units (x / width, y / height, z / width) and no frame-size columns.
 
 Only column names are taken from py-feat; nothing of its code or data. Files are written one at a time, in chunks of
-videos, so ~100k frames in one CSV stay in bounded memory.
+videos, so ~100k frames in one CSV stay in bounded memory. This module writes the files (CSV, parquet, the split
+layout); the column layouts are :mod:`aumesh.synthetic.pyfeat_columns`'s, the faces and their rows
+:mod:`aumesh.synthetic.pyfeat_faces`'.
 """
 
 from __future__ import annotations
@@ -42,408 +44,29 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from aumesh.core.io import atomic_path
-from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, flatten_axis_major
+from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.synthetic import tables as synth
+from aumesh.synthetic.pyfeat_columns import (
+    BLENDSHAPE_COLUMNS,
+    EMOTION_COLUMNS_MP,
+    EMOTION_COLUMNS_V2,
+    FACE_RECT_COLUMNS,
+    FEX_POSE_COLUMNS,
+    FRAME_SIZE_COLUMNS,
+    GAZE_COLUMNS,
+    HEAD_POSITION_COLUMNS,
+    IDENTITY_COLUMNS,
+    LANDMARK68_VERTICES,
+    check_detector,
+    clean_columns,
+    landmark68_columns,
+    mesh_columns,
+)
+from aumesh.synthetic.pyfeat_faces import FRAME_HEIGHT, FRAME_WIDTH, synth_setup, video_rows, z_to_crop
 
-FRAME_WIDTH = 640.0
-FRAME_HEIGHT = 480.0
-FPS = 25
-DETECTORS = ("mp", "v2")
 FORMATS = ("csv", "parquet", "split")
 
-FACE_RECT_COLUMNS = ("FaceRectX", "FaceRectY", "FaceRectWidth", "FaceRectHeight")
-FEX_POSE_COLUMNS = ("Pitch", "Roll", "Yaw")  # py-feat's Fex order (the model's is Pitch, Yaw, Roll)
-HEAD_POSITION_COLUMNS = ("X", "Y", "Z")
-BLENDSHAPE_COLUMNS: tuple[str, ...] = (
-    "_neutral",
-    "browDownLeft",
-    "browDownRight",
-    "browInnerUp",
-    "browOuterUpLeft",
-    "browOuterUpRight",
-    "cheekPuff",
-    "cheekSquintLeft",
-    "cheekSquintRight",
-    "eyeBlinkLeft",
-    "eyeBlinkRight",
-    "eyeLookDownLeft",
-    "eyeLookDownRight",
-    "eyeLookInLeft",
-    "eyeLookInRight",
-    "eyeLookOutLeft",
-    "eyeLookOutRight",
-    "eyeLookUpLeft",
-    "eyeLookUpRight",
-    "eyeSquintLeft",
-    "eyeSquintRight",
-    "eyeWideLeft",
-    "eyeWideRight",
-    "jawForward",
-    "jawLeft",
-    "jawOpen",
-    "jawRight",
-    "mouthClose",
-    "mouthDimpleLeft",
-    "mouthDimpleRight",
-    "mouthFrownLeft",
-    "mouthFrownRight",
-    "mouthFunnel",
-    "mouthLeft",
-    "mouthLowerDownLeft",
-    "mouthLowerDownRight",
-    "mouthPressLeft",
-    "mouthPressRight",
-    "mouthPucker",
-    "mouthRight",
-    "mouthRollLower",
-    "mouthRollUpper",
-    "mouthShrugLower",
-    "mouthShrugUpper",
-    "mouthSmileLeft",
-    "mouthSmileRight",
-    "mouthStretchLeft",
-    "mouthStretchRight",
-    "mouthUpperUpLeft",
-    "mouthUpperUpRight",
-    "noseSneerLeft",
-    "noseSneerRight",
-)
-EMOTION_COLUMNS_MP = ("anger", "disgust", "fear", "happiness", "sadness", "surprise", "neutral")
-EMOTION_COLUMNS_V2 = ("Neutral", "Happy", "Sad", "Surprise", "Fear", "Disgust", "Anger")
-IDENTITY_COLUMNS = tuple(f"Identity_{i}" for i in range(1, 513))
-GAZE_COLUMNS = ("gaze_pitch", "gaze_yaw", "gaze_angle")
-FRAME_SIZE_COLUMNS = ("FrameHeight", "FrameWidth")
-TRAILING_COLUMNS = ("input", "frame", "approx_time", "Identity")
-# v2's 68-point block: a fixed subset of the mesh's vertices (any fixed subset serves the ingest tests).
-LANDMARK68_VERTICES: tuple[int, ...] = tuple(int(i) for i in np.round(np.linspace(0, N_VERTICES - 1, 68)))
-
-#: The detectors' crops (docs/conventions.md "py-feat's mesh units"): Detectorv2's square side over the detector
-#: box's longer side (EXPAND_BBOX, feat/multitask/inference.py), MPDetector's expansion and crop size
-#: (``MPDetector.detect_faces``).
-V2_EXPAND = 1.2
-MP_EXPAND = 1.25
-MP_CROP = 256.0
-_DETECTOR_PAD = 0.08  # the detector box: the face's 2-D extent padded 8 % each side
-
 _CHUNK_ROWS = 4096  # rows per DataFrame written (whole videos; a longer video is one chunk)
-_NO_FACE_RUN = (1, 10)  # occlusions: 1-10 consecutive frames
-_EXTRA_FACE_RUN = (5, 40)  # a person in the background for a while
-
-
-def mesh_columns(detector: str) -> list[str]:
-    """The 478-vertex mesh's columns as the detector writes them (mp interleaved, v2 axis-major ``mesh_*``)."""
-    if detector == "mp":
-        return [f"{a}_{i}" for i in range(N_VERTICES) for a in "xyz"]
-    return [f"mesh_{a}_{i}" for a in "xyz" for i in range(N_VERTICES)]
-
-
-def landmark68_columns() -> list[str]:
-    """v2's 68-point block ``x_0..x_67, y_0..y_67``."""
-    return [f"{a}_{i}" for a in "xy" for i in range(68)]
-
-
-def pyfeat_columns(detector: str = "mp", frame_size: bool = True, mesh: bool = True) -> list[str]:
-    """Columns of a py-feat 2.1.5 table in order (``mesh=False``: without the 478-vertex mesh, the split layout)."""
-    _check_detector(detector)
-    size = list(FRAME_SIZE_COLUMNS) if frame_size else []
-    head = list(FACE_RECT_COLUMNS) + ["FaceScore"]
-    pose = list(FEX_POSE_COLUMNS) + list(HEAD_POSITION_COLUMNS)
-    mesh_cols = mesh_columns(detector) if mesh else []
-    if detector == "mp":
-        cols = (
-            head
-            + mesh_cols
-            + pose
-            + list(BLENDSHAPE_COLUMNS)
-            + list(AU_COLUMNS)
-            + list(EMOTION_COLUMNS_MP)
-            + list(IDENTITY_COLUMNS)
-            + list(GAZE_COLUMNS)
-        )
-    else:
-        cols = (
-            head
-            + landmark68_columns()
-            + pose
-            + list(AU_COLUMNS)
-            + list(EMOTION_COLUMNS_V2)
-            + ["valence", "arousal"]
-            + list(GAZE_COLUMNS)
-            + list(IDENTITY_COLUMNS)
-            + mesh_cols
-            + list(BLENDSHAPE_COLUMNS)
-        )
-    return cols + size + list(TRAILING_COLUMNS)
-
-
-def clean_columns() -> list[str]:
-    """The hand-cleaned table's columns (synth's ``columns`` layout): video_id, frame, AUs, Pitch, Roll, Yaw, mesh."""
-    return (
-        ["video_id", "frame"]
-        + list(AU_COLUMNS)
-        + list(FEX_POSE_COLUMNS)
-        + [f"{a}_{i}" for i in range(N_VERTICES) for a in "xyz"]
-    )
-
-
-def _check_detector(detector: str) -> None:
-    if detector not in DETECTORS:
-        raise ValueError(f"detector={detector!r}: use 'mp' (MPDetector) or 'v2' (Detectorv2)")
-
-
-def _synth_setup(spec: synth.SynthSpec) -> tuple[np.ndarray, tuple]:
-    """Frame counts and the ``generate_video`` arguments exactly as :func:`synth.write_tables` makes them."""
-    from aumesh.geometry import face
-
-    counts = synth._frames_per_video(spec, np.random.default_rng(spec.seed))
-    coef, intercept, _ = synth.true_coefficients(spec)
-    template = face.canonical_template()
-    identity_basis = flatten_axis_major(synth._smooth_fields(template, 10, np.random.default_rng(20_000 + spec.seed)))
-    latent_basis = flatten_axis_major(synth._smooth_fields(template, 6, np.random.default_rng(30_000 + spec.seed)))
-    latent_basis[
-        :, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]
-    ] = 0.0
-    resemblance = synth.identity_resemblance(coef, identity_basis)
-    return counts, (coef, intercept, identity_basis, latent_basis, resemblance)
-
-
-def _runs(rng: np.random.Generator, n: int, target: int, run: tuple[int, int], allowed: np.ndarray) -> np.ndarray:
-    """A mask of about ``target`` frames among ``allowed``, in runs of ``run`` consecutive frames."""
-    mask = np.zeros(n, dtype=bool)
-    target = min(target, int(allowed.sum()))
-    for _ in range(100 * (target + 1)):
-        have = int((mask & allowed).sum())
-        if have >= target:
-            break
-        length = min(int(rng.integers(run[0], run[1] + 1)), n, max(target - have, 1))
-        start = int(rng.integers(0, n - length + 1))
-        mask[start : start + length] = True
-    return mask & allowed
-
-
-def _plan(rng: np.random.Generator, n: int, no_face_rate: float, extra_face_rate: float):
-    """Which frames lose the face, which have a background face and whether it comes first."""
-    every = np.ones(n, dtype=bool)
-    no_face = _runs(rng, n, int(np.floor(no_face_rate * n + rng.random())), _NO_FACE_RUN, every)
-    face = ~no_face
-    extra = _runs(rng, n, int(np.floor(extra_face_rate * face.sum() + rng.random())), _EXTRA_FACE_RUN, face)
-    extra_first = extra & (rng.random(n) < 0.5)
-    return no_face, extra, extra_first
-
-
-def _blendshapes(rng: np.random.Generator, au: np.ndarray) -> np.ndarray:
-    """52 blendshape scores in [0, 1], loosely following the AUs."""
-    m = len(au)
-    out = rng.beta(0.5, 6.0, size=(m, len(BLENDSHAPE_COLUMNS)))
-    idx = {name: k for k, name in enumerate(BLENDSHAPE_COLUMNS)}
-    follow = {
-        "browInnerUp": "AU01",
-        "browOuterUpLeft": "AU02",
-        "browOuterUpRight": "AU02",
-        "browDownLeft": "AU04",
-        "browDownRight": "AU04",
-        "eyeWideLeft": "AU05",
-        "eyeWideRight": "AU05",
-        "cheekSquintLeft": "AU06",
-        "cheekSquintRight": "AU06",
-        "eyeSquintLeft": "AU07",
-        "eyeSquintRight": "AU07",
-        "noseSneerLeft": "AU09",
-        "noseSneerRight": "AU09",
-        "mouthUpperUpLeft": "AU10",
-        "mouthUpperUpRight": "AU10",
-        "mouthSmileLeft": "AU12",
-        "mouthSmileRight": "AU12",
-        "mouthDimpleLeft": "AU14",
-        "mouthDimpleRight": "AU14",
-        "mouthFrownLeft": "AU15",
-        "mouthFrownRight": "AU15",
-        "mouthShrugLower": "AU17",
-        "mouthStretchLeft": "AU20",
-        "mouthStretchRight": "AU20",
-        "mouthPressLeft": "AU24",
-        "mouthPressRight": "AU24",
-        "jawOpen": "AU26",
-        "mouthRollLower": "AU28",
-        "eyeBlinkLeft": "AU43",
-        "eyeBlinkRight": "AU43",
-    }
-    for bs, a in follow.items():
-        out[:, idx[bs]] = np.clip(0.8 * au[:, AU_COLUMNS.index(a)] + 0.2 * out[:, idx[bs]], 0.0, 1.0)
-    out[:, idx["_neutral"]] = np.clip(1.0 - out[:, 1:].max(axis=1), 0.0, 1.0)
-    return out
-
-
-def _emotions(rng: np.random.Generator, au: np.ndarray) -> np.ndarray:
-    """Seven probabilities summing to 1 in EMOTION_COLUMNS_MP order (anger .. neutral)."""
-    a = {name: au[:, AU_COLUMNS.index(name)] for name in AU_COLUMNS}
-    logits = rng.normal(0.0, 0.5, size=(len(au), 7))
-    logits[:, 0] += 3 * a["AU04"] * a["AU07"]
-    logits[:, 1] += 3 * a["AU09"]
-    logits[:, 2] += 2 * a["AU01"] * a["AU20"]
-    logits[:, 3] += 4 * a["AU12"]
-    logits[:, 4] += 3 * a["AU15"]
-    logits[:, 5] += 3 * a["AU05"] * a["AU26"]
-    logits[:, 6] += 1.5
-    p = np.exp(logits - logits.max(axis=1, keepdims=True))
-    return p / p.sum(axis=1, keepdims=True)
-
-
-def crop_box(mesh: np.ndarray, detector: str) -> np.ndarray:
-    """(m, 4) FaceRectX, Y, Width, Height the detector writes for faces ``mesh`` (m, 478, 3) in pixels: its crop box.
-
-    The detector box is the face's 2-D extent padded :data:`_DETECTOR_PAD`; "v2": the centred square of side
-    :data:`V2_EXPAND` x its longer side; "mp": the box scaled :data:`MP_EXPAND` about its centre, corners rounded.
-    """
-    lo, hi = mesh[:, :, :2].min(axis=1), mesh[:, :, :2].max(axis=1)
-    pad = _DETECTOR_PAD * (hi - lo)
-    lo, hi = lo - pad, hi + pad
-    centre, size = (lo + hi) / 2, hi - lo
-    if detector == "v2":
-        side = V2_EXPAND * size.max(axis=1, keepdims=True)
-        return np.column_stack([centre - side / 2, side, side])
-    corner_lo, corner_hi = np.round(centre - MP_EXPAND * size / 2), np.round(centre + MP_EXPAND * size / 2)
-    return np.column_stack([corner_lo, corner_hi - corner_lo])
-
-
-def z_to_crop(z: np.ndarray, width: np.ndarray, detector: str) -> np.ndarray:
-    """z in frame pixels (m, k) -> the detector's crop units, with FaceRectWidth ``width`` (m,): "v2" z / width,
-    "mp" z * 256 / width (NaN where the width is not positive: py-feat's no-face rows)."""
-    w = np.where(width > 0, width, np.nan)[:, None]
-    return z / w if detector == "v2" else z * MP_CROP / w
-
-
-def _faces(
-    rng: np.random.Generator,
-    mesh: np.ndarray,
-    au: np.ndarray,
-    pose_fex: np.ndarray,
-    score: tuple[float, float],
-    identity: np.ndarray | None,
-    detector: str,
-) -> dict[str, np.ndarray]:
-    """Every measurement of ``m`` detected faces (meshes in pixels): 2-D blocks keyed by group."""
-    m = len(mesh)
-    rect = crop_box(mesh, detector)  # X, Y, Width, Height
-    iod_px = np.linalg.norm(mesh[:, 33, :2] - mesh[:, 263, :2], axis=1)
-    cm_per_px = 9.0 / np.maximum(iod_px, 1e-6)  # outer eye corners ~9 cm apart
-    centre = mesh.mean(axis=1)
-    position = np.column_stack(
-        [
-            (centre[:, 0] - FRAME_WIDTH / 2) * cm_per_px,
-            (centre[:, 1] - FRAME_HEIGHT / 2) * cm_per_px,
-            -FRAME_WIDTH * cm_per_px,
-        ]
-    )
-    gaze = rng.normal(0.0, 0.12, size=(m, 2))
-    emotions = _emotions(rng, au)
-    out = {
-        "rect": rect,
-        "score": rng.uniform(*score, size=(m, 1)),
-        "pose": np.column_stack([pose_fex, position]),
-        "au": np.clip(au, 0.0, 1.0),
-        "blend": _blendshapes(rng, au),
-        "emotion": emotions,
-        "gaze": np.column_stack([gaze, np.hypot(gaze[:, 0], gaze[:, 1])]),
-        "affect": np.column_stack(
-            [
-                emotions[:, 3] - emotions[:, [0, 1, 2, 4]].sum(1),
-                np.clip(0.3 + emotions[:, [0, 2, 5]].sum(1) + rng.normal(0, 0.05, m), -1, 1),
-            ]
-        ),
-        "mesh": mesh,
-    }
-    if identity is not None:
-        emb = identity[None, :] + rng.normal(0.0, 0.02, size=(m, len(identity)))
-        out["identity"] = (emb / np.linalg.norm(emb, axis=1, keepdims=True)).astype(np.float32)
-    return out
-
-
-def _video_rows(
-    spec: synth.SynthSpec,
-    video: int,
-    n: int,
-    gen_args: tuple,
-    detector: str,
-    no_face_rate: float,
-    extra_face_rate: float,
-    seed: int,
-) -> dict:
-    """One video's rows: synth's frames, no-face rows, background faces; plus the clean frames."""
-    g = synth.generate_video(spec, video, n, *gen_args)
-    plan_rng = np.random.default_rng([seed, spec.seed, video, 1])
-    rng = np.random.default_rng([seed, spec.seed, video, 2])
-    no_face, extra, extra_first = _plan(plan_rng, n, no_face_rate, extra_face_rate)
-
-    order = [POSE_COLUMNS.index(p) for p in FEX_POSE_COLUMNS]
-    v2 = detector == "v2"
-    main = _faces(
-        rng,
-        g["mesh"],
-        g["au"],
-        g["pose"][:, order],
-        (0.9, 1.0),
-        _unit(rng.standard_normal(512)) if v2 else None,
-        detector,
-    )
-    # the background person: the main mesh scaled 0.4 about its centre, ~150 px to the side with more room
-    ef = np.flatnonzero(extra)
-    centre = g["mesh"][ef].mean(axis=1, keepdims=True)
-    side = -np.sign(g["mesh"][:, :, 0].mean() - FRAME_WIDTH / 2) or 1.0
-    offset = np.array([side * rng.uniform(130, 170), rng.normal(0, 20), 0.0])
-    small = centre + 0.4 * (g["mesh"][ef] - centre) + offset + rng.normal(0, 0.3, size=(len(ef), N_VERTICES, 3))
-    extra_au = synth._au_intensities(rng, len(ef), rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS)))
-    extra_pose = np.deg2rad(rng.normal(0, [10, 7, 18]) + rng.normal(0, 2, size=(len(ef), 3)))  # Fex order
-    other = _faces(
-        rng, small, extra_au, extra_pose, (0.6, 0.9), _unit(rng.standard_normal(512)) if v2 else None, detector
-    )
-
-    # rows: one per frame, two where a background face is; it comes first where extra_first
-    per_frame = 1 + extra.astype(int)
-    row_frame = np.repeat(np.arange(n), per_frame)
-    first_row = np.cumsum(per_frame) - per_frame
-    pos = np.arange(len(row_frame)) - first_row[row_frame]
-    kind = np.where(extra_first[row_frame], 1 - pos, pos)  # 0 main face, 1 background face
-    main_rows, extra_rows = kind == 0, kind == 1
-    blocks = {}
-    for key, values in main.items():
-        block = np.empty(
-            (len(row_frame),) + values.shape[1:], dtype=values.dtype if key in ("mesh", "identity") else np.float64
-        )
-        block[main_rows] = values
-        block[extra_rows] = other[key]
-        blocks[key] = block
-    gone = main_rows & no_face[row_frame]
-    for key, block in blocks.items():
-        block[gone] = np.nan
-        if key in ("rect", "score") and not v2:
-            block[gone] = 0.0
-    identity = np.where(extra_rows, "Person_1", "Person_0").astype(object)
-    identity[gone] = np.nan
-    vid = f"vid{video:06d}"
-    seconds = row_frame // FPS
-    keep = ~no_face
-    return {
-        "blocks": blocks,
-        "frame": row_frame,
-        "input": np.full(len(row_frame), f"videos/{vid}.mp4", dtype=object),
-        "approx_time": np.array([f"{s // 60:02d}:{s % 60:02d}" for s in seconds], dtype=object),
-        "Identity": identity,
-        "clean": {
-            "video_id": np.full(int(keep.sum()), vid, dtype=object),
-            "frame": np.flatnonzero(keep),
-            "au": g["au"][keep],
-            "pose": g["pose"][keep][:, order],
-            "mesh": g["mesh"][keep].astype(np.float32),
-        },
-        "n_frames": n,
-        "n_no_face": int(no_face.sum()),
-        "n_extra": int(extra.sum()),
-    }
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v)
 
 
 class _Frame:
@@ -637,7 +260,7 @@ def write_pyfeat_tables(
 
     Returns a summary: files, clean_files, n_rows, n_frames, n_face_frames, n_no_face, n_extra_faces, n_videos.
     """
-    _check_detector(detector)
+    check_detector(detector)
     if fmt not in FORMATS:
         raise ValueError(f"fmt={fmt!r}: use one of {', '.join(FORMATS)}")
     if fmt == "split" and detector != "mp":
@@ -658,7 +281,7 @@ def write_pyfeat_tables(
         if clean_dir.resolve() == out_dir.resolve() and fmt != "csv":
             raise ValueError("clean_dir must differ from out_dir for fmt='parquet'/'split' (same file names)")
 
-    counts, gen_args = _synth_setup(spec)
+    counts, gen_args = synth_setup(spec)
     per_file = videos_per_file or spec.n_videos
     files: list[str] = []
     clean_files: list[str] = []
@@ -736,7 +359,7 @@ def _write_one(
     try:
         for k, chunk in enumerate(chunks):
             parts = [
-                _video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed)
+                video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed)
                 for v in chunk
             ]
             frame = _frame(parts, detector, normalized, frame_size, with_mesh=fmt != "split", z_pixels=z_pixels)

@@ -12,15 +12,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, flatten_axis_major, unflatten_axis_major
-from aumesh.geometry.face import (
-    IRIS_LEFT,
-    IRIS_RIGHT,
-    REGIONS,
-    canonical_template,
-    face_frame,
-    region_side,
-    to_face_frame,
-)
+from aumesh.geometry.face import canonical_template, face_frame, to_face_frame
+from aumesh.geometry.landmarks import IRIS_LEFT, IRIS_RIGHT, REGIONS, region_side
 from aumesh.model.release import release_arrays
 
 # --------------------------------------------------------------------------- AU fields

@@ -1,0 +1,341 @@
+"""py-feat's files as users have them, read: a file's layout (:class:`Source`), ranges of whole frames
+(:class:`Span`) and their rows as arrays (:class:`Block`). What is done to those rows is :mod:`aumesh.data.ingest`'s
+(no-face rows, face selection) and :mod:`aumesh.data.units`'s (the mesh to frame pixels); the column vocabulary is
+:mod:`aumesh.data.pyfeat`'s.
+
+Sources: py-feat's CSV (read with pyarrow's multi-threaded CSV reader, only the needed columns, types given, in
+byte ranges of whole frames: bounded memory), a Fex saved as parquet (either detector), and the card's split layout
+(a table plus an ``[N, 478, 3]`` ``.npy``).
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+from aumesh.core.errors import TableError, corrupt_parquet
+from aumesh.core.io import NpyRowFile, absolute, check_npy
+from aumesh.core.schema import FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES
+from aumesh.data import pyfeat
+from aumesh.data.pyfeat import video_stem
+
+CSV_SUFFIXES = (".csv", ".csv.gz")
+PARQUET_SUFFIXES = (".parquet",)
+#: CSV bytes parsed at a time: py-feat writes ~20 KB a row, so ~3,300 rows (~40 MB of float64 columns) per range.
+CSV_RANGE_BYTES = 64 << 20
+#: Parquet rows read at a time.
+PARQUET_RANGE_ROWS = 16384
+
+
+@dataclass(frozen=True)
+class Source:
+    """One input file of ``data/``: a py-feat CSV, a parquet table, or a parquet table with its mesh ``.npy``."""
+
+    path: Path
+    kind: str  # csv | parquet
+    layout: pyfeat.Layout
+    header: tuple[str, ...]  # every column, in file order
+    mesh_npy: Path | None = None
+    n_rows: int | None = None  # parquet: rows (CSV: unknown until read)
+
+    def absolute(self) -> Source:
+        """The same source named by absolute paths (:func:`aumesh.core.io.absolute`): what partition tasks get, so a
+        cluster worker in another directory reads this workspace's file."""
+        return replace(
+            self, path=absolute(self.path), mesh_npy=None if self.mesh_npy is None else absolute(self.mesh_npy)
+        )
+
+
+def is_table(path: Path) -> bool:
+    return path.name.endswith(CSV_SUFFIXES + PARQUET_SUFFIXES)
+
+
+#: What to do about a damaged mesh ``.npy`` of ``data/`` (:func:`aumesh.core.io.check_npy`).
+DATA_NPY_FIX = (
+    "restore it (`dvc checkout data`, or `dvc pull` from the remote), or save py-feat's whole [N, 478, 3] "
+    "landmarks again with np.save."
+)
+
+
+def open_source(path: Path, mesh_npy_pattern: str) -> Source:
+    """A source's layout from its header (CSV) or schema (parquet)."""
+    if path.name.endswith(CSV_SUFFIXES):
+        header = csv_header(path)
+        return Source(path, "csv", pyfeat.layout(header, str(path)), tuple(header))
+    try:
+        md = pq.read_metadata(path)
+    except Exception as err:  # pyarrow raises several types for a bad file
+        raise corrupt_parquet(path, err) from None
+    names = md.schema.to_arrow_schema().names
+    npy = path.with_name(mesh_npy_pattern.format(stem=path.stem))
+    split = (
+        npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
+    )
+    lay = pyfeat.layout(names, str(path), split_mesh=split)
+    if split:
+        _, _, shape = check_npy(npy, DATA_NPY_FIX)
+        if len(shape) != 3 or shape[1:] != (N_VERTICES, 3):
+            raise TableError(
+                f"{npy}: wrong vertex count: mesh array has shape {shape}, need (N, {N_VERTICES}, 3). Fix: "
+                f"save the 478-vertex MediaPipe FaceMesh (with irises) as float16/float32 [N, 478, 3]."
+            )
+        if shape[0] != md.num_rows:
+            raise TableError(
+                f"{npy}: {shape[0]} meshes but {path} has {md.num_rows} rows. Fix: one mesh per table row, "
+                f"same order; keep py-feat's no-face rows in both (aumesh drops them itself)."
+            )
+    return Source(path, "parquet", lay, tuple(names), npy if split else None, md.num_rows)
+
+
+def csv_header(path: Path) -> list[str]:
+    opener = gzip.open if path.name.endswith(".gz") else open
+    try:
+        with opener(path, "rt", newline="") as fh:
+            header = next(csv.reader(fh), None)
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise TableError(
+            f"{path}: cannot read the CSV header ({err}). Fix: save it with py-feat's detect(..., save=) "
+            f"or DataFrame.to_csv."
+        ) from None
+    if not header:
+        raise TableError(f"{path}: empty CSV (no header). Fix: export frames with py-feat first.")
+    return header
+
+
+# ---------------------------------------------------------------------------------------------------- reading ranges
+
+
+@dataclass(frozen=True)
+class Span:
+    """Whole frames of one source: CSV bytes ``[start, stop)`` (the header excluded) or parquet rows ``[start, stop)``."""
+
+    source: Source
+    start: int
+    stop: int
+
+
+def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
+    """Byte ranges of about ``range_bytes`` that start at a line and never split the rows of one frame (py-feat writes a
+    frame's faces consecutively). A compressed CSV is one range."""
+    path = source.path
+    with open(path, "rb") as fh:
+        header_end = len(fh.readline())
+    size = path.stat().st_size
+    if path.name.endswith(".gz") or size - header_end <= range_bytes:
+        return [Span(source, header_end, size)]
+    key_columns = [source.header.index(source.layout.video), source.header.index(FRAME_COLUMN)]
+    bounds = [header_end]
+    with open(path, "rb") as fh:
+        target = header_end + range_bytes
+        while target < size:
+            cut = _frame_boundary(fh, target, key_columns)
+            if cut >= size:
+                break
+            if cut > bounds[-1]:
+                bounds.append(cut)
+            target = max(cut, bounds[-1]) + range_bytes
+    bounds.append(size)
+    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def _frame_boundary(fh, offset: int, key_columns: list[int]) -> int:
+    """The first line start at or after ``offset`` whose (video, frame) differs from the line before it."""
+    fh.seek(offset - 1)
+    fh.readline()  # the rest of the line ``offset`` falls in (offset - 1: a line starting at ``offset`` is kept)
+    previous = None
+    while True:
+        start = fh.tell()
+        line = fh.readline()
+        if not line:
+            return start
+        row = next(csv.reader([line.decode("utf-8", "replace")]), [])
+        key = tuple(row[k] if k < len(row) else None for k in key_columns)
+        if previous is not None and key != previous:
+            return start
+        previous = key
+
+
+def parquet_batches(
+    source: Source, columns: list[str], batch_rows: int | None = None, reader: pq.ParquetFile | None = None
+) -> Iterator[pa.Table]:
+    """The parquet source's ``columns`` a batch of rows at a time (default :data:`PARQUET_RANGE_ROWS`: memory flat in
+    the table's rows), typed. ``reader``: the file already open (parsing a py-feat footer of ~2,000 columns costs
+    ~40 ms)."""
+    types = _types(source.layout)
+    try:
+        reader = reader or pq.ParquetFile(source.path)
+        for batch in reader.iter_batches(
+            batch_size=batch_rows or PARQUET_RANGE_ROWS, columns=columns, use_threads=False
+        ):
+            table = pa.Table.from_batches([batch])
+            names = table.column_names
+            wrong = [name in types and table.schema.field(name).type != types[name] for name in names]
+            if any(wrong):  # one new table: a set_column per column costs seconds for py-feat's ~1,400 float64 mesh
+                cast = [
+                    _cast(table.column(name), types[name], source.path, name, 0) if bad else table.column(name)
+                    for name, bad in zip(names, wrong, strict=True)
+                ]
+                table = pa.Table.from_arrays(cast, names=names)
+            yield table
+    except (pa.ArrowException, OSError) as err:
+        raise corrupt_parquet(source.path, err) from None
+
+
+def _new_frames(video: np.ndarray, frame: np.ndarray, previous: tuple | None) -> np.ndarray:
+    """(n,) bool: the row starts a frame (its (video, frame) differs from the row before; ``previous``: the last key of
+    the batch before)."""
+    if not len(frame):
+        return np.zeros(0, bool)
+    first = previous is None or (video[0], frame[0]) != previous
+    return np.r_[first, (video[1:] != video[:-1]) | (frame[1:] != frame[:-1])]
+
+
+def _types(layout: pyfeat.Layout) -> dict[str, pa.DataType]:
+    types = {name: pa.float64() for name in layout.numeric}
+    types |= {name: pa.float32() for name in layout.mesh or ()}
+    types |= {layout.video: pa.string(), FRAME_COLUMN: pa.int64()}
+    if layout.identity:
+        types[layout.identity] = pa.string()
+    return types
+
+
+def read_span(span: Span, columns: Sequence[str] | None = None) -> pa.Table:
+    """A CSV span's rows, ``columns`` only (default: every column the layout needs), with the layout's types; a
+    column the layout does not type is text as written (Arrow would read py-feat's ``approx_time`` "MM:SS" as a time
+    of day, 60 times too long)."""
+    lay = span.source.layout
+    columns = list(lay.columns if columns is None else columns)
+    types = _types(lay)
+    return _read_csv_span(span, columns, {k: types.get(k, pa.string()) for k in columns})
+
+
+def iter_span_tables(span: Span, columns: Sequence[str] | None = None) -> Iterator[tuple[Span, pa.Table]]:
+    """The span's rows as ``(rows, table)``, whole frames in each: a CSV range at once; a parquet table a batch of
+    :data:`PARQUET_RANGE_ROWS` rows at a time (memory flat in its rows, whatever its row groups), the rows of the
+    batch's last frame carried into the next batch (a frame's faces are never split)."""
+    if span.source.kind == "csv":
+        yield span, read_span(span, columns)
+        return
+    lay = span.source.layout
+    columns = [c for c in (lay.columns if columns is None else columns) if c in span.source.header]
+    carry, start = None, 0
+    for batch in parquet_batches(span.source, columns):
+        table = batch if carry is None else pa.concat_tables([carry, batch])
+        video = table.column(lay.video).to_numpy(zero_copy_only=False)
+        frame = table.column(FRAME_COLUMN).to_numpy(zero_copy_only=False)
+        last = int(np.flatnonzero(_new_frames(video, frame, None))[-1]) if table.num_rows else 0
+        if last:
+            yield Span(span.source, start, start + last), table.slice(0, last)
+        carry, start = table.slice(last), start + last
+    if carry is not None and carry.num_rows:
+        yield Span(span.source, start, start + carry.num_rows), carry
+
+
+def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
+    """``column`` as ``typ``; a value that is not a number is the data contract's error, naming its row and value."""
+    try:
+        return column.cast(typ)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        from aumesh.data import contract  # pandera: imported only when a value is not a number
+
+        contract.numeric_values(column.to_numpy(zero_copy_only=False), path, name, first_row)
+        raise TableError(
+            f"{path}: column {name!r} cannot be read as {typ}. Fix: write numbers as numbers (missing "
+            f"values as NaN) before `dvc add data`."
+        ) from None
+
+
+def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]) -> pa.Table:
+    path = span.source.path
+    read = pacsv.ReadOptions(column_names=list(span.source.header), use_threads=True, block_size=8 << 20)
+    convert = pacsv.ConvertOptions(
+        include_columns=columns, column_types=types, strings_can_be_null=True, quoted_strings_can_be_null=True
+    )
+    try:
+        if path.name.endswith(".gz"):
+            # one range (csv_spans): the whole decompressed stream, its header row skipped (Arrow's compressed
+            # streams have no readline)
+            stream = pa.input_stream(str(path), compression="gzip")
+            skip = pacsv.ReadOptions(
+                column_names=list(span.source.header), use_threads=True, block_size=8 << 20, skip_rows=1
+            )
+            return pacsv.read_csv(stream, read_options=skip, convert_options=convert)
+        with open(path, "rb") as fh:
+            fh.seek(span.start)
+            data = fh.read(span.stop - span.start)
+        return pacsv.read_csv(io.BytesIO(data), read_options=read, convert_options=convert)
+    except pa.ArrowInvalid as err:
+        message = str(err).splitlines()[0]
+        column = next(
+            (c for c in columns if f"'{c}'" in message or f"column #{span.source.header.index(c)}" in message), None
+        )
+        raise TableError(
+            f"{path}: cannot read the CSV{f' (column {column!r})' if column else ''}: {message}. Fix: write "
+            f"numbers as numbers and missing values as empty fields or NaN (py-feat's to_csv does)."
+        ) from None
+
+
+@dataclass
+class Block:
+    """Rows of one span as arrays: video ids, frames, the numeric columns by name, identities and the mesh.
+
+    ``mesh`` is (n, 1434) axis-major ``[x_0..x_477 | y_.. | z_..]`` (float32 from parquet/CSV, the ``.npy``'s dtype
+    widened to float32 for the split layout).
+    """
+
+    video: np.ndarray  # (n,) str
+    frame: np.ndarray  # (n,) int64
+    values: dict[str, np.ndarray]  # column -> (n,) float64
+    identity: np.ndarray | None  # (n,) object, None where absent
+    mesh: np.ndarray  # (n, 1434) float32
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def take(self, rows: np.ndarray) -> Block:
+        return Block(
+            self.video[rows],
+            self.frame[rows],
+            {k: v[rows] for k, v in self.values.items()},
+            None if self.identity is None else self.identity[rows],
+            self.mesh[rows],
+        )
+
+
+def to_block(table: pa.Table, span: Span) -> Block:
+    """A read span as a :class:`Block` (the split layout's mesh read from its ``.npy``)."""
+    lay = span.source.layout
+    video = table.column(lay.video).to_numpy(zero_copy_only=False)
+    if lay.video == INPUT_PATH_COLUMN:
+        names, codes = np.unique(video.astype(str), return_inverse=True)
+        video = np.array([video_stem(v) for v in names], dtype=object)[codes] if len(names) else video.astype(object)
+    frame_col = table.column(FRAME_COLUMN)
+    if frame_col.null_count:
+        row = int(np.flatnonzero(frame_col.is_null().to_numpy(zero_copy_only=False))[0])
+        raise TableError(
+            f"{span.source.path}: column {FRAME_COLUMN!r} is empty at row {row} of this range. Fix: keep "
+            f"py-feat's frame numbers on every row."
+        )
+    values = {
+        name: table.column(name).to_numpy(zero_copy_only=False).astype(np.float64, copy=False) for name in lay.numeric
+    }
+    identity = table.column(lay.identity).to_numpy(zero_copy_only=False) if lay.identity else None
+    if lay.mesh is not None:
+        mesh = np.asarray(table.select(list(lay.mesh)).to_tensor(null_to_nan=True, row_major=True), dtype=np.float32)
+    else:
+        assert span.source.mesh_npy is not None, (
+            span.source
+        )  # open_source pairs a table without mesh columns with its .npy
+        with NpyRowFile(span.source.mesh_npy) as f:
+            rows = f.read(span.start, span.stop)
+        mesh = np.ascontiguousarray(rows.astype(np.float32).transpose(0, 2, 1)).reshape(len(rows), -1)
+    return Block(video.astype(str), frame_col.to_numpy().astype(np.int64), values, identity, mesh)
