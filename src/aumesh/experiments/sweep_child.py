@@ -82,7 +82,7 @@ def run_configuration(
     parent_run_id : str, optional
         The sweep's parent run.
     cache : SweepCache, optional
-        Defaults to :func:`process_cache`.
+        Defaults to :func:`aumesh.experiments.sweep_cache.process_cache`.
     root : Path, optional
         Workspace root; defaults to :func:`aumesh.core.provenance.repo_root`.
 

@@ -224,12 +224,7 @@ def results_record(
     )
     return ResultsRecord(
         tags={EFFECTIVE_TAG: final.n_components, **(tags or {})},
-        folds={
-            "r2": list(cv.r2_folds),
-            "mae": list(cv.mae_folds),
-            "vertex_error": list(cv.vertex_error_folds),
-            "r2_displacement": list(cv.r2_displacement_folds),
-        },
+        folds={name: [float(v) for v in getattr(cv, f"{name}_folds")] for name in FOLD_METRICS},
         metrics=scalars,
         r2_path_folds=cv.r2_path_folds,
         title=title,
