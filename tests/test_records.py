@@ -1,5 +1,6 @@
-"""Shareable records: promotion.json, model_card.json and the NPZ's metadata hold repo-relative locations and
-run ids, never the workspace's absolute path (they are committed or sent to other machines)."""
+"""Records: the shareable ones (promotion.json, model_card.json and the NPZ's metadata hold repo-relative locations
+and run ids, never the workspace's absolute path: they are committed or sent to other machines), and the one record of
+an evaluation run in MLflow (``aumesh.pipeline.run_record``), the same for the evaluate stage and a sweep child."""
 
 from __future__ import annotations
 
