@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from aumesh import cli
-from aumesh.experiments import sweep
+from aumesh.experiments import sweep_child
 from aumesh.tracking import mlflow_store, queries, registry
 from aumesh.tracking import runs as tracking
 from conftest import new_store
@@ -282,7 +282,7 @@ def test_promote_skip_missing_takes_the_next_best_and_says_so(swept, capsys):
 
 def test_interrupted_sweep_is_marked_killed_and_not_promoted_by_accident(swept, capsys, monkeypatch):
     ws, _ = swept
-    real = sweep._evaluate_in_run
+    real = sweep_child._evaluate_in_run
     calls = []
 
     def ctrl_c_on_the_third(*args, **kwargs):
@@ -291,7 +291,7 @@ def test_interrupted_sweep_is_marked_killed_and_not_promoted_by_accident(swept, 
             raise KeyboardInterrupt  # what SIGINT raises in the middle of a configuration
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(sweep, "_evaluate_in_run", ctrl_c_on_the_third)
+    monkeypatch.setattr(sweep_child, "_evaluate_in_run", ctrl_c_on_the_third)
     code, err = run_cli(["sweep", "-m", "model.n_components=2,3,4,5,7"], ws, capsys)
     assert code == 130, err
     line = one_line(err, "sweep")

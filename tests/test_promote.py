@@ -223,7 +223,7 @@ def test_promotion_refuses_a_run_on_other_data(conf_ws, tmp_path):
 def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, monkeypatch):
     """sweep children -> promote -> the evaluate stage on the recomposed params.yaml: same coefficients as the
     registered NPZ, and the card built by the release stage names the promoted run."""
-    from aumesh.experiments import sweep
+    from aumesh.experiments import sweep_cache, sweep_child
     from aumesh.pipeline import model_files
     from aumesh.pipeline.release import build_card
     from aumesh.stages import evaluate
@@ -232,15 +232,15 @@ def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, mo
     ws = make_workspace(tmp_path / "ws")
     monkeypatch.chdir(ws)
     parent = tracking.start_parent_run({}, "small sweep")
-    cache = sweep.SweepCache()
+    cache = sweep_cache.SweepCache()
     for ov in (["model.n_components=2"], ["model.n_components=6", "features=au_pose"]):
-        r = sweep.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws)
+        r = sweep_child.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws)
         assert r["status"] == "FINISHED", r
     tracking.end_run(parent)
     record = promote.promote(parent, ws, {})
     cfg = config.load_params(ws / "params.yaml")
     assert record["run_id"] == registry.model_version_by_alias("aumesh-au-to-mesh")["run_id"]
-    with sweep.blas_threads():
+    with sweep_child.blas_threads():
         evaluate.main(cfg)
     model = np.load(ws / cfg.paths.model_dir / model_files.MODEL_NPZ)
     npz = np.load(

@@ -1,9 +1,11 @@
-"""Shareable records: promotion.json, model_card.json and the NPZ's metadata hold repo-relative locations and
-run ids, never the workspace's absolute path (they are committed or sent to other machines)."""
+"""Records: the shareable ones (promotion.json, model_card.json and the NPZ's metadata hold repo-relative locations
+and run ids, never the workspace's absolute path: they are committed or sent to other machines), and the one record of
+an evaluation run in MLflow (``aumesh.pipeline.run_record``), the same for the evaluate stage and a sweep child."""
 
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -48,7 +50,7 @@ def test_store_of_the_workspace_is_relative_from_a_dvc_temporary_copy(tmp_path, 
 def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkeypatch):
     """A workspace with the default store (ws/mlflow.db, ws/mlartifacts): sweep children -> promote (registered)
     -> evaluate and release stages; every shared record is free of the workspace's absolute path."""
-    from aumesh.experiments import promote, sweep
+    from aumesh.experiments import promote, sweep_cache, sweep_child
     from aumesh.stages import evaluate, release
     from aumesh.tracking import runs as tracking
     from test_sweep import make_workspace
@@ -59,10 +61,10 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     for var in ("DVC_ROOT", "DVC_EXP_NAME", "AUMESH_SWEEP_PARENT_RUN_ID"):
         monkeypatch.delenv(var, raising=False)
     parent = tracking.start_parent_run({}, "small sweep")
-    cache = sweep.SweepCache()
+    cache = sweep_cache.SweepCache()
     for ov in (["model.n_components=2"], ["model.n_components=5"]):
         assert (
-            sweep.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws)[
+            sweep_child.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws)[
                 "status"
             ]
             == "FINISHED"
@@ -70,7 +72,7 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     tracking.end_run(parent)
     record = promote.promote(parent, ws, {})
     cfg = config.load_params(ws / "params.yaml")
-    with sweep.blas_threads():
+    with sweep_child.blas_threads():
         evaluate.main(cfg)
     release = release.main(cfg)
 
@@ -108,3 +110,109 @@ def test_promotion_card_and_npz_hold_no_absolute_workspace_path(tmp_path, monkey
     for run in runs.values():
         assert f"`{run['run_id']}`" in texts["MODEL_CARD.md"]
     assert json.loads(texts["training_metadata"])["runs"] == runs  # the viewer's data (training_metadata) too
+
+
+# -------------------------------------------------------------------- what an evaluation run records
+#: what only one caller records (pipeline/run_record.py's docstring says why); everything else is the one record
+STAGE_ONLY = {"metrics": {"evaluate_seconds"}, "tags": set(), "params": set()}
+SWEEP_ONLY = {
+    "metrics": {"seconds_load", "seconds_statistics", "seconds_cv_fit", "seconds_job"},
+    "tags": {
+        "aumesh.role",
+        "mlflow.parentRunId",
+        "aumesh.sweep.overrides",
+        "aumesh.prepared_dir",
+        "aumesh.prepared.key",
+        "aumesh.cache.statistics",
+    },
+    "params": set(),
+}
+
+
+@pytest.mark.filterwarnings("ignore:Deflated X.T Y vanished")  # AU07 constant: 22 informative directions of 23
+def test_the_evaluate_stage_and_a_sweep_child_record_the_same_keys(tmp_path_factory):
+    """The evaluate stage's run and a sweep child of the same configuration on the same data, read back from one real
+    MLflow store, log the same metric, param and tag keys but for the documented caller-specific ones, and agree on
+    the values they share. The data have a constant AU and the configuration a clipped ``model.n_components``, so
+    every conditional part of the record is there to compare."""
+    import pandas as pd
+    from mlflow import MlflowClient
+
+    from aumesh.data import tables
+    from aumesh.experiments import sweep_cache, sweep_child
+    from aumesh.pipeline import integrity, model_files, prepare
+    from aumesh.stages import evaluate
+    from aumesh.tracking import registry
+    from aumesh.tracking import runs as tracking
+    from test_sweep import workspace_with_store
+
+    overrides = ["features=au_pose"]  # 23 features: the default 83 components are clipped to 23
+    with workspace_with_store(tmp_path_factory, "record") as ws:
+        for table in sorted((ws / "data").rglob("*.parquet")):  # AU07 never moves: a constant input
+            frame = pd.read_parquet(table)
+            frame.assign(AU07=0.0).to_parquet(table, index=False)
+        raw = config.compose(overrides, config_dir=ws / "conf")
+        config.write_params(raw, ws / "params.yaml")
+        cfg = config.load_params(ws / "params.yaml")
+        found = tables.discover(ws / cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy)
+        prepare.run(found, cfg, ws / cfg.paths.prepared_dir)
+        summary = integrity.load_summary(ws / cfg.paths.prepared_dir)
+
+        with sweep_child.blas_threads():
+            evaluate.main(cfg)
+        stage_id = json.loads((ws / cfg.paths.model_dir / model_files.TRACKING_JSON).read_text())["run_id"]
+        parent = tracking.start_parent_run({}, "record sweep")
+        result = sweep_child.run_configuration(raw, overrides, parent, cache=sweep_cache.SweepCache(), root=ws)
+        tracking.end_run(parent)
+        assert result["status"] == "FINISHED", result
+
+        client = MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+        stage, child = client.get_run(stage_id), client.get_run(result["run_id"])
+        keys = {
+            run.info.run_id: {
+                "metrics": set(run.data.metrics),
+                "tags": set(run.data.tags),
+                "params": set(run.data.params),
+            }
+            for run in (stage, child)
+        }
+        for kind in ("metrics", "tags", "params"):
+            only_stage = keys[stage_id][kind] - keys[child.info.run_id][kind]
+            only_child = keys[child.info.run_id][kind] - keys[stage_id][kind]
+            assert only_stage == STAGE_ONLY[kind], (kind, only_stage)
+            assert only_child == SWEEP_ONLY[kind], (kind, only_child)
+
+        npz = {}
+        for run in (stage, child):
+            rid = run.info.run_id
+            artifacts = {a.path for a in client.list_artifacts(rid)}
+            artifacts |= {a.path for d in ("plots", "model") for a in client.list_artifacts(rid, d)}
+            assert {"config.yaml", "plots/r2_vs_n_components.png", "model/MLmodel"} <= artifacts, rid
+            (dataset,) = run.inputs.dataset_inputs
+            assert dataset.dataset.name == "frame_tables" and dataset.dataset.digest == run.data.tags["aumesh.data.md5"]
+            curve = sorted(client.get_metric_history(rid, "r2_by_n_components"), key=lambda m: m.step)
+            assert [m.step for m in curve] == list(range(1, 24))  # k = 1..23, the features of au_pose
+            for name in ("r2", "mae", "vertex_error", "r2_displacement"):
+                assert [m.step for m in client.get_metric_history(rid, name)] == [0, 1, 2], name
+            local = registry.download_run_artifacts(rid, "model/artifacts/au_to_mesh_pls.npz", ws / "dl" / rid)
+            npz[rid] = json.loads(str(np.load(local)["training_metadata"]))
+
+    # the conditional parts are there on both sides, with the same values
+    for run in (stage, child):
+        tags, metrics = run.data.tags, run.data.metrics
+        assert tags["aumesh.n_components_clipped"] == "83 -> 23 (features=au_pose)"
+        assert tags["aumesh.constant_inputs"] == "AU07=0" and tags["aumesh.constant_features"] == "1"
+        assert tags["aumesh.pose_learned"] == "true" and tags["aumesh.n_components.effective"] == "23"
+        assert metrics["n_components"] == 23 and metrics["n_features"] == 23
+        assert metrics["n_frames"] == summary["n_frames"]  # prepare's count, another route to the same number
+        for key, value in summary["counts"].items():
+            if key.startswith(("dropped", "videos_dropped")):
+                assert metrics[f"data.{key}"] == float(value), key
+        assert metrics["seconds_log_model"] > 0
+    assert stage.data.tags["aumesh.stage"] == "evaluate" and child.data.tags["aumesh.stage"] == "sweep"
+    shared = keys[stage_id]["metrics"] - STAGE_ONLY["metrics"] - {"seconds_log_model"}
+    for name in shared:  # the same CV by two routes: evaluate() and the sweep's cached statistics
+        assert stage.data.metrics[name] == pytest.approx(child.data.metrics[name], rel=1e-9, abs=1e-12), name
+    for rid, metadata in npz.items():  # the run's model says where it came from and what it was trained on
+        assert set(metadata) == {"mlflow_run_id", "config", "cv", "data"} and metadata["mlflow_run_id"] == rid
+        assert metadata["config"]["features"]["name"] == "au_pose" and metadata["cv"]["n_components"] == 23

@@ -176,8 +176,8 @@ def test_statistics_are_reused_across_n_components(swept):
 
 
 def test_child_equals_a_fresh_fit(swept, workspace):
-    """A sweep child's metrics and NPZ coefficients equal evaluate.cross_validate_and_fit of the same configuration."""
-    from aumesh.experiments import sweep
+    """A sweep child's metrics and NPZ coefficients equal evaluate.evaluate of the same configuration."""
+    from aumesh.experiments import sweep_child
     from aumesh.model.release import release_arrays
     from aumesh.pipeline import evaluate as ev
     from aumesh.pipeline.prepared_data import load_prepared
@@ -195,7 +195,7 @@ def test_child_equals_a_fresh_fit(swept, workspace):
         )
     )
     prepared = load_prepared(workspace / cfg.paths.prepared_dir)
-    with sweep.blas_threads():
+    with sweep_child.blas_threads():
         cv, final = ev.cross_validate_and_fit(prepared, cfg)
     assert row["metrics.r2_mean"] == pytest.approx(cv.metrics()["r2_mean"], abs=1e-12)
     local = registry.download_run_artifacts(
@@ -235,36 +235,36 @@ def test_runs_command_best_first(swept, capsys):
 
 def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     """A sweep value of a prepare key (pose filter) may not reuse build/prepared: prepared once, stamped, reused."""
-    from aumesh.experiments import sweep
+    from aumesh.experiments import sweep_cache, sweep_child
 
-    cache = sweep.SweepCache()
+    cache = sweep_cache.SweepCache()
     raw = config.compose(
         ["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=3"], config_dir=workspace / "conf"
     )
-    r1 = sweep.run_configuration(raw, ["preprocess.pose_filter.max_abs_yaw_deg=30"], cache=cache, root=workspace)
+    r1 = sweep_child.run_configuration(raw, ["preprocess.pose_filter.max_abs_yaw_deg=30"], cache=cache, root=workspace)
     assert r1["status"] == "FINISHED", r1
     run = mlflow_store.get_client({}).get_run(r1["run_id"])
     prepared_dir = Path(run.data.tags["aumesh.prepared_dir"])
-    assert prepared_dir.parent == (workspace / sweep.PREPARED_CACHE_DIR).resolve()
-    assert (prepared_dir / sweep.PREPARE_STAMP).exists()
+    assert prepared_dir.parent == (workspace / sweep_cache.PREPARED_CACHE_DIR).resolve()
+    assert (prepared_dir / sweep_cache.PREPARE_STAMP).exists()
     summary = integrity.load_summary(prepared_dir)
     assert summary["n_frames"] < integrity.load_summary(workspace / "build" / "prepared")["n_frames"]
     raw2 = config.compose(
         ["preprocess.pose_filter.max_abs_yaw_deg=30", "model.n_components=4"], config_dir=workspace / "conf"
     )
-    r2 = sweep.run_configuration(raw2, ["model.n_components=4"], cache=cache, root=workspace)
+    r2 = sweep_child.run_configuration(raw2, ["model.n_components=4"], cache=cache, root=workspace)
     assert mlflow_store.get_client({}).get_run(r2["run_id"]).data.tags["aumesh.cache.statistics"] == "reused"
 
 
 def test_runtime_failure_is_recorded(workspace, monkeypatch):
-    from aumesh.experiments import sweep
+    from aumesh.experiments import sweep_cache, sweep_child
 
     def boom(*a, **k):
         raise RuntimeError("synthetic failure inside the fit")
 
-    monkeypatch.setattr(sweep, "evaluate_configuration", boom)
+    monkeypatch.setattr(sweep_cache, "evaluate_configuration", boom)
     raw = config.compose(["model.n_components=3"], config_dir=workspace / "conf")
-    result = sweep.run_configuration(raw, ["model.n_components=3"], root=workspace)
+    result = sweep_child.run_configuration(raw, ["model.n_components=3"], root=workspace)
     assert result["status"] == "FAILED" and "synthetic failure" in result["error"]
     run = mlflow_store.get_client({}).get_run(result["run_id"])
     assert run.info.status == "FAILED"
@@ -288,12 +288,12 @@ def test_joblib_launcher_children_find_the_parent(workspace):
 def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_server, monkeypatch):
     """Over loopback HTTP: parent + children with artifacts, then promote registers the NPZ (the server checks
     the source lies in the run's artifacts) and sets the champion alias."""
-    from aumesh.experiments import promote, sweep
+    from aumesh.experiments import promote, sweep_cache, sweep_child
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", mlflow_server)
     cfg = {"experiment": "server-sweep"}
     parent = tracking.start_parent_run(cfg, "server sweep")
-    cache = sweep.SweepCache()
+    cache = sweep_cache.SweepCache()
     results = []
     for ov in (
         ["model.n_components=2"],
@@ -301,7 +301,7 @@ def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_serve
         ["features=au", "model.n_components=30", "model.clip_n_components=false"],
     ):
         raw = config.compose(ov + ["tracking.experiment=server-sweep"], config_dir=workspace / "conf")
-        results.append(sweep.run_configuration(raw, ov, parent, cache=cache, root=workspace))
+        results.append(sweep_child.run_configuration(raw, ov, parent, cache=cache, root=workspace))
     tracking.end_run(parent, cfg)
     assert [r["status"] for r in results] == ["FINISHED", "FINISHED", "FAILED"]  # 30 components > 20 features
     children = queries.list_child_runs(parent, cfg)

@@ -18,7 +18,7 @@ import yaml
 
 from aumesh import cli, config
 from aumesh.core import provenance
-from aumesh.experiments import promote, sweep
+from aumesh.experiments import promote, sweep_cache, sweep_child
 from aumesh.tracking import mlflow_store, queries
 from aumesh.tracking import runs as tracking
 from conftest import new_store
@@ -32,13 +32,17 @@ def _git(ws: Path, *args: str) -> None:
     subprocess.run(["git", *args], cwd=ws, check=True, capture_output=True)
 
 
-def _sweep(ws: Path, grid: list[list[str]], cache: sweep.SweepCache, mp: pytest.MonkeyPatch) -> tuple[str, list[str]]:
+def _sweep(
+    ws: Path, grid: list[list[str]], cache: sweep_cache.SweepCache, mp: pytest.MonkeyPatch
+) -> tuple[str, list[str]]:
     """A sweep from clone *ws* (its cwd, so its identity): a parent and one child per configuration."""
     mp.chdir(ws)
     parent = tracking.start_parent_run({}, f"sweep of {ws.name}", tags={"aumesh.sweep.overrides": str(grid)})
     ids = []
     for ov in grid:
-        result = sweep.run_configuration(config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws)
+        result = sweep_child.run_configuration(
+            config.compose(ov, config_dir=ws / "conf"), ov, parent, cache=cache, root=ws
+        )
         assert result["status"] == "FINISHED", result
         ids.append(result["run_id"])
     tracking.finish_sweep(parent, {})
@@ -60,7 +64,7 @@ def team(tmp_path_factory):
             _git(ws, "config", "user.email", email)
             _git(ws, "remote", "add", "origin", "https://git.lab.example/aumesh.git")  # one remote, two clones
             clones[name] = ws
-        cache = sweep.SweepCache()
+        cache = sweep_cache.SweepCache()
         sweeps = {
             "alice": _sweep(clones["alice"], [["model.n_components=1"]], cache, mp),
             "bob": _sweep(clones["bob"], [["model.n_components=2"], ["model.n_components=6"]], cache, mp),

@@ -76,22 +76,6 @@ def effective_n_components(cfg: Config) -> int:
     return cfg.model.n_components
 
 
-def log_clipping(cfg: Config, handle) -> None:
-    """Say a clipped ``model.n_components`` on the console (warning) and in MLflow (tag on the open run ``handle``),
-    not only in the card."""
-    k = effective_n_components(cfg)
-    if k != cfg.model.n_components:
-        log.warning(
-            "model.n_components=%d clipped to %d, the number of features of features=%s (model.clip_n_components=true)",
-            cfg.model.n_components,
-            k,
-            cfg.features.name,
-        )
-        handle.set_tags(
-            {"aumesh.n_components_clipped": f"{cfg.model.n_components} -> {k} (features={cfg.features.name})"}
-        )
-
-
 def video_folds(video_count: np.ndarray, n_splits: int) -> np.ndarray:
     """Fold of every video (fold ``f`` = the f-th test split of scikit-learn's ``GroupKFold(n_splits)`` on the
     frames' video index), from the videos' frame counts alone.
@@ -417,31 +401,3 @@ def degenerate_inputs(constant: dict[str, float], columns: list[str]) -> dict:
         "constant_features": dead,
         "pose_learned": bool(pose_features) and any(c not in dead for c in pose_features),
     }
-
-
-def log_degenerate(prepared: Prepared, cfg: Config, handle) -> dict:
-    """Say constant inputs aloud: a console warning and MLflow tags on the open run ``handle``; returns
-    :func:`degenerate_inputs` (the card's sentence is made from it)."""
-    found = degenerate_inputs(constant_inputs(prepared), cfg.features.columns)
-    constant = found["constant_inputs"]
-    if not constant:
-        return found
-    listed = ", ".join(f"{c}={v:g}" for c, v in constant.items())
-    log.warning(
-        "evaluate: %s constant in every one of the %d prepared frames: %d of the %d features of features=%s carry "
-        "no information (kept in the design with coefficients of exactly 0)%s",
-        listed,
-        prepared.n_frames,
-        len(found["constant_features"]),
-        len(cfg.features.columns),
-        cfg.features.name,
-        "" if found["pose_learned"] or not (cfg.features.pose) else "; the model learned nothing from pose",
-    )
-    handle.set_tags(
-        {
-            "aumesh.constant_inputs": listed,
-            "aumesh.constant_features": str(len(found["constant_features"])),
-            "aumesh.pose_learned": str(found["pose_learned"]).lower(),
-        }
-    )
-    return found

@@ -12,6 +12,7 @@ import numpy as np
 
 from aumesh.config import Config
 from aumesh.core.io import atomic_directory, atomic_write_json
+from aumesh.pipeline import run_record
 from aumesh.pipeline.model_files import CARD_ERROR_CURVE_POINTS, CV_NPZ, METRICS_JSON, MODEL_NPZ, TRACKING_JSON
 from aumesh.pipeline.release import refuse_nonfinite
 from aumesh.stages.common import check_columns, data_digest, start_stage
@@ -21,32 +22,20 @@ if TYPE_CHECKING:
     from aumesh.pipeline.prepared_data import Prepared
 
 
-def run_evaluation(prepared: Prepared, cfg: Config, handle) -> tuple[CVResult, FinalModel]:
-    """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.TrackedRun)."""
+def run_evaluation(prepared: Prepared, cfg: Config, handle, params: dict, digest: dict) -> tuple[CVResult, FinalModel]:
+    """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.RunBeside) as every evaluation
+    run records it (:mod:`aumesh.pipeline.run_record`; the stage's own: metric ``evaluate_seconds``). ``params``: what
+    the run was opened with; ``digest``: ``data.dvc``'s (:func:`aumesh.stages.common.data_digest`)."""
     from aumesh.pipeline import evaluate as ev
 
-    timings = {}
-    ev.log_clipping(cfg, handle)
-    degenerate = ev.log_degenerate(prepared, cfg, handle)
+    run_record.log_clipping(cfg, handle)
+    degenerate = run_record.log_inputs(handle, cfg, prepared, params, digest, Path.cwd())
     t0 = time.perf_counter()
     cv, final = ev.cross_validate_and_fit(prepared, cfg)
     cv.extra["degenerate"] = degenerate
-    timings["evaluate_seconds"] = time.perf_counter() - t0
-    handle.log_fold_metrics(
-        {
-            "r2": cv.r2_folds,
-            "mae": cv.mae_folds,
-            "vertex_error": cv.vertex_error_folds,
-            "r2_displacement": cv.r2_displacement_folds,
-        }
-    )
-    handle.log_metrics(cv.scalar_metrics() | timings)
-    counts = prepared.summary.get("counts", {})  # what the filters dropped, as counts and fractions
-    handle.log_metrics(
-        {f"data.{k}": float(v) for k, v in counts.items() if k.startswith(("dropped", "videos_dropped"))}
-    )
-    # the R²-vs-n_components curve, step = n_components, in one transaction
-    handle.log_metric_history("r2_by_n_components", cv.r2_path_folds.mean(axis=0), first_step=1)
+    timings = {"evaluate_seconds": time.perf_counter() - t0}
+    # drawn and logged by the tracking helper, beside the rest of the stage
+    handle.call(run_record.log_results, run_record.results_record(cfg, cv, final, metrics=timings))
     return cv, final
 
 
@@ -66,7 +55,6 @@ def evaluate_run_name(cfg: Config) -> str:
 
 
 def main(cfg: Config) -> dict:
-    from aumesh.model import support
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
     from aumesh.pipeline.prepared_data import load_prepared
@@ -89,19 +77,13 @@ def main(cfg: Config) -> dict:
         tracking_cfg,
         run_name=evaluate_run_name(cfg),
         params=params,
-        tags={"aumesh.stage": "evaluate", "aumesh.target": cfg.preprocess.target},
+        tags=run_record.run_tags("evaluate", cfg.preprocess.target),
     ) as run:
-        run.log_config(params)
-        if digest.get("md5"):  # outside a DVC workspace there is no hash to record (the card says so)
-            run.log_dataset(digest, source=str(Path(cfg.paths.data_dir).resolve()), name="frame_tables")
-        cv, final = run_evaluation(prepared, cfg, run)
+        cv, final = run_evaluation(prepared, cfg, run, params, digest)
         metrics = cv.metrics()
-        # the run's MLflow model warns beyond the data as the release does: it carries the data's support
-        arrays = final.release_arrays(
-            prepared.reference, metadata={"mlflow_run_id": run.run_id, "data": support.data_support(prepared.summary)}
-        )
-        refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))
-        run.call(log_release_model, arrays)
+        arrays = run_record.model_arrays(cfg, prepared, cv, final, run.run_id)
+        refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))  # before the model is logged or anything written
+        run.call(run_record.log_model, arrays)
         run_info = {
             "run_id": run.run_id,
             "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
@@ -139,11 +121,3 @@ def main(cfg: Config) -> dict:
         )  # committed: `dvc metrics/plots diff`
         run.log_artifact(out / METRICS_JSON)
     return metrics
-
-
-def log_release_model(handle, arrays: dict) -> None:
-    """Log the release arrays as the open run's MLflow pyfunc model, and the seconds it took (``seconds_log_model``);
-    ``handle`` is the tracking helper's :class:`aumesh.tracking.runs.TrackedRun`."""
-    from aumesh.tracking import pyfunc
-
-    handle.log_metrics({"seconds_log_model": pyfunc.log_release_model(handle, arrays)})
