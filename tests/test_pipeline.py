@@ -282,7 +282,7 @@ def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vect
         cfg = config.load_params(ws / "params.yaml")
         metrics = evaluate.main(cfg)
         model = ws / cfg.paths.model_dir
-        errors = np.load(model / ev.FRAME_ERROR_FILE)
+        errors = np.load(model / model_files.FRAME_ERROR_FILE)
         video = pd.read_parquet(ws / cfg.paths.prepared_dir / "frames.parquet", columns=["video_index"])["video_index"]
         curve = pd.read_csv(ws / cfg.paths.error_curve_file)
         with np.load(model / model_files.CV_NPZ) as z:

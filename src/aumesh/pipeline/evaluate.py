@@ -56,6 +56,7 @@ from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.pipeline import compute
 from aumesh.pipeline.evaluation_results import CVResult, FinalModel, Fits, FoldStatistics
+from aumesh.pipeline.model_files import FRAME_ERROR_FILE
 from aumesh.pipeline.prepared_data import Prepared, block_rows, fold_grouped_block, read_group, workers_check
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
 from aumesh.pipeline.statistics_pass import accumulate
@@ -203,10 +204,6 @@ def cross_validate(
     )
     weakref.finalize(result, shutil.rmtree, scratch, True)
     return result
-
-
-#: Each frame's held-out mean per-vertex error, (n_frames,) float32 in ``frames.parquet``'s row order.
-FRAME_ERROR_FILE = "frame_vertex_error.npy"
 
 
 @dataclass

@@ -13,7 +13,14 @@ import numpy as np
 from aumesh.config import Config
 from aumesh.core.io import atomic_directory, atomic_write_json
 from aumesh.pipeline import run_record
-from aumesh.pipeline.model_files import CARD_ERROR_CURVE_POINTS, CV_NPZ, METRICS_JSON, MODEL_NPZ, TRACKING_JSON
+from aumesh.pipeline.model_files import (
+    CARD_ERROR_CURVE_POINTS,
+    CV_NPZ,
+    FRAME_ERROR_FILE,
+    METRICS_JSON,
+    MODEL_NPZ,
+    TRACKING_JSON,
+)
 from aumesh.pipeline.release import refuse_nonfinite
 from aumesh.stages.common import check_columns, data_digest, start_stage
 
@@ -56,7 +63,6 @@ def evaluate_run_name(cfg: Config) -> str:
 
 def main(cfg: Config) -> dict:
     from aumesh.pipeline import dvc_metrics
-    from aumesh.pipeline import evaluate as ev
     from aumesh.pipeline.prepared_data import load_prepared
     from aumesh.tracking import mlflow_store
     from aumesh.tracking import runs as tracking
@@ -111,7 +117,7 @@ def main(cfg: Config) -> dict:
                 cumulative_error_thresholds=thresholds,
                 cumulative_error_fraction=fraction,
             )
-            shutil.copyfile(cv.frame_vertex_error.path, tmp / ev.FRAME_ERROR_FILE)  # per frame, frames.parquet's order
+            shutil.copyfile(cv.frame_vertex_error.path, tmp / FRAME_ERROR_FILE)  # per frame, frames.parquet's order
             atomic_write_json(
                 tmp / TRACKING_JSON, run_info | {"data_digest": digest, "degenerate": cv.extra.get("degenerate", {})}
             )
