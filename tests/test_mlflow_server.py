@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from aumesh.tracking import mlflow_store, queries
+from aumesh.tracking.experiment import SORT_METRICS, SORT_PARAMS, runs_page_url
 from aumesh.tracking import runs as tracking
 
 pytestmark = pytest.mark.server
@@ -65,7 +66,7 @@ def test_ui_opens_the_experiment_on_its_runs(mlflow_server, browser, monkeypatch
         names[run.run_id] = f"absolute au_pose_interactions k={k}"
     experiment = MlflowClient(tracking_uri=mlflow_server).get_experiment_by_name("ui-test")
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
-    url = mlflow_store.runs_page_url(mlflow_server, experiment.experiment_id)
+    url = runs_page_url(mlflow_server, experiment.experiment_id)
     context = browser.new_context(viewport={"width": 1920, "height": 800})
     try:
         context.route(
@@ -97,6 +98,6 @@ def test_ui_opens_the_experiment_on_its_runs(mlflow_server, browser, monkeypatch
     assert text.index(names[run.run_id]) < text.index("k=10")  # best r2_mean first
     assert "aumesh" in text and "AU (+ head pose)" in text  # the description above the table
     assert "Sort: r2_mean" in text  # sorted by the metric people sort by (best first, checked above)
-    for column in (*mlflow_store.SORT_METRICS, *mlflow_store.SORT_PARAMS):  # the columns people sort by, shown
+    for column in (*SORT_METRICS, *SORT_PARAMS):  # the columns people sort by, shown
         assert column in headers, (column, headers)
     assert "0.587654" in text  # the best run's r2_mean in its column

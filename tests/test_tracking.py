@@ -1,4 +1,4 @@
-"""Offline tests of aumesh.tracking.runs / aumesh.core.provenance against a temporary SQLite store."""
+"""Offline tests of aumesh.tracking.runs / .beside / .handle / aumesh.core.provenance against a temporary SQLite store."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from aumesh.core import provenance
-from aumesh.tracking import mlflow_store, queries
+from aumesh.tracking import beside, experiment, mlflow_store, queries, values
 from aumesh.tracking import runs as tracking
 from conftest import new_store
 
@@ -82,7 +82,7 @@ def test_experiment_is_model_training_with_a_description(cfg, store_uri, workspa
     exp = client.get_experiment_by_name(cfg["experiment"])
     tags = exp.tags
     # MLflow's own names: the experiment-kind tag its UI reads, and the note tag it shows as the description
-    assert mlflow_store.NOTE_TAG == mlflow.utils.mlflow_tags.MLFLOW_RUN_NOTE  # "mlflow.note.content"
+    assert experiment.NOTE_TAG == mlflow.utils.mlflow_tags.MLFLOW_RUN_NOTE  # "mlflow.note.content"
     assert tags["mlflow.experimentKind"] == "custom_model_development"
     note = tags["mlflow.note.content"]
     assert note.startswith("**aumesh**") and MD5 in note and "README" in note and "Tracking" in note
@@ -115,7 +115,7 @@ def test_run_logs_params_metrics_config_dataset_tags(cfg, store_uri, workspace):
     p = got.data.params
     assert p["model.n_components"] == "8" and p["model.scale"] == "True"
     assert p["anchors"] == "[10, 9, 8]"
-    assert len(p["long"]) == mlflow_store.MAX_PARAM_VALUE_LENGTH and p["long"].endswith(mlflow_store.TRUNCATION_MARK)
+    assert len(p["long"]) == values.MAX_PARAM_VALUE_LENGTH and p["long"].endswith(values.TRUNCATION_MARK)
 
     hist = client.get_metric_history(run.run_id, "r2")
     assert sorted((m.step, m.value) for m in hist) == [(0, 0.5), (1, 0.6), (2, 0.7)]
@@ -211,7 +211,7 @@ def _broken(handle) -> None:
 def test_a_run_beside_is_the_same_run_logged_from_a_helper_process_in_order(cfg, store_uri, workspace):
     import os
 
-    with tracking.tracked_run_beside(cfg, "beside", {"model": {"n_components": 8}}, tags={"stage": "evaluate"}) as run:
+    with beside.tracked_run_beside(cfg, "beside", {"model": {"n_components": 8}}, tags={"stage": "evaluate"}) as run:
         helper = run.call(_pid)
         for step in range(5):  # queued in order: the history is the order of the calls
             run.log_metrics({"m": float(step)}, step=step)
@@ -232,7 +232,7 @@ def test_a_run_beside_is_the_same_run_logged_from_a_helper_process_in_order(cfg,
 @pytest.mark.parametrize("error, status", [(RuntimeError("boom"), "FAILED"), (KeyboardInterrupt(), "KILLED")])
 def test_a_run_beside_ends_failed_or_killed_with_the_callers_error(cfg, store_uri, error, status):
     with pytest.raises(type(error)):
-        with tracking.tracked_run_beside(cfg, "broken", {"a": 1}) as run:
+        with beside.tracked_run_beside(cfg, "broken", {"a": 1}) as run:
             run.log_metrics({"partial": 1.0})
             raise error
     got = _client(store_uri).get_run(run.run_id)
@@ -243,7 +243,7 @@ def test_a_run_beside_ends_failed_or_killed_with_the_callers_error(cfg, store_ur
 
 def test_a_failed_queued_call_fails_the_run_and_is_raised_here(cfg, store_uri):
     with pytest.raises(ValueError, match="the store refused it"):
-        with tracking.tracked_run_beside(cfg, "refused", None) as run:
+        with beside.tracked_run_beside(cfg, "refused", None) as run:
             run.call(_broken)
             run.log_metrics({"after": 1.0})  # queued behind the failure: still logged
     got = _client(store_uri).get_run(run.run_id)
@@ -262,9 +262,9 @@ def test_the_helper_ends_with_its_caller_and_the_next_run_marks_the_run_killed(c
 
     code = (
         "import os, signal, sys\n"
-        "from aumesh.tracking import runs as tracking\n"
+        "from aumesh.tracking import beside\n"
         "from test_tracking import _pid\n"
-        "with tracking.tracked_run_beside({'experiment': sys.argv[1]}, 'victim', {'a': 1}) as run:\n"
+        "with beside.tracked_run_beside({'experiment': sys.argv[1]}, 'victim', {'a': 1}) as run:\n"
         "    print(run.run_id, run.call(_pid).result(), flush=True)\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
     )
@@ -288,7 +288,7 @@ def test_the_helper_ends_with_its_caller_and_the_next_run_marks_the_run_killed(c
 
 
 def test_a_disabled_run_beside_is_a_noop(workspace):
-    with tracking.tracked_run_beside({"enabled": False}, "x", {"a": 1}) as run:
+    with beside.tracked_run_beside({"enabled": False}, "x", {"a": 1}) as run:
         run.log_metrics({"m": 1.0})
         assert run.call(_broken) is None
     assert run.run_id is None and not run.enabled

@@ -298,8 +298,8 @@ def choose(
 
 # ------------------------------------------------------------------ configuration
 def _param_string(value: Any) -> str:
-    """A value as MLflow stores it in params (``aumesh.tracking.mlflow_store.prepare_params``)."""
-    from aumesh.tracking.mlflow_store import prepare_params
+    """A value as MLflow stores it in params (``aumesh.tracking.values.prepare_params``)."""
+    from aumesh.tracking.values import prepare_params
 
     return prepare_params({"v": value})["v"]
 

@@ -66,6 +66,7 @@ def main(cfg: Config) -> dict:
     from aumesh.pipeline.prepared_data import load_prepared
     from aumesh.tracking import mlflow_store
     from aumesh.tracking import runs as tracking
+    from aumesh.tracking.beside import tracked_run_beside
 
     start_stage("evaluate", cfg)
     params = cfg.to_dict()
@@ -79,7 +80,7 @@ def main(cfg: Config) -> dict:
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
     # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
-    with tracking.tracked_run_beside(
+    with tracked_run_beside(
         tracking_cfg,
         run_name=evaluate_run_name(cfg),
         params=params,

@@ -149,7 +149,7 @@ def log_release_model(run, arrays: Mapping[str, np.ndarray]) -> float:
 
     Parameters
     ----------
-    run : aumesh.tracking.runs.TrackedRun
+    run : aumesh.tracking.handle.TrackedRun
         An open run (a disabled run logs nothing).
     arrays : mapping
         The release NPZ's arrays (:func:`aumesh.model.release.release_arrays`).

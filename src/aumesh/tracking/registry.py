@@ -6,7 +6,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from aumesh.tracking.mlflow_store import MAX_TAG_VALUE_LENGTH, _str_value, get_client
+from aumesh.tracking.mlflow_store import get_client
+from aumesh.tracking.values import MAX_TAG_VALUE_LENGTH, _str_value
 
 CHAMPION_ALIAS = "champion"
 

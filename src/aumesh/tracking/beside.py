@@ -1,0 +1,169 @@
+"""The helper process that holds the evaluate stage's MLflow run beside the passes (:func:`tracked_run_beside`).
+
+The stage process never imports MLflow: one forked worker imports it, opens the run (as
+:func:`aumesh.tracking.runs.tracked_run` does) and runs the stage's logging calls, queued in order, while the stage
+computes. The helper ignores the signals a terminal sends the whole process group (the stage marks the run KILLED)
+and ends when the stage process is gone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+from collections.abc import Iterator, Mapping
+from typing import TYPE_CHECKING, Any
+
+from aumesh.core.signals import check_supervisor
+from aumesh.tracking.handle import TrackedRun, _NullRun
+from aumesh.tracking.runs import _enabled, _end_failed, _fail, _failure, _open_run
+
+if TYPE_CHECKING:  # pragma: no cover
+    from concurrent.futures import Future, ProcessPoolExecutor
+
+
+class RunBeside:
+    """The handle of :func:`tracked_run_beside`: :class:`TrackedRun`'s ``log_*`` and ``set_tags`` methods, each
+    queued to the helper process that holds the run and run there in the order they were called; they return at once
+    (a :class:`concurrent.futures.Future`). ``run_id``, ``experiment_id`` and ``tracking_uri`` wait for the run to be
+    open."""
+
+    enabled = True
+
+    def __init__(self, helper: ProcessPoolExecutor, opened: Future) -> None:
+        self._helper = helper
+        self._opened = opened  # of (run_id, experiment_id, tracking_uri)
+        self._queued = [opened]
+
+    def __repr__(self) -> str:
+        return f"RunBeside(opened={self._opened.done()}, queued={len(self._queued)})"
+
+    run_id = property(lambda self: self._opened.result()[0])
+    experiment_id = property(lambda self: self._opened.result()[1])
+    tracking_uri = property(lambda self: self._opened.result()[2])
+
+    def call(self, fn, *args, **kwargs):
+        """Queue ``fn(handle, *args, **kwargs)`` with the helper's :class:`TrackedRun` ``handle`` (``fn`` and its
+        arguments are pickled: a module-level function); returns its Future."""
+        future = self._helper.submit(_call_beside, fn, args, kwargs)
+        self._queued.append(future)
+        return future
+
+    def __getattr__(self, name: str):
+        if name.startswith("log_") or name == "set_tags":
+            method = getattr(TrackedRun, name)
+            return lambda *args, **kwargs: self.call(method, *args, **kwargs)
+        raise AttributeError(f"{type(self).__name__} has no attribute {name!r}")
+
+    def wait(self) -> None:
+        """Wait for everything queued; raise the first error the helper met."""
+        for future in self._queued:
+            future.result()
+
+    def end(self, error: BaseException | None = None) -> None:
+        """End the run FINISHED, or with ``error`` as :func:`aumesh.tracking.runs.tracked_run` does (nothing to end if
+        it never opened)."""
+        if error is None:
+            self._helper.submit(_end_beside, "FINISHED").result()
+        elif self._opened.exception() is None:
+            with contextlib.suppress(Exception):
+                self._helper.submit(_end_beside, *_failure(error)).result()
+
+
+_BESIDE: TrackedRun | None = None  # the helper process's open run
+
+
+def _start_helper(owner_pid: int) -> None:
+    """In the helper: Ctrl-C (which a terminal sends to the whole process group) is the stage's to handle, so the run
+    can still be marked KILLED; and the helper ends when its stage process is gone (e.g. killed alone)."""
+    import signal
+    import threading
+
+    # SIGTERM/SIGHUP too: a stage stops on them as on Ctrl-C (aumesh.core.signals), and this helper, forked after the
+    # stage installed that handler, must stay to mark the run KILLED when a whole process group is told to stop
+    for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if sig is not None:
+            signal.signal(sig, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == owner_pid:
+            time.sleep(0.5)
+        os._exit(1)  # the run stays RUNNING under the stage's pid: the next run marks it KILLED
+
+    threading.Thread(target=watch, name="aumesh-owner-watch", daemon=True).start()
+
+
+def _open_beside(tracking_cfg, run_name, params, tags, owner_pid: int) -> tuple[str, str, str]:
+    global _BESIDE
+    handle = _open_run(tracking_cfg, run_name, tags, None, owner_pid)
+    try:
+        if params:
+            handle.log_params(params)
+    except BaseException as exc:
+        _fail(handle, exc)
+        raise
+    _BESIDE = handle
+    return handle.run_id, handle.experiment_id, handle.tracking_uri
+
+
+def _call_beside(fn, args, kwargs):
+    if _BESIDE is None:
+        raise RuntimeError("the MLflow run did not open (see the first error)")
+    return fn(_BESIDE, *args, **kwargs)
+
+
+def _end_beside(status: str, error: str = "", tb: str = "") -> None:
+    if _BESIDE is None:  # the run never opened: the opening error is what the caller reports
+        return
+    if status == "FINISHED":
+        _BESIDE.client.set_terminated(_BESIDE.run_id, status)
+    else:
+        _end_failed(_BESIDE, status, error, tb)
+
+
+@contextlib.contextmanager
+def tracked_run_beside(
+    tracking_cfg: Mapping[str, Any] | None,
+    run_name: str | None,
+    params: Mapping[str, Any] | None,
+    tags: Mapping[str, Any] | None = None,
+) -> Iterator[RunBeside | _NullRun]:
+    """:func:`aumesh.tracking.runs.tracked_run` held by a helper process, so MLflow is never imported here and works
+    beside the caller.
+
+    MLflow 3's import (its GenAI, gateway and data modules, pandas, SQLAlchemy: ~4 s of CPU) ran on one core before
+    the evaluate stage's first pass, while the other idled; beside it, the stage at 344k frames takes 0.82x the time.
+    The helper (one
+    worker of a :class:`concurrent.futures.ProcessPoolExecutor`, forked on Linux) imports MLflow and opens
+    the run while the caller computes; the caller's logging is queued to it, in order
+    (:class:`RunBeside`). The run is the same as ``tracked_run``'s: params, provenance tags (``aumesh.pid`` is the
+    caller's), FINISHED on normal exit; if the body raises, or a queued call failed, the run gets the ``aumesh.error``
+    tag and ``error.txt``, is FAILED (KILLED for ``KeyboardInterrupt``) and the error is raised here. If the caller is
+    killed the helper ends too, and the next run marks the run KILLED
+    (:func:`aumesh.tracking.runs.close_orphaned_runs`).
+
+    Yields
+    ------
+    RunBeside
+        Or the no-op handle (``enabled=False``) when ``tracking.enabled`` is false.
+    """
+    if not _enabled(tracking_cfg):
+        yield _NullRun()
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # fork (Linux): the helper inherits the imports (NumPy, pandas); elsewhere spawn, the platforms' safe default
+    context = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
+    owner = os.getpid()
+    with ProcessPoolExecutor(1, mp_context=context, initializer=_start_helper, initargs=(owner,)) as helper:
+        run = RunBeside(helper, helper.submit(_open_beside, dict(tracking_cfg or {}), run_name, params, tags, owner))
+        try:
+            yield run
+            run.wait()
+            check_supervisor()  # under DVC: a run whose DVC was stopped is KILLED, never FINISHED by an orphan
+        except BaseException as exc:
+            run.end(exc)
+            raise
+        run.end()
