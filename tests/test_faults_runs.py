@@ -218,10 +218,10 @@ def promotion_files(ws: Path) -> dict[str, bytes]:
 
 
 def ranked(ws: Path, parent: str) -> list[str]:
-    from aumesh.experiments import promote
+    from aumesh.experiments import ranking
 
     children = queries.list_child_runs(parent, {})
-    return [r for r, _ in promote.choose(promote.candidates_from_frame(children)).ranking]
+    return [r for r, _ in ranking.choose(ranking.candidates_from_frame(children)).ranking]
 
 
 def no_absolute_path(record, where: str) -> None:

@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from aumesh import config
-from aumesh.experiments import promote
+from aumesh.experiments import promoted_config
 from conftest import REPO
 
 # tests that read the configuration and fail if it is not the card's (n_components=83 is OLS on 83 features)
@@ -32,7 +32,7 @@ def test_suite_passes_in_a_checkout_with_a_promoted_experiment(tmp_path):
     # what `aumesh promote` leaves behind: a promoted run with another design and n_components, params.yaml recomposed
     (repo / "conf" / "experiment").mkdir(exist_ok=True)
     (repo / "conf" / "experiment" / "promoted.yaml").write_text(
-        promote.experiment_yaml({"features.name": "au", "model.n_components": 19})
+        promoted_config.experiment_yaml({"features.name": "au", "model.n_components": 19})
     )
     config.write_params(config.compose(config_dir=repo / "conf"), repo / "params.yaml")
     assert config.load_params(repo / "params.yaml").model.n_components == 19  # the promotion is in effect

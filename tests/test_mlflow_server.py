@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from aumesh.tracking import mlflow_store, queries
-from aumesh.tracking.experiment import SORT_METRICS, SORT_PARAMS, runs_page_url
 from aumesh.tracking import runs as tracking
+from aumesh.tracking.experiment import SORT_METRICS, SORT_PARAMS, runs_page_url
 
 pytestmark = pytest.mark.server
 

@@ -14,8 +14,8 @@ import yaml
 from aumesh import config
 from aumesh.core import provenance
 from aumesh.core.schema import INPUT_COLUMNS
-from aumesh.experiments import promote
-from aumesh.experiments.promote import Candidate
+from aumesh.experiments import promote, promoted_config, ranking
+from aumesh.experiments.ranking import Candidate
 from aumesh.tracking import registry
 from aumesh.tracking import runs as tracking
 
@@ -46,14 +46,14 @@ def test_highest_r2_wins_ties_go_to_fewer_components_failed_ignored():
         cand("d", 0.69, 5),
         cand("e", 0.99, 10, status="FAILED"),
     ]
-    choice = promote.choose(runs)
+    choice = ranking.choose(runs)
     assert choice.run_id == "c"  # tied with b within 1e-9, fewer components
     assert choice.metric == "r2_mean"
     assert [r for r, _ in choice.ranking] == ["c", "b", "d", "a"]
     assert choice.n_candidates == 4 and choice.n_excluded == 1
     assert "target=absolute" in choice.compared and "same space" in choice.compared
     # a real difference beats fewer components
-    assert promote.choose([cand("x", 0.70, 40), cand("y", 0.6999, 5)]).run_id == "x"
+    assert ranking.choose([cand("x", 0.70, 40), cand("y", 0.6999, 5)]).run_id == "x"
 
 
 def test_mixed_targets_are_compared_on_displacement_r2():
@@ -62,13 +62,13 @@ def test_mixed_targets_are_compared_on_displacement_r2():
         cand("neu", 0.40, 10, "neutral", disp=0.50),
         cand("abs2", 0.95, 40, "absolute", disp=0.31),
     ]
-    choice = promote.choose(runs)
+    choice = ranking.choose(runs)
     assert choice.run_id == "neu" and choice.metric == "r2_displacement_mean"
     assert "differ in preprocess.target" in choice.compared and "not compared" in choice.compared
     assert choice.targets == ("absolute", "neutral")
     with pytest.raises(ValueError, match="not comparable"):
-        promote.choose(runs, metric="r2_mean")
-    restricted = promote.choose(runs, target="absolute")
+        ranking.choose(runs, metric="r2_mean")
+    restricted = ranking.choose(runs, target="absolute")
     assert restricted.run_id == "abs2" and restricted.metric == "r2_mean"
     assert "restricted to preprocess.target=absolute" in restricted.compared
 
@@ -79,22 +79,22 @@ def test_mixed_targets_can_be_ranked_by_au_field_reliability():
         cand("neu", 0.40, 83, "neutral", disp=0.32, au_reliability_median=0.75, au_reliability_min=0.4),
         cand("win", 0.50, 83, "within", disp=0.31, au_reliability_median=0.90, au_reliability_min=0.3),
     ]
-    assert promote.choose(runs).run_id == "neu"  # default: r2_displacement_mean across targets
-    best = promote.choose(runs, metric="au_reliability_median")
+    assert ranking.choose(runs).run_id == "neu"  # default: r2_displacement_mean across targets
+    best = ranking.choose(runs, metric="au_reliability_median")
     assert best.run_id == "win" and "cosine between AU fields" in best.compared
     assert best.targets == ("absolute", "neutral", "within")
-    assert promote.choose(runs, metric="au_reliability_min").run_id == "neu"
+    assert ranking.choose(runs, metric="au_reliability_min").run_id == "neu"
     with pytest.raises(ValueError, match="au_reliability_median.*--target absolute\\|neutral\\|within"):
-        promote.choose(runs, metric="mae_mean")
+        ranking.choose(runs, metric="mae_mean")
 
 
 def test_error_metrics_are_minimised_and_nothing_to_promote_is_an_error():
     runs = [cand("a", 0.5, 10, mae_mean=1.2), cand("b", 0.4, 10, mae_mean=1.1)]
-    assert promote.choose(runs, metric="mae_mean").run_id == "b"
+    assert ranking.choose(runs, metric="mae_mean").run_id == "b"
     with pytest.raises(ValueError, match="no FINISHED run"):
-        promote.choose([cand("f", 0.9, 3, status="FAILED")])
+        ranking.choose([cand("f", 0.9, 3, status="FAILED")])
     with pytest.raises(ValueError, match="logged by none"):
-        promote.choose(runs, metric="no_such_metric")
+        ranking.choose(runs, metric="no_such_metric")
 
 
 # ---------------------------------------------------------------- the experiment file and the defaults list
@@ -111,8 +111,8 @@ def conf_ws(tmp_path, monkeypatch):
 
 
 def test_promoted_experiment_overrides_groups_and_cli_overrides_win(conf_ws):
-    promote.check_defaults_entry(conf_ws / "conf")
-    text = promote.experiment_yaml(
+    promoted_config.check_defaults_entry(conf_ws / "conf")
+    text = promoted_config.experiment_yaml(
         {"features.name": "au_pose", "model.n_components": 7, "preprocess.target": "neutral"}
     )
     assert text.startswith("# @package _global_")
@@ -129,7 +129,7 @@ def test_missing_defaults_entry_is_a_clear_error(conf_ws):
     path = conf_ws / "conf" / "config.yaml"
     path.write_text("\n".join(ln for ln in path.read_text().splitlines() if "experiment" not in ln) + "\n")
     with pytest.raises(ValueError, match="optional experiment: promoted"):
-        promote.check_defaults_entry(conf_ws / "conf")
+        promoted_config.check_defaults_entry(conf_ws / "conf")
 
 
 # ---------------------------------------------------------------- a constructed sweep in MLflow

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from aumesh.data import tables
-from aumesh.experiments import promote
+from aumesh.experiments import ranking
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
 from aumesh.pipeline.prepared_data import load_prepared
@@ -84,7 +84,7 @@ def test_default_promotion_criterion_picks_within_on_coupled_data(coupled):
     for target in ("absolute", "neutral", "within"):
         cv, _ = _fit(prepared, target)
         candidates.append(
-            promote.Candidate(
+            ranking.Candidate(
                 run_id=target,
                 run_name=target,
                 status="FINISHED",
@@ -92,6 +92,6 @@ def test_default_promotion_criterion_picks_within_on_coupled_data(coupled):
                 metrics=cv.scalar_metrics() | {"n_components": 83.0},
             )
         )
-    choice = promote.choose(candidates)
+    choice = ranking.choose(candidates)
     assert choice.metric == "r2_displacement_mean" and choice.run_id == "within", choice.ranking
-    assert promote.choose(candidates, metric="au_reliability_median").run_id == "within"
+    assert ranking.choose(candidates, metric="au_reliability_median").run_id == "within"

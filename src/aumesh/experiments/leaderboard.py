@@ -10,14 +10,14 @@ if TYPE_CHECKING:  # pragma: no cover
 
 
 def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFrame:
-    """A sweep's children as a table, best first by the promotion criterion (see :mod:`aumesh.experiments.promote`).
+    """A sweep's children as a table, best first by the promotion criterion (see :mod:`aumesh.experiments.ranking`).
 
     Parameters
     ----------
     children : DataFrame
         :func:`aumesh.tracking.queries.list_child_runs` output.
     metric : str, optional
-        Ranking metric; default: :func:`aumesh.experiments.promote.default_metric` of the finished runs' targets.
+        Ranking metric; default: :func:`aumesh.experiments.ranking.default_metric` of the finished runs' targets.
 
     Returns
     -------
@@ -28,12 +28,12 @@ def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFram
     """
     import pandas as pd
 
-    from aumesh.experiments import promote
+    from aumesh.experiments import ranking
 
-    candidates = promote.candidates_from_frame(children)
+    candidates = ranking.candidates_from_frame(children)
     finished = [c for c in candidates if c.status == "FINISHED"]
-    metric = metric or promote.default_metric({c.target for c in finished})
-    ranked = promote.rank([c for c in finished if metric in c.metrics], metric) if finished else []
+    metric = metric or ranking.default_metric({c.target for c in finished})
+    ranked = ranking.rank([c for c in finished if metric in c.metrics], metric) if finished else []
     order = [c.run_id for c in ranked] + [c.run_id for c in candidates if c.run_id not in {r.run_id for r in ranked}]
     by_id = {c.run_id: c for c in candidates}
     rows = []
