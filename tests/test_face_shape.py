@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from aumesh.core.schema import flatten_axis_major
 from aumesh.geometry import face, measures
 from aumesh.model.face_shape import DEPTH_WIDTH_RANGE, au0_face, face_shape_error
-from aumesh.model.inference import ReleaseError
+from aumesh.model.release_check import ReleaseError
 from aumesh.pipeline.release import refuse_implausible_face
 from test_faults import mlflow_runs, run_cli, tree_digest
 

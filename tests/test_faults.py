@@ -979,7 +979,7 @@ def test_constant_inputs_are_said_aloud_and_get_zero_coefficients(workspace, col
 # ------------------------------------------------------------------------------------- finite releases only
 @pytest.mark.parametrize("key", ["coef", "coef_full", "intercept"])
 def test_load_release_and_predict_refuse_a_non_finite_release(good_workspace, tmp_path, key, capsys):
-    from aumesh.model.inference import ReleaseError, load_release
+    from aumesh.model.release_check import ReleaseError, load_release
 
     arrays = dict(np.load(good_workspace / "release/au_to_mesh_pls.npz"))
     arrays[key] = arrays[key].copy()

@@ -11,7 +11,8 @@ import pytest
 import aumesh
 from aumesh.core.io import atomic_savez
 from aumesh.core.schema import AU_COLUMNS, N_TARGETS, feature_set_columns
-from aumesh.model.inference import PredictionInputError, ReleaseError
+from aumesh.model.input_columns import PredictionInputError
+from aumesh.model.release_check import ReleaseError
 from aumesh.model.release import release_arrays
 from conftest import face_reference, in_card_frame
 

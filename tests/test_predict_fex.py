@@ -17,7 +17,7 @@ import aumesh
 from aumesh import cli
 from aumesh.core.io import atomic_savez
 from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_set_columns
-from aumesh.model.inference import PredictionInputError
+from aumesh.model.input_columns import PredictionInputError
 from aumesh.model.release import release_arrays
 from aumesh.synthetic.pyfeat_columns import BLENDSHAPE_COLUMNS
 from conftest import face_reference
@@ -248,7 +248,7 @@ def test_a_missing_au_without_a_near_miss_is_named_alone(tmp_path):
 
 # --------------------------------------------------------------------------- scale and range
 def test_aus_on_openfaces_0_to_5_scale_are_refused(tmp_path, capsys):
-    from aumesh.model.inference import InputRangeWarning
+    from aumesh.model.input_checks import InputRangeWarning
 
     release = write_release(tmp_path)
     df = fex_table("mp", np.random.default_rng(8))
@@ -275,7 +275,7 @@ def test_pose_in_degrees_is_refused(tmp_path, capsys):
 
 
 def test_pose_beyond_the_training_range_warns_in_one_line(tmp_path, caplog):
-    from aumesh.model.inference import InputRangeWarning, training_pose_limits
+    from aumesh.model.input_checks import InputRangeWarning, training_pose_limits
 
     df = fex_table("mp", np.random.default_rng(10))
     df.loc[1, "Yaw"] = 0.9  # 51.6 deg, beyond the card's |yaw| <= 40 deg
@@ -312,7 +312,7 @@ def test_pose_beyond_the_training_range_warns_in_one_line(tmp_path, caplog):
 
 def test_the_training_metadata_of_a_real_release_names_the_pose_filter(tmp_path):
     """release_stage writes the whole model_card.json as training_metadata; its config holds the pose filter."""
-    from aumesh.model.inference import training_pose_limits
+    from aumesh.model.input_checks import training_pose_limits
 
     card = {"config": {"preprocess": {"pose_filter": {"max_abs_yaw_deg": 40.0, "max_abs_pitch_deg": 30.0}}}}
     release = write_release(tmp_path, metadata=card)

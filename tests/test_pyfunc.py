@@ -80,7 +80,7 @@ def test_registered_pyfunc_model_predicts_the_npz_meshes(champion):
     # aumesh's input errors are MLflow's invalid-parameter errors with aumesh's own line as the message
     from mlflow.exceptions import MlflowException
 
-    from aumesh.model.inference import PredictionInputError
+    from aumesh.model.input_columns import PredictionInputError
 
     with pytest.raises(PredictionInputError) as lib:
         aumesh.predict_mesh(load_npz(npz), df.assign(Yaw=25.0))

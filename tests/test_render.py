@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from aumesh.card import release_figures, render
 from aumesh.core.schema import AU_COLUMNS
 from aumesh.geometry import face
-from aumesh.model.inference import ReleaseError
+from aumesh.model.release_check import ReleaseError
 from aumesh.synthetic import truth
 
 ALWAYS = (

@@ -100,7 +100,7 @@ def test_single_person_set_au09_at_one_warns_in_one_line_and_an_in_range_input_d
     import warnings
 
     import aumesh
-    from aumesh.model.inference import InputRangeWarning
+    from aumesh.model.input_checks import InputRangeWarning
 
     summary, frames, arrays = single_person
     assert frames["AU09"].max() <= 0.035 + 1e-6
@@ -126,7 +126,7 @@ def test_single_person_set_au09_at_one_warns_in_one_line_and_an_in_range_input_d
 def test_one_warning_per_call_names_every_problem(single_person):
     """An AU above 1 (as numbers), an AU above its training max and a yaw beyond the pose filter: one line."""
     import aumesh
-    from aumesh.model.inference import InputRangeWarning
+    from aumesh.model.input_checks import InputRangeWarning
 
     _, frames, arrays = single_person
     aus = np.zeros((3, 20))
@@ -145,7 +145,7 @@ def test_release_npz_records_p99_and_unsupported_and_old_releases_still_load(sin
 
     import aumesh
     from aumesh.core.io import atomic_savez
-    from aumesh.model.inference import ReleaseError
+    from aumesh.model.release_check import ReleaseError
 
     summary, frames, arrays = single_person
     path = atomic_savez(tmp_path / "release.npz", **arrays)
@@ -310,7 +310,7 @@ def test_predict_of_an_input_columns_table_has_no_keys_and_no_detector_warning(t
 
 
 def test_pyfunc_model_logs_the_range_warning_on_every_call(tmp_path, caplog):
-    from aumesh.model.inference import load_release
+    from aumesh.model.release_check import load_release
     from aumesh.tracking.pyfunc import ReleaseModel
 
     model = ReleaseModel()

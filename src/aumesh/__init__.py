@@ -18,11 +18,11 @@ __version__ = "0.1.0"
 
 # public name -> module that defines it
 _EXPORTS = {
-    "load_release": "aumesh.model.inference",
+    "load_release": "aumesh.model.release_check",
     "predict_mesh": "aumesh.model.inference",
-    "PredictionInputError": "aumesh.model.inference",
-    "InputRangeWarning": "aumesh.model.inference",
-    "ReleaseError": "aumesh.model.inference",
+    "PredictionInputError": "aumesh.model.input_columns",
+    "InputRangeWarning": "aumesh.model.input_checks",
+    "ReleaseError": "aumesh.model.release_check",
     "PLSRegression": "aumesh.model.pls",
     "CrossProducts": "aumesh.model.cross_products",
     "SynthSpec": "aumesh.synthetic.tables",

@@ -60,7 +60,8 @@ from aumesh.card.release_figures import (
 from aumesh.core.io import atomic_write_text
 from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.geometry import face
-from aumesh.model.inference import load_release, predict_mesh
+from aumesh.model.inference import predict_mesh
+from aumesh.model.release_check import load_release
 
 TARGET_VISIBLE = 0.08  # inter-ocular units the largest AU displacement is scaled up to, if smaller
 FIGURE_NAMES: tuple[str, ...] = (

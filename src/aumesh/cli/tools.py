@@ -35,7 +35,7 @@ def _cmd_predict(args) -> int:
 
 def _cmd_view(args) -> int:
     from aumesh.export import viewer
-    from aumesh.model.inference import load_release
+    from aumesh.model.release_check import load_release
 
     clips = viewer.table_clips(args.clip, args.video, args.fps, args.mesh_units) if args.clip else None
     out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name, clips=clips)

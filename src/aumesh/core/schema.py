@@ -129,6 +129,6 @@ TARGETS = {
 }
 
 #: The card's pose filter (``preprocess.pose_filter``): frames beyond these |Pitch| and |Yaw| (degrees) are not
-#: trained on; predictions beyond them warn (``aumesh.model.inference``).
+#: trained on; predictions beyond them warn (``aumesh.model.input_checks``).
 MAX_ABS_PITCH_DEG = 30.0
 MAX_ABS_YAW_DEG = 40.0

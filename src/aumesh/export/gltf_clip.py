@@ -158,7 +158,7 @@ def check_clip_inputs(npz: Mapping[str, Any], clip: Clip, *, pose: bool = False,
     import warnings
 
     from aumesh.model import support
-    from aumesh.model.inference import InputRangeWarning, input_rows, logged_range_warnings
+    from aumesh.model.input_checks import InputRangeWarning, input_rows, logged_range_warnings
 
     face = clip.has_face
     with logged_range_warnings(log, where):
@@ -182,7 +182,7 @@ def animate(
     """``aumesh animate``: read one video of a py-feat table (:func:`~aumesh.data.clip.read_clip`), write its
     animated GLB with release ``release``'s rig to ``out``."""
     from aumesh.core.errors import UserError
-    from aumesh.model.inference import load_release
+    from aumesh.model.release_check import load_release
 
     out = Path(out)
     if out.suffix.lower() != ".glb":

@@ -10,7 +10,7 @@ the model's, and the caller is told where it stops being supported by data.
 
 Pure functions on arrays and dicts; the prepare stage computes the ranges (:mod:`aumesh.pipeline.prepare`), the
 release stage records them (``model_card.json`` ``data``; the NPZ's ``feature_p99`` and ``unsupported_features``),
-and :mod:`aumesh.model.inference` warns from them.
+and :mod:`aumesh.model.input_checks` warns from them.
 """
 
 from __future__ import annotations

@@ -43,18 +43,10 @@ from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, POSE
 from aumesh.export import meshfiles
 from aumesh.geometry import face
 from aumesh.model import support
-from aumesh.model.inference import (
-    ColumnSelection,
-    InputRangeWarning,
-    PredictionInputError,
-    closest_name,
-    input_rows,
-    load_release,
-    logged_range_warnings,
-    predict_rows,
-    select_columns,
-    short_list,
-)
+from aumesh.model.inference import predict_rows
+from aumesh.model.input_checks import InputRangeWarning, input_rows, logged_range_warnings
+from aumesh.model.input_columns import ColumnSelection, PredictionInputError, closest_name, select_columns, short_list
+from aumesh.model.release_check import load_release
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +111,7 @@ def read_table(
         Only the ``selection.columns`` (k <= 24) and ``keys``, in the file's row order; a 2,045-column py-feat CSV
         is parsed for those columns only (``usecols``; parquet: ``columns=``).
     selection : ColumnSelection
-        Whether the table is a whole table, and its input columns (:func:`aumesh.model.inference.select_columns`).
+        Whether the table is a whole table, and its input columns (:func:`aumesh.model.input_columns.select_columns`).
 
     Raises
     ------

@@ -132,9 +132,9 @@ def load_model(model_dir: Path) -> dict[str, np.ndarray]:
 
 
 def refuse_nonfinite(arrays: dict, source: Path) -> None:
-    """A :class:`aumesh.model.inference.ReleaseError` naming the first of ``coef``, ``coef_full``, ``intercept`` with a
+    """A :class:`aumesh.model.release_check.ReleaseError` naming the first of ``coef``, ``coef_full``, ``intercept`` with a
     NaN/inf value: a release is finite or not written."""
-    from aumesh.model.inference import ReleaseError, nonfinite_arrays
+    from aumesh.model.release_check import ReleaseError, nonfinite_arrays
 
     nonfinite = nonfinite_arrays(arrays)
     if nonfinite:
@@ -147,11 +147,11 @@ def refuse_nonfinite(arrays: dict, source: Path) -> None:
 def refuse_implausible_face(
     intercept: np.ndarray, mean_aligned_mesh: np.ndarray, model_path: Path, reference_path: Path
 ) -> dict[str, Any]:
-    """The card's ``data.face_shape``, or a :class:`aumesh.model.inference.ReleaseError` (one line naming the file)
+    """The card's ``data.face_shape``, or a :class:`aumesh.model.release_check.ReleaseError` (one line naming the file)
     when the AU=0 face (``intercept``, (1434,) axis-major) or ``mean_aligned_mesh`` (478, 3) has no face's
     depth/width (:func:`aumesh.model.face_shape.face_shape_error`): never a flat face released with exit 0."""
     from aumesh.model.face_shape import au0_face, face_shape_error, face_shape_record
-    from aumesh.model.inference import ReleaseError
+    from aumesh.model.release_check import ReleaseError
 
     try:
         record = face_shape_record(au0_face(intercept), mean_aligned_mesh)

@@ -82,7 +82,7 @@ class ReleaseModel(PythonModel):
     """MLflow pyfunc wrapper of a release NPZ: DataFrame of input columns (any of the 23) -> (n, 1434) meshes."""
 
     def load_context(self, context) -> None:
-        from aumesh.model.inference import load_release
+        from aumesh.model.release_check import load_release
 
         self.release_ = load_release(context.artifacts[NPZ_KEY])
 
@@ -92,7 +92,9 @@ class ReleaseModel(PythonModel):
         Columns are taken by name; a missing AU is 0 and no pose columns is pose 0 (``predict_mesh``'s rules);
         other columns are ignored. aumesh's input errors raise :class:`ServingInputError` (HTTP 400 when served).
         """
-        from aumesh.model.inference import PredictionInputError, logged_range_warnings, predict_mesh
+        from aumesh.model.inference import predict_mesh
+        from aumesh.model.input_checks import logged_range_warnings
+        from aumesh.model.input_columns import PredictionInputError
 
         frame = pd.DataFrame(model_input)
         present = [c for c in INPUT_COLUMNS if c in frame.columns]

@@ -1,0 +1,412 @@
+"""The inputs of a prediction checked: AU and pose rows in the release's order, errors, and warnings beyond training.
+
+Inputs are checked before any arithmetic (:func:`input_rows`): wrong lengths, partly NaN rows, AUs above py-feat's
+0..1 in a detector's table and pose that looks like degrees are errors
+(:class:`aumesh.model.input_columns.PredictionInputError`) that say what was expected; a frame without a face
+(``FaceScore`` 0, or every value NaN) is a row of NaN. Input the model takes but was not trained on (pose beyond the
+training range, :func:`training_pose_limits`; AUs above 1 given as numbers; AUs beyond the data's support,
+:mod:`aumesh.model.support`) is one :class:`InputRangeWarning` a call, pointing at the caller's line.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import warnings
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+
+from aumesh.core.schema import MAX_ABS_PITCH_DEG, MAX_ABS_YAW_DEG, POSE_COLUMNS
+from aumesh.model import support
+from aumesh.model.input_columns import (
+    ColumnSelection,
+    PredictionInputError,
+    _check_pose_complete,
+    _unknown_error,
+    select_columns,
+)
+from aumesh.model.release_check import Release, _names
+
+# A head turned more than 90 degrees is no longer a face seen from the front: any pose value above
+# this (in radians) means the caller passed degrees. Training keeps |yaw| <= 40 deg, |pitch| <= 30 deg
+# (the release's preprocess.pose_filter): beyond that, a warning (training_pose_limits).
+MAX_ABS_POSE_RAD = np.pi / 2
+
+# py-feat's AU intensities (both detectors) are 0..1, and so are the training tables'; OpenFace's are 0..5.
+AU_SCALE_MAX = 1.0
+_AU_SCALE_SLACK = 1e-6  # float32 rounding of a 1.0
+
+
+class InputRangeWarning(UserWarning):
+    """Input the model takes but was not trained on (pose beyond the training range, an AU above 1 given as
+    numbers, an AU above its training max, an AU the training data never expressed given, a table from another
+    detector than the release's); one line a call, naming the columns, the values and the training range. The mesh
+    there is an extrapolation."""
+
+
+def input_rows(
+    release: Release,
+    aus: Any = None,
+    pose: Any = None,
+    *,
+    strict: bool = False,
+    selection: ColumnSelection | None = None,
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """AU and pose rows in the release's column order, checked (the inputs of
+    :func:`aumesh.model.inference.predict_mesh`).
+
+    Parameters
+    ----------
+    release : mapping
+        Release arrays (:func:`aumesh.model.release_check.load_release`); ``au_columns`` gives the AU order,
+        ``training_metadata`` the training pose range.
+    aus, pose, strict
+        As in :func:`predict_mesh`.
+    selection : ColumnSelection, optional
+        For a DataFrame ``aus``: the columns already chosen from the whole table's header
+        (:func:`aumesh.model.input_columns.select_columns`), e.g. by a reader that read only those columns.
+
+    Returns
+    -------
+    au : np.ndarray, shape (N, 20), float64
+        AU intensities in ``au_columns`` order.
+    pose : np.ndarray, shape (N, 3), float64
+        Pitch, Yaw, Roll in radians.
+    single : bool
+        True when the input was one row (a 1-D array, a mapping or None): predict one (478, 3) mesh.
+
+    Raises
+    ------
+    PredictionInputError
+        Unknown or missing names, wrong lengths, partly NaN rows, pose in degrees, pose given twice,
+        mismatched row counts, an AU above 1 in a whole table.
+
+    Warns
+    -----
+    InputRangeWarning
+        One line: pose beyond the training range; an AU above 1 given as numbers (array, mapping, a DataFrame of
+        input columns); AUs beyond the training data (:func:`predict_mesh`).
+
+    Notes
+    -----
+    A row without a face (``FaceScore`` 0, or every AU and every given pose value NaN; see
+    :func:`predict_mesh`) is all NaN in both ``au`` and ``pose``; every other row is finite, so
+    ``np.isnan(au).all(axis=1)`` flags them.
+    """
+    au_names = _names(release["au_columns"])
+    pose_from_aus, face_score, whole = None, None, False
+    if aus is None:
+        au, single = np.zeros((1, len(au_names))), True
+    elif isinstance(aus, Mapping):
+        several = [str(k) for k, v in aus.items() if np.ndim(v) != 0]
+        if several:
+            raise PredictionInputError(
+                f"aus: the mapping's values must be single numbers (one row), not {several}; "
+                f"for many rows pass a DataFrame or an (N, {len(au_names)}) array"
+            )
+        au, pose_from_aus = _from_names({k: [v] for k, v in aus.items()}, 1, au_names, "aus")
+        single = True
+    elif _is_dataframe(aus):
+        what = "aus (DataFrame)"
+        if selection is None:
+            selection = select_columns(aus.columns, au_names, strict=strict, pose_given=pose is not None, what=what)
+        au, pose_from_aus, face_score = _table_values(aus, selection, au_names, what)
+        whole, single = selection.whole, False
+    else:
+        au, pose_from_aus, single = _from_array(aus, au_names)
+    pose_in_input = pose_from_aus is not None or pose is not None
+    if pose_from_aus is not None:
+        if pose is not None:
+            raise PredictionInputError(
+                f"pose given twice: aus has {', '.join(POSE_COLUMNS)} and pose= is set too. Fix: pass one of them."
+            )
+        pose_rows = pose_from_aus
+    elif pose is None:
+        pose_rows = np.zeros((len(au), 3))
+    else:
+        pose_rows, pose_single = _pose_array(pose)
+        single = single and pose_single
+    if len(au) == len(pose_rows) or len(pose_rows) == 1:
+        n = len(au)
+    elif len(au) == 1:
+        n = len(pose_rows)
+    else:
+        raise PredictionInputError(
+            f"aus has {len(au)} rows but pose has {len(pose_rows)}; give pose one row per AU row, or one row for all"
+        )
+    no_face = _no_face(au, pose_rows if pose_in_input else None, face_score, n)
+    _check_finite(au, au_names, "aus", no_face)
+    _check_finite(pose_rows, list(POSE_COLUMNS), "pose", no_face)
+    if len(au) != n:
+        au = np.repeat(au, n, axis=0)
+    if len(pose_rows) != n:
+        pose_rows = np.repeat(pose_rows, n, axis=0)
+    if no_face.any():
+        au, pose_rows = au.copy(), pose_rows.copy()
+        au[no_face], pose_rows[no_face] = np.nan, np.nan
+    face = ~no_face
+    _check_radians(pose_rows[face])
+    scale = _check_au_scale(au, au_names, face, refuse=whole)
+    _warn_beyond_training(au, pose_rows, au_names, face, release, scale)
+    return au, pose_rows, single
+
+
+def _is_dataframe(obj: Any) -> bool:
+    """A pandas DataFrame or a subclass (py-feat's ``Fex``), without importing pandas."""
+    pandas = sys.modules.get("pandas")
+    if pandas is not None and isinstance(obj, pandas.DataFrame):
+        return True
+    return type(obj).__name__ == "DataFrame" and hasattr(obj, "columns") and hasattr(obj, "to_numpy")
+
+
+def _table_values(
+    df: Any, selection: ColumnSelection, au_names: list[str], what: str
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The selected columns of a DataFrame -> (N, 20) AUs (missing AUs 0), (N, 3) pose or None, FaceScore or None."""
+    labels = {str(c): c for c in df.columns}
+    absent = [c for c in selection.columns if c not in labels]
+    if absent:
+        raise PredictionInputError(f"{what}: the selected column(s) {absent} are not in the DataFrame")
+    values = {c: _numeric(df[labels[c]].to_numpy(), f"{what}[{c!r}]") for c in selection.inputs}
+    au = np.zeros((len(df), len(au_names)))
+    for j, name in enumerate(au_names):
+        if name in values:
+            au[:, j] = values[name]
+    pose = np.stack([values[p] for p in POSE_COLUMNS], axis=1) if all(p in values for p in POSE_COLUMNS) else None
+    score = None
+    if selection.face_score:
+        score = _numeric(df[labels[selection.face_score]].to_numpy(), f"{what}[{selection.face_score!r}]")
+    return au, pose, score
+
+
+def _from_names(
+    columns: Mapping[Any, Any], n: int, au_names: list[str], what: str
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Named columns -> (N, 20) AUs (missing AUs are 0) and (N, 3) pose if any pose column is named."""
+    known = set(au_names) | set(POSE_COLUMNS)
+    names = [str(k) for k in columns]
+    unknown = [k for k in names if k not in known]
+    if unknown:
+        raise _unknown_error(
+            what,
+            unknown,
+            au_names,
+            [k for k in names if k in known],
+            fix="rename or drop them (missing AUs count as 0)",
+        )
+    values = {str(k): _numeric(v, f"{what}[{str(k)!r}]") for k, v in columns.items()}
+    _check_pose_complete(list(values), what)
+    au = np.zeros((n, len(au_names)))
+    for j, name in enumerate(au_names):
+        if name in values:
+            au[:, j] = values[name]
+    if not any(p in values for p in POSE_COLUMNS):
+        return au, None
+    return au, np.stack([values[p] for p in POSE_COLUMNS], axis=1)
+
+
+def _numeric(values: Any, what: str) -> np.ndarray:
+    try:
+        return np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise PredictionInputError(f"{what}: not numeric ({exc})") from exc
+
+
+def _from_array(aus: Any, au_names: list[str]) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """A (20,) / (N, 20) AU array, or (23,) / (N, 23) AU + pose in input-column order."""
+    try:
+        a = np.asarray(aus, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise PredictionInputError(
+            f"aus: not numeric ({exc}); pass an array, a mapping {{'AU12': 1.0}} or a DataFrame with named columns"
+        ) from exc
+    n_au, n_in = len(au_names), len(au_names) + len(POSE_COLUMNS)
+    if a.ndim not in (1, 2) or a.shape[-1] not in (n_au, n_in):
+        raise PredictionInputError(
+            f"aus has shape {a.shape}; expected ({n_au},) or (N, {n_au}) in the release's AU order "
+            f"[{', '.join(au_names)}], or ({n_in},) / (N, {n_in}) with {', '.join(POSE_COLUMNS)} (radians) appended"
+        )
+    single = a.ndim == 1
+    a = a.reshape(-1, a.shape[-1])
+    if a.shape[1] == n_in:
+        return a[:, :n_au], a[:, n_au:], single
+    return a, None, single
+
+
+def _pose_array(pose: Any) -> tuple[np.ndarray, bool]:
+    if isinstance(pose, Mapping):
+        unknown = [str(k) for k in pose if str(k) not in POSE_COLUMNS]
+        missing = [p for p in POSE_COLUMNS if p not in pose]
+        if unknown or missing:
+            raise PredictionInputError(
+                f"pose: keys must be {list(POSE_COLUMNS)} (radians); unknown {unknown}, missing {missing}"
+            )
+        pose = [pose[p] for p in POSE_COLUMNS]
+    try:
+        p = np.asarray(pose, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise PredictionInputError(f"pose: not numeric ({exc}); pass {', '.join(POSE_COLUMNS)} in radians") from exc
+    if p.ndim not in (1, 2) or p.shape[-1] != len(POSE_COLUMNS):
+        raise PredictionInputError(
+            f"pose has shape {p.shape}; expected (3,) or (N, 3): {', '.join(POSE_COLUMNS)} in radians, in that order"
+        )
+    return p.reshape(-1, 3), p.ndim == 1
+
+
+def _no_face(au: np.ndarray, pose: np.ndarray | None, face_score: np.ndarray | None, n: int) -> np.ndarray:
+    """(n,) bool: rows of a frame without a face: FaceScore 0, or every AU and every given pose value NaN."""
+    blank = np.broadcast_to(np.isnan(au).all(axis=1), (n,)) if len(au) else np.zeros(n, dtype=bool)
+    if pose is not None:
+        blank = blank & np.broadcast_to(np.isnan(pose).all(axis=1), (n,))
+    if face_score is not None:
+        blank = blank | (face_score == 0)
+    return np.array(blank, dtype=bool)
+
+
+def _check_finite(values: np.ndarray, names: list[str], what: str, no_face: np.ndarray) -> None:
+    """Refuse NaN/inf outside the no-face rows; ``values`` has len(no_face) rows or one row (for all)."""
+    skip = no_face if len(values) == len(no_face) else np.array([no_face.all()])
+    bad = ~np.isfinite(values) & ~skip[:, None]
+    if bad.any():
+        row, col = (int(i) for i in np.argwhere(bad)[0])
+        raise PredictionInputError(
+            f"{what}: {int(bad.sum())} NaN/inf value(s), first in {names[col]!r} at row {row}. A frame without a face "
+            f"has every AU and pose value NaN (or FaceScore 0) and gets a NaN mesh; this row is only partly NaN. "
+            f"Fix: fill or drop it"
+        )
+
+
+def _check_radians(pose: np.ndarray) -> None:
+    if not pose.size:
+        return
+    biggest = np.abs(pose).max(axis=0)
+    j = int(np.argmax(biggest))
+    if biggest[j] > MAX_ABS_POSE_RAD:
+        raise PredictionInputError(
+            f"pose: {POSE_COLUMNS[j]} reaches {biggest[j]:g}, more than pi/2: pose looks like degrees. "
+            f"Pose is in radians, in the order {', '.join(POSE_COLUMNS)}. Fix: np.deg2rad(pose)"
+        )
+
+
+def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refuse: bool) -> str | None:
+    """An AU above 1: an error in a whole (detector's) table; for numbers given directly, the warning's phrase."""
+    bad = (au > AU_SCALE_MAX + _AU_SCALE_SLACK) & face[:, None]
+    if not bad.any():
+        return None
+    row, col = (int(i) for i in np.argwhere(bad)[0])
+    where = f"aus: {au_names[col]} = {au[row, col]:g} at row {row} is above {AU_SCALE_MAX:g}"
+    if refuse:
+        raise PredictionInputError(
+            f"{where}: py-feat's AU intensities, and the model's, are 0..1 (0..5 is OpenFace's scale). "
+            f"Fix: divide the AU columns by 5"
+        )
+    return (
+        f"{where}, beyond the 0..1 scale the model was trained on (py-feat's); the mesh is an extrapolation "
+        f"(OpenFace's 0..5 AUs: divide by 5)"
+    )
+
+
+def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
+    """|angle| limits (radians) of the training frames, and where they come from.
+
+    Returns
+    -------
+    limits : dict of str -> float
+        ``{"Pitch": ..., "Yaw": ...}``: the release's ``preprocess.pose_filter`` (recorded in its
+        ``training_metadata``); when the release records none, the card's (|pitch| <= 30 deg, |yaw| <= 40 deg).
+        Roll is not filtered in training.
+    source : str
+        ``"the release's pose filter"`` or ``"the card's pose filter"``.
+    """
+    meta = support.training_metadata(release)
+    pose_filter: dict[str, Any] = ((meta.get("config") or {}).get("preprocess") or {}).get("pose_filter") or {}
+    if pose_filter.get("max_abs_pitch_deg") is not None and pose_filter.get("max_abs_yaw_deg") is not None:
+        pitch, yaw, source = (
+            pose_filter["max_abs_pitch_deg"],
+            pose_filter["max_abs_yaw_deg"],
+            "the release's pose filter",
+        )
+    else:
+        pitch, yaw = MAX_ABS_PITCH_DEG, MAX_ABS_YAW_DEG  # the card's defaults (core.schema, one place)
+        source = "the card's pose filter (the release records none)"
+    return {"Pitch": float(np.deg2rad(float(pitch))), "Yaw": float(np.deg2rad(float(yaw)))}, source
+
+
+def _pose_beyond(pose: np.ndarray, face: np.ndarray, release: Release) -> str | None:
+    """The warning's phrase when a face row's Pitch or Yaw is beyond the training range, else None."""
+    if not face.any() or not (np.abs(pose[face]).max(initial=0.0) > 0):
+        return None
+    limits, source = training_pose_limits(release)
+    beyond = np.zeros(pose.shape, dtype=bool)
+    for name, limit in limits.items():
+        j = POSE_COLUMNS.index(name)
+        beyond[:, j] = face & (np.abs(pose[:, j]) > limit)
+    if not beyond.any():
+        return None
+    row, j = (int(i) for i in np.argwhere(beyond)[0])
+    name, value = POSE_COLUMNS[j], pose[row, j]
+    rows = int(beyond.any(axis=1).sum())
+    return (
+        f"pose: {name} = {value:.3g} rad ({np.rad2deg(value):.1f} deg) at row {row} is beyond the training range "
+        f"|{name}| <= {np.rad2deg(limits[name]):g} deg ({source}; {rows} row(s) beyond): "
+        f"the mesh there is an extrapolation"
+    )
+
+
+def _warn_beyond_training(
+    au: np.ndarray, pose: np.ndarray, au_names: list[str], face: np.ndarray, release: Release, scale: str | None
+) -> None:
+    """One :class:`InputRangeWarning` (one line) for everything in a call's input beyond what the model was trained
+    on: AUs above 1 given as numbers (``scale``, :func:`_check_au_scale`'s phrase), AUs above the training max or
+    unsupported AUs given (:func:`aumesh.model.support.beyond_training`, from the release's recorded support), pose
+    beyond the training range."""
+    found = support.release_support(release)
+    parts = [
+        scale,
+        None if found is None or not face.any() else support.beyond_training(au, au_names, face, found),
+        _pose_beyond(pose, face, release),
+    ]
+    message = "; ".join(p for p in parts if p)
+    if message:
+        _warn(message)
+
+
+@contextmanager
+def logged_range_warnings(logger: logging.Logger, where: str) -> Iterator[None]:
+    """Inside: :class:`InputRangeWarning` is caught and logged by ``logger``, one line each as ``"<where>: <line>"``
+    (``aumesh predict``, ``aumesh animate``, the served model: a command's output, not Python's warning format);
+    other warnings pass on as they are."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InputRangeWarning)
+        yield
+    for w in caught:
+        if issubclass(w.category, InputRangeWarning):
+            logger.warning("%s: %s", where, w.message)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+
+
+# The modules a call passes through before a warning is made (predict_mesh -> input_rows -> _warn): the warning points
+# at the first frame outside them, the caller's line (a name, not an import: inference imports this module).
+_OWN_MODULES = frozenset({__name__, "aumesh.model.inference"})
+
+
+def _warn(message: str) -> None:
+    """``warnings.warn`` an :class:`InputRangeWarning` at the first caller outside :data:`_OWN_MODULES`."""
+    level, frame = 1, sys._getframe(0)
+    while frame.f_globals.get("__name__") in _OWN_MODULES and frame.f_back is not None:
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, InputRangeWarning, stacklevel=level)
+
+
+__all__ = [
+    "AU_SCALE_MAX",
+    "MAX_ABS_POSE_RAD",
+    "InputRangeWarning",
+    "input_rows",
+    "logged_range_warnings",
+    "training_pose_limits",
+]
