@@ -12,8 +12,8 @@ import aumesh
 from aumesh.core.io import atomic_savez
 from aumesh.core.schema import AU_COLUMNS, N_TARGETS, feature_set_columns
 from aumesh.model.input_columns import PredictionInputError
-from aumesh.model.release_check import ReleaseError
 from aumesh.model.release import release_arrays
+from aumesh.model.release_check import ReleaseError
 from conftest import face_reference, in_card_frame
 
 
