@@ -228,3 +228,50 @@ def test_the_logged_model_keeps_the_datas_support_and_warns_on_each_call(tmp_pat
         model.predict(pd.DataFrame({"AU12": [0.5]}))  # within the training data
     lines = [r.getMessage() for r in caplog.records if r.name == "aumesh.tracking.pyfunc"]
     assert len(lines) == 2 and all("AU12 up to 0.9 (training max 0.6, p99 0.5)" in m for m in lines), lines
+
+
+#: The "models from code" entry every MLflow model logged before issue 42's layout carries, verbatim (its
+#: src/aumesh/experiments/pyfunc_entry.py at commit 0e7b583): the registered @champion imports this path.
+OLD_ENTRY = '''"""MLflow "models from code" entry of the pyfunc model (copied into every logged ``model/``; no pickle)."""
+
+import mlflow.models
+
+from aumesh.experiments.pyfunc import ReleaseModel
+
+mlflow.models.set_model(ReleaseModel())
+'''
+
+
+def test_a_model_logged_before_the_move_still_loads_and_predicts(tmp_path, monkeypatch):
+    """A model saved as the old code saved it (its entry imports ``aumesh.experiments.pyfunc``) loads with MLflow's
+    own loader and predicts what ``aumesh.predict_mesh`` predicts on the same release (and the card's snippet)."""
+    import mlflow.pyfunc
+
+    from aumesh.tracking import pyfunc
+
+    npz = upright_truth_release(tmp_path / "release.npz")
+    entry = tmp_path / "old" / "pyfunc_entry.py"
+    entry.parent.mkdir()
+    entry.write_text(OLD_ENTRY)
+    model_dir = tmp_path / "model"
+    mlflow.pyfunc.save_model(  # the old save_release_model's call, with the old entry file
+        str(model_dir),
+        python_model=str(entry),
+        artifacts={pyfunc.NPZ_KEY: str(npz)},
+        signature=pyfunc.signature(),
+        input_example=pyfunc.input_example(),
+        pip_requirements=pyfunc.requirements(),
+    )
+    # the model carries the old entry's text, which names the old path
+    assert [p.read_text() for p in model_dir.rglob("*.py")] == [OLD_ENTRY]
+    # import the kept path afresh from the source tree, as a new process loading the model would
+    monkeypatch.delitem(sys.modules, "aumesh.experiments.pyfunc", raising=False)
+    model = mlflow.pyfunc.load_model(str(model_dir))
+    assert type(model.unwrap_python_model()) is pyfunc.ReleaseModel
+    df = _inputs(5)
+    df[list(AU_COLUMNS)] *= 0.5  # py-feat's 0..1 scale
+    df["Yaw"] = 0.2  # a turned head, within the training range
+    pred = model.predict(df)
+    assert pred.shape == (5, 1434)
+    np.testing.assert_array_equal(pred, flatten_axis_major(aumesh.predict_mesh(load_npz(npz), df)))
+    np.testing.assert_allclose(pred, _card_snippet(npz, df), rtol=0, atol=1e-9 * 400)
