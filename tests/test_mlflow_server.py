@@ -83,7 +83,7 @@ def test_ui_opens_the_experiment_on_its_runs(mlflow_server, browser, monkeypatch
                 const shown = [...document.querySelectorAll("[role=columnheader]")].map((h) => h.innerText);
                 return columns.every((c) => shown.includes(c)) && document.body.innerText.includes(value);
             }""",
-            arg=[[*mlflow_store.SORT_METRICS, *mlflow_store.SORT_PARAMS], "0.587654"],
+            arg=[[*SORT_METRICS, *SORT_PARAMS], "0.587654"],
             timeout=90_000,
         )
         SHOTS.mkdir(parents=True, exist_ok=True)
