@@ -388,7 +388,7 @@ def test_the_evaluate_stage_fits_and_scores_without_importing_scikit_learn(tmp_p
 
     code = (
         "import sys, numpy as np\n"
-        "from aumesh.tracking import mlflow_store, pyfunc\nfrom aumesh.tracking import runs as tracking\n"
+        "from aumesh.tracking import beside, mlflow_store, pyfunc\nfrom aumesh.tracking import runs as tracking\n"
         "from aumesh.pipeline import dvc_metrics, evaluate as ev\nfrom aumesh.stages import evaluate as stage\n"
         "from aumesh.model.cross_products import CrossProducts\n"
         "from aumesh.model.scoring import r2_path\n"
