@@ -1,9 +1,9 @@
 """What an evaluation run records in MLflow: one definition for the ``evaluate`` stage and every sweep child.
 
 Both callers (:func:`aumesh.stages.evaluate.main`, :func:`aumesh.experiments.sweep_child.run_configuration`) open
-the run themselves (the stage in the tracking helper process, :func:`aumesh.tracking.runs.tracked_run_beside`; a sweep
+the run themselves (the stage in the tracking helper process, :func:`aumesh.tracking.beside.tracked_run_beside`; a sweep
 child in its job, :func:`aumesh.tracking.runs.tracked_run`) and then log the same record, in four calls to an open
-run handle (the tracking helper's :class:`aumesh.tracking.runs.TrackedRun` API; this module never imports MLflow):
+run handle (the tracking helper's :class:`aumesh.tracking.handle.TrackedRun` API; this module never imports MLflow):
 
 1. :func:`log_clipping` (first: a configuration asking for more components than features fails before any work)
    -- tag ``aumesh.n_components_clipped`` when ``model.n_components`` was clipped;
@@ -138,7 +138,7 @@ def log_inputs(
 
     Parameters
     ----------
-    handle : aumesh.tracking.runs.TrackedRun or RunBeside
+    handle : aumesh.tracking.handle.TrackedRun or aumesh.tracking.beside.RunBeside
     cfg : aumesh.config.Config
     prepared : aumesh.pipeline.evaluate.Prepared
         The loaded prepared data (their ``summary`` and ``frames.parquet``'s statistics).

@@ -30,9 +30,10 @@ if TYPE_CHECKING:
 
 
 def run_evaluation(prepared: Prepared, cfg: Config, handle, params: dict, digest: dict) -> tuple[CVResult, FinalModel]:
-    """Evaluate one configuration and log it to an open MLflow run ``handle`` (tracking.RunBeside) as every evaluation
-    run records it (:mod:`aumesh.pipeline.run_record`; the stage's own: metric ``evaluate_seconds``). ``params``: what
-    the run was opened with; ``digest``: ``data.dvc``'s (:func:`aumesh.stages.common.data_digest`)."""
+    """Evaluate one configuration and log it to an open MLflow run ``handle``
+    (:class:`aumesh.tracking.beside.RunBeside`) as every evaluation run records it (:mod:`aumesh.pipeline.run_record`;
+    the stage's own: metric ``evaluate_seconds``). ``params``: what the run was opened with; ``digest``:
+    ``data.dvc``'s (:func:`aumesh.stages.common.data_digest`)."""
     from aumesh.pipeline import evaluate as ev
 
     run_record.log_clipping(cfg, handle)
