@@ -22,8 +22,9 @@ from aumesh import config
 from aumesh.core.schema import AU_COLUMNS
 from aumesh.data import tables
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import prepare, statistics_pass
-from aumesh.pipeline.prepared_data import load_prepared
+from aumesh.pipeline import prepare
+from aumesh.pipeline.evaluate import statistics_pass
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic import truth
 

@@ -201,7 +201,7 @@ def pytest_runtest_protocol(item, nextitem):
 @pytest.fixture(autouse=True)
 def _local_compute(monkeypatch):
     """The passes run where the test's configuration says: a cluster chosen in the caller's shell
-    (``AUMESH_COMPUTE_ADDRESS``, aumesh.pipeline.compute_settings.effective) is not the tests' to use."""
+    (``AUMESH_COMPUTE_ADDRESS``, aumesh.pipeline.compute.settings.effective) is not the tests' to use."""
     for name in [k for k in os.environ if k.startswith("AUMESH_COMPUTE_")]:
         monkeypatch.delenv(name)
 

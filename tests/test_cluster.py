@@ -29,7 +29,9 @@ import aumesh
 from aumesh import cli
 from aumesh.config import ComputeConfig, compose, write_params
 from aumesh.core.errors import ClusterError, ConfigError
-from aumesh.pipeline import compute, compute_probe, compute_settings
+from aumesh.pipeline import compute
+from aumesh.pipeline.compute import probe as compute_probe
+from aumesh.pipeline.compute import settings as compute_settings
 from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import REPO
 
@@ -417,7 +419,7 @@ def test_tasks_get_absolute_paths_and_the_records_keep_the_workspace_relative_on
     """Ingest and prepare in a workspace with relative paths (params.yaml's): the partition tasks are handed absolute
     paths (what a worker elsewhere needs), the manifest and the summary record ``data/...`` as before."""
     from aumesh.core.io import recorded
-    from aumesh.pipeline import prepare_tasks
+    from aumesh.pipeline.prepare import tasks as prepare_tasks
     from conftest import default_config
 
     write_tables(tmp_path / "data", SynthSpec(n_frames=300, n_videos=30, seed=2, frames_per_file=150))

@@ -25,9 +25,11 @@ from aumesh.core.schema import VIDEO_COLUMN
 from aumesh.data import contract, tables
 from aumesh.geometry.align import align_to_reference, generalized_procrustes
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import integrity, prepare, prepare_tasks, statistics_pass
-from aumesh.pipeline.prepare_selection import gpa_hash, low_au_thresholds, pose_mask
-from aumesh.pipeline.prepared_data import load_prepared
+from aumesh.pipeline import integrity, prepare
+from aumesh.pipeline.evaluate import statistics_pass
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
+from aumesh.pipeline.prepare import tasks as prepare_tasks
+from aumesh.pipeline.prepare.selection import gpa_hash, low_au_thresholds, pose_mask
 from aumesh.synthetic import tables as synth
 from conftest import default_config
 
@@ -428,7 +430,8 @@ def test_a_pass_returns_freed_memory_when_it_starts_every_few_tasks_and_when_it_
     import threading
 
     from aumesh.config import ComputeConfig
-    from aumesh.pipeline import compute, compute_memory
+    from aumesh.pipeline import compute
+    from aumesh.pipeline.compute import memory as compute_memory
 
     events, lock = [], threading.Lock()
 
@@ -524,7 +527,7 @@ def _worker_pid(_):
 def test_stage_processes_allocate_arrow_buffers_with_the_system_allocator(preset, expected):
     """The ``aumesh`` entry point selects Arrow's system pool before pyarrow is imported (mimalloc, pyarrow's default,
     kept freed partition buffers resident); a user's ``ARROW_DEFAULT_MEMORY_POOL`` stands."""
-    from aumesh.pipeline.compute_memory import ARROW_POOL_ENV
+    from aumesh.pipeline.compute.memory import ARROW_POOL_ENV
 
     code = (
         "import aumesh.cli as cli\ncli.main = lambda: 0\ntry:\n    cli.run()\nexcept SystemExit:\n    pass\n"

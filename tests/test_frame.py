@@ -18,7 +18,7 @@ from aumesh.model.inference import predict_mesh
 from aumesh.model.release import release_arrays
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
-from aumesh.pipeline.prepared_data import load_prepared
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic import truth
 from conftest import default_config

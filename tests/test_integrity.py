@@ -24,8 +24,9 @@ from aumesh.config import write_params
 from aumesh.core.errors import CorruptFileError
 from aumesh.core.io import create_npy
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline import integrity, statistics_pass
-from aumesh.pipeline.prepared_data import load_prepared
+from aumesh.pipeline import integrity
+from aumesh.pipeline.evaluate import statistics_pass
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
 from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import default_config, new_store
 

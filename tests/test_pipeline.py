@@ -13,7 +13,7 @@ from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.geometry.align import umeyama_batch
 from aumesh.model.features import design_matrix
 from aumesh.pipeline import evaluate as ev
-from aumesh.pipeline.prepared_data import load_prepared
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
 from conftest import default_config
 
 
@@ -392,7 +392,7 @@ def test_staged_video_codes_and_au_sums_equal_numpy_unique_and_pandas_row_sums()
     import pandas as pd
     import pyarrow as pa
 
-    from aumesh.pipeline import prepare_tasks
+    from aumesh.pipeline.prepare import tasks as prepare_tasks
 
     rng = np.random.default_rng(7)
     names = np.array(["b", "a", "c10", "c9", "été", "a"], dtype=object)[rng.integers(0, 6, 500)]

@@ -180,7 +180,7 @@ def test_child_equals_a_fresh_fit(swept, workspace):
     from aumesh.experiments import sweep_child
     from aumesh.model.release import release_arrays
     from aumesh.pipeline import evaluate as ev
-    from aumesh.pipeline.prepared_data import load_prepared
+    from aumesh.pipeline.evaluate.prepared_data import load_prepared
 
     _, children = swept
     row = children[

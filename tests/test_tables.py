@@ -139,7 +139,7 @@ def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tm
     import pyarrow.parquet as pq
 
     from aumesh.core.schema import mesh_columns_axis_major
-    from aumesh.pipeline.compute_memory import ARROW_POOL_ENV
+    from aumesh.pipeline.compute.memory import ARROW_POOL_ENV
 
     write_tables(tmp_path / "raw", SynthSpec(n_frames=8000, n_videos=40, seed=3, frames_per_file=8000))
     (tmp_path / "data").mkdir()

@@ -20,8 +20,8 @@ from aumesh.data import pyfeat, readers
 from aumesh.data import units as data_units
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import ingest
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
 from aumesh.pipeline.integrity import load_reference
-from aumesh.pipeline.prepared_data import load_prepared
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from conftest import default_config
 from test_ingest import SPEC, Z_ROUND_TRIP, _prepare, _same_prepared

@@ -12,7 +12,7 @@ from aumesh.data import tables
 from aumesh.experiments import ranking
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import prepare
-from aumesh.pipeline.prepared_data import load_prepared
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic import truth
 from aumesh.synthetic.tables import SynthSpec

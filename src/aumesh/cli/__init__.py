@@ -160,7 +160,7 @@ def _kept(command: str) -> str:
 
 def run() -> None:
     """The ``aumesh`` command (console script and ``python -m aumesh``): :func:`main`, then exit with its status."""
-    from aumesh.pipeline.compute_memory import prefer_system_arrow_pool
+    from aumesh.pipeline.compute.memory import prefer_system_arrow_pool
 
     prefer_system_arrow_pool()  # before anything imports pyarrow
     code = main()

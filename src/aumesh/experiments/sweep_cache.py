@@ -38,8 +38,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
 
     from aumesh.config import Config
-    from aumesh.pipeline.evaluation_results import CVResult, FinalModel, FoldStatistics
-    from aumesh.pipeline.prepared_data import Prepared
+    from aumesh.pipeline.evaluate.prepared_data import Prepared
+    from aumesh.pipeline.evaluate.results import CVResult, FinalModel, FoldStatistics
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +158,7 @@ class SweepCache:
 
     def load(self, source: PreparedSource, cfg: Config) -> tuple[Prepared, str]:
         """The prepared data for *source* (preparing them first if needed); returns (data, cache id)."""
-        from aumesh.pipeline.prepared_data import load_prepared
+        from aumesh.pipeline.evaluate.prepared_data import load_prepared
 
         ensure_prepared(source, cfg)
         summary = source.path / SUMMARY_FILE
@@ -181,8 +181,8 @@ class SweepCache:
 
     def statistics_for(self, prepared: Prepared, pid: str, cfg: Config) -> tuple[FoldStatistics, bool]:
         """Per-fold statistics of *cfg*'s design and target; (stats, True if reused)."""
-        from aumesh.pipeline import statistics_pass
-        from aumesh.pipeline.prepared_data import workers_check
+        from aumesh.pipeline.evaluate import statistics_pass
+        from aumesh.pipeline.evaluate.prepared_data import workers_check
 
         key = statistics_key(pid, cfg)
         if key in self.statistics:
@@ -287,7 +287,7 @@ def evaluate_configuration(prepared: Prepared, cfg: Config, stats: FoldStatistic
     """Cross-validation and final fit of one configuration from (possibly shared) statistics."""
     from aumesh.pipeline import compute
     from aumesh.pipeline import evaluate as ev
-    from aumesh.pipeline.prepared_data import workers_check
+    from aumesh.pipeline.evaluate.prepared_data import workers_check
 
     with compute.engine(cfg.compute, **workers_check(prepared)):
         return ev.cross_validate_and_fit_from_statistics(prepared, cfg, stats)

@@ -1,1 +1,1 @@
-"""pipeline"""
+"""The stages' computation: the data passes (prepare, evaluate) on the compute engine, ingest, the release record."""

@@ -41,8 +41,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
 
     from aumesh.config import Config
-    from aumesh.pipeline.evaluation_results import CVResult, FinalModel
-    from aumesh.pipeline.prepared_data import Prepared
+    from aumesh.pipeline.evaluate.prepared_data import Prepared
+    from aumesh.pipeline.evaluate.results import CVResult, FinalModel
 
 log = logging.getLogger(__name__)
 

@@ -25,8 +25,8 @@ from aumesh.pipeline.release import refuse_nonfinite
 from aumesh.stages.common import check_columns, data_digest, start_stage
 
 if TYPE_CHECKING:
-    from aumesh.pipeline.evaluation_results import CVResult, FinalModel
-    from aumesh.pipeline.prepared_data import Prepared
+    from aumesh.pipeline.evaluate.prepared_data import Prepared
+    from aumesh.pipeline.evaluate.results import CVResult, FinalModel
 
 
 def run_evaluation(prepared: Prepared, cfg: Config, handle, params: dict, digest: dict) -> tuple[CVResult, FinalModel]:
@@ -64,7 +64,7 @@ def evaluate_run_name(cfg: Config) -> str:
 
 def main(cfg: Config) -> dict:
     from aumesh.pipeline import dvc_metrics
-    from aumesh.pipeline.prepared_data import load_prepared
+    from aumesh.pipeline.evaluate.prepared_data import load_prepared
     from aumesh.tracking import mlflow_store
     from aumesh.tracking import runs as tracking
     from aumesh.tracking.beside import tracked_run_beside

@@ -15,7 +15,7 @@ process holds per-partition and per-video summaries only (memory flat in frames)
    and the reference, do not depend on the partitioning). The validated metadata and anchors are
    staged per partition in a scratch folder, so the tables are parsed once;
 2. ``residuals``: each pose-passing frame's max anchor residual to the reference and its AU sum,
-   staged per partition with |pose| (:func:`~aumesh.pipeline.prepare_tasks.residual_partition`). The outlier threshold, the
+   staged per partition with |pose| (:func:`~aumesh.pipeline.prepare.tasks.residual_partition`). The outlier threshold, the
    population low-AU threshold and the pose-units check's medians (when the counts above its limit
    leave them in doubt) are exact quantiles of these files
    (:func:`aumesh.pipeline.quantiles.exact_quantiles`: ``np.quantile`` of the whole vector,
@@ -31,7 +31,7 @@ process holds per-partition and per-video summaries only (memory flat in frames)
    rows), its kept metadata, and the neutral meshes of the videos it holds whole; sums of the
    population means and of videos split across partitions are reduced in a tree;
 4. ``ranges``: each input's range over the kept frames (the ones the model is fitted on), from the partitions' kept
-   metadata of pass 3 (:func:`~aumesh.pipeline.prepare_summary.input_ranges`: exact quantiles of the 23 columns in shared passes, ~0.9 s at 344k
+   metadata of pass 3 (:func:`~aumesh.pipeline.prepare.summary.input_ranges`: exact quantiles of the 23 columns in shared passes, ~0.9 s at 344k
    frames), for the release's record of what its data supports (:mod:`aumesh.model.support`).
 
 Outputs (in ``paths.prepared_dir``, swapped in atomically as a whole folder):
@@ -46,10 +46,10 @@ output folder must be on a filesystem every worker sees at the same path (a prob
 
 This module is the driver: the order of the passes and what the stage process does between them (the reference, the
 thresholds, the counts and the drop checks, the outputs). What a worker runs on one partition is in
-:mod:`aumesh.pipeline.prepare_tasks` (passes 1, 2 and the cut) and :mod:`aumesh.pipeline.prepare_write` (pass 3);
+:mod:`aumesh.pipeline.prepare.tasks` (passes 1, 2 and the cut) and :mod:`aumesh.pipeline.prepare.write` (pass 3);
 the selection rules (pose filter, outlier cut, GPA subsample, low-AU thresholds) in
-:mod:`aumesh.pipeline.prepare_selection`; the scratch files in :mod:`aumesh.pipeline.prepare_staging`; the summary's
-ranges and checksums in :mod:`aumesh.pipeline.prepare_summary`.
+:mod:`aumesh.pipeline.prepare.selection`; the scratch files in :mod:`aumesh.pipeline.prepare.staging`; the summary's
+ranges and checksums in :mod:`aumesh.pipeline.prepare.summary`.
 """
 
 from __future__ import annotations
@@ -72,8 +72,10 @@ from aumesh.data.tables import FrameTable, TableError, check_unique_frames, part
 from aumesh.geometry.align import generalized_procrustes, reference_scale
 from aumesh.geometry.frame import canonical_frame
 from aumesh.model import support
-from aumesh.pipeline import compute, prepare_tasks, prepare_write
-from aumesh.pipeline.prepare_staging import (
+from aumesh.pipeline import compute
+from aumesh.pipeline.prepare import tasks as prepare_tasks
+from aumesh.pipeline.prepare import write as prepare_write
+from aumesh.pipeline.prepare.staging import (
     anchors_in_table_order,
     kept_au_sums,
     read_staged,
@@ -81,8 +83,8 @@ from aumesh.pipeline.prepare_staging import (
     staged_residuals,
     staged_table,
 )
-from aumesh.pipeline.prepare_summary import checksums, input_ranges
-from aumesh.pipeline.prepare_tasks import Partition
+from aumesh.pipeline.prepare.summary import checksums, input_ranges
+from aumesh.pipeline.prepare.tasks import Partition
 from aumesh.pipeline.prepared_files import (
     FRAMES_FILE,
     MESHES_FILE,

@@ -3,9 +3,9 @@
 :func:`scan_partition` (pass 1: validation, the pose filter, the wild-value screen and the partition's GPA
 candidates), :func:`residual_partition` (pass 2: each pose-passing frame's max anchor residual to the reference, its
 AU sum and its similarity transform) and :func:`keep_partition` (the outlier cut). Each stages its per-frame results in
-the run's scratch folder (:mod:`aumesh.pipeline.prepare_staging`) and returns the small per-partition result the stage
+the run's scratch folder (:mod:`aumesh.pipeline.prepare.staging`) and returns the small per-partition result the stage
 process holds (:class:`Scan`, :class:`Residuals`, :class:`Kept`). Pass 3's task is in
-:mod:`aumesh.pipeline.prepare_write`; the order of the passes, and what the stage does between them, in
+:mod:`aumesh.pipeline.prepare.write`; the order of the passes, and what the stage does between them, in
 :mod:`aumesh.pipeline.prepare`.
 """
 
@@ -26,8 +26,8 @@ from aumesh.data.tables import Piece, check_unique_frames, iter_vertices, read_p
 from aumesh.geometry.align import align_to_reference, not_a_face
 from aumesh.geometry.frame import HANDEDNESS_LANDMARKS, mirrored
 from aumesh.pipeline import compute
-from aumesh.pipeline.prepare_selection import Candidates, gpa_hash, keep_mask, pose_mask
-from aumesh.pipeline.prepare_staging import (
+from aumesh.pipeline.prepare.selection import Candidates, gpa_hash, keep_mask, pose_mask
+from aumesh.pipeline.prepare.staging import (
     pass2,
     pass2_file,
     staged_anchors_file,

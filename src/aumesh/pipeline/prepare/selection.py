@@ -73,7 +73,7 @@ class Candidates:
     """GPA candidates: the frames of smallest ``(hash, video, frame)`` seen so far, at most ``k``.
 
     A frame is named by its partition and row there, not carried with its anchors: pass 1 stages every partition's
-    anchors (:func:`aumesh.pipeline.prepare_staging.anchors_in_table_order` reads the chosen ones back), so the
+    anchors (:func:`aumesh.pipeline.prepare.staging.anchors_in_table_order` reads the chosen ones back), so the
     results a reduction holds at a time cost ~80 bytes a candidate, not ~450 (anchors and table paths: +100 MiB at
     the peak of pass 1 over 48 partitions, 3.1M frames).
     """

@@ -13,17 +13,17 @@ with ``dask-jobqueue`` (README, "Scale out").
 
 Where a run executes is not what it computes: the environment's ``AUMESH_COMPUTE_<KEY>`` (``AUMESH_COMPUTE_ADDRESS=
 tcp://host:8786`` alone selects the cluster) overrides the ``compute`` group of ``params.yaml``
-(:func:`aumesh.pipeline.compute_settings.effective`), so ``dvc repro -f`` runs on a cluster without a change to a
+(:func:`aumesh.pipeline.compute.settings.effective`), so ``dvc repro -f`` runs on a cluster without a change to a
 tracked file. One cluster serves many workspaces: the stages hand their tasks absolute paths and per-run scratch
 folders, and a probe on every worker checks, when the stage connects, that it reads the data and writes the output
-folder at those paths (:func:`aumesh.pipeline.compute_probe.check_workers`). A scheduler that does not answer, or is
+folder at those paths (:func:`aumesh.pipeline.compute.probe.check_workers`). A scheduler that does not answer, or is
 lost mid-run, is one line (:class:`aumesh.core.errors.ClusterError`, exit 2).
 
 This module is the engine (the scheduler a run uses, the cluster's client) and the map helpers the passes call
 (:func:`map_gather`, :func:`map_reduce`, :func:`local_map`, :func:`task_rows`): every import of ``dask`` and
-``dask.distributed`` is here. The environment's settings are :mod:`aumesh.pipeline.compute_settings`, the workers'
-probe :mod:`aumesh.pipeline.compute_probe`, the process's allocators and freed memory
-:mod:`aumesh.pipeline.compute_memory`.
+``dask.distributed`` is here. The environment's settings are :mod:`aumesh.pipeline.compute.settings`, the workers'
+probe :mod:`aumesh.pipeline.compute.probe`, the process's allocators and freed memory
+:mod:`aumesh.pipeline.compute.memory`.
 """
 
 from __future__ import annotations
@@ -41,9 +41,9 @@ from typing import Any
 from aumesh.config import ComputeConfig
 from aumesh.core.blas import one_blas_thread
 from aumesh.core.errors import ClusterError, UserError
-from aumesh.pipeline import compute_memory
-from aumesh.pipeline.compute_probe import check_workers, first_line
-from aumesh.pipeline.compute_settings import effective, local_fix, source_of
+from aumesh.pipeline.compute import memory as compute_memory
+from aumesh.pipeline.compute.probe import check_workers, first_line
+from aumesh.pipeline.compute.settings import effective, local_fix, source_of
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ def n_workers(cfg: ComputeConfig) -> int:
 
 @contextmanager
 def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path | None = None) -> Iterator[None]:
-    """Run the enclosed passes on ``cfg``'s scheduler (:func:`~aumesh.pipeline.compute_settings.effective`: the
+    """Run the enclosed passes on ``cfg``'s scheduler (:func:`~aumesh.pipeline.compute.settings.effective`: the
     environment's settings over ``cfg``), with single-threaded BLAS in every worker.
 
     The partitions already use every core; a BLAS thread pool per task would only oversubscribe
@@ -70,7 +70,7 @@ def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path
     read, write : path, optional
         On a ``dask.distributed`` cluster, a file every worker must read (the data) and a folder every worker must
         write (the output's temporary folder), checked on each worker when the client connects
-        (:func:`~aumesh.pipeline.compute_probe.check_workers`); absolute paths, as the tasks get them.
+        (:func:`~aumesh.pipeline.compute.probe.check_workers`); absolute paths, as the tasks get them.
 
     Raises
     ------
@@ -261,15 +261,15 @@ def task_rows(chunk_rows: int) -> int:
 @contextmanager
 def _releasing_freed_memory() -> Iterator[None]:
     """Hand freed memory back to the operating system when a pass starts and ends
-    (:func:`aumesh.pipeline.compute_memory.release_freed_memory`).
+    (:func:`aumesh.pipeline.compute.memory.release_freed_memory`).
 
     At the end of a pass (and every :data:`TRIM_EVERY_TASKS` tasks of a long pass, :class:`_Task`), not after each
     task of a short pass: the tasks of a pass allocate alike, and a task that finds the previous task's freed pages in
     its arena reuses them, where pages returned after every task were faulted in again by the next (prepare's pass 3
     on 344k frames of parquet mesh columns: 1.3M page faults and 6.7 s of system time; at the pass's end: 0.4M and
     3.6 s, wall 0.87x, peak +30 MiB). With glibc's arenas capped at the workers
-    (:func:`aumesh.pipeline.compute_memory.limit_malloc_arenas`) and Arrow on the same allocator
-    (:func:`aumesh.pipeline.compute_memory.prefer_system_arrow_pool`), the reuse does
+    (:func:`aumesh.pipeline.compute.memory.limit_malloc_arenas`) and Arrow on the same allocator
+    (:func:`aumesh.pipeline.compute.memory.prefer_system_arrow_pool`), the reuse does
     not grow with the partitions: the peaks at 100k and 3.1M frames were 390 / 409 and 390 / 417 MiB in two runs.
 
     It trims the stage process, whose threads run the local passes. A local process pool's workers keep their freed
@@ -324,7 +324,7 @@ def local_map(fn: Callable, items: Sequence[Any]) -> list:
 
 
 #: Tasks a process runs between two returns of its freed memory to the system
-#: (:func:`aumesh.pipeline.compute_memory.release_freed_memory`), in a pass of more than :data:`TRIM_AFTER_TASKS`
+#: (:func:`aumesh.pipeline.compute.memory.release_freed_memory`), in a pass of more than :data:`TRIM_AFTER_TASKS`
 #: partitions, besides the return at each pass's end. Each task's freed buffers stay in glibc's arenas for the next
 #: tasks to reuse, but the holes they leave are rarely the next task's sizes, so the resident pages crept up with the
 #: tasks a pass ran: a pass of 96 partitions (3.1M frames) peaked 20-25 MiB higher than one of 4, all else equal.

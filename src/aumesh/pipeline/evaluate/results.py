@@ -1,7 +1,7 @@
 """What the evaluate passes produce, as objects: the per-fold statistics of a configuration (:class:`FoldStatistics`),
 its models (:class:`Fits`), the cross-validation's scores (:class:`CVResult`, with the metrics a run records) and the
 final fit as released (:class:`FinalModel`, with the card's NPZ arrays). No pass over the data here: the passes that
-fill them are :mod:`aumesh.pipeline.statistics_pass` and :mod:`aumesh.pipeline.evaluate`.
+fill them are :mod:`aumesh.pipeline.evaluate.statistics_pass` and :mod:`aumesh.pipeline.evaluate`.
 """
 
 from __future__ import annotations

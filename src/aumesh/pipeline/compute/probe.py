@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from aumesh.core.errors import ClusterError
-from aumesh.pipeline.compute_settings import local_fix
+from aumesh.pipeline.compute.settings import local_fix
 
 
 def first_line(err: BaseException) -> str:

@@ -6,7 +6,7 @@ multioutput="variance_weighted")``), MAE; final fit on all kept frames.
 
 Two passes over the prepared meshes:
 
-* pass A (:mod:`aumesh.pipeline.statistics_pass`, ``aumesh.model.statistics``) accumulates per-fold cross-products
+* pass A (:mod:`aumesh.pipeline.evaluate.statistics_pass`, ``aumesh.model.statistics``) accumulates per-fold cross-products
   of the full design with the absolute coordinates, plus per-video sums; every feature set, target and neutral is
   derived from them exactly, so a sweep needs this pass once. A fold's training statistics are the total minus
   the fold's, so each fold's model, and every smaller ``n_components``, comes from statistics; R² is
@@ -16,9 +16,9 @@ Two passes over the prepared meshes:
   the per-vertex Euclidean error; it runs once per configuration.
 
 This module holds the folds, the fits, pass B and the calls that run a configuration
-(:func:`cross_validate_and_fit`); the prepared data and its readers are :mod:`aumesh.pipeline.prepared_data`, the
-result objects (:class:`~aumesh.pipeline.evaluation_results.CVResult`, ``FinalModel``, ...)
-:mod:`aumesh.pipeline.evaluation_results`.
+(:func:`cross_validate_and_fit`); the prepared data and its readers are :mod:`aumesh.pipeline.evaluate.prepared_data`, the
+result objects (:class:`~aumesh.pipeline.evaluate.results.CVResult`, ``FinalModel``, ...)
+:mod:`aumesh.pipeline.evaluate.results`.
 
 Besides R² in the run's own target space, every run gets ``r2_displacement``: R² of the
 AU-driven displacement from each test video's neutral, ``(y - n_v)`` vs ``B (x - x̄_v)``, where
@@ -55,11 +55,11 @@ from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.pipeline import compute
-from aumesh.pipeline.evaluation_results import CVResult, FinalModel, Fits, FoldStatistics
+from aumesh.pipeline.evaluate.prepared_data import Prepared, block_rows, fold_grouped_block, read_group, workers_check
+from aumesh.pipeline.evaluate.results import CVResult, FinalModel, Fits, FoldStatistics
+from aumesh.pipeline.evaluate.statistics_pass import accumulate
 from aumesh.pipeline.model_files import FRAME_ERROR_FILE
-from aumesh.pipeline.prepared_data import Prepared, block_rows, fold_grouped_block, read_group, workers_check
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
-from aumesh.pipeline.statistics_pass import accumulate
 
 log = logging.getLogger(__name__)
 
@@ -331,7 +331,7 @@ def cross_validate_and_fit_from_statistics(
     prepared: Prepared, cfg: Config, stats: FoldStatistics
 ) -> tuple[CVResult, FinalModel]:
     """Cross-validation, the final fit and the AU-field checks of one configuration from its statistics (``stats``:
-    :func:`aumesh.pipeline.statistics_pass.accumulate`), on the current scheduler."""
+    :func:`aumesh.pipeline.evaluate.statistics_pass.accumulate`), on the current scheduler."""
     fits = fit_models(cfg, stats)
     cv = cross_validate(prepared, cfg, stats, fits.folds)
     final = final_fit(prepared, cfg, stats, fits.final)

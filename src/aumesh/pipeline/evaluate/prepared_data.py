@@ -3,7 +3,7 @@
 groups), the videos' frame counts, and the readers a pass task uses (a row group's AU and pose columns, a block of
 mesh rows grouped by fold, :func:`block_rows`).
 
-The passes themselves are :mod:`aumesh.pipeline.statistics_pass` (pass A) and :mod:`aumesh.pipeline.evaluate`
+The passes themselves are :mod:`aumesh.pipeline.evaluate.statistics_pass` (pass A) and :mod:`aumesh.pipeline.evaluate`
 (pass B, the fits and the cross-validation).
 """
 

@@ -17,7 +17,7 @@ import pyarrow as pa
 import pyarrow.feather as feather
 
 from aumesh.core.io import load_npz, read_row_set
-from aumesh.pipeline.prepare_selection import Candidates, keep_mask
+from aumesh.pipeline.prepare.selection import Candidates, keep_mask
 
 
 def write_staged(table: pa.Table, path: Path) -> None:
@@ -52,7 +52,7 @@ def staged_table(scratch: Path, i: int, columns: list[str] | None = None) -> pa.
 
 def anchors_in_table_order(scratch: Path, candidates: Candidates) -> np.ndarray:
     """(m, n_anchors, 3) float32 anchors of ``candidates`` in the tables' order
-    (:meth:`aumesh.pipeline.prepare_selection.Candidates.in_table_order`: partition by partition), read from the
+    (:meth:`aumesh.pipeline.prepare.selection.Candidates.in_table_order`: partition by partition), read from the
     partitions' staged anchors."""
     ordered = candidates.in_table_order()
     return np.concatenate(
@@ -67,7 +67,7 @@ def pass2_file(scratch: Path, i: int) -> Path:
 
 def pass2(item: tuple[Path, int], *keys: str) -> list[np.ndarray]:
     """Arrays ``keys`` of partition ``item = (scratch, i)`` as pass 2 staged them
-    (:func:`aumesh.pipeline.prepare_tasks.residual_partition`)."""
+    (:func:`aumesh.pipeline.prepare.tasks.residual_partition`)."""
     return load_npz(pass2_file(*item), keys)
 
 

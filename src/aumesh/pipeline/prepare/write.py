@@ -23,9 +23,9 @@ from aumesh.data.tables import MeshChunk, iter_pieces_mesh_chunks
 from aumesh.geometry.align import apply_similarity_columns, apply_similarity_vertices, beyond_radius
 from aumesh.model.statistics import VideoSumStream
 from aumesh.pipeline import integrity
-from aumesh.pipeline.prepare_selection import keep_mask, low_au_thresholds
-from aumesh.pipeline.prepare_staging import pass2, staged_table, write_staged
-from aumesh.pipeline.prepare_tasks import Kept, Partition
+from aumesh.pipeline.prepare.selection import keep_mask, low_au_thresholds
+from aumesh.pipeline.prepare.staging import pass2, staged_table, write_staged
+from aumesh.pipeline.prepare.tasks import Kept, Partition
 from aumesh.pipeline.prepared_files import MESHES_FILE, NEUTRAL_FILES
 
 #: Rows aligned, summed and written at a time in pass 3 (a (256, 1434) float64 block is 2.9 MB: in cache).

@@ -14,7 +14,7 @@ import numpy as np
 from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS
 from aumesh.model import support
 from aumesh.pipeline import compute, integrity
-from aumesh.pipeline.prepare_staging import read_staged
+from aumesh.pipeline.prepare.staging import read_staged
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, NEUTRAL_FILES, REFERENCE_FILE, VIDEO_IDS_FILE
 from aumesh.pipeline.quantiles import exact_column_quantiles
 

@@ -41,8 +41,8 @@ from aumesh.model.statistics import (
     target_offsets,
 )
 from aumesh.pipeline import compute, integrity
-from aumesh.pipeline.evaluation_results import FoldStatistics
-from aumesh.pipeline.prepared_data import BLOCK_ROWS, Prepared, block_rows, fold_grouped_block, read_group
+from aumesh.pipeline.evaluate.prepared_data import BLOCK_ROWS, Prepared, block_rows, fold_grouped_block, read_group
+from aumesh.pipeline.evaluate.results import FoldStatistics
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
 
 
@@ -167,7 +167,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration).
 
     ``video_fold`` (n_videos,) is each video's fold (:func:`aumesh.pipeline.evaluate.video_folds`). The provisional
-    shift ``(a, b)`` is the mean of the first :data:`~aumesh.pipeline.prepared_data.BLOCK_ROWS` rows (a centre, not a
+    shift ``(a, b)`` is the mean of the first :data:`~aumesh.pipeline.evaluate.prepared_data.BLOCK_ROWS` rows (a centre, not a
     statistic: reading ``chunk_rows`` rows for it cost the stage 0.2 s of fresh memory), shared by every fold and
     partition. The per-video sums stay on disk
     (:class:`aumesh.core.io.NpyRows`) in a scratch folder beside the prepared data, removed with the returned
