@@ -97,6 +97,44 @@ def test_experiment_is_model_training_with_a_description(cfg, store_uri, workspa
     assert tags["mlflow.experimentKind"] == "custom_model_development" and tags["mlflow.note.content"] == "my notes"
 
 
+def test_a_dataset_another_run_created_at_the_same_moment_is_linked_on_the_next_attempt():
+    """Two sweeps starting together on a PostgreSQL server both insert the data's dataset; the second insert fails on
+    the dataset's key (seen in the team test). The dataset exists then: one more attempt links it; other errors and a
+    key that never stops clashing are raised."""
+    from mlflow.exceptions import MlflowException
+
+    from aumesh.tracking.handle import DATASET_RACE_ATTEMPTS, log_inputs_once_created
+
+    clash = 'BAD_REQUEST: (psycopg2.errors.UniqueViolation) duplicate key value violates unique constraint "dataset_pk"'
+
+    class Client:
+        def __init__(self, errors):
+            self.errors, self.calls = list(errors), []
+
+        def log_inputs(self, run_id, datasets):
+            self.calls.append((run_id, datasets))
+            if self.errors:
+                raise MlflowException(self.errors.pop(0))
+
+    raced = Client([clash])
+    log_inputs_once_created(raced, "run-b", ["frame_tables"], pause_s=0)
+    assert raced.calls == [("run-b", ["frame_tables"])] * 2
+
+    sqlite = Client(["UNIQUE constraint failed: datasets.experiment_id, datasets.name, datasets.digest"])
+    log_inputs_once_created(sqlite, "run-b", ["frame_tables"], pause_s=0)
+    assert len(sqlite.calls) == 2
+
+    other = Client(["RESOURCE_DOES_NOT_EXIST: run 'run-b' not found"])
+    with pytest.raises(MlflowException, match="not found"):
+        log_inputs_once_created(other, "run-b", ["frame_tables"], pause_s=0)
+    assert len(other.calls) == 1
+
+    stuck = Client([clash] * (DATASET_RACE_ATTEMPTS + 1))
+    with pytest.raises(MlflowException, match="dataset_pk"):
+        log_inputs_once_created(stuck, "run-b", ["frame_tables"], pause_s=0)
+    assert len(stuck.calls) == DATASET_RACE_ATTEMPTS
+
+
 # ----------------------------------------------------------------------------- runs
 def test_run_logs_params_metrics_config_dataset_tags(cfg, store_uri, workspace):
     params = {"model": {"n_components": 8, "scale": True}, "anchors": [10, 9, 8], "long": "x" * 7000}

@@ -63,6 +63,8 @@ def evaluate_run_name(cfg: Config) -> str:
 
 
 def main(cfg: Config) -> dict:
+    """Cross-validate and fit the prepared data into ``paths.model_dir`` (and the metrics and plot files DVC
+    compares), recorded as one MLflow run; returns the CV metrics (``metrics.json``)."""
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline.evaluate.prepared_data import load_prepared
     from aumesh.tracking import mlflow_store

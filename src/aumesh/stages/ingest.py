@@ -7,6 +7,8 @@ from aumesh.stages.common import start_stage
 
 
 def main(cfg: Config) -> dict:
+    """Ingest ``paths.data_dir`` into ``paths.ingested_dir``; returns the manifest (its ``counts`` are what the
+    command prints)."""
     from aumesh.pipeline import ingest
 
     start_stage("ingest", cfg)

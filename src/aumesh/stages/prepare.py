@@ -11,6 +11,8 @@ log = logging.getLogger(__name__)
 
 
 def main(cfg: Config) -> dict:
+    """Prepare the ingested tables into ``paths.prepared_dir``; returns ``summary.json``'s record (counts per
+    filter, frames and videos kept)."""
     from aumesh.data import tables
     from aumesh.pipeline import ingest
     from aumesh.pipeline import prepare as prep

@@ -19,7 +19,8 @@ from aumesh.stages.common import check_columns, start_stage
 
 
 def main(cfg: Config) -> Path:
-    """Write the release folder atomically: a failure leaves the previous release as it was."""
+    """Write ``paths.release_dir`` atomically (NPZ, ``model_card.json``, ``MODEL_CARD.md``, figures, AU directions,
+    glTF rig, viewer) and return it: a failure leaves the previous release as it was."""
     start_stage("release", cfg)
     from aumesh.card import directions, limits, render
     from aumesh.export import gltf, viewer

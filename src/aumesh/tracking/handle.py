@@ -209,7 +209,33 @@ class TrackedRun:
         ):
             if digest.get(key) is not None:
                 tags.append(InputTag(tag, _truncate(str(digest[key]), MAX_INPUT_TAG_VALUE_LENGTH)))
-        self.client.log_inputs(self.run_id, datasets=[DatasetInput(dataset._to_mlflow_entity(), tags=tags)])
+        log_inputs_once_created(self.client, self.run_id, [DatasetInput(dataset._to_mlflow_entity(), tags=tags)])
+
+
+#: Attempts at linking a dataset another run is creating at the same moment (see :func:`log_inputs_once_created`).
+DATASET_RACE_ATTEMPTS = 4
+
+
+def log_inputs_once_created(client: MlflowClient, run_id: str, datasets: list, pause_s: float = 0.2) -> None:
+    """``client.log_inputs``, again when another run created the same dataset at the same moment.
+
+    MLflow's SQL store inserts a dataset the experiment does not have yet; two runs that log the same data at once
+    (two teammates' sweeps starting together on a PostgreSQL server) both insert it, and the second fails on the
+    dataset's primary key (``UniqueViolation``; SQLite: ``UNIQUE constraint failed``). The dataset exists by then:
+    the next attempt finds it and only links it to this run. Any other error is raised as it comes.
+    """
+    from mlflow.exceptions import MlflowException
+
+    for attempt in range(DATASET_RACE_ATTEMPTS):
+        try:
+            client.log_inputs(run_id, datasets=datasets)
+            return
+        except MlflowException as err:
+            text = str(err)
+            created_meanwhile = "UniqueViolation" in text or "UNIQUE constraint failed" in text or "dataset_pk" in text
+            if not created_meanwhile or attempt == DATASET_RACE_ATTEMPTS - 1:
+                raise
+            time.sleep(pause_s * (attempt + 1))
 
 
 class _NullRun(TrackedRun):
