@@ -7,6 +7,7 @@ this, an edit to an unlisted file leaves ``dvc repro`` "up to date" with outputs
 
 from __future__ import annotations
 
+import ast
 from pathlib import Path
 
 import pytest
@@ -57,8 +58,6 @@ def uncovered(files: set[str], deps: list[str], allowed: dict[str, str] = CANNOT
 
 def _is_face(path: Path) -> bool:
     """An ``__init__.py`` that is a docstring and nothing else: importing it runs no code."""
-    import ast
-
     body = ast.parse(path.read_text()).body
     return path.name == "__init__.py" and all(
         isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant) for n in body

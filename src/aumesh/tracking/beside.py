@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from aumesh.core.signals import check_supervisor
 from aumesh.tracking.handle import TrackedRun, _NullRun
-from aumesh.tracking.runs import _enabled, _end_failed, _fail, _failure, _open_run
+from aumesh.tracking.runs import _enabled, _end_failed, _failure, _open_run
 
 if TYPE_CHECKING:  # pragma: no cover
     from concurrent.futures import Future, ProcessPoolExecutor
@@ -96,13 +96,7 @@ def _start_helper(owner_pid: int) -> None:
 
 def _open_beside(tracking_cfg, run_name, params, tags, owner_pid: int) -> tuple[str, str, str]:
     global _BESIDE
-    handle = _open_run(tracking_cfg, run_name, tags, None, owner_pid)
-    try:
-        if params:
-            handle.log_params(params)
-    except BaseException as exc:
-        _fail(handle, exc)
-        raise
+    handle = _open_run(tracking_cfg, run_name, tags, None, owner_pid, params=params)
     _BESIDE = handle
     return handle.run_id, handle.experiment_id, handle.tracking_uri
 

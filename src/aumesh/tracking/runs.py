@@ -158,7 +158,11 @@ def _open_run(
     tags: Mapping[str, Any] | None,
     parent_run_id: str | None,
     owner_pid: int | None = None,
+    params: Mapping[str, Any] | None = None,
 ) -> TrackedRun:
+    """A new RUNNING run with the provenance tags, ``tags`` and ``params``; a failure to log the params marks it
+    FAILED before the error goes on (every way of opening a run: :func:`tracked_run`, :func:`start_parent_run`,
+    :func:`aumesh.tracking.beside.tracked_run_beside`)."""
     client = get_client(tracking_cfg)
     uri = client.tracking_uri
     name = str((tracking_cfg or {}).get("experiment") or DEFAULT_EXPERIMENT)
@@ -170,7 +174,14 @@ def _open_run(
     all_tags.update({str(k): v for k, v in (tags or {}).items()})
     clean = {str(k)[:MAX_KEY_LENGTH]: _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in all_tags.items()}
     run = client.create_run(exp_id, run_name=run_name, tags=clean)
-    return TrackedRun(client, run.info.run_id, exp_id)
+    handle = TrackedRun(client, run.info.run_id, exp_id)
+    try:
+        if params:
+            handle.log_params(params)
+    except BaseException as exc:
+        _fail(handle, exc)
+        raise
+    return handle
 
 
 def close_orphaned_runs(client: MlflowClient, experiment_id: str, workspace: str | None) -> list[str]:
@@ -280,11 +291,9 @@ def tracked_run(
         return
     if parent_run_id is None and nested and _ACTIVE_RUNS.get():
         parent_run_id = _ACTIVE_RUNS.get()[-1]
-    handle = _open_run(tracking_cfg, run_name, tags, parent_run_id)
+    handle = _open_run(tracking_cfg, run_name, tags, parent_run_id, params=params)
     token = _ACTIVE_RUNS.set(_ACTIVE_RUNS.get() + (handle.run_id,))
     try:
-        if params:
-            handle.log_params(params)
         yield handle
     except BaseException as exc:
         _fail(handle, exc)
@@ -325,14 +334,7 @@ def start_parent_run(
     """
     if not _enabled(tracking_cfg):
         return None
-    handle = _open_run(tracking_cfg, run_name, {ROLE_TAG: "sweep-parent", **(tags or {})}, None)
-    try:
-        if params:
-            handle.log_params(params)
-    except BaseException as exc:
-        _fail(handle, exc)
-        raise
-    return handle.run_id
+    return _open_run(tracking_cfg, run_name, {ROLE_TAG: "sweep-parent", **(tags or {})}, None, params=params).run_id
 
 
 def run_handle(run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> TrackedRun:
