@@ -129,11 +129,51 @@ def _old_features_message(data: Mapping[str, Any]) -> str:
     )
 
 
+#: ``model.eiv.method``: the errors-in-variables correction, one option of the ``model/eiv`` group
+#: (``conf/model/eiv/<name>.yaml``; docs/method.md "Detector noise").
+EIV_METHODS = ("none", "corrected", "instruments")
+
+
+@dataclass(frozen=True)
+class EivConfig:
+    """What the fit does about noise in the AU detector (``conf/model/eiv/<method>.yaml``; docs/method.md).
+
+    ``none`` is the card's fit. ``corrected`` is corrected least squares on the within-video design with the detector's
+    within-video error covariance ``sigma_u`` (a ``.npy`` of 20 x 20, rows and columns in ``au_columns`` order, from a
+    validation study: never estimated from the tables), each direction's reliability floored at ``floor``.
+    ``instruments`` is within-video two-stage least squares with a second detector's AUs on the same frames, the
+    columns ``instrument_aus`` names (``{au}`` is replaced by each AU name, e.g. ``{au}_mp``).
+    """
+
+    method: str = "none"
+    sigma_u: str | None = None
+    floor: float = 0.3
+    instrument_aus: str | None = None
+
+
+@dataclass(frozen=True)
+class IdentificationConfig:
+    """The AU identification screen (``aumesh.model.eiv.identification_screen``; docs/method.md "The screen").
+
+    Per AU, sigma* = the smallest sd in ``sigma_step``, 2 ``sigma_step``, ... ``sigma_max`` at which the floored
+    corrected fit with an isotropic error covariance sigma^2 I turns the AU's field to a cosine below ``turn_cosine``
+    with the uncorrected one; the AU is flagged when sigma* < ``flag_below``.
+    """
+
+    sigma_max: float = 0.20
+    sigma_step: float = 0.005
+    flag_below: float = 0.10
+    turn_cosine: float = 0.5
+    floor: float = 0.3
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     n_components: int = 83
     scale: bool = True
     clip_n_components: bool = True
+    eiv: EivConfig = field(default_factory=EivConfig)
+    identification: IdentificationConfig = field(default_factory=IdentificationConfig)
 
 
 @dataclass(frozen=True)
@@ -318,6 +358,7 @@ def validate(cfg: Config) -> Config:
             f"model.n_components={cfg.model.n_components} exceeds the {p} features of "
             f"features={cfg.features.name}. Fix: lower it, or set model.clip_n_components=true."
         )
+    _validate_eiv(cfg)
     if cfg.cv.n_splits < 2:
         raise ConfigError(f"cv.n_splits={cfg.cv.n_splits}: must be >= 2")
     if cfg.data.face_selection not in FACE_SELECTIONS:
@@ -355,6 +396,48 @@ def validate(cfg: Config) -> Config:
             f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} (conf/features/<name>.yaml)"
         )
     return cfg
+
+
+def _validate_eiv(cfg: Config) -> None:
+    """``model.eiv`` and ``model.identification``: the method's own keys set, no other method's."""
+    eiv, ident = cfg.model.eiv, cfg.model.identification
+    if eiv.method not in EIV_METHODS:
+        raise ConfigError(
+            f"model.eiv.method={eiv.method!r}: use model/eiv=none, corrected or instruments (conf/model/eiv/<name>.yaml)"
+        )
+    if eiv.method == "corrected" and eiv.sigma_u in (None, "", "???"):
+        raise ConfigError(
+            "model/eiv=corrected needs the AU detector's within-video error covariance: model.eiv.sigma_u=<file.npy> "
+            "(20 x 20, rows and columns in au_columns order; docs/method.md)"
+        )
+    if eiv.method == "instruments" and not (eiv.instrument_aus and "{au}" in eiv.instrument_aus):
+        raise ConfigError(
+            f"model.eiv.instrument_aus={eiv.instrument_aus!r}: model/eiv=instruments needs the second detector's AU "
+            "columns as a pattern with {au}, e.g. model.eiv.instrument_aus='{au}_mp'"
+        )
+    if eiv.method != "corrected" and eiv.sigma_u:
+        raise ConfigError(
+            f"model.eiv.sigma_u={eiv.sigma_u!r} is given but model.eiv.method={eiv.method!r}: choose model/eiv=corrected"
+        )
+    if eiv.method != "instruments" and eiv.instrument_aus:
+        raise ConfigError(
+            f"model.eiv.instrument_aus={eiv.instrument_aus!r} is given but model.eiv.method={eiv.method!r}: "
+            "choose model/eiv=instruments"
+        )
+    for key, value in (("model.eiv.floor", eiv.floor), ("model.identification.floor", ident.floor)):
+        if not 0.0 < value <= 1.0:
+            raise ConfigError(f"{key}={value}: must be in (0, 1] (the smallest reliability a direction may have)")
+    if eiv.method != "none" and cfg.preprocess.target != "within":
+        raise ConfigError(
+            f"model/eiv={eiv.method} corrects the within-video design, but preprocess.target={cfg.preprocess.target!r}. "
+            "Fix: preprocess.target=within"
+        )
+    if not 0.0 < ident.sigma_step <= ident.sigma_max:
+        raise ConfigError(
+            f"model.identification.sigma_step={ident.sigma_step}, sigma_max={ident.sigma_max}: need 0 < step <= max"
+        )
+    if not -1.0 < ident.turn_cosine < 1.0:
+        raise ConfigError(f"model.identification.turn_cosine={ident.turn_cosine}: must be in (-1, 1)")
 
 
 def from_dict(data: dict[str, Any]) -> Config:
