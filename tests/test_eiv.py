@@ -78,7 +78,9 @@ def test_the_screen_equals_the_explicit_corrected_fit_with_an_isotropic_noise():
     for g, sigma in enumerate(screen.grid):
         Bc = eiv.floored_corrected_coef(S, Sxy, sigma**2 * np.eye(5), 0.3)
         np.testing.assert_allclose(screen.cosines[g], _cos(Bc, B), rtol=1e-9, atol=1e-12)
-    first = [next((s for s, c in zip(screen.grid, screen.cosines[:, k], strict=True) if c < 0.5), np.nan) for k in range(5)]
+    first = [
+        next((s for s, c in zip(screen.grid, screen.cosines[:, k], strict=True) if c < 0.5), np.nan) for k in range(5)
+    ]
     np.testing.assert_array_equal(screen.sigma_star, first)
 
 

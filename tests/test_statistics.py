@@ -237,3 +237,21 @@ def test_unknown_target_is_refused(frames):
     design = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 128))
     with pytest.raises(ValueError, match="preprocess.target='fixed'.*within"):
         configuration_statistics(design, feature_columns(True, True), "fixed", neutral, xbar)
+
+
+@pytest.mark.parametrize("video_block", [256, 3])
+def test_the_screens_within_au_statistics_equal_explicit_demeaning_over_every_video(frames, video_block):
+    from aumesh.core.schema import AU_COLUMNS
+    from aumesh.model.statistics import pose_moments, within_statistics
+
+    au, pose, video, n_videos, fold, Y, neutral, xbar = frames
+    design = accumulate_design(au, pose, video, n_videos, fold, 3, _chunks(Y, 128))
+    got = within_statistics(design, list(AU_COLUMNS), video_block=video_block)
+    Xd, Yd = _demeaned(au, video), _demeaned(Y, video)
+    assert got.n == len(au)
+    _close(got.cxx, Xd.T @ Xd, rtol=1e-9)
+    _close(got.cxy, Xd.T @ Yd, rtol=1e-9)
+    _close(got.cyy_diag, (Yd**2).sum(0), rtol=1e-8)
+    mean, second = pose_moments(design)
+    _close(mean, pose.mean(0))
+    _close(second, pose.T @ pose / len(pose))

@@ -160,7 +160,7 @@ class IdentificationScreen:
             "au_identification_sigma_star": self.sigma_star.astype(np.float64),
             "au_identification_flagged": self.flagged.astype(bool),
             "au_identification_partner": np.array(self.partner, dtype=str),
-            "au_identification_flag_below": np.float64(self.flag_below),
+            "au_identification_flag_below": np.array(self.flag_below, dtype=np.float64),
         }
 
 

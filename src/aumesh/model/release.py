@@ -38,6 +38,8 @@ def release_arrays(
     reference: dict[str, np.ndarray],
     card_text: str,
     metadata: dict[str, Any],
+    uncorrected_coef: np.ndarray | None = None,
+    identification: dict[str, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """The NPZ's arrays, exactly the card's keys and dtypes (+ ``coef_full`` when trained with interactions).
 
@@ -63,6 +65,12 @@ def release_arrays(
         ``feature_p99`` (23,) float32 (each input's training p99, ``input_columns`` order) and
         ``unsupported_features`` (k,) str (the AUs the data never expressed, :mod:`aumesh.model.support`; shape (0,)
         when none), py-feat's names.
+    uncorrected_coef : ndarray, shape (1434, p), optional
+        A fit corrected for detector noise (``model/eiv``) writes the card's uncorrected fit on the same rows beside it:
+        ``coef_uncorrected`` (23, 1434) (and ``coef_full_uncorrected`` with interactions), the same frame and layout.
+    identification : dict, optional
+        The AU identification screen's ``au_identification_*`` arrays (:meth:`aumesh.model.eiv.IdentificationScreen.
+        release_arrays`), copied as they are.
     """
     coef = np.asarray(coef, dtype=np.float64)
     if coef.shape != (N_TARGETS, len(feature_columns)):
@@ -100,4 +108,13 @@ def release_arrays(
         # flat = x_full @ coef_full + intercept, x_full = [AU | pose | pose x AU] (pose-major products)
         arrays["coef_full"] = rotate_axis_major(coef.T, rotation).astype(np.float32)
         arrays["input_columns_full"] = np.array(feature_columns)
+    if uncorrected_coef is not None:
+        raw = np.asarray(uncorrected_coef, dtype=np.float64)
+        by_name = {c: raw[:, j] for j, c in enumerate(feature_columns)}
+        rows = np.stack([by_name.get(c, np.zeros(N_TARGETS)) for c in INPUT_COLUMNS])
+        arrays["coef_uncorrected"] = rotate_axis_major(rows, rotation).astype(np.float32)
+        if len(feature_columns) > len(INPUT_COLUMNS):
+            arrays["coef_full_uncorrected"] = rotate_axis_major(raw.T, rotation).astype(np.float32)
+    for key, value in (identification or {}).items():
+        arrays[key] = np.asarray(value)
     return arrays

@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # annotations only: scipy.sparse is imported where it is used
     import scipy.sparse
 
 from aumesh.core.io import RowArray
-from aumesh.core.schema import N_TARGETS, TARGETS, feature_columns
+from aumesh.core.schema import N_TARGETS, POSE_COLUMNS, TARGETS, feature_columns
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.features import design_matrix
 
@@ -458,6 +458,49 @@ def target_offsets(
     elif y_kind == "video_mean":
         y_offset = design.y_shift + design.video_sum_y / _count(design, every)
     return x_offset, y_offset
+
+
+def within_statistics(design: DesignStatistics, columns: list[str], video_block: int = 256) -> CrossProducts:
+    """Within-video statistics of ``columns`` with the mesh over every video (all folds): design and mesh demeaned per
+    video (docs/method.md eq. 2), whatever the configuration's target.
+
+    ``sum (x - xbar_v)(y - ybar_v)^T = S_xy - sum_v u_v w_v^T / c_v`` with the shifted per-video sums ``u_v``, ``w_v``
+    (likewise ``X'X`` and ``diag(Y'Y)``); one ``(p, n_videos) @ (n_videos, 1434)`` product, in blocks of videos.
+    The result is unshifted and centred (its sums are 0).
+    """
+    idx = np.array([FULL_DESIGN.index(c) for c in columns])
+    total = design.folds[0].copy()
+    for fold in design.folds[1:]:
+        total = total + fold
+    sub = subset(total, idx)
+    xtx, xty, yty = sub.xtx.copy(), sub.xty.copy(), sub.yty_diag.copy()
+    videos = np.flatnonzero(design.video_count > 0)
+    for lo in range(0, len(videos), video_block):
+        v = videos[lo : lo + video_block]
+        c = design.video_count[v].astype(np.float64)[:, None]
+        u = design.video_sum_x[v][:, idx]
+        w = np.asarray(design.video_sum_y[v], dtype=np.float64)
+        xtx -= u.T @ (u / c)
+        xty -= u.T @ (w / c)
+        yty -= np.einsum("vj,vj->j", w, w / c)
+    out = CrossProducts(len(idx), sub.n_targets, x_shift=np.zeros(len(idx)), y_shift=np.zeros(sub.n_targets))
+    out.n = sub.n
+    out.sum_x, out.sum_y = np.zeros(len(idx)), np.zeros(sub.n_targets)
+    out.xtx, out.xty, out.yty_diag = 0.5 * (xtx + xtx.T), xty, np.maximum(yty, 0.0)
+    return out
+
+
+def pose_moments(design: DesignStatistics) -> tuple[np.ndarray, np.ndarray]:
+    """``E[p]`` (3,) and ``E[p p^T]`` (3, 3) of the raw pose over every frame (radians, POSE_COLUMNS order): what the
+    pose x AU columns' share of the detector's error depends on (``aumesh.model.eiv.design_error_covariance``)."""
+    idx = np.array([FULL_DESIGN.index(c) for c in POSE_COLUMNS])
+    n = sum(f.n for f in design.folds)
+    s = sum(f.sum_x[idx] for f in design.folds)
+    ss = sum(f.xtx[np.ix_(idx, idx)] for f in design.folds)
+    a = design.x_shift[idx]
+    mean = a + s / n
+    second = (ss + np.outer(a, s) + np.outer(s, a)) / n + np.outer(a, a)
+    return mean, 0.5 * (second + second.T)
 
 
 def _count(design: DesignStatistics, videos: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -103,14 +103,18 @@ def main(cfg: Config) -> dict:
             "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None,
         }
         with atomic_directory(out) as tmp:
-            np.savez(
-                tmp / MODEL_NPZ,
-                coef=final.coef,
-                raw_intercept=final.raw_intercept,
-                mesh_intercept=final.mesh_intercept,
-                feature_columns=np.array(final.feature_columns),
-                n_components=np.array(final.n_components, dtype=np.int32),
-            )
+            model_arrays: dict[str, Any] = {
+                "coef": final.coef,
+                "raw_intercept": final.raw_intercept,
+                "mesh_intercept": final.mesh_intercept,
+                "feature_columns": np.array(final.feature_columns),
+                "n_components": np.array(final.n_components, dtype=np.int32),
+            }
+            if final.uncorrected_coef is not None:  # model/eiv: the card's fit of the same rows, beside the corrected
+                model_arrays["coef_uncorrected"] = final.uncorrected_coef
+            if final.identification is not None:
+                model_arrays |= final.identification.release_arrays()
+            np.savez(tmp / MODEL_NPZ, **model_arrays)
             thresholds, fraction = dvc_metrics.error_curve(cv.frame_vertex_error, CARD_ERROR_CURVE_POINTS)
             np.savez(
                 tmp / CV_NPZ,

@@ -46,6 +46,8 @@ def main(cfg: Config) -> Path:
         reference,
         card_text="",
         metadata=card,
+        uncorrected_coef=model.get("coef_uncorrected"),
+        identification={k: v for k, v in model.items() if k.startswith("au_identification_")},
     )
     refuse_nonfinite(arrays, model_dir / MODEL_NPZ)  # before anything is written: the previous release stays
     with atomic_directory(cfg.paths.release_dir) as tmp:

@@ -37,6 +37,7 @@ import heapq
 import logging
 import shutil
 import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -49,12 +50,14 @@ from aumesh.core.blas import one_blas_thread
 from aumesh.core.errors import ConfigError
 from aumesh.core.io import NpyRowFile, NpyRows, create_npy, scratch_directory
 from aumesh.core.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
-from aumesh.model import reliability
+from aumesh.model import eiv, reliability
 from aumesh.model.cross_products import CrossProducts
+from aumesh.model.eiv import EivFit
 from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.pipeline import compute
+from aumesh.pipeline.evaluate.eiv_fits import eiv_fits
 from aumesh.pipeline.evaluate.prepared_data import Prepared, block_rows, fold_grouped_block, read_group, workers_check
 from aumesh.pipeline.evaluate.results import CVResult, FinalModel, Fits, FoldStatistics
 from aumesh.pipeline.evaluate.statistics_pass import accumulate
@@ -133,10 +136,16 @@ def fit_models(cfg: Config, stats: FoldStatistics) -> Fits:
 
 
 def cross_validate(
-    prepared: Prepared, cfg: Config, stats: FoldStatistics, fold_models: list[PLSFit], chunk_rows: int | None = None
+    prepared: Prepared,
+    cfg: Config,
+    stats: FoldStatistics,
+    fold_models: Sequence[PLSFit | EivFit],
+    chunk_rows: int | None = None,
+    path_models: Sequence[PLSFit] | None = None,
 ) -> CVResult:
     """Score each fold's model (``fold_models[f]``, trained without fold ``f``: :func:`fit_models`) from statistics
-    (R²) and one streaming pass (MAE, per-vertex error)."""
+    (R²) and one streaming pass (MAE, per-vertex error). The R² of every smaller number of components comes from
+    ``path_models`` (the PLS fits; default ``fold_models``): a fit corrected for detector noise has no components."""
     chunk_rows = chunk_rows or cfg.data.chunk_rows
     A = effective_n_components(cfg)
     n_splits = cfg.cv.n_splits
@@ -150,7 +159,7 @@ def cross_validate(
             sst_sum += sst
             sse_d, sst_d = residual_sums(model.coef_, np.zeros(N_TARGETS), stats.displacement[f])
             r2d_folds.append(r2_variance_weighted(sse_d, sst_d))
-            paths.append(r2_path(model, stats.target[f]))
+            paths.append(r2_path((path_models or fold_models)[f], stats.target[f]))
 
     # pass B: held-out predictions, streamed partition by partition; each frame's error goes to rows of a scratch
     # .npy beside the prepared data (removed with the result), never gathered
@@ -286,7 +295,7 @@ def _weighted_mean(rows, weights: np.ndarray, block: int = 4096) -> np.ndarray:
     return total / weights.sum()
 
 
-def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLSFit) -> FinalModel:
+def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLSFit | EivFit) -> FinalModel:
     """Card: final fit on all kept frames (``model``, fitted on ``stats.total``: :func:`fit_models`), as released."""
     A = effective_n_components(cfg)
     mesh_intercept = model.raw_intercept_.copy()
@@ -308,7 +317,7 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLS
     )
 
 
-def au_field_reliability(alone: list[PLSFit]) -> np.ndarray:
+def au_field_reliability(alone: Sequence[PLSFit | EivFit]) -> np.ndarray:
     """Per-AU mean cosine between the AU fields of the models fitted on each fold alone (disjoint videos), (20,)."""
     return reliability.field_cosines(np.stack([model.coef_ for model in alone]), np.arange(len(AU_COLUMNS)))
 
@@ -333,11 +342,34 @@ def cross_validate_and_fit_from_statistics(
     """Cross-validation, the final fit and the AU-field checks of one configuration from its statistics (``stats``:
     :func:`aumesh.pipeline.evaluate.statistics_pass.accumulate`), on the current scheduler."""
     fits = fit_models(cfg, stats)
-    cv = cross_validate(prepared, cfg, stats, fits.folds)
-    final = final_fit(prepared, cfg, stats, fits.final)
-    cv.au_reliability = au_field_reliability(fits.alone)
+    corrected = eiv_fits(cfg, stats)  # model/eiv: the same statistics refitted for detector noise (None: none)
+    used = corrected or fits
+    cv = cross_validate(prepared, cfg, stats, used.folds, path_models=fits.folds)
+    final = final_fit(prepared, cfg, stats, used.final)
+    if corrected is not None:  # written beside the corrected fields: the card's fit of the same rows
+        final.uncorrected_coef = fits.final.coef_.copy()
+    cv.au_reliability = au_field_reliability(used.alone)
     cv.n_aus_facs_pass = facs_passes(prepared, final)
+    cv.au_identification = final.identification = identification(cfg, stats)
     return cv, final
+
+
+def identification(cfg: Config, stats: FoldStatistics) -> eiv.IdentificationScreen:
+    """The AU identification screen (docs/method.md eq. 6) on the within-video AU moments of every frame."""
+    au = stats.au_within
+    if au is None:
+        raise ValueError("identification: the statistics carry no within-video AU moments")
+    ident = cfg.model.identification
+    return eiv.identification_screen(
+        au.cxx / au.n,
+        au.cxy / au.n,
+        list(AU_COLUMNS),
+        sigma_step=ident.sigma_step,
+        sigma_max=ident.sigma_max,
+        flag_below=ident.flag_below,
+        turn_cosine=ident.turn_cosine,
+        floor=ident.floor,
+    )
 
 
 def cross_validate_and_fit(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:

@@ -15,6 +15,7 @@ from aumesh.core.io import NpyRows, RowArray
 from aumesh.core.schema import AU_COLUMNS
 from aumesh.model import reliability
 from aumesh.model.cross_products import CrossProducts
+from aumesh.model.eiv import EivFit, IdentificationScreen
 from aumesh.model.kernel_pls import PLSFit
 from aumesh.model.release import release_arrays
 
@@ -28,6 +29,10 @@ class FoldStatistics:
     video_fold: np.ndarray  # (n_videos,) fold of each video (-1: no frames)
     x_offset: np.ndarray | None = None  # (n_videos, p) per-video design centre of the target (None: none)
     y_offset: RowArray | None = None  # (n_videos, 1434) per-video mesh centre of the target (None: none)
+    # within-video statistics of the 20 AUs with the mesh over every frame, whatever the target (the screen's moments)
+    au_within: CrossProducts | None = None
+    pose_mean: np.ndarray | None = None  # (3,) E[pose] over every frame (radians)
+    pose_second: np.ndarray | None = None  # (3, 3) E[pose pose^T]
 
     @property
     def total(self) -> CrossProducts:
@@ -55,6 +60,7 @@ class CVResult:
     extra: dict = field(default_factory=dict)
     au_reliability: np.ndarray | None = None  # (20,) mean cosine of each AU's field between folds fitted alone
     n_aus_facs_pass: int | None = None  # AUs of the final model whose direction passes the FACS check
+    au_identification: IdentificationScreen | None = None  # the AU identification screen (aumesh.model.eiv)
 
     def metrics(self) -> dict:
         def ms(values):
@@ -88,6 +94,9 @@ class CVResult:
         out = {} if self.au_reliability is None else reliability.summarize(self.au_reliability, list(AU_COLUMNS))
         if self.n_aus_facs_pass is not None:
             out["n_aus_facs_pass"] = int(self.n_aus_facs_pass)
+        if self.au_identification is not None:
+            out["n_aus_unidentified"] = int(self.au_identification.flagged.sum())
+            out["au_identification"] = self.au_identification.to_card()
         return out
 
     def scalar_metrics(self) -> dict[str, float]:
@@ -97,6 +106,14 @@ class CVResult:
         out |= {f"au_reliability_{au}": v for au, v in metrics.get("au_reliability", {}).items()}
         if "n_aus_facs_pass" in metrics:
             out["n_aus_facs_pass"] = float(metrics["n_aus_facs_pass"])
+        if "n_aus_unidentified" in metrics:
+            out["n_aus_unidentified"] = float(metrics["n_aus_unidentified"])
+            # sigma* of the AUs that turn within the screen's grid (the others have none: not logged)
+            out |= {
+                f"au_sigma_star_{au}": float(v["sigma_star"])
+                for au, v in metrics["au_identification"].items()
+                if v["sigma_star"] is not None
+            }
         return out
 
 
@@ -104,9 +121,9 @@ class CVResult:
 class Fits:
     """Every model of one configuration, fitted from its statistics (:func:`aumesh.pipeline.evaluate.fit_models`)."""
 
-    folds: list[PLSFit]  # fold f's model: trained on the other folds (cross-validation)
-    final: PLSFit  # trained on every frame (card: final fit on all kept frames)
-    alone: list[PLSFit]  # trained on fold f alone (the AU-field reliability)
+    folds: list[Any]  # PLSFit or EivFit: fold f's model, trained on the other folds (cross-validation)
+    final: PLSFit | EivFit  # trained on every frame (card: final fit on all kept frames)
+    alone: list[Any]  # PLSFit or EivFit: trained on fold f alone (the AU-field reliability)
 
 
 @dataclass
@@ -116,7 +133,10 @@ class FinalModel:
     mesh_intercept: np.ndarray  # (1434,) intercept that yields a mesh (adds the mean neutral for target=neutral)
     feature_columns: list[str]
     n_components: int
-    model: PLSFit
+    model: PLSFit | EivFit
+    # model/eiv != none: the card's least-squares fit on the same rows, written beside the corrected one (1434, p)
+    uncorrected_coef: np.ndarray | None = None
+    identification: IdentificationScreen | None = None
 
     def release_arrays(self, reference: dict[str, np.ndarray], metadata: dict[str, Any]) -> dict[str, np.ndarray]:
         """This fit as the card's NPZ arrays (:func:`aumesh.model.release.release_arrays`; the card's text comes with
@@ -129,4 +149,6 @@ class FinalModel:
             reference,
             card_text="",
             metadata=metadata,
+            uncorrected_coef=self.uncorrected_coef,
+            identification=None if self.identification is None else self.identification.release_arrays(),
         )

@@ -38,7 +38,9 @@ from aumesh.model.statistics import (
     DesignSums,
     VideoSumStream,
     fold_configuration_statistics,
+    pose_moments,
     target_offsets,
+    within_statistics,
 )
 from aumesh.pipeline import compute, integrity
 from aumesh.pipeline.evaluate.prepared_data import BLOCK_ROWS, Prepared, block_rows, fold_grouped_block, read_group
@@ -268,6 +270,14 @@ def accumulate(
     x_offset, y_offset = target_offsets(
         design, cfg.features.columns, cfg.preprocess.target, prepared.neutral[method], design.neutral_design[method]
     )
+    pose_mean, pose_second = pose_moments(design)
     return FoldStatistics(
-        target=target, displacement=displacement, video_fold=video_fold, x_offset=x_offset, y_offset=y_offset
+        target=target,
+        displacement=displacement,
+        video_fold=video_fold,
+        x_offset=x_offset,
+        y_offset=y_offset,
+        au_within=within_statistics(design, list(AU_COLUMNS)),  # the identification screen's moments, every target
+        pose_mean=pose_mean,
+        pose_second=pose_second,
     )

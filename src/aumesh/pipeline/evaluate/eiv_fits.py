@@ -1,0 +1,54 @@
+"""The fits of a configuration corrected for detector noise (``model/eiv``; docs/method.md eqs. 4-7).
+
+Each of the ``2 n_splits + 1`` fits of :func:`aumesh.pipeline.evaluate.fit_models` (every fold's training rows, all
+rows, each fold alone) is refitted by the configured correction from the same within-video statistics; the
+uncorrected PLS fits stay beside them (the R²-by-components curve and the uncorrected fields come from them).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from aumesh.config import Config
+from aumesh.core.blas import one_blas_thread
+from aumesh.model import eiv
+from aumesh.model.cross_products import CrossProducts
+from aumesh.pipeline.evaluate.results import Fits, FoldStatistics
+
+
+def training_sets(stats: list[CrossProducts]) -> list[CrossProducts]:
+    """The ``2 n_splits + 1`` training statistics in :class:`~aumesh.pipeline.evaluate.results.Fits`' order: each
+    fold's complement, all rows, each fold alone."""
+    total = stats[0].copy()
+    for s in stats[1:]:
+        total = total + s
+    return [total - held_out for held_out in stats] + [total] + list(stats)
+
+
+def design_sigma(cfg: Config, stats: FoldStatistics) -> np.ndarray:
+    """``model.eiv.sigma_u`` (20 x 20, the AUs') extended to the configuration's design (docs/method.md eq. 5b)."""
+    sigma_au = eiv.load_sigma_u(Path(cfg.model.eiv.sigma_u or ""))
+    if stats.pose_mean is None or stats.pose_second is None:
+        raise ValueError("design_sigma: the statistics carry no pose moments (aumesh.model.statistics.pose_moments)")
+    return eiv.design_error_covariance(sigma_au, cfg.features.columns, stats.pose_mean, stats.pose_second)
+
+
+def corrected_fits(cfg: Config, stats: FoldStatistics) -> Fits:
+    """Floored corrected least squares (``model/eiv=corrected``) for every training set of ``stats``."""
+    sigma = design_sigma(cfg, stats)
+    with one_blas_thread():
+        models = [eiv.corrected_fit(s, sigma, cfg.model.eiv.floor) for s in training_sets(stats.target)]
+    k = len(stats.target)
+    return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
+
+
+def eiv_fits(cfg: Config, stats: FoldStatistics) -> Fits | None:
+    """The configured correction's fits (None for ``model/eiv=none``: the PLS fits are the model)."""
+    method = cfg.model.eiv.method
+    if method == "none":
+        return None
+    if method == "corrected":
+        return corrected_fits(cfg, stats)
+    raise NotImplementedError(f"model.eiv.method={method!r}")
