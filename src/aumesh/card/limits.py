@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.card.identification import identification_warning
 from aumesh.card.markdown import md_text
 
 # ---------------------------------------------------------------------------------------------------- thresholds
@@ -374,12 +375,13 @@ def release_warnings(
         *_pose_warning(data.get("counts") or {}),
         *_degenerate_warnings(data),
         *_detector_warning(data),
+        *identification_warning(card),
     ]
 
 
 CHECKED = (
     "data size (frames, videos, people), AUs the data barely exercised, field size and reliability, FACS directions, "
-    "fold spread, pose filter, constant inputs, detector"
+    "fold spread, pose filter, constant inputs, detector, AU identification under detector noise"
 )
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from aumesh.card.identification import correction_lines, identification_section
 from aumesh.card.limits import limits_section
 from aumesh.card.markdown import md_code, md_text
 from aumesh.core.schema import FEATURE_SETS
@@ -61,9 +62,9 @@ def reliability_section(cv: dict[str, Any]) -> list[str]:
         "",
         "Cosine between each AU's displacement field fitted on each cross-validation fold alone (disjoint videos; "
         "mean over fold pairs; 1 = every subset of videos agrees). No ground truth needed. It measures the field's "
-        "stability across video subsets; it does not detect a bias every subset shares (detector noise that "
-        "follows the face, an AU the detector confuses with another, one person in every fold): a field can be "
-        "reliable and wrong.",
+        "stability across video subsets; it does not detect detector-noise bias, which is the same in every subset "
+        "(nor an AU the detector confuses with another, or one person in every fold): a field can be reliable and "
+        "wrong. The section 'AU identification under detector noise' says which fields such noise could turn.",
         "",
         f"- median over AUs {cv['au_reliability_median']:.3f}, worst {cv['au_reliability_min']:.3f}"
         + (f"; {cv['n_aus_facs_pass']} of 20 AUs pass the FACS direction check" if "n_aus_facs_pass" in cv else ""),
@@ -260,6 +261,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "## Method",
         "",
         f"- `PLSRegression(n_components={card['model']['n_components']}, scale={model['scale']})` (aumesh's exact kernel-PLS engine)",
+        *correction_lines(card),
         f"- Inputs for training: {inputs} = {card['model']['n_features']} features"
         + (
             f", of which {len(dead)} have no variance in the training data (constant inputs, or products with an input "
@@ -298,6 +300,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
     ]
     if "au_reliability" in cv:
         lines += reliability_section(cv)
+    lines += identification_section(card)
     lines += _runs_lines(card)
     if directions_table:
         lines += ["## AU directions (FACS check)", "", directions_table, ""]

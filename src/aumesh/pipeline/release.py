@@ -19,6 +19,15 @@ from aumesh.pipeline.model_files import METRICS_JSON, MODEL_NPZ, TRACKING_JSON
 WHERE_GROUPS = ("tracking", "compute")
 
 
+_ESTIMATORS = {
+    "none": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)",
+    "corrected": "aumesh.model.eiv.corrected_fit (floored corrected least squares, within-video design; "
+    "docs/method.md eqs. 4-5)",
+    "instruments": "aumesh.model.eiv.instrumental_fit (within two-stage least squares, a second detector's AUs as "
+    "instruments; docs/method.md eq. 7)",
+}
+
+
 def shareable_config(cfg: Config) -> dict:
     """The configuration as the model card records it: what the model is, without :data:`WHERE_GROUPS`."""
     return {k: v for k, v in cfg.to_dict().items() if k not in WHERE_GROUPS}
@@ -38,12 +47,14 @@ def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict
     return {
         "name": "AU+pose -> MediaPipe mesh PLS (aumesh)",
         "format_version": 2,
-        "cv": {k: v for k, v in metrics.items() if k not in ("n_components", "n_features")},
+        "cv": {k: v for k, v in metrics.items() if k not in ("n_components", "n_features", "au_identification")},
         "model": {
             "n_components": metrics["n_components"],
             "n_features": metrics["n_features"],
-            "estimator": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)",
+            "estimator": _ESTIMATORS[(metrics.get("eiv") or {}).get("method", "none")],
         },
+        # the AU identification screen (aumesh.model.eiv, docs/method.md eq. 6): per AU sigma*, flag, partner, group
+        "au_identification": metrics.get("au_identification"),
         "data": {
             "n_frames": summary["n_frames"],
             "n_videos": summary["n_videos"],

@@ -57,7 +57,7 @@ from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
 from aumesh.pipeline import compute
-from aumesh.pipeline.evaluate.eiv_fits import eiv_fits
+from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, eiv_record
 from aumesh.pipeline.evaluate.prepared_data import Prepared, block_rows, fold_grouped_block, read_group, workers_check
 from aumesh.pipeline.evaluate.results import CVResult, FinalModel, Fits, FoldStatistics
 from aumesh.pipeline.evaluate.statistics_pass import accumulate
@@ -348,6 +348,7 @@ def cross_validate_and_fit_from_statistics(
     final = final_fit(prepared, cfg, stats, used.final)
     if corrected is not None:  # written beside the corrected fields: the card's fit of the same rows
         final.uncorrected_coef = fits.final.coef_.copy()
+        cv.eiv = eiv_record(cfg)
     cv.au_reliability = au_field_reliability(used.alone)
     cv.n_aus_facs_pass = facs_passes(prepared, final)
     cv.au_identification = final.identification = identification(cfg, stats)

@@ -44,6 +44,27 @@ def corrected_fits(cfg: Config, stats: FoldStatistics) -> Fits:
     return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
 
 
+def eiv_record(cfg: Config) -> dict | None:
+    """What a corrected run's card and metrics record of its correction (None for ``model/eiv=none``): the method,
+    and for ``corrected`` the floor, the covariance file (repo-relative as configured) and its sha256."""
+    import hashlib
+
+    eiv_cfg = cfg.model.eiv
+    if eiv_cfg.method == "none":
+        return None
+    record: dict = {"method": eiv_cfg.method, "full": cfg.features.interactions}
+    if eiv_cfg.method == "corrected":
+        path = Path(eiv_cfg.sigma_u or "")
+        record |= {
+            "floor": eiv_cfg.floor,
+            "sigma_u": eiv_cfg.sigma_u,
+            "sigma_u_sha256": hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None,
+        }
+    else:
+        record["instrument_aus"] = eiv_cfg.instrument_aus
+    return record
+
+
 def eiv_fits(cfg: Config, stats: FoldStatistics) -> Fits | None:
     """The configured correction's fits (None for ``model/eiv=none``: the PLS fits are the model)."""
     method = cfg.model.eiv.method

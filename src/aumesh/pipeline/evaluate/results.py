@@ -61,6 +61,7 @@ class CVResult:
     au_reliability: np.ndarray | None = None  # (20,) mean cosine of each AU's field between folds fitted alone
     n_aus_facs_pass: int | None = None  # AUs of the final model whose direction passes the FACS check
     au_identification: IdentificationScreen | None = None  # the AU identification screen (aumesh.model.eiv)
+    eiv: dict | None = None  # model/eiv != none: what the correction used (pipeline.evaluate.eiv_fits.eiv_record)
 
     def metrics(self) -> dict:
         def ms(values):
@@ -97,6 +98,8 @@ class CVResult:
         if self.au_identification is not None:
             out["n_aus_unidentified"] = int(self.au_identification.flagged.sum())
             out["au_identification"] = self.au_identification.to_card()
+        if self.eiv is not None:
+            out["eiv"] = self.eiv
         return out
 
     def scalar_metrics(self) -> dict[str, float]:
