@@ -91,7 +91,7 @@ def test_a_corrected_run_corrects_the_au_fields_and_keeps_the_pose_rows_close(pr
         ({"model/eiv": "corrected"}, "needs the AU detector's within-video error covariance"),
         ({"model/eiv": "corrected", "model.eiv.sigma_u": "x.npy"}, "preprocess.target=within"),
         ({"model/eiv": "instruments", "model.eiv.instrument_aus": "AU_2", "preprocess.target": "within"}, "{au}"),
-        ({"model.eiv.sigma_u": "x.npy"}, "Could not override 'model.eiv.sigma_u'"),  # Hydra: none has no sigma_u
+        ({"model.eiv.sigma_u": "x.npy"}, "is given but model.eiv.method='none': choose model/eiv=corrected"),
         ({"model.identification.sigma_step": "0.5"}, "need 0 < step <= max"),
     ],
 )

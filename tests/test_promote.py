@@ -56,6 +56,30 @@ def test_highest_r2_wins_ties_go_to_fewer_components_failed_ignored():
     assert ranking.choose([cand("x", 0.70, 40), cand("y", 0.6999, 5)]).run_id == "x"
 
 
+def test_corrected_and_uncorrected_runs_are_not_compared_on_r2():
+    def eiv_cand(rid, value, method):
+        c = cand(rid, value, 83, target="within")
+        return Candidate(**{**c.__dict__, "params": {**c.params, "model.eiv.method": method}})
+
+    # the uncorrected run has the higher R² by design; the corrected one is promoted, and the card says why
+    runs = [
+        eiv_cand("plain", 0.30, "none"),
+        eiv_cand("fixed", 0.27, "corrected"),
+        eiv_cand("fixed2", 0.26, "corrected"),
+    ]
+    choice = ranking.choose(runs)
+    assert choice.run_id == "fixed" and [r for r, _ in choice.ranking] == ["fixed", "fixed2"]
+    assert "R² does not compare corrected and uncorrected runs" in choice.compared
+    assert "none: 1" in choice.compared and "corrected: 2" in choice.compared
+    # runs from before the option (no model.eiv.method param) count as uncorrected; one method: no note
+    assert (
+        "model.eiv"
+        not in ranking.choose([cand("old", 0.3, 83, target="within"), eiv_cand("new", 0.2, "none")]).compared
+    )
+    with pytest.raises(ValueError, match="different detector-noise corrections"):
+        ranking.choose([eiv_cand("a", 0.3, "corrected"), eiv_cand("b", 0.2, "instruments")])
+
+
 def test_mixed_targets_are_compared_on_displacement_r2():
     runs = [
         cand("abs", 0.90, 10, "absolute", disp=0.30),

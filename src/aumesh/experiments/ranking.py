@@ -157,6 +157,40 @@ def rank(candidates: Sequence[Candidate], metric: str, tie_tolerance: float = TI
     return ranked
 
 
+def eiv_method(candidate: Candidate) -> str:
+    """The run's ``model.eiv.method`` (runs from before the option: ``none``)."""
+    return candidate.params.get("model.eiv.method") or "none"
+
+
+def _one_correction(pool: list[Candidate]) -> tuple[list[Candidate], str]:
+    """The candidates that compete when their detector-noise corrections differ, and the words that say why.
+
+    A corrected fit has a lower in-sample fit than least squares by design (it undoes least squares' bias toward the
+    noisy AUs), so no R² compares a corrected run with an uncorrected one: when the candidates mix ``model/eiv=none``
+    with one correction, only the corrected runs compete (the user brought what the correction needs: a validation
+    study's error covariance, or a second detector). Two different corrections are not ranked against each other.
+    """
+    methods = sorted({eiv_method(c) for c in pool})
+    if len(methods) <= 1:
+        return pool, ""
+    corrections = [m for m in methods if m != "none"]
+    if len(corrections) > 1:
+        raise ValueError(
+            f"candidates use different detector-noise corrections ({', '.join(corrections)}): their R² do not "
+            "compare (each correction undoes least squares' bias differently). Fix: promote from a sweep with one "
+            "model/eiv option, or compare the runs in `aumesh runs` and choose by hand."
+        )
+    keep = [c for c in pool if eiv_method(c) == corrections[0]]
+    counts = ", ".join(f"{m}: {sum(1 for c in pool if eiv_method(c) == m)}" for m in methods)
+    note = (
+        f"; candidates differ in model.eiv ({counts}): a fit corrected for detector noise has a lower in-sample fit "
+        "by design, so R² does not compare corrected and uncorrected runs; only the "
+        f"{len(keep)} model.eiv={corrections[0]} runs competed (the correction the data was given evidence for), "
+        f"the {len(pool) - len(keep)} uncorrected ones were not ranked"
+    )
+    return keep, note
+
+
 def choose(
     candidates: Sequence[Candidate],
     metric: str | None = None,
@@ -195,6 +229,7 @@ def choose(
             + (f" with preprocess.target={target}" if target else "")
             + "; nothing to promote (see `aumesh runs` for their errors)."
         )
+    pool, eiv_note = _one_correction(pool)
     targets = tuple(sorted({str(c.target) for c in pool}))
     chosen_metric = metric or default_metric(targets)
     if len(targets) > 1 and not cross_target(chosen_metric):
@@ -234,6 +269,7 @@ def choose(
         )
     if target is not None:
         compared += f"; restricted to preprocess.target={target}"
+    compared += eiv_note
     excluded = len(candidates) - len(ranked)
     return Choice(
         run_id=best.run_id,
