@@ -260,7 +260,8 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
         "",
         "## Method",
         "",
-        f"- `PLSRegression(n_components={card['model']['n_components']}, scale={model['scale']})` (aumesh's exact kernel-PLS engine)",
+        ("- Uncorrected fit (released as `coef_uncorrected`): " if correction_lines(card) else "- ")
+        + f"`PLSRegression(n_components={card['model']['n_components']}, scale={model['scale']})` (aumesh's exact kernel-PLS engine)",
         *correction_lines(card),
         f"- Inputs for training: {inputs} = {card['model']['n_features']} features"
         + (
