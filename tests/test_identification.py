@@ -143,3 +143,24 @@ def test_no_flag_no_warning_and_old_cards_without_a_screen_have_no_section():
     assert not [w for w in limits.release_warnings(_screen_card(())) if w["code"] == "unidentified_au_fields"]
     assert identification_section(_large_card()) == []
     assert "No AU field flagged" in "\n".join(identification_section(_screen_card(())))
+
+
+def test_the_covariance_is_checked_before_any_work_and_a_file_outside_the_validation_folder_is_said(
+    tmp_path, monkeypatch, caplog
+):
+    from aumesh.pipeline.evaluate.eiv_fits import check_eiv_inputs
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "validation").mkdir()
+    np.save(tmp_path / "validation" / "s.npy", 0.01 * np.eye(20))
+    np.save(tmp_path / "elsewhere.npy", 0.01 * np.eye(20))
+    np.save(tmp_path / "validation" / "bad.npy", np.eye(3))
+    within = {"preprocess.target": "within", "model/eiv": "corrected"}
+    with caplog.at_level("WARNING"):
+        check_eiv_inputs(default_config(**within, **{"model.eiv.sigma_u": "validation/s.npy"}))
+        assert "outside paths.validation_dir" not in caplog.text
+        check_eiv_inputs(default_config(**within, **{"model.eiv.sigma_u": "elsewhere.npy"}))
+        assert "elsewhere.npy is outside paths.validation_dir" in caplog.text
+    with pytest.raises(ConfigError, match=r"validation/bad.npy: shape \(3, 3\)"):
+        check_eiv_inputs(default_config(**within, **{"model.eiv.sigma_u": "validation/bad.npy"}))
+    check_eiv_inputs(default_config())  # nothing to check without a correction

@@ -46,6 +46,7 @@ class PathsConfig:
     error_curve_file: str = "metrics/cumulative_vertex_error.csv"
     r2_curve_file: str = "metrics/r2_by_n_components.csv"
     promotion_file: str = "promotion.json"
+    validation_dir: str = "validation"
 
 
 @dataclass(frozen=True)

@@ -66,6 +66,7 @@ def main(cfg: Config) -> dict:
     """Cross-validate and fit the prepared data into ``paths.model_dir`` (and the metrics and plot files DVC
     compares), recorded as one MLflow run; returns the CV metrics (``metrics.json``)."""
     from aumesh.pipeline import dvc_metrics
+    from aumesh.pipeline.evaluate.eiv_fits import check_eiv_inputs
     from aumesh.pipeline.evaluate.prepared_data import load_prepared
     from aumesh.tracking import mlflow_store
     from aumesh.tracking import runs as tracking
@@ -79,6 +80,7 @@ def main(cfg: Config) -> dict:
             mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg)
         )
     check_columns(cfg)
+    check_eiv_inputs(cfg)  # a bad covariance file stops the stage before any pass
     prepared = load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)

@@ -7,6 +7,7 @@ uncorrected PLS fits stay beside them (the R²-by-components curve and the uncor
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,8 @@ from aumesh.model import eiv
 from aumesh.model.cross_products import CrossProducts
 from aumesh.pipeline.evaluate.results import Fits, FoldStatistics
 
+log = logging.getLogger(__name__)
+
 
 def training_sets(stats: list[CrossProducts]) -> list[CrossProducts]:
     """The ``2 n_splits + 1`` training statistics in :class:`~aumesh.pipeline.evaluate.results.Fits`' order: each
@@ -25,6 +28,25 @@ def training_sets(stats: list[CrossProducts]) -> list[CrossProducts]:
     for s in stats[1:]:
         total = total + s
     return [total - held_out for held_out in stats] + [total] + list(stats)
+
+
+def check_eiv_inputs(cfg: Config) -> None:
+    """Before any work: ``model.eiv.sigma_u`` is readable and valid (one line naming the file and the fix), and a
+    warning when it lies outside ``paths.validation_dir`` (the folder dvc.yaml lists as evaluate's dependency: an edit
+    elsewhere does not rerun the stage)."""
+    if cfg.model.eiv.method != "corrected":
+        return
+    path = Path(cfg.model.eiv.sigma_u or "")
+    eiv.load_sigma_u(path)
+    folder = Path(cfg.paths.validation_dir).resolve()
+    if folder not in path.resolve().parents:
+        log.warning(
+            "model.eiv.sigma_u=%s is outside paths.validation_dir (%s): DVC does not rerun evaluate when it changes "
+            "(the card records its sha256). Fix: keep it in %s/",
+            path,
+            cfg.paths.validation_dir,
+            cfg.paths.validation_dir,
+        )
 
 
 def design_sigma(cfg: Config, stats: FoldStatistics) -> np.ndarray:
