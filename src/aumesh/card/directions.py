@@ -88,6 +88,7 @@ FAIL_COSINE = 0.0
 PASS_SHARE = 0.5
 NEARBY_SHARE = 0.4
 FAIL_SHARE = 0.1
+UNILATERAL_SHARE = 0.2  # a side of a bilateral region with less of its motion is "still" (a unilateral action)
 MIN_MAGNITUDE = 1e-6  # inter-ocular units; below this an AU "does not move"
 
 _RANK = {"pass": 0, "doubtful": 1, "fail": 2}
@@ -125,12 +126,13 @@ class _Areas:
         return self.group == AREA_GROUPS.index(group)
 
 
-def _weighted_direction(disp: np.ndarray, areas: _Areas, group: str) -> tuple[np.ndarray, float]:
+def _weighted_direction(disp: np.ndarray, areas: _Areas, group: str, side: int = 0) -> tuple[np.ndarray, float]:
     """Displacement-weighted mean of the group's vertices' displacements in local terms, and their mean magnitude.
 
     Weights are the vertices' displacement magnitudes, so vertices that move most decide the direction and a few
-    near-still vertices of the area do not dilute it (bilateral areas: lateral = outward on each side)."""
-    m = areas.mask(group)
+    near-still vertices of the area do not dilute it (bilateral areas: lateral = outward on each side). ``side`` +1 / -1
+    keeps only the subject's left / right half of a bilateral group (0: both)."""
+    m = areas.mask(group) & ((areas.side == side) if side else True)
     local = _local(disp[m], areas.side[m])
     w = np.linalg.norm(disp[m], axis=1)
     mean_mag = float(w.mean()) if w.size else 0.0
@@ -188,6 +190,31 @@ def judge_fields(disp: np.ndarray, aus: list[str], mesh: np.ndarray | None = Non
         raise KeyError(f"no FACS expectation for {unknown}; known: {sorted(FACS_EXPECTATIONS)}")
     areas = _Areas(face.canonical_template() if mesh is None else mesh)
     return [_judge(d, au, areas) for d, au in zip(fields, aus, strict=True)]
+
+
+def _side_checks(
+    disp: np.ndarray, areas: _Areas, group: str, want: np.ndarray, energy: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Each side of a bilateral group judged alone (outward = away from the midline on that side).
+
+    A side holding under ``UNILATERAL_SHARE`` of the group's motion is left out (FACS codes unilateral actions, e.g.
+    R12: a still side is not against FACS); the other sides get the cosine of their displacement-weighted mean to
+    ``want`` and a verdict by the same cosine thresholds as the whole group. Catches a field whose two halves move
+    opposite ways (a mirrored or rotated half), which the group's mean can average into a plausible direction.
+    """
+    in_group = areas.mask(group)
+    total = float(energy[in_group].sum())
+    out: dict[str, dict[str, Any]] = {}
+    for name, side in (("left", 1), ("right", -1)):
+        share = float(energy[in_group & (areas.side == side)].sum()) / total if total > 0 else 0.0
+        local, _ = _weighted_direction(disp, areas, group, side)
+        norm = float(np.linalg.norm(local))
+        if share < UNILATERAL_SHARE or norm <= MIN_MAGNITUDE:
+            continue
+        cos = float(local @ want / norm)
+        verdict = "fail" if cos <= FAIL_COSINE else "doubtful" if cos < PASS_COSINE else "pass"
+        out[name] = {"cosine": round(cos, 4), "share_of_region": round(share, 4), "verdict": verdict}
+    return out
 
 
 def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
@@ -249,6 +276,15 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
             verdict, reason = "doubtful", f"{group} moves {expected} but barely ({shares[group]:.0%} of the motion)"
         else:
             verdict, reason = "pass", f"{group} moves {expected} (cos {cos:+.2f})"
+        sides = _side_checks(disp, areas, group, want, energy) if areas.bilateral[group] and moves else {}
+        for name, sc in sides.items():  # each side of a bilateral region on its own: a side against FACS fails
+            if sc["verdict"] != "pass" and _RANK[sc["verdict"]] > _RANK[verdict]:
+                verdict = sc["verdict"]
+                reason = f"{group} on the subject's {name} moves against expected {expected} (cos {sc['cosine']:+.2f})"
+                if sc["verdict"] == "doubtful":
+                    reason = (
+                        f"{group} on the subject's {name} only loosely matches {expected} (cos {sc['cosine']:+.2f})"
+                    )
         checks.append(
             {
                 "region": group,
@@ -258,6 +294,7 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
                 "cosine": round(cos, 4),
                 "magnitude": round(mag, 6),
                 "share": round(shares[group], 4),
+                "sides": sides,
                 "verdict": verdict,
                 "reason": reason,
             }
@@ -386,6 +423,7 @@ def au_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any
             "pass_share": PASS_SHARE,
             "nearby_share": NEARBY_SHARE,
             "fail_share": FAIL_SHARE,
+            "unilateral_share": UNILATERAL_SHARE,
         },
         "summary": summary,
         "aus": aus,
