@@ -21,7 +21,10 @@ Which way
 ---------
 For each (region, expected direction) of the AU's ``"checks"``: the displacement-weighted mean of the region's
 vertices' displacements (weights ``|d_v|``: the vertices that move most decide, still vertices do not dilute it),
-and its cosine to the expected direction in face terms (below).
+and its cosine to the expected direction in face terms (below). A bilateral region is also judged **side by side**
+(the subject's left and right halves alone, outward taken on each side): a half moving against FACS fails the AU even
+when the two halves' mean looks plausible (one half reversed, e.g. a mirrored or mis-signed half), and a half with
+under ``UNILATERAL_SHARE`` (20 %) of the region's motion is left out, since FACS codes unilateral actions (R12, L12).
 
 Verdicts (the AU's verdict is the worse of "where" and its worst direction check)
 -------------------------------------------------------------------------------
@@ -29,7 +32,8 @@ where:  ``pass`` when the top region is a FACS region, or the FACS region(s) hol
         the motion, or the top region is a nearby area and the FACS region(s) hold >= ``NEARBY_SHARE`` (40 %);
         ``fail`` when the AU does not move, or the top region is elsewhere and the FACS region(s) hold <
         ``FAIL_SHARE`` (10 %, "barely moves"); ``doubtful`` otherwise.
-which way:  ``fail`` at cosine <= ``FAIL_COSINE`` (0: against FACS) or when the region has no net motion;
+which way:  ``fail`` at cosine <= ``FAIL_COSINE`` (0: against FACS), on the region or on one of its moving sides,
+        or when the region has no net motion;
         ``doubtful`` at cosine < ``PASS_COSINE`` (0.7, about 45 degrees), or when the region holds <
         ``FAIL_SHARE`` of the motion; ``pass`` otherwise.
 
@@ -52,8 +56,14 @@ FACS-region cosine >= 0.78 (1 % quantile 0.90) and keep >= 24 % of their motion 
 AU09's slot (35 % in the nose) and AU14's in AU28's (39 % in the lips) would pass. The thresholds and this rule are
 the project's reading of FACS, not a FACS-certified coding.
 
-FACS regions (the regions and nearby areas of :data:`FACS_EXPECTATIONS`) follow the appearance changes described
-for each action unit in the FACS manual: Ekman, P., Friesen, W. V., & Hager, J. C. (2002). *Facial Action Coding
+Side by side (issue 43): each of 10 bilateral AUs' truth field with one half reversed (left or right) fails; before the
+side check none of the 20 cases failed. Every truth field reversed by ``SynthSpec.reversed_aus`` fails, the other 19
+pass; each truth field turned by 180 degrees across its FACS direction fails, by 90 degrees does not pass. Truth
+fields judged on the mean mesh of a fit (within-video OLS, AR(1) AU noise correlated across AUs, mean AU activity
+moving the mean mesh) and in a release fitted by the pipeline (anchors' similarity into its frame) pass 20/20.
+
+FACS regions (the regions and nearby areas of :data:`FACS_EXPECTATIONS`, :mod:`aumesh.card.facs_regions`) follow
+the appearance changes described for each action unit in the FACS manual: Ekman, P., Friesen, W. V., & Hager, J. C. (2002). *Facial Action Coding
 System: The Manual*. Salt Lake City: Research Nexus (first edition Ekman & Friesen, 1978, Consulting Psychologists
 Press); e.g. AU02 raises the lateral part of the brows, AU12 pulls the lip corners up and back obliquely and
 deepens the nasolabial furrow, AU17 pushes the chin boss and the lower lip up. Only the gross region and direction
@@ -471,7 +481,8 @@ def report_markdown_table(report: Mapping[str, Any]) -> str:
             "facial area, as a fraction of the whole face. An AU passes when its largest motion is in its FACS region "
             f"(the top region, or at least {t['pass_share']:.0%} of the motion there, or the top region is one FACS "
             f"names for the AU with at least {t['nearby_share']:.0%} in the FACS region) and the displacement-weighted "
-            f"mean direction there is within cos {t['pass_cosine']:.2f} of FACS; it fails when that direction opposes "
+            "mean direction there (and on each moving side of a bilateral region) is within "
+            f"cos {t['pass_cosine']:.2f} of FACS; it fails when that direction opposes "
             f"FACS (cos <= {t['fail_cosine']:.2f}) or the largest motion is elsewhere with under "
             f"{t['fail_share']:.0%} in the FACS region (aumesh.card.directions)."
         )
