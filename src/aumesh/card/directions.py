@@ -63,11 +63,11 @@ fields judged on the mean mesh of a fit (within-video OLS, AR(1) AU noise correl
 moving the mean mesh) and in a release fitted by the pipeline (anchors' similarity into its frame) pass 20/20.
 
 FACS regions (the regions and nearby areas of :data:`FACS_EXPECTATIONS`, :mod:`aumesh.card.facs_regions`) follow
-the appearance changes described for each action unit in the FACS manual: Ekman, P., Friesen, W. V., & Hager, J. C. (2002). *Facial Action Coding
-System: The Manual*. Salt Lake City: Research Nexus (first edition Ekman & Friesen, 1978, Consulting Psychologists
-Press); e.g. AU02 raises the lateral part of the brows, AU12 pulls the lip corners up and back obliquely and
-deepens the nasolabial furrow, AU17 pushes the chin boss and the lower lip up. Only the gross region and direction
-are checked; FACS's subtler signs (wrinkles, bulges) are not visible in a 478-vertex mesh.
+the appearance changes described for each action unit in the FACS manual: Ekman, P., Friesen, W. V., & Hager, J. C.
+(2002). *Facial Action Coding System: The Manual*. Salt Lake City: Research Nexus (first edition Ekman & Friesen,
+1978, Consulting Psychologists Press); e.g. AU02 raises the lateral part of the brows, AU12 pulls the lip corners up
+and back obliquely and deepens the nasolabial furrow, AU17 pushes the chin boss and the lower lip up. Only the gross
+region and direction are checked; FACS's subtler signs (wrinkles, bulges) are not visible in a 478-vertex mesh.
 
 Face terms
 ----------
