@@ -57,7 +57,7 @@ AU09's slot (35 % in the nose) and AU14's in AU28's (39 % in the lips) would pas
 the project's reading of FACS, not a FACS-certified coding.
 
 Side by side (issue 43): each of 10 bilateral AUs' truth field with one half reversed (left or right) fails; before the
-side check none of the 20 cases failed. Every truth field reversed by ``SynthSpec.reversed_aus`` fails, the other 19
+side check 4 of these 20 passed (AU02, AU06, AU07, AU11: the two halves' mean still pointed the FACS way). Every truth field reversed by ``SynthSpec.reversed_aus`` fails, the other 19
 pass; each truth field turned by 180 degrees across its FACS direction fails, by 90 degrees does not pass. Truth
 fields judged on the mean mesh of a fit (within-video OLS, AR(1) AU noise correlated across AUs, mean AU activity
 moving the mean mesh) and in a release fitted by the pipeline (anchors' similarity into its frame) pass 20/20.
