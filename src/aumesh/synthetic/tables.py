@@ -113,6 +113,7 @@ _LATER_FIELDS = {
 }
 #: Suffix of the second detector's AU columns (``instrument_noise_sd``): ``model.eiv.instrument_aus='{au}_2'``.
 INSTRUMENT_SUFFIX = "_2"
+INSTRUMENT_COLUMNS: tuple[str, ...] = tuple(au + INSTRUMENT_SUFFIX for au in AU_COLUMNS)
 
 
 def _spec_record(spec: SynthSpec) -> dict:
@@ -457,6 +458,25 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     }
 
 
+def write_truth_sigma_u(truth_path: str | Path, name: str = "sigma_u.npy") -> Path:
+    """Save the truth file's ``au_sigma_u_within`` as ``name`` beside it (the ``.npy`` ``model.eiv.sigma_u`` reads).
+
+    Raises
+    ------
+    ValueError
+        The truth file has no ``au_sigma_u_within`` (its tables were written without ``au_noise_sd``).
+    """
+    truth_path = Path(truth_path)
+    with np.load(truth_path) as truth:
+        if "au_sigma_u_within" not in truth.files:
+            raise ValueError(
+                f"{truth_path}: no au_sigma_u_within (tables written without detector noise). "
+                f"Fix: write them with SynthSpec(au_noise_sd=...) (aumesh synth --au-noise-sd SD)"
+            )
+        sigma = truth["au_sigma_u_within"]
+    return au_noise.save_sigma_u(truth_path.with_name(name), sigma)
+
+
 def _write_file(path: Path, parts: list[tuple[int, dict]], layout: str) -> Path:
     meshes = np.concatenate([p["mesh"] for _, p in parts]).astype(np.float32)
     au = np.concatenate([p["au"] for _, p in parts])
@@ -471,8 +491,8 @@ def _write_file(path: Path, parts: list[tuple[int, dict]], layout: str) -> Path:
         data[name] = au[:, j]
     if "au2" in parts[0][1]:  # the second detector's AUs (SynthSpec.instrument_noise_sd)
         au2 = np.concatenate([p["au2"] for _, p in parts])
-        for j, name in enumerate(AU_COLUMNS):
-            data[name + INSTRUMENT_SUFFIX] = au2[:, j]
+        for j, name in enumerate(INSTRUMENT_COLUMNS):
+            data[name] = au2[:, j]
     for name in ("Pitch", "Roll", "Yaw"):  # py-feat's Fex order; the model's is Pitch, Yaw, Roll
         data[name] = pose[:, POSE_COLUMNS.index(name)]
     if layout == "columns":
