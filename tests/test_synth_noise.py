@@ -134,7 +134,9 @@ def _within_se(counts: np.ndarray, ar: float) -> np.ndarray:
 def test_the_generators_sigma_u_is_the_within_video_covariance_of_its_noise():
     spec = synth.realistic_noise_spec(n_frames=60_000, n_videos=4000, seed=1, au_noise_sd=0.07)
     counts = synth.frames_per_video(spec)
-    e = np.concatenate([synth.detector_readings(spec, v, np.full((n, 20), 0.5))["au_error"] for v, n in enumerate(counts)])
+    e = np.concatenate(
+        [synth.detector_readings(spec, v, np.full((n, 20), 0.5))["au_error"] for v, n in enumerate(counts)]
+    )
     empirical = au_noise.within_covariance(e, counts)
     analytic = au_noise.au_error_covariance(spec, counts)
     s2, tr = 0.07**2, _within_se(counts, spec.au_noise_ar).sum()

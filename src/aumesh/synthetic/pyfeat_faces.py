@@ -248,10 +248,19 @@ def video_rows(
     extra_pose = np.deg2rad(rng.normal(0, [10, 7, 18]) + rng.normal(0, 2, size=(len(ef), 3)))  # Fex order
     extra_au2 = None
     if "au2" in g:  # the second detector reads the background face too: its own stream, no draw from rng
-        noise2 = np.random.default_rng([seed, spec.seed, video, 3]).normal(0.0, spec.instrument_noise_sd, extra_au.shape)
+        noise2 = np.random.default_rng([seed, spec.seed, video, 3]).normal(
+            0.0, spec.instrument_noise_sd, extra_au.shape
+        )
         extra_au2 = extra_au + noise2
     other = _faces(
-        rng, small, extra_au, extra_pose, (0.6, 0.9), _unit(rng.standard_normal(512)) if v2 else None, detector, extra_au2
+        rng,
+        small,
+        extra_au,
+        extra_pose,
+        (0.6, 0.9),
+        _unit(rng.standard_normal(512)) if v2 else None,
+        detector,
+        extra_au2,
     )
 
     # rows: one per frame, two where a background face is; it comes first where extra_first
