@@ -255,3 +255,20 @@ def test_bad_noise_settings_are_one_line_errors(tmp_path):
     synth.write_tables(tmp_path / "data", synth.SynthSpec(n_frames=40, n_videos=2), tmp_path / "truth.npz")
     with pytest.raises(ValueError, match="no au_sigma_u_within"):
         synth.write_truth_sigma_u(tmp_path / "truth.npz")
+
+
+def test_aumesh_synth_writes_the_noisy_tables_and_sigma_u_beside_the_truth(tmp_path, capsys):
+    from aumesh import cli
+
+    argv = ["synth", "--out", str(tmp_path / "data"), "--frames", "300", "--videos", "10", "--seed", "2"]
+    argv += ["--realistic", "--instrument-noise-sd", "0.05", "--truth", str(tmp_path / "truth.npz")]
+    assert cli.main(argv) == 0
+    capsys.readouterr()
+    spec = synth.realistic_noise_spec(300, 10, 2, instrument_noise_sd=0.05)
+    want = au_noise.au_error_covariance(spec, synth.frames_per_video(spec))
+    np.testing.assert_allclose(load_sigma_u(tmp_path / "sigma_u.npy"), want)
+    assert set(I2) <= set(pq.read_schema(tmp_path / "data" / "frames_0000.parquet").names)
+    # without noise: no sigma_u.npy, and the tables of the plain spec
+    assert cli.main(["synth", "--out", str(tmp_path / "plain"), "--frames", "300", "--videos", "10",
+                     "--truth", str(tmp_path / "plain" / "truth.npz")]) == 0  # fmt: skip
+    assert not (tmp_path / "plain" / "sigma_u.npy").exists()
