@@ -92,8 +92,8 @@ class AuIdentification:
         return f"not identified under detector noise (\u03c3* {self.sigma_text(au)} < {self.flag_below:g})"
 
     def label(self, au: str) -> str:
-        """The short mark on a flagged AU's figure panel: ``"unidentified (sigma* 0.060): use AU09+AU10"``."""
-        return f"unidentified (sigma* {self.sigma_text(au)}): use {self.group_name(au)}"
+        """The short mark on a flagged AU's figure panel: ``"unidentified (σ* 0.060): use AU09+AU10"``."""
+        return f"unidentified (\u03c3* {self.sigma_text(au)}): use {self.group_name(au)}"
 
     def to_json(self) -> dict[str, Any]:
         """Plain JSON (no NaN): ``{"flag_below", "aus": {AU: {"sigma_star", "flagged", "partner", "group"}},
