@@ -129,6 +129,32 @@ def test_a_release_without_flags_shows_no_group_and_nothing_greyed(tab, releases
     assert problems == []
 
 
+def test_a_clip_drives_the_greyed_au_and_sets_the_groups_aside(tab, releases, tmp_path):  # noqa: F811
+    """A clip's frame gives every AU its detector value, the greyed one too (shown on its disabled slider), and puts
+    the group sliders back to 0: the face is the model's prediction of the frame, as `aumesh animate` makes it."""
+    from aumesh.data.clip import bridged_weights, read_clip
+    from aumesh.synthetic import pyfeat as synth_pyfeat
+    from aumesh.synthetic import tables as synth
+
+    arrays, _ = releases["flagged"]
+    synth_pyfeat.write_pyfeat_tables(tmp_path / "table", synth.SynthSpec(n_frames=40, n_videos=1, seed=7))
+    csv = next((tmp_path / "table").glob("*.csv"))
+    path = viewer.write_viewer(arrays, tmp_path / "clip.html", clips=viewer.table_clips(csv))
+    weights = bridged_weights(read_clip(csv))
+    page, problems, _ = _open(tab, path, VIEW)
+    page.locator('input[name="AU09+AU10"]').fill("0.5")
+    k = int(np.argmax(weights[:, AU_COLUMNS.index("AU10")]))
+    assert weights[k, AU_COLUMNS.index("AU10")] > 0.05
+    assert page.evaluate(f"window.aumeshViewer.clip.seek({k})") == k
+    assert page.input_value('input[name="AU09+AU10"]') == "0"
+    shown = float(page.input_value('input[name="AU10"]'))
+    assert shown == pytest.approx(weights[k, AU_COLUMNS.index("AU10")], abs=0.006)  # the slider's 0.01 steps
+    tol = 4 * np.finfo(np.float32).eps * np.abs(arrays["intercept"]).max()
+    expected = _card_mesh(arrays, dict(zip(AU_COLUMNS, weights[k].tolist(), strict=True)))
+    np.testing.assert_allclose(_mesh(page), expected, rtol=0, atol=tol)
+    assert problems == []
+
+
 def test_release_identification_reads_the_evaluate_stage_arrays_and_refuses_broken_ones():
     """What IdentificationScreen.release_arrays writes reads back; two AUs flagged with each other share one group;
     a partial or misshapen set of keys is a one-line error naming the key."""
