@@ -19,8 +19,8 @@ from conftest import SCREENSHOTS as SHOTS
 from conftest import identification_keys, upright_truth_release
 from test_viewer import VIEW, _open, _ranges_visible, tab  # noqa: F401  (tab: the module's browser page)
 
-# AU10 behind AU09 (the issue's case) and AU02 behind AU01; AU09 itself is not flagged
-FLAGS = {"AU02": (0.08, "AU01"), "AU10": (0.06, "AU09")}
+# AU10 behind AU09 (the issue's case), AU02 behind AU01, AU25 behind AU26: three flags, the most the issue expects
+FLAGS = {"AU02": (0.08, "AU01"), "AU10": (0.06, "AU09"), "AU25": (0.09, "AU26")}
 REASON_AU10 = (
     "AU10: not identified under detector noise (sigma* = 0.060 < 0.1); its partner AU09 moves with it: use AU09+AU10"
 )
@@ -64,20 +64,29 @@ def test_a_flagged_au_is_greyed_with_its_reason_and_its_group_moves_both(tab, re
     page, problems, requests = _open(tab, path, VIEW)
     rows = _rows(page)
     by_name = {r["name"]: r for r in rows}
-    assert [r["name"] for r in rows if r["disabled"]] == ["AU02", "AU10"]
-    assert [r["name"] for r in rows if r["greyed"]] == ["AU02", "AU10"]
+    assert [r["name"] for r in rows if r["disabled"]] == ["AU02", "AU10", "AU25"]
+    assert [r["name"] for r in rows if r["greyed"]] == ["AU02", "AU10", "AU25"]
     assert [(r["name"], r["members"]) for r in rows if r["group"]] == [
         ("AU01+AU02", "AU01 AU02"),
         ("AU09+AU10", "AU09 AU10"),
+        ("AU25+AU26", "AU25 AU26"),
     ]
     assert not by_name["AU09"]["disabled"] and not by_name["AU01"]["disabled"]
     # under each greyed slider its reason (the whole sentence in the tooltip), then its partner group's slider
     order = [r["name"] for r in rows]
-    assert order == [*AU_COLUMNS[:2], "AU01+AU02", *AU_COLUMNS[2:8], "AU09+AU10", *AU_COLUMNS[8:]]
+    assert order == [
+        *AU_COLUMNS[:2],
+        "AU01+AU02",
+        *AU_COLUMNS[2:8],
+        "AU09+AU10",
+        *AU_COLUMNS[8:17],
+        "AU25+AU26",
+        *AU_COLUMNS[17:],
+    ]
     reasons = page.locator("#aus .reason").evaluate_all(
         "els => els.map(e => [e.dataset.au, e.dataset.reason, e.title, e.textContent, e.scrollWidth <= e.clientWidth])"
     )
-    assert [r[0] for r in reasons] == ["AU02", "AU10"]
+    assert [r[0] for r in reasons] == ["AU02", "AU10", "AU25"]
     assert reasons[1][1:] == [
         REASON_AU10,
         REASON_AU10,
