@@ -205,3 +205,27 @@ def test_release_identification_reads_the_evaluate_stage_arrays_and_refuses_brok
         release_identification({**keys, "au_identification_flagged": keys["au_identification_flagged"].astype(int)})
     with pytest.raises(ReleaseError, match=r"names \['AU99'\]"):
         release_identification({**keys, "au_identification_partner": np.array(["AU99"] * n)})
+
+
+def test_a_real_pipelines_release_carries_its_screen_into_the_rig_the_viewer_and_the_card(good_workspace):
+    """The release stage end to end (conftest's good workspace): the NPZ's screen, as evaluate wrote it, is what the
+    rig's extras and the viewer's data say, and agrees with model_card.json's au_identification."""
+    from aumesh.export.gltf import GLB_NAME
+    from test_gltf import parse_glb
+
+    release = good_workspace / "release"
+    npz = load_npz(release / "au_to_mesh_pls.npz")
+    found = release_identification(npz)
+    assert found is not None  # evaluate's screen reached the release
+    card = json.loads((release / "model_card.json").read_text())["au_identification"]
+    assert list(found.flagged) == [au for au in AU_COLUMNS if card[au]["flagged"]]
+    for au in AU_COLUMNS:
+        assert found.partner[au] == card[au]["partner"] and found.group_name(au) == card[au]["group"]
+        s = found.sigma_star[au]
+        assert (s is None and card[au]["sigma_star"] is None) or s == pytest.approx(card[au]["sigma_star"], abs=1e-6)
+    doc, _ = parse_glb(release / GLB_NAME)
+    assert doc["asset"]["extras"]["au_identification"] == json.loads(json.dumps(found.to_json()))
+    assert doc["meshes"][0]["extras"]["unidentifiedTargets"] == list(found.flagged)
+    html = (release / viewer.VIEWER_NAME).read_text()
+    data = json.loads(html.split('<script type="application/json" id="aumesh-data">')[1].split("</script>")[0])
+    assert data["identification"] == json.loads(json.dumps(viewer.slider_identification(npz)))
