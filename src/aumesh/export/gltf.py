@@ -176,11 +176,7 @@ def glb_bytes(
         mode=g.TRIANGLES,
     )
     gltf = g.GLTF2(
-        asset=g.Asset(
-            version="2.0",
-            generator=f"aumesh (pygltflib {g.__version__})",
-            extras=dict(extras or {}),
-        ),
+        asset=g.Asset(version="2.0", generator=f"aumesh (pygltflib {g.__version__})", extras=dict(extras or {})),
         scene=0,
         scenes=[g.Scene(nodes=roots)],
         nodes=nodes,
@@ -282,4 +278,4 @@ def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = Non
     return Path(path)
 
 
-__all__ = ["GLB_NAME", "Animation", "glb_bytes", "rig_arrays", "write_glb"]
+__all__ = ["GLB_NAME", "Animation", "edit_glb_json", "glb_bytes", "rig_arrays", "write_glb"]
