@@ -387,6 +387,26 @@ def in_card_frame(coef: np.ndarray, intercept: np.ndarray, reference: dict) -> t
     return rotate_axis_major(coef.T, rotation).T, rotate_axis_major(intercept, rotation, origin)
 
 
+def identification_keys(flags: dict[str, tuple[float, str]], flag_below: float = 0.10) -> dict[str, np.ndarray]:
+    """A release's ``au_identification_*`` keys (issue 43; what ``IdentificationScreen.release_arrays`` writes) with
+    ``flags`` (AU -> (sigma*, partner)) flagged; every other AU unflagged with sigma* NaN (did not turn within the
+    grid) and the next AU in ``AU_COLUMNS`` as its partner."""
+    from aumesh.core.schema import AU_COLUMNS
+
+    n = len(AU_COLUMNS)
+    sigma = np.full(n, np.nan)
+    partner = [AU_COLUMNS[(k + 1) % n] for k in range(n)]
+    for au, (s, p) in flags.items():
+        k = AU_COLUMNS.index(au)
+        sigma[k], partner[k] = s, p
+    return {
+        "au_identification_sigma_star": sigma,
+        "au_identification_flagged": np.array([au in flags for au in AU_COLUMNS]),
+        "au_identification_partner": np.array(partner, dtype=str),
+        "au_identification_flag_below": np.array(flag_below),
+    }
+
+
 def seeded_rng(seed: int = 0) -> np.random.Generator:
     return np.random.default_rng(seed)
 

@@ -12,7 +12,7 @@ import pytest
 from aumesh.core.schema import AU_COLUMNS
 from aumesh.export import gltf
 from aumesh.model.release import load_npz
-from conftest import REPO, upright_truth_release
+from conftest import REPO, identification_keys, upright_truth_release
 
 COMPONENT = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
 WIDTH = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
@@ -104,3 +104,64 @@ def test_rig_passes_the_khronos_gltf_validator(rig, node_tools):
     assert issues["numErrors"] == 0, issues["messages"]
     assert issues["numWarnings"] == 0, issues["messages"]
     assert report["info"]["hasMorphTargets"] and report["info"]["totalVertexCount"] == 478
+
+
+# ---------------------------------------------------------------- issue 43: the identification screen in extras
+@pytest.fixture(scope="module")
+def flagged_rig(tmp_path_factory):
+    """The same release with the screen's keys (AU10 behind AU09, AU02 behind AU01 flagged), as a rig."""
+    d = tmp_path_factory.mktemp("flagged_rig")
+    arrays = {**load_npz(upright_truth_release(d / "release.npz")), **FLAGGED_KEYS}
+    return gltf.write_glb(arrays, d / gltf.GLB_NAME, source="release.npz")
+
+
+FLAGGED_KEYS = identification_keys({"AU02": (0.08, "AU01"), "AU10": (0.06, "AU09")})
+
+
+def test_rig_extras_carry_the_identification_screen(rig, flagged_rig):
+    """Read back by the spec's own parser: per AU sigma* (NaN as null), flag, partner and group, the threshold, the
+    flagged targets on the mesh; the geometry is the unflagged rig's, byte for byte; an old release has none of it."""
+    doc, _ = parse_glb(flagged_rig)
+    ident = doc["asset"]["extras"]["au_identification"]
+    assert ident["flag_below"] == 0.1 and ident["flagged"] == ["AU02", "AU10"]
+    assert ident["groups"] == {"AU01+AU02": ["AU01", "AU02"], "AU09+AU10": ["AU09", "AU10"]}
+    assert list(ident["aus"]) == list(AU_COLUMNS)
+    assert ident["aus"]["AU10"] == {"sigma_star": 0.06, "flagged": True, "partner": "AU09", "group": "AU09+AU10"}
+    sigma = FLAGGED_KEYS["au_identification_sigma_star"]
+    for k, au in enumerate(AU_COLUMNS):
+        got = ident["aus"][au]
+        assert got["sigma_star"] == (None if np.isnan(sigma[k]) else sigma[k]), au
+        assert got["flagged"] == bool(FLAGGED_KEYS["au_identification_flagged"][k])
+        assert got["partner"] == str(FLAGGED_KEYS["au_identification_partner"][k])
+    assert "a screen, not a proof" in ident["note"].lower()
+    assert doc["meshes"][0]["extras"] == {"targetNames": list(AU_COLUMNS), "unidentifiedTargets": ["AU02", "AU10"]}
+    assert doc["asset"]["extras"]["source"] == "release.npz"  # the other extras kept
+    _, old = rig
+    old_doc, _ = parse_glb(old)
+    assert (
+        "au_identification" not in old_doc["asset"]["extras"]
+        and "unidentifiedTargets" not in old_doc["meshes"][0]["extras"]
+    )
+    blob = lambda path: path.read_bytes()[28 + struct.unpack_from("<I", path.read_bytes(), 12)[0] :]  # noqa: E731
+    assert blob(flagged_rig) == blob(old)
+
+
+def test_flagged_rig_passes_the_khronos_gltf_validator(flagged_rig, node_tools):
+    proc = subprocess.run(
+        ["node", str(REPO / "tests" / "tools" / "validate_gltf.cjs"), str(flagged_rig)],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    )
+    issues = json.loads(proc.stdout)["issues"]
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
+
+
+def test_a_screen_that_flags_nothing_says_so_in_the_extras(tmp_path):
+    """Nothing flagged: the lists are written empty and every sigma* null (pygltflib alone would drop them all)."""
+    arrays = {**load_npz(upright_truth_release(tmp_path / "release.npz")), **identification_keys({})}
+    doc, _ = parse_glb(gltf.write_glb(arrays, tmp_path / gltf.GLB_NAME))
+    ident = doc["asset"]["extras"]["au_identification"]
+    assert ident["flagged"] == [] and ident["groups"] == {} and doc["meshes"][0]["extras"]["unidentifiedTargets"] == []
+    assert all(v["sigma_star"] is None and v["flagged"] is False for v in ident["aus"].values())

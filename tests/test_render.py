@@ -257,3 +257,76 @@ def test_every_au_figure_labels_an_unsupported_au(name):
     for ax in fig.axes:  # no panel's limits stretched by the 40x field: every face is drawn at the normal size
         (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
         assert max(x1 - x0, y1 - y0) < 3.0, (name, ax.get_title())
+
+
+# ------------------------------------------------------------------ issue 43: unidentified AUs marked
+FLAGS = {"AU10": (0.06, "AU09"), "AU12": (0.095, "AU06")}  # AU12: in every AU figure, the pose views too
+
+
+def test_unidentified_aus_come_from_the_npz_keys():
+    from conftest import identification_keys
+
+    arrays = truth.synthetic_release_arrays(120.0 * face.canonical_template())
+    assert render.unidentified_aus(arrays) == {}  # a release from before the screen
+    assert render.unidentified_aus({**arrays, **identification_keys({})}) == {}  # screened, nothing flagged
+    assert render.unidentified_aus({**arrays, **identification_keys(FLAGS)}) == {
+        "AU10": "unidentified (\u03c3* 0.060): use AU09+AU10",
+        "AU12": "unidentified (\u03c3* 0.095): use AU06+AU12",
+    }
+
+
+def test_render_release_marks_the_flagged_aus_in_every_au_figure(tmp_path, monkeypatch):
+    """What render_release hands each AU figure: the NPZ's flags (the figures are drawn from these arguments)."""
+    from conftest import identification_keys
+
+    npz = tmp_path / "flagged.npz"
+    np.savez(npz, **truth.synthetic_release_arrays(120.0 * face.canonical_template()), **identification_keys(FLAGS))
+    jobs = []
+    monkeypatch.setattr(render, "_render_all", lambda j: jobs.extend(j) or [])
+    render.render_release(npz, tmp_path / "out")
+    assert sorted(p.name for p, _, _ in jobs) == sorted(ALWAYS)
+    for _, _, args in jobs:
+        assert args[-1] == render.unidentified_aus(np.load(npz)) and list(args[-1]) == ["AU10", "AU12"]
+
+
+@pytest.mark.parametrize(
+    "name", ["fig_solid_panels", "fig_neutral_vs_activated", "fig_compare_overlay", "fig_effect_maps", "fig_pose_views"]
+)
+def test_every_au_figure_marks_an_unidentified_au(name):
+    """A flagged AU's panels: the label under its title in orange and a hatch behind the face; no other panel marked."""
+    from matplotlib.colors import to_hex
+
+    from aumesh.card.drawing import UNIDENTIFIED
+
+    arrays = truth.synthetic_release_arrays(120.0 * face.canonical_template())
+    neutral, disp, scale = render.face_frame_meshes(arrays)
+    unidentified = {"AU10": "unidentified (x): use AU09+AU10", "AU12": "unidentified (y): use AU06+AU12"}
+    extra = {
+        "fig_neutral_vs_activated": (release_figures.COMPARE_AUS, None),
+        "fig_pose_views": (release_figures.POSES_DEG, None),
+    }.get(name, (None,))
+    fig = getattr(release_figures, name)(
+        neutral, disp, face.triangulate(neutral), scale if name == "fig_effect_maps" else 1.0, *extra, unidentified
+    )
+    marked = []
+    for ax in fig.axes:
+        title = ax.get_title()
+        hatched = any(p.get_hatch() for p in ax.patches)
+        labelled = [label for label in unidentified.values() if title.endswith("\n" + label)]
+        assert hatched == bool(labelled), title  # hatched exactly when labelled
+        if labelled:
+            assert to_hex(ax.title.get_color()) == to_hex(UNIDENTIFIED)
+            au = title.split()[0]
+            assert unidentified[au] == labelled[0], title
+            marked.append(au)
+    expected = {
+        "fig_neutral_vs_activated": ["AU12"],
+        "fig_pose_views": ["AU12"] * len(release_figures.POSES_DEG),
+    }.get(name, ["AU10", "AU12"])
+    assert marked == expected
+    # without flags, no panel is marked (the release's figures as before)
+    plain = getattr(release_figures, name)(
+        neutral, disp, face.triangulate(neutral), scale if name == "fig_effect_maps" else 1.0, *extra
+    )
+    assert not any(p.get_hatch() for ax in plain.axes for p in ax.patches)
+    assert not any("unidentified" in ax.get_title() for ax in plain.axes)

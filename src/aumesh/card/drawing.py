@@ -26,6 +26,8 @@ SKIN = np.array([0.93, 0.78, 0.66])
 TINT = np.array([0.85, 0.15, 0.10])
 LIGHT = np.array([-0.3, -0.35, -1.0]) / np.linalg.norm([-0.3, -0.35, -1.0])  # face frame, toward the light
 GREY = np.array([0.78, 0.78, 0.78])  # the neutral face of an unsupported AU's panel
+UNIDENTIFIED = "#b05a00"  # a flagged AU's title and hatch (issue 43: not identified under detector noise)
+UNIDENTIFIED_NOTE = "hatched, orange title: AU field not identified under detector noise (identification screen)"
 
 
 def supported_mask(unsupported: Mapping[str, str] | None) -> np.ndarray:
@@ -151,6 +153,29 @@ def unsupported_label(ax, label: str) -> None:
         color="0.1",
         bbox={"boxstyle": "round", "facecolor": "white", "edgecolor": "tab:red", "alpha": 0.9},
     )
+
+
+def mark_unidentified(ax, label: str) -> None:
+    """A flagged AU's panel (issue 43, :meth:`aumesh.export.identification.AuIdentification.label`): hatched behind
+    the face and its title, set by :func:`prep_ax`, in orange with ``label`` on a line of its own. The field is still
+    drawn: it is the release's, only not separable from its partner's by the data."""
+    from matplotlib.patches import Rectangle
+
+    ax.add_patch(
+        Rectangle(
+            (0, 0),
+            1,
+            1,
+            transform=ax.transAxes,
+            fill=False,
+            hatch="////",
+            edgecolor=UNIDENTIFIED,
+            alpha=0.3,
+            linewidth=0,
+            zorder=0,  # behind the face (its collections draw at 1)
+        )
+    )
+    ax.set_title(f"{ax.get_title()}\n{label}", fontsize=8, color=UNIDENTIFIED, y=1.0)
 
 
 def display_limits(neutral: np.ndarray, disp: np.ndarray, factor: float, supported: np.ndarray, pad: float = 0.12):

@@ -4,7 +4,8 @@ Each ``fig_*`` takes ``neutral`` (478, 3) and ``disp`` (20, 478, 3, ``AU_COLUMNS
 (inter-ocular units, :func:`aumesh.card.render.face_frame_meshes`), ``tri`` (T, 3) from
 :func:`aumesh.geometry.face.triangulate`, ``factor`` (display exaggeration, stated in the figure title) and
 ``unsupported`` (AU -> label, :func:`aumesh.card.render.unsupported_aus`: those panels show the neutral face greyed
-with the reason); the CV figures take the per-vertex R² and the cumulative error curve. :func:`aumesh.card.render.
+with the reason) and ``unidentified`` (AU -> label, :func:`aumesh.card.render.unidentified_aus`: the AUs the
+identification screen flags, issue 43; their panels are hatched, the label under an orange title); the CV figures take the per-vertex R² and the cumulative error curve. :func:`aumesh.card.render.
 render_release` chooses their inputs and does the I/O. The effect maps scale their colours per AU
 (:func:`effect_map_scales`), each panel's maximum printed in its title, so one huge AU does not leave the others black.
 
@@ -24,10 +25,12 @@ import numpy as np
 from aumesh.card.drawing import (
     GREY,
     SKIN,
+    UNIDENTIFIED_NOTE,
     au_title,
     display_limits,
     draw_features,
     draw_solid,
+    mark_unidentified,
     mark_unsupported,
     mesh_limits,
     new_figure,
@@ -47,6 +50,16 @@ POSES_DEG: tuple[tuple[float, float, float], ...] = (
     (-20.0, 0.0, 0.0),
     (0.0, 0.0, 20.0),
 )
+
+
+def _mark(ax, au: str, unidentified: Mapping[str, str] | None) -> None:
+    """``au``'s panel marked when the identification screen flags it (:func:`mark_unidentified`)."""
+    if au in (unidentified or {}):
+        mark_unidentified(ax, (unidentified or {})[au])
+
+
+def _note(unidentified: Mapping[str, str] | None) -> str:
+    return f"; {UNIDENTIFIED_NOTE}" if unidentified else ""
 
 
 def effect_map_scales(disp: np.ndarray, scale: float) -> np.ndarray:
@@ -70,7 +83,14 @@ def effect_map_scales(disp: np.ndarray, scale: float) -> np.ndarray:
     return np.where(top > 0, top, 1.0)
 
 
-def fig_solid_panels(neutral, disp, tri, factor, unsupported: Mapping[str, str] | None = None):
+def fig_solid_panels(
+    neutral,
+    disp,
+    tri,
+    factor,
+    unsupported: Mapping[str, str] | None = None,
+    unidentified: Mapping[str, str] | None = None,
+):
     """Grid of shaded solid faces, one per AU at intensity 1 (pose 0); red tint = displacement.
 
     ``unsupported`` (AU -> label, :func:`unsupported_aus`): those panels show the neutral face greyed and the label;
@@ -88,16 +108,28 @@ def fig_solid_panels(neutral, disp, tri, factor, unsupported: Mapping[str, str] 
         else:
             mark_unsupported(ax, neutral, tri, signs, (unsupported or {})[au])
         prep_ax(ax, lims, au_title(au))
+        _mark(ax, au, unidentified)
     fig.suptitle(
         f"AU at intensity 1, pose 0 (frontal); red tint = displacement magnitude; displacements x{factor:g}"
-        + ("; grey = AU not drawn (unsupported by the data)" if not supported.all() else ""),
+        + ("; grey = AU not drawn (unsupported by the data)" if not supported.all() else "")
+        + _note(unidentified).replace("; ", "\n", 1),
         fontsize=12,
     )
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
+    fig.subplots_adjust(
+        left=0.01, right=0.99, bottom=0.01, top=0.92 if unidentified else 0.94, wspace=0.02, hspace=0.12
+    )
     return fig
 
 
-def fig_neutral_vs_activated(neutral, disp, tri, factor, aus=COMPARE_AUS, unsupported: Mapping[str, str] | None = None):
+def fig_neutral_vs_activated(
+    neutral,
+    disp,
+    tri,
+    factor,
+    aus=COMPARE_AUS,
+    unsupported: Mapping[str, str] | None = None,
+    unidentified: Mapping[str, str] | None = None,
+):
     """Neutral (top row) vs activated (bottom row) solid faces for a few AUs (unsupported ones greyed, labelled)."""
     signs = normal_signs(neutral, tri)
     supported = supported_mask(unsupported)
@@ -113,13 +145,24 @@ def fig_neutral_vs_activated(neutral, disp, tri, factor, aus=COMPARE_AUS, unsupp
         else:
             mark_unsupported(axes[1, j], neutral, tri, signs, (unsupported or {})[au])
         prep_ax(axes[1, j], lims, f"{au_title(au)} = 1")
+        _mark(axes[1, j], au, unidentified)
     how = "true scale (x1)" if factor == 1 else f"displacements exaggerated x{factor:g} for visibility"
-    fig.suptitle(f"Neutral vs activated (intensity 1, pose 0); {how}", fontsize=12)
+    shown = {au: v for au, v in (unidentified or {}).items() if au in aus}
+    fig.suptitle(
+        f"Neutral vs activated (intensity 1, pose 0); {how}" + _note(shown).replace("; ", "\n", 1), fontsize=12
+    )
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.88, wspace=0.02, hspace=0.1)
     return fig
 
 
-def fig_compare_overlay(neutral, disp, tri, factor, unsupported: Mapping[str, str] | None = None):
+def fig_compare_overlay(
+    neutral,
+    disp,
+    tri,
+    factor,
+    unsupported: Mapping[str, str] | None = None,
+    unidentified: Mapping[str, str] | None = None,
+):
     """Neutral (grey) and activated (blue) wireframes with displacement arrows, per AU (unsupported: labelled)."""
     supported = supported_mask(unsupported)
     lims = display_limits(neutral, disp, factor, supported)
@@ -129,6 +172,7 @@ def fig_compare_overlay(neutral, disp, tri, factor, unsupported: Mapping[str, st
         if not supported[k]:
             mark_unsupported(ax, neutral, tri, None, (unsupported or {})[au])
             prep_ax(ax, lims, au_title(au))
+            _mark(ax, au, unidentified)
             continue
         act = neutral + factor * disp[k]
         ax.triplot(neutral[:, 0], -neutral[:, 1], tri, color="0.75", lw=0.3)
@@ -150,14 +194,26 @@ def fig_compare_overlay(neutral, disp, tri, factor, unsupported: Mapping[str, st
             headlength=4,
         )
         prep_ax(ax, lims, au_title(au))
+        _mark(ax, au, unidentified)
     fig.suptitle(
-        f"Neutral (grey) vs activated (blue), arrows = displacement (>= 25% of the AU's max); x{factor:g}", fontsize=12
+        f"Neutral (grey) vs activated (blue), arrows = displacement (>= 25% of the AU's max); x{factor:g}"
+        + _note(unidentified).replace("; ", "\n", 1),
+        fontsize=12,
     )
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.94, wspace=0.02, hspace=0.12)
+    fig.subplots_adjust(
+        left=0.01, right=0.99, bottom=0.01, top=0.92 if unidentified else 0.94, wspace=0.02, hspace=0.12
+    )
     return fig
 
 
-def fig_effect_maps(neutral, disp, tri, scale, unsupported: Mapping[str, str] | None = None):
+def fig_effect_maps(
+    neutral,
+    disp,
+    tri,
+    scale,
+    unsupported: Mapping[str, str] | None = None,
+    unidentified: Mapping[str, str] | None = None,
+):
     """Per-AU displacement magnitude as a colour map on the neutral mesh, each panel on its own colour scale
     (:func:`effect_map_scales`, its maximum in the panel's title, release units and inter-ocular distances): one
     huge AU leaves the others readable. Unsupported AUs keep their map, their title says why."""
@@ -177,18 +233,31 @@ def fig_effect_maps(neutral, disp, tri, scale, unsupported: Mapping[str, str] | 
         note = f"\n{(unsupported or {})[au]}" if au in (unsupported or {}) else ""
         top = float(mags[k].max())
         prep_ax(ax, lims, f"{au_title(au)}\nmax {top:.3g} ({top / scale:.3f} IOD){note}", fontsize=8)
-    fig.subplots_adjust(left=0.01, right=0.9, bottom=0.01, top=0.92, wspace=0.02, hspace=0.28)
+        _mark(ax, au, unidentified)
+    fig.subplots_adjust(left=0.01, right=0.9, bottom=0.01, top=0.9 if unidentified else 0.92, wspace=0.02, hspace=0.28)
     cax = fig.add_axes((0.92, 0.1, 0.015, 0.8))
     fig.colorbar(
         ScalarMappable(norm=Normalize(0.0, 1.0), cmap="magma"),
         cax=cax,
         label="|displacement| at intensity 1 / the panel's max (in its title: release units, px for real data)",
     )
-    fig.suptitle("AU effect maps: displacement magnitude per vertex (each AU on its own colour scale)", fontsize=12)
+    fig.suptitle(
+        "AU effect maps: displacement magnitude per vertex (each AU on its own colour scale)"
+        + _note(unidentified).replace("; ", "\n", 1),
+        fontsize=12,
+    )
     return fig
 
 
-def fig_pose_views(neutral, disp, tri, factor, poses_deg=POSES_DEG, unsupported: Mapping[str, str] | None = None):
+def fig_pose_views(
+    neutral,
+    disp,
+    tri,
+    factor,
+    poses_deg=POSES_DEG,
+    unsupported: Mapping[str, str] | None = None,
+    unidentified: Mapping[str, str] | None = None,
+):
     """Neutral and AU12-activated face at a few render-time head poses (AU12 unsupported: its row greyed)."""
     from scipy.spatial.transform import Rotation
 
@@ -210,6 +279,8 @@ def fig_pose_views(neutral, disp, tri, factor, poses_deg=POSES_DEG, unsupported:
             prep_ax(axes[i, j], lims, f"{label}\npitch {p:g} yaw {y:g} roll {rl:g} deg", fontsize=8)
             if why:
                 unsupported_label(axes[i, j], f"AU12 {why}")
+            if i == 1:
+                _mark(axes[i, j], "AU12", unidentified)
     fig.suptitle(
         "Render-time pose: Rotation.from_euler('xyz', [pitch, yaw, roll]) in MP-canonical axes "
         "(x subject's left, y up, z out of face)",

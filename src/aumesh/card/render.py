@@ -31,6 +31,10 @@ move vertices by more than a face's width. Its panels show the neutral face grey
 (:func:`unsupported_aus`) instead of an exploded face, and the shared exaggeration factor and the panels' limits
 come from the supported AUs only (:func:`display_factor`).
 
+Unidentified AUs (issue 43): the AUs the release's identification screen flags (its ``au_identification_*`` keys,
+:func:`aumesh.export.identification.release_identification`; :func:`unidentified_aus`) are drawn as usual, their panels
+hatched and titled in orange with "unidentified (sigma* ...): use AU09+AU10"; a release without the keys marks none.
+
 ``aumesh render NPZ --out DIR [--cv CVNPZ]`` (:mod:`aumesh.cli.tools`) calls :func:`render_card`: the figures and
 the AU-direction report; the release stage calls :func:`render_release` and writes the report itself.
 """
@@ -165,6 +169,30 @@ def unsupported_aus(arrays: Mapping[str, Any], disp: np.ndarray) -> dict[str, st
     return out
 
 
+def unidentified_aus(arrays: Mapping[str, Any], where: str = "release") -> dict[str, str]:
+    """The AUs the release's identification screen flags (issue 43), each with the words its panels show.
+
+    Parameters
+    ----------
+    arrays : mapping
+        The release NPZ's arrays; its ``au_identification_*`` keys are read when present
+        (:func:`aumesh.export.identification.release_identification`).
+    where : str
+        The file's name, for the error a broken set of keys gives.
+
+    Returns
+    -------
+    dict
+        AU -> label (:meth:`~aumesh.export.identification.AuIdentification.label`), e.g.
+        ``"unidentified (sigma* 0.060): use AU09+AU10"``, ``AU_COLUMNS`` order; empty for a release without the screen
+        or when it flags nothing.
+    """
+    from aumesh.export.identification import release_identification
+
+    found = release_identification(arrays, where)
+    return {} if found is None else {au: found.label(au) for au in found.flagged}
+
+
 def display_factor(disp: np.ndarray, unsupported: Mapping[str, str] | None) -> float:
     """The figures' shared exaggeration factor (:func:`exaggeration_factor`) from the supported AUs only: an
     exploded AU (drawn greyed) must not set it to 1 and leave every real AU's motion invisible."""
@@ -217,17 +245,18 @@ def render_release(
     neutral, disp, scale = face_frame_meshes(arrays)
     tri = face.triangulate(neutral)
     unsupported = unsupported_aus(arrays, disp)
+    unidentified = unidentified_aus(arrays, str(npz_path))
     factor = display_factor(disp, unsupported)
     jobs: list[tuple[str, Callable[..., Any], tuple[Any, ...]]] = [
-        ("au_solid_panels.png", fig_solid_panels, (neutral, disp, tri, factor, unsupported)),
+        ("au_solid_panels.png", fig_solid_panels, (neutral, disp, tri, factor, unsupported, unidentified)),
         (
             "au_solid_neutral_vs_activated.png",
             fig_neutral_vs_activated,
-            (neutral, disp, tri, factor, COMPARE_AUS, unsupported),
+            (neutral, disp, tri, factor, COMPARE_AUS, unsupported, unidentified),
         ),
-        ("au_compare_overlay.png", fig_compare_overlay, (neutral, disp, tri, factor, unsupported)),
-        ("au_effect_maps.png", fig_effect_maps, (neutral, disp, tri, scale, unsupported)),
-        ("pose_views.png", fig_pose_views, (neutral, disp, tri, factor, POSES_DEG, unsupported)),
+        ("au_compare_overlay.png", fig_compare_overlay, (neutral, disp, tri, factor, unsupported, unidentified)),
+        ("au_effect_maps.png", fig_effect_maps, (neutral, disp, tri, scale, unsupported, unidentified)),
+        ("pose_views.png", fig_pose_views, (neutral, disp, tri, factor, POSES_DEG, unsupported, unidentified)),
     ]
     if cv is not None and "r2_per_vertex" in cv:
         jobs.append(("r2_per_vertex.png", fig_r2_per_vertex, (neutral, tri, cv["r2_per_vertex"])))

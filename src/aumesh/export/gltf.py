@@ -12,6 +12,12 @@ Coordinates are the NPZ's, unchanged (the release's frame and units); triangles 
 project's triangulation of the base mesh, wound so their fronts face out of the face (toward
 the nose tip); normals are the base mesh's area-weighted vertex normals.
 
+The identification screen (issue 43; :mod:`aumesh.export.identification`), when the release records it, is in
+``asset.extras["au_identification"]`` (``{"flag_below", "aus": {AU: {"sigma_star" (null: beyond the screen's grid),
+"flagged", "partner", "group"}}, "flagged", "groups", "note"}``) and the flagged morph targets are
+named in the mesh's ``extras.unidentifiedTargets``: a rig user should drive a flagged target only with its partner,
+by the same weight (the group's field).
+
 With an :class:`Animation` (``aumesh animate``, :mod:`aumesh.export.gltf_clip`) the file also
 holds one glTF animation: a LINEAR sampler on the mesh node's morph ``weights`` (``n * 20``
 floats, a keyframe per frame) and optionally a LINEAR ``rotation`` sampler (quaternions) on a
@@ -21,7 +27,9 @@ by ``+pivot``: at the identity rotation the vertices are the NPZ's).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import json
+import struct
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, unflatten_axis_major
+from aumesh.export.identification import release_identification
 from aumesh.geometry import face
 
 GLB_NAME = "au_to_mesh.glb"
@@ -103,7 +112,9 @@ def glb_bytes(
     extras: Mapping[str, Any] | None = None,
     animation: Animation | None = None,
 ) -> bytes:
-    """The rig as a binary glTF 2.0 (GLB) file's bytes, with ``animation`` when given; see the module docstring."""
+    """The rig as a binary glTF 2.0 (GLB) file's bytes, with ``animation`` when given; see the module docstring.
+    ``extras`` go in ``asset.extras``, with ``au_identification`` added when the release records the screen
+    (:meth:`aumesh.export.identification.AuIdentification.to_json`)."""
     import pygltflib as g
 
     rig = rig_arrays(npz)
@@ -191,7 +202,42 @@ def glb_bytes(
         buffers=[g.Buffer(byteLength=len(binary))],
     )
     gltf.set_binary_blob(binary)
-    return b"".join(gltf.save_to_bytes())
+    data = b"".join(gltf.save_to_bytes())
+    identification = release_identification(npz)
+    if identification is None:
+        return data
+    flagged = list(identification.flagged)
+
+    def add_identification(doc: dict[str, Any]) -> None:
+        doc["asset"].setdefault("extras", {})["au_identification"] = identification.to_json()
+        doc["meshes"][0].setdefault("extras", {})["unidentifiedTargets"] = flagged
+
+    return edit_glb_json(data, add_identification)
+
+
+def edit_glb_json(data: bytes, edit: Callable[[dict[str, Any]], None]) -> bytes:
+    """A GLB's bytes with its JSON chunk changed in place by ``edit`` (the BIN chunk byte for byte as it was).
+
+    pygltflib drops every ``None``, empty list and empty dict from the JSON it writes, extras included; the
+    identification's ``sigma_star`` is null for a field that did not turn within the screen's grid and its lists may be
+    empty, so they are written here, by the GLB 2.0 container's layout (a 12-byte header; a JSON chunk padded with spaces
+    to 4 bytes, so the BIN chunk that follows stays aligned), in strict JSON (no NaN).
+    """
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    json_length, kind = struct.unpack_from("<I4s", data, 12)
+    if (magic, version, length, kind) != (b"glTF", 2, len(data), b"JSON"):
+        raise ValueError("edit_glb_json: not a GLB 2.0 file with its JSON chunk first")
+    doc = json.loads(data[20 : 20 + json_length])
+    edit(doc)
+    text = json.dumps(doc, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    rest = data[20 + json_length :]  # the BIN chunk, header and all
+    return (
+        struct.pack("<4sII", b"glTF", 2, 20 + len(text) + len(rest))
+        + struct.pack("<I4s", len(text), b"JSON")
+        + text
+        + rest
+    )
 
 
 def support_extras(npz: Mapping[str, Any]) -> dict[str, Any]:
@@ -232,4 +278,4 @@ def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = Non
     return Path(path)
 
 
-__all__ = ["GLB_NAME", "Animation", "glb_bytes", "rig_arrays", "write_glb"]
+__all__ = ["GLB_NAME", "Animation", "edit_glb_json", "glb_bytes", "rig_arrays", "write_glb"]

@@ -35,6 +35,13 @@ model's predicted mesh with the card's similarity Procrustes on the 12 anchors (
 has no SVD; equal to ``umeyama_batch``); the model's face is coloured by the per-vertex distance (viridis, in
 inter-ocular distances of the release's neutral face). ``window.aumeshViewer.clip`` exposes it to scripts and tests.
 
+**Identification** (issue 43): when the release records the AU identification screen
+(:func:`aumesh.export.identification.release_identification`; :func:`slider_identification`), a flagged AU's slider is
+greyed and disabled (a clip still drives it: a frame's prediction uses every AU the detector gave) with a one-line reason
+under it, and a "partner group" slider (``AU09+AU10``) moves both members by the same amount: the field ``B_k + B_j``,
+which the data identifies when its members are not. The page's values, "Copy as JSON" and the mesh are the members'
+own values plus their groups'; a release without the screen shows no flags and no group slider.
+
 **Support** (issue 41): when the release records its training data's ranges (:func:`slider_support`), each AU
 slider's track beyond the largest value training saw is hatched, its value turns orange there, and an AU the data
 never expressed (training p99 below 0.05) is labelled "not in training data" (its FACS name in the row's tooltip);
@@ -303,6 +310,34 @@ def slider_support(npz: Mapping[str, Any]) -> dict | None:
     }
 
 
+def slider_identification(npz: Mapping[str, Any], where: str = "release") -> dict | None:
+    """What the page says of the AU identification screen (:func:`aumesh.export.identification.release_identification`):
+    ``{"flag_below", "sigma_star": {AU: float | None}, "partner": {AU: AU}, "flagged": {AU: the reason's sentence},
+    "short": {AU: the line under its slider}, "groups": [{"name": "AU09+AU10", "members": ["AU09", "AU10"],
+    "flagged": ["AU10"]}, ...]}``, None for a release without the screen (nothing greyed, no group slider). A group's
+    slider goes under its last flagged member's reason line."""
+    from aumesh.export.identification import release_identification
+
+    found = release_identification(npz, where)
+    if found is None:
+        return None
+    return {
+        "flag_below": found.flag_below,
+        "sigma_star": dict(found.sigma_star),
+        "partner": dict(found.partner),
+        "flagged": {au: found.reason(au) for au in found.flagged},
+        "short": {au: found.short_reason(au) for au in found.flagged},
+        "groups": [
+            {
+                "name": name,
+                "members": list(members),
+                "flagged": [a for a in found.flagged if found.group_name(a) == name],
+            }
+            for name, members in found.groups().items()
+        ],
+    }
+
+
 def viewer_html(
     npz: Mapping[str, Any],
     source: str = "",
@@ -344,6 +379,7 @@ def viewer_html(
         "card": card_rows(metadata),
         "source": f"release: {source}" if source else "",
         "support": slider_support(npz),
+        "identification": slider_identification(npz, source or "release"),
         "units": unit_rules(),  # a dropped table's mesh converted by the ingest's rules (clip_data's are already)
     }
     if "coef_full" in npz:
