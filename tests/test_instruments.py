@@ -34,7 +34,11 @@ from conftest import default_config
 PATTERN = "{au}_2"
 INSTRUMENTS = instrument_columns(PATTERN)
 #: model/eiv=instruments needs the within target (aumesh.config.validate)
-WITH_INSTRUMENTS = {"model/eiv": "instruments", "model.eiv.instrument_aus": f"'{PATTERN}'", "preprocess.target": "within"}
+WITH_INSTRUMENTS = {
+    "model/eiv": "instruments",
+    "model.eiv.instrument_aus": f"'{PATTERN}'",
+    "preprocess.target": "within",
+}
 
 
 def _cfg(data_dir: Path, **overrides):
@@ -242,7 +246,15 @@ def test_2sls_recovers_truth_where_least_squares_is_biased():
     n_splits = 3
     fold = video % n_splits
     design = accumulate_design(
-        observed, pose, video, int(video.max()) + 1, fold, n_splits, [(np.arange(len(Y)), Y.copy())], second, INSTRUMENTS
+        observed,
+        pose,
+        video,
+        int(video.max()) + 1,
+        fold,
+        n_splits,
+        [(np.arange(len(Y)), Y.copy())],
+        second,
+        INSTRUMENTS,
     )
     columns = feature_columns(True, True)
     per_fold = [fold_within_statistics(design, f, augmented_index(columns)) for f in range(n_splits)]
@@ -251,3 +263,49 @@ def test_2sls_recovers_truth_where_least_squares_is_biased():
     assert iv.min() > 0.95, iv
     assert ols.min() < 0.5, ols  # the same moments by least squares: the small field of a pair turned by the noise
     assert iv[np.argmin(ols)] > 0.95
+
+
+def test_evaluate_fits_the_instrumented_models(instrumented):
+    """cross_validate_and_fit with model/eiv=instruments: the released coefficients are the final 2SLS fit, the least-
+    squares fit of the same rows beside them, the cross-validation scores the folds' 2SLS fits, and the run's record
+    names the instruments and their first-stage strength."""
+    from aumesh.pipeline import evaluate as ev
+
+    data_dir, prepared_dir = instrumented
+    cfg = _cfg(data_dir, **WITH_INSTRUMENTS)
+    prepared = load_prepared(prepared_dir)
+    with compute.engine(cfg.compute):
+        stats = accumulate(prepared, cfg, video_folds(prepared.videos.count, cfg.cv.n_splits))
+    fits = instrumental_fits(cfg, stats)
+    cv, final = ev.cross_validate_and_fit(prepared, cfg)
+    np.testing.assert_array_equal(final.coef, fits.final.coef_)
+    assert final.uncorrected_coef is not None and not np.array_equal(final.uncorrected_coef, final.coef)
+    assert cv.eiv is not None and cv.eiv["method"] == "instruments" and cv.eiv["instrument_aus"] == PATTERN
+    assert set(cv.eiv["first_stage"]) == set(AU_COLUMNS)
+    assert all(0.0 < s["r2"] <= 1.0 and s["f"] > 10 for s in cv.eiv["first_stage"].values())
+
+
+@pytest.mark.slow
+def test_stages_run_with_instruments(tmp_path, monkeypatch):
+    """ingest, prepare and evaluate by ``aumesh`` on tables with a second detector's AUs, model/eiv=instruments."""
+    from aumesh import cli
+    from aumesh.config import write_params
+    from conftest import new_store
+
+    write_tables(tmp_path / "data", SynthSpec(n_frames=400, n_videos=40, seed=4))
+    _add_instruments(tmp_path / "data", sd=0.05)
+    write_params(_cfg(tmp_path / "data", **WITH_INSTRUMENTS).to_dict(), tmp_path / "params.yaml")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{new_store(tmp_path / 'mlflow.db')}")
+    for stage in ("ingest", "prepare", "evaluate"):
+        assert cli.main([stage]) == 0
+    import json
+
+    cfg = _cfg(tmp_path / "data", **WITH_INSTRUMENTS)
+    assert set(INSTRUMENTS) <= set(pq.read_schema(Path(cfg.paths.prepared_dir) / "frames.parquet").names)
+    model = np.load(Path(cfg.paths.model_dir) / "model.npz")
+    assert model["coef"].shape == model["coef_uncorrected"].shape and not np.array_equal(
+        model["coef"], model["coef_uncorrected"]
+    )
+    metrics = json.loads(Path(cfg.paths.metrics_file).read_text())
+    assert metrics["eiv"]["method"] == "instruments" and set(metrics["eiv"]["first_stage"]) == set(AU_COLUMNS)

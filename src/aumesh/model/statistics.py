@@ -16,6 +16,9 @@ coordinates. Then, with no further pass:
 * the ``within`` target (fixed effects: design and mesh demeaned per video) is the same algebra with
   each video's own means, ``d_v = w_v / c_v`` and ``e_v = u_v / c_v``; it reduces to
   ``X'X_w = X'X - sum_v c_v xbar_v xbar_v^T`` and likewise for ``X'Y`` and ``diag(Y'Y)``.
+* with a second detector's AUs (``model/eiv=instruments``) the pass accumulates the augmented design ``[X | Z]``
+  (:func:`augmented_design`, 166 columns), so each fold's within-video ``Z'X``, ``Z'Z``, ``Z'Y`` are the same algebra
+  on :func:`augmented_index`'s columns (:func:`fold_within_statistics`; docs/method.md eq. 7).
 
 So a sweep over targets, neutral methods and feature sets costs one pass over the meshes for R²
 (and one prediction pass per configuration for MAE). Results equal explicit accumulation up to
