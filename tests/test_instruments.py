@@ -146,27 +146,39 @@ def test_missing_instrument_value_is_one_line_error(small_tables):
     assert len(tables.read_pieces_metadata(tables.pieces(found))) == found.n_rows
 
 
-def test_ingest_carries_instruments_from_pyfeat_csv(tmp_path):
-    """py-feat's CSV (MPDetector): the ingested tables carry the instrument columns of the kept face rows."""
+@pytest.mark.parametrize(("detector", "fmt"), [("mp", "csv"), ("v2", "csv"), ("mp", "parquet"), ("mp", "split")])
+def test_ingest_carries_instruments_from_pyfeat_tables(tmp_path, detector, fmt):
+    """py-feat's tables of either detector (CSV, parquet, the split layout): the ingested tables carry the instrument
+    columns of the kept face rows, as written; without model/eiv=instruments they have no such column."""
     spec = SynthSpec(n_frames=60, n_videos=3, seed=5)
-    write_pyfeat_tables(tmp_path / "data", spec, detector="mp", fmt="csv")
-    rng = np.random.default_rng(1)
-    [csv] = sorted((tmp_path / "data").glob("*.csv"))
-    df = pd.read_csv(csv)
-    second = df[list(AU_COLUMNS)].to_numpy() + 0.05 * rng.standard_normal((len(df), len(AU_COLUMNS)))
-    df = pd.concat([df, pd.DataFrame(second, columns=list(INSTRUMENTS))], axis=1)
-    df.to_csv(csv, index=False)
+    write_pyfeat_tables(tmp_path / "data", spec, detector=detector, fmt=fmt)
+    if fmt == "csv":
+        rng = np.random.default_rng(1)
+        [csv] = sorted((tmp_path / "data").glob("*.csv"))
+        df = pd.read_csv(csv)
+        second = df[list(AU_COLUMNS)].to_numpy() + 0.05 * rng.standard_normal((len(df), len(AU_COLUMNS)))
+        df = pd.concat([df, pd.DataFrame(second, columns=list(INSTRUMENTS))], axis=1)
+        df.to_csv(csv, index=False)
+    else:
+        _add_instruments(tmp_path / "data", sd=0.05, seed=1)
+        df = pd.concat([pd.read_parquet(p) for p in sorted((tmp_path / "data").glob("*.parquet"))])
     cfg = _cfg(tmp_path / "data", **WITH_INSTRUMENTS)
     manifest = ingest.run(cfg, tmp_path / "ingested")
     out = pd.concat([pd.read_parquet(t) for t in manifest["tables"]])
-    assert list(out.columns[: 2 + 20 + 3 + 20]) == ["video_id", "frame", *AU_COLUMNS, *POSE_COLUMNS, *INSTRUMENTS]
     assert len(out) == manifest["counts"]["frames_out"] > 0
-    # each kept row's instruments are its source row's (matched on the AUs it kept: one face row per frame)
+    assert set(INSTRUMENTS) <= set(out.columns)
+    # each kept row's instruments are its source row's (matched on its AUs: distinct per face row)
     source = df.dropna(subset=[AU_COLUMNS[0]]).set_index([*AU_COLUMNS])
     kept = out.set_index([*AU_COLUMNS])
     np.testing.assert_allclose(kept[list(INSTRUMENTS)].to_numpy(), source.loc[kept.index, list(INSTRUMENTS)].to_numpy())
-    plain = ingest.run(_cfg(tmp_path / "data"), tmp_path / "ingested-plain")  # model/eiv=none: no new columns
-    assert not set(INSTRUMENTS) & set(pq.read_schema(plain["tables"][0]).names)
+    if any(
+        e["read"].startswith("cleaned") for e in manifest["sources"]
+    ):  # written by the ingest: AUs, pose, then these
+        written = pq.read_schema(manifest["tables"][-1]).names
+        assert written[: 2 + 20 + 3 + 20] == ["video_id", "frame", *AU_COLUMNS, *POSE_COLUMNS, *INSTRUMENTS]
+    ingest.run(_cfg(tmp_path / "data"), tmp_path / "ingested-plain")  # model/eiv=none: the tables it writes have none
+    for table in (tmp_path / "ingested-plain" / ingest.TABLES_DIR).glob("*.parquet"):
+        assert not set(INSTRUMENTS) & set(pq.read_schema(table).names)
 
 
 # ------------------------------------------------------------------------------------------------- the statistics
