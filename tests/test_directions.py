@@ -328,3 +328,64 @@ def test_write_report_and_markdown(tmp_path, truth_npz):
     row = next(line for line in md.splitlines() if line.startswith("| AU17 "))
     e = report["aus"]["AU17"]
     assert f"chin+lower\\_lip: {e['facs_share']:.0%}" in row and f"chin ({e['region_shares']['chin']:.0%})" in row
+
+
+@pytest.mark.parametrize("au", AU_COLUMNS)
+def test_generator_truth_reversed_by_the_spec_fails_only_that_au(au):
+    """``SynthSpec.reversed_aus`` (the generator's own knob) reverses one AU's true field: that AU fails, the other
+    19 truth fields still pass (the same release built by another route than negating a coef row)."""
+    spec = synth.SynthSpec(reversed_aus=(au,))
+    v = _verdicts(directions.au_direction_report(_truth_release(spec, np.eye(3), 1.0, np.zeros(3), 0.3)))
+    assert v[au] == "fail", v
+    assert all(verdict == "pass" for other, verdict in v.items() if other != au), v
+
+
+def _one_side(field: np.ndarray, tpl: np.ndarray, side: int, transform: np.ndarray) -> np.ndarray:
+    """``field`` with the vertices on one side of the face's midline (x > 0: subject's left) transformed."""
+    out = field.copy()
+    half = np.sign(tpl[:, 0]) == side
+    out[half] = field[half] @ transform.T
+    return out
+
+
+@pytest.mark.parametrize("au", ["AU01", "AU02", "AU04", "AU06", "AU07", "AU11", "AU12", "AU15", "AU20", "AU23"])
+def test_a_bilateral_field_with_one_half_reversed_fails(au):
+    """One side of a bilateral AU's true field reversed (its half moves against FACS, the other half with it): the
+    side check fails it whether the reversed half is the subject's left or right; the intact field passes. The
+    region's mean direction alone (the other half still right) can average out to a plausible direction."""
+    tpl = face.canonical_template()
+    field = truth.facs_displacement_fields()[AU_COLUMNS.index(au)]
+    assert directions.au_direction_from_displacement(field, au, tpl)["verdict"] == "pass"
+    for side in (1, -1):
+        e = directions.au_direction_from_displacement(_one_side(field, tpl, side, -np.eye(3)), au, tpl)
+        name = "left" if side == 1 else "right"
+        assert e["verdict"] == "fail", (side, e["reason"])
+        assert any(c["sides"].get(name, {}).get("verdict") == "fail" for c in e["checks"]), e["checks"]
+
+
+def test_a_unilateral_action_is_not_against_facs():
+    """FACS codes unilateral actions (R12, L12): AU12's true field on one side only passes; the still side is left
+    out of the side check (under UNILATERAL_SHARE of the region's motion)."""
+    tpl = face.canonical_template()
+    field = truth.facs_displacement_fields()[AU_COLUMNS.index("AU12")]
+    e = directions.au_direction_from_displacement(_one_side(field, tpl, 1, np.zeros((3, 3))), "AU12", tpl)
+    assert e["verdict"] == "pass", e["reason"]
+    assert set(e["checks"][0]["sides"]) == {"right"}
+
+
+@pytest.mark.parametrize("au", AU_COLUMNS)
+def test_a_truth_field_turned_away_from_facs_does_not_pass(au):
+    """Each true field turned (the motion in the right place, pointing elsewhere) about an axis across its FACS
+    direction: the face's forward axis, or for the AUs that move the lips back (AU14, AU28) the left-right axis.
+    Turned by 180 degrees it fails (every AU); by 90 degrees it does not pass."""
+    tpl = face.canonical_template()
+    field = truth.facs_displacement_fields()[AU_COLUMNS.index(au)]
+    axis = "x" if au in ("AU14", "AU28") else "z"
+    e = {
+        deg: directions.au_direction_from_displacement(
+            field @ Rotation.from_euler(axis, deg, degrees=True).as_matrix().T, au, tpl
+        )
+        for deg in (90, 180)
+    }
+    assert e[180]["verdict"] == "fail", e[180]["reason"]
+    assert e[90]["verdict"] != "pass", e[90]["reason"]

@@ -21,7 +21,10 @@ Which way
 ---------
 For each (region, expected direction) of the AU's ``"checks"``: the displacement-weighted mean of the region's
 vertices' displacements (weights ``|d_v|``: the vertices that move most decide, still vertices do not dilute it),
-and its cosine to the expected direction in face terms (below).
+and its cosine to the expected direction in face terms (below). A bilateral region is also judged **side by side**
+(the subject's left and right halves alone, outward taken on each side): a half moving against FACS fails the AU even
+when the two halves' mean looks plausible (one half reversed, e.g. a mirrored or mis-signed half), and a half with
+under ``UNILATERAL_SHARE`` (20 %) of the region's motion is left out, since FACS codes unilateral actions (R12, L12).
 
 Verdicts (the AU's verdict is the worse of "where" and its worst direction check)
 -------------------------------------------------------------------------------
@@ -29,7 +32,8 @@ where:  ``pass`` when the top region is a FACS region, or the FACS region(s) hol
         the motion, or the top region is a nearby area and the FACS region(s) hold >= ``NEARBY_SHARE`` (40 %);
         ``fail`` when the AU does not move, or the top region is elsewhere and the FACS region(s) hold <
         ``FAIL_SHARE`` (10 %, "barely moves"); ``doubtful`` otherwise.
-which way:  ``fail`` at cosine <= ``FAIL_COSINE`` (0: against FACS) or when the region has no net motion;
+which way:  ``fail`` at cosine <= ``FAIL_COSINE`` (0: against FACS), on the region or on one of its moving sides,
+        or when the region has no net motion;
         ``doubtful`` at cosine < ``PASS_COSINE`` (0.7, about 45 degrees), or when the region holds <
         ``FAIL_SHARE`` of the motion; ``pass`` otherwise.
 
@@ -52,12 +56,18 @@ FACS-region cosine >= 0.78 (1 % quantile 0.90) and keep >= 24 % of their motion 
 AU09's slot (35 % in the nose) and AU14's in AU28's (39 % in the lips) would pass. The thresholds and this rule are
 the project's reading of FACS, not a FACS-certified coding.
 
-FACS regions (the regions and nearby areas of :data:`FACS_EXPECTATIONS`) follow the appearance changes described
-for each action unit in the FACS manual: Ekman, P., Friesen, W. V., & Hager, J. C. (2002). *Facial Action Coding
-System: The Manual*. Salt Lake City: Research Nexus (first edition Ekman & Friesen, 1978, Consulting Psychologists
-Press); e.g. AU02 raises the lateral part of the brows, AU12 pulls the lip corners up and back obliquely and
-deepens the nasolabial furrow, AU17 pushes the chin boss and the lower lip up. Only the gross region and direction
-are checked; FACS's subtler signs (wrinkles, bulges) are not visible in a 478-vertex mesh.
+Side by side (issue 43): each of 10 bilateral AUs' truth field with one half reversed (left or right) fails; before the
+side check 4 of these 20 passed (AU02, AU06, AU07, AU11: the two halves' mean still pointed the FACS way). Every truth field reversed by ``SynthSpec.reversed_aus`` fails, the other 19
+pass; each truth field turned by 180 degrees across its FACS direction fails, by 90 degrees does not pass. Truth
+fields judged on the mean mesh of a fit (within-video OLS, AR(1) AU noise correlated across AUs, mean AU activity
+moving the mean mesh) and in a release fitted by the pipeline (anchors' similarity into its frame) pass 20/20.
+
+FACS regions (the regions and nearby areas of :data:`FACS_EXPECTATIONS`, :mod:`aumesh.card.facs_regions`) follow
+the appearance changes described for each action unit in the FACS manual: Ekman, P., Friesen, W. V., & Hager, J. C.
+(2002). *Facial Action Coding System: The Manual*. Salt Lake City: Research Nexus (first edition Ekman & Friesen,
+1978, Consulting Psychologists Press); e.g. AU02 raises the lateral part of the brows, AU12 pulls the lip corners up
+and back obliquely and deepens the nasolabial furrow, AU17 pushes the chin boss and the lower lip up. Only the gross
+region and direction are checked; FACS's subtler signs (wrinkles, bulges) are not visible in a 478-vertex mesh.
 
 Face terms
 ----------
@@ -77,9 +87,10 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.card.facs_regions import FACE_TERMS, FACS_EXPECTATIONS
 from aumesh.core import schema
 from aumesh.core.io import atomic_write_json
-from aumesh.core.schema import AU_COLUMNS, AU_NAMES, N_TARGETS, N_VERTICES
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS, N_VERTICES
 from aumesh.geometry import face, landmarks, measures
 
 PASS_COSINE = 0.7
@@ -87,116 +98,8 @@ FAIL_COSINE = 0.0
 PASS_SHARE = 0.5
 NEARBY_SHARE = 0.4
 FAIL_SHARE = 0.1
+UNILATERAL_SHARE = 0.2  # a side of a bilateral region with less of its motion is "still" (a unilateral action)
 MIN_MAGNITUDE = 1e-6  # inter-ocular units; below this an AU "does not move"
-
-# Face-term unit vectors in local coordinates (lateral, up, toward). "lateral" is
-# subject's left for midline groups and outward for bilateral groups.
-_TERMS: dict[str, tuple[float, float, float]] = {
-    "up": (0, 1, 0),
-    "down": (0, -1, 0),
-    "toward": (0, 0, 1),
-    "away": (0, 0, -1),
-    "outward": (1, 0, 0),
-    "inward": (-1, 0, 0),
-    "left": (1, 0, 0),
-    "right": (-1, 0, 0),
-}
-
-# The FACS expectation table (data). "checks": the direction FACS gives in the AU's FACS region(s),
-# (area group, {term: weight}); "regions" (default: the checks' groups): the AU's FACS region(s), where its largest
-# motion must be; "nearby": the other area groups where FACS describes appearance changes of the AU.
-# Groups are aumesh.geometry.landmarks.AREA_SEEDS names without their side.
-FACS_EXPECTATIONS: dict[str, dict[str, Any]] = {
-    "AU01": {
-        "name": AU_NAMES["AU01"],
-        "checks": [("brow_inner", {"up": 1.0})],
-        "nearby": ("forehead", "glabella", "brow_outer", "upper_eyelid"),
-    },
-    "AU02": {
-        "name": AU_NAMES["AU02"],
-        "checks": [("brow_outer", {"up": 1.0})],
-        "nearby": ("forehead", "temple", "brow_inner", "upper_eyelid"),
-    },
-    "AU04": {
-        "name": AU_NAMES["AU04"],
-        "checks": [("brow_inner", {"down": 1.0, "inward": 0.6})],
-        "nearby": ("glabella", "brow_outer", "upper_eyelid", "forehead"),
-    },
-    "AU05": {"name": AU_NAMES["AU05"], "checks": [("upper_eyelid", {"up": 1.0})], "nearby": ("brow_outer",)},
-    "AU06": {
-        "name": AU_NAMES["AU06"],
-        "checks": [("cheek", {"up": 1.0})],
-        "nearby": ("lower_eyelid", "nasolabial", "temple", "face_side"),
-    },
-    "AU07": {"name": AU_NAMES["AU07"], "checks": [("lower_eyelid", {"up": 1.0})], "nearby": ("upper_eyelid",)},
-    "AU09": {
-        "name": AU_NAMES["AU09"],
-        "checks": [("nose", {"up": 1.0})],
-        "nearby": ("glabella", "brow_inner", "nasolabial", "upper_lip", "cheek"),
-    },
-    "AU10": {
-        "name": AU_NAMES["AU10"],
-        "checks": [("upper_lip", {"up": 1.0})],
-        "nearby": ("nasolabial", "nose", "lip_corner", "cheek"),
-    },
-    "AU11": {
-        "name": AU_NAMES["AU11"],
-        "checks": [("nasolabial", {"up": 1.0, "outward": 0.5})],
-        "nearby": ("nose", "upper_lip", "cheek", "lip_corner"),
-    },
-    "AU12": {
-        "name": AU_NAMES["AU12"],
-        "checks": [("lip_corner", {"up": 1.0, "outward": 1.0})],
-        "nearby": ("nasolabial", "cheek", "upper_lip", "lower_lip"),
-    },
-    "AU14": {
-        "name": AU_NAMES["AU14"],
-        "checks": [("lip_corner", {"away": 1.0, "inward": 0.3})],
-        "nearby": ("upper_lip", "lower_lip", "cheek"),
-    },
-    "AU15": {
-        "name": AU_NAMES["AU15"],
-        "checks": [("lip_corner", {"down": 1.0})],
-        "nearby": ("lower_lip", "upper_lip", "chin", "jaw"),
-    },
-    "AU17": {
-        "name": AU_NAMES["AU17"],
-        "checks": [("chin", {"up": 1.0})],
-        "regions": ("chin", "lower_lip"),
-        "nearby": ("jaw", "lip_corner"),
-    },
-    "AU20": {
-        "name": AU_NAMES["AU20"],
-        "checks": [("lip_corner", {"outward": 1.0})],
-        "nearby": ("upper_lip", "lower_lip", "cheek", "jaw"),
-    },
-    "AU23": {
-        "name": AU_NAMES["AU23"],
-        "checks": [("lip_corner", {"inward": 1.0})],
-        "nearby": ("upper_lip", "lower_lip"),
-    },
-    "AU24": {
-        "name": AU_NAMES["AU24"],
-        "checks": [("upper_lip", {"down": 1.0}), ("lower_lip", {"up": 1.0})],
-        "nearby": ("lip_corner", "chin"),
-    },
-    "AU25": {
-        "name": AU_NAMES["AU25"],
-        "checks": [("lower_lip", {"down": 1.0})],
-        "nearby": ("upper_lip", "lip_corner", "chin"),
-    },
-    "AU26": {
-        "name": AU_NAMES["AU26"],
-        "checks": [("jaw", {"down": 1.0}), ("lower_lip", {"down": 1.0})],
-        "nearby": ("chin", "lip_corner", "face_side"),
-    },
-    "AU28": {
-        "name": AU_NAMES["AU28"],
-        "checks": [("upper_lip", {"away": 1.0}), ("lower_lip", {"away": 1.0})],
-        "nearby": ("lip_corner", "chin"),
-    },
-    "AU43": {"name": AU_NAMES["AU43"], "checks": [("upper_eyelid", {"down": 1.0})], "nearby": ("lower_eyelid",)},
-}
 
 _RANK = {"pass": 0, "doubtful": 1, "fail": 2}
 AREA_NAMES: tuple[str, ...] = tuple(landmarks.AREA_SEEDS)
@@ -233,12 +136,13 @@ class _Areas:
         return self.group == AREA_GROUPS.index(group)
 
 
-def _weighted_direction(disp: np.ndarray, areas: _Areas, group: str) -> tuple[np.ndarray, float]:
+def _weighted_direction(disp: np.ndarray, areas: _Areas, group: str, side: int = 0) -> tuple[np.ndarray, float]:
     """Displacement-weighted mean of the group's vertices' displacements in local terms, and their mean magnitude.
 
     Weights are the vertices' displacement magnitudes, so vertices that move most decide the direction and a few
-    near-still vertices of the area do not dilute it (bilateral areas: lateral = outward on each side)."""
-    m = areas.mask(group)
+    near-still vertices of the area do not dilute it (bilateral areas: lateral = outward on each side). ``side`` +1 / -1
+    keeps only the subject's left / right half of a bilateral group (0: both)."""
+    m = areas.mask(group) & ((areas.side == side) if side else True)
     local = _local(disp[m], areas.side[m])
     w = np.linalg.norm(disp[m], axis=1)
     mean_mag = float(w.mean()) if w.size else 0.0
@@ -298,6 +202,31 @@ def judge_fields(disp: np.ndarray, aus: list[str], mesh: np.ndarray | None = Non
     return [_judge(d, au, areas) for d, au in zip(fields, aus, strict=True)]
 
 
+def _side_checks(
+    disp: np.ndarray, areas: _Areas, group: str, want: np.ndarray, energy: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Each side of a bilateral group judged alone (outward = away from the midline on that side).
+
+    A side holding under ``UNILATERAL_SHARE`` of the group's motion is left out (FACS codes unilateral actions, e.g.
+    R12: a still side is not against FACS); the other sides get the cosine of their displacement-weighted mean to
+    ``want`` and a verdict by the same cosine thresholds as the whole group. Catches a field whose two halves move
+    opposite ways (a mirrored or rotated half), which the group's mean can average into a plausible direction.
+    """
+    in_group = areas.mask(group)
+    total = float(energy[in_group].sum())
+    out: dict[str, dict[str, Any]] = {}
+    for name, side in (("left", 1), ("right", -1)):
+        share = float(energy[in_group & (areas.side == side)].sum()) / total if total > 0 else 0.0
+        local, _ = _weighted_direction(disp, areas, group, side)
+        norm = float(np.linalg.norm(local))
+        if share < UNILATERAL_SHARE or norm <= MIN_MAGNITUDE:
+            continue
+        cos = float(local @ want / norm)
+        verdict = "fail" if cos <= FAIL_COSINE else "doubtful" if cos < PASS_COSINE else "pass"
+        out[name] = {"cosine": round(cos, 4), "share_of_region": round(share, 4), "verdict": verdict}
+    return out
+
+
 def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
     exp = FACS_EXPECTATIONS[au]
     groups = list(exp.get("regions", [g for g, _ in exp["checks"]]))
@@ -338,7 +267,7 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
 
     checks = []
     for group, terms in exp["checks"]:
-        want = sum(w * np.asarray(_TERMS[t], dtype=float) for t, w in terms.items())
+        want = sum(w * np.asarray(FACE_TERMS[t], dtype=float) for t, w in terms.items())
         want = want / np.linalg.norm(want)
         local, mag = _weighted_direction(disp, areas, group)
         norm = float(np.linalg.norm(local))
@@ -357,6 +286,15 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
             verdict, reason = "doubtful", f"{group} moves {expected} but barely ({shares[group]:.0%} of the motion)"
         else:
             verdict, reason = "pass", f"{group} moves {expected} (cos {cos:+.2f})"
+        sides = _side_checks(disp, areas, group, want, energy) if areas.bilateral[group] and moves else {}
+        for name, sc in sides.items():  # each side of a bilateral region on its own: a side against FACS fails
+            if sc["verdict"] != "pass" and _RANK[sc["verdict"]] > _RANK[verdict]:
+                verdict = sc["verdict"]
+                reason = f"{group} on the subject's {name} moves against expected {expected} (cos {sc['cosine']:+.2f})"
+                if sc["verdict"] == "doubtful":
+                    reason = (
+                        f"{group} on the subject's {name} only loosely matches {expected} (cos {sc['cosine']:+.2f})"
+                    )
         checks.append(
             {
                 "region": group,
@@ -366,6 +304,7 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
                 "cosine": round(cos, 4),
                 "magnitude": round(mag, 6),
                 "share": round(shares[group], 4),
+                "sides": sides,
                 "verdict": verdict,
                 "reason": reason,
             }
@@ -494,6 +433,7 @@ def au_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any
             "pass_share": PASS_SHARE,
             "nearby_share": NEARBY_SHARE,
             "fail_share": FAIL_SHARE,
+            "unilateral_share": UNILATERAL_SHARE,
         },
         "summary": summary,
         "aus": aus,
@@ -541,7 +481,8 @@ def report_markdown_table(report: Mapping[str, Any]) -> str:
             "facial area, as a fraction of the whole face. An AU passes when its largest motion is in its FACS region "
             f"(the top region, or at least {t['pass_share']:.0%} of the motion there, or the top region is one FACS "
             f"names for the AU with at least {t['nearby_share']:.0%} in the FACS region) and the displacement-weighted "
-            f"mean direction there is within cos {t['pass_cosine']:.2f} of FACS; it fails when that direction opposes "
+            "mean direction there (and on each moving side of a bilateral region) is within "
+            f"cos {t['pass_cosine']:.2f} of FACS; it fails when that direction opposes "
             f"FACS (cos <= {t['fail_cosine']:.2f}) or the largest motion is elsewhere with under "
             f"{t['fail_share']:.0%} in the FACS region (aumesh.card.directions)."
         )

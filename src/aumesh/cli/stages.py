@@ -29,17 +29,23 @@ def _cmd_compose_params(args) -> int:
 
 
 def _cmd_synth(args) -> int:
-    from aumesh.synthetic.tables import SynthSpec, write_tables
+    from aumesh.synthetic.tables import SynthSpec, realistic_noise_spec, write_tables, write_truth_sigma_u
 
-    spec = SynthSpec(
-        n_frames=args.frames,
-        n_videos=args.videos,
-        seed=args.seed,
+    fields = dict(
         layout=args.layout,
         reversed_aus=tuple(args.reverse or ()),
         identity_au_coupling=args.identity_au_coupling,
+        instrument_noise_sd=args.instrument_noise_sd,
     )
-    print(json.dumps(write_tables(args.out, spec, args.truth), indent=2))
+    if args.realistic:
+        sd = 0.07 if args.au_noise_sd is None else args.au_noise_sd
+        spec = realistic_noise_spec(args.frames, args.videos, args.seed, au_noise_sd=sd, **fields)
+    else:
+        spec = SynthSpec(args.frames, args.videos, args.seed, au_noise_sd=args.au_noise_sd or 0.0, **fields)
+    summary = write_tables(args.out, spec, args.truth)
+    if args.truth is not None and spec.au_noise_sd > 0:
+        summary["sigma_u"] = str(write_truth_sigma_u(args.truth))
+    print(json.dumps(summary, indent=2))
     return 0
 
 
@@ -137,6 +143,29 @@ def add_parser(subparsers) -> None:
         metavar="C",
         help="couple each video's AU baselines to the person's identity shape, as real detectors do "
         "(baseline = C * softplus(resemblance of the identity to the AU's field), e.g. 0.15; default: 0 = off)",
+    )
+    p.add_argument(
+        "--au-noise-sd",
+        type=float,
+        default=None,
+        metavar="SD",
+        help="AU detector noise on the recorded AUs (sd, AR(1) 0.7 in time, correlated within AU pairs; the mesh "
+        "follows the true AUs); with --truth its within-video covariance is also saved as sigma_u.npy beside the "
+        "truth file, for model.eiv.sigma_u (default: 0 = off; 0.07 with --realistic)",
+    )
+    p.add_argument(
+        "--instrument-noise-sd",
+        type=float,
+        default=0.0,
+        metavar="SD",
+        help="also write a second detector's AUs on the same frames, AU01_2 ... AU43_2, with their own independent "
+        "noise of this sd (for model.eiv.instrument_aus='{au}_2'; default: 0 = not written)",
+    )
+    p.add_argument(
+        "--realistic",
+        action="store_true",
+        help="the issue-43 preset: co-activated AUs (AU09/AU10 r ~0.9, AU06/AU12, AU01/AU02, AU25/AU24) read by a "
+        "noisy detector (--au-noise-sd 0 gives its no-noise control)",
     )
     p.set_defaults(func=_cmd_synth)
 

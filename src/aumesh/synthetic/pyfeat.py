@@ -24,7 +24,9 @@ export holds:
 * ``input`` (the video path), ``frame``, ``approx_time`` ("MM:SS" at 25 fps), ``FrameHeight``/``FrameWidth``;
 * optionally runs of frames with the head turned toward profile (``profile_rate``: :class:`synth.SynthSpec`'s
   ``profile_rate``, the mesh generated at that pose);
-* optionally MediaPipe's normalized image units (x / width, y / height, z / width) and no frame-size columns.
+* optionally MediaPipe's normalized image units (x / width, y / height, z / width) and no frame-size columns;
+* with :class:`synth.SynthSpec`'s ``au_noise_sd`` the AUs as a noisy detector records them, and with
+  ``instrument_noise_sd`` a second detector's AUs on the same frames (``AU01_2`` ... ``AU43_2``, after the AUs).
 
 Only column names are taken from py-feat; nothing of its code or data. Files are written one at a time, in chunks of
 videos, so ~100k frames in one CSV stay in bounded memory. This module writes the files (CSV, parquet, the split
@@ -152,6 +154,8 @@ def _frame(
         add(cat("pose"), FEX_POSE_COLUMNS + HEAD_POSITION_COLUMNS)
         add(cat("blend"), BLENDSHAPE_COLUMNS)
         add(cat("au"), AU_COLUMNS)
+        if "au2" in parts[0]["blocks"]:
+            add(cat("au2"), synth.INSTRUMENT_COLUMNS)
         add(cat("emotion"), EMOTION_COLUMNS_MP)
         add(nan_identity, IDENTITY_COLUMNS)  # no identity model run
         add(cat("gaze"), GAZE_COLUMNS)
@@ -159,6 +163,8 @@ def _frame(
         add(mesh[:, list(LANDMARK68_VERTICES), :2].transpose(0, 2, 1).reshape(r, -1), landmark68_columns())
         add(cat("pose"), FEX_POSE_COLUMNS + HEAD_POSITION_COLUMNS)
         add(cat("au"), AU_COLUMNS)
+        if "au2" in parts[0]["blocks"]:
+            add(cat("au2"), synth.INSTRUMENT_COLUMNS)
         mp_to_v2 = [
             EMOTION_COLUMNS_MP.index(e)
             for e in ("neutral", "happiness", "sadness", "surprise", "fear", "disgust", "anger")
@@ -186,6 +192,10 @@ def _clean_table(parts: list[dict]) -> pa.Table:
     data = {"video_id": pa.array(c["video_id"], pa.string()), "frame": pa.array(c["frame"].astype(np.int64))}
     for j, name in enumerate(AU_COLUMNS):
         data[name] = pa.array(c["au"][:, j])
+    if "au2" in parts[0]["clean"]:  # the second detector's AUs (SynthSpec.instrument_noise_sd)
+        au2 = np.concatenate([p["clean"]["au2"] for p in parts])
+        for j, name in enumerate(synth.INSTRUMENT_COLUMNS):
+            data[name] = pa.array(au2[:, j])
     for j, name in enumerate(FEX_POSE_COLUMNS):
         data[name] = pa.array(c["pose"][:, j])
     flat = np.asfortranarray(c["mesh"].reshape(len(c["mesh"]), -1))  # contiguous columns: no copy per column

@@ -168,8 +168,10 @@ def _faces(
     score: tuple[float, float],
     identity: np.ndarray | None,
     detector: str,
+    au2: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """Every measurement of ``m`` detected faces (meshes in pixels): 2-D blocks keyed by group."""
+    """Every measurement of ``m`` detected faces (meshes in pixels): 2-D blocks keyed by group (``au2``: a second
+    detector's AUs, ``SynthSpec.instrument_noise_sd``)."""
     m = len(mesh)
     rect = crop_box(mesh, detector)  # X, Y, Width, Height
     iod_px = np.linalg.norm(mesh[:, 33, :2] - mesh[:, 263, :2], axis=1)
@@ -200,6 +202,8 @@ def _faces(
         ),
         "mesh": mesh,
     }
+    if au2 is not None:
+        out["au2"] = np.clip(au2, 0.0, 1.0)
     if identity is not None:
         emb = identity[None, :] + rng.normal(0.0, 0.02, size=(m, len(identity)))
         out["identity"] = (emb / np.linalg.norm(emb, axis=1, keepdims=True)).astype(np.float32)
@@ -232,6 +236,7 @@ def video_rows(
         (0.9, 1.0),
         _unit(rng.standard_normal(512)) if v2 else None,
         detector,
+        g.get("au2"),
     )
     # the background person: the main mesh scaled 0.4 about its centre, ~150 px to the side with more room
     ef = np.flatnonzero(extra)
@@ -241,8 +246,21 @@ def video_rows(
     small = centre + 0.4 * (g["mesh"][ef] - centre) + offset + rng.normal(0, 0.3, size=(len(ef), N_VERTICES, 3))
     extra_au = synth._au_intensities(rng, len(ef), rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS)))
     extra_pose = np.deg2rad(rng.normal(0, [10, 7, 18]) + rng.normal(0, 2, size=(len(ef), 3)))  # Fex order
+    extra_au2 = None
+    if "au2" in g:  # the second detector reads the background face too: its own stream, no draw from rng
+        noise2 = np.random.default_rng([seed, spec.seed, video, 3]).normal(
+            0.0, spec.instrument_noise_sd, extra_au.shape
+        )
+        extra_au2 = extra_au + noise2
     other = _faces(
-        rng, small, extra_au, extra_pose, (0.6, 0.9), _unit(rng.standard_normal(512)) if v2 else None, detector
+        rng,
+        small,
+        extra_au,
+        extra_pose,
+        (0.6, 0.9),
+        _unit(rng.standard_normal(512)) if v2 else None,
+        detector,
+        extra_au2,
     )
 
     # rows: one per frame, two where a background face is; it comes first where extra_first
@@ -280,6 +298,7 @@ def video_rows(
             "video_id": np.full(int(keep.sum()), vid, dtype=object),
             "frame": np.flatnonzero(keep),
             "au": g["au"][keep],
+            **({"au2": g["au2"][keep]} if "au2" in g else {}),
             "pose": g["pose"][keep][:, order],
             "mesh": g["mesh"][keep].astype(np.float32),
         },

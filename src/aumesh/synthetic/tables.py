@@ -15,7 +15,16 @@ The generator is honest about what makes the real problem hard:
   expression: each video's recorded AUs start from a baseline that rises with how much the person's
   identity shape resembles the AU's field (a naturally upturned mouth corner reads as AU12). The mesh
   follows the true AUs; the table records ``baseline + (1 - baseline) * true`` (still in [0, 1]).
-  Pooled (card) regression then leaks identity into the AU fields; within-video regression does not.
+  Pooled (card) regression then leaks identity into the AU fields; within-video regression does not;
+* optionally (``au_coactivation``), AUs that co-activate more tightly than through the shared expressions: in each
+  pair of ``coactivated_aus`` the follower follows the leader (``b <- (1 - c) b + c a``; AU09/AU10 at c = 0.6 have a
+  within-video correlation of ~0.88, like the issue's py-feat tables), and ``au_activity`` scales the AUs'
+  within-video variation;
+* optionally (``au_noise_sd``), detector noise on the recorded AUs (the mesh follows the true AUs): a stationary
+  AR(1) error in time, correlated across the AU pairs py-feat's detectors read together
+  (:mod:`aumesh.synthetic.au_noise`); its within-video covariance is :func:`au_noise.au_error_covariance`, written
+  to the truth file. ``instrument_noise_sd``: a second detector's AUs on the same frames (``AU01_2`` ...), with its
+  own independent error. Off by default, and then no random draw changes.
 
 Frames are generated and written video by video, file by file, so memory stays bounded at
 any size. Layouts: ``columns`` (mesh columns ``x_i, y_i, z_i`` interleaved, pose stored in
@@ -34,6 +43,20 @@ from scipy.spatial.transform import Rotation
 
 from aumesh.core.io import atomic_path, atomic_savez
 from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, feature_columns, flatten_axis_major
+from aumesh.synthetic import au_noise
+
+#: AU pairs that co-activate (``SynthSpec.au_coactivation``): ``(leader, follower, weight)``, the follower follows the
+#: leader with strength ``au_coactivation * weight``. FACS's frequent combinations, which py-feat's detectors also read
+#: together (:data:`au_noise.DETECTOR_PAIRS`): nose wrinkle with upper-lip raise (disgust), cheek raise with lip-corner
+#: pull (Duchenne smile), brow raises, lips part with jaw drop; and in speech lips parting and pressing with the same
+#: talk activity (AU24's field opposes AU25's, which is 1.7x larger: the pair a detector's noise can reverse).
+COACTIVATED_AUS: tuple[tuple[str, str, float], ...] = (
+    ("AU09", "AU10", 0.6),
+    ("AU06", "AU12", 0.6),
+    ("AU01", "AU02", 0.6),
+    ("AU25", "AU26", 0.2),
+    ("AU25", "AU24", 0.7),
+)
 
 
 @dataclass(frozen=True)
@@ -61,13 +84,37 @@ class SynthSpec:
     # fraction of each video's frames (in runs of PROFILE_RUN frames) turned toward profile (0 = off: no draw)
     profile_rate: float = 0.0
     profile_yaw_deg: tuple[float, float] = (60.0, 85.0)  # |yaw| of those frames
+    # how tightly the pairs of coactivated_aus co-activate: follower <- (1 - c) follower + c leader, c = this x the
+    # pair's weight (0 = off)
+    au_coactivation: float = 0.0
+    coactivated_aus: tuple[tuple[str, str, float], ...] = COACTIVATED_AUS
+    au_activity: float = 1.0  # the true AUs' within-video variation around each video's mean, scaled (1 = as drawn)
+    # the AU detector's error on the recorded AUs (0 = off: no draw); AR(1) in time, correlated across AU pairs
+    au_noise_sd: float = 0.0
+    au_noise_ar: float = 0.7  # frame-to-frame AR(1) coefficient of the error (0.7: an error lasts several frames)
+    au_noise_correlation: tuple[tuple[str, str, float], ...] = au_noise.DETECTOR_PAIRS  # (AU, AU, correlation)
+    # a second detector's AUs on the same frames (columns "{au}_2"): the true AUs + its own independent error (0 = off)
+    instrument_noise_sd: float = 0.0
 
 
 #: Frames per run of profile frames (``SynthSpec.profile_rate``).
 PROFILE_RUN = (5, 20)
 #: SynthSpec fields added after the truth files' ``spec`` record was fixed: left out of it at their defaults, so
 #: an unchanged spec writes the same truth file as before.
-_LATER_FIELDS = {"profile_rate": 0.0, "profile_yaw_deg": (60.0, 85.0)}
+_LATER_FIELDS = {
+    "profile_rate": 0.0,
+    "profile_yaw_deg": (60.0, 85.0),
+    "au_coactivation": 0.0,
+    "coactivated_aus": COACTIVATED_AUS,
+    "au_activity": 1.0,
+    "au_noise_sd": 0.0,
+    "au_noise_ar": 0.7,
+    "au_noise_correlation": au_noise.DETECTOR_PAIRS,
+    "instrument_noise_sd": 0.0,
+}
+#: Suffix of the second detector's AU columns (``instrument_noise_sd``): ``model.eiv.instrument_aus='{au}_2'``.
+INSTRUMENT_SUFFIX = "_2"
+INSTRUMENT_COLUMNS: tuple[str, ...] = tuple(au + INSTRUMENT_SUFFIX for au in AU_COLUMNS)
 
 
 def _spec_record(spec: SynthSpec) -> dict:
@@ -168,6 +215,45 @@ def _frames_per_video(spec: SynthSpec, rng: np.random.Generator) -> np.ndarray:
     return counts
 
 
+def frames_per_video(spec: SynthSpec) -> np.ndarray:
+    """(n_videos,) frames of each video, as :func:`write_tables` splits ``spec.n_frames``."""
+    return _frames_per_video(spec, np.random.default_rng(spec.seed))
+
+
+#: The preset's correlated error pairs: :data:`au_noise.DETECTOR_PAIRS` without AU25/AU26. Measured
+#: (benchmarks/au_noise_tables.py): with the AU25/AU26 errors correlated (even at 0.2) AU24's reversal is driven by that
+#: correlation, and neither an isotropic screen nor a correction that knows only Sigma_u's diagonal sees it (the diagonal
+#: correction leaves AU24 at -0.16 to -0.20); without it the reversal comes from co-activation, the issue's case. Pass
+#: ``au_noise_correlation=au_noise.DETECTOR_PAIRS`` for the harder tables.
+PRESET_NOISE_PAIRS: tuple[tuple[str, str, float], ...] = tuple(
+    p for p in au_noise.DETECTOR_PAIRS if p[:2] != ("AU25", "AU26")
+)
+
+
+def realistic_noise_spec(
+    n_frames: int = 30_000, n_videos: int = 800, seed: int = 0, au_noise_sd: float = 0.07, **overrides
+) -> SynthSpec:
+    """The issue-43 preset: co-activated AUs read by a noisy detector, like real py-feat tables.
+
+    AUs co-activate through the shared expressions and, more tightly, in the :data:`COACTIVATED_AUS` pairs
+    (``au_coactivation`` 1: AU09/AU10's within-video correlation ~0.9), with 0.7 of the generator's within-video
+    activity (``au_activity``: the error's sd relative to the AUs' as in the issue's tables); the detector's error has
+    sd ``au_noise_sd``, AR(1) 0.7 in time and correlation 0.5 within :data:`PRESET_NOISE_PAIRS`.
+    ``au_noise_sd=0`` is its
+    no-noise control: the same frames, meshes and true AUs. ``overrides``: any other :class:`SynthSpec` field
+    (e.g. ``instrument_noise_sd=0.07``, ``layout="pyfeat"``).
+    """
+    fields = {
+        "au_coactivation": 1.0,
+        "au_activity": 0.7,
+        "au_noise_ar": 0.7,
+        "au_noise_correlation": PRESET_NOISE_PAIRS,
+    }
+    return SynthSpec(
+        n_frames=n_frames, n_videos=n_videos, seed=seed, au_noise_sd=au_noise_sd, **{**fields, **overrides}
+    )
+
+
 def identity_resemblance(coef: np.ndarray, identity_basis: np.ndarray) -> np.ndarray:
     """Standardized resemblance of an identity shape to each AU field, as a map of the identity weights.
 
@@ -193,12 +279,25 @@ def generate_video(
     identity_basis: np.ndarray,
     latent_basis: np.ndarray,
     resemblance: np.ndarray | None = None,
+    keep_canonical: bool = False,
 ) -> dict[str, np.ndarray]:
-    """Frames of one video: AUs as recorded, pose (radians, model order), observed image-space meshes (n, 478, 3)
-    and the video's AU baseline (zeros without coupling; ``resemblance`` from :func:`identity_resemblance`)."""
+    """Frames of one video: AUs as recorded (``au``), the true AUs the mesh follows (``au_true``), pose (radians,
+    model order), observed image-space meshes (n, 478, 3) and the video's AU baseline (zeros without coupling;
+    ``resemblance`` from :func:`identity_resemblance`).
+
+    With detector noise (``spec.au_noise_sd``) also ``au_error`` (n, 20): the error added to the recorded AUs before
+    they are clipped to [0, 1]; with ``spec.instrument_noise_sd`` the second detector's AUs ``au2`` (n, 20). With
+    ``keep_canonical`` the meshes before rotation, scale, shift and landmark noise, ``canonical`` (n, 478, 3) px:
+    ``x @ coef + intercept + identity + latent``.
+    """
     rng = np.random.default_rng([spec.seed, video])
     propensity = rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS))
     au = _au_intensities(rng, n_frames, propensity)
+    if spec.au_coactivation:  # no random draw: every table without it stays bit-identical
+        au = coactivate(au, spec.coactivated_aus, spec.au_coactivation)
+    if spec.au_activity != 1.0:  # less (or more) expression within each video, its mean level kept
+        au = np.clip(au.mean(axis=0) + spec.au_activity * (au - au.mean(axis=0)), 0.0, 1.0)
+    true_au = au
     mean_pose = np.deg2rad(
         [rng.normal(0, spec.pitch_sd_deg), rng.normal(0, spec.yaw_sd_deg), rng.normal(0, spec.roll_sd_deg)]
     )
@@ -234,7 +333,59 @@ def generate_video(
         baseline = spec.identity_au_coupling * np.logaddexp(0.0, resemblance @ weights / identity_sd)
         baseline = np.minimum(baseline, 0.9)
         au = baseline + (1.0 - baseline) * au
-    return {"au": au, "pose": pose, "mesh": observed, "landmark_failure": failed, "au_baseline": baseline}
+    out = {"au": au, "au_true": true_au, "pose": pose, "mesh": observed, "landmark_failure": failed}
+    out["au_baseline"] = baseline
+    if spec.au_noise_sd > 0 or spec.instrument_noise_sd > 0:  # off: not a single draw more
+        out.update(detector_readings(spec, video, au))
+    if keep_canonical:
+        out["canonical"] = canonical
+    return out
+
+
+def coactivate(au: np.ndarray, pairs: tuple[tuple[str, str, float], ...], strength: float) -> np.ndarray:
+    """AUs (n, 20) with the follower of each ``(leader, follower, weight)`` pair following the leader, in order:
+    ``b <- (1 - c) b + c a``, ``c = strength * weight`` in [0, 1] (so the AUs stay in [0, 1])."""
+    out = au.copy()
+    for a, b, weight in pairs:
+        if a not in AU_COLUMNS or b not in AU_COLUMNS or a == b:
+            raise ValueError(f"coactivated_aus: ({a!r}, {b!r}) need two different AU columns ({', '.join(AU_COLUMNS)})")
+        c = strength * weight
+        if not 0.0 <= c <= 1.0:
+            raise ValueError(f"coactivated_aus: ({a}, {b}) strength au_coactivation x weight = {c:g}, need 0-1")
+        i, j = AU_COLUMNS.index(a), AU_COLUMNS.index(b)
+        out[:, j] = (1.0 - c) * out[:, j] + c * out[:, i]
+    return out
+
+
+def detector_readings(spec: SynthSpec, video: int, read: np.ndarray) -> dict[str, np.ndarray]:
+    """What noisy detectors record of the AUs ``read`` (n, 20) a noise-free one would: ``au`` = ``read`` + the
+    error ``au_error`` (:func:`au_noise.ar1_noise`, stream ``[seed, video, 11]``), and ``au2`` = ``read`` + a second
+    detector's independent error (stream ``[seed, video, 12]``; same AR(1) and cross-AU correlation), when their sds
+    are positive.
+
+    Both are clipped to [0, 1]: the data contract refuses AUs outside py-feat's 0-1 range
+    (``aumesh.data.contract.AU_RANGE``), as real detectors' probabilities never leave it, so unclipped tables would
+    not ingest. Clipping makes the error non-classical near 0, where most AUs sit (it cuts the negative errors there),
+    so the recorded error's within-video covariance is a little smaller than :func:`au_noise.au_error_covariance`
+    (``au_sigma_u_within``, the error before clipping); the truth file holds both (``au_sigma_u_within_recorded``:
+    measured from the recorded AUs). Measured on :func:`realistic_noise_spec` (benchmarks/au_noise_tables.py): 2.2 %
+    of the values clipped, the recorded error's sd 0.064 against 0.065, and every AU field's cosine to the truth the
+    same with and without clipping within 0.002.
+    """
+    n = len(read)
+    chol = np.linalg.cholesky(au_noise.correlation_matrix(spec.au_noise_correlation))
+    out: dict[str, np.ndarray] = {}
+    if spec.au_noise_sd > 0:
+        e = au_noise.ar1_noise(
+            np.random.default_rng([spec.seed, video, 11]), n, spec.au_noise_sd, spec.au_noise_ar, chol
+        )
+        out["au"], out["au_error"] = np.clip(read + e, 0.0, 1.0), e
+    if spec.instrument_noise_sd > 0:
+        e2 = au_noise.ar1_noise(
+            np.random.default_rng([spec.seed, video, 12]), n, spec.instrument_noise_sd, spec.au_noise_ar, chol
+        )
+        out["au2"] = np.clip(read + e2, 0.0, 1.0)
+    return out
 
 
 def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | None = None) -> dict:
@@ -243,7 +394,12 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     The truth NPZ holds ``coef`` (83, 1434) and ``intercept`` of the true map in the canonical template
     frame (px), ``au_fields`` (20, 1434) = its AU rows (the true AU displacement fields), ``au_columns``,
     ``au_baseline`` (n_videos, 20) (each video's AU baseline; zeros without ``identity_au_coupling``),
-    ``template_px``, ``anchor_indices`` and ``spec``.
+    ``template_px``, ``anchor_indices`` and ``spec``. With detector noise (``spec.au_noise_sd > 0``; only then, so a
+    noise-free truth file is byte-identical to before) also ``au_sigma_u_within`` (20, 20): the generator's own
+    within-video error covariance (:func:`au_noise.au_error_covariance`; save it for ``model.eiv.sigma_u`` with
+    :func:`au_noise.save_sigma_u`), ``au_sigma_u_within_recorded`` (20, 20): the same measured from the recorded AUs
+    (after clipping to [0, 1]) minus the true ones, and ``frames_per_video``; with ``instrument_noise_sd > 0``
+    ``au2_sigma_u_within`` (the second detector's).
 
     Returns a summary (files, frames, videos, landmark failures).
     """
@@ -253,6 +409,10 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     out_dir.mkdir(parents=True, exist_ok=True)
     if spec.layout not in ("columns", "pyfeat"):
         raise ValueError(f"synth layout {spec.layout!r}: use 'columns' or 'pyfeat'")
+    if spec.au_noise_sd < 0 or spec.instrument_noise_sd < 0:
+        raise ValueError(
+            f"synth au_noise_sd={spec.au_noise_sd}, instrument_noise_sd={spec.instrument_noise_sd}: need >= 0 (0 = off)"
+        )
     rng = np.random.default_rng(spec.seed)
     counts = _frames_per_video(spec, rng)
     coef, intercept, columns = true_coefficients(spec)
@@ -265,6 +425,8 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
     resemblance = identity_resemblance(coef, identity_basis)
 
     files, failures, file_no, video, baselines = [], 0, 0, 0, []
+    n_au = len(AU_COLUMNS)
+    recorded_error = np.zeros((n_au, n_au))  # within-video sum of squares of recorded - true AUs
     while video < spec.n_videos:
         parts, rows = [], 0
         while video < spec.n_videos and (rows == 0 or rows + counts[video] <= spec.frames_per_file):
@@ -281,8 +443,20 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
         files.append(_write_file(out_dir / f"frames_{file_no:04d}.parquet", parts, spec.layout))
         failures += sum(int(p["landmark_failure"].sum()) for _, p in parts)
         baselines += [p["au_baseline"] for _, p in parts]
+        if spec.au_noise_sd > 0:
+            for _, p in parts:
+                d = p["au"] - p["au_baseline"] - (1.0 - p["au_baseline"]) * p["au_true"]
+                d -= d.mean(axis=0)
+                recorded_error += d.T @ d
         file_no += 1
     if truth_path is not None:
+        noise: dict[str, np.ndarray] = {}
+        if spec.au_noise_sd > 0:
+            noise["au_sigma_u_within"] = au_noise.au_error_covariance(spec, counts)
+            noise["au_sigma_u_within_recorded"] = recorded_error / counts.sum()
+            noise["frames_per_video"] = counts
+        if spec.instrument_noise_sd > 0:
+            noise["au2_sigma_u_within"] = au_noise.au_error_covariance(spec, counts, detector=2)
         atomic_savez(
             truth_path,
             coef=coef,
@@ -294,6 +468,7 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
             template_px=template * spec.px_per_iod,
             anchor_indices=np.array(ANCHOR_INDICES, dtype=np.int32),
             spec=np.array(repr(_spec_record(spec))),
+            **noise,
         )
     return {
         "files": [str(f) for f in files],
@@ -301,6 +476,25 @@ def write_tables(out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | 
         "n_videos": spec.n_videos,
         "landmark_failures": failures,
     }
+
+
+def write_truth_sigma_u(truth_path: str | Path, name: str = "sigma_u.npy") -> Path:
+    """Save the truth file's ``au_sigma_u_within`` as ``name`` beside it (the ``.npy`` ``model.eiv.sigma_u`` reads).
+
+    Raises
+    ------
+    ValueError
+        The truth file has no ``au_sigma_u_within`` (its tables were written without ``au_noise_sd``).
+    """
+    truth_path = Path(truth_path)
+    with np.load(truth_path) as truth:
+        if "au_sigma_u_within" not in truth.files:
+            raise ValueError(
+                f"{truth_path}: no au_sigma_u_within (tables written without detector noise). "
+                f"Fix: write them with SynthSpec(au_noise_sd=...) (aumesh synth --au-noise-sd SD)"
+            )
+        sigma = truth["au_sigma_u_within"]
+    return au_noise.save_sigma_u(truth_path.with_name(name), sigma)
 
 
 def _write_file(path: Path, parts: list[tuple[int, dict]], layout: str) -> Path:
@@ -315,6 +509,10 @@ def _write_file(path: Path, parts: list[tuple[int, dict]], layout: str) -> Path:
     data["FaceScore"] = np.full(len(frames), 0.99)
     for j, name in enumerate(AU_COLUMNS):
         data[name] = au[:, j]
+    if "au2" in parts[0][1]:  # the second detector's AUs (SynthSpec.instrument_noise_sd)
+        au2 = np.concatenate([p["au2"] for _, p in parts])
+        for j, name in enumerate(INSTRUMENT_COLUMNS):
+            data[name] = au2[:, j]
     for name in ("Pitch", "Roll", "Yaw"):  # py-feat's Fex order; the model's is Pitch, Yaw, Roll
         data[name] = pose[:, POSE_COLUMNS.index(name)]
     if layout == "columns":
