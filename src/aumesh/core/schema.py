@@ -106,6 +106,12 @@ def feature_columns(pose: bool, interactions: bool) -> list[str]:
     return cols
 
 
+def instrument_columns(pattern: str | None) -> tuple[str, ...]:
+    """A second detector's AU columns named by ``model.eiv.instrument_aus`` (``{au}`` replaced by each AU name, in
+    ``AU_COLUMNS`` order, e.g. ``"{au}_2"`` -> ``AU01_2 .. AU28_2``); ``()`` when none are configured."""
+    return tuple(pattern.format(au=au) for au in AU_COLUMNS) if pattern else ()
+
+
 def flatten_axis_major(mesh: np.ndarray) -> np.ndarray:
     """(..., 478, 3) -> (..., 1434) in the model's layout ``[x_0..x_477 | y_.. | z_..]``."""
     m = np.asarray(mesh)

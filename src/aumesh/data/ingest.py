@@ -226,17 +226,20 @@ def identity_counts(block: Block, layout: pyfeat.Layout) -> dict[str, dict[str, 
 # ------------------------------------------------------------------------------------------------------- writing
 
 
-def output_schema() -> pa.Schema:
-    """The ingested tables' columns: video_id, frame, the AUs and pose (model order), the mesh axis-major, float32."""
+def output_schema(instruments: Sequence[str] = ()) -> pa.Schema:
+    """The ingested tables' columns: video_id, frame, the AUs and pose (model order), the instrument AUs
+    (``model.eiv.instrument_aus``, only when configured: none by default), the mesh axis-major, float32."""
     fields = [pa.field(VIDEO_COLUMN, pa.string()), pa.field(FRAME_COLUMN, pa.int64())]
-    fields += [pa.field(c, pa.float64()) for c in (*AU_COLUMNS, *POSE_COLUMNS)]
+    fields += [pa.field(c, pa.float64()) for c in (*AU_COLUMNS, *POSE_COLUMNS, *instruments)]
     fields += [pa.field(name, pa.float32()) for name in pyfeat.MESH_NAMES["MPDetector"]]
     return pa.schema(fields)
 
 
 def to_table(block: Block, schema: pa.Schema) -> pa.Table:
+    """``block`` as a table of ``schema`` (:func:`output_schema`: its float64 columns are the block's values)."""
+    numeric = [f.name for f in schema if f.type == pa.float64()]
     arrays = [pa.array(block.video, pa.string()), pa.array(block.frame, pa.int64())]
-    arrays += [pa.array(block.values[c]) for c in (*AU_COLUMNS, *POSE_COLUMNS)]
+    arrays += [pa.array(block.values[c]) for c in numeric]
     arrays += [pa.array(col) for col in np.asarray(block.mesh, np.float32).T]
     return pa.Table.from_arrays(arrays, schema=schema)
 
@@ -254,8 +257,9 @@ def iter_clean_blocks(
 def write_clean(
     spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
 ) -> Counts:
-    """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed)."""
-    schema = output_schema()
+    """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed).
+    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs."""
+    schema = output_schema(spans[0].source.layout.instruments if spans else ())
     total = Counts()
     writer = pq.ParquetWriter(out, schema, compression="none", use_dictionary=[VIDEO_COLUMN], write_statistics=False)
     try:

@@ -65,11 +65,13 @@ class Layout:
     box_size: tuple[str, str] | None
     identity: str | None
     frame_size: tuple[str, str] | None
+    instruments: tuple[str, ...] = ()  # a second detector's AU columns (model.eiv.instrument_aus), AU_COLUMNS order
 
     @property
     def numeric(self) -> list[str]:
-        """The numeric columns read besides the video and frame (AUs, pose, face score and box, frame size)."""
-        out = [*AU_COLUMNS, *POSE_COLUMNS]
+        """The numeric columns read besides the video and frame (AUs, pose, instrument AUs, face score and box, frame
+        size)."""
+        out = [*AU_COLUMNS, *POSE_COLUMNS, *self.instruments]
         out += [self.face_score] if self.face_score else []
         out += list(self.box_size or ()) + list(self.frame_size or ())
         return out
@@ -120,13 +122,34 @@ def fex_video_column(names: Sequence[str], where: str) -> str:
     return video
 
 
-def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout:
+def check_instruments(names: Sequence[str], instruments: Sequence[str], where: str) -> None:
+    """Every instrument column (``model.eiv.instrument_aus``, :func:`aumesh.core.schema.instrument_columns`) is in
+    the table.
+
+    Raises
+    ------
+    TableError
+        Naming ``where``, the first missing column (with a likely misspelling) and the fix.
+    """
+    present = set(names)
+    missing = [c for c in instruments if c not in present]
+    if missing:
+        more = f" ({len(missing) - 1} more instrument columns missing)" if len(missing) > 1 else ""
+        raise TableError(
+            f"{where}: column {missing[0]!r} is missing{suggest(missing[0], names)}{more}. Fix: model/eiv=instruments "
+            f"needs the second detector's AUs on the same frames in every table, named by model.eiv.instrument_aus "
+            f"(e.g. '{{au}}_2' for AU01_2 .. AU28_2); add them, correct the pattern, or use model/eiv=none."
+        )
+
+
+def layout(names: Sequence[str], where: str, split_mesh: bool = False, instruments: Sequence[str] = ()) -> Layout:
     """The layout of a table with columns ``names`` (``where`` names the file in errors).
 
     Parameters
     ----------
     names : the table's column names, in any order.
     split_mesh : an ``.npy`` mesh lies beside the table (the split layout): the table needs no mesh columns.
+    instruments : a second detector's AU columns the table must hold (``model.eiv.instrument_aus``; default none).
 
     Raises
     ------
@@ -136,6 +159,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout
     """
     present = set(names)
     video = fex_video_column(names, where)
+    check_instruments(names, instruments, where)
     mesh, detector = None, "split"
     if set(MESH_NAMES["Detectorv2"]) <= present:
         mesh, detector = MESH_NAMES["Detectorv2"], "Detectorv2"
@@ -156,6 +180,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False) -> Layout
         box_size=optional(*FACE_BOX_SIZE),
         identity=IDENTITY if IDENTITY in present else None,
         frame_size=optional(*FRAME_SIZE),
+        instruments=tuple(instruments),
     )
 
 

@@ -66,11 +66,12 @@ DATA_NPY_FIX = (
 )
 
 
-def open_source(path: Path, mesh_npy_pattern: str) -> Source:
-    """A source's layout from its header (CSV) or schema (parquet)."""
+def open_source(path: Path, mesh_npy_pattern: str, instruments: Sequence[str] = ()) -> Source:
+    """A source's layout from its header (CSV) or schema (parquet); ``instruments``: the second detector's AU
+    columns it must hold (``model.eiv.instrument_aus``)."""
     if path.name.endswith(CSV_SUFFIXES):
         header = csv_header(path)
-        return Source(path, "csv", pyfeat.layout(header, str(path)), tuple(header))
+        return Source(path, "csv", pyfeat.layout(header, str(path), instruments=instruments), tuple(header))
     try:
         md = pq.read_metadata(path)
     except Exception as err:  # pyarrow raises several types for a bad file
@@ -80,7 +81,7 @@ def open_source(path: Path, mesh_npy_pattern: str) -> Source:
     split = (
         npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
     )
-    lay = pyfeat.layout(names, str(path), split_mesh=split)
+    lay = pyfeat.layout(names, str(path), split_mesh=split, instruments=instruments)
     if split:
         _, _, shape = check_npy(npy, DATA_NPY_FIX)
         if len(shape) != 3 or shape[1:] != (N_VERTICES, 3):

@@ -83,9 +83,13 @@ def discover(
     return tables
 
 
-def check_tables(paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_numeric: bool = False) -> list[FrameTable]:
-    """Schema-check the tables the ingest stage lists (its manifest: cleaned tables and clean ones read in place)."""
-    tables = [_check_schema(Path(p), mesh_npy_pattern, coerce_numeric) for p in paths]
+def check_tables(
+    paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_numeric: bool = False, instruments: Sequence[str] = ()
+) -> list[FrameTable]:
+    """Schema-check the tables the ingest stage lists (its manifest: cleaned tables and clean ones read in place);
+    each must hold the ``instruments`` columns (``model.eiv.instrument_aus``: a table ingested without them names the
+    fix)."""
+    tables = [_check_schema(Path(p), mesh_npy_pattern, coerce_numeric, instruments) for p in paths]
     if sum(t.n_rows for t in tables) == 0:
         raise TableError(
             f"{', '.join(str(p) for p in paths[:3])}: no frame with a face: every table has 0 rows or only "
@@ -95,7 +99,9 @@ def check_tables(paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_nume
     return tables
 
 
-def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = False) -> FrameTable:
+def _check_schema(
+    path: Path, mesh_npy_pattern: str, coerce_numeric: bool = False, instruments: Sequence[str] = ()
+) -> FrameTable:
     try:
         # the footer alone, parsed once for the check and the partitioning (:func:`_footer`): a reader
         # (pq.ParquetFile) on it cost each table 7 ms more to check
@@ -106,6 +112,7 @@ def _check_schema(path: Path, mesh_npy_pattern: str, coerce_numeric: bool = Fals
     names = schema.names
     n_rows = footer.num_rows
     video_from_input = pyfeat.fex_video_column(names, str(path)) == INPUT_PATH_COLUMN
+    pyfeat.check_instruments(names, instruments, str(path))
     has_mesh = any(_MESH_COLUMN.match(name) for name in names)
     mesh_npy = None
     text_columns: set[str] = set()
@@ -308,32 +315,68 @@ def read_metadata(
     return _validated(_raw_metadata(table, row_groups), table.path, _row_range(table, row_groups)[0], coerce_numeric)
 
 
-def read_pieces_metadata(pieces: Sequence[Piece], coerce_numeric: bool = False) -> pd.DataFrame:
+def read_pieces_metadata(
+    pieces: Sequence[Piece], coerce_numeric: bool = False, instruments: Sequence[str] = ()
+) -> pd.DataFrame:
     """:func:`read_metadata` of consecutive pieces, concatenated, validated at once (one check of the data contract
     for a partition, not one per table: the check has a fixed cost of ~12 ms, and a partition of per-video tables
     holds hundreds). A piece that breaks the contract is named by checking the pieces one by one.
+
+    ``instruments``: a second detector's AU columns (``model.eiv.instrument_aus``), read after the pose and checked
+    finite (:func:`check_instrument_values`).
     """
-    raw = [_raw_metadata(p.table, p.row_groups) for p in pieces]
+    raw = [_raw_metadata(p.table, p.row_groups, instruments) for p in pieces]
     if len(raw) == 1:
-        return _validated(raw[0], pieces[0].table.path, pieces[0].start, coerce_numeric)
+        return _validated(raw[0], pieces[0].table.path, pieces[0].start, coerce_numeric, instruments)
     try:
-        return _validated(pd.concat(raw, ignore_index=True), pieces[0].table.path, pieces[0].start, coerce_numeric)
+        return _validated(
+            pd.concat(raw, ignore_index=True), pieces[0].table.path, pieces[0].start, coerce_numeric, instruments
+        )
     except TableError as err:
         for df, piece in zip(raw, pieces, strict=True):  # the first broken piece, named with its file and row
-            _validated(df, piece.table.path, piece.start, coerce_numeric)
+            _validated(df, piece.table.path, piece.start, coerce_numeric, instruments)
         raise err
 
 
-def _validated(df: pd.DataFrame, path: Path, first_row: int, coerce_numeric: bool) -> pd.DataFrame:
-    """``df`` (rows from ``first_row`` of ``path`` on) checked against the data contract, in the model's column order."""
+def _validated(
+    df: pd.DataFrame, path: Path, first_row: int, coerce_numeric: bool, instruments: Sequence[str] = ()
+) -> pd.DataFrame:
+    """``df`` (rows from ``first_row`` of ``path`` on) checked against the data contract, in the model's column order
+    (the instrument columns, when given, after the pose)."""
     df = contract.validate_metadata(df, path, row_offset=first_row, coerce=coerce_numeric)
-    return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]]
+    check_instrument_values(df, instruments, path, first_row)
+    return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments]]
 
 
-def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None) -> pd.DataFrame:
+def check_instrument_values(df: pd.DataFrame, instruments: Sequence[str], path: Path, first_row: int = 0) -> None:
+    """Every instrument value (``model.eiv.instrument_aus``) a finite number.
+
+    A frame the second detector has no value for is refused, not dropped: the instruments are the same frames'
+    second measurement, so a missing one is an export to repair (dropping it silently would fit the model on other
+    frames than ``model/eiv=none`` does), as a face row with only some values missing is the contract's error.
+
+    Raises
+    ------
+    TableError
+        One line naming the file, the column, the row (within the file) and the fix.
+    """
+    for name in instruments:
+        values = pd.to_numeric(df[name], errors="coerce").to_numpy(np.float64)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise TableError(
+                f"{path}: column {name!r} is {df[name].iloc[row]!r} at row {first_row + row} ({int(bad.sum())} "
+                f"such rows): model/eiv=instruments needs the second detector's AUs on every frame. Fix: drop "
+                f"the frames the second detector missed from the tables, or use model/eiv=none."
+            )
+        df[name] = values
+
+
+def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None, instruments: Sequence[str] = ()) -> pd.DataFrame:
     """The metadata columns of ``row_groups`` (None: the whole table) as stored, with ``video_id`` as text (from the
-    input path's stem when the table names its videos so)."""
-    cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS]
+    input path's stem when the table names its videos so); then the ``instruments`` columns, when given."""
+    cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments]
     cols.insert(0, INPUT_PATH_COLUMN if table.video_from_input else VIDEO_COLUMN)
     if row_groups is None:
         columns = _read_columns(table.path, cols)

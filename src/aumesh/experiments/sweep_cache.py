@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 from aumesh.config import flatten as flatten_config
 from aumesh.core.io import atomic_write_json
+from aumesh.core.schema import instrument_columns
 from aumesh.pipeline.prepared_files import PREPARED_FILES, SUMMARY_FILE
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -76,7 +77,10 @@ def prepare_signature(cfg: Config) -> dict[str, Any]:
         ``{dotted key: value}``, sorted by key.
     """
     flat = flatten_config(cfg.to_dict())
-    return {k: v for k, v in sorted(flat.items()) if any(k == p or k.startswith(p + ".") for p in PREPARE_KEYS)}
+    out = {k: v for k, v in sorted(flat.items()) if any(k == p or k.startswith(p + ".") for p in PREPARE_KEYS)}
+    if cfg.model.eiv.instrument_aus:  # carried into frames.parquet; only when set, so other runs' keys are unchanged
+        out["model.eiv.instrument_aus"] = cfg.model.eiv.instrument_aus
+    return dict(sorted(out.items()))
 
 
 def prepare_key(signature: Mapping[str, Any]) -> str:
@@ -87,7 +91,14 @@ def prepare_key(signature: Mapping[str, Any]) -> str:
 
 def statistics_key(prepared_id: str, cfg: Config) -> tuple:
     """Cache key of the per-fold statistics: everything :func:`aumesh.pipeline.evaluate.accumulate` depends on."""
-    return (prepared_id, cfg.preprocess.target, cfg.preprocess.neutral.method, cfg.features.name, int(cfg.cv.n_splits))
+    return (
+        prepared_id,
+        cfg.preprocess.target,
+        cfg.preprocess.neutral.method,
+        cfg.features.name,
+        int(cfg.cv.n_splits),
+        cfg.model.eiv.instrument_aus,  # model/eiv=instruments: the augmented design's statistics
+    )
 
 
 @dataclass(frozen=True)
@@ -137,7 +148,7 @@ class SweepCache:
 
     prepared: dict[str, Prepared] = field(default_factory=dict)
     folds: dict[tuple, np.ndarray] = field(default_factory=dict)
-    designs: dict[tuple, Any] = field(default_factory=dict)  # (prepared id, n_splits) -> evaluate.DesignStatistics
+    designs: dict[tuple, Any] = field(default_factory=dict)  # (prepared id, n_splits, instruments) -> DesignStatistics
     statistics: OrderedDict = field(default_factory=OrderedDict)
     results: OrderedDict = field(default_factory=OrderedDict)
     workspace: dict[str, Any] = field(default_factory=dict)
@@ -190,13 +201,14 @@ class SweepCache:
             self.hits += 1
             return self.statistics[key], True
         fold = self.fold_of(prepared, pid, cfg.cv.n_splits)
-        design_key = (pid, cfg.cv.n_splits)
+        instruments = instrument_columns(cfg.model.eiv.instrument_aus)
+        design_key = (pid, cfg.cv.n_splits, instruments)
         if design_key not in self.designs:  # the one pass over the meshes; every target/feature set derives from it
             from aumesh.pipeline import compute
 
             with compute.engine(cfg.compute, **workers_check(prepared)):
                 self.designs[design_key] = statistics_pass.design_statistics(
-                    prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows
+                    prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows, instruments
                 )
         stats = statistics_pass.accumulate(prepared, cfg, fold, design=self.designs[design_key])
         self.statistics[key] = stats

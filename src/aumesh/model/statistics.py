@@ -16,6 +16,9 @@ coordinates. Then, with no further pass:
 * the ``within`` target (fixed effects: design and mesh demeaned per video) is the same algebra with
   each video's own means, ``d_v = w_v / c_v`` and ``e_v = u_v / c_v``; it reduces to
   ``X'X_w = X'X - sum_v c_v xbar_v xbar_v^T`` and likewise for ``X'Y`` and ``diag(Y'Y)``.
+* with a second detector's AUs (``model/eiv=instruments``) the pass accumulates the augmented design ``[X | Z]``
+  (:func:`augmented_design`, 166 columns), so each fold's within-video ``Z'X``, ``Z'Z``, ``Z'Y`` are the same algebra
+  on :func:`augmented_index`'s columns (:func:`fold_within_statistics`; docs/method.md eq. 7).
 
 So a sweep over targets, neutral methods and feature sets costs one pass over the meshes for R²
 (and one prediction pass per configuration for MAE). Results equal explicit accumulation up to
@@ -50,6 +53,9 @@ class DesignStatistics:
     video_sum_x: RowArray  # (n_videos, 83)  sum over the video's frames of (x - a)
     video_sum_y: RowArray  # (n_videos, 1434) sum over the video's frames of (y - b)
     neutral_design: dict = field(default_factory=dict)  # neutral method -> (n_videos, 83) mean design row of its frames
+    # model/eiv=instruments: the second detector's AU columns; the statistics are then of the augmented design
+    # [X | Z] (166 columns: FULL_DESIGN, then the same design of the instrument AUs: augmented_index)
+    instruments: tuple[str, ...] = ()
 
     @property
     def x_shift(self) -> np.ndarray:
@@ -222,6 +228,8 @@ def accumulate_design(
     fold: np.ndarray,
     n_splits: int,
     mesh_chunks,
+    instrument_au: np.ndarray | None = None,
+    instruments: tuple[str, ...] = (),
 ) -> DesignStatistics:
     """Pass A over ``mesh_chunks`` (iterable of ``(rows, Y)``, ``Y`` float64 (m, 1434), may be overwritten).
 
@@ -233,14 +241,19 @@ def accumulate_design(
         Video of each frame, 0..n_videos-1.
     fold : ndarray (n,) int
         Cross-validation fold of each frame (all frames of a video in one fold).
+    instrument_au : ndarray (n, 20), optional
+        The second detector's AUs (``model/eiv=instruments``): the statistics are then of the augmented design
+        ``[X | Z]`` (:func:`augmented_design`, 166 columns).
+    instruments : tuple of str
+        The names of ``instrument_au``'s columns (:func:`aumesh.core.schema.instrument_columns`), recorded.
     """
-    p, q, K = len(FULL_DESIGN), N_TARGETS, n_splits
+    p, q, K = len(FULL_DESIGN) * (1 if instrument_au is None else 2), N_TARGETS, n_splits
     video_sum_x = np.zeros((n_videos, p))
     video_sum_y = np.zeros((n_videos, q))
     sums = DesignSums(p, q, K)
     a = b = None
     for rows, Y in mesh_chunks:
-        X = design_matrix(au[rows], pose[rows], True, True)
+        X = augmented_design(au[rows], pose[rows], None if instrument_au is None else instrument_au[rows])
         if a is None:  # one provisional shift for every fold, so fold statistics add and subtract
             a, b = X.mean(axis=0), Y.mean(axis=0)
         X -= a
@@ -259,7 +272,30 @@ def accumulate_design(
         video_count=np.bincount(video_index, minlength=n_videos),
         video_sum_x=video_sum_x,
         video_sum_y=video_sum_y,
+        instruments=() if instrument_au is None else tuple(instruments),
     )
+
+
+def augmented_design(au: np.ndarray, pose: np.ndarray, instrument_au: np.ndarray | None) -> np.ndarray:
+    """The full design of ``au`` (m, 20) and ``pose`` (m, 3), and with instruments (``instrument_au`` (m, 20), the
+    second detector's AUs: ``model/eiv=instruments``) the augmented design ``[X | Z]`` (m, 166): ``Z`` the same design
+    of the instrument AUs with the same pose (pose instruments itself, pose x AU is instrumented by pose x instrument
+    AU; docs/method.md eq. 7)."""
+    X = design_matrix(au, pose, True, True)
+    if instrument_au is None:
+        return X
+    return np.hstack([X, design_matrix(instrument_au, pose, True, True)])
+
+
+def augmented_index(columns: list[str]) -> np.ndarray:
+    """Indices into the augmented design ``[X | Z]`` (``FULL_DESIGN`` and then its instrument copy) of a configuration's
+    columns and their instruments: ``[idx, 83 + idx]`` (docs/method.md eq. 7).
+
+    ``Z = design_matrix(instrument AUs, pose, ...)`` of the same feature set, so an AU is instrumented by the second
+    detector's reading of it, a pose angle by itself and pose x AU by pose x instrument AU: just identified.
+    """
+    idx = np.array([FULL_DESIGN.index(c) for c in columns])
+    return np.r_[idx, len(FULL_DESIGN) + idx]
 
 
 def subset(stats: CrossProducts, columns: np.ndarray) -> CrossProducts:
@@ -421,7 +457,29 @@ def fold_configuration_statistics(
         return neutral_subtracted(sub, moments), disp
     if target == "within_neutral":
         return disp, disp
-    # within: each video's own means, d_v = w_v / c_v, e_v = u_v / c_v
+    return fold_within_statistics(design, fold, idx, video_block, videos, sub), disp
+
+
+def fold_within_statistics(
+    design: DesignStatistics,
+    fold: int,
+    idx: np.ndarray,
+    video_block: int = 256,
+    videos: np.ndarray | None = None,
+    sub: CrossProducts | None = None,
+) -> CrossProducts:
+    """Fold ``fold``'s within-video statistics (design and mesh demeaned by each video's own means) of the design
+    columns ``idx`` (indices into the statistics' columns: :data:`FULL_DESIGN`'s, or :func:`augmented_index`'s of the
+    augmented design ``[X | Z]``); the ``within`` target's statistics (:func:`fold_configuration_statistics`).
+
+    The fold's videos are demeaned by their own means, so the folds' statistics add: training is total - fold.
+    ``videos`` (the fold's) and ``sub`` (``subset(design.folds[fold], idx)``) are reused when given.
+    """
+    if videos is None:
+        videos = np.flatnonzero(design.video_fold == fold)
+    if sub is None:
+        sub = subset(design.folds[fold], idx)
+    # each video's own means, d_v = w_v / c_v, e_v = u_v / c_v
     own = _moments(
         design,
         idx,
@@ -430,7 +488,7 @@ def fold_configuration_statistics(
         lambda v: design.video_sum_x[v][:, idx] / _count(design, v),
         video_block,
     )
-    return displacement(sub, own), disp
+    return displacement(sub, own)
 
 
 def target_offsets(

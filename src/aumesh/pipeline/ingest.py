@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -29,6 +30,7 @@ from pathlib import Path
 from aumesh.config import Config
 from aumesh.core.errors import TableError
 from aumesh.core.io import absolute, atomic_directory, atomic_write_json, recorded
+from aumesh.core.schema import instrument_columns
 from aumesh.data import ingest, readers, units
 from aumesh.pipeline import compute
 
@@ -43,8 +45,11 @@ TASK_ROWS = 32768
 CSV_BYTES_PER_ROW = 20_000
 
 
-def find_sources(data_dir: Path, pattern: str, mesh_npy_pattern: str) -> list[readers.Source]:
-    """Every table under ``data_dir`` that ``data.tables`` matches (CSV, gzipped CSV, parquet), sorted by path."""
+def find_sources(
+    data_dir: Path, pattern: str, mesh_npy_pattern: str, instruments: Sequence[str] = ()
+) -> list[readers.Source]:
+    """Every table under ``data_dir`` that ``data.tables`` matches (CSV, gzipped CSV, parquet), sorted by path; each
+    must hold the ``instruments`` columns (``model.eiv.instrument_aus``), which the ingested tables then carry."""
     if not data_dir.is_dir():
         raise TableError(
             f"{data_dir}: the data folder does not exist (paths.data_dir). Fix: `dvc pull data.dvc` for the demo tables, "
@@ -56,7 +61,7 @@ def find_sources(data_dir: Path, pattern: str, mesh_npy_pattern: str) -> list[re
             f"{data_dir}/{pattern}: no frame tables found (empty input; CSV, .csv.gz or parquet). Fix: copy py-feat's "
             f"CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull`."
         )
-    return [readers.open_source(p, mesh_npy_pattern) for p in paths]
+    return [readers.open_source(p, mesh_npy_pattern, instruments) for p in paths]
 
 
 def _span_rows(span: readers.Span) -> int:
@@ -100,7 +105,8 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
     """Ingest ``paths.data_dir`` into ``out_dir`` (replaced atomically). Returns the manifest."""
     data_dir, out_dir = Path(cfg.paths.data_dir), Path(out_dir)
     # the tasks get absolute paths (a cluster's workers run elsewhere); the manifest records them as given
-    sources = [s.absolute() for s in find_sources(data_dir, cfg.data.tables, cfg.data.mesh_npy)]
+    instruments = instrument_columns(cfg.model.eiv.instrument_aus)  # () unless model/eiv=instruments
+    sources = [s.absolute() for s in find_sources(data_dir, cfg.data.tables, cfg.data.mesh_npy, instruments)]
     how, mesh_units = cfg.data.face_selection, cfg.data.mesh_units
     with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=sources[0].path, write=tmp):
         parquet = [s for s in sources if s.kind == "parquet"]

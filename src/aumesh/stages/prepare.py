@@ -13,13 +13,16 @@ log = logging.getLogger(__name__)
 def main(cfg: Config) -> dict:
     """Prepare the ingested tables into ``paths.prepared_dir``; returns ``summary.json``'s record (counts per
     filter, frames and videos kept)."""
+    from aumesh.core.schema import instrument_columns
     from aumesh.data import tables
     from aumesh.pipeline import ingest
     from aumesh.pipeline import prepare as prep
 
     start_stage("prepare", cfg)
     manifest = ingest.load_manifest(cfg.paths.ingested_dir)
-    found = tables.check_tables(manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric)
+    found = tables.check_tables(
+        manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric, instrument_columns(cfg.model.eiv.instrument_aus)
+    )
     if found:  # keys naming a column, before the passes (the first table's columns: the contract makes them alike)
         import pyarrow.parquet as pq
 

@@ -348,7 +348,7 @@ def cross_validate_and_fit_from_statistics(
     final = final_fit(prepared, cfg, stats, used.final)
     if corrected is not None:  # written beside the corrected fields: the card's fit of the same rows
         final.uncorrected_coef = fits.final.coef_.copy()
-        cv.eiv = eiv_record(cfg)
+        cv.eiv = eiv_record(cfg, stats)
     cv.au_reliability = au_field_reliability(used.alone)
     cv.n_aus_facs_pass = facs_passes(prepared, final)
     cv.au_identification = final.identification = identification(cfg, stats)

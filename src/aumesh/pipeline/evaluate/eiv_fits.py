@@ -66,9 +66,37 @@ def corrected_fits(cfg: Config, stats: FoldStatistics) -> Fits:
     return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
 
 
-def eiv_record(cfg: Config) -> dict | None:
+def instrumental_fits(cfg: Config, stats: FoldStatistics) -> Fits:
+    """Within two-stage least squares (``model/eiv=instruments``; docs/method.md eq. 7) for every training set of
+    ``stats``: each from the within-video statistics of the augmented design ``[X | Z]`` (``stats.instruments``,
+    training = total - fold), ``B = (Z'X)^-1 Z'Y`` (:func:`aumesh.model.eiv.instrumental_fit`)."""
+    if stats.instruments is None:
+        raise ValueError(
+            "instrumental_fits: the statistics carry no instruments (accumulate with model/eiv=instruments)"
+        )
+    p = len(cfg.features.columns)
+    with one_blas_thread():
+        models = [eiv.instrumental_fit(s, p) for s in training_sets(stats.instruments)]
+    k = len(stats.instruments)
+    return Fits(folds=models[:k], final=models[k], alone=models[k + 1 :])
+
+
+def first_stage(cfg: Config, stats: FoldStatistics) -> dict[str, dict[str, float]]:
+    """Per AU, the first stage's partial R² and F over every frame (:func:`aumesh.model.eiv.first_stage_strength`):
+    how much of the AU's within-video variance the instruments explain given the other instruments (weak below F ~10).
+    """
+    if stats.instruments is None:
+        raise ValueError("first_stage: the statistics carry no instruments (accumulate with model/eiv=instruments)")
+    total = training_sets(stats.instruments)[len(stats.instruments)]
+    p = len(cfg.features.columns)
+    cxx = total.cxx
+    return eiv.first_stage_strength(cxx[p:, p:], cxx[p:, :p], cxx[:p, :p], int(total.n))
+
+
+def eiv_record(cfg: Config, stats: FoldStatistics | None = None) -> dict | None:
     """What a corrected run's card and metrics record of its correction (None for ``model/eiv=none``): the method,
-    and for ``corrected`` the floor, the covariance file (repo-relative as configured) and its sha256."""
+    and for ``corrected`` the floor, the covariance file (repo-relative as configured) and its sha256; for
+    ``instruments`` the column pattern and, given ``stats``, the first stage's strength per AU (:func:`first_stage`)."""
     import hashlib
 
     eiv_cfg = cfg.model.eiv
@@ -84,6 +112,8 @@ def eiv_record(cfg: Config) -> dict | None:
         }
     else:
         record["instrument_aus"] = eiv_cfg.instrument_aus
+        if stats is not None and stats.instruments is not None:
+            record["first_stage"] = first_stage(cfg, stats)
     return record
 
 
@@ -94,4 +124,6 @@ def eiv_fits(cfg: Config, stats: FoldStatistics) -> Fits | None:
         return None
     if method == "corrected":
         return corrected_fits(cfg, stats)
+    if method == "instruments":
+        return instrumental_fits(cfg, stats)
     raise NotImplementedError(f"model.eiv.method={method!r}")

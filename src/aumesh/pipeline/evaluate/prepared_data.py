@@ -9,7 +9,7 @@ The passes themselves are :mod:`aumesh.pipeline.evaluate.statistics_pass` (pass 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property, partial
 from pathlib import Path
@@ -114,6 +114,17 @@ def read_group(directory: Path, group: int) -> tuple[np.ndarray, np.ndarray, np.
         for k, name in enumerate(POSE_COLUMNS):
             pose[:, k] = column(name)
         return au, pose, column("video_index"), column("low_au")
+
+
+def read_columns(directory: Path, group: int, names: Sequence[str]) -> np.ndarray:
+    """(m, len(names)) float64: columns ``names`` of one row group of ``frames.parquet`` (the instrument AUs of
+    ``model/eiv=instruments``, :func:`aumesh.core.schema.instrument_columns`), a column at a time as
+    :func:`read_group`."""
+    with pq.ParquetFile(directory / FRAMES_FILE) as parquet:
+        out = np.empty((parquet.metadata.row_group(group).num_rows, len(names)))
+        for k, name in enumerate(names):
+            out[:, k] = parquet.read_row_group(group, columns=[name], use_threads=False).column(0).to_numpy()
+        return out
 
 
 @dataclass(frozen=True)

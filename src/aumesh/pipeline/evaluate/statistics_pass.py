@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import shutil
 import weakref
+from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from functools import partial
@@ -30,20 +31,30 @@ from aumesh.core.io import (
     scratch_directory,
     write_rows,
 )
-from aumesh.core.schema import AU_COLUMNS, N_TARGETS, POSE_COLUMNS
-from aumesh.model.features import design_matrix
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS, POSE_COLUMNS, instrument_columns
+from aumesh.model.cross_products import CrossProducts
 from aumesh.model.statistics import (
     FULL_DESIGN,
     DesignStatistics,
     DesignSums,
     VideoSumStream,
+    augmented_design,
+    augmented_index,
     fold_configuration_statistics,
+    fold_within_statistics,
     pose_moments,
     target_offsets,
     within_statistics,
 )
 from aumesh.pipeline import compute, integrity
-from aumesh.pipeline.evaluate.prepared_data import BLOCK_ROWS, Prepared, block_rows, fold_grouped_block, read_group
+from aumesh.pipeline.evaluate.prepared_data import (
+    BLOCK_ROWS,
+    Prepared,
+    block_rows,
+    fold_grouped_block,
+    read_columns,
+    read_group,
+)
 from aumesh.pipeline.evaluate.results import FoldStatistics
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
 
@@ -68,6 +79,14 @@ class DesignPart:
 VIDEO_SUMS = {"video_sum_x": len(FULL_DESIGN), "video_sum_y": N_TARGETS, "video_low_sum_x": len(FULL_DESIGN)}
 
 
+def video_sums(instruments: Sequence[str] = ()) -> dict[str, int]:
+    """:data:`VIDEO_SUMS` with the design's width: twice :data:`FULL_DESIGN`'s with instruments (the augmented design
+    ``[X | Z]``, :func:`aumesh.model.statistics.augmented_design`)."""
+    if not instruments:
+        return VIDEO_SUMS
+    return {name: 2 * width if name != "video_sum_y" else width for name, width in VIDEO_SUMS.items()}
+
+
 def _hash_block(digests: integrity.RangeDigests, meshes: NpyRowFile, file_rows: np.ndarray, Y: np.ndarray) -> None:
     """Feed the block's rows ``Y`` (file rows ``file_rows``, in the block's order) to ``digests`` in the file's order:
     a run of consecutive rows at a time, where the read put it (no copy to reorder the block)."""
@@ -86,27 +105,31 @@ def design_partition(
     scratch: Path,
     split_video: np.ndarray,
     check: integrity.StreamedCheck | None = None,
+    instruments: Sequence[str] = (),
 ) -> DesignPart:
     """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
     coordinates (shifted by ``a``, ``b``), and the per-video sums; those of videos held whole by this
     partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned.
     The checksummed blocks of ``meshes.npy`` the row group holds (``check``) are hashed from the bytes read, for the
-    driver to compare (:meth:`aumesh.pipeline.integrity.StreamedCheck.check`)."""
+    driver to compare (:meth:`aumesh.pipeline.integrity.StreamedCheck.check`). With ``instruments`` (the second
+    detector's AU columns) the design is the augmented ``[X | Z]`` (:func:`aumesh.model.statistics.augmented_design`; ``a`` of its width)."""
     g, start, stop = group
     digests = integrity.RangeDigests(check.ranges(g), check.algorithm) if check is not None else None
     au, pose, video, low = read_group(directory, g)
+    instrument_au = read_columns(directory, g, instruments) if instruments else None
     fold = video_fold[video]
-    p, q = len(FULL_DESIGN), N_TARGETS
+    widths = video_sums(instruments)
+    p, q = widths["video_sum_x"], N_TARGETS
     sums = DesignSums(p, q, n_splits)
     split: dict[int, tuple[np.ndarray, ...]] = {}
-    finished: dict[str, dict[int, np.ndarray]] = {name: {} for name in VIDEO_SUMS}  # whole videos, until written
+    finished: dict[str, dict[int, np.ndarray]] = {name: {} for name in widths}  # whole videos, until written
 
     def done(name: str):
-        k = list(VIDEO_SUMS).index(name)
+        k = list(widths).index(name)
 
         def store(v: int, total: np.ndarray, _n_rows: int) -> None:
             if split_video[v]:  # a split video without low-AU rows here adds zeros for them
-                values = split.setdefault(v, tuple(np.zeros(width) for width in VIDEO_SUMS.values()))
+                values = split.setdefault(v, tuple(np.zeros(width) for width in widths.values()))
                 values[k][:] = total
             else:
                 finished[name][v] = total
@@ -124,12 +147,12 @@ def design_partition(
     centred = np.empty(raw.shape)  # the block's rows minus b, float64 (allocated once a task, as raw)
     with ExitStack() as stack:
         meshes = stack.enter_context(NpyRowFile(directory / MESHES_FILE))
-        files = {name: stack.enter_context(NpyRowFile(scratch / f"{name}.npy", writable=True)) for name in VIDEO_SUMS}
+        files = {name: stack.enter_context(NpyRowFile(scratch / f"{name}.npy", writable=True)) for name in widths}
         for lo in range(start, stop, chunk_rows):
             rows, _, Y = fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             if digests is not None:
                 _hash_block(digests, meshes, rows + start, Y)
-            X = design_matrix(au[rows], pose[rows], True, True)
+            X = augmented_design(au[rows], pose[rows], None if instrument_au is None else instrument_au[rows])
             X -= a
             Y = np.subtract(Y, b, out=centred[: len(Y)])  # float64 (the float32 rows widen exactly)
             # a video's rows stay consecutive in the fold-grouped block (a video is in one fold): summed in place
@@ -165,7 +188,9 @@ class NeutralDesign:
         return out if dtype is None else out.astype(dtype)
 
 
-def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int, chunk_rows: int) -> DesignStatistics:
+def design_statistics(
+    prepared: Prepared, video_fold: np.ndarray, n_splits: int, chunk_rows: int, instruments: Sequence[str] = ()
+) -> DesignStatistics:
     """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration).
 
     ``video_fold`` (n_videos,) is each video's fold (:func:`aumesh.pipeline.evaluate.video_folds`). The provisional
@@ -174,19 +199,28 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     partition. The per-video sums stay on disk
     (:class:`aumesh.core.io.NpyRows`) in a scratch folder beside the prepared data, removed with the returned
     statistics.
+
+    ``instruments`` (``model/eiv=instruments``: the second detector's AU columns of ``frames.parquet``): the
+    statistics are of the augmented design ``[X | Z]`` (:func:`aumesh.model.statistics.augmented_design`), so every fold's within-video
+    ``Z'X``, ``Z'Z``, ``Z'Y`` follow exactly (:func:`aumesh.model.statistics.fold_within_statistics`); without them
+    nothing changes (the same arrays, the same bits).
     """
     n_videos = len(prepared.video_ids)
     videos = prepared.videos
     first = min(BLOCK_ROWS, prepared.n_frames)
-    head = _head(prepared, first)
-    a = design_matrix(
-        head[list(AU_COLUMNS)].to_numpy(np.float64), head[list(POSE_COLUMNS)].to_numpy(np.float64), True, True
+    instruments = tuple(instruments)
+    head = _head(prepared, first, instruments)
+    a = augmented_design(
+        head[list(AU_COLUMNS)].to_numpy(np.float64),
+        head[list(POSE_COLUMNS)].to_numpy(np.float64),
+        head[list(instruments)].to_numpy(np.float64) if instruments else None,
     ).mean(axis=0)
     assert prepared.mesh_path is not None  # load_prepared sets it
     b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
     scratch = scratch_directory(scratch_path(prepared.directory))
     try:
-        for name, width in VIDEO_SUMS.items():
+        widths = video_sums(instruments)
+        for name, width in widths.items():
             create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
         part = compute.map_reduce(
             partial(
@@ -200,6 +234,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
                 scratch=scratch,
                 split_video=videos.split,
                 check=prepared.mesh_check,
+                instruments=instruments,
             ),
             DesignPart.__add__,
             prepared.row_groups(),
@@ -208,7 +243,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
         if prepared.mesh_check is not None:  # the bytes just read are prepare's, or the stage stops before any fit
             prepared.mesh_check.check(part.digests)
         for v, values in part.split.items():
-            for name, row in zip(VIDEO_SUMS, values, strict=True):
+            for name, row in zip(widths, values, strict=True):
                 write_rows(scratch / f"{name}.npy", v, row[None])
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
@@ -219,6 +254,7 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
         video_count=videos.count,
         video_sum_x=NpyRows(scratch / "video_sum_x.npy"),
         video_sum_y=NpyRows(scratch / "video_sum_y.npy"),
+        instruments=instruments,
     )
     design.neutral_design = {  # mean design row of each video's neutral frames, per neutral method
         "low_au": NeutralDesign(NpyRows(scratch / "video_low_sum_x.npy"), videos.low_count, a),
@@ -228,10 +264,10 @@ def design_statistics(prepared: Prepared, video_fold: np.ndarray, n_splits: int,
     return design
 
 
-def _head(prepared: Prepared, n: int) -> pd.DataFrame:
-    """The first ``n`` rows of ``frames.parquet`` (AU and pose columns)."""
+def _head(prepared: Prepared, n: int, instruments: Sequence[str] = ()) -> pd.DataFrame:
+    """The first ``n`` rows of ``frames.parquet`` (AU and pose columns, and the ``instruments``)."""
     batches = pq.ParquetFile(prepared.directory / FRAMES_FILE).iter_batches(
-        batch_size=n, columns=[*AU_COLUMNS, *POSE_COLUMNS]
+        batch_size=n, columns=[*AU_COLUMNS, *POSE_COLUMNS, *instruments]
     )
     return next(batches).to_pandas().iloc[:n]
 
@@ -249,10 +285,15 @@ def accumulate(
     ``design`` (from :func:`design_statistics` with the same folds) is reused when given: then no
     pass over the meshes is needed (aumesh.model.statistics derives every configuration from it).
     """
+    instruments = instrument_columns(cfg.model.eiv.instrument_aus)  # () unless model/eiv=instruments
     if design is None:
-        design = design_statistics(prepared, video_fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows)
+        design = design_statistics(
+            prepared, video_fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows, instruments
+        )
     elif not np.array_equal(design.video_fold, video_fold):
         raise ValueError("accumulate: the design statistics were built with other folds")
+    elif design.instruments != instruments:
+        raise ValueError("accumulate: the design statistics were built with other instrument columns")
     method = cfg.preprocess.neutral.method
     # the folds' statistics are independent: at once on this machine's cores (single-threaded BLAS each: the same bits)
     per_fold = compute.local_map(
@@ -280,4 +321,13 @@ def accumulate(
         au_within=within_statistics(design, list(AU_COLUMNS)),  # the identification screen's moments, every target
         pose_mean=pose_mean,
         pose_second=pose_second,
+        instruments=instrument_statistics(design, cfg.features.columns) if instruments else None,
     )
+
+
+def instrument_statistics(design: DesignStatistics, columns: list[str]) -> list[CrossProducts]:
+    """Per fold, the within-video statistics of the augmented design ``[X | Z]`` of ``columns`` with the mesh
+    (:func:`aumesh.model.statistics.augmented_index`: the configuration's columns, then their instruments), the folds
+    at once on this machine's cores; training sets are total - fold (docs/method.md eq. 7)."""
+    idx = augmented_index(columns)
+    return compute.local_map(partial(fold_within_statistics, design, idx=idx), range(len(design.folds)))

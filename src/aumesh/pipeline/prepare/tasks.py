@@ -20,7 +20,7 @@ import pyarrow as pa
 
 from aumesh.config import Config
 from aumesh.core.io import NpyRowFile
-from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, POSE_COLUMNS, VIDEO_COLUMN, instrument_columns
 from aumesh.data import contract
 from aumesh.data.tables import Piece, check_unique_frames, iter_vertices, read_pieces_metadata
 from aumesh.geometry.align import align_to_reference, not_a_face
@@ -75,7 +75,7 @@ class Scan:
 
 def _read_meta(part: Partition, cfg: Config) -> tuple[pd.DataFrame, np.ndarray]:
     """The partition's validated metadata (every row, table order) and the table index of each row."""
-    meta = read_pieces_metadata(part, cfg.data.coerce_numeric)
+    meta = read_pieces_metadata(part, cfg.data.coerce_numeric, instrument_columns(cfg.model.eiv.instrument_aus))
     return meta, np.repeat(np.arange(len(part)), [p.n_rows for p in part])
 
 
