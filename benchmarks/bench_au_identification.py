@@ -63,7 +63,21 @@ def fit(prepared, overrides: list[str]):
     return ev.cross_validate_and_fit(prepared, cfg)
 
 
-def describe(name: str, cos: np.ndarray, screen) -> dict:
+def facs_verdicts(prepared, final) -> dict[str, str]:
+    """The card's FACS direction check (aumesh.card.directions) on a fit: AU -> pass | doubtful | fail."""
+    from aumesh.card import directions
+
+    report = directions.au_direction_report(
+        {
+            "coef": final.coef.T,
+            "input_columns": np.array(final.feature_columns),
+            "mean_aligned_mesh": prepared.reference["mean_aligned_mesh"],
+        }
+    )
+    return {au: r["verdict"] for au, r in report["aus"].items()}
+
+
+def describe(name: str, cos: np.ndarray, screen, facs: dict[str, str]) -> dict:
     below = [f"{a} {c:.2f}" for a, c in zip(AU_COLUMNS, cos, strict=True) if c < 0]
     flagged = [
         f"{a} (sigma* {screen.sigma_star[i]:.3f}, partner {screen.partner[i]}, cos {cos[i]:.2f})"
@@ -75,6 +89,8 @@ def describe(name: str, cos: np.ndarray, screen) -> dict:
         f"{name:<44} median {np.median(cos):.3f}  worst {AU_COLUMNS[worst]} {cos[worst]:.3f}  "
         f"below 0: {', '.join(below) or 'none'}\n{'':<44} flagged: {', '.join(flagged) or 'none'}"
     )
+    not_pass = [f"{a} {v} (cos {cos[i]:.2f})" for i, (a, v) in enumerate(facs.items()) if v != "pass"]
+    print(f"{'':<44} FACS check: {sum(v == 'pass' for v in facs.values())} pass; {', '.join(not_pass) or 'all pass'}")
     return {"cos": cos, "flagged": screen.flagged.copy(), "partner": list(screen.partner)}
 
 
@@ -138,7 +154,7 @@ def main() -> None:
                 (
                     "noisy: within, instruments {au}_2",
                     "noisy",
-                    [*within, "model/eiv=instruments", "model.eiv.instrument_aus={au}_2"],
+                    [*within, "model/eiv=instruments", "model.eiv.instrument_aus='{au}_2'"],
                 )
             )
         for name, which, overrides in runs:
@@ -151,7 +167,7 @@ def main() -> None:
             cos = truth.au_field_cosines(
                 final.coef, final.feature_columns, true, prepared.reference["reference_anchors"]
             )
-            results[name] = describe(name, cos, cv.au_identification)
+            results[name] = describe(name, cos, cv.au_identification, facs_verdicts(prepared, final))
     print("\nIssue 43's conditions:")
     noisy_within, ctrl = results["noisy: within"], results["control: within (no noise)"]
     negative = noisy_within["cos"] < 0
