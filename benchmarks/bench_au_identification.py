@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from aumesh import config
-from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS
+from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, instrument_columns
 from aumesh.data import tables
 from aumesh.geometry import face
 from aumesh.pipeline import evaluate as ev
@@ -53,7 +53,9 @@ def prepared_tables(spec: synth.SynthSpec, work: Path, cfg: config.Config):
     pyfeat.write_pyfeat_tables(work / "data", spec, detector="v2", fmt="csv", videos_per_file=100)
     cfg = dataclasses.replace(cfg, paths=dataclasses.replace(cfg.paths, data_dir=str(work / "data")))
     manifest = ingest.run(cfg, work / "ingested")
-    found = tables.check_tables(manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric)
+    found = tables.check_tables(
+        manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric, instrument_columns(cfg.model.eiv.instrument_aus)
+    )
     prepare.run(found, cfg, work / "prepared", ingested=manifest["counts"])
     return load_prepared(work / "prepared")
 
@@ -105,11 +107,23 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--sd", type=float, default=0.07)
     args = ap.parse_args()
-    base = config.from_dict(config.compose(["tracking.enabled=false"], config_dir=REPO / "conf"))
+    # prepared as model/eiv=instruments wants it: frames.parquet carries the second detector's AU01_2 .. AU43_2 beside
+    # the AUs (prepare reads only model.eiv.instrument_aus; every fit below reads the same prepared frames)
+    base = config.from_dict(
+        config.compose(
+            [
+                "tracking.enabled=false",
+                "preprocess.target=within",
+                "model/eiv=instruments",
+                "model.eiv.instrument_aus='{au}_2'",
+            ],
+            config_dir=REPO / "conf",
+        )
+    )
     noisy = synth.realistic_noise_spec(
         n_frames=args.frames, n_videos=args.videos, seed=args.seed, au_noise_sd=args.sd, instrument_noise_sd=args.sd
     )
-    control = dataclasses.replace(noisy, au_noise_sd=0.0, instrument_noise_sd=0.0)
+    control = dataclasses.replace(noisy, au_noise_sd=0.0)
     true = truth_of(noisy)
     sigma = au_noise.au_error_covariance(noisy, synth.frames_per_video(noisy))
     results: dict[str, dict] = {}

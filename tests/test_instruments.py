@@ -321,3 +321,12 @@ def test_stages_run_with_instruments(tmp_path, monkeypatch):
     )
     metrics = json.loads(Path(cfg.paths.metrics_file).read_text())
     assert metrics["eiv"]["method"] == "instruments" and set(metrics["eiv"]["first_stage"]) == set(AU_COLUMNS)
+
+
+def test_evaluating_instruments_on_data_prepared_without_them_is_one_line_naming_the_fix(recovery_prepared):
+    from aumesh.core.errors import ConfigError
+    from aumesh.pipeline import evaluate as ev
+
+    prepared = load_prepared(recovery_prepared / "prepared")  # prepared with model/eiv=none: no AU*_2 columns
+    with pytest.raises(ConfigError, match=r"frames.parquet: no column AU01_2, AU02_2, AU04_2 \.\.\. for model/eiv"):
+        ev.cross_validate_and_fit(prepared, default_config(**WITH_INSTRUMENTS))

@@ -209,6 +209,7 @@ def design_statistics(
     videos = prepared.videos
     first = min(BLOCK_ROWS, prepared.n_frames)
     instruments = tuple(instruments)
+    check_instrument_columns(prepared, instruments)
     head = _head(prepared, first, instruments)
     a = augmented_design(
         head[list(AU_COLUMNS)].to_numpy(np.float64),
@@ -262,6 +263,24 @@ def design_statistics(
     }
     weakref.finalize(design, shutil.rmtree, scratch, True)
     return design
+
+
+def check_instrument_columns(prepared: Prepared, instruments: Sequence[str]) -> None:
+    """The ``model/eiv=instruments`` columns are in ``frames.parquet``, or one line naming the file, the columns and
+    the fix (data prepared under another ``model.eiv.instrument_aus``: ingest and prepare carry only the configured
+    columns)."""
+    if not instruments:
+        return
+    from aumesh.core.errors import ConfigError
+
+    path = prepared.directory / FRAMES_FILE
+    missing = [c for c in instruments if c not in pq.read_schema(path).names]
+    if missing:
+        raise ConfigError(
+            f"{path}: no column {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''} for model/eiv=instruments "
+            f"({len(missing)} of {len(instruments)} missing): the data was prepared without them. Fix: rerun ingest "
+            "and prepare with the same model.eiv.instrument_aus (`dvc repro` does, or `aumesh ingest && aumesh prepare`)"
+        )
 
 
 def _head(prepared: Prepared, n: int, instruments: Sequence[str] = ()) -> pd.DataFrame:
