@@ -94,6 +94,13 @@ def test_evaluate_runs_are_named_by_what_tells_them_apart(newer_evaluate, worksp
         )
     )
     assert evaluate.evaluate_run_name(neutral) == "neutral(mean) au k=5"
+    corrected = config.from_dict(
+        config.compose(
+            ["preprocess.target=within", "model/eiv=corrected", "model.eiv.sigma_u=v.npy"],
+            config_dir=workspace / "conf",
+        )
+    )
+    assert evaluate.evaluate_run_name(corrected) == "within au_pose_interactions k=83 eiv=corrected"
 
 
 def test_promote_names_its_sweep_and_refuses_to_overrule_a_newer_evaluate_run(

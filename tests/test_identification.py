@@ -164,3 +164,51 @@ def test_the_covariance_is_checked_before_any_work_and_a_file_outside_the_valida
     with pytest.raises(ConfigError, match=r"validation/bad.npy: shape \(3, 3\)"):
         check_eiv_inputs(default_config(**within, **{"model.eiv.sigma_u": "validation/bad.npy"}))
     check_eiv_inputs(default_config())  # nothing to check without a correction
+
+
+@pytest.mark.slow
+def test_on_realistic_noisy_tables_the_screen_flags_the_reversed_field_and_the_correction_undoes_it(tmp_path):
+    """Issue 43's "Done when" at the issue's size (30,000 frames, 800 videos, detector error sd 0.07, AR(1) in time,
+    correlated across AU pairs; co-activated AUs), through prepare and evaluate, against the generator's truth.
+    benchmarks/bench_au_identification.py runs the same on py-feat CSVs and prints every field."""
+    import dataclasses
+
+    from aumesh.data import tables
+    from aumesh.pipeline import prepare
+    from aumesh.synthetic import au_noise, truth
+    from aumesh.synthetic import tables as synth
+
+    noisy = synth.realistic_noise_spec()
+    control = dataclasses.replace(noisy, au_noise_sd=0.0)
+    sigma = au_noise.au_error_covariance(noisy, synth.frames_per_video(noisy))
+    np.save(tmp_path / "sigma.npy", sigma)
+    np.save(tmp_path / "sigma15.npy", 1.5 * sigma)
+    within = {"preprocess.target": "within"}
+    cosines, screens = {}, {}
+    for name, spec in (("noisy", noisy), ("control", control)):
+        synth.write_tables(tmp_path / name / "data", spec, truth_path=tmp_path / name / "truth.npz")
+        cfg = default_config()
+        found = tables.discover(tmp_path / name / "data", cfg.data.tables, cfg.data.mesh_npy)
+        prepare.run(found, cfg, tmp_path / name / "prepared")
+        prepared = load_prepared(tmp_path / name / "prepared")
+        true = dict(np.load(tmp_path / name / "truth.npz"))
+        runs = {"within": within}
+        if name == "noisy":
+            runs |= {
+                "corrected": {**within, "model/eiv": "corrected", "model.eiv.sigma_u": str(tmp_path / "sigma.npy")},
+                "corrected15": {**within, "model/eiv": "corrected", "model.eiv.sigma_u": str(tmp_path / "sigma15.npy")},
+            }
+        for run, overrides in runs.items():
+            cv, final = _run(prepared, **overrides)
+            key = f"{name} {run}"
+            cosines[key] = truth.au_field_cosines(
+                final.coef, final.feature_columns, true, prepared.reference["reference_anchors"]
+            )
+            screens[key] = cv.au_identification
+    noisy_cos, screen = cosines["noisy within"], screens["noisy within"]
+    assert (noisy_cos < 0).any(), noisy_cos  # the problem: a co-activated AU's field comes out reversed
+    assert screen.flagged[noisy_cos < 0].all() and all(screen.partner[i] for i in np.flatnonzero(noisy_cos < 0))
+    assert 1 <= screen.flagged.sum() <= 3, screen.flagged_names()
+    assert not screens["control within"].flagged.any(), screens["control within"].flagged_names()
+    assert np.median(cosines["noisy corrected"]) >= 0.95 and cosines["noisy corrected"].min() >= 0, cosines
+    assert cosines["noisy corrected15"].min() >= 0, cosines["noisy corrected15"]

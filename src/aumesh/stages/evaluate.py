@@ -50,7 +50,8 @@ def run_evaluation(prepared: Prepared, cfg: Config, handle, params: dict, digest
 def evaluate_run_name(cfg: Config) -> str:
     """The MLflow run name of a pipeline evaluation: what tells it apart in the run list.
 
-    ``"<target> <features> k=<n_components>"`` (``neutral`` adds its neutral method), prefixed with the DVC
+    ``"<target> <features> k=<n_components>"`` (``neutral`` adds its neutral method, ``model/eiv`` its correction:
+    ``" eiv=corrected"``), prefixed with the DVC
     experiment's name when DVC runs the stage as an experiment (``DVC_EXP_NAME``, set by ``dvc exp run``
     and queued runs), e.g. ``"bumpy-tods: absolute au_pose_interactions k=40"``.
     """
@@ -58,6 +59,8 @@ def evaluate_run_name(cfg: Config) -> str:
     if target == "neutral":
         target += f"({cfg.preprocess.neutral.method})"
     name = f"{target} {cfg.features.name} k={cfg.model.n_components}"
+    if cfg.model.eiv.method != "none":  # a corrected fit is another model of the same rows: say which
+        name += f" eiv={cfg.model.eiv.method}"
     exp = os.environ.get("DVC_EXP_NAME")
     return f"{exp}: {name}" if exp else name
 
