@@ -88,8 +88,8 @@ def test_a_corrected_run_corrects_the_au_fields_and_keeps_the_pose_rows_close(pr
 @pytest.mark.parametrize(
     "overrides,words",
     [
-        ({"model/eiv": "corrected"}, "needs the AU detector's within-video error covariance"),
-        ({"model/eiv": "corrected", "model.eiv.sigma_u": "x.npy"}, "preprocess.target=within"),
+        ({"model/eiv": "corrected", "model.eiv.sigma_u": "''"}, "needs the AU detector's within-video error covariance"),
+        ({"model/eiv": "corrected"}, "preprocess.target=within"),
         ({"model/eiv": "instruments", "model.eiv.instrument_aus": "AU_2", "preprocess.target": "within"}, "{au}"),
         ({"model.eiv.sigma_u": "x.npy"}, "is given but model.eiv.method='none': choose model/eiv=corrected"),
         ({"model.identification.sigma_step": "0.5"}, "need 0 < step <= max"),
@@ -99,6 +99,13 @@ def test_contradicting_or_missing_eiv_options_are_refused_naming_the_key(overrid
     with pytest.raises(ConfigError, match="model") as err:
         default_config(**overrides)
     assert words in str(err.value)
+
+
+def test_the_corrected_option_reads_the_validation_folders_covariance_by_default():
+    cfg = default_config(**{"model/eiv": "corrected", "preprocess.target": "within"})
+    assert cfg.model.eiv.sigma_u == f"{cfg.paths.validation_dir}/sigma_u.npy"
+    moved = default_config(**{"model/eiv": "corrected", "preprocess.target": "within", "paths.validation_dir": "v2"})
+    assert moved.model.eiv.sigma_u == "v2/sigma_u.npy"  # one source of truth for the folder
 
 
 def test_a_params_file_edited_by_hand_with_another_methods_key_is_refused():
