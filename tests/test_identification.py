@@ -88,7 +88,10 @@ def test_a_corrected_run_corrects_the_au_fields_and_keeps_the_pose_rows_close(pr
 @pytest.mark.parametrize(
     "overrides,words",
     [
-        ({"model/eiv": "corrected", "model.eiv.sigma_u": "''"}, "needs the AU detector's within-video error covariance"),
+        (
+            {"model/eiv": "corrected", "model.eiv.sigma_u": "''"},
+            "needs the AU detector's within-video error covariance",
+        ),
         ({"model/eiv": "corrected"}, "preprocess.target=within"),
         ({"model/eiv": "instruments", "model.eiv.instrument_aus": "AU_2", "preprocess.target": "within"}, "{au}"),
         ({"model.eiv.sigma_u": "x.npy"}, "is given but model.eiv.method='none': choose model/eiv=corrected"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import shutil
 from collections.abc import Iterator
 from functools import partial
@@ -309,3 +310,33 @@ def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_serve
     record = promote.promote(parent, workspace, cfg, model_name="aumesh-server-test")
     champion = registry.model_version_by_alias("aumesh-server-test", "champion", cfg)
     assert champion["run_id"] == record["run_id"] and champion["source"].startswith("mlflow-artifacts:")
+
+
+def test_a_sweep_over_the_correction_fits_each_and_promotion_does_not_rank_them_on_r2(tmp_path_factory, capsys):
+    """``aumesh sweep -m model/eiv=none,corrected``: one statistics pass, two models (the cached result of the
+    uncorrected fit is not reused for the corrected one), and promotion picks the corrected run, saying why."""
+    import numpy as np
+
+    from aumesh import cli
+    from aumesh.experiments import ranking
+
+    with workspace_with_store(tmp_path_factory, "eiv-sweep") as ws:
+        (ws / "validation").mkdir()
+        np.save(ws / "validation" / "sigma_u.npy", 0.03**2 * np.eye(20))
+        assert cli.main(["sweep", "-m", "model/eiv=none,corrected", "preprocess.target=within"]) == 0
+        parent = queries.latest_parent_run({})
+        children = queries.list_child_runs(parent, {})
+        assert sorted(children["params.model.eiv.method"]) == ["corrected", "none"]
+        assert set(children["status"]) == {"FINISHED"}
+        client = mlflow_store.get_client({})
+        tags = {r: client.get_run(r).data.tags for r in children["run_id"]}
+        assert sorted(t["aumesh.cache.statistics"] for t in tags.values()) == ["computed", "reused"]
+        assert not any("aumesh.cache.result" in t for t in tags.values())
+        r2 = dict(zip(children["params.model.eiv.method"], children["metrics.r2_mean"], strict=True))
+        assert r2["corrected"] != r2["none"]
+        choice = ranking.choose(ranking.candidates_from_frame(children))
+        corrected = children[children["params.model.eiv.method"] == "corrected"]["run_id"].iloc[0]
+        assert choice.run_id == corrected and "R² does not compare corrected and uncorrected runs" in choice.compared
+        assert cli.main(["promote"]) == 0
+        record = json.loads((ws / "promotion.json").read_text())["promoted"]
+        assert record["run_id"] == corrected and "model.eiv" in record["compared"]

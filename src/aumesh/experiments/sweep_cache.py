@@ -221,10 +221,17 @@ class SweepCache:
         self, prepared: Prepared, pid: str, cfg: Config, stats: FoldStatistics
     ) -> tuple[CVResult, FinalModel, bool]:
         """CV result and final fit of *cfg*; reused when only a clipped ``model.n_components`` differs
-        (e.g. 40 and 83 on a 23-feature design are the same 23-component model)."""
+        (e.g. 40 and 83 on a 23-feature design are the same 23-component model), never across ``model.eiv`` or
+        ``model.identification`` settings."""
         from aumesh.pipeline import evaluate as ev
 
-        key = statistics_key(pid, cfg) + (ev.effective_n_components(cfg), bool(cfg.model.scale))
+        # the detector-noise correction and the screen's settings make another model/result of the same statistics
+        key = statistics_key(pid, cfg) + (
+            ev.effective_n_components(cfg),
+            bool(cfg.model.scale),
+            cfg.model.eiv,
+            cfg.model.identification,
+        )
         if key in self.results:
             self.results.move_to_end(key)
             return (*self.results[key], True)
