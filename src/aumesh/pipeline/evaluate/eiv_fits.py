@@ -82,9 +82,9 @@ def instrumental_fits(cfg: Config, stats: FoldStatistics) -> Fits:
 
 
 def first_stage(cfg: Config, stats: FoldStatistics) -> dict[str, dict[str, float]]:
-    """Per AU, the first stage's partial R² and F over every frame (:func:`aumesh.model.eiv.first_stage_strength`):
-    how much of the AU's within-video variance the instruments explain given the other instruments (weak below F ~10).
-    """
+    """Per AU, the first stage's R² and F over every frame (:func:`aumesh.model.eiv.first_stage_strength`): how much
+    of the AU's within-video variance the instruments (all of them, pose and pose x AU included) explain; weak below
+    F ~10."""
     if stats.instruments is None:
         raise ValueError("first_stage: the statistics carry no instruments (accumulate with model/eiv=instruments)")
     total = training_sets(stats.instruments)[len(stats.instruments)]
