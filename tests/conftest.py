@@ -630,6 +630,7 @@ def dvc_workspace(tmp_path_factory):
     for name in ("dvc.yaml", "params.yaml", "promotion.json", ".gitignore"):
         shutil.copy(REPO / name, ws / name)
     shutil.copytree(REPO / "conf", ws / "conf")
+    shutil.copytree(REPO / "validation", ws / "validation")  # evaluate's dep (paths.validation_dir), as in a clone
     shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     for args in (
         ["git", "init", "-q"],

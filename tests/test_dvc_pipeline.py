@@ -36,6 +36,7 @@ def workspace(tmp_path, fixed_conf):
     for name in ("dvc.yaml", ".gitignore"):
         shutil.copy(REPO / name, ws / name)
     shutil.copytree(fixed_conf, ws / "conf")
+    shutil.copytree(REPO / "validation", ws / "validation")  # evaluate's dep (paths.validation_dir), as in a clone
     write_params(compose(config_dir=ws / "conf"), ws / "params.yaml")
     (ws / "promotion.json").write_text('{"promoted": null}\n')
     shutil.copytree(REPO / "src", ws / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
