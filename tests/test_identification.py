@@ -222,3 +222,26 @@ def test_on_realistic_noisy_tables_the_screen_flags_the_reversed_field_and_the_c
     assert not screens["control within"].flagged.any(), screens["control within"].flagged_names()
     assert np.median(cosines["noisy corrected"]) >= 0.95 and cosines["noisy corrected"].min() >= 0, cosines
     assert cosines["noisy corrected15"].min() >= 0, cosines["noisy corrected15"]
+
+
+def test_predict_mesh_warns_once_when_a_flagged_au_is_driven_and_not_for_its_group_partner_alone():
+    import warnings
+
+    import aumesh
+    from aumesh.model.input_checks import InputRangeWarning
+    from aumesh.synthetic.truth import synthetic_release_arrays
+
+    arrays = synthetic_release_arrays()
+    flagged = np.isin(AU_COLUMNS, ["AU24"])
+    arrays |= {
+        "au_identification_sigma_star": np.where(flagged, 0.06, np.nan),
+        "au_identification_flagged": flagged,
+        "au_identification_partner": np.array(["AU26" if a == "AU24" else "AU12" for a in AU_COLUMNS]),
+        "au_identification_flag_below": np.array(0.1),
+    }
+    with pytest.warns(InputRangeWarning, match=r"AU24 \(sigma\* 0.060; drive AU24\+AU26\) given, but not identified"):
+        aumesh.predict_mesh(arrays, {"AU24": 0.5})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputRangeWarning)
+        aumesh.predict_mesh(arrays, {"AU26": 0.5, "AU12": 1.0})  # unflagged AUs: no word
+        aumesh.predict_mesh({k: v for k, v in arrays.items() if not k.startswith("au_ident")}, {"AU24": 0.5})

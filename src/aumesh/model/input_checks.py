@@ -43,8 +43,9 @@ _AU_SCALE_SLACK = 1e-6  # float32 rounding of a 1.0
 class InputRangeWarning(UserWarning):
     """Input the model takes but was not trained on (pose beyond the training range, an AU above 1 given as
     numbers, an AU above its training max, an AU the training data never expressed given, a table from another
-    detector than the release's); one line a call, naming the columns, the values and the training range. The mesh
-    there is an extrapolation."""
+    detector than the release's), or an AU whose field the data does not identify (the release's identification
+    screen); one line a call, naming the columns, the values and the training range. The mesh there is an
+    extrapolation, or rests on a field that may point the wrong way."""
 
 
 def input_rows(
@@ -368,10 +369,33 @@ def _warn_beyond_training(
         scale,
         None if found is None or not face.any() else support.beyond_training(au, au_names, face, found),
         _pose_beyond(pose, face, release),
+        _unidentified_given(au, au_names, face, release),
     ]
     message = "; ".join(p for p in parts if p)
     if message:
         _warn(message)
+
+
+def _unidentified_given(au: np.ndarray, au_names: list[str], face: np.ndarray, release: Release) -> str | None:
+    """The phrase for AUs given (non-zero in a face row) that the release's identification screen flags
+    (``au_identification_flagged``, docs/method.md eq. 6): their fields may point the wrong way under detector noise;
+    their partner group is what the data identifies. None for a release without the screen, or none given."""
+    if "au_identification_flagged" not in release or not face.any():
+        return None
+    flagged = np.asarray(release["au_identification_flagged"], dtype=bool)
+    partners = [str(p) for p in np.asarray(release["au_identification_partner"]).tolist()]
+    sigma = np.asarray(release["au_identification_sigma_star"], dtype=np.float64)
+    given = np.flatnonzero(flagged & (np.abs(np.nan_to_num(au[face])) > 0).any(axis=0))
+    if not len(given):
+        return None
+    threshold = float(np.asarray(release["au_identification_flag_below"]))
+    named = ", ".join(
+        f"{au_names[k]} (sigma* {sigma[k]:.3f}; drive {'+'.join(sorted((au_names[k], partners[k])))})" for k in given
+    )
+    return (
+        f"{named} given, but not identified under detector noise (the release's identification screen: sigma* < "
+        f"{threshold:g}): the field may point the wrong way; its partner group is what the data identifies"
+    )
 
 
 @contextmanager
