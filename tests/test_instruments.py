@@ -24,8 +24,9 @@ from aumesh.model.features import design_matrix
 from aumesh.model.statistics import FULL_DESIGN, accumulate_design, augmented_index, fold_within_statistics
 from aumesh.pipeline import compute, ingest, prepare
 from aumesh.pipeline.evaluate import video_folds
-from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, first_stage, instrumental_fits, training_sets
+from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, first_stage, instrumental_fits
 from aumesh.pipeline.evaluate.prepared_data import load_prepared
+from aumesh.pipeline.evaluate.results import training_sets
 from aumesh.pipeline.evaluate.statistics_pass import accumulate
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from aumesh.synthetic.tables import SynthSpec, write_tables

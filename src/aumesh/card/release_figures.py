@@ -59,7 +59,8 @@ def _mark(ax, au: str, unidentified: Mapping[str, str] | None) -> None:
 
 
 def _note(unidentified: Mapping[str, str] | None) -> str:
-    return f"; {UNIDENTIFIED_NOTE}" if unidentified else ""
+    """The suptitle's second line when an AU is flagged (empty otherwise)."""
+    return f"\n{UNIDENTIFIED_NOTE}" if unidentified else ""
 
 
 def effect_map_scales(disp: np.ndarray, scale: float) -> np.ndarray:
@@ -112,7 +113,7 @@ def fig_solid_panels(
     fig.suptitle(
         f"AU at intensity 1, pose 0 (frontal); red tint = displacement magnitude; displacements x{factor:g}"
         + ("; grey = AU not drawn (unsupported by the data)" if not supported.all() else "")
-        + _note(unidentified).replace("; ", "\n", 1),
+        + _note(unidentified),
         fontsize=12,
     )
     fig.subplots_adjust(
@@ -148,9 +149,7 @@ def fig_neutral_vs_activated(
         _mark(axes[1, j], au, unidentified)
     how = "true scale (x1)" if factor == 1 else f"displacements exaggerated x{factor:g} for visibility"
     shown = {au: v for au, v in (unidentified or {}).items() if au in aus}
-    fig.suptitle(
-        f"Neutral vs activated (intensity 1, pose 0); {how}" + _note(shown).replace("; ", "\n", 1), fontsize=12
-    )
+    fig.suptitle(f"Neutral vs activated (intensity 1, pose 0); {how}" + _note(shown), fontsize=12)
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.88, wspace=0.02, hspace=0.1)
     return fig
 
@@ -197,7 +196,7 @@ def fig_compare_overlay(
         _mark(ax, au, unidentified)
     fig.suptitle(
         f"Neutral (grey) vs activated (blue), arrows = displacement (>= 25% of the AU's max); x{factor:g}"
-        + _note(unidentified).replace("; ", "\n", 1),
+        + _note(unidentified),
         fontsize=12,
     )
     fig.subplots_adjust(
@@ -242,8 +241,7 @@ def fig_effect_maps(
         label="|displacement| at intensity 1 / the panel's max (in its title: release units, px for real data)",
     )
     fig.suptitle(
-        "AU effect maps: displacement magnitude per vertex (each AU on its own colour scale)"
-        + _note(unidentified).replace("; ", "\n", 1),
+        "AU effect maps: displacement magnitude per vertex (each AU on its own colour scale)" + _note(unidentified),
         fontsize=12,
     )
     return fig

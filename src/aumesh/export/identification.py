@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from aumesh.core.schema import AU_COLUMNS
+from aumesh.model.eiv import partner_group
 
 KEYS = (
     "au_identification_sigma_star",
@@ -67,8 +68,9 @@ class AuIdentification:
         return tuple(sorted((au, self.partner[au])))  # type: ignore[return-value]
 
     def group_name(self, au: str) -> str:
-        """``"AU09+AU10"``: the name the card's ``au_identification`` gives the group (``'+'.join(sorted(...))``)."""
-        return "+".join(self.group(au))
+        """``"AU09+AU10"``: the name the card's ``au_identification`` gives the group
+        (:func:`aumesh.model.eiv.partner_group`)."""
+        return partner_group(au, self.partner[au])
 
     def groups(self) -> dict[str, tuple[str, str]]:
         """The flagged AUs' partner groups, each once (two AUs flagged with each other share one): name -> members."""

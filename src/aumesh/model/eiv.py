@@ -41,6 +41,7 @@ __all__ = [
     "instrumental_coef",
     "instrumental_fit",
     "load_sigma_u",
+    "partner_group",
     "screen_grid",
 ]
 
@@ -149,7 +150,7 @@ class IdentificationScreen:
                 "sigma_star": None if np.isnan(s) else round(float(s), 6),
                 "flagged": bool(self.flagged[i]),
                 "partner": self.partner[i],
-                "group": f"{'+'.join(sorted([name, self.partner[i]]))}",
+                "group": partner_group(name, self.partner[i]),
                 "group_sigma_star": None if np.isnan(g) else round(float(g), 6),
             }
         return out
@@ -162,6 +163,11 @@ class IdentificationScreen:
             "au_identification_partner": np.array(self.partner, dtype=str),
             "au_identification_flag_below": np.array(self.flag_below, dtype=np.float64),
         }
+
+
+def partner_group(au: str, partner: str) -> str:
+    """The name of an AU's partner group, both AUs moved together (``"AU09+AU10"``): sorted, so a pair is one name."""
+    return "+".join(sorted((au, partner)))
 
 
 def screen_grid(sigma_step: float, sigma_max: float) -> np.ndarray:
@@ -473,7 +479,7 @@ def corrected_fit(stats: CrossProducts, sigma_design: np.ndarray, floor: float) 
     """
     cxx, cxy = stats.cxx, stats.cxy
     coef = floored_corrected_coef(cxx, cxy, stats.n * np.asarray(sigma_design, dtype=np.float64), floor).T
-    return _fit(stats, coef, _least_squares(cxx, cxy).T, "corrected")
+    return _fit(stats.x_mean, stats.y_mean, int(stats.n), coef, _least_squares(cxx, cxy).T, "corrected")
 
 
 def instrumental_fit(stats: CrossProducts, p: int) -> EivFit:
@@ -481,11 +487,12 @@ def instrumental_fit(stats: CrossProducts, p: int) -> EivFit:
     instrument columns) with the mesh; the design's own statistics are the first ``p`` columns."""
     cxx, cxy = stats.cxx, stats.cxy
     coef = instrumental_coef(cxx[p:, :p], cxy[p:]).T
-    x_mean, y_mean = stats.x_mean[:p], stats.y_mean
     uncorrected = _least_squares(cxx[:p, :p], cxy[:p]).T
-    return EivFit(coef, y_mean - coef @ x_mean, x_mean, y_mean, int(stats.n), "instruments", uncorrected)
+    return _fit(stats.x_mean[:p], stats.y_mean, int(stats.n), coef, uncorrected, "instruments")
 
 
-def _fit(stats: CrossProducts, coef: np.ndarray, uncorrected: np.ndarray, method: str) -> EivFit:
-    x_mean, y_mean = stats.x_mean, stats.y_mean
-    return EivFit(coef, y_mean - coef @ x_mean, x_mean, y_mean, int(stats.n), method, uncorrected)
+def _fit(
+    x_mean: np.ndarray, y_mean: np.ndarray, n: int, coef: np.ndarray, uncorrected: np.ndarray, method: str
+) -> EivFit:
+    """An :class:`EivFit` of ``coef`` (q, p) with the intercept that makes it predict raw inputs."""
+    return EivFit(coef, y_mean - coef @ x_mean, x_mean, y_mean, n, method, uncorrected)

@@ -30,6 +30,13 @@ def load_npz(path: str | Path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+def _input_rows(coef: np.ndarray, feature_columns: list[str]) -> np.ndarray:
+    """The 23 ``input_columns`` rows (AU + pose) of ``coef`` (1434, p), by name; a design without pose gets zero pose
+    rows (the model ignores pose), so the format never changes."""
+    by_name = {c: coef[:, j] for j, c in enumerate(feature_columns)}
+    return np.stack([by_name.get(c, np.zeros(N_TARGETS)) for c in INPUT_COLUMNS])
+
+
 def release_arrays(
     coef: np.ndarray,
     intercept: np.ndarray,
@@ -75,9 +82,7 @@ def release_arrays(
     coef = np.asarray(coef, dtype=np.float64)
     if coef.shape != (N_TARGETS, len(feature_columns)):
         raise ValueError(f"coef has shape {coef.shape}, expected ({N_TARGETS}, {len(feature_columns)})")
-    by_name = {c: coef[:, j] for j, c in enumerate(feature_columns)}
-    # rows by name; a design without pose gets zero pose rows (the model ignores pose), so the format never changes
-    coef23 = np.stack([by_name.get(c, np.zeros(N_TARGETS)) for c in INPUT_COLUMNS])
+    coef23 = _input_rows(coef, feature_columns)
     rotation, origin = canonical_frame(reference["mean_aligned_mesh"])
 
     def mesh(key: str) -> np.ndarray:
@@ -110,9 +115,7 @@ def release_arrays(
         arrays["input_columns_full"] = np.array(feature_columns)
     if uncorrected_coef is not None:
         raw = np.asarray(uncorrected_coef, dtype=np.float64)
-        by_name = {c: raw[:, j] for j, c in enumerate(feature_columns)}
-        rows = np.stack([by_name.get(c, np.zeros(N_TARGETS)) for c in INPUT_COLUMNS])
-        arrays["coef_uncorrected"] = rotate_axis_major(rows, rotation).astype(np.float32)
+        arrays["coef_uncorrected"] = rotate_axis_major(_input_rows(raw, feature_columns), rotation).astype(np.float32)
         if len(feature_columns) > len(INPUT_COLUMNS):
             arrays["coef_full_uncorrected"] = rotate_axis_major(raw.T, rotation).astype(np.float32)
     for key, value in (identification or {}).items():

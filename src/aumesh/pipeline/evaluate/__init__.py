@@ -59,7 +59,7 @@ from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, r
 from aumesh.pipeline import compute
 from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, eiv_record
 from aumesh.pipeline.evaluate.prepared_data import Prepared, block_rows, fold_grouped_block, read_group, workers_check
-from aumesh.pipeline.evaluate.results import CVResult, FinalModel, Fits, FoldStatistics
+from aumesh.pipeline.evaluate.results import CVResult, FinalModel, Fits, FoldStatistics, training_sets
 from aumesh.pipeline.evaluate.statistics_pass import accumulate
 from aumesh.pipeline.model_files import FRAME_ERROR_FILE
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
@@ -127,8 +127,7 @@ def fit_models(cfg: Config, stats: FoldStatistics) -> Fits:
     machine's cores (:func:`aumesh.pipeline.compute.local_map`; each on one BLAS thread, so each is the same to the
     bit on any number of cores)."""
     A = effective_n_components(cfg)
-    total = stats.total
-    training = [total - held_out for held_out in stats.target] + [total] + list(stats.target)
+    training = training_sets(stats.target)
     with one_blas_thread():  # held across the threads: one fit's exit does not lift another's limit
         models = compute.local_map(partial(fit, n_components=A, scale=cfg.model.scale), training)
     k = len(stats.target)

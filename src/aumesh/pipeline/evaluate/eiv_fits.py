@@ -15,19 +15,9 @@ import numpy as np
 from aumesh.config import Config
 from aumesh.core.blas import one_blas_thread
 from aumesh.model import eiv
-from aumesh.model.cross_products import CrossProducts
-from aumesh.pipeline.evaluate.results import Fits, FoldStatistics
+from aumesh.pipeline.evaluate.results import Fits, FoldStatistics, total_of, training_sets
 
 log = logging.getLogger(__name__)
-
-
-def training_sets(stats: list[CrossProducts]) -> list[CrossProducts]:
-    """The ``2 n_splits + 1`` training statistics in :class:`~aumesh.pipeline.evaluate.results.Fits`' order: each
-    fold's complement, all rows, each fold alone."""
-    total = stats[0].copy()
-    for s in stats[1:]:
-        total = total + s
-    return [total - held_out for held_out in stats] + [total] + list(stats)
 
 
 def check_eiv_inputs(cfg: Config) -> None:
@@ -87,7 +77,7 @@ def first_stage(cfg: Config, stats: FoldStatistics) -> dict[str, dict[str, float
     F ~10."""
     if stats.instruments is None:
         raise ValueError("first_stage: the statistics carry no instruments (accumulate with model/eiv=instruments)")
-    total = training_sets(stats.instruments)[len(stats.instruments)]
+    total = total_of(stats.instruments)
     p = len(cfg.features.columns)
     cxx = total.cxx
     return eiv.first_stage_strength(cxx[p:, p:], cxx[p:, :p], cxx[:p, :p], int(total.n))

@@ -20,6 +20,21 @@ from aumesh.model.kernel_pls import PLSFit
 from aumesh.model.release import release_arrays
 
 
+def total_of(parts: list[CrossProducts]) -> CrossProducts:
+    """The statistics of every fold's rows: ``parts`` added in fold order."""
+    out = parts[0].copy()
+    for s in parts[1:]:
+        out = out + s
+    return out
+
+
+def training_sets(parts: list[CrossProducts]) -> list[CrossProducts]:
+    """The ``2 n_splits + 1`` training statistics in :class:`Fits`' order: each fold's complement (total - fold), all
+    rows, each fold alone."""
+    total = total_of(parts)
+    return [total - held_out for held_out in parts] + [total] + list(parts)
+
+
 @dataclass
 class FoldStatistics:
     """Per-fold statistics of one design (features x target) over all prepared frames."""
@@ -39,10 +54,7 @@ class FoldStatistics:
 
     @property
     def total(self) -> CrossProducts:
-        out = self.target[0].copy()
-        for s in self.target[1:]:
-            out = out + s
-        return out
+        return total_of(self.target)
 
 
 @dataclass
