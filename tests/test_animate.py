@@ -174,6 +174,7 @@ def clip_vs_ingest(clip, ingested: dict) -> tuple[np.ndarray, np.ndarray]:
     return clip.mesh[clip.has_face], np.stack([ingested[(clip.video, int(f))] for f in frames])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("detector,unit", [("mp", "crop256"), ("v2", "chip")])
 def test_recorded_mesh_is_the_ingests_in_frame_pixels(tmp_path, detector, unit):
     """The clip's recorded mesh of a table in the detector's native units is the ingest's cleaned mesh of the same
@@ -215,6 +216,7 @@ def test_normalized_clip_is_converted_and_without_frame_size_kept(tmp_path):
     assert bare.mesh_units == "normalized-raw" and np.nanmax(np.abs(bare.mesh)) < 1.5  # as written
 
 
+@pytest.mark.slow
 def test_csv_gz_parquet_and_a_table_without_mesh_read_alike(table, tmp_path):
     path, df = table
     ref = read_clip(path, video=VIDEO)
@@ -471,6 +473,7 @@ window.ready = true;
 </script></body></html>"""
 
 
+@pytest.mark.slow
 def test_three_js_plays_the_clip(table, release, tmp_path, node_tools, browser):
     if not (node_tools / "three" / "examples" / "jsm" / "loaders" / "GLTFLoader.js").exists():
         pytest.skip("three.js's GLTFLoader not installed (make tools)")

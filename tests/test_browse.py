@@ -48,6 +48,7 @@ def newer_evaluate(sweeps, workspace):
         return _evaluate(workspace)
 
 
+@pytest.mark.slow
 def test_a_sweep_with_failed_configurations_exits_1_unless_allowed(sweeps, capsys):
     ids, codes = sweeps
     assert codes == [1, 0]
@@ -57,6 +58,7 @@ def test_a_sweep_with_failed_configurations_exits_1_unless_allowed(sweeps, capsy
         assert statuses == ["FAILED", "FINISHED"]
 
 
+@pytest.mark.slow
 def test_runs_sweeps_lists_every_sweep_newest_first_with_size_and_best(sweeps, capsys):
     ids, _ = sweeps
     capsys.readouterr()
@@ -79,6 +81,7 @@ def test_runs_sweeps_lists_every_sweep_newest_first_with_size_and_best(sweeps, c
     assert "model.n_components=2,25" in next(ln for ln in lines if ln.startswith(ids[0]))
 
 
+@pytest.mark.slow
 def test_evaluate_runs_are_named_by_what_tells_them_apart(newer_evaluate, workspace):
     cfg = config.load_params(workspace / "params.yaml")
     assert (cfg.preprocess.target, cfg.features.name, cfg.model.n_components) == (
@@ -103,6 +106,7 @@ def test_evaluate_runs_are_named_by_what_tells_them_apart(newer_evaluate, worksp
     assert evaluate.evaluate_run_name(corrected) == "within au_pose_interactions k=83 eiv=corrected"
 
 
+@pytest.mark.slow
 def test_promote_names_its_sweep_and_refuses_to_overrule_a_newer_evaluate_run(
     sweeps, newer_evaluate, workspace, capsys
 ):

@@ -313,6 +313,7 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stag
 
 
 # ------------------------------------------------------------------------------------------------------- fast cases
+@pytest.mark.slow
 def test_an_address_nobody_answers_is_one_line_and_exit_2_within_the_connect_timeout(tmp_path, monkeypatch, capsys):
     """The wait is the configured connect timeout, observed, not timed (a loaded machine takes longer to get there):
     the client is asked for AUMESH_COMPUTE_CONNECT_TIMEOUT's 1 s (compute.connect_timeout's default is 10 s), and
@@ -416,6 +417,7 @@ def test_the_environment_chooses_where_the_passes_run_over_params(monkeypatch):
     assert compute_settings.source_of("address", {}) == "compute.address"
 
 
+@pytest.mark.slow
 def test_tasks_get_absolute_paths_and_the_records_keep_the_workspace_relative_ones(tmp_path, monkeypatch):
     """Ingest and prepare in a workspace with relative paths (params.yaml's): the partition tasks are handed absolute
     paths (what a worker elsewhere needs), the manifest and the summary record ``data/...`` as before."""

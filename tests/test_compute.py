@@ -100,6 +100,7 @@ def test_partitions_are_balanced(split_tables, rows):
     assert max(abs(s - total / len(sizes)) for s in sizes) <= ROW_GROUP, sizes
 
 
+@pytest.mark.slow
 def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):
     """GPA on a hashed subsample (gpa_max_frames < frames), outlier cut: same outputs from 1 to 13 partitions."""
     sub = {"preprocess.alignment.gpa_max_frames": 300}
@@ -120,6 +121,7 @@ def test_prepared_data_do_not_depend_on_partitioning_or_scheduler(split_tables):
     _assert_same_prepared(one, some)
 
 
+@pytest.mark.slow
 def test_alignment_block_size_changes_no_bit(split_tables, monkeypatch):
     """Pass 2 aligns a partition's frames a block at a time (bounded temporaries): blocks of 7 frames, with a ragged
     last block in every partition, give the prepared data of one block a partition, bit for bit."""
@@ -133,6 +135,7 @@ def test_alignment_block_size_changes_no_bit(split_tables, monkeypatch):
         np.testing.assert_array_equal(np.load(whole / name), np.load(blocks / name))
 
 
+@pytest.mark.slow
 def test_outlier_threshold_and_gpa_subsample_follow_their_definitions(split_tables):
     """Threshold = numpy quantile of every pose-passing frame's residual; subsample = smallest seeded hashes."""
     k = 300
@@ -267,6 +270,7 @@ def test_low_au_thresholds_are_the_lower_quantile_of_each_video():
         np.testing.assert_array_equal(thresholds, [np.quantile(au_sum[video == v], q, method="lower") for v in videos])
 
 
+@pytest.mark.slow
 def test_low_au_frames_of_videos_split_across_partitions_follow_the_whole_set(split_tables):
     """Per-video and population low-AU frames from 13 partitions (videos cut at row groups) against numpy on the
     whole kept set: the low_au column, the per-video low-AU neutrals, the population count and mesh."""
@@ -363,6 +367,7 @@ def test_prepared_frames_store_only_the_video_ids_as_a_dictionary(split_prepared
     assert dictionary == {"video_id"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheduler", ["synchronous", "threads", "processes"])
 def test_local_schedulers_do_not_import_dask_distributed(scheduler):
     """A pass on a local scheduler leaves dask.distributed unimported (given a scheduler's name, dask imports it to
@@ -506,6 +511,7 @@ def test_map_reduce_sums_in_partition_order_holding_a_few_results_at_any_partiti
     assert most[400] <= 2 * 2 + 4 < 11, most
 
 
+@pytest.mark.slow
 def test_a_process_pool_serves_every_pass_of_an_engine():
     """The ``processes`` scheduler starts its workers once per engine, not once per pass (a fresh pool re-imports
     NumPy, pyarrow and aumesh in every worker: prepare's ~20 passes took 44 s instead of 10 s at 100k frames)."""

@@ -124,6 +124,7 @@ def test_dvc_repro_builds_the_release_then_is_up_to_date_then_follows_params_and
     assert not np.array_equal(np.load(ws / "release" / "au_to_mesh_pls.npz")["coef"], m["coef"])
 
 
+@pytest.mark.slow
 def test_dvc_links_a_stage_output_into_its_cache_without_copying_it(tmp_path):
     """The repo's ``cache.type``: DVC moves a new stage output into its cache by a link, the stage's own file
     (``Output.commit`` links only when the first cache type is ``hardlink``; with ``reflink`` first, on a

@@ -119,6 +119,7 @@ def test_the_dominant_partner_maximises_correlation_times_relative_field_size():
         assert weight[k] == pytest.approx(max(scores.values()))
 
 
+@pytest.mark.slow
 def test_the_design_error_covariance_matches_monte_carlo():
     rng = np.random.default_rng(7)
     n = 400_000

@@ -123,6 +123,7 @@ def without_mediapipe(monkeypatch):
     face._template_cached.cache_clear()
 
 
+@pytest.mark.slow
 def test_fallback_without_mediapipe_keeps_the_landmarks_and_the_projects_triangles(tpl, without_mediapipe):
     assert face.template_source() == "fallback"
     fallback = face.canonical_template()

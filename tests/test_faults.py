@@ -207,6 +207,7 @@ def run_data_stages(cwd: Path, capsys) -> tuple[int, str]:
     return 0, ""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(TABLE_FAULTS))
 def test_bad_table_exits_2_naming_file_and_column_and_keeps_outputs(workspace, case, capsys):
     inject, expected = TABLE_FAULTS[case]
@@ -385,6 +386,7 @@ def test_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
         assert tmp.name.startswith(f".release.tmp-{os.getpid()}-{host}-")
 
 
+@pytest.mark.slow
 def test_a_run_whose_process_is_gone_is_marked_killed_by_the_next_run(tmp_path, monkeypatch):
     import signal
     import subprocess
@@ -736,6 +738,7 @@ def _swap_xy(df: pd.DataFrame) -> None:
     df[x + y] = df[y + x].to_numpy()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("change", [_mirror, _swap_xy], ids=["z negated", "x and y swapped"])
 def test_mirrored_mesh_is_refused_by_prepare_before_any_fit(workspace, change, capsys):
     kept = {d: tree_digest(workspace / d) for d in ("release", PREPARED)}
@@ -947,6 +950,7 @@ def _all_stages(ws: Path, capsys) -> str:
     [("AU07",), pytest.param(("Pitch", "Yaw", "Roll"), marks=pytest.mark.slow)],
     ids=["AU07 always 0", "pose always 0"],
 )
+@pytest.mark.slow
 def test_constant_inputs_are_said_aloud_and_get_zero_coefficients(workspace, columns, capsys, caplog):
     import json
 

@@ -99,6 +99,7 @@ def test_damaged_store_is_one_line_before_any_work(workspace, how, capsys, monke
     assert code == 2 and "is damaged" in one_line(err, "runs")
 
 
+@pytest.mark.slow
 def test_busy_store_is_retried_then_one_line(workspace, capsys, monkeypatch):
     set_busy_timeout(workspace, 1.5)
     before = {d: tree_digest(workspace / d) for d in KEPT}
@@ -124,6 +125,7 @@ def test_busy_store_is_retried_then_one_line(workspace, capsys, monkeypatch):
     assert mlflow_runs(workspace).equals(runs)
 
 
+@pytest.mark.slow
 def test_busy_store_that_frees_up_is_waited_for(workspace, capsys):
     import mlflow
 
@@ -232,6 +234,7 @@ def no_absolute_path(record, where: str) -> None:
             assert not re.search(r"(^/|file:/|sqlite:////)", value), f"{where} holds an absolute path: {value}"
 
 
+@pytest.mark.slow
 def test_copied_workspace_registers_its_own_artifacts(swept_workspace, swept, capsys, caplog):
     original, parent = swept_workspace
     copy, _ = swept
@@ -254,6 +257,7 @@ def test_copied_workspace_registers_its_own_artifacts(swept_workspace, swept, ca
     assert tree_digest(original / "mlartifacts") == original_artifacts
 
 
+@pytest.mark.slow
 def test_promote_names_the_run_whose_artifacts_are_gone(swept, capsys):
     ws, parent = swept
     best = ranked(ws, parent)[0]
@@ -267,6 +271,7 @@ def test_promote_names_the_run_whose_artifacts_are_gone(swept, capsys):
     assert registry.model_version_by_alias("aumesh-au-to-mesh", "champion", {}) is None  # nothing registered
 
 
+@pytest.mark.slow
 def test_promote_skip_missing_takes_the_next_best_and_says_so(swept, capsys):
     ws, parent = swept
     best, second, _ = ranked(ws, parent)
@@ -280,6 +285,7 @@ def test_promote_skip_missing_takes_the_next_best_and_says_so(swept, capsys):
     no_absolute_path(record, "promotion.json")
 
 
+@pytest.mark.slow
 def test_interrupted_sweep_is_marked_killed_and_not_promoted_by_accident(swept, capsys, monkeypatch):
     ws, _ = swept
     real = sweep_child._evaluate_in_run

@@ -139,6 +139,7 @@ def three_conventions(tmp_path_factory):
 
 
 @pytest.mark.parametrize("name", ["image", "y_up", "generic"])
+@pytest.mark.slow
 def test_release_is_in_the_card_frame_whatever_the_tables_convention(three_conventions, name):
     _, arrays = three_conventions[name]
     _assert_card_orientation(arrays["mean_aligned_mesh"].astype(np.float64))
@@ -158,6 +159,7 @@ def test_release_is_in_the_card_frame_whatever_the_tables_convention(three_conve
 
 
 @pytest.mark.parametrize("name", ["y_up", "generic"])
+@pytest.mark.slow
 def test_same_release_and_cv_metrics_from_every_convention(three_conventions, name):
     cv_ref, ref = three_conventions["image"]
     cv, arrays = three_conventions[name]

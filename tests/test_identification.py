@@ -29,6 +29,7 @@ def _run(prepared, **overrides):
     return ev.cross_validate_and_fit(prepared, default_config(**overrides))
 
 
+@pytest.mark.slow
 def test_without_a_correction_the_fit_is_todays_and_the_screen_flags_nothing_on_noise_free_data(prepared):
     cfg = default_config()
     cv, final = ev.cross_validate_and_fit(prepared, cfg)
@@ -57,6 +58,7 @@ def test_the_screens_moments_are_the_within_targets_au_block(prepared):
     np.testing.assert_allclose(screen.cosines, ref.cosines, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_a_corrected_run_with_zero_noise_is_least_squares_and_writes_the_uncorrected_fit_beside_it(prepared, tmp_path):
     np.save(tmp_path / "zero.npy", np.zeros((20, 20)))
     base = {"preprocess.target": "within"}
@@ -72,6 +74,7 @@ def test_a_corrected_run_with_zero_noise_is_least_squares_and_writes_the_uncorre
     assert arrays["au_identification_flagged"].shape == (20,)
 
 
+@pytest.mark.slow
 def test_a_corrected_run_corrects_the_au_fields_and_keeps_the_pose_rows_close(prepared, tmp_path):
     np.save(tmp_path / "s.npy", 0.03**2 * np.eye(20))
     cv, final = _run(

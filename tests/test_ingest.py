@@ -92,6 +92,7 @@ def test_mpdetector_csv_trains_exactly_as_the_hand_cleaned_tables(clean_referenc
     _same_prepared(prepared, clean_prepared, atol=Z_ROUND_TRIP)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("detector,fmt", [("v2", "csv"), ("mp", "parquet"), ("v2", "parquet"), ("mp", "split")])
 def test_either_detector_in_any_format_matches_the_hand_cleaned_tables(
     clean_reference, pyfeat_data, detector, fmt, tmp_path
@@ -277,6 +278,7 @@ def test_a_table_with_only_the_68_point_block_is_named(pyfeat_data, tmp_path):
         _prepare(tmp_path / "data", tmp_path / "work")
 
 
+@pytest.mark.slow
 def test_a_parquet_table_is_streamed_in_batches_without_splitting_a_frames_faces(tmp_path, monkeypatch):
     # 150 frames (~190 rows, ~40 with a second face) in batches of 7 rows: ~30 batches, many frames straddling a
     # batch boundary; the check is per batch, so more rows add time, not coverage (write_clean is ~50 ms a batch)

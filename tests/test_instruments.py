@@ -147,6 +147,7 @@ def test_missing_instrument_value_is_one_line_error(small_tables):
     assert len(tables.read_pieces_metadata(tables.pieces(found))) == found.n_rows
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("detector", "fmt"), [("mp", "csv"), ("v2", "csv"), ("mp", "parquet"), ("mp", "split")])
 def test_ingest_carries_instruments_from_pyfeat_tables(tmp_path, detector, fmt):
     """py-feat's tables of either detector (CSV, parquet, the split layout): the ingested tables carry the instrument

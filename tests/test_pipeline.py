@@ -172,6 +172,7 @@ def test_same_inputs_give_identical_coefficients_twice(recovery_tables, tmp_path
     )
 
 
+@pytest.mark.slow
 def test_direction_report_on_a_trained_release_flags_a_deliberately_reversed_au(tmp_path):
     """Synthetic truth with AU12 reversed (corners pulled down): the trained release fails AU12 only."""
     import dataclasses
@@ -233,6 +234,7 @@ def test_within_target_is_ols_on_per_video_demeaned_data(recovery_prepared):
         assert cv.mae_folds[f] == pytest.approx(mean_absolute_error(Yt, pred), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_within_neutral_target_is_ols_on_both_sides_minus_the_neutral_frames(recovery_prepared):
     prepared = load_prepared(recovery_prepared / "prepared")
     _, final = ev.cross_validate_and_fit(prepared, default_config(**{"preprocess.target": "within_neutral"}))
@@ -246,6 +248,7 @@ def test_within_neutral_target_is_ols_on_both_sides_minus_the_neutral_frames(rec
     np.testing.assert_allclose(final.mesh_intercept, Y.mean(0) - X.mean(0) @ beta[:-1], rtol=1e-9, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_au_field_reliability_is_the_cosine_between_fields_fitted_on_each_fold_alone(recovery_prepared):
     prepared = load_prepared(recovery_prepared / "prepared")
     cv, _ = ev.cross_validate_and_fit(prepared, default_config(**{"model.n_components": 30}))
@@ -266,6 +269,7 @@ def test_au_field_reliability_is_the_cosine_between_fields_fitted_on_each_fold_a
     assert cv.scalar_metrics()["au_reliability_AU12"] == pytest.approx(expected[AU_COLUMNS.index("AU12")], abs=1e-6)
 
 
+@pytest.mark.slow
 def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vector(tmp_path_factory):
     """model/frame_vertex_error.npy: each frame's held-out error in frames.parquet's order (its fold means are the
     metrics'); cv.npz: the 1001-point curve, NumPy's quantiles and the exact ECDF there, so the card's 50 % and
@@ -306,6 +310,7 @@ def test_evaluate_stage_keeps_each_frames_error_and_the_cards_curve_not_the_vect
     )  # the committed CSV: 6 significant digits
 
 
+@pytest.mark.slow
 def test_the_evaluate_stage_never_imports_mlflow_its_run_is_logged_beside(tmp_path_factory):
     """MLflow (its import alone ~4 s of CPU) is imported and the run logged by the tracking helper process while the
     stage computes: the stage process never imports it, and the run is complete (params, metrics, the pyfunc model,

@@ -379,6 +379,7 @@ def test_passes_sklearn_estimator_checks():
     check_estimator(PLSRegression(n_components=1))
 
 
+@pytest.mark.slow
 def test_the_evaluate_stage_fits_and_scores_without_importing_scikit_learn(tmp_path):
     """The evaluate stage's modules fit from statistics and score on held-out statistics with NumPy alone
     (importing scikit-learn, and SciPy's statistics with it, cost ~1 s of every evaluate); the same numbers as the

@@ -68,6 +68,7 @@ def stage_ws(tmp_path, fixed_conf):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_one_summary_line_per_stage_and_no_noise_in_a_pipe(stage_ws):
     out, err = _stage("ingest", stage_ws, tty=False)
     assert out.count("\n") == 1 and out.startswith("ingest: 300 frames from 300 rows of 1 tables"), out

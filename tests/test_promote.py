@@ -180,6 +180,7 @@ def _log_fake_sweep(tmp_path: Path, conf_dir: Path, rows: list[tuple[dict, dict,
     return parent, ids
 
 
+@pytest.mark.slow
 def test_promote_constructed_sweep_writes_conf_params_card_record_and_registry(conf_ws, tmp_path):
     conf = conf_ws / "conf"
     rows = [
@@ -244,6 +245,7 @@ def test_promotion_refuses_a_run_on_other_data(conf_ws, tmp_path):
 
 
 # ---------------------------------------------------------------- the real thing, small
+@pytest.mark.slow
 def test_promoted_configuration_refits_to_the_champion_coefficients(tmp_path, monkeypatch):
     """sweep children -> promote -> the evaluate stage on the recomposed params.yaml: same coefficients as the
     registered NPZ, and the card built by the release stage names the promoted run."""

@@ -129,6 +129,7 @@ SWEEP_ONLY = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:Deflated X.T Y vanished")  # AU07 constant: 22 informative directions of 23
 def test_the_evaluate_stage_and_a_sweep_child_record_the_same_keys(tmp_path_factory):
     """The evaluate stage's run and a sweep child of the same configuration on the same data, read back from one real

@@ -65,6 +65,7 @@ def test_render_release_writes_every_figure_non_blank(rendered):
     assert not list(out.glob(".*"))  # no temp files left behind
 
 
+@pytest.mark.slow
 def test_figures_drawn_in_worker_processes_equal_those_drawn_in_process(release, rendered, tmp_path, monkeypatch):
     """The figures are drawn on every core (forked workers); the bytes are those of drawing them one by one."""
     npz, cv = release
@@ -120,6 +121,7 @@ def test_missing_key_error_names_key_and_file(tmp_path, key):
     assert "bad.npz" in str(exc.value)
 
 
+@pytest.mark.slow
 def test_cli_render_writes_figures_and_directions(release, tmp_path, capsys):
     """``aumesh render NPZ --out DIR --cv CV`` (:func:`render.render_card`): every figure and the AU-direction report,
     each file it wrote printed; a missing NPZ is a one-line error with exit 2."""
@@ -206,6 +208,7 @@ def test_unsupported_aus_come_from_the_npz_and_from_implausible_fields():
     )
 
 
+@pytest.mark.slow
 def test_an_exploded_au_is_greyed_and_labelled_and_the_other_panels_are_unchanged():
     """Small fields (x0.1: the figures exaggerate them) and AU09 x400 listed unsupported: the shared factor and every
     other panel are those of the release without AU09's explosion, pixel for pixel."""
@@ -292,6 +295,7 @@ def test_render_release_marks_the_flagged_aus_in_every_au_figure(tmp_path, monke
 @pytest.mark.parametrize(
     "name", ["fig_solid_panels", "fig_neutral_vs_activated", "fig_compare_overlay", "fig_effect_maps", "fig_pose_views"]
 )
+@pytest.mark.slow
 def test_every_au_figure_marks_an_unidentified_au(name):
     """A flagged AU's panels: the label under its title in orange and a hatch behind the face; no other panel marked."""
     from matplotlib.colors import to_hex

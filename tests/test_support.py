@@ -40,6 +40,7 @@ def test_prepared_input_ranges_are_numpys_quantiles_of_the_fitted_frames(recover
     assert summary["input_ranges"] == _expected_ranges(frames)
 
 
+@pytest.mark.slow
 def test_ranges_over_several_partitions_equal_one_quantile_of_the_kept_frames(small_tables, tmp_path):
     """Partitions of 64 rows (many row groups, outliers dropped in each): still np.quantile of the kept frames."""
     import pyarrow.parquet as pq

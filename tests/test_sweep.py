@@ -234,6 +234,7 @@ def test_runs_command_best_first(swept, capsys):
     assert best[:8] in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_prepare_relevant_override_prepares_into_a_cache_dir(workspace):
     """A sweep value of a prepare key (pose filter) may not reuse build/prepared: prepared once, stamped, reused."""
     from aumesh.experiments import sweep_cache, sweep_child
@@ -312,6 +313,7 @@ def test_small_sweep_and_promotion_against_a_real_server(workspace, mlflow_serve
     assert champion["run_id"] == record["run_id"] and champion["source"].startswith("mlflow-artifacts:")
 
 
+@pytest.mark.slow
 def test_a_sweep_over_the_correction_fits_each_and_promotion_does_not_rank_them_on_r2(tmp_path_factory, capsys):
     """``aumesh sweep -m model/eiv=none,corrected``: one statistics pass, two models (the cached result of the
     uncorrected fit is not reused for the corrected one), and promotion picks the corrected run, saying why."""

@@ -60,6 +60,7 @@ def _old_tables_module() -> types.ModuleType:
     return module
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("layout", ["columns", "pyfeat"])
 def test_without_noise_the_tables_and_truth_are_byte_identical_to_the_generator_before_it(tmp_path, layout):
     old = _old_tables_module()
@@ -167,6 +168,7 @@ def test_the_truth_file_holds_sigma_u_and_writes_the_npy_model_eiv_reads(tmp_pat
     np.testing.assert_allclose(truth["au_sigma_u_within_recorded"], au_noise.within_covariance(au - true, counts))
 
 
+@pytest.mark.slow
 def test_the_second_detector_is_its_own_noise_on_the_same_frames(tmp_path):
     spec = synth.SynthSpec(n_frames=3000, n_videos=20, seed=8, au_noise_sd=0.06, instrument_noise_sd=0.06)
     synth.write_tables(tmp_path / "cols", spec)
@@ -187,6 +189,7 @@ def test_the_second_detector_is_its_own_noise_on_the_same_frames(tmp_path):
     assert np.all(np.abs(e1).mean(0) > 0.02) and np.all(np.abs(e2).mean(0) > 0.02)  # both detectors are noisy
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("detector,fmt", [("mp", "csv"), ("v2", "csv"), ("mp", "parquet"), ("v2", "parquet")])
 def test_pyfeat_tables_carry_both_detectors_aus(tmp_path, detector, fmt):
     spec = synth.SynthSpec(n_frames=240, n_videos=6, seed=3, au_noise_sd=0.05, instrument_noise_sd=0.05)
@@ -207,6 +210,7 @@ def test_pyfeat_tables_carry_both_detectors_aus(tmp_path, detector, fmt):
     assert not set(I2) & set(names) and list(names) == [c for c in table.columns if c not in I2]
 
 
+@pytest.mark.slow
 def test_noisy_pyfeat_csv_with_a_second_detector_still_ingests_as_its_clean_tables(tmp_path):
     spec = synth.realistic_noise_spec(n_frames=450, n_videos=12, seed=3, instrument_noise_sd=0.07)
     write_pyfeat_tables(tmp_path / "csv", spec, detector="mp", fmt="csv", clean_dir=tmp_path / "clean")

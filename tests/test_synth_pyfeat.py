@@ -116,6 +116,7 @@ def test_summary(written):
     assert df["approx_time"].tolist() == want and (df["FrameWidth"] == W).all() and (df["FrameHeight"] == H).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("det", ["mp", "v2"])
 def test_no_face_rows(written, det):
     s, df, _ = written[det]
@@ -212,6 +213,7 @@ def test_clean_table_is_the_main_face(written, det):
     _check_clean(df, clean, det, exact=False, z_crop=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("det", ["mp", "v2"])
 def test_z_in_pixels_is_the_clean_mesh_exactly(tmp_path, det):
     spec = SynthSpec(n_frames=60, n_videos=2)
@@ -273,6 +275,7 @@ def test_clean_frames_are_synths(written, tmp_path):
     np.testing.assert_array_equal(both[cols].to_numpy(), both[[f"{c}_ref" for c in cols]].to_numpy())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("det", ["mp", "v2"])
 def test_normalized_units(tmp_path, det):
     s = write_pyfeat_tables(

@@ -111,6 +111,7 @@ def test_a_partitions_npy_chunks_are_its_pieces_rows_read_into_one_buffer(tmp_pa
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("layout", ["pyfeat", "columns"])
 def test_a_nan_mesh_coordinate_past_the_first_block_of_a_chunk_is_found(tmp_path, layout):
     """The finiteness check walks a chunk a block at a time (no chunk-sized bool temporary); a NaN in a later
@@ -131,6 +132,7 @@ def test_a_nan_mesh_coordinate_past_the_first_block_of_a_chunk_is_found(tmp_path
             pass
 
 
+@pytest.mark.slow
 def test_parquet_mesh_columns_are_read_a_row_group_at_a_time_not_pre_buffered(tmp_path):
     """Reading a partition of 8 row groups holds one row group's column chunks at a time, not all 8 (pyarrow's
     default ``pre_buffer`` read every requested row group's mesh columns before the first batch: for 1,434 columns
@@ -227,6 +229,7 @@ def test_duplicate_video_frame_rows_across_files(small_tables, tmp_path):
         prepare.run(tables.discover(small_tables, PATTERN, NPY), cfg, tmp_path / "prepared")
 
 
+@pytest.mark.slow
 def test_video_with_no_frames_left_after_filtering(small_tables, tmp_path):
     path, df = _frame(small_tables)
     df.loc[df["video_id"] == "vid000001", "Yaw"] = np.deg2rad(60.0)
@@ -263,6 +266,7 @@ def test_no_frame_passes_pose_filter(small_tables, tmp_path):
         prepare.run(tables.discover(small_tables, PATTERN, NPY), default_config(), tmp_path / "p")
 
 
+@pytest.mark.slow
 def test_a_partition_of_several_tables_is_checked_at_once_and_a_broken_one_named(tmp_path):
     """A partition's pieces (row groups of several tables) are read and checked together: the same rows as each table
     read alone; an AU out of range in the third table is reported with that table and its own row number."""

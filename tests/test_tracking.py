@@ -288,6 +288,7 @@ def test_a_failed_queued_call_fails_the_run_and_is_raised_here(cfg, store_uri):
     assert got.info.status == "FAILED" and "the store refused it" in got.data.tags[tracking.ERROR_TAG]
 
 
+@pytest.mark.slow
 def test_the_helper_ends_with_its_caller_and_the_next_run_marks_the_run_killed(cfg, store_uri, tmp_path):
     """The stage process killed alone (the OOM killer picks the largest process): its helper does not outlive it,
     and the run it left RUNNING is marked KILLED by the next run, as a run of the stage's own process would be."""

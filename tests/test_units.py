@@ -53,6 +53,7 @@ def _release(prepared: Path) -> dict[str, np.ndarray]:
     return final.release_arrays(load_reference(prepared), metadata={})
 
 
+@pytest.mark.slow
 def test_native_units_and_pixels_give_the_same_prepared_meshes_and_release(routes):
     reference = routes["v2-pixels"][1]
     for name in ("mp-native", "v2-native", "mp-pixels"):
@@ -70,6 +71,7 @@ def test_native_units_and_pixels_give_the_same_prepared_meshes_and_release(route
     np.testing.assert_allclose(native["coef"], pixels["coef"], atol=1e-4 * np.abs(pixels["coef"]).max())
 
 
+@pytest.mark.slow
 def test_the_manifest_says_what_was_converted_per_source(routes):
     for name, (_, _, manifest, _) in routes.items():
         det = "MPDetector" if name.startswith("mp") else "Detectorv2"
@@ -87,6 +89,7 @@ def test_the_manifest_says_what_was_converted_per_source(routes):
         assert manifest["counts"]["identity_labels"] == 2
 
 
+@pytest.mark.slow
 def test_the_card_names_the_conversion_and_its_rows(routes):
     counts = routes["v2-native"][0]["counts"]
     line = _ingest_lines(counts, {"mesh_units": "detector"})[-1]
@@ -107,6 +110,7 @@ def v2_native(tmp_path_factory) -> Path:
     return folder
 
 
+@pytest.mark.slow
 def test_native_z_ingested_as_pixels_is_refused_with_the_fix(v2_native, tmp_path):
     # Detectorv2's z in 0-1 chip units taken as pixels: the flat face py-feat's real files gave (depth/width 0.001)
     with pytest.raises(TableError, match=r"clip_0000\.csv: the faces do not have a face's proportions") as err:
@@ -122,6 +126,7 @@ def test_native_z_ingested_as_pixels_is_refused_with_the_fix(v2_native, tmp_path
 @pytest.mark.parametrize(
     "route,fix,slope", [("mp-native", "detector", (-0.3, 0.3)), ("mp-pixels", "pixels", (0.8, 1.3))]
 )
+@pytest.mark.slow
 def test_mpdetector_units_are_told_by_how_z_grows_with_the_face(tmp_path, route, fix, slope):
     """An MPDetector face ~256 px wide has a face's depth/height in either unit: what tells them apart is that a
     face's depth in pixels grows with its size (slope ~1 of log z-extent on log height over near-frontal faces), and
@@ -150,6 +155,7 @@ def _cfg(data_dir: Path, **overrides):
     return dataclasses.replace(cfg, paths=dataclasses.replace(cfg.paths, data_dir=str(data_dir)))
 
 
+@pytest.mark.slow
 def test_profile_faces_ingest_and_the_pose_filter_drops_them(tmp_path):
     # yaw up to 89.5 deg: the 2-D inter-ocular distance of some faces falls below 1 px (the old unit judgement took
     # them for normalized coordinates and refused the set)
@@ -219,6 +225,7 @@ def test_an_mpdetector_parquet_is_converted_unless_its_z_is_pixels(tmp_path):
         assert 0.25 < entry["face_depth_over_height"]["ingested"] < 0.6
 
 
+@pytest.mark.slow
 def test_a_face_row_without_face_rect_width_is_named_with_the_fix(v2_native, tmp_path):
     data = tmp_path / "data"
     data.mkdir()

@@ -246,6 +246,7 @@ def test_sliders_mark_the_range_beyond_the_training_data(tab, tmp_path, page_fil
     assert problems == []
 
 
+@pytest.mark.slow
 def test_drag_orbits_and_wheel_zooms(tab, page_file):
     _, path = page_file
     page, problems, requests = _open(tab, path, VIEW)
@@ -402,6 +403,7 @@ def test_page_source_holds_no_hostile_markup(tmp_path):
         assert "Lip corner puller" in html and html.isascii()  # no encoding question when the file is written
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text", HOSTILE, ids=["close-script", "comment-script", "img-onerror"])
 def test_hostile_strings_show_literally(tab, tmp_path, node_tools, text):
     """Issue 34: markup in every embedded field (card, run names, promotion, config, source) stays text."""

@@ -250,6 +250,7 @@ def test_playing_changes_the_face_over_time(clock_tab, clip_files):
     assert problems == [] and requests == []
 
 
+@pytest.mark.slow
 def test_recorded_mesh_and_distance_colouring(tab, clip_files):
     import io
 
@@ -341,6 +342,7 @@ def _drop(page, name, data: bytes | Path):
     )
 
 
+@pytest.mark.slow
 def test_a_dropped_table_is_the_same_clip_as_embedded(tab, clip_files, tmp_path):
     """The page's own reader (file picker; drop of a CSV and of a .csv.gz) gives read_clip's clip, every video,
     and the page's bridging equals bridged_weights; parquet is refused with the fix."""
@@ -398,6 +400,7 @@ def _page_recorded_input(page) -> np.ndarray:
     return np.frombuffer(base64.b64decode(got["mesh"]), dtype="<f4").reshape(-1, 478, 3)
 
 
+@pytest.mark.slow
 def test_detectorv2_layout_and_normalized_units(tab, clip_files, tmp_path):
     """Detectorv2's axis-major mesh_x_* beside its 68-point block, in normalized image units: the page reads the
     mesh by name, scales it to pixels with FrameWidth/FrameHeight as the ingest does, and aligns it as numpy does."""
@@ -446,6 +449,7 @@ def unit_tables(clip_files):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("det,unit,words", [("v2", "chip", "Detectorv2's chip units"), ("mp", "crop256", "256-px")])
 def test_recorded_mesh_in_frame_pixels_embedded_and_dropped(tab, clip_files, unit_tables, det, unit, words):
     """A table in the detector's native units: the recorded mesh the page holds, embedded (`aumesh view --clip`)
@@ -478,6 +482,7 @@ def test_recorded_mesh_in_frame_pixels_embedded_and_dropped(tab, clip_files, uni
     assert problems == [] and requests == []
 
 
+@pytest.mark.slow
 def test_an_interleaved_table_without_facerect_is_pixels(tab, clip_files, unit_tables, tmp_path):
     """An interleaved mesh without py-feat's FaceRect is not MPDetector's export (aumesh.data.pyfeat.layout:
     "table"): its z is taken as written, by read_clip and by the page alike, and equals the ingest's."""
@@ -498,6 +503,7 @@ def test_an_interleaved_table_without_facerect_is_pixels(tab, clip_files, unit_t
     assert problems == [] and requests == []
 
 
+@pytest.mark.slow
 def test_detectorv2_clip_is_a_face_not_a_sheet(tab, clip_files, unit_tables):
     """Detectorv2's clip, z converted: the aligned recorded mesh has a face's depth (its thinnest spread as the
     release's own face's, not ~0.001), its distances are numpy's, and a screenshot shows it beside the coloured model."""
@@ -525,6 +531,7 @@ def test_detectorv2_clip_is_a_face_not_a_sheet(tab, clip_files, unit_tables):
     assert problems == [] and requests == []
 
 
+@pytest.mark.slow
 def test_hostile_video_name_stays_text(tab, clip_files, tmp_path):
     """A video named like markup (py-feat's video_id) is embedded by script_json and shown as text: no dialog."""
     import csv

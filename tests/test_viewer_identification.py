@@ -59,6 +59,7 @@ def _card_mesh(arrays, x: dict[str, float]) -> np.ndarray:
     return flat
 
 
+@pytest.mark.slow
 def test_a_flagged_au_is_greyed_with_its_reason_and_its_group_moves_both(tab, releases):  # noqa: F811
     arrays, path = releases["flagged"]
     page, problems, requests = _open(tab, path, VIEW)

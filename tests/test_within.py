@@ -60,6 +60,7 @@ def test_synth_coupling_raises_each_videos_au_floor_and_records_it(coupled, reco
     # baselines follow identity: the AU's baseline grows with the person's resemblance to the AU's field
 
 
+@pytest.mark.slow
 def test_pooled_au_fields_are_biased_on_coupled_data_and_within_recovers_them(coupled):
     prepared, true = coupled
     pooled = _cosines(prepared, _fit(prepared, "absolute")[1], true)
@@ -69,6 +70,7 @@ def test_pooled_au_fields_are_biased_on_coupled_data_and_within_recovers_them(co
     assert (within > pooled - 0.01).all()
 
 
+@pytest.mark.slow
 def test_without_coupling_pooled_and_within_agree(recovery_prepared, recovery_tables):
     prepared = load_prepared(recovery_prepared / "prepared")
     true = dict(np.load(recovery_tables[0] / "truth.npz"))
@@ -78,6 +80,7 @@ def test_without_coupling_pooled_and_within_agree(recovery_prepared, recovery_ta
     np.testing.assert_allclose(pooled, within, atol=0.03)
 
 
+@pytest.mark.slow
 def test_default_promotion_criterion_picks_within_on_coupled_data(coupled):
     prepared, _ = coupled
     candidates = []
