@@ -74,7 +74,8 @@ class _Rows:
         rows = np.asarray(rows)
         if rows.shape[1:] != self._row and rows.size:
             raise ValueError(f"rows of shape {rows.shape[1:]} written to an entry of rows {self._row}")
-        self._fh.write(np.ascontiguousarray(rows, dtype=self._dtype).tobytes())
+        data = np.ascontiguousarray(rows, dtype=self._dtype)
+        self._fh.write(memoryview(data.reshape(-1)).cast("B") if data.size else b"")  # no copy (tobytes: one more)
         self.written += len(rows)
 
 
