@@ -96,7 +96,17 @@ def measure(n_rows: int, src: Path, out_dir: Path, repeats: int) -> dict[str, fl
     npz = out_dir / f"meshes_{n_rows}.npz"
     runs = []
     for _ in range(repeats):
-        cmd = [sys.executable, "-m", "aumesh", "predict", str(csv), "--release", str(release(out_dir)), "--out", str(npz)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "aumesh",
+            "predict",
+            str(csv),
+            "--release",
+            str(release(out_dir)),
+            "--out",
+            str(npz),
+        ]
         done = subprocess.run([sys.executable, "-c", MEASURE, *cmd], env=_env(src), capture_output=True, text=True)
         result = json.loads(done.stdout.strip().splitlines()[-1])
         if result["rc"] != 0:
@@ -124,7 +134,9 @@ def main() -> None:
     for n in args.rows:
         m = measure(n, args.src, args.out, args.repeats)
         per_row = m["peak_rss_mib"] * 1024 / n
-        print(f"{n:>9,} {m['csv_mb']:>8.1f} {m['wall_s']:>8.2f} {m['peak_rss_mib']:>13,.0f} {per_row:>8.2f}", flush=True)
+        print(
+            f"{n:>9,} {m['csv_mb']:>8.1f} {m['wall_s']:>8.2f} {m['peak_rss_mib']:>13,.0f} {per_row:>8.2f}", flush=True
+        )
 
 
 if __name__ == "__main__":

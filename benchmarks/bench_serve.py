@@ -63,6 +63,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rows", type=int, nargs="+", default=[100, 1000, 3000, 10000])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--outputs", nargs="+", default=["float64", "base64"], choices=["float64", "base64"])
     parser.add_argument("--timeout", type=int, default=600, help="the server's request timeout for the measurement")
     args = parser.parse_args()
 
@@ -101,7 +102,7 @@ def main() -> None:
                 local.predict(df)
                 predict_s = time.perf_counter() - t0
                 split = df.to_dict(orient="split") | {"index": None}
-                for output in ("float64", "base64"):
+                for output in args.outputs:
                     payload = json.dumps({"dataframe_split": split, "params": {"output": output}}).encode()
                     runs = [_post(url, payload, args.timeout + 30) for _ in range(args.repeats)]
                     wall = statistics.median(r[2] for r in runs)

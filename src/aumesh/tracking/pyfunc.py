@@ -176,7 +176,7 @@ def _predict_checked(release, values: pd.DataFrame, refuse: bool) -> np.ndarray:
     import warnings
 
     from aumesh.model.inference import predict_mesh
-    from aumesh.model.input_checks import InputRangeWarning, logged_range_warnings
+    from aumesh.model.input_checks import InputRangeWarning, NoFaceWarning, logged_range_warnings
     from aumesh.model.input_columns import PredictionInputError
 
     if not refuse:
@@ -185,11 +185,14 @@ def _predict_checked(release, values: pd.DataFrame, refuse: bool) -> np.ndarray:
             return predict_mesh(release, values)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InputRangeWarning)
-        with logged_range_warnings(log, "aumesh model"):  # the no-face line still goes to the log
-            meshes = predict_mesh(release, values)
+        warnings.simplefilter("always", NoFaceWarning)
+        meshes = predict_mesh(release, values)
     ranges = [str(w.message) for w in caught if issubclass(w.category, InputRangeWarning)]
     if ranges:
         raise PredictionInputError(f"{'; '.join(ranges)} (refused: params beyond_training=refuse)")
+    for w in caught:
+        if issubclass(w.category, NoFaceWarning):
+            log.warning("aumesh model: %s", w.message)
     return meshes
 
 
