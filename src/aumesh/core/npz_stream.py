@@ -75,7 +75,7 @@ class _Rows:
         if rows.shape[1:] != self._row and rows.size:
             raise ValueError(f"rows of shape {rows.shape[1:]} written to an entry of rows {self._row}")
         data = np.ascontiguousarray(rows, dtype=self._dtype)
-        self._fh.write(memoryview(data.reshape(-1)).cast("B") if data.size else b"")  # no copy (tobytes: one more)
+        self._fh.write(memoryview(data.data).cast("B") if data.size else b"")  # no copy (tobytes: one more)
         self.written += len(rows)
 
 
