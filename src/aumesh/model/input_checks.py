@@ -5,7 +5,9 @@ Inputs are checked before any arithmetic (:func:`input_rows`): wrong lengths, pa
 (:class:`aumesh.model.input_columns.PredictionInputError`) that say what was expected; a frame without a face
 (``FaceScore`` 0, or every value NaN) is a row of NaN. Input the model takes but was not trained on (pose beyond the
 training range, :func:`training_pose_limits`; AUs above 1 given as numbers; AUs beyond the data's support,
-:mod:`aumesh.model.support`) is one :class:`InputRangeWarning` a call, pointing at the caller's line.
+:mod:`aumesh.model.support`) is one :class:`InputRangeWarning` a call, pointing at the caller's line; rows without a
+face, one :class:`NoFaceWarning` with their number. A caller that checks one input in blocks (``aumesh predict``'s
+chunks) sums the findings in one :class:`InputTally` and says them once.
 """
 
 from __future__ import annotations
