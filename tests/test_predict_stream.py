@@ -68,7 +68,7 @@ def tables(tmp_path_factory):
     }
 
 
-@pytest.mark.parametrize("chunk_rows", [1, 3, 4096])
+@pytest.mark.parametrize("chunk_rows", [1, 3])  # one chunk: the CLI tests of test_predict_fex
 @pytest.mark.parametrize("name", ["pyfeat.csv", "pyfeat.parquet", "v2.parquet", "inputs.csv"])
 def test_the_streamed_npz_equals_the_one_shot_one(tables, tmp_path, monkeypatch, name, chunk_rows):
     monkeypatch.setattr(predict_stream, "CSV_BLOCK_BYTES", 1 << 17)  # a few py-feat rows a CSV block
