@@ -33,6 +33,8 @@ COMMANDS = {
     "render": ["render", "model.npz", "--out", "{p}"],
     "synth --out": ["synth", "--frames", "20", "--videos", "2", "--out", "{p}"],
     "synth --truth": ["synth", "--frames", "20", "--videos", "2", "--out", "tables", "--truth", "{p}"],
+    "compose-params": ["compose-params", "--out", "{p}"],
+    "dvc-plots-template": ["dvc-plots-template", "--out", "{p}"],
 }
 # The release folder reached directly, through "..", and through a symbolic link: the resolved path decides.
 SPELLINGS = ["release/au_to_mesh.glb", "sub/../release/au_to_mesh.glb", "link/au_to_mesh.glb", "release"]

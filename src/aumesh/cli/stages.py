@@ -23,6 +23,7 @@ def _params(args) -> Config:
 def _cmd_compose_params(args) -> int:
     from aumesh.config import compose, from_dict, write_params
 
+    refuse_release_path("--out", args.out, force=args.force)
     data = compose(args.overrides, config_dir=args.config_dir)
     from_dict(data)  # validate before writing
     write_params(data, args.out)
@@ -117,6 +118,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--config-dir", default="conf", help="the Hydra configuration folder")
     p.add_argument("--out", default="params.yaml", help="the composed configuration file the DVC stages read")
+    add_force(p)
     p.set_defaults(func=_cmd_compose_params)
 
     p = subparsers.add_parser("synth", help="write synthetic frame tables with a known ground truth")

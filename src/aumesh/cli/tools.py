@@ -71,6 +71,7 @@ def _cmd_dvc_plots_template(args) -> int:
     from aumesh.core.errors import UserError
     from aumesh.export import dvc_plots
 
+    refuse_release_path("--out", args.out, force=args.force)
     try:
         out = dvc_plots.write_template(args.out)
     except FileNotFoundError as err:  # no vega in node_modules/: the message says `make tools`
@@ -218,4 +219,5 @@ def add_parser(subparsers) -> None:
         default=TEMPLATE_FILE,
         help=f"the template file (default: %(default)s, named by .dvc/config as {CONFIG_VALUE})",
     )
+    add_force(p)
     p.set_defaults(func=_cmd_dvc_plots_template)
