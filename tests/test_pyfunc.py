@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -27,7 +28,7 @@ MODEL = "aumesh-au-to-mesh"
 
 def _inputs(n: int = 4) -> pd.DataFrame:
     rng = np.random.default_rng(1)
-    df = pd.DataFrame(rng.uniform(0.0, 2.0, (n, 23)), columns=list(INPUT_COLUMNS))
+    df = pd.DataFrame(rng.uniform(0.0, 1.0, (n, 23)), columns=list(INPUT_COLUMNS))  # py-feat's 0..1 AUs
     df[["Pitch", "Yaw", "Roll"]] = 0.0
     return df
 
@@ -102,31 +103,18 @@ def test_pyfunc_input_example_is_a_smile(champion):
     assert set(AU_COLUMNS) < set(example.columns)
 
 
-@pytest.mark.slow
-def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_path):
-    """`mlflow models serve -m models:/aumesh-au-to-mesh@champion --env-manager local`, a real REST request."""
-    npz, _, _, _ = champion
+@contextlib.contextmanager
+def scoring_server(model_uri: str, tmp_path: Path, timeout_s: int | None = None):
+    """`mlflow models serve -m MODEL_URI --env-manager local` on 127.0.0.1 (README "Use the model"), started and
+    waited for; yields its URL, stops its process group after."""
+    from aumesh.tracking.server import scoring_command, scoring_environment
+
     port = free_port()
-    bin_dir = Path(sys.executable).parent  # the venv's bin: mlflow execs uvicorn from PATH, as in an activated venv
-    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}")
-    log = open(tmp_path / "serve.log", "w")
+    log_path = tmp_path / "serve.log"
+    log = open(log_path, "w")
     proc = subprocess.Popen(
-        [
-            str(bin_dir / "mlflow"),
-            "models",
-            "serve",
-            "-m",
-            f"models:/{MODEL}@champion",
-            "--env-manager",
-            "local",
-            "-h",
-            "127.0.0.1",
-            "-p",
-            str(port),
-            "-w",
-            "1",
-        ],
-        env=env,
+        scoring_command(model_uri, port=port, timeout_s=timeout_s),
+        env=scoring_environment(),
         stdout=log,
         stderr=subprocess.STDOUT,
         start_new_session=True,
@@ -141,11 +129,20 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
                         break
             except (urllib.error.URLError, ConnectionError, OSError):
                 pass
-            assert proc.poll() is None, (tmp_path / "serve.log").read_text()[-3000:]
-            assert time.monotonic() < deadline, (
-                "mlflow models serve did not start: " + (tmp_path / "serve.log").read_text()[-3000:]
-            )
+            assert proc.poll() is None, log_path.read_text()[-3000:]
+            assert time.monotonic() < deadline, "mlflow models serve did not start: " + log_path.read_text()[-3000:]
             time.sleep(1)
+        yield url
+    finally:
+        stop_process_group(proc)
+        log.close()
+
+
+@pytest.mark.slow
+def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_path):
+    """`mlflow models serve -m models:/aumesh-au-to-mesh@champion --env-manager local`, a real REST request."""
+    npz, _, _, _ = champion
+    with scoring_server(f"models:/{MODEL}@champion", tmp_path) as url:
         df = _inputs(3)
         status, answer = _invoke(url, {"dataframe_split": df.to_dict(orient="split") | {"index": None}})
         assert status == 200, answer
@@ -153,9 +150,6 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
         smile_status, smile = _invoke(url, {"dataframe_records": [{"AU12": 1.0}]})
         # a head turned 25 "radians": aumesh's degrees error, as a 400 whose message is aumesh's line
         bad_status, bad = _invoke(url, {"dataframe_records": [{"AU12": 1.0, "Pitch": 0.0, "Yaw": 25.0, "Roll": 0.0}]})
-    finally:
-        stop_process_group(proc)
-        log.close()
     pred = np.asarray(answer["predictions"], dtype=np.float64)
     assert pred.shape == (3, 1434)
     np.testing.assert_allclose(pred, _card_snippet(npz, df), rtol=0, atol=1e-9 * 400)
@@ -169,16 +163,22 @@ def test_mlflow_models_serve_answers_invocations_over_loopback(champion, tmp_pat
     assert bad["message"] == str(lib.value) and "degrees" in bad["message"] and "\n" not in bad["message"]
 
 
-def _invoke(url: str, payload: dict) -> tuple[int, dict]:
+def _invoke(url: str, payload: dict, timeout_s: float = 60) -> tuple[int, dict]:
     """POST *payload* to the scoring server's /invocations: (HTTP status, the JSON answer)."""
+    status, text = invoke_text(url, payload, timeout_s)
+    return status, json.loads(text)
+
+
+def invoke_text(url: str, payload: dict, timeout_s: float = 60) -> tuple[int, str]:
+    """POST *payload* to the scoring server's /invocations: (HTTP status, the answer's text as sent)."""
     req = urllib.request.Request(
         f"{url}/invocations", data=json.dumps(payload).encode(), headers={"Content-Type": "application/json"}
     )
     try:
-        with urllib.request.urlopen(req, timeout=60) as resp:
-            return resp.status, json.loads(resp.read())
+        with urllib.request.urlopen(req, timeout=timeout_s) as resp:
+            return resp.status, resp.read().decode()
     except urllib.error.HTTPError as err:
-        return err.code, json.loads(err.read())
+        return err.code, err.read().decode()
 
 
 def test_readme_load_model_snippet_works_from_any_folder(champion, tmp_path, monkeypatch):

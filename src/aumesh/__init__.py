@@ -22,6 +22,7 @@ _EXPORTS = {
     "predict_mesh": "aumesh.model.inference",
     "PredictionInputError": "aumesh.model.input_columns",
     "InputRangeWarning": "aumesh.model.input_checks",
+    "NoFaceWarning": "aumesh.model.input_checks",
     "ReleaseError": "aumesh.model.release_check",
     "PLSRegression": "aumesh.model.pls",
     "CrossProducts": "aumesh.model.cross_products",

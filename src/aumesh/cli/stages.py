@@ -8,6 +8,8 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from aumesh.cli.outputs import add_force, refuse_release_path
+
 if TYPE_CHECKING:
     from aumesh.config import Config
 
@@ -21,6 +23,7 @@ def _params(args) -> Config:
 def _cmd_compose_params(args) -> int:
     from aumesh.config import compose, from_dict, write_params
 
+    refuse_release_path("--out", args.out, force=args.force)
     data = compose(args.overrides, config_dir=args.config_dir)
     from_dict(data)  # validate before writing
     write_params(data, args.out)
@@ -30,6 +33,9 @@ def _cmd_compose_params(args) -> int:
 
 def _cmd_synth(args) -> int:
     from aumesh.synthetic.tables import SynthSpec, realistic_noise_spec, write_tables, write_truth_sigma_u
+
+    refuse_release_path("--out", args.out, force=args.force)
+    refuse_release_path("--truth", args.truth, force=args.force)
 
     fields = dict(
         layout=args.layout,
@@ -112,6 +118,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--config-dir", default="conf", help="the Hydra configuration folder")
     p.add_argument("--out", default="params.yaml", help="the composed configuration file the DVC stages read")
+    add_force(p)
     p.set_defaults(func=_cmd_compose_params)
 
     p = subparsers.add_parser("synth", help="write synthetic frame tables with a known ground truth")
@@ -167,6 +174,7 @@ def add_parser(subparsers) -> None:
         help="the issue-43 preset: co-activated AUs (AU09/AU10 r ~0.9, AU06/AU12, AU01/AU02, AU25/AU24) read by a "
         "noisy detector (--au-noise-sd 0 gives its no-noise control)",
     )
+    add_force(p)
     p.set_defaults(func=_cmd_synth)
 
     for name, func, text in (

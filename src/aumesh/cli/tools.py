@@ -7,10 +7,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from aumesh.cli.outputs import add_force, refuse_release_path
+
 
 def _cmd_render(args) -> int:
     from aumesh.card.render import render_card
     from aumesh.core.errors import UserError
+
+    refuse_release_path("--out", args.out, force=args.force)
 
     try:
         card = render_card(args.npz, args.out, args.cv)
@@ -28,6 +32,7 @@ def _cmd_render(args) -> int:
 def _cmd_predict(args) -> int:
     from aumesh.pipeline.predict import predict_table
 
+    refuse_release_path("--out", args.out, force=args.force)
     out, n = predict_table(args.release, args.table, args.out, args.ignore, strict=args.strict)
     print(f"wrote {n} mesh(es) to {out}")
     return 0
@@ -37,6 +42,7 @@ def _cmd_view(args) -> int:
     from aumesh.export import viewer
     from aumesh.model.release_check import load_release
 
+    refuse_release_path("--out", args.out, force=args.force)
     clips = viewer.table_clips(args.clip, args.video, args.fps, args.mesh_units) if args.clip else None
     out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name, clips=clips)
     played = f"; plays {len(clips)} video(s) of {args.clip.name}" if clips else ""
@@ -47,6 +53,7 @@ def _cmd_view(args) -> int:
 def _cmd_animate(args) -> int:
     from aumesh.export.gltf_clip import animate
 
+    refuse_release_path("--out", args.out, force=args.force)
     summary = animate(
         args.table,
         args.release,
@@ -64,6 +71,7 @@ def _cmd_dvc_plots_template(args) -> int:
     from aumesh.core.errors import UserError
     from aumesh.export import dvc_plots
 
+    refuse_release_path("--out", args.out, force=args.force)
     try:
         out = dvc_plots.write_template(args.out)
     except FileNotFoundError as err:  # no vega in node_modules/: the message says `make tools`
@@ -87,6 +95,7 @@ def add_parser(subparsers) -> None:
         "e.g. build/model/cv.npz "
         "(default: none, so no R² and error figures)",
     )
+    add_force(p)
     p.set_defaults(func=_cmd_render)
 
     p = subparsers.add_parser(
@@ -123,6 +132,7 @@ def add_parser(subparsers) -> None:
         help="every column (after --ignore) must be an input column, AU01..AU43, Pitch, Yaw, Roll "
         "(default: other columns are ignored)",
     )
+    add_force(p)
     p.set_defaults(func=_cmd_predict)
 
     p = subparsers.add_parser("view", help="write an offline interactive viewer (one HTML file) of a release NPZ")
@@ -150,6 +160,7 @@ def add_parser(subparsers) -> None:
         "(Detectorv2: z x FaceRectWidth; MPDetector: z x FaceRectWidth / 256), or 'pixels': z already in pixels "
         "(a table rescaled after py-feat), as the ingest's data.mesh_units (default: %(default)s)",
     )
+    add_force(p)
     p.set_defaults(func=_cmd_view)
 
     p = subparsers.add_parser(
@@ -190,6 +201,7 @@ def add_parser(subparsers) -> None:
         metavar="N",
         help="centred moving average over N frames (odd) against detector jitter (default: 1, no smoothing)",
     )
+    add_force(p)
     p.set_defaults(func=_cmd_animate)
 
     from aumesh.export.dvc_plots import CONFIG_VALUE, TEMPLATE_FILE
@@ -207,4 +219,5 @@ def add_parser(subparsers) -> None:
         default=TEMPLATE_FILE,
         help=f"the template file (default: %(default)s, named by .dvc/config as {CONFIG_VALUE})",
     )
+    add_force(p)
     p.set_defaults(func=_cmd_dvc_plots_template)

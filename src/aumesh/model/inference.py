@@ -96,6 +96,9 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, s
         an AU the training data never expressed (training p99 below 0.05, the release's
         ``unsupported_features``) given above 0.02, py-feat's rule (:mod:`aumesh.model.support`). Releases that
         record no ranges are checked for pose and the 0..1 scale only.
+    NoFaceWarning
+        One line a call when rows without a face were given: their number (``aus: 3 of 40 row(s) without a face``);
+        their meshes are NaN.
 
     Notes
     -----

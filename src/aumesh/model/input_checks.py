@@ -5,7 +5,9 @@ Inputs are checked before any arithmetic (:func:`input_rows`): wrong lengths, pa
 (:class:`aumesh.model.input_columns.PredictionInputError`) that say what was expected; a frame without a face
 (``FaceScore`` 0, or every value NaN) is a row of NaN. Input the model takes but was not trained on (pose beyond the
 training range, :func:`training_pose_limits`; AUs above 1 given as numbers; AUs beyond the data's support,
-:mod:`aumesh.model.support`) is one :class:`InputRangeWarning` a call, pointing at the caller's line.
+:mod:`aumesh.model.support`) is one :class:`InputRangeWarning` a call, pointing at the caller's line; rows without a
+face, one :class:`NoFaceWarning` with their number. A caller that checks one input in blocks (``aumesh predict``'s
+chunks) sums the findings in one :class:`InputTally` and says them once.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import sys
 import warnings
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -48,6 +51,98 @@ class InputRangeWarning(UserWarning):
     extrapolation, or rests on a field that may point the wrong way."""
 
 
+class NoFaceWarning(UserWarning):
+    """Rows without a face (py-feat's row for a frame where it found none: ``FaceScore`` 0, or every AU and pose value
+    NaN) were given: their meshes are NaN. One line a call with the number of such rows, as ``aumesh predict`` says
+    in its own line and marks them ``no_face``."""
+
+
+@dataclass
+class InputTally:
+    """What a prediction's input holds that its caller must be told, summed over the blocks of rows it comes in.
+
+    :func:`input_rows` fills one per call and warns from it; a caller that feeds one input in blocks (``aumesh
+    predict`` streaming a table chunk by chunk) passes the same tally to every block (``tally=``) and says it once at
+    the end (:meth:`range_message`, :attr:`no_face`): one line a run, over the whole input, with the input's row
+    numbers. Every field is a sum, a maximum, an "any" or a first occurrence, so blocks add up to the whole.
+
+    Attributes
+    ----------
+    rows : int
+        Rows checked so far; the next block's first row (its row numbers in messages are offset by it).
+    no_face : int
+        Rows without a face.
+    scale : tuple of (int, str, float) or None
+        The first AU above 1 given as numbers: (row, AU, value).
+    largest : np.ndarray, shape (20,), or None
+        Each AU's largest value over the face rows (:func:`aumesh.model.support.au_extent`); None before a face row.
+    rows_above : int
+        Face rows with an AU above its training max.
+    pose : tuple of (int, int, float) or None
+        The first Pitch or Yaw beyond the training range: (row, column in ``POSE_COLUMNS``, value).
+    pose_rows : int
+        Face rows with Pitch or Yaw beyond it.
+    given : np.ndarray of bool, shape (20,), or None
+        AUs non-zero in a face row (for the identification screen's warning).
+    """
+
+    rows: int = 0
+    no_face: int = 0
+    scale: tuple[int, str, float] | None = None
+    largest: np.ndarray | None = None
+    rows_above: int = 0
+    pose: tuple[int, int, float] | None = None
+    pose_rows: int = 0
+    given: np.ndarray | None = None
+
+    def add(self, release: Release, au: np.ndarray, pose: np.ndarray, face: np.ndarray, scale: Any) -> None:
+        """Count a block of checked rows (``au`` (n, 20), ``pose`` (n, 3), ``face`` (n,) bool; ``scale`` the block's
+        first AU above 1, :func:`_au_scale`, with the input's row number), then move :attr:`rows` past it."""
+        au_names = _names(release["au_columns"])
+        self.no_face += int((~face).sum())
+        if self.scale is None and scale is not None:
+            self.scale = scale
+        found = support.release_support(release)
+        if found is not None and face.any():
+            largest, rows = support.au_extent(au, au_names, face, found)
+            self.largest = largest if self.largest is None else np.maximum(self.largest, largest)
+            self.rows_above += rows
+        first, count = _pose_extent(pose, face, release)
+        if self.pose is None and first is not None:
+            self.pose = (first[0] + self.rows, first[1], first[2])
+        self.pose_rows += count
+        if face.any():
+            given = (np.abs(np.nan_to_num(au[face])) > 0).any(axis=0)
+            self.given = given if self.given is None else self.given | given
+        self.rows += len(face)
+
+    def range_message(self, release: Release) -> str | None:
+        """The one :class:`InputRangeWarning` line for everything counted beyond the training data, or None: AUs
+        above 1 given as numbers, AUs above the training max or unsupported AUs given (:mod:`aumesh.model.support`),
+        pose beyond the training range, AUs the identification screen flags."""
+        au_names = _names(release["au_columns"])
+        found = support.release_support(release)
+        parts = [
+            None if self.scale is None else _scale_phrase(*self.scale),
+            None
+            if found is None or self.largest is None
+            else support.beyond_phrase(self.largest, self.rows_above, au_names, found),
+            _pose_phrase(self.pose, self.pose_rows, release),
+            None if self.given is None else _unidentified_given(self.given, au_names, release),
+        ]
+        return "; ".join(p for p in parts if p) or None
+
+    def no_face_message(self) -> str | None:
+        """The one :class:`NoFaceWarning` line, or None when every row had a face."""
+        if not self.no_face:
+            return None
+        return (
+            f"aus: {self.no_face} of {self.rows} row(s) without a face (FaceScore 0, or every AU and pose value NaN: "
+            f"py-feat's row for a frame where it found none): their meshes are NaN "
+            f"(np.isnan(meshes).all(axis=(1, 2)) flags them)"
+        )
+
+
 def input_rows(
     release: Release,
     aus: Any = None,
@@ -55,6 +150,7 @@ def input_rows(
     *,
     strict: bool = False,
     selection: ColumnSelection | None = None,
+    tally: InputTally | None = None,
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """AU and pose rows in the release's column order, checked (the inputs of
     :func:`aumesh.model.inference.predict_mesh`).
@@ -69,6 +165,10 @@ def input_rows(
     selection : ColumnSelection, optional
         For a DataFrame ``aus``: the columns already chosen from the whole table's header
         (:func:`aumesh.model.input_columns.select_columns`), e.g. by a reader that read only those columns.
+    tally : InputTally, optional
+        A tally of the input's earlier blocks (a streamed table's chunks): these rows are added to it, row numbers in
+        errors count from ``tally.rows``, and nothing is warned (the caller says :meth:`InputTally.range_message` and
+        the no-face count once at the end). Default: this call's own tally, warned at the end of the call.
 
     Returns
     -------
@@ -90,6 +190,8 @@ def input_rows(
     InputRangeWarning
         One line: pose beyond the training range; an AU above 1 given as numbers (array, mapping, a DataFrame of
         input columns); AUs beyond the training data (:func:`predict_mesh`).
+    NoFaceWarning
+        One line with the number of rows without a face (their meshes are NaN).
 
     Notes
     -----
@@ -138,9 +240,11 @@ def input_rows(
         raise PredictionInputError(
             f"aus has {len(au)} rows but pose has {len(pose_rows)}; give pose one row per AU row, or one row for all"
         )
+    own = tally is None
+    tally = InputTally() if tally is None else tally
     no_face = _no_face(au, pose_rows if pose_in_input else None, face_score, n)
-    _check_finite(au, au_names, "aus", no_face)
-    _check_finite(pose_rows, list(POSE_COLUMNS), "pose", no_face)
+    _check_finite(au, au_names, "aus", no_face, tally.rows)
+    _check_finite(pose_rows, list(POSE_COLUMNS), "pose", no_face, tally.rows)
     if len(au) != n:
         au = np.repeat(au, n, axis=0)
     if len(pose_rows) != n:
@@ -150,8 +254,15 @@ def input_rows(
         au[no_face], pose_rows[no_face] = np.nan, np.nan
     face = ~no_face
     _check_radians(pose_rows[face])
-    scale = _check_au_scale(au, au_names, face, refuse=whole)
-    _warn_beyond_training(au, pose_rows, au_names, face, release, scale)
+    scale = _au_scale(au, au_names, face, refuse=whole, first_row=tally.rows)
+    tally.add(release, au, pose_rows, face, scale)
+    if own:
+        message = tally.range_message(release)
+        if message:
+            _warn(message)
+        message = tally.no_face_message()
+        if message:
+            _warn(message, NoFaceWarning)
     return au, pose_rows, single
 
 
@@ -267,12 +378,14 @@ def _no_face(au: np.ndarray, pose: np.ndarray | None, face_score: np.ndarray | N
     return np.array(blank, dtype=bool)
 
 
-def _check_finite(values: np.ndarray, names: list[str], what: str, no_face: np.ndarray) -> None:
-    """Refuse NaN/inf outside the no-face rows; ``values`` has len(no_face) rows or one row (for all)."""
+def _check_finite(values: np.ndarray, names: list[str], what: str, no_face: np.ndarray, first_row: int = 0) -> None:
+    """Refuse NaN/inf outside the no-face rows; ``values`` has len(no_face) rows or one row (for all); rows are
+    named from ``first_row`` (a streamed table's chunk)."""
     skip = no_face if len(values) == len(no_face) else np.array([no_face.all()])
     bad = ~np.isfinite(values) & ~skip[:, None]
     if bad.any():
         row, col = (int(i) for i in np.argwhere(bad)[0])
+        row += first_row
         raise PredictionInputError(
             f"{what}: {int(bad.sum())} NaN/inf value(s), first in {names[col]!r} at row {row}. A frame without a face "
             f"has every AU and pose value NaN (or FaceScore 0) and gets a NaN mesh; this row is only partly NaN. "
@@ -292,21 +405,33 @@ def _check_radians(pose: np.ndarray) -> None:
         )
 
 
-def _check_au_scale(au: np.ndarray, au_names: list[str], face: np.ndarray, refuse: bool) -> str | None:
-    """An AU above 1: an error in a whole (detector's) table; for numbers given directly, the warning's phrase."""
+def _au_scale(
+    au: np.ndarray, au_names: list[str], face: np.ndarray, refuse: bool, first_row: int = 0
+) -> tuple[int, str, float] | None:
+    """The first AU above 1 in a face row, as (row, AU, value) with rows counted from ``first_row``, or None; in a
+    whole (detector's) table (``refuse``) an error instead."""
     bad = (au > AU_SCALE_MAX + _AU_SCALE_SLACK) & face[:, None]
     if not bad.any():
         return None
     row, col = (int(i) for i in np.argwhere(bad)[0])
-    where = f"aus: {au_names[col]} = {au[row, col]:g} at row {row} is above {AU_SCALE_MAX:g}"
+    found = (row + first_row, au_names[col], float(au[row, col]))
     if refuse:
         raise PredictionInputError(
-            f"{where}: py-feat's AU intensities, and the model's, are 0..1 (0..5 is OpenFace's scale). "
+            f"{_scale_where(*found)}: py-feat's AU intensities, and the model's, are 0..1 (0..5 is OpenFace's scale). "
             f"Fix: divide the AU columns by 5"
         )
+    return found
+
+
+def _scale_where(row: int, name: str, value: float) -> str:
+    return f"aus: {name} = {value:g} at row {row} is above {AU_SCALE_MAX:g}"
+
+
+def _scale_phrase(row: int, name: str, value: float) -> str:
+    """The warning's phrase for an AU above 1 given as numbers (:func:`_au_scale`'s first)."""
     return (
-        f"{where}, beyond the 0..1 scale the model was trained on (py-feat's); the mesh is an extrapolation "
-        f"(OpenFace's 0..5 AUs: divide by 5)"
+        f"{_scale_where(row, name, value)}, beyond the 0..1 scale the model was trained on (py-feat's); the mesh is "
+        f"an extrapolation (OpenFace's 0..5 AUs: divide by 5)"
     )
 
 
@@ -336,20 +461,29 @@ def training_pose_limits(release: Release) -> tuple[dict[str, float], str]:
     return {"Pitch": float(np.deg2rad(float(pitch))), "Yaw": float(np.deg2rad(float(yaw)))}, source
 
 
-def _pose_beyond(pose: np.ndarray, face: np.ndarray, release: Release) -> str | None:
-    """The warning's phrase when a face row's Pitch or Yaw is beyond the training range, else None."""
+def _pose_extent(pose: np.ndarray, face: np.ndarray, release: Release) -> tuple[tuple[int, int, float] | None, int]:
+    """The first face row's Pitch or Yaw beyond the training range, as (row, column, value), and the number of face
+    rows beyond it; (None, 0) when none is."""
     if not face.any() or not (np.abs(pose[face]).max(initial=0.0) > 0):
-        return None
-    limits, source = training_pose_limits(release)
+        return None, 0
+    limits, _ = training_pose_limits(release)
     beyond = np.zeros(pose.shape, dtype=bool)
     for name, limit in limits.items():
         j = POSE_COLUMNS.index(name)
         beyond[:, j] = face & (np.abs(pose[:, j]) > limit)
     if not beyond.any():
-        return None
+        return None, 0
     row, j = (int(i) for i in np.argwhere(beyond)[0])
-    name, value = POSE_COLUMNS[j], pose[row, j]
-    rows = int(beyond.any(axis=1).sum())
+    return (row, j, float(pose[row, j])), int(beyond.any(axis=1).sum())
+
+
+def _pose_phrase(first: tuple[int, int, float] | None, rows: int, release: Release) -> str | None:
+    """The warning's phrase for pose beyond the training range (:func:`_pose_extent`'s first and count), or None."""
+    if first is None:
+        return None
+    limits, source = training_pose_limits(release)
+    row, j, value = first
+    name = POSE_COLUMNS[j]
     return (
         f"pose: {name} = {value:.3g} rad ({np.rad2deg(value):.1f} deg) at row {row} is beyond the training range "
         f"|{name}| <= {np.rad2deg(limits[name]):g} deg ({source}; {rows} row(s) beyond): "
@@ -357,35 +491,17 @@ def _pose_beyond(pose: np.ndarray, face: np.ndarray, release: Release) -> str | 
     )
 
 
-def _warn_beyond_training(
-    au: np.ndarray, pose: np.ndarray, au_names: list[str], face: np.ndarray, release: Release, scale: str | None
-) -> None:
-    """One :class:`InputRangeWarning` (one line) for everything in a call's input beyond what the model was trained
-    on: AUs above 1 given as numbers (``scale``, :func:`_check_au_scale`'s phrase), AUs above the training max or
-    unsupported AUs given (:func:`aumesh.model.support.beyond_training`, from the release's recorded support), pose
-    beyond the training range."""
-    found = support.release_support(release)
-    parts = [
-        scale,
-        None if found is None or not face.any() else support.beyond_training(au, au_names, face, found),
-        _pose_beyond(pose, face, release),
-        _unidentified_given(au, au_names, face, release),
-    ]
-    message = "; ".join(p for p in parts if p)
-    if message:
-        _warn(message)
-
-
-def _unidentified_given(au: np.ndarray, au_names: list[str], face: np.ndarray, release: Release) -> str | None:
-    """The phrase for AUs given (non-zero in a face row) that the release's identification screen flags
+def _unidentified_given(given_aus: np.ndarray, au_names: list[str], release: Release) -> str | None:
+    """The phrase for AUs given (``given_aus`` (20,) bool: non-zero in a face row) that the release's identification
+    screen flags
     (``au_identification_flagged``, docs/method.md eq. 6): their fields may point the wrong way under detector noise;
     their partner group is what the data identifies. None for a release without the screen, or none given."""
-    if "au_identification_flagged" not in release or not face.any():
+    if "au_identification_flagged" not in release:
         return None
     flagged = np.asarray(release["au_identification_flagged"], dtype=bool)
     partners = [str(p) for p in np.asarray(release["au_identification_partner"]).tolist()]
     sigma = np.asarray(release["au_identification_sigma_star"], dtype=np.float64)
-    given = np.flatnonzero(flagged & (np.abs(np.nan_to_num(au[face])) > 0).any(axis=0))
+    given = np.flatnonzero(flagged & given_aus)
     if not len(given):
         return None
     threshold = float(np.asarray(release["au_identification_flag_below"]))
@@ -400,14 +516,15 @@ def _unidentified_given(au: np.ndarray, au_names: list[str], face: np.ndarray, r
 
 @contextmanager
 def logged_range_warnings(logger: logging.Logger, where: str) -> Iterator[None]:
-    """Inside: :class:`InputRangeWarning` is caught and logged by ``logger``, one line each as ``"<where>: <line>"``
-    (``aumesh predict``, ``aumesh animate``, the served model: a command's output, not Python's warning format);
-    other warnings pass on as they are."""
+    """Inside: :class:`InputRangeWarning` and :class:`NoFaceWarning` are caught and logged by ``logger``, one line
+    each as ``"<where>: <line>"`` (``aumesh predict``, ``aumesh animate``, the served model: a command's output, not
+    Python's warning format); other warnings pass on as they are."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InputRangeWarning)
+        warnings.simplefilter("always", NoFaceWarning)
         yield
     for w in caught:
-        if issubclass(w.category, InputRangeWarning):
+        if issubclass(w.category, (InputRangeWarning, NoFaceWarning)):
             logger.warning("%s: %s", where, w.message)
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
@@ -418,18 +535,21 @@ def logged_range_warnings(logger: logging.Logger, where: str) -> Iterator[None]:
 _OWN_MODULES = frozenset({__name__, "aumesh.model.inference"})
 
 
-def _warn(message: str) -> None:
-    """``warnings.warn`` an :class:`InputRangeWarning` at the first caller outside :data:`_OWN_MODULES`."""
+def _warn(message: str, category: type[Warning] = InputRangeWarning) -> None:
+    """``warnings.warn`` an :class:`InputRangeWarning` (or ``category``) at the first caller outside
+    :data:`_OWN_MODULES`."""
     level, frame = 1, sys._getframe(0)
     while frame.f_globals.get("__name__") in _OWN_MODULES and frame.f_back is not None:
         frame, level = frame.f_back, level + 1
-    warnings.warn(message, InputRangeWarning, stacklevel=level)
+    warnings.warn(message, category, stacklevel=level)
 
 
 __all__ = [
     "AU_SCALE_MAX",
     "MAX_ABS_POSE_RAD",
     "InputRangeWarning",
+    "InputTally",
+    "NoFaceWarning",
     "input_rows",
     "logged_range_warnings",
     "training_pose_limits",

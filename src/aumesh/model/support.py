@@ -235,9 +235,28 @@ def beyond_training(au: np.ndarray, au_names: Sequence[str], face: np.ndarray, s
         the training max and p99, and the rows beyond; and each unsupported AU given above :data:`UNSUPPORTED_GIVEN`
         (py-feat's rule). None when every value is within.
     """
+    largest, rows = au_extent(au, au_names, face, support)
+    return beyond_phrase(largest, rows, au_names, support)
+
+
+def au_extent(au: np.ndarray, au_names: Sequence[str], face: np.ndarray, support: Support) -> tuple[np.ndarray, int]:
+    """What :func:`beyond_phrase` needs of a block of rows, summable over blocks (``np.maximum`` and ``+``): each AU's
+    largest value over the face rows (shape (20,), ``-inf`` where there is none) and the number of face rows with an AU
+    above its training max (``support.upper``, with a float32 slack)."""
     values = np.where(face[:, None], au, np.nan)
     largest = np.nanmax(values, axis=0, initial=-np.inf) if len(values) else np.full(len(au_names), -np.inf)
-    above, rows = [], np.zeros(len(au), bool)
+    rows = np.zeros(len(au), bool)
+    for j, name in enumerate(au_names):
+        limit = support.upper.get(name, np.nan)
+        if np.isfinite(limit) and largest[j] > limit + _SLACK:
+            rows |= face & (au[:, j] > limit + _SLACK)
+    return largest, int(rows.sum())
+
+
+def beyond_phrase(largest: np.ndarray, rows: int, au_names: Sequence[str], support: Support) -> str | None:
+    """:func:`beyond_training`'s phrase from the AUs' largest values and the count of rows above a training max
+    (:func:`au_extent`, over one call or summed over a streamed table's chunks), or None."""
+    above = []
     for j, name in enumerate(au_names):
         limit = support.upper.get(name, np.nan)
         if np.isfinite(limit) and largest[j] > limit + _SLACK:
@@ -246,13 +265,11 @@ def beyond_training(au: np.ndarray, au_names: Sequence[str], face: np.ndarray, s
             if support.bound == "max" and np.isfinite(p99):
                 detail += f", p99 {p99:.3g}"
             above.append(f"{name} up to {largest[j]:.3g} ({detail})")
-            rows |= face & (au[:, j] > limit + _SLACK)
     never = [name for j, name in enumerate(au_names) if name in support.unsupported and largest[j] > UNSUPPORTED_GIVEN]
     parts = []
     if above:
         parts.append(
-            f"aus: {', '.join(above)} beyond the training data ({int(rows.sum())} row(s)): the mesh there is an "
-            f"extrapolation"
+            f"aus: {', '.join(above)} beyond the training data ({rows} row(s)): the mesh there is an extrapolation"
         )
     if never:
         parts.append(
@@ -298,6 +315,8 @@ __all__ = [
     "UNSUPPORTED_GIVEN",
     "UNSUPPORTED_P99",
     "Support",
+    "au_extent",
+    "beyond_phrase",
     "beyond_training",
     "data_support",
     "detector_counts",

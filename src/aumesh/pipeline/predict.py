@@ -22,8 +22,9 @@ written, by the output's suffix:
 - ``.obj`` / ``.ply``: one row only (with a face), the mesh with the project's triangulation
   (:func:`aumesh.geometry.face.triangulate`), triangles facing out of the face.
 
-Files are written atomically. Input-range warnings (inputs beyond the training data, a table from another
-detector than the release's: :mod:`aumesh.model.support`) are logged, one line each.
+The table is streamed, a chunk of rows at a time (:mod:`aumesh.pipeline.predict_stream`): memory is flat in its
+rows. Files are written atomically. Input-range warnings (inputs beyond the training data, a table from another
+detector than the release's: :mod:`aumesh.model.support`) are logged, one line each for the whole table.
 """
 
 from __future__ import annotations
@@ -37,47 +38,22 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from aumesh.core.errors import MissingFileError
-from aumesh.core.io import atomic_savez, atomic_write_text
-from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.core.io import atomic_write_text
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, VIDEO_COLUMN
 from aumesh.export import meshfiles
 from aumesh.geometry import face
 from aumesh.model import support
 from aumesh.model.inference import predict_rows
-from aumesh.model.input_checks import InputRangeWarning, input_rows, logged_range_warnings
-from aumesh.model.input_columns import ColumnSelection, PredictionInputError, closest_name, select_columns, short_list
+from aumesh.model.input_checks import InputRangeWarning, InputTally, logged_range_warnings
+from aumesh.model.input_columns import ColumnSelection, PredictionInputError, short_list
 from aumesh.model.release_check import load_release
+from aumesh.pipeline import predict_stream
+from aumesh.pipeline.predict_stream import choose_columns, table_header
 
 log = logging.getLogger(__name__)
 
-TABLE_SUFFIXES = (".csv", ".parquet")
 MESH_SUFFIXES = (".obj", ".ply")
 OUT_SUFFIXES = (".npz", *MESH_SUFFIXES)
-
-
-def table_header(path: str | os.PathLike) -> list[str]:
-    """The column names of a CSV or parquet table, read without its rows.
-
-    Raises
-    ------
-    FileNotFoundError
-        No such file (:class:`MissingFileError`).
-    PredictionInputError
-        Unsupported suffix, or a file that is not a readable table.
-    """
-    path = Path(path)
-    if path.suffix.lower() not in TABLE_SUFFIXES:
-        raise PredictionInputError(f"{path}: unsupported table type {path.suffix!r}; use {' or '.join(TABLE_SUFFIXES)}")
-    if not path.is_file():
-        raise MissingFileError(f"input table not found: {path}")
-    try:
-        if path.suffix.lower() == ".csv":
-            return [str(c) for c in pd.read_csv(path, nrows=0).columns]
-        import pyarrow.parquet as pq
-
-        return [str(c) for c in pq.read_schema(path).names]
-    except (OSError, ValueError) as exc:  # pandas' EmptyDataError, ParserError and pyarrow's ArrowInvalid: ValueErrors
-        raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
 
 
 def read_table(
@@ -123,16 +99,7 @@ def read_table(
     """
     path = Path(path)
     header = table_header(path)
-    absent = [c for c in ignore if c not in header]
-    if absent:
-        near = closest_name(absent[0], header)
-        hint = f" (did you mean {near!r} for {absent[0]!r}?)" if near else ""
-        raise PredictionInputError(
-            f"{path}: --ignore names column(s) {short_list(absent)} that the table does not have{hint}"
-        )
-    dropped = set(ignore)
-    selection = select_columns([c for c in header if c not in dropped], au_columns, strict=strict, what=str(path))
-    wanted = selection.columns + [k for k in keys if k in header and k not in dropped and k not in selection.columns]
+    wanted, selection = choose_columns(path, header, au_columns, ignore, strict, keys)
     try:
         if path.suffix.lower() == ".csv":
             df = pd.read_csv(path, usecols=wanted) if wanted else pd.read_csv(path).drop(columns=list(ignore))
@@ -180,8 +147,14 @@ def predict_table(
     ignore: Sequence[str] = (),
     *,
     strict: bool = False,
+    chunk_rows: int | None = None,
 ) -> tuple[Path, int]:
     """Predict one mesh per table row and write them to ``out`` (``.npz``, or ``.obj`` / ``.ply`` for one row).
+
+    The table is streamed (:mod:`aumesh.pipeline.predict_stream`): ``chunk_rows`` rows are read, checked, predicted
+    and written at a time, so memory does not grow with the table's rows (a 1M-row py-feat CSV needed ~23 GB when
+    the table and its meshes were held whole). The input checks are summed over the chunks
+    (:class:`aumesh.model.input_checks.InputTally`): one range warning a run, rows numbered from the table's start.
 
     Parameters
     ----------
@@ -192,6 +165,9 @@ def predict_table(
         Table columns to leave out.
     strict : bool
         Every column (after ``ignore``) must be an input column, as before whole tables were taken.
+    chunk_rows : int, optional
+        Rows predicted at a time (default :data:`aumesh.pipeline.predict_stream.CHUNK_ROWS`); the output does not
+        depend on it.
 
     Returns
     -------
@@ -209,55 +185,55 @@ def predict_table(
     if suffix not in OUT_SUFFIXES:
         raise PredictionInputError(f"--out {out}: unsupported suffix {out.suffix!r}; use {', '.join(OUT_SUFFIXES)}")
     arrays = load_release(release)
-    df, selection = read_table(
+    source = predict_stream.open_table(
         table, [str(a) for a in np.asarray(arrays["au_columns"]).tolist()], ignore, strict=strict, keys=KEY_COLUMNS
     )
+    if suffix in MESH_SUFFIXES and source.n_rows != 1:
+        raise PredictionInputError(
+            f"{table} has {source.n_rows} rows; {suffix} holds one mesh. Fix: write .npz, or give a one-row table"
+        )
+    tally = InputTally()
     with logged_range_warnings(log, str(table)):
         mismatch = support.detector_mismatch(
-            support.table_detector(table_header(table), str(table)), support.release_support(arrays), "table"
+            support.table_detector(source.header, str(table)), support.release_support(arrays), "table"
         )
         if mismatch:
             warnings.warn(mismatch, InputRangeWarning, stacklevel=1)
-        try:
-            au, pose, _ = input_rows(arrays, df, selection=selection)
-        except PredictionInputError as exc:
-            raise PredictionInputError(f"{table}: {exc}") from exc
-    no_face = np.isnan(au).all(axis=1)
-    if suffix in MESH_SUFFIXES and len(df) != 1:
-        raise PredictionInputError(
-            f"{table} has {len(df)} rows; {suffix} holds one mesh. Fix: write .npz, or give a one-row table"
-        )
-    if suffix in MESH_SUFFIXES and no_face[0]:
-        raise PredictionInputError(
-            f"{table}: row 0 has no face (FaceScore 0, or every AU and pose value NaN); "
-            f"{suffix} needs a mesh. Fix: give a row with a face, or write .npz"
-        )
-    meshes = predict_rows(arrays, au, pose)
-    if no_face.any():
+        if suffix == ".npz":
+            predict_stream.write_npz(arrays, source, out, tally, chunk_rows or predict_stream.CHUNK_ROWS)
+        else:
+            _write_mesh_file(arrays, source, out, release, tally)
+        message = tally.range_message(arrays)
+        if message:
+            warnings.warn(message, InputRangeWarning, stacklevel=1)
+    if tally.no_face:
         log.warning(
             "%s: %d of %d row(s) without a face (FaceScore 0, or every AU and pose value NaN): NaN meshes, "
             "no_face True in %s",
             table,
-            int(no_face.sum()),
-            len(no_face),
+            tally.no_face,
+            tally.rows,
             out.name,
         )
-    if suffix == ".npz":
-        atomic_savez(
-            out,
-            meshes=meshes.astype(np.float32),
-            no_face=no_face,
-            au=au,
-            pose=pose,
-            au_columns=np.asarray(arrays["au_columns"]),
-            pose_columns=np.array(POSE_COLUMNS),
-            **row_keys(df),
+    log.info("predicted %d mesh(es) from %s with %s -> %s", tally.rows, table, release, out)
+    return out, tally.rows
+
+
+def _write_mesh_file(arrays, source, out: Path, release, tally: InputTally) -> None:
+    """The one row of ``source`` as an ``.obj`` / ``.ply`` mesh (triangles facing out of the face)."""
+    (df,) = list(predict_stream.iter_chunks(source, 1))
+    au, pose = predict_stream.checked_rows(arrays, df, source, tally)
+    if np.isnan(au[0]).all():
+        raise PredictionInputError(
+            f"{source.path}: row 0 has no face (FaceScore 0, or every AU and pose value NaN); "
+            f"{out.suffix.lower()} needs a mesh. Fix: give a row with a face, or write .npz"
         )
-    else:
-        mesh = meshes[0]
-        tri = face.outward_triangles(mesh, face.triangulate(mesh))
-        comment = f"aumesh predict: {Path(release).name}, row 0 of {Path(table).name}"
-        text = meshfiles.obj_text(mesh, tri, comment) if suffix == ".obj" else meshfiles.ply_text(mesh, tri, comment)
-        atomic_write_text(out, text)
-    log.info("predicted %d mesh(es) from %s with %s -> %s", len(meshes), table, release, out)
-    return out, len(meshes)
+    mesh = predict_rows(arrays, au, pose)[0]
+    tri = face.outward_triangles(mesh, face.triangulate(mesh))
+    comment = f"aumesh predict: {Path(release).name}, row 0 of {source.path.name}"
+    text = (
+        meshfiles.obj_text(mesh, tri, comment)
+        if out.suffix.lower() == ".obj"
+        else meshfiles.ply_text(mesh, tri, comment)
+    )
+    atomic_write_text(out, text)

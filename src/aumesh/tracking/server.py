@@ -74,3 +74,48 @@ def server_environment() -> dict[str, str]:
     return dict(
         os.environ, MLFLOW_DISABLE_TELEMETRY="true", DO_NOT_TRACK="true", MLFLOW_SERVER_ENABLE_JOB_EXECUTION="false"
     )
+
+
+def scoring_command(
+    model_uri: str, host: str = "127.0.0.1", port: int = 5001, workers: int = 1, timeout_s: int | None = None
+) -> list[str]:
+    """The ``mlflow models serve`` command line of README "Use the model" (this interpreter's MLflow, the model run in
+    this environment: ``--env-manager local``, since it imports aumesh).
+
+    Parameters
+    ----------
+    model_uri : str
+        ``models:/aumesh-au-to-mesh@champion``, ``runs:/<id>/model`` or a model folder.
+    host, port : str, int
+        The address to listen on.
+    workers : int
+        Scoring worker processes (uvicorn's).
+    timeout_s : int, optional
+        Seconds a request may take before the server answers HTTP 504 (``--timeout``; MLflow's default 60).
+    """
+    return [
+        sys.executable,
+        "-m",
+        "mlflow",
+        "models",
+        "serve",
+        "-m",
+        model_uri,
+        "--env-manager",
+        "local",
+        "-h",
+        host,
+        "-p",
+        str(port),
+        "-w",
+        str(workers),
+        *(["-t", str(int(timeout_s))] if timeout_s is not None else []),
+    ]
+
+
+def scoring_environment() -> dict[str, str]:
+    """The scoring server's environment: this interpreter's ``bin/`` first on PATH (MLflow execs ``uvicorn`` from PATH,
+    as in an activated venv) and telemetry off."""
+    env = server_environment()
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    return env
