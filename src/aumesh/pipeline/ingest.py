@@ -61,7 +61,8 @@ def find_sources(
             f"{data_dir}/{pattern}: no frame tables found (empty input; CSV, .csv.gz or parquet). Fix: copy py-feat's "
             f"CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull`."
         )
-    return [readers.open_source(p, mesh_npy_pattern, instruments) for p in paths]
+    layouts: dict = {}  # one header and one Layout per distinct header (py-feat's one CSV per video: one for all)
+    return [readers.open_source(p, mesh_npy_pattern, instruments, layouts) for p in paths]
 
 
 def _span_rows(span: readers.Span) -> int:
@@ -153,7 +154,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         )
         total = ingest.Counts()
         for task, c in zip(tasks, counts, strict=True):
-            total = total + c
+            total += c
             if not c.rows_out:  # every row a no-face row
                 task.out.unlink()
         tables = [e["table"] for e in entries if "table" in e]
@@ -168,7 +169,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
                     units={str(source.path): check.units} if check.units else {},
                     labels={str(source.path): check.labels} if check.labels is not None else {},
                 )
-                total = total + passed
+                total += passed
         for source, entry in zip(sources, entries, strict=True):
             stats = total.units.get(str(source.path)) or units.UnitStats(source.layout.detector)
             check_units(source, stats, mesh_units)

@@ -71,8 +71,10 @@ def table_header(path: str | os.PathLike) -> list[str]:
     if not path.is_file():
         raise MissingFileError(f"input table not found: {path}")
     try:
-        if path.suffix.lower() == ".csv":
-            return [str(c) for c in pd.read_csv(path, nrows=0).columns]
+        if path.suffix.lower() == ".csv":  # the ingest's header reader: a BOM accepted, ';' or NUL bytes named
+            from aumesh.data.readers import csv_header
+
+            return csv_header(path)
         import pyarrow.parquet as pq
 
         return [str(c) for c in pq.read_schema(path).names]
