@@ -363,22 +363,25 @@ def write_clean(
     pending: list[Block] = []
     writer = pq.ParquetWriter(out, schema, compression="none", use_dictionary=[VIDEO_COLUMN], write_statistics=False)
 
-    def flush() -> None:
+    def flush() -> int:
         if pending:
             writer.write_table(to_table(concat_blocks(pending), schema), row_group_size=ROW_GROUP_ROWS)
             pending.clear()
+        return 0
 
     try:
+        rows = 0  # in pending
         for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units):
             total += counts
             if len(block) >= SMALL_BLOCK_ROWS:
                 flush()
                 pending.append(block)
-                flush()
+                rows = flush()
             elif len(block):
                 pending.append(block)
-                if sum(len(b) for b in pending) >= SMALL_BLOCK_ROWS:
-                    flush()
+                rows += len(block)
+                if rows >= SMALL_BLOCK_ROWS:
+                    rows = flush()
         flush()
     finally:
         writer.close()

@@ -75,9 +75,10 @@ def open_source(
     the same ~2,045 names in every file, ~120 KB a source and ~2 ms of parsing when each held its own)."""
     cache: dict = {} if layouts is None else layouts
     if path.name.endswith(CSV_SUFFIXES):
-        header = tuple(csv_header(path))
-        key = ("csv", header, tuple(instruments))
+        line, second = _header_lines(path)
+        key = ("csv", line, tuple(instruments))  # the header's text: parsed once
         if key not in cache:
+            header = tuple(_parse_header(path, line, second))
             cache[key] = (header, pyfeat.layout(header, str(path), instruments=instruments))
         header, lay = cache[key]
         return Source(path, "csv", lay, header)
@@ -112,15 +113,23 @@ def open_source(
 def csv_header(path: Path) -> list[str]:
     """The CSV's column names (a byte-order mark, as Excel writes, accepted); a header that is not py-feat's CSV (NUL
     bytes, ``;`` or tab separators) is refused by :func:`aumesh.data.csv_text.check_header_line`."""
+    return _parse_header(path, *_header_lines(path))
+
+
+def _header_lines(path: Path) -> tuple[str, str]:
+    """The header line and (the start of) the next, decoded as ``utf-8-sig`` (a byte-order mark dropped)."""
     opener = gzip.open if path.name.endswith(".gz") else open
     try:
         with opener(path, "rt", newline="", encoding="utf-8-sig") as fh:
-            line, second = fh.readline(), fh.readline(1 << 16)
+            return fh.readline(), fh.readline(1 << 16)
     except (OSError, UnicodeDecodeError, EOFError) as err:
         raise TableError(
             f"{path}: cannot read the CSV header ({err}). Fix: save it with py-feat's detect(..., save=) "
             f"or DataFrame.to_csv."
         ) from None
+
+
+def _parse_header(path: Path, line: str, second: str) -> list[str]:
     csv_text.check_header_line(path, line, second)
     header = next(csv.reader([line]), None)
     if not header:
