@@ -15,7 +15,10 @@ proportions (:func:`check_units`). The stage writes:
   (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``) and ``detectors`` (sources per detector).
 
 Cached by DVC: a change of recipe (``preprocess.*``, ``model.*``) reruns ``prepare`` on these files and never
-re-parses a CSV. CSV ranges are parsed on the compute engine, several at once.
+re-parses a CSV. CSV ranges are parsed on the compute engine, several at once. py-feat's one CSV per video costs what
+the same rows in one CSV do: the files share one header and :class:`~aumesh.data.pyfeat.Layout`, their small ranges
+are parsed together (:func:`aumesh.data.readers.iter_span_groups`) and written as one row group
+(:func:`aumesh.data.ingest.write_clean`); each source keeps only its units and manifest entry (a few KB).
 """
 
 from __future__ import annotations
