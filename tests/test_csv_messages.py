@@ -16,7 +16,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from aumesh.core.errors import TableError
+from aumesh.core.errors import TableError, UserError
 from aumesh.data import ingest as ingest_data
 from aumesh.data import readers
 from aumesh.pipeline import ingest
@@ -180,3 +180,17 @@ def test_bom_in_a_parquet_column_name(made, tmp_path):
     np.save(folder / "clip_mesh.npy", np.zeros((len(df), 478, 3), np.float32))
     with pytest.raises(TableError, match=r"starts with a byte-order mark .*encoding='utf-8-sig'"):
         ingest.find_sources(folder, "**/*", NPY)
+
+
+def test_predict_reads_the_header_as_ingest_does(made, tmp_path):
+    """``aumesh predict``'s table reader: the same header checks (a BOM accepted, ';' named)."""
+    from aumesh.pipeline import predict
+
+    one, _ = made
+    df = pd.read_csv(one)
+    path = tmp_path / "fex.csv"
+    path.write_bytes(b"\xef\xbb\xbf" + df.to_csv(index=False).encode())
+    assert predict.table_header(path) == list(df.columns)
+    df.to_csv(path, sep=";", decimal=",", index=False)
+    with pytest.raises(UserError, match=r"^\S*fex\.csv: line 1 \(the header\) is separated by ';'"):
+        predict.table_header(path)

@@ -390,7 +390,7 @@ def _joined(
         source = pending[0][0].source
         cols = list(source.layout.columns if columns is None else columns)
         types = _types(source.layout)
-        parts = [data if data.endswith(b"\n") else data + b"\n" for _, data in pending]
+        parts = [data if not data or data.endswith(b"\n") else data + b"\n" for _, data in pending]
         rows = [part.count(b"\n") for part in parts]
         read, convert = _csv_options(source, cols, {k: types.get(k, pa.string()) for k in cols})
         try:

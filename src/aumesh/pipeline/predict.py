@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from aumesh.core.errors import MissingFileError
+from aumesh.core.errors import MissingFileError, UserError
 from aumesh.core.io import atomic_savez, atomic_write_text
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.export import meshfiles
@@ -78,6 +78,8 @@ def table_header(path: str | os.PathLike) -> list[str]:
         import pyarrow.parquet as pq
 
         return [str(c) for c in pq.read_schema(path).names]
+    except UserError as exc:  # the header reader's one line (file, line, fix) as it is
+        raise PredictionInputError(str(exc)) from None
     except (OSError, ValueError) as exc:  # pandas' EmptyDataError, ParserError and pyarrow's ArrowInvalid: ValueErrors
         raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
 
