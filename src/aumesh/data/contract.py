@@ -18,7 +18,7 @@ Errors are :class:`~aumesh.core.errors.TableError` naming the file, the column, 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -106,7 +106,13 @@ def _numeric_frame(df: pd.DataFrame, path: Path | str, row_offset: int, coerce: 
     return out
 
 
-def validate_metadata(df: pd.DataFrame, path: Path | str, row_offset: int = 0, coerce: bool = False) -> pd.DataFrame:
+def validate_metadata(
+    df: pd.DataFrame,
+    path: Path | str,
+    row_offset: int = 0,
+    coerce: bool = False,
+    row_name: Callable[[int], str] | None = None,
+) -> pd.DataFrame:
     """Check one chunk of metadata rows against :data:`METADATA_SCHEMA`; return it with float64 AU/pose columns.
 
     Parameters
@@ -116,6 +122,8 @@ def validate_metadata(df: pd.DataFrame, path: Path | str, row_offset: int = 0, c
     path : path of the file, for the message.
     row_offset : row of ``df``'s first row in the file.
     coerce : convert AU/pose columns stored as text (``data.coerce_numeric``).
+    row_name : names row ``i`` of ``df`` in the user's file (the ingest stage: "line 7" of a CSV); default
+        ``"row {row_offset + i}"``.
 
     Raises
     ------
@@ -127,11 +135,11 @@ def validate_metadata(df: pd.DataFrame, path: Path | str, row_offset: int = 0, c
         # in place: the schema only checks (no coercion), and pandera would otherwise check a deep copy of ``out``
         METADATA_SCHEMA.validate(out, lazy=True, inplace=True)
     except pa.errors.SchemaErrors as err:
-        raise _first_failure(err.failure_cases, out, path, row_offset) from None
+        raise _first_failure(err.failure_cases, out, path, row_name or (lambda i: f"row {row_offset + i}")) from None
     return out
 
 
-def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int) -> TableError:
+def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_name: Callable[[int], str]) -> TableError:
     order = {c: i for i, c in enumerate(METADATA_SCHEMA.columns)}
     cases = cases.assign(_order=cases["column"].map(order).fillna(len(order))).sort_values("_order", kind="stable")
     column = str(cases["column"].iloc[0])
@@ -141,9 +149,9 @@ def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int)
     n = len(values)
     missing = values.isna().to_numpy() if n else np.zeros(0, bool)
 
-    def first(mask: np.ndarray) -> tuple[int, object]:
+    def first(mask: np.ndarray) -> tuple[str, object]:
         i = int(np.flatnonzero(mask)[0])
-        return row_offset + i, values.iloc[i]
+        return row_name(i), values.iloc[i]
 
     if any(c.startswith("dtype") for c in checks):
         return TableError(
@@ -161,7 +169,7 @@ def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int)
     if bad.any():
         row, value = first(bad)
         return TableError(
-            f"{path}: column {column!r} has {int(bad.sum())} NaN/inf value(s) (first at row {row}: {value}) in rows with a "
+            f"{path}: column {column!r} has {int(bad.sum())} NaN/inf value(s) (first at {row}: {value}) in rows with a "
             f"face (py-feat's no-face rows, every measurement NaN, are dropped by the ingest stage itself): a corrupt or "
             f"partial export. Fix: re-export those videos with py-feat, or drop those rows before `dvc add data`."
         )
@@ -176,15 +184,15 @@ def _first_failure(cases: pd.DataFrame, df: pd.DataFrame, path, row_offset: int)
             )
         else:
             hint = f"Fix: AU intensities are py-feat's probabilities in [{AU_RANGE[0]:g}, {AU_RANGE[1]:g}]."
-        return TableError(f"{path}: column {column!r} is outside 0-1 at row {row} ({value:g}); {hint}")
+        return TableError(f"{path}: column {column!r} is outside 0-1 at {row} ({value:g}); {hint}")
     if column in POSE_COLUMNS:
         top = float(np.max(np.abs(x)))
         return TableError(
             f"{path}: column {column!r} reaches {top:.1f}, more than pi: pose looks like degrees. Fix: convert "
             f"{', '.join(POSE_COLUMNS)} to radians (np.deg2rad) before `dvc add data`."
         )
-    row = int(mine["index"].dropna().iloc[0]) + row_offset if mine["index"].notna().any() else row_offset
-    return TableError(f"{path}: column {column!r} fails check {checks[0]} at row {row}.")
+    row = row_name(int(mine["index"].dropna().iloc[0])) if mine["index"].notna().any() else row_name(0)
+    return TableError(f"{path}: column {column!r} fails check {checks[0]} at {row}.")
 
 
 def check_pose_units(pose: np.ndarray, where: str | Path) -> None:

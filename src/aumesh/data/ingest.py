@@ -19,8 +19,9 @@ A clean parquet table is read in place (:func:`check_clean`) instead of being wr
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,16 @@ from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.data import pyfeat
-from aumesh.data.readers import Block, Source, Span, iter_span_tables, parquet_batches, to_block
+from aumesh.data.readers import (
+    Block,
+    Source,
+    Span,
+    iter_span_groups,
+    iter_span_tables,
+    parquet_batches,
+    row_place,
+    to_block,
+)
 from aumesh.data.units import (
     SHAPE_VERTICES,
     Z_CROP,
@@ -68,20 +78,29 @@ class Counts:
     labels: dict[str, set[str]] = field(default_factory=dict)  # source path -> Identity labels of kept rows
 
     def __add__(self, other: Counts) -> Counts:
-        merged = {v: dict(c) for v, c in self.identities.items()}
+        total = Counts()
+        total += self
+        total += other
+        return total
+
+    def __iadd__(self, other: Counts) -> Counts:
+        """``other`` added into these counts (a sum over thousands of sources' counts in linear time: a new
+        :class:`Counts` per addition copied every source's units and labels each time). ``other``'s objects are never
+        changed, nor shared where this sum changes them."""
+        for f in fields(self):
+            if f.name not in ("identities", "units", "labels"):
+                setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
         for v, c in other.identities.items():
-            mine = merged.setdefault(v, {})
+            mine = self.identities.get(v)
+            if mine is None:
+                mine = self.identities[v] = {}
             for k, n in c.items():
                 mine[k] = mine.get(k, 0) + n
-        units = dict(self.units)
         for k, u in other.units.items():
-            units[k] = units[k] + u if k in units else u
-        labels = {k: set(names) for k, names in self.labels.items()}
+            self.units[k] = self.units[k] + u if k in self.units else u  # UnitStats.__add__: a new object
         for k, names in other.labels.items():
-            labels.setdefault(k, set()).update(names)
-        dicts = ("identities", "units", "labels")
-        sums = {f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self) if f.name not in dicts}
-        return Counts(**sums, identities=merged, units=units, labels=labels)
+            self.labels.setdefault(k, set()).update(names)
+        return self
 
     def as_dict(self) -> dict[str, int]:
         out = {
@@ -187,12 +206,17 @@ def clean_block(
     subjects: dict[str, str] | None,
     where: str,
     mesh_units: str = "detector",
+    place: Callable[[int], str] | None = None,
 ) -> tuple[Block, Counts]:
-    """No-face rows dropped, one face per frame, meshes in pixels (module docstring)."""
+    """No-face rows dropped, one face per frame, meshes in pixels (module docstring); the kept rows' values checked
+    (:func:`check_face_values`). ``place``: where a row of ``block`` (as read) is in the user's file ("line 7"; default
+    "row 5" of the block)."""
     empty = no_face_rows(block, layout)
-    faces = block.take(np.flatnonzero(~empty))
+    face_rows = np.flatnonzero(~empty)
+    faces = block.take(face_rows)
     keep, counts = select_faces(faces, layout, how, subjects, where)
     out = faces.take(keep)
+    check_face_values(out, layout, where, face_rows[keep], place or (lambda row: f"row {row}"))
     stats = convert_units(out, layout, mesh_units, where)
     counts.rows_in, counts.no_face, counts.rows_out = len(block), int(empty.sum()), len(out)
     counts.rows_normalized = stats.rows_normalized
@@ -202,6 +226,57 @@ def clean_block(
     if layout.identity is not None and out.identity is not None:
         counts.labels = {where: identity_labels(out.identity)}
     return out, counts
+
+
+def check_face_values(
+    block: Block, layout: pyfeat.Layout, where: str, rows: np.ndarray, place: Callable[[int], str]
+) -> None:
+    """The data contract on the face rows ingest keeps, where the user's file and its lines are known: AUs finite and
+    in 0-1, pose finite within ±π (:func:`aumesh.data.contract.validate_metadata`, the check prepare applies to
+    every table), instrument AUs and the mesh finite. An ingested table is then never the first place such a value is
+    found (prepare's check stays the guard of the parquet tables of ``data/`` read in place).
+
+    Parameters
+    ----------
+    block : (n,) kept rows.
+    rows : (n,) each kept row's row in the block as read; ``place(row)`` names it in the user's file ("line 7").
+
+    Raises
+    ------
+    TableError
+        The contract's one line (the column, the value and the fix), naming ``where`` and the row's line.
+    """
+    names = [*AU_COLUMNS, *POSE_COLUMNS]
+    x = np.column_stack([block.values[c] for c in names]) if len(block) else np.zeros((0, len(names)))
+    au, pose = x[:, : len(AU_COLUMNS)], x[:, len(AU_COLUMNS) :]
+    with np.errstate(invalid="ignore"):
+        fine = np.isfinite(x).all() and (au >= 0).all() and (au <= 1).all() and (np.abs(pose) <= np.pi).all()
+    if not fine:
+        import pandas as pd
+
+        from aumesh.data import contract  # pandera: imported only when a value is refused
+
+        frame = pd.DataFrame(
+            {VIDEO_COLUMN: block.video, FRAME_COLUMN: block.frame} | {c: block.values[c] for c in names}
+        )
+        contract.validate_metadata(frame, where, row_name=lambda i: place(int(rows[i])))
+    for name in layout.instruments:
+        bad = ~np.isfinite(block.values[name])
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise TableError(
+                f"{where}: column {name!r} is {block.values[name][i]!r} at {place(int(rows[i]))} ({int(bad.sum())} "
+                f"such rows): model/eiv=instruments needs the second detector's AUs on every frame. Fix: drop the "
+                f"frames the second detector missed from the tables, or use model/eiv=none."
+            )
+    finite = np.isfinite(block.mesh)
+    if not finite.all():
+        i, j = (int(k[0]) for k in np.nonzero(~finite))
+        column = layout.mesh[j] if layout.mesh is not None else f"{'xyz'[j // N_VERTICES]}_{j % N_VERTICES}"
+        raise TableError(
+            f"{where}: mesh column {column} is NaN/inf at {place(int(rows[i]))}, a row with a face. Fix: drop frames "
+            f"where the face mesh failed (rows with NaN landmarks) before `dvc add data`."
+        )
 
 
 def identity_labels(identity: np.ndarray) -> set[str]:
@@ -247,26 +322,67 @@ def to_table(block: Block, schema: pa.Schema) -> pa.Table:
 def iter_clean_blocks(
     spans: Sequence[Span], how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
 ) -> Iterator[tuple[Block, Counts]]:
-    """Each span read and cleaned (:func:`clean_block`)."""
-    for span in spans:
-        for rows, table in iter_span_tables(span):
-            block = to_block(table, rows)
-            yield clean_block(block, span.source.layout, how, subjects, str(span.source.path), mesh_units)
+    """Each span read and cleaned (:func:`clean_block`), source by source; the small CSV ranges of many files
+    parsed together (:func:`aumesh.data.readers.iter_span_groups`)."""
+    for table, parts in iter_span_groups(spans):
+        block = to_block(table, parts[0][0])
+        for rows, first, stop in parts:
+            part = block if (first, stop) == (0, len(block)) else block.take(np.arange(first, stop))
+            src = rows.source
+            yield clean_block(part, src.layout, how, subjects, str(src.path), mesh_units, partial(row_place, rows))
+
+
+def concat_blocks(blocks: Sequence[Block]) -> Block:
+    """The rows of ``blocks`` in order, as one :class:`~aumesh.data.readers.Block` (same columns)."""
+    if len(blocks) == 1:
+        return blocks[0]
+    identity = None if blocks[0].identity is None else np.concatenate([b.identity for b in blocks])
+    return Block(
+        np.concatenate([b.video for b in blocks]),
+        np.concatenate([b.frame for b in blocks]),
+        {k: np.concatenate([b.values[k] for b in blocks]) for k in blocks[0].values},
+        identity,
+        np.concatenate([b.mesh for b in blocks]),
+    )
+
+
+#: Cleaned blocks smaller than this are written together, up to :data:`ROW_GROUP_ROWS` rows a row group: a row group
+#: per block of a one-row CSV (py-feat's one file per video) cost ~25 ms to write and ~250 KB of footer metadata each,
+#: held by the writer to the end (2.6 MB a file in all). A larger block (a range of a long CSV) is its own row group.
+SMALL_BLOCK_ROWS = 1024
 
 
 def write_clean(
     spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
 ) -> Counts:
     """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed).
-    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs."""
+    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs.
+    Blocks of fewer than :data:`SMALL_BLOCK_ROWS` rows are written together."""
     schema = output_schema(spans[0].source.layout.instruments if spans else ())
     total = Counts()
+    pending: list[Block] = []
     writer = pq.ParquetWriter(out, schema, compression="none", use_dictionary=[VIDEO_COLUMN], write_statistics=False)
+
+    def flush() -> int:
+        if pending:
+            writer.write_table(to_table(concat_blocks(pending), schema), row_group_size=ROW_GROUP_ROWS)
+            pending.clear()
+        return 0
+
     try:
+        rows = 0  # in pending
         for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units):
-            total = total + counts
-            if len(block):
-                writer.write_table(to_table(block, schema), row_group_size=ROW_GROUP_ROWS)
+            total += counts
+            if len(block) >= SMALL_BLOCK_ROWS:
+                flush()
+                pending.append(block)
+                rows = flush()
+            elif len(block):
+                pending.append(block)
+                rows += len(block)
+                if rows >= SMALL_BLOCK_ROWS:
+                    rows = flush()
+        flush()
     finally:
         writer.close()
     return total
@@ -288,7 +404,7 @@ def span_identities(spans: Sequence[Span]) -> Counts:
         ]
         for rows, table in iter_span_tables(span, cols):
             block = to_block(_with_missing(table, lay), rows)
-            total = total + Counts(identities=identity_counts(block, lay))
+            total += Counts(identities=identity_counts(block, lay))
     return total
 
 

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 from aumesh.core.errors import TableError
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.data import csv_text
 
 FACE_SCORE = "FaceScore"
 FACE_BOX_SIZE = ("FaceRectWidth", "FaceRectHeight")
@@ -158,6 +159,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False, instrumen
         only mesh, or a mesh has the wrong vertex count.
     """
     present = set(names)
+    csv_text.check_names(names, where)  # a CSV header misread (a byte-order mark, ';' separators) named as such
     video = fex_video_column(names, where)
     check_instruments(names, instruments, where)
     mesh, detector = None, "split"

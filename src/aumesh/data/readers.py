@@ -25,7 +25,7 @@ import pyarrow.parquet as pq
 from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile, absolute, check_npy
 from aumesh.core.schema import FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES
-from aumesh.data import pyfeat
+from aumesh.data import csv_text, pyfeat
 from aumesh.data.pyfeat import video_stem
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
@@ -66,12 +66,22 @@ DATA_NPY_FIX = (
 )
 
 
-def open_source(path: Path, mesh_npy_pattern: str, instruments: Sequence[str] = ()) -> Source:
+def open_source(
+    path: Path, mesh_npy_pattern: str, instruments: Sequence[str] = (), layouts: dict | None = None
+) -> Source:
     """A source's layout from its header (CSV) or schema (parquet); ``instruments``: the second detector's AU
-    columns it must hold (``model.eiv.instrument_aus``)."""
+    columns it must hold (``model.eiv.instrument_aus``). ``layouts``: a cache shared by the sources of one run (one
+    header tuple and one :class:`~aumesh.data.pyfeat.Layout` per distinct header: py-feat's one CSV per video repeats
+    the same ~2,045 names in every file, ~120 KB a source and ~2 ms of parsing when each held its own)."""
+    cache: dict = {} if layouts is None else layouts
     if path.name.endswith(CSV_SUFFIXES):
-        header = csv_header(path)
-        return Source(path, "csv", pyfeat.layout(header, str(path), instruments=instruments), tuple(header))
+        line, second = _header_lines(path)
+        key = ("csv", line, tuple(instruments))  # the header's text: parsed once
+        if key not in cache:
+            header = tuple(_parse_header(path, line, second))
+            cache[key] = (header, pyfeat.layout(header, str(path), instruments=instruments))
+        header, lay = cache[key]
+        return Source(path, "csv", lay, header)
     try:
         md = pq.read_metadata(path)
     except Exception as err:  # pyarrow raises several types for a bad file
@@ -81,7 +91,10 @@ def open_source(path: Path, mesh_npy_pattern: str, instruments: Sequence[str] = 
     split = (
         npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
     )
-    lay = pyfeat.layout(names, str(path), split_mesh=split, instruments=instruments)
+    shape_key = ("parquet", tuple(names), split, tuple(instruments))
+    if shape_key not in cache:
+        cache[shape_key] = (tuple(names), pyfeat.layout(names, str(path), split_mesh=split, instruments=instruments))
+    header, lay = cache[shape_key]
     if split:
         _, _, shape = check_npy(npy, DATA_NPY_FIX)
         if len(shape) != 3 or shape[1:] != (N_VERTICES, 3):
@@ -94,19 +107,31 @@ def open_source(path: Path, mesh_npy_pattern: str, instruments: Sequence[str] = 
                 f"{npy}: {shape[0]} meshes but {path} has {md.num_rows} rows. Fix: one mesh per table row, "
                 f"same order; keep py-feat's no-face rows in both (aumesh drops them itself)."
             )
-    return Source(path, "parquet", lay, tuple(names), npy if split else None, md.num_rows)
+    return Source(path, "parquet", lay, header, npy if split else None, md.num_rows)
 
 
 def csv_header(path: Path) -> list[str]:
+    """The CSV's column names (a byte-order mark, as Excel writes, accepted); a header that is not py-feat's CSV (NUL
+    bytes, ``;`` or tab separators) is refused by :func:`aumesh.data.csv_text.check_header_line`."""
+    return _parse_header(path, *_header_lines(path))
+
+
+def _header_lines(path: Path) -> tuple[str, str]:
+    """The header line and (the start of) the next, decoded as ``utf-8-sig`` (a byte-order mark dropped)."""
     opener = gzip.open if path.name.endswith(".gz") else open
     try:
-        with opener(path, "rt", newline="") as fh:
-            header = next(csv.reader(fh), None)
-    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        with opener(path, "rt", newline="", encoding="utf-8-sig") as fh:
+            return fh.readline(), fh.readline(1 << 16)
+    except (OSError, UnicodeDecodeError, EOFError) as err:
         raise TableError(
             f"{path}: cannot read the CSV header ({err}). Fix: save it with py-feat's detect(..., save=) "
             f"or DataFrame.to_csv."
         ) from None
+
+
+def _parse_header(path: Path, line: str, second: str) -> list[str]:
+    csv_text.check_header_line(path, line, second)
+    header = next(csv.reader([line]), None)
     if not header:
         raise TableError(f"{path}: empty CSV (no header). Fix: export frames with py-feat first.")
     return header
@@ -255,34 +280,133 @@ def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
         ) from None
 
 
-def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]) -> pa.Table:
-    path = span.source.path
-    read = pacsv.ReadOptions(column_names=list(span.source.header), use_threads=True, block_size=8 << 20)
+def _csv_options(
+    source: Source, columns: list[str], types: dict[str, pa.DataType], skip_rows: int = 0
+) -> tuple[pacsv.ReadOptions, pacsv.ConvertOptions]:
+    read = pacsv.ReadOptions(
+        column_names=list(source.header), use_threads=True, block_size=8 << 20, skip_rows=skip_rows
+    )
     convert = pacsv.ConvertOptions(
         include_columns=columns, column_types=types, strings_can_be_null=True, quoted_strings_can_be_null=True
     )
-    try:
-        if path.name.endswith(".gz"):
-            # one range (csv_spans): the whole decompressed stream, its header row skipped (Arrow's compressed
-            # streams have no readline)
-            stream = pa.input_stream(str(path), compression="gzip")
-            skip = pacsv.ReadOptions(
-                column_names=list(span.source.header), use_threads=True, block_size=8 << 20, skip_rows=1
+    return read, convert
+
+
+def span_bytes(span: Span) -> bytes:
+    """An uncompressed CSV span's bytes, refused when they hold NUL bytes (:func:`aumesh.data.csv_text.check_bytes`)."""
+    with open(span.source.path, "rb") as fh:
+        fh.seek(span.start)
+        data = fh.read(span.stop - span.start)
+    csv_text.check_bytes(span.source.path, data, None, span.start)
+    return data
+
+
+def row_place(span: Span, row: int) -> str:
+    """Where row ``row`` of ``span`` (as read, 0-based) is in its file, as the user finds it: a CSV's line as a text
+    editor counts it (the header is line 1; py-feat writes a row a line), a parquet table's row (0-based). Counts the
+    lines before a CSV range: for error messages only."""
+    src = span.source
+    if src.kind == "csv":
+        return f"line {csv_text.first_line(src.path, span.start, src.path.name.endswith('.gz')) + row}"
+    return f"row {span.start + row}"
+
+
+def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]) -> pa.Table:
+    path = span.source.path
+    if path.name.endswith(".gz"):
+        # one range (csv_spans): the whole decompressed stream, its header row skipped (Arrow's compressed
+        # streams have no readline)
+        read, convert = _csv_options(span.source, columns, types, skip_rows=1)
+        try:
+            return pacsv.read_csv(
+                pa.input_stream(str(path), compression="gzip"), read_options=read, convert_options=convert
             )
-            return pacsv.read_csv(stream, read_options=skip, convert_options=convert)
-        with open(path, "rb") as fh:
-            fh.seek(span.start)
-            data = fh.read(span.stop - span.start)
+        except pa.ArrowInvalid as err:
+            with gzip.open(path, "rb") as fh:
+                fh.readline()
+                data = fh.read()
+            raise _csv_error(span, data, err, columns, 2) from None
+    data = span_bytes(span)
+    read, convert = _csv_options(span.source, columns, types)
+    try:
         return pacsv.read_csv(io.BytesIO(data), read_options=read, convert_options=convert)
     except pa.ArrowInvalid as err:
-        message = str(err).splitlines()[0]
-        column = next(
-            (c for c in columns if f"'{c}'" in message or f"column #{span.source.header.index(c)}" in message), None
-        )
-        raise TableError(
-            f"{path}: cannot read the CSV{f' (column {column!r})' if column else ''}: {message}. Fix: write "
-            f"numbers as numbers and missing values as empty fields or NaN (py-feat's to_csv does)."
-        ) from None
+        raise _csv_error(span, data, err, columns) from None
+
+
+def _csv_error(span: Span, data: bytes, err: Exception, columns: list[str], line: int | None = None) -> TableError:
+    """Arrow's refusal of a span, named by :func:`aumesh.data.csv_text.parse_error` (the file, the line, what it is)."""
+    path = span.source.path
+    if line is not None:  # a gzipped file's NULs (its bytes decompressed, after the header)
+        csv_text.check_bytes(path, data, line)
+    start = line or csv_text.first_line(path, span.start)
+    return csv_text.parse_error(path, data, start, span.source.header, str(err).splitlines()[0], columns)
+
+
+#: CSV ranges smaller than this are parsed together with the next ranges of the same header (up to
+#: :data:`CSV_RANGE_BYTES` in all): py-feat's one CSV per video is thousands of one-range files, and each parse of
+#: ~2,045 columns costs ~15 ms of setup whatever its rows.
+SMALL_RANGE_BYTES = 4 << 20
+
+
+def iter_span_groups(
+    spans: Sequence[Span], columns: Sequence[str] | None = None
+) -> Iterator[tuple[pa.Table, list[tuple[Span, int, int]]]]:
+    """The spans' rows as :func:`iter_span_tables` reads them, as ``(table, [(rows, first, stop), ...])``: each table's
+    rows ``[first, stop)`` are the span ``rows``'s, whole frames. Consecutive small CSV ranges (below
+    :data:`SMALL_RANGE_BYTES`) of one header are parsed at once, their bytes joined, when each is one line per row
+    (no quotes, no blank lines: its line ends count its rows); otherwise, and when Arrow refuses the joined bytes,
+    range by range (the refusal is then named for its own file)."""
+    pending: list[tuple[Span, bytes]] = []
+    size = 0
+    for span in spans:
+        src = span.source
+        if src.kind == "csv" and not src.path.name.endswith(".gz") and span.stop - span.start < SMALL_RANGE_BYTES:
+            if pending and (
+                pending[0][0].source.header != src.header or size + span.stop - span.start > CSV_RANGE_BYTES
+            ):
+                yield from _joined(pending, columns)
+                pending, size = [], 0
+            pending.append((span, span_bytes(span)))
+            size += span.stop - span.start
+            continue
+        if pending:
+            yield from _joined(pending, columns)
+            pending, size = [], 0
+        for rows, table in iter_span_tables(span, columns):
+            yield table, [(rows, 0, table.num_rows)]
+    if pending:
+        yield from _joined(pending, columns)
+
+
+def _one_line_rows(data: bytes) -> bool:
+    return b'"' not in data and b"\n\n" not in data and b"\n\r\n" not in data and not data.startswith((b"\n", b"\r"))
+
+
+def _joined(
+    pending: list[tuple[Span, bytes]], columns: Sequence[str] | None
+) -> Iterator[tuple[pa.Table, list[tuple[Span, int, int]]]]:
+    if len(pending) > 1 and all(_one_line_rows(data) for _, data in pending):
+        source = pending[0][0].source
+        cols = list(source.layout.columns if columns is None else columns)
+        types = _types(source.layout)
+        parts = [data if not data or data.endswith(b"\n") else data + b"\n" for _, data in pending]
+        rows = [part.count(b"\n") for part in parts]
+        read, convert = _csv_options(source, cols, {k: types.get(k, pa.string()) for k in cols})
+        try:
+            table = pacsv.read_csv(io.BytesIO(b"".join(parts)), read_options=read, convert_options=convert)
+        except pa.ArrowInvalid:
+            table = None  # read range by range below: the error names its file
+        if table is not None and table.num_rows == sum(rows):
+            bounds = np.r_[0, np.cumsum(rows)]
+            yield (
+                table,
+                [(span, int(a), int(b)) for (span, _), a, b in zip(pending, bounds[:-1], bounds[1:], strict=True)],
+            )
+            return
+    for span, _ in pending:
+        table = read_span(span, columns)
+        yield table, [(span, 0, table.num_rows)]
 
 
 @dataclass

@@ -15,7 +15,10 @@ proportions (:func:`check_units`). The stage writes:
   (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``) and ``detectors`` (sources per detector).
 
 Cached by DVC: a change of recipe (``preprocess.*``, ``model.*``) reruns ``prepare`` on these files and never
-re-parses a CSV. CSV ranges are parsed on the compute engine, several at once.
+re-parses a CSV. CSV ranges are parsed on the compute engine, several at once. py-feat's one CSV per video costs what
+the same rows in one CSV do: the files share one header and :class:`~aumesh.data.pyfeat.Layout`, their small ranges
+are parsed together (:func:`aumesh.data.readers.iter_span_groups`) and written as one row group
+(:func:`aumesh.data.ingest.write_clean`); each source keeps only its units and manifest entry (a few KB).
 """
 
 from __future__ import annotations
@@ -61,7 +64,8 @@ def find_sources(
             f"{data_dir}/{pattern}: no frame tables found (empty input; CSV, .csv.gz or parquet). Fix: copy py-feat's "
             f"CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`, or `dvc pull`."
         )
-    return [readers.open_source(p, mesh_npy_pattern, instruments) for p in paths]
+    layouts: dict = {}  # one header and one Layout per distinct header (py-feat's one CSV per video: one for all)
+    return [readers.open_source(p, mesh_npy_pattern, instruments, layouts) for p in paths]
 
 
 def _span_rows(span: readers.Span) -> int:
@@ -153,7 +157,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         )
         total = ingest.Counts()
         for task, c in zip(tasks, counts, strict=True):
-            total = total + c
+            total += c
             if not c.rows_out:  # every row a no-face row
                 task.out.unlink()
         tables = [e["table"] for e in entries if "table" in e]
@@ -168,7 +172,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
                     units={str(source.path): check.units} if check.units else {},
                     labels={str(source.path): check.labels} if check.labels is not None else {},
                 )
-                total = total + passed
+                total += passed
         for source, entry in zip(sources, entries, strict=True):
             stats = total.units.get(str(source.path)) or units.UnitStats(source.layout.detector)
             check_units(source, stats, mesh_units)

@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from aumesh.core.errors import MissingFileError
+from aumesh.core.errors import MissingFileError, UserError
 from aumesh.core.io import NpyRowFile, atomic_path, create_npy, scratch_directory
 from aumesh.core.npz_stream import NpzStream
 from aumesh.core.schema import FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.data import readers
 from aumesh.model.inference import predict_rows
 from aumesh.model.input_checks import InputTally, input_rows
 from aumesh.model.input_columns import ColumnSelection, PredictionInputError, closest_name, select_columns, short_list
@@ -67,11 +68,13 @@ def table_header(path: str | os.PathLike) -> list[str]:
     if not path.is_file():
         raise MissingFileError(f"input table not found: {path}")
     try:
-        if path.suffix.lower() == ".csv":
-            return [str(c) for c in pd.read_csv(path, nrows=0).columns]
+        if path.suffix.lower() == ".csv":  # the ingest's header reader: a BOM accepted, ';' or NUL bytes named
+            return readers.csv_header(path)
         import pyarrow.parquet as pq
 
         return [str(c) for c in pq.read_schema(path).names]
+    except UserError as exc:  # the header reader's one line (file, line, fix) as it is
+        raise PredictionInputError(str(exc)) from None
     except (OSError, ValueError) as exc:  # pandas' EmptyDataError, ParserError and pyarrow's ArrowInvalid: ValueErrors
         raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
 

@@ -290,9 +290,15 @@ def _releasing_freed_memory() -> Iterator[None]:
 
 
 def _bag(partitions: Sequence[Any]):
+    """A bag of one partition per item, as ``dask.bag.from_sequence(items, npartitions=len(items))`` builds it but
+    named by a fresh token: ``from_sequence`` tokenizes every item, which walked every field of every partition (the
+    ingest's tasks of thousands of per-video CSV spans, each with its source's ~2,045 column names: ~2 ms a span)."""
+    import uuid
+
     import dask.bag as db
 
-    return db.from_sequence(list(partitions), npartitions=len(partitions))
+    name = f"from_sequence-{uuid.uuid4().hex}"
+    return db.Bag({(name, i): [item] for i, item in enumerate(partitions)}, name, len(partitions))
 
 
 def _progress(desc: str):
