@@ -24,9 +24,8 @@ import pyarrow.parquet as pq
 
 from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile, absolute, check_npy
-from aumesh.core.schema import FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES
+from aumesh.core.schema import FRAME_COLUMN, N_VERTICES
 from aumesh.data import pyfeat
-from aumesh.data.pyfeat import video_stem
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
 PARQUET_SUFFIXES = (".parquet",)
@@ -315,10 +314,9 @@ class Block:
 def to_block(table: pa.Table, span: Span) -> Block:
     """A read span as a :class:`Block` (the split layout's mesh read from its ``.npy``)."""
     lay = span.source.layout
+    # the video's identity is py-feat's ``input`` path as written (or ``video_id``), never its stem: a/clip01.mp4
+    # and b/clip01.mp4 are two people's videos (pyfeat.video_names shows them by their stems where unique)
     video = table.column(lay.video).to_numpy(zero_copy_only=False)
-    if lay.video == INPUT_PATH_COLUMN:
-        names, codes = np.unique(video.astype(str), return_inverse=True)
-        video = np.array([video_stem(v) for v in names], dtype=object)[codes] if len(names) else video.astype(object)
     frame_col = table.column(FRAME_COLUMN)
     if frame_col.null_count:
         row = int(np.flatnonzero(frame_col.is_null().to_numpy(zero_copy_only=False))[0])

@@ -285,17 +285,17 @@ def video_rows(
             block[gone] = 0.0
     identity = np.where(extra_rows, "Person_1", "Person_0").astype(object)
     identity[gone] = np.nan
-    vid = f"vid{video:06d}"
+    path = f"videos/vid{video:06d}.mp4"  # py-feat's input: the video's identity, in the clean tables too
     seconds = row_frame // FPS
     keep = ~no_face
     return {
         "blocks": blocks,
         "frame": row_frame,
-        "input": np.full(len(row_frame), f"videos/{vid}.mp4", dtype=object),
+        "input": np.full(len(row_frame), path, dtype=object),
         "approx_time": np.array([f"{s // 60:02d}:{s % 60:02d}" for s in seconds], dtype=object),
         "Identity": identity,
         "clean": {
-            "video_id": np.full(int(keep.sum()), vid, dtype=object),
+            "video_id": np.full(int(keep.sum()), path, dtype=object),
             "frame": np.flatnonzero(keep),
             "au": g["au"][keep],
             **({"au2": g["au2"][keep]} if "au2" in g else {}),
