@@ -8,7 +8,8 @@ What a block goes through (:func:`clean_block`), in order:
    measurement NaN (Detectorv2: its FaceScore is NaN too). Such rows are dropped and counted. A row with only *some*
    values missing is kept, and the data contract refuses it downstream: that is corruption, not a missing face;
 2. **several faces**: py-feat writes one row per face, the rows of one frame consecutive (same ``input`` and
-   ``frame``). ``data.face_selection`` keeps one: ``largest`` (the largest face box), ``identity`` (py-feat's
+   ``frame``). ``data.face_selection`` keeps one: ``largest`` (the largest face box; where two boxes are about the
+   same size, the face that continues the video's track: :mod:`aumesh.data.face_track`), ``identity`` (py-feat's
    ``Identity`` seen in most of the video's face rows; frames without that person are dropped) or ``error``;
 3. **units** (docs/conventions.md, "py-feat's mesh units"): the mesh leaves in frame pixels, x, y and z
    (:func:`aumesh.data.units.convert_units`: normalized image units by the frame size, z from the detector's crop
@@ -31,7 +32,7 @@ import pyarrow.parquet as pq
 from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.data import pyfeat
+from aumesh.data import face_track, pyfeat
 from aumesh.data.readers import Block, Source, Span, iter_span_tables, parquet_batches, to_block
 from aumesh.data.units import (
     SHAPE_VERTICES,
@@ -59,6 +60,7 @@ class Counts:
     extra_faces: int = 0  # face rows dropped by data.face_selection (another face in the same frame)
     frames_several_faces: int = 0  # frames with more than one face row
     frames_without_subject: int = 0  # identity selection: frames where the video's subject is not seen
+    frames_ambiguous: int = 0  # frames with two faces of about the same size (face_track.AMBIGUOUS_AREA_RATIO)
     rows_out: int = 0
     rows_normalized: int = 0  # rows whose mesh was converted from normalized image units to pixels
     rows_z_chip: int = 0  # rows whose z was converted from Detectorv2's chip units
@@ -90,6 +92,7 @@ class Counts:
             "dropped_extra_faces": self.extra_faces,
             "frames_with_several_faces": self.frames_several_faces,
             "dropped_frames_without_subject": self.frames_without_subject,
+            "frames_ambiguous_faces": self.frames_ambiguous,
             "frames_out": self.rows_out,
             "rows_converted_from_normalized": self.rows_normalized,
             "rows_z_from_chip": self.rows_z_chip,
@@ -132,20 +135,41 @@ def face_areas(block: Block, layout: pyfeat.Layout) -> np.ndarray:
     )
 
 
+def face_centres(block: Block, layout: pyfeat.Layout) -> np.ndarray:
+    """(n, 2) each face's box centre: py-feat's FaceRectX + Width / 2, FaceRectY + Height / 2, else the centre of the
+    mesh's x/y extent (as :func:`face_areas`)."""
+    if layout.box_origin and layout.box_size:
+        (x, y), (w, h) = ([block.values[c] for c in cols] for cols in (layout.box_origin, layout.box_size))
+        centre = np.column_stack([x + w / 2, y + h / 2])
+        if np.isfinite(centre).all():
+            return centre
+    x, y = block.mesh[:, :N_VERTICES], block.mesh[:, N_VERTICES : 2 * N_VERTICES]
+    return np.column_stack(
+        [(np.nanmax(x, axis=1) + np.nanmin(x, axis=1)) / 2, (np.nanmax(y, axis=1) + np.nanmin(y, axis=1)) / 2]
+    ).astype(np.float64)
+
+
 def main_identities(identities: dict[str, dict[str, int]]) -> dict[str, str]:
     """Each video's subject: the Identity of most of its face rows (ties: the first name in sorted order)."""
     return {v: sorted(c.items(), key=lambda kv: (-kv[1], kv[0]))[0][0] for v, c in identities.items() if c}
 
 
 def select_faces(
-    block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None, where: str
+    block: Block,
+    layout: pyfeat.Layout,
+    how: str,
+    subjects: dict[str, str] | None,
+    where: str,
+    tracks: dict[str, face_track.Face] | None = None,
 ) -> tuple[np.ndarray, Counts]:
     """Rows kept (one per frame) among face rows, by ``data.face_selection`` (``how``), and what was dropped.
 
     Parameters
     ----------
-    block : face rows only (no-face rows removed), a frame's rows consecutive.
+    block : face rows only (no-face rows removed), a frame's rows consecutive, a video's frames in order.
     subjects : video -> its subject's Identity (``how="identity"``).
+    tracks : video -> the face kept in its last frame of the block before, of the same range of the file (updated in
+        place); None: the block starts each video's track (:mod:`aumesh.data.face_track`).
     """
     groups = frame_groups(block)
     sizes = np.diff(groups)
@@ -169,11 +193,25 @@ def select_faces(
             f"({int((sizes > 1).sum())} such frames); data.face_selection=error keeps one face per frame only. Fix: "
             f"data.face_selection=largest (the largest face box) or identity (py-feat's Identity of the video's subject)."
         )
-    area = np.where(candidate, face_areas(block, layout), -np.inf)
+    areas = face_areas(block, layout)
+    area = np.where(candidate, areas, -np.inf)
     # the largest candidate of each frame (ties: the first row): argmax within runs, as a sort by (group, -area)
     group_of = np.repeat(np.arange(len(sizes)), sizes)
     order = np.lexsort((np.arange(len(block)), -area, group_of))
     first = order[groups[:-1]]
+    if (
+        sizes > 1
+    ).any() or tracks is not None:  # two faces of about the same size: the one that continues the video's track
+        first, counts.frames_ambiguous = face_track.follow(
+            block.video,
+            groups,
+            first,
+            candidate,
+            areas,
+            face_centres(block, layout),
+            block.identity,
+            {} if tracks is None else tracks,
+        )
     keep = first[candidate[first]]
     counts.frames_without_subject = int(len(first) - len(keep))
     counts.extra_faces = int(len(block) - len(first))
@@ -187,11 +225,13 @@ def clean_block(
     subjects: dict[str, str] | None,
     where: str,
     mesh_units: str = "detector",
+    tracks: dict[str, face_track.Face] | None = None,
 ) -> tuple[Block, Counts]:
-    """No-face rows dropped, one face per frame, meshes in pixels (module docstring)."""
+    """No-face rows dropped, one face per frame, meshes in pixels (module docstring); ``tracks`` as
+    :func:`select_faces`'s."""
     empty = no_face_rows(block, layout)
     faces = block.take(np.flatnonzero(~empty))
-    keep, counts = select_faces(faces, layout, how, subjects, where)
+    keep, counts = select_faces(faces, layout, how, subjects, where, tracks)
     out = faces.take(keep)
     stats = convert_units(out, layout, mesh_units, where)
     counts.rows_in, counts.no_face, counts.rows_out = len(block), int(empty.sum()), len(out)
@@ -244,32 +284,80 @@ def to_table(block: Block, schema: pa.Schema) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
+#: ``(source path, span start)`` -> the face tracks a carried span starts from (:func:`carried_tracks`).
+Seeds = dict[tuple[str, int], dict[str, face_track.Face]]
+
+
 def iter_clean_blocks(
-    spans: Sequence[Span], how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
+    spans: Sequence[Span],
+    how: str,
+    subjects: dict[str, str] | None,
+    mesh_units: str = "detector",
+    seeds: Seeds | None = None,
 ) -> Iterator[tuple[Block, Counts]]:
-    """Each span read and cleaned (:func:`clean_block`)."""
+    """Each span read and cleaned (:func:`clean_block`). A span starts its videos' face tracks afresh (the batches of
+    one span carry them), or, when it starts inside a run of frames with several faces (``Span.carried``), from the
+    tracks ``seeds`` gives it (:func:`carried_tracks`): the rows kept do not depend on how the file is cut into
+    spans nor on how spans are packed into tasks."""
     for span in spans:
+        tracks = dict((seeds or {}).get((str(span.source.path), span.start), {}))
         for rows, table in iter_span_tables(span):
             block = to_block(table, rows)
-            yield clean_block(block, span.source.layout, how, subjects, str(span.source.path), mesh_units)
+            yield clean_block(block, span.source.layout, how, subjects, str(span.source.path), mesh_units, tracks)
 
 
 def write_clean(
-    spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
+    spans: Sequence[Span],
+    out: Path,
+    how: str,
+    subjects: dict[str, str] | None,
+    mesh_units: str = "detector",
+    seeds: Seeds | None = None,
 ) -> Counts:
     """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed).
-    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs."""
+    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs;
+    ``seeds``: the face tracks of carried spans (:func:`carried_tracks`)."""
     schema = output_schema(spans[0].source.layout.instruments if spans else ())
     total = Counts()
     writer = pq.ParquetWriter(out, schema, compression="none", use_dictionary=[VIDEO_COLUMN], write_statistics=False)
     try:
-        for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units):
+        for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units, seeds):
             total = total + counts
             if len(block):
                 writer.write_table(to_table(block, schema), row_group_size=ROW_GROUP_ROWS)
     finally:
         writer.close()
     return total
+
+
+def track_chains(spans: Sequence[Span]) -> list[tuple[Span, ...]]:
+    """The runs of consecutive spans of one source that a carried span (``Span.carried``) needs followed in order:
+    the span before the first carried one, then each carried one. Empty when no span is carried."""
+    chains: list[list[Span]] = []
+    for i, span in enumerate(spans):
+        if not span.carried or i == 0 or spans[i - 1].source.path != span.source.path:
+            continue
+        if chains and chains[-1][-1] == spans[i - 1]:
+            chains[-1].append(span)
+        else:
+            chains.append([spans[i - 1], span])
+    return [tuple(c) for c in chains]
+
+
+def carried_tracks(chain: Sequence[Span], how: str, subjects: dict[str, str] | None) -> Seeds:
+    """The face tracks each carried span of ``chain`` (:func:`track_chains`) starts from: the chain's spans followed in
+    order, as one pass over the file would (only face selection: no units, nothing written). Only runs of frames
+    with several faces longer than a CSV range need it (:func:`aumesh.data.readers.csv_spans`)."""
+    out: Seeds = {}
+    tracks: dict[str, face_track.Face] = {}
+    for span in chain[:-1]:
+        for rows, table in iter_span_tables(span):
+            block = to_block(table, rows)
+            faces = block.take(np.flatnonzero(~no_face_rows(block, span.source.layout)))
+            select_faces(faces, span.source.layout, how, subjects, str(span.source.path), tracks)
+        nxt = chain[chain.index(span) + 1]
+        out[(str(nxt.source.path), nxt.start)] = dict(tracks)
+    return out
 
 
 def span_identities(spans: Sequence[Span]) -> Counts:

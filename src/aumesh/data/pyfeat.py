@@ -30,6 +30,7 @@ from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VE
 
 FACE_SCORE = "FaceScore"
 FACE_BOX_SIZE = ("FaceRectWidth", "FaceRectHeight")
+FACE_BOX_ORIGIN = ("FaceRectX", "FaceRectY")
 IDENTITY = "Identity"
 FRAME_SIZE = ("FrameWidth", "FrameHeight")
 
@@ -42,7 +43,7 @@ POINT_COLUMN = re.compile(r"^([xyz])_(\d+)$")
 #: Every column name the pipeline may read besides the mesh's (:attr:`Layout.columns`, clip's ``approx_time``).
 READ_COLUMNS = frozenset(
     {VIDEO_COLUMN, INPUT_PATH_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, FACE_SCORE, IDENTITY, "approx_time"}
-    | {"FaceRectX", "FaceRectY", *FACE_BOX_SIZE, *FRAME_SIZE}
+    | {*FACE_BOX_ORIGIN, *FACE_BOX_SIZE, *FRAME_SIZE}
 )
 _READ_MESH = re.compile(r"^(mesh_)?[xyz]_\d+$")
 
@@ -121,6 +122,7 @@ class Layout:
     identity: str | None
     frame_size: tuple[str, str] | None
     instruments: tuple[str, ...] = ()  # a second detector's AU columns (model.eiv.instrument_aus), AU_COLUMNS order
+    box_origin: tuple[str, str] | None = None  # FaceRectX, FaceRectY: with box_size, where a face is (its track)
 
     @property
     def numeric(self) -> list[str]:
@@ -128,7 +130,7 @@ class Layout:
         size)."""
         out = [*AU_COLUMNS, *POSE_COLUMNS, *self.instruments]
         out += [self.face_score] if self.face_score else []
-        out += list(self.box_size or ()) + list(self.frame_size or ())
+        out += list(self.box_size or ()) + list(self.frame_size or ()) + list(self.box_origin or ())
         return out
 
     @property
@@ -266,6 +268,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False, instrumen
         identity=IDENTITY if IDENTITY in present else None,
         frame_size=optional(*FRAME_SIZE),
         instruments=tuple(instruments),
+        box_origin=optional(*FACE_BOX_ORIGIN) if set(FACE_BOX_SIZE) <= present else None,
     )
 
 

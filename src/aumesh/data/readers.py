@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 
 from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile, absolute, check_npy
-from aumesh.core.schema import FRAME_COLUMN, N_VERTICES
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES
 from aumesh.data import pyfeat
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
@@ -116,16 +116,24 @@ def csv_header(path: Path) -> list[str]:
 
 @dataclass(frozen=True)
 class Span:
-    """Whole frames of one source: CSV bytes ``[start, stop)`` (the header excluded) or parquet rows ``[start, stop)``."""
+    """Whole frames of one source: CSV bytes ``[start, stop)`` (the header excluded) or parquet rows ``[start, stop)``.
+
+    ``carried``: the range starts inside a run of frames with several faces (no frame of one face within a range's
+    length), so the face kept there continues the track of the range before (:mod:`aumesh.data.face_track`)."""
 
     source: Source
     start: int
     stop: int
+    carried: bool = False
 
 
 def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
     """Byte ranges of about ``range_bytes`` that start at a line and never split the rows of one frame (py-feat writes a
-    frame's faces consecutively). A compressed CSV is one range."""
+    frame's faces consecutively). A compressed CSV is one range.
+
+    A range starts, where it can within ``range_bytes`` more, at a new video or at a frame of one face row: there the
+    face kept needs no frame before it (:mod:`aumesh.data.face_track`), so cleaning the ranges apart gives the rows
+    of one pass over the file. Only a run of frames with several faces longer than that starts a range mid-track."""
     path = source.path
     with open(path, "rb") as fh:
         header_end = len(fh.readline())
@@ -133,34 +141,57 @@ def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
     if path.name.endswith(".gz") or size - header_end <= range_bytes:
         return [Span(source, header_end, size)]
     key_columns = [source.header.index(source.layout.video), source.header.index(FRAME_COLUMN)]
-    bounds = [header_end]
+    face_column = source.header.index(source.layout.face_score or AU_COLUMNS[0])
+    bounds, carried = [header_end], [False]
     with open(path, "rb") as fh:
         target = header_end + range_bytes
         while target < size:
-            cut = _frame_boundary(fh, target, key_columns)
+            cut, anchored = _frame_boundary(fh, target, key_columns, face_column, range_bytes)
             if cut >= size:
                 break
             if cut > bounds[-1]:
                 bounds.append(cut)
+                carried.append(not anchored)
             target = max(cut, bounds[-1]) + range_bytes
     bounds.append(size)
-    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    return [Span(source, a, b, c) for a, b, c in zip(bounds[:-1], bounds[1:], carried, strict=True)]
 
 
-def _frame_boundary(fh, offset: int, key_columns: list[int]) -> int:
-    """The first line start at or after ``offset`` whose (video, frame) differs from the line before it."""
+def _is_face(row: list[str], column: int) -> bool:
+    """The row's ``column`` (FaceScore, else AU01) is a positive number: a face row, not py-feat's no-face row."""
+    try:
+        value = float(row[column])
+    except (IndexError, ValueError):
+        return False
+    return value > 0 if np.isfinite(value) else False
+
+
+def _frame_boundary(
+    fh, offset: int, key_columns: list[int], face_column: int | None = None, limit: int = 0
+) -> tuple[int, bool]:
+    """``(cut, anchored)``: the first line start at or after ``offset`` whose (video, frame) differs from the line
+    before it; with ``face_column``, the first such start up to ``limit`` bytes further that begins a new video or a
+    frame of one face row (:func:`_is_face`: ``anchored``), else the first (``anchored`` False)."""
     fh.seek(offset - 1)
     fh.readline()  # the rest of the line ``offset`` falls in (offset - 1: a line starting at ``offset`` is kept)
-    previous = None
+    previous, first, single = None, None, None  # single: a frame start whose frame has one face row so far
     while True:
         start = fh.tell()
         line = fh.readline()
         if not line:
-            return start
+            return (single, True) if single is not None else (start, True) if first is None else (first, False)
         row = next(csv.reader([line.decode("utf-8", "replace")]), [])
         key = tuple(row[k] if k < len(row) else None for k in key_columns)
         if previous is not None and key != previous:
-            return start
+            if face_column is None or key[0] != previous[0] or single is not None:
+                return (single if single is not None and key[0] == previous[0] else start), True
+            if first is None:
+                first = start
+            elif start - first > limit:
+                return first, False
+            single = start if _is_face(row, face_column) else None
+        elif single is not None:  # a second row of the frame: several faces
+            single = None
         previous = key
 
 

@@ -93,8 +93,11 @@ class Task:
     out: Path
 
 
-def _clean_task(task: Task, how: str, subjects: dict[str, str] | None, mesh_units: str) -> ingest.Counts:
-    return ingest.write_clean(task.spans, task.out, how, subjects, mesh_units)
+def _clean_task(
+    task: Task, how: str, subjects: dict[str, str] | None, mesh_units: str, seeds: ingest.Seeds | None = None
+) -> ingest.Counts:
+    mine = {k: v for k, v in (seeds or {}).items() if any((str(s.source.path), s.start) == k for s in task.spans)}
+    return ingest.write_clean(task.spans, task.out, how, subjects, mesh_units, mine)
 
 
 def _identity_task(task: Task) -> ingest.Counts:
@@ -148,8 +151,16 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         if how == "identity" and tasks:  # the video's subject needs every face row first: a second read of the sources
             seen = compute.map_reduce(_identity_task, ingest.Counts.__add__, tasks, desc="ingest: identities")
             subjects = ingest.main_identities(seen.identities)
+        seeds: ingest.Seeds = {}
+        chains = ingest.track_chains(spans)  # ranges cut inside a run of frames with several faces (rare)
+        if chains:
+            tracks = partial(ingest.carried_tracks, how=how, subjects=subjects)
+            for found in compute.map_gather(tracks, chains, desc="ingest: face tracks"):
+                seeds |= found
         counts = compute.map_gather(
-            partial(_clean_task, how=how, subjects=subjects, mesh_units=mesh_units), tasks, desc="ingest: read + clean"
+            partial(_clean_task, how=how, subjects=subjects, mesh_units=mesh_units, seeds=seeds),
+            tasks,
+            desc="ingest: read + clean",
         )
         total = ingest.Counts()
         for task, c in zip(tasks, counts, strict=True):
