@@ -32,7 +32,7 @@ import pyarrow.parquet as pq
 from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.data import face_track, pyfeat
+from aumesh.data import face_track, pyfeat, video_frames
 from aumesh.data.readers import Block, Source, Span, iter_span_tables, parquet_batches, to_block
 from aumesh.data.units import (
     SHAPE_VERTICES,
@@ -68,6 +68,7 @@ class Counts:
     identities: dict[str, dict[str, int]] = field(default_factory=dict)  # video -> Identity -> face rows
     units: dict[str, UnitStats] = field(default_factory=dict)  # source path -> its units
     labels: dict[str, set[str]] = field(default_factory=dict)  # source path -> Identity labels of kept rows
+    frame_ranges: video_frames.FrameRanges = field(default_factory=dict)  # video -> (source, first, last frame) kept
 
     def __add__(self, other: Counts) -> Counts:
         merged = {v: dict(c) for v, c in self.identities.items()}
@@ -81,9 +82,10 @@ class Counts:
         labels = {k: set(names) for k, names in self.labels.items()}
         for k, names in other.labels.items():
             labels.setdefault(k, set()).update(names)
-        dicts = ("identities", "units", "labels")
+        dicts = ("identities", "units", "labels", "frame_ranges")
         sums = {f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self) if f.name not in dicts}
-        return Counts(**sums, identities=merged, units=units, labels=labels)
+        ranges = video_frames.merge(self.frame_ranges, other.frame_ranges)
+        return Counts(**sums, identities=merged, units=units, labels=labels, frame_ranges=ranges)
 
     def as_dict(self) -> dict[str, int]:
         out = {
@@ -239,6 +241,7 @@ def clean_block(
     counts.rows_z_chip = stats.rows_z_converted if stats.z == "chip" else 0
     counts.rows_z_crop256 = stats.rows_z_converted if stats.z == "crop256" else 0
     counts.units = {where: stats}
+    counts.frame_ranges = video_frames.block_ranges(out.video, out.frame, where)
     if layout.identity is not None and out.identity is not None:
         counts.labels = {where: identity_labels(out.identity)}
     return out, counts
@@ -393,13 +396,15 @@ class PassThrough:
     """A parquet table the pipeline reads as it is (already clean: one face row per frame, pixels).
 
     ``units``: its mesh units, the face's proportions measured on the rows the check read; ``labels``: py-feat's
-    Identity labels (None without the column)."""
+    Identity labels (None without the column); ``frame_ranges``: each video's frames
+    (:mod:`aumesh.data.video_frames`)."""
 
     clean: bool
     rows: int
     reason: str = ""
     units: UnitStats | None = None
     labels: set[str] | None = None
+    frame_ranges: video_frames.FrameRanges | None = None
 
 
 def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
@@ -419,6 +424,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
     cols += [lay.identity] if lay.identity else []
     no_face, several, previous = 0, 0, None
     labels: set[str] | None = set() if lay.identity else None
+    ranges: video_frames.FrameRanges = {}
     try:
         reader = pq.ParquetFile(source.path)
     except (pa.ArrowException, OSError) as err:
@@ -439,6 +445,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
             previous = (video[m - 1].as_py(), frame[m - 1].as_py())
         if labels is not None and lay.identity:
             labels |= identity_labels(np.array(pc.unique(table.column(lay.identity)).drop_null().to_pylist()))
+        ranges = video_frames.merge(ranges, _batch_ranges(table, lay.video, str(source.path)))
     if not n:  # an empty table: nothing to clean (prepare names empty input)
         return PassThrough(True, 0)
     if no_face:
@@ -472,7 +479,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
     finite = np.isfinite(extents).all(axis=1)
     extents = extents[finite]
     if finite.any() and normalized_rows(mesh[finite], None if rect is None else rect[finite], extents[:, :2]).any():
-        return PassThrough(False, n, "normalized image units", labels=labels)
+        return PassThrough(False, n, "normalized image units", labels=labels, frame_ranges=ranges)
     ratio = depth_height(extents)
     hist = ratio_hist(ratio)
     units = UnitStats(lay.detector, "pixels", "pixels", rows=n, before=hist, after=hist)
@@ -482,4 +489,23 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
         units.crop = ratio_hist(ratio * width / Z_CROP[lay.detector][1])
         pose = {c: part.column(c).to_numpy(zero_copy_only=False).astype(np.float64)[finite] for c in ("Pitch", "Yaw")}
         units.growth = growth_sums(extents[:, 2], extents[:, 1], frontal(pose))
-    return PassThrough(True, n, units=units, labels=labels)
+    return PassThrough(True, n, units=units, labels=labels, frame_ranges=ranges)
+
+
+def _batch_ranges(table: pa.Table, video: str, where: str) -> video_frames.FrameRanges:
+    """Each video's first and last frame in a batch, computed in Arrow (no Python string per row); a video with a
+    frame twice in the batch gets its range twice, so that the files holding it are checked frame by frame."""
+    agg = (
+        table.select([video, FRAME_COLUMN])
+        .group_by(video)
+        .aggregate(
+            [(FRAME_COLUMN, "min"), (FRAME_COLUMN, "max"), (FRAME_COLUMN, "count"), (FRAME_COLUMN, "count_distinct")]
+        )
+    )
+    out: video_frames.FrameRanges = {}
+    for v, lo, hi, n, distinct in zip(
+        *(agg.column(c).to_pylist() for c in (video, "frame_min", "frame_max", "frame_count", "frame_count_distinct")),
+        strict=True,
+    ):
+        out[str(v)] = [(where, int(lo), int(hi))] * (1 if n == distinct else 2)
+    return out
