@@ -186,6 +186,10 @@ def test_a_duplicated_column_name_is_refused_naming_the_file_and_column(tmp_path
         readers.open_source(pq_path, "{stem}.npy")
     with pytest.raises(TableError, match=r"duplicated column name 'Pitch'"):
         tables.check_tables([pq_path], "{stem}.npy")
+    from aumesh.pipeline.predict import table_header
+
+    with pytest.raises(TableError, match=r"dup\.csv: duplicated column name 'AU12'"):
+        table_header(csv)  # aumesh predict: pandas alone would read the first AU12 and rename the second AU12.1
     # names nothing reads may repeat (py-feat's ~2,000 other columns are never read)
     csv.write_text(",".join([*header, "notes", "notes"]) + "\n")
     assert readers.open_source(csv, "{stem}.npy").layout.detector == "MPDetector"

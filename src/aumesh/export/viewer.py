@@ -217,11 +217,16 @@ def unit_rules() -> dict:
     spans judge the units (:data:`aumesh.data.units.SHAPE_VERTICES`), :data:`~aumesh.data.units.NORMALIZED_MAX_EXTENT`,
     :data:`~aumesh.data.units.NORMALIZED_MAX_RECT_FRACTION`, the detectors' z units (:data:`~aumesh.data.units.Z_CROP`:
     name and divisor), the FaceRect and frame-size columns, and the words for each outcome
-    (:data:`~aumesh.data.clip.MESH_UNIT_NOTES`)."""
-    from aumesh.data import pyfeat, units
+    (:data:`~aumesh.data.clip.MESH_UNIT_NOTES`); with them the face track's ambiguity ratio
+    (:data:`~aumesh.data.face_track.AMBIGUOUS_AREA_RATIO`) and the columns a header may not repeat
+    (:data:`~aumesh.data.pyfeat.READ_COLUMNS`)."""
+    from aumesh.data import face_track, pyfeat, units
     from aumesh.data.clip import MESH_UNIT_NOTES
 
     return {
+        "face_box_origin": list(pyfeat.FACE_BOX_ORIGIN),
+        "ambiguous_area_ratio": float(face_track.AMBIGUOUS_AREA_RATIO),
+        "read_columns": sorted(pyfeat.READ_COLUMNS),
         "shape_vertices": [int(i) for i in units.SHAPE_VERTICES],
         "normalized_max_extent": float(units.NORMALIZED_MAX_EXTENT),
         "normalized_max_rect_fraction": float(units.NORMALIZED_MAX_RECT_FRACTION),

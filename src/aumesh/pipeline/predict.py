@@ -28,6 +28,7 @@ detector than the release's: :mod:`aumesh.model.support`) are logged, one line e
 
 from __future__ import annotations
 
+import csv
 import logging
 import os
 import warnings
@@ -40,6 +41,7 @@ import pandas as pd
 from aumesh.core.errors import MissingFileError
 from aumesh.core.io import atomic_savez, atomic_write_text
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
+from aumesh.data import pyfeat
 from aumesh.export import meshfiles
 from aumesh.geometry import face
 from aumesh.model import support
@@ -72,12 +74,17 @@ def table_header(path: str | os.PathLike) -> list[str]:
         raise MissingFileError(f"input table not found: {path}")
     try:
         if path.suffix.lower() == ".csv":
-            return [str(c) for c in pd.read_csv(path, nrows=0).columns]
-        import pyarrow.parquet as pq
+            names = [str(c) for c in pd.read_csv(path, nrows=0).columns]
+            with open(path, newline="", encoding="utf-8", errors="replace") as fh:
+                raw = next(csv.reader(fh), [])  # as written: pandas renames a second 'AU12' to 'AU12.1'
+        else:
+            import pyarrow.parquet as pq
 
-        return [str(c) for c in pq.read_schema(path).names]
+            names = raw = [str(c) for c in pq.read_schema(path).names]
     except (OSError, ValueError) as exc:  # pandas' EmptyDataError, ParserError and pyarrow's ArrowInvalid: ValueErrors
         raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
+    pyfeat.check_unique_names(raw, str(path))  # a column read twice: which one to use is unknown
+    return names
 
 
 def read_table(
