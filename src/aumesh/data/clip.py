@@ -43,7 +43,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from aumesh.core.errors import MissingFileError, TableError, UserError, corrupt_parquet
-from aumesh.core.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
+from aumesh.core.schema import AU_COLUMNS, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS
 from aumesh.data import ingest, pyfeat, readers
 from aumesh.data.units import Z_CROP, convert_units, normalized_rows, rect_side
 
@@ -207,7 +207,10 @@ class ClipTable:
 
     @property
     def names(self) -> dict[str, str]:
-        """Each video id -> the name it is shown by (its stem where unique: :func:`aumesh.data.pyfeat.video_names`)."""
+        """Each video id -> the name it is shown by: py-feat's ``input`` path by its stem where unique
+        (:func:`aumesh.data.pyfeat.video_names`); a ``video_id`` as it is."""
+        if self.source.layout.video != INPUT_PATH_COLUMN:
+            return {v: v for v in self.videos}
         return pyfeat.video_names(self.videos)
 
     def clip(
@@ -294,7 +297,7 @@ def _video_clip(
 ) -> Clip:
     _check_options(fps, face_selection, mesh_units)
     block, approx, source, has_mesh, where = table.block, table.approx, table.source, table.has_mesh, str(table.path)
-    video = pyfeat.resolve_video(name, table.videos, where)
+    video = pyfeat.resolve_video(name, table.videos, where, paths=source.layout.video == INPUT_PATH_COLUMN)
     name = table.names[video]  # shown by its stem where unique
     rows = np.flatnonzero(block.video == video)
     rows = rows[np.argsort(block.frame[rows], kind="stable")]  # select_faces needs a frame's rows consecutive

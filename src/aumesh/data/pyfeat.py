@@ -79,9 +79,9 @@ def video_names(videos: Sequence[str]) -> dict[str, str]:
     return out
 
 
-def resolve_video(name: str, videos: Sequence[str], where: str) -> str:
+def resolve_video(name: str, videos: Sequence[str], where: str, paths: bool = True) -> str:
     """The video of ``videos`` (ids) that ``name`` means: its id, else its shown name or stem (:func:`video_names`)
-    when that names one video only.
+    when that names one video only (``paths`` False: the ids are ``video_id`` values, not paths; only an id).
 
     Raises
     ------
@@ -90,8 +90,8 @@ def resolve_video(name: str, videos: Sequence[str], where: str) -> str:
     """
     if name in videos:
         return name
-    names = video_names(videos)
-    hits = sorted({v for v in videos if names[v] == name or video_stem(v) == name})
+    names = video_names(videos) if paths else {v: v for v in videos}
+    hits = sorted({v for v in videos if names[v] == name or (paths and video_stem(v) == name)})
     if len(hits) == 1:
         return hits[0]
     if hits:
