@@ -93,7 +93,8 @@ def _repeated(video: str, frame: int, files: Sequence[str], n: int) -> TableErro
     shown = ", ".join(files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
     twice = "in both" if len(files) == 2 else "twice" if len(files) == 1 else "in several"
     return TableError(
-        f"{shown}: frame {frame} of video {video!r} is written {twice} ({n} such frame(s)): the same video's frames "
+        f"{shown}: frame {frame} of video {video!r} is written {twice} ({n} such (video_id, frame) pair(s)): the same "
+        f"video's frames "
         f"twice (an export copied or appended again). Fix: remove the repeated rows or file; if they are different "
         f"videos, keep the path each was read from in py-feat's 'input' (or give each its own video_id)."
     )
