@@ -100,8 +100,8 @@ def resolve_video(name: str, videos: Sequence[str], where: str, paths: bool = Tr
             f"{where}: {len(hits)} videos are named {name!r} ({shown}). Fix: --video with the path py-feat wrote in "
             f"'input' (or {names[hits[0]]!r})."
         )
-    shown = sorted(names.values())
-    listed = ", ".join(shown[:10]) + (f" and {len(shown) - 10} more" if len(shown) > 10 else "")
+    held = sorted(names.values())
+    listed = ", ".join(held[:10]) + (f" and {len(held) - 10} more" if len(held) > 10 else "")
     raise TableError(f"{where}: no video {name!r} (the table holds {listed}). Fix: --video one of those.")
 
 
