@@ -25,8 +25,8 @@ from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from aumesh.synthetic.tables import SynthSpec
 from conftest import default_config
 
-SPEC = SynthSpec(n_frames=120, n_videos=4, seed=5)
-OTHER = SynthSpec(n_frames=120, n_videos=4, seed=6)  # other people (seeds: faces and AUs), the same video names
+SPEC = SynthSpec(n_frames=80, n_videos=4, seed=5)
+OTHER = SynthSpec(n_frames=80, n_videos=4, seed=6)  # other people (seeds: faces and AUs), the same video names
 
 
 def _cfg(data_dir: Path):

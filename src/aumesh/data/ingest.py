@@ -201,9 +201,8 @@ def select_faces(
     group_of = np.repeat(np.arange(len(sizes)), sizes)
     order = np.lexsort((np.arange(len(block)), -area, group_of))
     first = order[groups[:-1]]
-    if (
-        sizes > 1
-    ).any() or tracks is not None:  # two faces of about the same size: the one that continues the video's track
+    # two faces of about the same size: the one that continues the video's track (tracks carried: always followed)
+    if (sizes > 1).any() or tracks is not None:
         first, counts.frames_ambiguous = face_track.follow(
             block.video,
             groups,

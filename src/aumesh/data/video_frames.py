@@ -46,14 +46,15 @@ def block_ranges(video: np.ndarray, frame: np.ndarray, where: str) -> FrameRange
 def merge(a: FrameRanges, b: FrameRanges) -> FrameRanges:
     """``a`` then ``b``; a range continuing the last one of its video from the same file (its first frame after the
     last one's last) extends it, so a video read in order is one range per file."""
-    out = {v: list(r) for v, r in a.items()}
+    out = dict(a)  # the lists of ``a`` shared, each list ``b`` adds to copied: adding task after task stays linear
     for v, ranges in b.items():
-        mine = out.setdefault(v, [])
+        mine = list(out.get(v, ()))
         for where, lo, hi in ranges:
             if mine and mine[-1][0] == where and lo > mine[-1][2]:
                 mine[-1] = (where, mine[-1][1], hi)
             else:
                 mine.append((where, lo, hi))
+        out[v] = mine
     return out
 
 
