@@ -23,7 +23,8 @@ network, no CDN: the file works from disk, offline.
 
 **Clips** (issue 36): the page plays a video's py-feat table, opened by a file picker or a drop (CSV or
 ``.csv.gz``, decompressed by the browser's ``DecompressionStream``; parsed by column name with
-:func:`aumesh.data.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
+:func:`aumesh.data.clip.read_clip`'s rules, ported: no-face rows, the largest face (the face track where two are
+about the same size: issue 44), videos by their input paths shown by their stems where unique, either detector's mesh,
 the frame rate from ``approx_time``, :func:`~aumesh.data.clip.bridge`'s gap rule), or embedded by ``aumesh view
 NPZ --clip TABLE`` (:func:`table_clips`: ``read_clip`` + ``bridged_weights``, any table format, compact base64
 arrays). Either way the recorded mesh is in frame pixels on every axis, converted by the ingest's rules (issue 41;
