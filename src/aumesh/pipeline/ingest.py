@@ -12,7 +12,12 @@ proportions (:func:`check_units`). The stage writes:
 * ``manifest.json``: the tables ``prepare`` reads, in order: those files, and clean parquet tables of ``data/`` in
   place (read as they are: a clean parquet costs only this stage's check, a few columns, not a copy); per source, what
   it held, what was dropped and its ``mesh_units`` (what was converted, how, for how many rows); the totals
-  (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``) and ``detectors`` (sources per detector).
+  (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``, ``frames_ambiguous_faces``: frames with two
+  faces of about the same size, :mod:`aumesh.data.face_track`) and ``detectors`` (sources per detector).
+
+Each video (py-feat's ``input`` path as written, or ``video_id``) must have each frame once across ``data/``
+(:func:`check_frames_once`); a range of a CSV cut inside a run of frames with several faces starts from the face track
+of the range before (:func:`aumesh.data.ingest.carried_tracks`).
 
 Cached by DVC: a change of recipe (``preprocess.*``, ``model.*``) reruns ``prepare`` on these files and never
 re-parses a CSV. CSV ranges are parsed on the compute engine, several at once.
