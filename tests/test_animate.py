@@ -171,7 +171,7 @@ def ingested_meshes(path: Path, mesh_units: str = "detector") -> dict[tuple[str,
 def clip_vs_ingest(clip, ingested: dict) -> tuple[np.ndarray, np.ndarray]:
     """``(clip's face frames' meshes, the ingest's of the same frames)``, both (m, 478, 3)."""
     frames = clip.frame[clip.has_face]
-    return clip.mesh[clip.has_face], np.stack([ingested[(clip.video, int(f))] for f in frames])
+    return clip.mesh[clip.has_face], np.stack([ingested[(clip.video_id, int(f))] for f in frames])
 
 
 @pytest.mark.slow

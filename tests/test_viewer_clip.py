@@ -394,6 +394,34 @@ def test_a_dropped_table_is_the_same_clip_as_embedded(tab, clip_files, tmp_path)
     assert problems == [] and requests == []
 
 
+def test_a_dropped_table_follows_the_face_track_and_keeps_same_named_videos_apart(tab, clip_files, tmp_path):
+    """Two people of about the same size in every frame, in two videos of the same file name in two folders: the
+    page's reader shows two videos (named by their distinguishing paths, as read_clip names them) and keeps read_clip's
+    face in each frame (the track, not the largest face)."""
+    import csv
+
+    synth_pyfeat.write_pyfeat_tables(
+        tmp_path / "twins", synth.SynthSpec(n_frames=60, n_videos=2, seed=9), no_face_rate=0.1, twin_face=True
+    )
+    rename = {"videos/vid000000.mp4": "a/vid000000.mp4", "videos/vid000001.mp4": "b/vid000000.mp4"}
+    with (tmp_path / "twins" / "clip_0000.csv").open(newline="") as fh:
+        header, *rows = csv.reader(fh)
+    at = header.index("input")
+    table = tmp_path / "same_names.csv"
+    with table.open("w", newline="") as fh:
+        csv.writer(fh).writerows([header, *([*r[:at], rename[r[at]], *r[at + 1 :]] for r in rows)])
+    page, problems, requests = _open(tab, clip_files["plain"])
+    page.set_input_files("#clip-file", str(table))
+    page.wait_for_function("window.aumeshViewer.clip.opened() === 1")
+    assert page.evaluate("window.aumeshViewer.clip.info().videos") == ["a/vid000000", "b/vid000000"]
+    for i, path in enumerate(["a/vid000000.mp4", "b/vid000000.mp4"]):
+        page.select_option("#clip-video", str(i))
+        clip = read_clip(table, video=path)
+        assert clip.video == ["a/vid000000", "b/vid000000"][i]
+        _same_clip(page, clip, bridged_weights(clip))
+    assert problems == [] and requests == []
+
+
 def _page_recorded_input(page) -> np.ndarray:
     """The open clip's recorded mesh as the page holds it (float32, frame pixels): (n, 478, 3)."""
     got = page.evaluate("window.aumeshViewer.clip.data()")

@@ -18,6 +18,7 @@ import numpy as np
 
 from aumesh.card.identification import identification_warning
 from aumesh.card.markdown import md_text
+from aumesh.data.face_track import AMBIGUOUS_AREA_RATIO
 
 # ---------------------------------------------------------------------------------------------------- thresholds
 #: Fewer training frames than this many per feature is "small data". The reference card fits 83 features on 344,418
@@ -300,6 +301,29 @@ def _pose_warning(counts: Mapping[str, Any]) -> list[dict[str, Any]]:
     ]
 
 
+def _faces_warning(counts: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Frames where two faces were about the same size (the ingest's ``frames_ambiguous_faces``,
+    :mod:`aumesh.data.face_track`): the face kept there is the one continuing the video's track, a rule that can
+    follow the wrong person (crossing faces, a person leaving) where py-feat's Identity does not tell them apart."""
+    n = int(counts.get("frames_ambiguous_faces") or 0)
+    if not n:
+        return []
+    frames = counts.get("frames_out") or counts.get("frames_in")
+    share = f" ({n / frames:.1%} of the frames)" if frames else ""
+    return [
+        _warning(
+            "ambiguous_faces",
+            f"{n:,} frames{share} showed two or more faces of about the same size (the second box at least "
+            f"{AMBIGUOUS_AREA_RATIO:g} of the largest's area), so the largest face could not tell the video's person; "
+            "the face continuing the video's track was kept (py-feat's Identity, else the nearest box), which can "
+            "follow the wrong person where faces cross or one leaves",
+            "as if every video's frames were one person's without checking those videos",
+            frames_ambiguous_faces=n,
+            ratio=AMBIGUOUS_AREA_RATIO,
+        )
+    ]
+
+
 def _degenerate_warnings(data: Mapping[str, Any]) -> list[dict[str, Any]]:
     degenerate = data.get("degenerate") or {}
     constant = dict(degenerate.get("constant_inputs") or {})
@@ -373,6 +397,7 @@ def release_warnings(
         ),
         *_cv_warning(cv),
         *_pose_warning(data.get("counts") or {}),
+        *_faces_warning(data.get("counts") or {}),
         *_degenerate_warnings(data),
         *_detector_warning(data),
         *identification_warning(card),

@@ -100,6 +100,12 @@ def _ingest_lines(counts: dict[str, Any], data_cfg: dict[str, Any]) -> list[str]
                 if counts.get("dropped_frames_without_subject")
                 else ""
             )
+            + (
+                f"; {counts['frames_ambiguous_faces']:,} of them with two faces of about the same size, where the "
+                f"face continuing the video's track was kept"
+                if counts.get("frames_ambiguous_faces")
+                else ""
+            )
             + ")"
         )
     # the ingest stage's conversions (aumesh.data.units; docs/conventions.md "py-feat's mesh units")

@@ -60,10 +60,13 @@ def _cmd_ingest(args) -> int:
 
     cfg = _params(args)
     c = ingest.main(cfg)["counts"]
+    ambiguous = c.get("frames_ambiguous_faces", 0)
     print(
         f"ingest: {c['frames_out']:,} frames from {c['rows_in']:,} rows of {c['tables_in']:,} tables "
         f"(no face -{c['dropped_no_face']:,}, other faces -{c['dropped_extra_faces']:,} in "
-        f"{c['frames_with_several_faces']:,} frames, converted from normalized units {c['rows_converted_from_normalized']:,}, "
+        f"{c['frames_with_several_faces']:,} frames"
+        + (f" ({ambiguous:,} ambiguous: faces of about the same size, the video's track followed)" if ambiguous else "")
+        + f", converted from normalized units {c['rows_converted_from_normalized']:,}, "
         f"z from Detectorv2's chip {c.get('rows_z_from_chip', 0):,}, from MPDetector's 256-px crop "
         f"{c.get('rows_z_from_crop256', 0):,}) "
         f"-> {cfg.paths.ingested_dir}"

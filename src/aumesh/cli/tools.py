@@ -179,8 +179,8 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--video",
         default=None,
-        help="the video to animate when the table holds several (the stem of py-feat's input, e.g. clip01 for "
-        "videos/clip01.mp4; default: the table's only video)",
+        help="the video to animate when the table holds several (py-feat's input path, or its stem where no other "
+        "video has it, e.g. clip01 for videos/clip01.mp4; default: the table's only video)",
     )
     p.add_argument(
         "--fps",

@@ -43,7 +43,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from aumesh.core.errors import MissingFileError, TableError, UserError, corrupt_parquet
-from aumesh.core.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
+from aumesh.core.schema import AU_COLUMNS, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS
 from aumesh.data import ingest, pyfeat, readers
 from aumesh.data.units import Z_CROP, convert_units, normalized_rows, rect_side
 
@@ -79,7 +79,8 @@ class Clip:
     Attributes
     ----------
     source : the table's file name (no folder: outputs never hold an absolute path).
-    video : the video's name (the stem of py-feat's ``input``, or ``video_id``).
+    video : the video's name as shown: the stem of py-feat's ``input`` where the table has no other video of that stem,
+        else its shortest distinguishing path (:func:`aumesh.data.pyfeat.video_names`), or ``video_id``.
     frame : (n,) int64 py-feat's frame numbers, ascending, unique.
     time : (n,) float64 seconds, ``frame / fps`` (``skip_frames`` gaps respected).
     fps : the frame rate used; ``fps_source`` says where it came from: ``"--fps"``, ``"approx_time"`` or
@@ -96,6 +97,7 @@ class Clip:
         table has none.
     mesh_units : what was done to the mesh, a key of :data:`MESH_UNIT_NOTES`: ``chip``, ``crop256``, ``normalized``,
         ``pixels``, ``pixels-asked``, ``normalized-raw`` or ``none``.
+    video_id : the video's identity: py-feat's ``input`` path as written (or ``video_id``), as the ingest names it.
     """
 
     source: str
@@ -112,6 +114,7 @@ class Clip:
     frames_several_faces: int = 0
     frame_size: tuple[float, float] | None = None
     mesh_units: str = "none"
+    video_id: str = ""
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -154,8 +157,8 @@ def read_clip(
     path : py-feat's CSV (``detect(..., save=)``), ``.csv.gz``, or a Fex saved as parquet (either detector; a
         parquet without mesh columns with an ``[N, 478, 3]`` ``<stem>.npy`` beside it is the split layout). A table
         without a mesh is read too (``Clip.mesh`` None).
-    video : the video to read (the stem of ``input``, e.g. ``clip01`` for ``videos/clip01.mp4``); needed when the
-        table holds several.
+    video : the video to read: py-feat's ``input`` path as written, or its stem (``clip01`` for
+        ``videos/clip01.mp4``) when no other video of the table has that stem; needed when the table holds several.
     fps : the video's frame rate (default: from ``approx_time`` where it allows one, else 25).
     face_selection : ``largest`` (the largest face box of a frame), ``identity`` (py-feat's ``Identity`` seen in
         most of the video's face rows) or ``error``, as the pipeline's ``data.face_selection``.
@@ -169,7 +172,7 @@ def read_clip(
         No such file.
     TableError
         Not a table, a required column missing (frame, the 20 AUs, Pitch, Yaw, Roll, input), several videos and no
-        ``video``, an unknown ``video``, no frame with a face, a face row with some AU or pose values missing; the
+        ``video``, an unknown ``video`` or the stem of several, no frame with a face, a face row with some AU or pose values missing; the
         ingest's unit errors (a detector's z without FaceRectWidth to convert it, pixels and normalized units mixed).
     UserError
         ``fps`` not a positive number, unknown ``face_selection`` or ``mesh_units``.
@@ -177,15 +180,13 @@ def read_clip(
     _check_options(fps, face_selection, mesh_units)  # before the table is read
     table = read_table(path, mesh_npy=mesh_npy)
     where = str(table.path)
-    names = table.videos
-    if video is None and len(names) > 1:
+    ids = table.videos
+    if video is None and len(ids) > 1:
+        names = sorted(table.names.values())
         shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
-        raise TableError(f"{where}: holds {len(names)} videos ({shown}). Fix: pick one with --video NAME.")
-    if video is not None and video not in names:
-        shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
-        raise TableError(f"{where}: no video {video!r} (the table holds {shown}). Fix: --video one of those.")
+        raise TableError(f"{where}: holds {len(ids)} videos ({shown}). Fix: pick one with --video NAME.")
     return table.clip(
-        video if video is not None else names[0], fps=fps, face_selection=face_selection, mesh_units=mesh_units
+        video if video is not None else ids[0], fps=fps, face_selection=face_selection, mesh_units=mesh_units
     )
 
 
@@ -201,8 +202,16 @@ class ClipTable:
 
     @property
     def videos(self) -> list[str]:
-        """The videos the table holds, sorted."""
+        """The videos the table holds (their ids: py-feat's ``input`` paths as written, or ``video_id``), sorted."""
         return sorted(set(self.block.video.tolist()))
+
+    @property
+    def names(self) -> dict[str, str]:
+        """Each video id -> the name it is shown by: py-feat's ``input`` path by its stem where unique
+        (:func:`aumesh.data.pyfeat.video_names`); a ``video_id`` as it is."""
+        if self.source.layout.video != INPUT_PATH_COLUMN:
+            return {v: v for v in self.videos}
+        return pyfeat.video_names(self.videos)
 
     def clip(
         self,
@@ -212,12 +221,13 @@ class ClipTable:
         face_selection: str = "largest",
         mesh_units: str | None = "detector",
     ) -> Clip:
-        """Video ``name`` (one of :attr:`videos`) as a :class:`Clip`: :func:`read_clip` without reading again.
+        """Video ``name`` (one of :attr:`videos`, or its stem where unique) as a :class:`Clip`: :func:`read_clip`
+        without reading again.
 
         Raises
         ------
         TableError
-            The video has no frame with a face, or a face row with some AU or pose values missing, or a unit error
+            No such video, or ``name`` is the stem of several (listed); the video has no frame with a face, or a face row with some AU or pose values missing, or a unit error
             (:func:`read_clip`).
         """
         return _video_clip(self, name, fps, face_selection, mesh_units)
@@ -287,7 +297,9 @@ def _video_clip(
 ) -> Clip:
     _check_options(fps, face_selection, mesh_units)
     block, approx, source, has_mesh, where = table.block, table.approx, table.source, table.has_mesh, str(table.path)
-    rows = np.flatnonzero(block.video == name)
+    video = pyfeat.resolve_video(name, table.videos, where, paths=source.layout.video == INPUT_PATH_COLUMN)
+    name = table.names[video]  # shown by its stem where unique
+    rows = np.flatnonzero(block.video == video)
     rows = rows[np.argsort(block.frame[rows], kind="stable")]  # select_faces needs a frame's rows consecutive
     block, approx = block.take(rows), None if approx is None else approx[rows]
 
@@ -350,6 +362,7 @@ def _video_clip(
         frames_several_faces=counts.frames_several_faces,
         frame_size=_frame_size(block, lay),
         mesh_units=units,
+        video_id=video,
     )
 
 

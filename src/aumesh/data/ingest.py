@@ -8,7 +8,8 @@ What a block goes through (:func:`clean_block`), in order:
    measurement NaN (Detectorv2: its FaceScore is NaN too). Such rows are dropped and counted. A row with only *some*
    values missing is kept, and the data contract refuses it downstream: that is corruption, not a missing face;
 2. **several faces**: py-feat writes one row per face, the rows of one frame consecutive (same ``input`` and
-   ``frame``). ``data.face_selection`` keeps one: ``largest`` (the largest face box), ``identity`` (py-feat's
+   ``frame``). ``data.face_selection`` keeps one: ``largest`` (the largest face box; where two boxes are about the
+   same size, the face that continues the video's track: :mod:`aumesh.data.face_track`), ``identity`` (py-feat's
    ``Identity`` seen in most of the video's face rows; frames without that person are dropped) or ``error``;
 3. **units** (docs/conventions.md, "py-feat's mesh units"): the mesh leaves in frame pixels, x, y and z
    (:func:`aumesh.data.units.convert_units`: normalized image units by the frame size, z from the detector's crop
@@ -32,7 +33,7 @@ import pyarrow.parquet as pq
 from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.data import pyfeat
+from aumesh.data import face_track, pyfeat, video_frames
 from aumesh.data.readers import (
     Block,
     Source,
@@ -69,6 +70,7 @@ class Counts:
     extra_faces: int = 0  # face rows dropped by data.face_selection (another face in the same frame)
     frames_several_faces: int = 0  # frames with more than one face row
     frames_without_subject: int = 0  # identity selection: frames where the video's subject is not seen
+    frames_ambiguous: int = 0  # frames with two faces of about the same size (face_track.AMBIGUOUS_AREA_RATIO)
     rows_out: int = 0
     rows_normalized: int = 0  # rows whose mesh was converted from normalized image units to pixels
     rows_z_chip: int = 0  # rows whose z was converted from Detectorv2's chip units
@@ -76,6 +78,7 @@ class Counts:
     identities: dict[str, dict[str, int]] = field(default_factory=dict)  # video -> Identity -> face rows
     units: dict[str, UnitStats] = field(default_factory=dict)  # source path -> its units
     labels: dict[str, set[str]] = field(default_factory=dict)  # source path -> Identity labels of kept rows
+    frame_ranges: video_frames.FrameRanges = field(default_factory=dict)  # video -> (source, first, last frame) kept
 
     def __add__(self, other: Counts) -> Counts:
         total = Counts()
@@ -88,7 +91,7 @@ class Counts:
         :class:`Counts` per addition copied every source's units and labels each time). ``other``'s objects are never
         changed, nor shared where this sum changes them."""
         for f in fields(self):
-            if f.name not in ("identities", "units", "labels"):
+            if f.name not in ("identities", "units", "labels", "frame_ranges"):
                 setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
         for v, c in other.identities.items():
             mine = self.identities.get(v)
@@ -100,6 +103,7 @@ class Counts:
             self.units[k] = self.units[k] + u if k in self.units else u  # UnitStats.__add__: a new object
         for k, names in other.labels.items():
             self.labels.setdefault(k, set()).update(names)
+        video_frames.merge_into(self.frame_ranges, other.frame_ranges)
         return self
 
     def as_dict(self) -> dict[str, int]:
@@ -109,6 +113,7 @@ class Counts:
             "dropped_extra_faces": self.extra_faces,
             "frames_with_several_faces": self.frames_several_faces,
             "dropped_frames_without_subject": self.frames_without_subject,
+            "frames_ambiguous_faces": self.frames_ambiguous,
             "frames_out": self.rows_out,
             "rows_converted_from_normalized": self.rows_normalized,
             "rows_z_from_chip": self.rows_z_chip,
@@ -151,20 +156,41 @@ def face_areas(block: Block, layout: pyfeat.Layout) -> np.ndarray:
     )
 
 
+def face_centres(block: Block, layout: pyfeat.Layout) -> np.ndarray:
+    """(n, 2) each face's box centre: py-feat's FaceRectX + Width / 2, FaceRectY + Height / 2, else the centre of the
+    mesh's x/y extent (as :func:`face_areas`)."""
+    if layout.box_origin and layout.box_size:
+        (x, y), (w, h) = ([block.values[c] for c in cols] for cols in (layout.box_origin, layout.box_size))
+        centre = np.column_stack([x + w / 2, y + h / 2])
+        if np.isfinite(centre).all():
+            return centre
+    x, y = block.mesh[:, :N_VERTICES], block.mesh[:, N_VERTICES : 2 * N_VERTICES]
+    return np.column_stack(
+        [(np.nanmax(x, axis=1) + np.nanmin(x, axis=1)) / 2, (np.nanmax(y, axis=1) + np.nanmin(y, axis=1)) / 2]
+    ).astype(np.float64)
+
+
 def main_identities(identities: dict[str, dict[str, int]]) -> dict[str, str]:
     """Each video's subject: the Identity of most of its face rows (ties: the first name in sorted order)."""
     return {v: sorted(c.items(), key=lambda kv: (-kv[1], kv[0]))[0][0] for v, c in identities.items() if c}
 
 
 def select_faces(
-    block: Block, layout: pyfeat.Layout, how: str, subjects: dict[str, str] | None, where: str
+    block: Block,
+    layout: pyfeat.Layout,
+    how: str,
+    subjects: dict[str, str] | None,
+    where: str,
+    tracks: dict[str, face_track.Face] | None = None,
 ) -> tuple[np.ndarray, Counts]:
     """Rows kept (one per frame) among face rows, by ``data.face_selection`` (``how``), and what was dropped.
 
     Parameters
     ----------
-    block : face rows only (no-face rows removed), a frame's rows consecutive.
+    block : face rows only (no-face rows removed), a frame's rows consecutive, a video's frames in order.
     subjects : video -> its subject's Identity (``how="identity"``).
+    tracks : video -> the face kept in its last frame of the block before, of the same range of the file (updated in
+        place); None: the block starts each video's track (:mod:`aumesh.data.face_track`).
     """
     groups = frame_groups(block)
     sizes = np.diff(groups)
@@ -188,11 +214,24 @@ def select_faces(
             f"({int((sizes > 1).sum())} such frames); data.face_selection=error keeps one face per frame only. Fix: "
             f"data.face_selection=largest (the largest face box) or identity (py-feat's Identity of the video's subject)."
         )
-    area = np.where(candidate, face_areas(block, layout), -np.inf)
+    areas = face_areas(block, layout)
+    area = np.where(candidate, areas, -np.inf)
     # the largest candidate of each frame (ties: the first row): argmax within runs, as a sort by (group, -area)
     group_of = np.repeat(np.arange(len(sizes)), sizes)
     order = np.lexsort((np.arange(len(block)), -area, group_of))
     first = order[groups[:-1]]
+    # two faces of about the same size: the one that continues the video's track (tracks carried: always followed)
+    if (sizes > 1).any() or tracks is not None:
+        first, counts.frames_ambiguous = face_track.follow(
+            block.video,
+            groups,
+            first,
+            candidate,
+            areas,
+            face_centres(block, layout),
+            block.identity,
+            {} if tracks is None else tracks,
+        )
     keep = first[candidate[first]]
     counts.frames_without_subject = int(len(first) - len(keep))
     counts.extra_faces = int(len(block) - len(first))
@@ -206,15 +245,16 @@ def clean_block(
     subjects: dict[str, str] | None,
     where: str,
     mesh_units: str = "detector",
+    tracks: dict[str, face_track.Face] | None = None,
     place: Callable[[int], str] | None = None,
 ) -> tuple[Block, Counts]:
     """No-face rows dropped, one face per frame, meshes in pixels (module docstring); the kept rows' values checked
-    (:func:`check_face_values`). ``place``: where a row of ``block`` (as read) is in the user's file ("line 7"; default
-    "row 5" of the block)."""
+    (:func:`check_face_values`). ``tracks`` as :func:`select_faces`'s; ``place``: where a row of ``block`` (as read)
+    is in the user's file ("line 7"; default "row 5" of the block)."""
     empty = no_face_rows(block, layout)
     face_rows = np.flatnonzero(~empty)
     faces = block.take(face_rows)
-    keep, counts = select_faces(faces, layout, how, subjects, where)
+    keep, counts = select_faces(faces, layout, how, subjects, where, tracks)
     out = faces.take(keep)
     check_face_values(out, layout, where, face_rows[keep], place or (lambda row: f"row {row}"))
     stats = convert_units(out, layout, mesh_units, where)
@@ -223,6 +263,7 @@ def clean_block(
     counts.rows_z_chip = stats.rows_z_converted if stats.z == "chip" else 0
     counts.rows_z_crop256 = stats.rows_z_converted if stats.z == "crop256" else 0
     counts.units = {where: stats}
+    counts.frame_ranges = video_frames.block_ranges(out.video, out.frame, where)
     if layout.identity is not None and out.identity is not None:
         counts.labels = {where: identity_labels(out.identity)}
     return out, counts
@@ -319,17 +360,34 @@ def to_table(block: Block, schema: pa.Schema) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
+#: ``(source path, span start)`` -> the face tracks a carried span starts from (:func:`carried_tracks`).
+Seeds = dict[tuple[str, int], dict[str, face_track.Face]]
+
+
 def iter_clean_blocks(
-    spans: Sequence[Span], how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
+    spans: Sequence[Span],
+    how: str,
+    subjects: dict[str, str] | None,
+    mesh_units: str = "detector",
+    seeds: Seeds | None = None,
 ) -> Iterator[tuple[Block, Counts]]:
     """Each span read and cleaned (:func:`clean_block`), source by source; the small CSV ranges of many files
-    parsed together (:func:`aumesh.data.readers.iter_span_groups`)."""
+    parsed together (:func:`aumesh.data.readers.iter_span_groups`). A span starts its videos' face tracks afresh (the
+    batches of one span carry them), or, when it starts inside a run of frames with several faces
+    (``Span.carried``), from the tracks ``seeds`` gives it (:func:`carried_tracks`): the rows kept do not depend on
+    how the file is cut into spans nor on how spans are packed into tasks."""
+    key, tracks = None, {}
     for table, parts in iter_span_groups(spans):
-        block = to_block(table, parts[0][0])
-        for rows, first, stop in parts:
+        block = to_block(table, parts[0][1])
+        for span, rows, first, stop in parts:
+            if (str(span.source.path), span.start) != key:  # a new span: its own tracks
+                key = (str(span.source.path), span.start)
+                tracks = dict((seeds or {}).get(key, {}))
             part = block if (first, stop) == (0, len(block)) else block.take(np.arange(first, stop))
-            src = rows.source
-            yield clean_block(part, src.layout, how, subjects, str(src.path), mesh_units, partial(row_place, rows))
+            src = span.source
+            yield clean_block(
+                part, src.layout, how, subjects, str(src.path), mesh_units, tracks, partial(row_place, rows)
+            )
 
 
 def concat_blocks(blocks: Sequence[Block]) -> Block:
@@ -353,11 +411,17 @@ SMALL_BLOCK_ROWS = 1024
 
 
 def write_clean(
-    spans: Sequence[Span], out: Path, how: str, subjects: dict[str, str] | None, mesh_units: str = "detector"
+    spans: Sequence[Span],
+    out: Path,
+    how: str,
+    subjects: dict[str, str] | None,
+    mesh_units: str = "detector",
+    seeds: Seeds | None = None,
 ) -> Counts:
     """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed).
-    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs.
-    Blocks of fewer than :data:`SMALL_BLOCK_ROWS` rows are written together."""
+    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs;
+    ``seeds``: the face tracks of carried spans (:func:`carried_tracks`). Blocks of fewer than
+    :data:`SMALL_BLOCK_ROWS` rows are written together."""
     schema = output_schema(spans[0].source.layout.instruments if spans else ())
     total = Counts()
     pending: list[Block] = []
@@ -371,7 +435,7 @@ def write_clean(
 
     try:
         rows = 0  # in pending
-        for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units):
+        for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units, seeds):
             total += counts
             if len(block) >= SMALL_BLOCK_ROWS:
                 flush()
@@ -386,6 +450,36 @@ def write_clean(
     finally:
         writer.close()
     return total
+
+
+def track_chains(spans: Sequence[Span]) -> list[tuple[Span, ...]]:
+    """The runs of consecutive spans of one source that a carried span (``Span.carried``) needs followed in order:
+    the span before the first carried one, then each carried one. Empty when no span is carried."""
+    chains: list[list[Span]] = []
+    for i, span in enumerate(spans):
+        if not span.carried or i == 0 or spans[i - 1].source.path != span.source.path:
+            continue
+        if chains and chains[-1][-1] == spans[i - 1]:
+            chains[-1].append(span)
+        else:
+            chains.append([spans[i - 1], span])
+    return [tuple(c) for c in chains]
+
+
+def carried_tracks(chain: Sequence[Span], how: str, subjects: dict[str, str] | None) -> Seeds:
+    """The face tracks each carried span of ``chain`` (:func:`track_chains`) starts from: the chain's spans followed in
+    order, as one pass over the file would (only face selection: no units, nothing written). Only runs of frames
+    with several faces longer than a CSV range need it (:func:`aumesh.data.readers.csv_spans`)."""
+    out: Seeds = {}
+    tracks: dict[str, face_track.Face] = {}
+    for span in chain[:-1]:
+        for rows, table in iter_span_tables(span):
+            block = to_block(table, rows)
+            faces = block.take(np.flatnonzero(~no_face_rows(block, span.source.layout)))
+            select_faces(faces, span.source.layout, how, subjects, str(span.source.path), tracks)
+        nxt = chain[chain.index(span) + 1]
+        out[(str(nxt.source.path), nxt.start)] = dict(tracks)
+    return out
 
 
 def span_identities(spans: Sequence[Span]) -> Counts:
@@ -421,13 +515,15 @@ class PassThrough:
     """A parquet table the pipeline reads as it is (already clean: one face row per frame, pixels).
 
     ``units``: its mesh units, the face's proportions measured on the rows the check read; ``labels``: py-feat's
-    Identity labels (None without the column)."""
+    Identity labels (None without the column); ``frame_ranges``: each video's frames
+    (:mod:`aumesh.data.video_frames`)."""
 
     clean: bool
     rows: int
     reason: str = ""
     units: UnitStats | None = None
     labels: set[str] | None = None
+    frame_ranges: video_frames.FrameRanges | None = None
 
 
 def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
@@ -447,6 +543,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
     cols += [lay.identity] if lay.identity else []
     no_face, several, previous = 0, 0, None
     labels: set[str] | None = set() if lay.identity else None
+    ranges: video_frames.FrameRanges = {}
     try:
         reader = pq.ParquetFile(source.path)
     except (pa.ArrowException, OSError) as err:
@@ -467,6 +564,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
             previous = (video[m - 1].as_py(), frame[m - 1].as_py())
         if labels is not None and lay.identity:
             labels |= identity_labels(np.array(pc.unique(table.column(lay.identity)).drop_null().to_pylist()))
+        video_frames.merge_into(ranges, _batch_ranges(table, lay.video, str(source.path)))
     if not n:  # an empty table: nothing to clean (prepare names empty input)
         return PassThrough(True, 0)
     if no_face:
@@ -500,7 +598,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
     finite = np.isfinite(extents).all(axis=1)
     extents = extents[finite]
     if finite.any() and normalized_rows(mesh[finite], None if rect is None else rect[finite], extents[:, :2]).any():
-        return PassThrough(False, n, "normalized image units", labels=labels)
+        return PassThrough(False, n, "normalized image units", labels=labels, frame_ranges=ranges)
     ratio = depth_height(extents)
     hist = ratio_hist(ratio)
     units = UnitStats(lay.detector, "pixels", "pixels", rows=n, before=hist, after=hist)
@@ -510,4 +608,23 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
         units.crop = ratio_hist(ratio * width / Z_CROP[lay.detector][1])
         pose = {c: part.column(c).to_numpy(zero_copy_only=False).astype(np.float64)[finite] for c in ("Pitch", "Yaw")}
         units.growth = growth_sums(extents[:, 2], extents[:, 1], frontal(pose))
-    return PassThrough(True, n, units=units, labels=labels)
+    return PassThrough(True, n, units=units, labels=labels, frame_ranges=ranges)
+
+
+def _batch_ranges(table: pa.Table, video: str, where: str) -> video_frames.FrameRanges:
+    """Each video's first and last frame in a batch, computed in Arrow (no Python string per row); a video with a
+    frame twice in the batch gets its range twice, so that the files holding it are checked frame by frame."""
+    agg = (
+        table.select([video, FRAME_COLUMN])
+        .group_by(video)
+        .aggregate(
+            [(FRAME_COLUMN, "min"), (FRAME_COLUMN, "max"), (FRAME_COLUMN, "count"), (FRAME_COLUMN, "count_distinct")]
+        )
+    )
+    out: video_frames.FrameRanges = {}
+    for v, lo, hi, n, distinct in zip(
+        *(agg.column(c).to_pylist() for c in (video, "frame_min", "frame_max", "frame_count", "frame_count_distinct")),
+        strict=True,
+    ):
+        out[str(v)] = [(where, int(lo), int(hi))] * (1 if n == distinct else 2)
+    return out

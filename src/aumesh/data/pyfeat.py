@@ -31,6 +31,7 @@ from aumesh.data import csv_text
 
 FACE_SCORE = "FaceScore"
 FACE_BOX_SIZE = ("FaceRectWidth", "FaceRectHeight")
+FACE_BOX_ORIGIN = ("FaceRectX", "FaceRectY")
 IDENTITY = "Identity"
 FRAME_SIZE = ("FrameWidth", "FrameHeight")
 
@@ -40,15 +41,69 @@ MESH_NAMES = {
     "Detectorv2": [f"mesh_{axis}_{i}" for axis in "xyz" for i in range(N_VERTICES)],
 }
 POINT_COLUMN = re.compile(r"^([xyz])_(\d+)$")
+#: Every column name the pipeline may read besides the mesh's (:attr:`Layout.columns`, clip's ``approx_time``).
+READ_COLUMNS = frozenset(
+    {VIDEO_COLUMN, INPUT_PATH_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, FACE_SCORE, IDENTITY, "approx_time"}
+    | {*FACE_BOX_ORIGIN, *FACE_BOX_SIZE, *FRAME_SIZE}
+)
+_READ_MESH = re.compile(r"^(mesh_)?[xyz]_\d+$")
 
 
 def video_stem(path: str) -> str:
-    """The video id of py-feat's ``input`` path: its file name without the extension, as ``pathlib``'s ``stem``, without
-    a Path: pathlib interns every component it parses, and the interpreter's table of interned strings grows with
-    them and never shrinks (3.7 MiB held to the end of the prepare stage for 88k videos' paths)."""
+    """The file name of py-feat's ``input`` path without the extension, as ``pathlib``'s ``stem``, without a Path:
+    pathlib interns every component it parses, and the interpreter's table of interned strings grows with them and
+    never shrinks (3.7 MiB held to the end of the prepare stage for 88k videos' paths). A name to *show* a video by
+    (:func:`video_names`), never its identity: ``a/clip01.mp4`` and ``b/clip01.mp4`` are two videos."""
     name = os.path.basename(path.rstrip("/"))
     dot = name.rfind(".")
     return name[:dot] if 0 < dot < len(name) - 1 else name
+
+
+def video_names(videos: Sequence[str]) -> dict[str, str]:
+    """Each video id (py-feat's ``input`` path as written, or ``video_id``) -> the name to show it by: its stem
+    (:func:`video_stem`) where no other of ``videos`` has that stem, else its shortest trailing part of the path that
+    no other has, the last part's extension dropped (``a/clip01``, ``b/clip01``), else the id itself."""
+    ids = sorted(set(videos))
+    parts = {v: v.rstrip("/").split("/") for v in ids}
+    out: dict[str, str] = {}
+    for k in range(1, max((len(p) for p in parts.values()), default=0) + 1):
+        trail = {v: "/".join([*p[-k:-1], video_stem(p[-1])]) for v, p in parts.items() if v not in out}
+        seen: dict[str, int] = {}
+        for name in trail.values():
+            seen[name] = seen.get(name, 0) + 1
+        out |= {v: name for v, name in trail.items() if seen[name] == 1}
+    shown = set()
+    for v in ids:  # a name that is another video's id (or repeats): the id itself
+        name = out.get(v, v)
+        out[v] = v if (name != v and name in parts) or name in shown else name
+        shown.add(out[v])
+    return out
+
+
+def resolve_video(name: str, videos: Sequence[str], where: str, paths: bool = True) -> str:
+    """The video of ``videos`` (ids) that ``name`` means: its id, else its shown name or stem (:func:`video_names`)
+    when that names one video only (``paths`` False: the ids are ``video_id`` values, not paths; only an id).
+
+    Raises
+    ------
+    TableError
+        One line naming ``where``: no such video (the videos it holds), or ``name`` is the stem of several (listed).
+    """
+    if name in videos:
+        return name
+    names = video_names(videos) if paths else {v: v for v in videos}
+    hits = sorted({v for v in videos if names[v] == name or (paths and video_stem(v) == name)})
+    if len(hits) == 1:
+        return hits[0]
+    if hits:
+        shown = ", ".join(hits[:10]) + (f" and {len(hits) - 10} more" if len(hits) > 10 else "")
+        raise TableError(
+            f"{where}: {len(hits)} videos are named {name!r} ({shown}). Fix: --video with the path py-feat wrote in "
+            f"'input' (or {names[hits[0]]!r})."
+        )
+    held = sorted(names.values())
+    listed = ", ".join(held[:10]) + (f" and {len(held) - 10} more" if len(held) > 10 else "")
+    raise TableError(f"{where}: no video {name!r} (the table holds {listed}). Fix: --video one of those.")
 
 
 @dataclass(frozen=True)
@@ -56,7 +111,8 @@ class Layout:
     """Where a table keeps what the pipeline needs.
 
     ``mesh`` is None in the split layout (the mesh is an ``.npy`` beside the table). ``video`` is ``video_id`` or
-    py-feat's ``input`` (the video's path, whose stem names the video). The optional columns are None when absent.
+    py-feat's ``input`` (the video's path as written: the video's identity; its stem only shows it,
+    :func:`video_names`). The optional columns are None when absent.
     """
 
     detector: str  # MPDetector | Detectorv2 | table | split
@@ -67,6 +123,7 @@ class Layout:
     identity: str | None
     frame_size: tuple[str, str] | None
     instruments: tuple[str, ...] = ()  # a second detector's AU columns (model.eiv.instrument_aus), AU_COLUMNS order
+    box_origin: tuple[str, str] | None = None  # FaceRectX, FaceRectY: with box_size, where a face is (its track)
 
     @property
     def numeric(self) -> list[str]:
@@ -74,7 +131,7 @@ class Layout:
         size)."""
         out = [*AU_COLUMNS, *POSE_COLUMNS, *self.instruments]
         out += [self.face_score] if self.face_score else []
-        out += list(self.box_size or ()) + list(self.frame_size or ())
+        out += list(self.box_size or ()) + list(self.frame_size or ()) + list(self.box_origin or ())
         return out
 
     @property
@@ -95,15 +152,44 @@ def suggest(name: str, names: Sequence[str]) -> str:
     return f" (found {close[0]!r}: rename it to {name!r})" if close else ""
 
 
-def fex_video_column(names: Sequence[str], where: str) -> str:
-    """The column naming each row's video (``video_id``, else py-feat's ``input`` path), after checking that the Fex
-    columns every table needs (frame, the 20 AUs, the 3 pose angles) are there.
+def check_unique_names(names: Sequence[str], where: str, also: Sequence[str] = ()) -> None:
+    """No column the pipeline reads (:data:`READ_COLUMNS`, the mesh's, ``also``: e.g. the instrument AUs) named twice.
+
+    A CSV header may repeat a name (``AU12`` twice), and so may a parquet schema (pyarrow writes duplicate field
+    names): Arrow and pandas then read one of them (the first, or a renamed ``AU12.1``) without a word. Names nothing
+    reads (py-feat's ~2,000 other columns) may repeat.
 
     Raises
     ------
     TableError
-        Naming ``where``, the missing column, a likely misspelling and the fix.
+        One line naming ``where``, the repeated column(s) and the fix.
     """
+    seen: dict[str, int] = {}
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+    read = set(also)
+    repeated = [n for n, k in seen.items() if k > 1 and (n in READ_COLUMNS or n in read or _READ_MESH.match(n))]
+    if repeated:
+        shown = ", ".join(f"{n!r} ({seen[n]} times)" for n in repeated[:5])
+        more = f" and {len(repeated) - 5} more" if len(repeated) > 5 else ""
+        raise TableError(
+            f"{where}: duplicated column name{'s' if len(repeated) > 1 else ''} {shown}{more} in the header: "
+            f"which one is the measurement is unknown. Fix: keep one column of each name (delete or rename the "
+            f"others) and save the table again."
+        )
+
+
+def fex_video_column(names: Sequence[str], where: str) -> str:
+    """The column naming each row's video (``video_id``, else py-feat's ``input`` path), after checking that the Fex
+    columns every table needs (frame, the 20 AUs, the 3 pose angles) are there, each once
+    (:func:`check_unique_names`).
+
+    Raises
+    ------
+    TableError
+        Naming ``where``, the missing or repeated column, a likely misspelling and the fix.
+    """
+    check_unique_names(names, where)
     present = set(names)
     if VIDEO_COLUMN in present:
         video = VIDEO_COLUMN
@@ -132,6 +218,7 @@ def check_instruments(names: Sequence[str], instruments: Sequence[str], where: s
     TableError
         Naming ``where``, the first missing column (with a likely misspelling) and the fix.
     """
+    check_unique_names(names, where, instruments)
     present = set(names)
     missing = [c for c in instruments if c not in present]
     if missing:
@@ -183,6 +270,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False, instrumen
         identity=IDENTITY if IDENTITY in present else None,
         frame_size=optional(*FRAME_SIZE),
         instruments=tuple(instruments),
+        box_origin=optional(*FACE_BOX_ORIGIN) if set(FACE_BOX_SIZE) <= present else None,
     )
 
 

@@ -24,9 +24,8 @@ import pyarrow.parquet as pq
 
 from aumesh.core.errors import TableError, corrupt_parquet
 from aumesh.core.io import NpyRowFile, absolute, check_npy
-from aumesh.core.schema import FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES
+from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES
 from aumesh.data import csv_text, pyfeat
-from aumesh.data.pyfeat import video_stem
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
 PARQUET_SUFFIXES = (".parquet",)
@@ -142,16 +141,24 @@ def _parse_header(path: Path, line: str, second: str) -> list[str]:
 
 @dataclass(frozen=True)
 class Span:
-    """Whole frames of one source: CSV bytes ``[start, stop)`` (the header excluded) or parquet rows ``[start, stop)``."""
+    """Whole frames of one source: CSV bytes ``[start, stop)`` (the header excluded) or parquet rows ``[start, stop)``.
+
+    ``carried``: the range starts inside a run of frames with several faces (no frame of one face within a range's
+    length), so the face kept there continues the track of the range before (:mod:`aumesh.data.face_track`)."""
 
     source: Source
     start: int
     stop: int
+    carried: bool = False
 
 
 def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
     """Byte ranges of about ``range_bytes`` that start at a line and never split the rows of one frame (py-feat writes a
-    frame's faces consecutively). A compressed CSV is one range."""
+    frame's faces consecutively). A compressed CSV is one range.
+
+    A range starts, where it can within ``range_bytes`` more, at a new video or at a frame of one face row: there the
+    face kept needs no frame before it (:mod:`aumesh.data.face_track`), so cleaning the ranges apart gives the rows
+    of one pass over the file. Only a run of frames with several faces longer than that starts a range mid-track."""
     path = source.path
     with open(path, "rb") as fh:
         header_end = len(fh.readline())
@@ -159,34 +166,57 @@ def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
     if path.name.endswith(".gz") or size - header_end <= range_bytes:
         return [Span(source, header_end, size)]
     key_columns = [source.header.index(source.layout.video), source.header.index(FRAME_COLUMN)]
-    bounds = [header_end]
+    face_column = source.header.index(source.layout.face_score or AU_COLUMNS[0])
+    bounds, carried = [header_end], [False]
     with open(path, "rb") as fh:
         target = header_end + range_bytes
         while target < size:
-            cut = _frame_boundary(fh, target, key_columns)
+            cut, anchored = _frame_boundary(fh, target, key_columns, face_column, range_bytes)
             if cut >= size:
                 break
             if cut > bounds[-1]:
                 bounds.append(cut)
+                carried.append(not anchored)
             target = max(cut, bounds[-1]) + range_bytes
     bounds.append(size)
-    return [Span(source, a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    return [Span(source, a, b, c) for a, b, c in zip(bounds[:-1], bounds[1:], carried, strict=True)]
 
 
-def _frame_boundary(fh, offset: int, key_columns: list[int]) -> int:
-    """The first line start at or after ``offset`` whose (video, frame) differs from the line before it."""
+def _is_face(row: list[str], column: int) -> bool:
+    """The row's ``column`` (FaceScore, else AU01) is a positive number: a face row, not py-feat's no-face row."""
+    try:
+        value = float(row[column])
+    except (IndexError, ValueError):
+        return False
+    return value > 0 if np.isfinite(value) else False
+
+
+def _frame_boundary(
+    fh, offset: int, key_columns: list[int], face_column: int | None = None, limit: int = 0
+) -> tuple[int, bool]:
+    """``(cut, anchored)``: the first line start at or after ``offset`` whose (video, frame) differs from the line
+    before it; with ``face_column``, the first such start up to ``limit`` bytes further that begins a new video or a
+    frame of one face row (:func:`_is_face`: ``anchored``), else the first (``anchored`` False)."""
     fh.seek(offset - 1)
     fh.readline()  # the rest of the line ``offset`` falls in (offset - 1: a line starting at ``offset`` is kept)
-    previous = None
+    previous, first, single = None, None, None  # single: a frame start whose frame has one face row so far
     while True:
         start = fh.tell()
         line = fh.readline()
         if not line:
-            return start
+            return (single, True) if single is not None else (start, True) if first is None else (first, False)
         row = next(csv.reader([line.decode("utf-8", "replace")]), [])
         key = tuple(row[k] if k < len(row) else None for k in key_columns)
         if previous is not None and key != previous:
-            return start
+            if face_column is None or key[0] != previous[0] or single is not None:
+                return (single if single is not None and key[0] == previous[0] else start), True
+            if first is None:
+                first = start
+            elif start - first > limit:
+                return first, False
+            single = start if _is_face(row, face_column) else None
+        elif single is not None:  # a second row of the frame: several faces
+            single = None
         previous = key
 
 
@@ -351,10 +381,10 @@ SMALL_RANGE_BYTES = 4 << 20
 
 def iter_span_groups(
     spans: Sequence[Span], columns: Sequence[str] | None = None
-) -> Iterator[tuple[pa.Table, list[tuple[Span, int, int]]]]:
-    """The spans' rows as :func:`iter_span_tables` reads them, as ``(table, [(rows, first, stop), ...])``: each table's
-    rows ``[first, stop)`` are the span ``rows``'s, whole frames. Consecutive small CSV ranges (below
-    :data:`SMALL_RANGE_BYTES`) of one header are parsed at once, their bytes joined, when each is one line per row
+) -> Iterator[tuple[pa.Table, list[tuple[Span, Span, int, int]]]]:
+    """The spans' rows as :func:`iter_span_tables` reads them, as ``(table, [(span, rows, first, stop), ...])``: each
+    table's rows ``[first, stop)`` are those of ``rows``, whole frames of ``span`` (``rows`` is ``span``, or the part
+    of a parquet span a batch holds). Consecutive small CSV ranges (below :data:`SMALL_RANGE_BYTES`) of one header are parsed at once, their bytes joined, when each is one line per row
     (no quotes, no blank lines: its line ends count its rows); otherwise, and when Arrow refuses the joined bytes,
     range by range (the refusal is then named for its own file)."""
     pending: list[tuple[Span, bytes]] = []
@@ -374,7 +404,7 @@ def iter_span_groups(
             yield from _joined(pending, columns)
             pending, size = [], 0
         for rows, table in iter_span_tables(span, columns):
-            yield table, [(rows, 0, table.num_rows)]
+            yield table, [(span, rows, 0, table.num_rows)]
     if pending:
         yield from _joined(pending, columns)
 
@@ -385,7 +415,7 @@ def _one_line_rows(data: bytes) -> bool:
 
 def _joined(
     pending: list[tuple[Span, bytes]], columns: Sequence[str] | None
-) -> Iterator[tuple[pa.Table, list[tuple[Span, int, int]]]]:
+) -> Iterator[tuple[pa.Table, list[tuple[Span, Span, int, int]]]]:
     if len(pending) > 1 and all(_one_line_rows(data) for _, data in pending):
         source = pending[0][0].source
         cols = list(source.layout.columns if columns is None else columns)
@@ -401,12 +431,15 @@ def _joined(
             bounds = np.r_[0, np.cumsum(rows)]
             yield (
                 table,
-                [(span, int(a), int(b)) for (span, _), a, b in zip(pending, bounds[:-1], bounds[1:], strict=True)],
+                [
+                    (span, span, int(a), int(b))
+                    for (span, _), a, b in zip(pending, bounds[:-1], bounds[1:], strict=True)
+                ],
             )
             return
     for span, _ in pending:
         table = read_span(span, columns)
-        yield table, [(span, 0, table.num_rows)]
+        yield table, [(span, span, 0, table.num_rows)]
 
 
 @dataclass
@@ -439,10 +472,9 @@ class Block:
 def to_block(table: pa.Table, span: Span) -> Block:
     """A read span as a :class:`Block` (the split layout's mesh read from its ``.npy``)."""
     lay = span.source.layout
+    # the video's identity is py-feat's ``input`` path as written (or ``video_id``), never its stem: a/clip01.mp4
+    # and b/clip01.mp4 are two people's videos (pyfeat.video_names shows them by their stems where unique)
     video = table.column(lay.video).to_numpy(zero_copy_only=False)
-    if lay.video == INPUT_PATH_COLUMN:
-        names, codes = np.unique(video.astype(str), return_inverse=True)
-        video = np.array([video_stem(v) for v in names], dtype=object)[codes] if len(names) else video.astype(object)
     frame_col = table.column(FRAME_COLUMN)
     if frame_col.null_count:
         row = int(np.flatnonzero(frame_col.is_null().to_numpy(zero_copy_only=False))[0])

@@ -35,7 +35,6 @@ from aumesh.core.schema import (
     VIDEO_COLUMN,
 )
 from aumesh.data import contract, pyfeat
-from aumesh.data.pyfeat import video_stem
 
 _MESH_COLUMN = pyfeat.POINT_COLUMN
 META_COLUMNS = (VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS)
@@ -374,8 +373,8 @@ def check_instrument_values(df: pd.DataFrame, instruments: Sequence[str], path: 
 
 
 def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None, instruments: Sequence[str] = ()) -> pd.DataFrame:
-    """The metadata columns of ``row_groups`` (None: the whole table) as stored, with ``video_id`` as text (from the
-    input path's stem when the table names its videos so); then the ``instruments`` columns, when given."""
+    """The metadata columns of ``row_groups`` (None: the whole table) as stored, with ``video_id`` as text (py-feat's
+    ``input`` path as written when the table names its videos so); then the ``instruments`` columns, when given."""
     cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments]
     cols.insert(0, INPUT_PATH_COLUMN if table.video_from_input else VIDEO_COLUMN)
     if row_groups is None:
@@ -388,11 +387,8 @@ def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None, instrumen
         except (pa.ArrowException, OSError) as err:
             raise corrupt_parquet(table.path, err, " (reading the metadata columns)") from None
     df = columns.to_pandas(use_threads=False)  # as the reads: the partitions already run on every core
-    if table.video_from_input:
-        codes, paths = pd.factorize(
-            df.pop(INPUT_PATH_COLUMN), use_na_sentinel=False
-        )  # one Path per distinct video, not per frame
-        df[VIDEO_COLUMN] = np.array([video_stem(str(p)) for p in paths], dtype=object)[codes]
+    if table.video_from_input:  # the path as written is the video's identity (pyfeat.video_names shows its stem)
+        df.insert(0, VIDEO_COLUMN, df.pop(INPUT_PATH_COLUMN))
     df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
     return df
 

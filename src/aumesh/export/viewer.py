@@ -23,7 +23,8 @@ network, no CDN: the file works from disk, offline.
 
 **Clips** (issue 36): the page plays a video's py-feat table, opened by a file picker or a drop (CSV or
 ``.csv.gz``, decompressed by the browser's ``DecompressionStream``; parsed by column name with
-:func:`aumesh.data.clip.read_clip`'s rules, ported: no-face rows, the largest face, either detector's mesh,
+:func:`aumesh.data.clip.read_clip`'s rules, ported: no-face rows, the largest face (the face track where two are
+about the same size: issue 44), videos by their input paths shown by their stems where unique, either detector's mesh,
 the frame rate from ``approx_time``, :func:`~aumesh.data.clip.bridge`'s gap rule), or embedded by ``aumesh view
 NPZ --clip TABLE`` (:func:`table_clips`: ``read_clip`` + ``bridged_weights``, any table format, compact base64
 arrays). Either way the recorded mesh is in frame pixels on every axis, converted by the ingest's rules (issue 41;
@@ -217,11 +218,16 @@ def unit_rules() -> dict:
     spans judge the units (:data:`aumesh.data.units.SHAPE_VERTICES`), :data:`~aumesh.data.units.NORMALIZED_MAX_EXTENT`,
     :data:`~aumesh.data.units.NORMALIZED_MAX_RECT_FRACTION`, the detectors' z units (:data:`~aumesh.data.units.Z_CROP`:
     name and divisor), the FaceRect and frame-size columns, and the words for each outcome
-    (:data:`~aumesh.data.clip.MESH_UNIT_NOTES`)."""
-    from aumesh.data import pyfeat, units
+    (:data:`~aumesh.data.clip.MESH_UNIT_NOTES`); with them the face track's ambiguity ratio
+    (:data:`~aumesh.data.face_track.AMBIGUOUS_AREA_RATIO`) and the columns a header may not repeat
+    (:data:`~aumesh.data.pyfeat.READ_COLUMNS`)."""
+    from aumesh.data import face_track, pyfeat, units
     from aumesh.data.clip import MESH_UNIT_NOTES
 
     return {
+        "face_box_origin": list(pyfeat.FACE_BOX_ORIGIN),
+        "ambiguous_area_ratio": float(face_track.AMBIGUOUS_AREA_RATIO),
+        "read_columns": sorted(pyfeat.READ_COLUMNS),
         "shape_vertices": [int(i) for i in units.SHAPE_VERTICES],
         "normalized_max_extent": float(units.NORMALIZED_MAX_EXTENT),
         "normalized_max_rect_fraction": float(units.NORMALIZED_MAX_RECT_FRACTION),

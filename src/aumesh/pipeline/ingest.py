@@ -12,7 +12,12 @@ proportions (:func:`check_units`). The stage writes:
 * ``manifest.json``: the tables ``prepare`` reads, in order: those files, and clean parquet tables of ``data/`` in
   place (read as they are: a clean parquet costs only this stage's check, a few columns, not a copy); per source, what
   it held, what was dropped and its ``mesh_units`` (what was converted, how, for how many rows); the totals
-  (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``) and ``detectors`` (sources per detector).
+  (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``, ``frames_ambiguous_faces``: frames with two
+  faces of about the same size, :mod:`aumesh.data.face_track`) and ``detectors`` (sources per detector).
+
+Each video (py-feat's ``input`` path as written, or ``video_id``) must have each frame once across ``data/``
+(:func:`check_frames_once`); a range of a CSV cut inside a run of frames with several faces starts from the face track
+of the range before (:func:`aumesh.data.ingest.carried_tracks`).
 
 Cached by DVC: a change of recipe (``preprocess.*``, ``model.*``) reruns ``prepare`` on these files and never
 re-parses a CSV. CSV ranges are parsed on the compute engine, several at once. py-feat's one CSV per video costs what
@@ -25,16 +30,18 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
+import numpy as np
+
 from aumesh.config import Config
 from aumesh.core.errors import TableError
 from aumesh.core.io import absolute, atomic_directory, atomic_write_json, recorded
-from aumesh.core.schema import instrument_columns
-from aumesh.data import ingest, readers, units
+from aumesh.core.schema import FRAME_COLUMN, instrument_columns
+from aumesh.data import ingest, readers, units, video_frames
 from aumesh.pipeline import compute
 
 log = logging.getLogger(__name__)
@@ -97,8 +104,11 @@ class Task:
     out: Path
 
 
-def _clean_task(task: Task, how: str, subjects: dict[str, str] | None, mesh_units: str) -> ingest.Counts:
-    return ingest.write_clean(task.spans, task.out, how, subjects, mesh_units)
+def _clean_task(
+    task: Task, how: str, subjects: dict[str, str] | None, mesh_units: str, seeds: ingest.Seeds | None = None
+) -> ingest.Counts:
+    mine = {k: v for k, v in (seeds or {}).items() if any((str(s.source.path), s.start) == k for s in task.spans)}
+    return ingest.write_clean(task.spans, task.out, how, subjects, mesh_units, mine)
 
 
 def _identity_task(task: Task) -> ingest.Counts:
@@ -152,8 +162,16 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         if how == "identity" and tasks:  # the video's subject needs every face row first: a second read of the sources
             seen = compute.map_reduce(_identity_task, ingest.Counts.__add__, tasks, desc="ingest: identities")
             subjects = ingest.main_identities(seen.identities)
+        seeds: ingest.Seeds = {}
+        chains = ingest.track_chains(spans)  # ranges cut inside a run of frames with several faces (rare)
+        if chains:
+            tracks = partial(ingest.carried_tracks, how=how, subjects=subjects)
+            for found in compute.map_gather(tracks, chains, desc="ingest: face tracks"):
+                seeds |= found
         counts = compute.map_gather(
-            partial(_clean_task, how=how, subjects=subjects, mesh_units=mesh_units), tasks, desc="ingest: read + clean"
+            partial(_clean_task, how=how, subjects=subjects, mesh_units=mesh_units, seeds=seeds),
+            tasks,
+            desc="ingest: read + clean",
         )
         total = ingest.Counts()
         for task, c in zip(tasks, counts, strict=True):
@@ -171,8 +189,18 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
                 passed = ingest.Counts(
                     units={str(source.path): check.units} if check.units else {},
                     labels={str(source.path): check.labels} if check.labels is not None else {},
+                    frame_ranges=check.frame_ranges or {},
                 )
                 total += passed
+        in_place_paths = {s.path for s in sources if (c := checks.get(s.path)) is not None and c.clean}
+        check_frames_once(
+            total.frame_ranges,
+            sources,
+            spans,
+            in_place_paths,
+            partial(ingest.iter_clean_blocks, how=how, subjects=subjects, mesh_units=mesh_units, seeds=seeds),
+        )
+        total.frame_ranges = {}
         for source, entry in zip(sources, entries, strict=True):
             stats = total.units.get(str(source.path)) or units.UnitStats(source.layout.detector)
             check_units(source, stats, mesh_units)
@@ -197,6 +225,47 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         atomic_write_json(tmp / MANIFEST_FILE, manifest)
     log.info("ingest: %s", totals)
     return manifest
+
+
+def check_frames_once(
+    ranges: video_frames.FrameRanges,
+    sources: Sequence[readers.Source],
+    spans: Sequence[readers.Span],
+    in_place: set[Path],
+    clean: Callable[[list[readers.Span]], Iterator[tuple[readers.Block, ingest.Counts]]],
+) -> None:
+    """Each video's frames kept once across ``data/`` (:mod:`aumesh.data.video_frames`): the files of the videos whose
+    frame ranges overlap are read again (``clean``: :func:`aumesh.data.ingest.iter_clean_blocks` with the run's
+    options, or the video and frame columns of a table read in place) and compared frame by frame.
+
+    Raises
+    ------
+    TableError
+        A frame of a video kept twice: the user's files (as given), the video and the frame.
+    """
+    clash = video_frames.overlapping(ranges)
+    if not clash:
+        return
+    wanted = set(clash)
+    by_path = {str(s.path): s for s in sources}
+    frames: dict[str, dict[str, list[np.ndarray]]] = {v: {} for v in clash}
+    for name in sorted({f for files in clash.values() for f in files}):
+        source = by_path[name]
+        where = str(recorded(source.path))
+        if source.path in in_place:
+            batches = readers.parquet_batches(source, [source.layout.video, FRAME_COLUMN])
+            blocks = ((b.column(0).to_numpy(zero_copy_only=False), b.column(1).to_numpy()) for b in batches)
+        else:
+            mine = [s for s in spans if s.source.path == source.path]
+            blocks = ((b.video, b.frame) for b, _ in clean(mine))
+        for video, frame in blocks:
+            video = np.asarray(video, dtype=str)
+            for v in wanted.intersection(np.unique(video).tolist()):
+                frames[v].setdefault(where, []).append(np.asarray(frame)[video == v])
+    for v in sorted(clash):
+        err = video_frames.duplicates(v, frames[v])
+        if err is not None:
+            raise err
 
 
 #: ``mesh_units.how`` of a source, by its z unit (docs/conventions.md "py-feat's mesh units").

@@ -33,7 +33,7 @@ from aumesh.core.errors import MissingFileError, UserError
 from aumesh.core.io import NpyRowFile, atomic_path, create_npy, scratch_directory
 from aumesh.core.npz_stream import NpzStream
 from aumesh.core.schema import FRAME_COLUMN, INPUT_PATH_COLUMN, POSE_COLUMNS, VIDEO_COLUMN
-from aumesh.data import readers
+from aumesh.data import pyfeat, readers
 from aumesh.model.inference import predict_rows
 from aumesh.model.input_checks import InputTally, input_rows
 from aumesh.model.input_columns import ColumnSelection, PredictionInputError, closest_name, select_columns, short_list
@@ -69,14 +69,17 @@ def table_header(path: str | os.PathLike) -> list[str]:
         raise MissingFileError(f"input table not found: {path}")
     try:
         if path.suffix.lower() == ".csv":  # the ingest's header reader: a BOM accepted, ';' or NUL bytes named
-            return readers.csv_header(path)
-        import pyarrow.parquet as pq
+            names = readers.csv_header(path)
+        else:
+            import pyarrow.parquet as pq
 
-        return [str(c) for c in pq.read_schema(path).names]
+            names = [str(c) for c in pq.read_schema(path).names]
+        pyfeat.check_unique_names(names, str(path))  # a column read twice: which one to use is unknown
     except UserError as exc:  # the header reader's one line (file, line, fix) as it is
         raise PredictionInputError(str(exc)) from None
     except (OSError, ValueError) as exc:  # pandas' EmptyDataError, ParserError and pyarrow's ArrowInvalid: ValueErrors
         raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
+    return names
 
 
 def choose_columns(

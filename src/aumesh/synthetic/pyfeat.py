@@ -247,6 +247,7 @@ def write_pyfeat_tables(
     clean_dir: str | Path | None = None,
     videos_per_file: int | None = None,
     seed: int = 0,
+    twin_face: bool = False,
 ) -> dict:
     """Write synth's videos as py-feat 2.1.5 exports them (``clip_0000.csv`` ...); optionally the hand-cleaned tables.
 
@@ -267,8 +268,12 @@ def write_pyfeat_tables(
         interleaved pixel mesh as float32) holding the main face of every frame that has one.
     videos_per_file : videos per output file (None: one file for all, as one ``detect`` call over many videos).
     seed : seeds the py-feat extras (no-face runs, background faces, blendshapes, ...); synth's frames follow ``spec``.
+    twin_face : a second person of about the main face's size beside it in every face frame (``Identity``
+        "Person_2"; :func:`aumesh.synthetic.pyfeat_faces.twin_faces`): the largest-face rule cannot tell them apart.
+        Off by default (no extra random draw: the tables are byte-identical without it).
 
-    Returns a summary: files, clean_files, n_rows, n_frames, n_face_frames, n_no_face, n_extra_faces, n_videos.
+    Returns a summary: files, clean_files, n_rows, n_frames, n_face_frames, n_no_face, n_extra_faces, n_twin_faces
+    (frames with a twin), n_videos.
     """
     check_detector(detector)
     if fmt not in FORMATS:
@@ -303,6 +308,7 @@ def write_pyfeat_tables(
         "n_face_frames": 0,
         "n_no_face": 0,
         "n_extra_faces": 0,
+        "n_twin_faces": 0,
         "n_videos": spec.n_videos,
     }
     for file_no, first in enumerate(range(0, spec.n_videos, per_file)):
@@ -326,6 +332,7 @@ def write_pyfeat_tables(
             z_pixels,
             seed,
             summary,
+            twin_face,
         )
         summary["files"].append(str(path))
         if clean_path is not None:
@@ -349,6 +356,7 @@ def _write_one(
     z_pixels,
     seed,
     summary,
+    twin_face=False,
 ) -> None:
     """One output file (and its clean twin), built and written a chunk of whole videos at a time."""
     chunks: list[list[int]] = [[]]
@@ -369,7 +377,7 @@ def _write_one(
     try:
         for k, chunk in enumerate(chunks):
             parts = [
-                video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed)
+                video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed, twin_face)
                 for v in chunk
             ]
             frame = _frame(parts, detector, normalized, frame_size, with_mesh=fmt != "split", z_pixels=z_pixels)
@@ -393,6 +401,7 @@ def _write_one(
                 summary["n_face_frames"] += p["n_frames"] - p["n_no_face"]
                 summary["n_no_face"] += p["n_no_face"]
                 summary["n_extra_faces"] += p["n_extra"]
+                summary["n_twin_faces"] += p["n_twin"]
             del frame, parts
         if fmt == "split":
             _join_npy(path.with_suffix(".npy"), npy_parts)

@@ -11,6 +11,9 @@ meshes in frame pixels):
   ``FaceRect*`` 0 for "mp", NaN for "v2");
 * a second, smaller face in the background in some runs of frames (``Identity`` "Person_1"), before or after the
   main face's row, as the detector found them;
+* opt-in (``twin``): a second person of about the main face's size beside it in every face frame (``Identity``
+  "Person_2", its own AUs, pose and face shape; box area 0.90-1.10 x the main's, so the largest face flips between
+  the two), its row before or after the main face's (:func:`twin_faces`);
 * blendshapes, emotions, gaze, head position and identity embeddings that loosely follow the AUs.
 """
 
@@ -219,8 +222,10 @@ def video_rows(
     no_face_rate: float,
     extra_face_rate: float,
     seed: int,
+    twin: bool = False,
 ) -> dict:
-    """One video's rows: synth's frames, no-face rows, background faces; plus the clean frames."""
+    """One video's rows: synth's frames, no-face rows, background faces (and ``twin``: :func:`twin_faces`); plus the
+    clean frames."""
     g = synth.generate_video(spec, video, n, *gen_args)
     plan_rng = np.random.default_rng([seed, spec.seed, video, 1])
     rng = np.random.default_rng([seed, spec.seed, video, 2])
@@ -269,6 +274,11 @@ def video_rows(
     first_row = np.cumsum(per_frame) - per_frame
     pos = np.arange(len(row_frame)) - first_row[row_frame]
     kind = np.where(extra_first[row_frame], 1 - pos, pos)  # 0 main face, 1 background face
+    twin_rows, n_twin = np.zeros(len(kind), bool), 0
+    if twin:  # its own streams: a table without twins draws nothing more (stays byte-identical)
+        faces2, twin_first = twin_faces(spec, video, n, g, ~no_face, detector, seed)
+        row_frame, kind = _with_twins(row_frame, kind, ~no_face, twin_first)
+        twin_rows, n_twin = kind == 2, int((~no_face).sum())
     main_rows, extra_rows = kind == 0, kind == 1
     blocks = {}
     for key, values in main.items():
@@ -277,6 +287,8 @@ def video_rows(
         )
         block[main_rows] = values
         block[extra_rows] = other[key]
+        if twin:
+            block[twin_rows] = faces2[key]
         blocks[key] = block
     gone = main_rows & no_face[row_frame]
     for key, block in blocks.items():
@@ -284,18 +296,19 @@ def video_rows(
         if key in ("rect", "score") and not v2:
             block[gone] = 0.0
     identity = np.where(extra_rows, "Person_1", "Person_0").astype(object)
+    identity[twin_rows] = "Person_2"
     identity[gone] = np.nan
-    vid = f"vid{video:06d}"
+    path = f"videos/vid{video:06d}.mp4"  # py-feat's input: the video's identity, in the clean tables too
     seconds = row_frame // FPS
     keep = ~no_face
     return {
         "blocks": blocks,
         "frame": row_frame,
-        "input": np.full(len(row_frame), f"videos/{vid}.mp4", dtype=object),
+        "input": np.full(len(row_frame), path, dtype=object),
         "approx_time": np.array([f"{s // 60:02d}:{s % 60:02d}" for s in seconds], dtype=object),
         "Identity": identity,
         "clean": {
-            "video_id": np.full(int(keep.sum()), vid, dtype=object),
+            "video_id": np.full(int(keep.sum()), path, dtype=object),
             "frame": np.flatnonzero(keep),
             "au": g["au"][keep],
             **({"au2": g["au2"][keep]} if "au2" in g else {}),
@@ -305,7 +318,55 @@ def video_rows(
         "n_frames": n,
         "n_no_face": int(no_face.sum()),
         "n_extra": int(extra.sum()),
+        "n_twin": n_twin,
     }
+
+
+def twin_faces(
+    spec: synth.SynthSpec, video: int, n: int, g: dict, face: np.ndarray, detector: str, seed: int
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """A second person beside the main face in each face frame (``face``: (n,) bool), and whether its row comes first.
+
+    Its mesh is the main face's expression on another face shape (x x 0.94, y x 1.05 about the face's centre: a
+    narrower, longer face), scaled by 0.95-1.05 per frame (box area 0.90-1.10 x the main's: the largest-face rule
+    cannot tell them apart, :data:`aumesh.data.face_track.AMBIGUOUS_AREA_RATIO`) and ~1.3 face widths to the side
+    with more room, moving with the main face; its AUs and pose its own. Drawn from its own random streams
+    (``[seed, spec.seed, video, 4]``, ``..5``)."""
+    rng = np.random.default_rng([seed, spec.seed, video, 4])
+    rows = np.flatnonzero(face)
+    mesh = g["mesh"][rows]
+    centre = mesh.mean(axis=1, keepdims=True)
+    width = np.ptp(mesh[:, :, 0], axis=1).mean()
+    side = -np.sign(g["mesh"][:, :, 0].mean() - FRAME_WIDTH / 2) or 1.0
+    scale = rng.uniform(0.95, 1.05, size=(len(rows), 1, 1))
+    shape = np.array([0.94, 1.05, 1.0])
+    offset = np.array([side * 1.3 * width, rng.normal(0, 10), 0.0])
+    other = centre + scale * shape * (mesh - centre) + offset
+    au = synth._au_intensities(rng, len(rows), rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS)))
+    pose = np.deg2rad(rng.normal(0, [8, 6, 15]) + rng.normal(0, 2, size=(len(rows), 3)))  # Fex order
+    au2 = None
+    if "au2" in g:
+        au2 = au + np.random.default_rng([seed, spec.seed, video, 5]).normal(0.0, spec.instrument_noise_sd, au.shape)
+    v2 = detector == "v2"
+    faces = _faces(rng, other, au, pose, (0.9, 1.0), _unit(rng.standard_normal(512)) if v2 else None, detector, au2)
+    return faces, rng.random(n) < 0.5
+
+
+def _with_twins(
+    row_frame: np.ndarray, kind: np.ndarray, face: np.ndarray, twin_first: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(row_frame, kind)`` with a twin row (kind 2) in each face frame: before the frame's rows where
+    ``twin_first``, else after them."""
+    frames, kinds = [], []
+    starts = np.r_[0, np.flatnonzero(np.diff(row_frame)) + 1, len(row_frame)]
+    for a, b in zip(starts[:-1], starts[1:], strict=True):
+        t = int(row_frame[a])
+        mine = kind[a:b].tolist()
+        if face[t]:
+            mine = [2, *mine] if twin_first[t] else [*mine, 2]
+        frames += [t] * len(mine)
+        kinds += mine
+    return np.array(frames, dtype=row_frame.dtype), np.array(kinds, dtype=kind.dtype)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
