@@ -41,7 +41,7 @@ from aumesh.config import Config
 from aumesh.core.errors import TableError
 from aumesh.core.io import absolute, atomic_directory, atomic_write_json, recorded
 from aumesh.core.schema import FRAME_COLUMN, instrument_columns
-from aumesh.data import ingest, readers, units, video_frames
+from aumesh.data import ingest, passthrough, readers, units, video_frames
 from aumesh.pipeline import compute
 
 log = logging.getLogger(__name__)
@@ -128,7 +128,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             zip(
                 [s.path for s in parquet],
                 compute.map_gather(
-                    partial(ingest.check_clean, mesh_units=mesh_units), parquet, desc="ingest: check parquet"
+                    partial(passthrough.check_clean, mesh_units=mesh_units), parquet, desc="ingest: check parquet"
                 ),
                 strict=True,
             )

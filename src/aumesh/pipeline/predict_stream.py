@@ -75,8 +75,8 @@ def table_header(path: str | os.PathLike) -> list[str]:
 
             names = [str(c) for c in pq.read_schema(path).names]
         pyfeat.check_unique_names(names, str(path))  # a column read twice: which one to use is unknown
-    except UserError as exc:  # the header reader's one line (file, line, fix) as it is
-        raise PredictionInputError(str(exc)) from None
+    except UserError:  # the header reader's one line (file, line, fix) as it is
+        raise
     except (OSError, ValueError) as exc:  # pandas' EmptyDataError, ParserError and pyarrow's ArrowInvalid: ValueErrors
         raise PredictionInputError(f"{path}: not a readable {path.suffix[1:]} table ({exc})") from exc
     return names
