@@ -11,9 +11,8 @@ per-video run to the one-file run. Memory should be flat in N and the time close
 ``--src`` runs another source tree (e.g. ``git worktree add /tmp/old 4c2936e`` then ``--src /tmp/old/src``): the
 same data and the same params keys, that tree's code. No assertions.
 
-Some synthetic videos have faces flat enough (depth/height just below 0.1) that ingest's per-source proportion guard
-refuses a one- or two-frame file of them (the guard's job, not what this benchmark measures): the identities are drawn
-at ``identity_scale=0`` and the few videos still refused are left out of both layouts (counted as ``left_out``).
+Files of fewer than ``aumesh.pipeline.ingest.UNIT_CHECK_ROWS`` faces are judged by the unit guard together, by
+detector and units (a one-frame file's depth/height is a single draw), so every generated video is kept.
 
 Examples
 --------
@@ -47,12 +46,8 @@ from _common import (  # noqa: E402
 def ensure_files(workdir: Path, n_videos: int, frames_per_video: int) -> tuple[Path, Path, dict]:
     """(one-CSV folder, per-video folder, generation summary) of ``n_videos`` videos, generated once and cached.
 
-    The per-video CSVs are written first; a video whose faces ingest's per-source proportion guard refuses is left
-    out (module docstring); the one CSV is their header once and their rows, byte for byte, in order."""
-    from aumesh.core.errors import TableError
-    from aumesh.data import ingest as ingest_data
-    from aumesh.data import readers
-    from aumesh.pipeline.ingest import check_units, find_sources
+    The per-video CSVs are written first; the one CSV is their header once and their rows, byte for byte, in
+    order."""
     from aumesh.synthetic.pyfeat import write_pyfeat_tables
     from aumesh.synthetic.tables import SynthSpec
 
@@ -60,21 +55,10 @@ def ensure_files(workdir: Path, n_videos: int, frames_per_video: int) -> tuple[P
     summary_file = root / "summary.json"
     if not summary_file.exists():
         shutil.rmtree(root, ignore_errors=True)
-        spec = SynthSpec(n_frames=n_videos * frames_per_video, n_videos=n_videos, identity_scale=0.0)
+        spec = SynthSpec(n_frames=n_videos * frames_per_video, n_videos=n_videos)
         t0 = time.perf_counter()
-        made = write_pyfeat_tables(root / "per_video", spec, videos_per_file=1)
-        sources = {str(s.path): s for s in find_sources(root / "per_video", "*.csv", "{stem}.npy")}
-        spans = [span for s in sources.values() for span in readers.csv_spans(s)]
-        refused = set()
-        for _, counts in ingest_data.iter_clean_blocks(spans, "largest", None):
-            for path, stats in counts.units.items():
-                try:
-                    check_units(sources[path], stats, "detector")
-                except TableError:
-                    refused.add(path)
-        files = sorted(p for p in (root / "per_video").glob("*.csv") if str(p) not in refused)
-        for path in refused:
-            Path(path).unlink()
+        write_pyfeat_tables(root / "per_video", spec, videos_per_file=1)
+        files = sorted((root / "per_video").glob("*.csv"))
         (root / "one").mkdir()
         with open(root / "one" / "clip_0000.csv", "wb") as out:
             for k, path in enumerate(files):
@@ -86,7 +70,6 @@ def ensure_files(workdir: Path, n_videos: int, frames_per_video: int) -> tuple[P
         made = {
             "n_rows": sum(1 for _ in open(root / "one" / "clip_0000.csv", "rb")) - 1,
             "n_files": len(files),
-            "left_out": len(refused),
             "generated_s": time.perf_counter() - t0,
         }
         summary_file.write_text(json.dumps(made))

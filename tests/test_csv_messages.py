@@ -194,3 +194,34 @@ def test_predict_reads_the_header_as_ingest_does(made, tmp_path):
     df.to_csv(path, sep=";", decimal=",", index=False)
     with pytest.raises(UserError, match=r"^\S*fex\.csv: line 1 \(the header\) is separated by ';'"):
         predict.table_header(path)
+
+
+def test_files_too_short_to_judge_alone_have_their_units_judged_together(made, tmp_path):
+    """py-feat's one CSV per short video: a file of a few faces is not refused for its own faces' proportions (one or
+    two faces are a single draw of depth/height) but judged with the others of its detector and units; a folder of
+    flat faces is still refused, naming the files judged together."""
+    from conftest import default_config
+
+    _, per_video = made
+    data = tmp_path / "data"
+    shutil.copytree(per_video, data)
+    files = sorted(data.glob("*.csv"))
+    df = pd.read_csv(files[0])
+    z = [c for c in df.columns if c.startswith("z_")]
+    assert len(z) == 478 and len(df) < ingest.UNIT_CHECK_ROWS
+    df[z] *= 0.01  # this video's faces alone: depth/height ~0.005, a flat face
+    df.to_csv(files[0], index=False)
+    alone = _ingest(data, tmp_path / "all.parquet").units[str(files[0])]
+    with pytest.raises(TableError, match="proportions"):  # judged alone, as the guard judged every file before
+        ingest.check_units(str(files[0]), "MPDetector", alone, "detector")
+    manifest = ingest.run(default_config(**{"paths.data_dir": str(data)}), tmp_path / "ingested")
+    assert manifest["counts"]["frames_out"] == SPEC.n_frames  # every video kept, the flat one among them
+    for path in files[1:]:  # every video flat: refused, the files named as judged together
+        df = pd.read_csv(path)
+        df[z] *= 0.01
+        df.to_csv(path, index=False)
+    with pytest.raises(TableError) as err:
+        ingest.run(default_config(**{"paths.data_dir": str(data)}), tmp_path / "flat")
+    message = str(err.value)
+    assert message.startswith(f"{len(files)} files of fewer than {ingest.UNIT_CHECK_ROWS} face rows each (")
+    assert "judged together: the faces do not have a face's proportions" in message

@@ -201,12 +201,31 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             partial(ingest.iter_clean_blocks, how=how, subjects=subjects, mesh_units=mesh_units, seeds=seeds),
         )
         total.frame_ranges = {}
+        # sources with too few faces to judge alone (py-feat's one CSV per short video): judged together, by kind
+        few: dict[tuple[str, str, str], tuple[units.UnitStats, int, list[str]]] = {}
         for source, entry in zip(sources, entries, strict=True):
             stats = total.units.get(str(source.path)) or units.UnitStats(source.layout.detector)
-            check_units(source, stats, mesh_units)
+            if stats.rows >= UNIT_CHECK_ROWS:
+                check_units(recorded(source.path), source.layout.detector, stats, mesh_units)
+            elif stats.rows:
+                key = (source.layout.detector, stats.xy, stats.z)
+                pooled, n, shown = few.get(key, (units.UnitStats(source.layout.detector), 0, []))
+                if len(shown) < 3:
+                    shown.append(recorded(source.path))
+                few[key] = (pooled + stats, n + 1, shown)
             entry["mesh_units"] = units_record(source, stats, mesh_units)
             before, after, _ = stats.depth_height()
             entry["face_depth_over_height"] = {"as_written": _rounded(before), "ingested": _rounded(after)}
+        for (detector, _, _), (pooled, n, shown) in few.items():
+            where = (
+                shown[0]
+                if n == 1
+                else (
+                    f"{n:,} files of fewer than {UNIT_CHECK_ROWS} face rows each ({', '.join(shown)}"
+                    f"{', ...' if n > len(shown) else ''}), judged together"
+                )
+            )
+            check_units(where, detector, pooled, mesh_units)
         totals = total.as_dict()
         totals["rows_in"] += in_place
         totals["frames_out"] += in_place
@@ -300,7 +319,13 @@ def units_record(source: readers.Source, stats: units.UnitStats, mesh_units: str
     }
 
 
-def check_units(source: readers.Source, stats: units.UnitStats, mesh_units: str) -> None:
+#: Face rows a source needs for its units to be judged on its own (:func:`check_units`): the median depth/height of
+#: one or two faces is a single draw, so the sources with fewer (py-feat's one CSV per short video) are judged together,
+#: by detector and units, as one table would be.
+UNIT_CHECK_ROWS = 30
+
+
+def check_units(where: str, det: str, stats: units.UnitStats, mesh_units: str) -> None:
     """The guard on a source's units: one unit for all its rows; a face's proportions after the conversion (the
     median over its faces of depth/height within :data:`aumesh.data.units.DEPTH_HEIGHT_RANGE`); and, for a
     detector's export, z as written growing with the face's size as pixels do, or not, as the units say
@@ -313,13 +338,11 @@ def check_units(source: readers.Source, stats: units.UnitStats, mesh_units: str)
         One line naming the file, what was measured (the ratio with and without the conversion, or z's growth) and
         the likely fix.
     """
-    where = recorded(source.path)
     if stats.xy == "mixed" or stats.z == "mixed":
         raise TableError(
             f"{where}: mixes meshes in pixels and in normalized image units (some rows of the file differ from "
             f"others). Fix: export every video the same way."
         )
-    det = source.layout.detector
     before, after, crop = stats.depth_height()
     lo, hi = units.DEPTH_HEIGHT_RANGE
     if after is not None and not lo <= after <= hi:
