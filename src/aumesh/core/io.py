@@ -6,6 +6,7 @@ import functools
 import glob
 import io
 import json
+import logging
 import os
 import re
 import shutil
@@ -19,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.core import swap
 from aumesh.core.signals import check_supervisor, process_gone
 
 
@@ -53,6 +55,7 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     """Delete the temporaries of ``path`` (``.<name>.tmp-*``, ``.<name>.old-*``) left by a killed process of this
     host; those of live processes (a concurrent run) stay. Returns what was removed."""
     path = Path(path)
+    restore_previous(path)
     pattern = re.compile(rf"^\.{re.escape(path.name)}\.(?:tmp|old)-(\d+)-(.+)-[^-]*$")
     removed = []
     for candidate in path.parent.glob(f".{glob.escape(path.name)}.*-*") if path.parent.is_dir() else ():
@@ -65,6 +68,33 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
             candidate.unlink(missing_ok=True)
         removed.append(candidate)
     return removed
+
+
+def restore_previous(path: str | Path) -> Path | None:
+    """Put the previous copy of folder ``path`` back when ``path`` is missing and a killed process of this host left
+    it aside (``.<name>.old-<pid>-<host>-x``: killed between :func:`atomic_directory`'s two renames, on a filesystem
+    without ``RENAME_EXCHANGE``); says so in one warning line. Returns the restored path, or None."""
+    path = Path(path)
+    if path.exists() or path.is_symlink() or not path.parent.is_dir():
+        return None
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.old-(\d+)-(.+)-[^-]*$")
+    aside = [
+        c
+        for c in path.parent.glob(f".{glob.escape(path.name)}.old-*")
+        if (m := pattern.match(c.name))
+        and m.group(2) == socket.gethostname()
+        and process_gone(int(m.group(1)), c.lstat().st_mtime)
+    ]
+    if not aside:
+        return None
+    newest = max(aside, key=lambda c: c.lstat().st_mtime)
+    os.replace(newest, path)
+    logging.getLogger(__name__).warning(
+        "%s was missing: restored the previous copy (%s), left aside by a run killed while swapping in a new one",
+        recorded(path),
+        newest.name,
+    )
+    return path
 
 
 def _umask() -> int:
@@ -109,7 +139,12 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp
         check_supervisor()  # under DVC: never swap in an output as the orphan of a stopped DVC
-        if path.exists():
+        if path.exists() and swap.exchange(tmp, path):
+            # one atomic step: ``path`` is the new folder, ``tmp`` now holds the previous one (a kill from here on
+            # leaves the new folder and a temporary that the next run's remove_stale_temporaries deletes)
+            shutil.rmtree(tmp, ignore_errors=True)
+            return
+        if path.exists():  # no exchange on this filesystem: two renames, the previous copy aside in between
             old = path.with_name(_temp_prefix(path, "old") + "x")
             os.replace(path, old)
         os.replace(tmp, path)
