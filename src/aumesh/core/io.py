@@ -13,6 +13,8 @@ import shutil
 import socket
 import tempfile
 import threading
+import zipfile
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -285,10 +287,53 @@ def load_npy(path: str | Path) -> np.ndarray:
         return np.load(path, allow_pickle=False)
 
 
+#: what a damaged ``.npz`` raises while it is opened or a member read: a bad or cut zip (``BadZipFile``, a CRC
+#: mismatch included), a cut member (``EOFError``, ``ValueError``), a bad deflate stream (``zlib.error``)
+_NPZ_ERRORS: tuple[type[BaseException], ...] = (zipfile.BadZipFile, EOFError, ValueError, zlib.error, OSError)
+NPZ_FIX = (
+    "restore the tracked copy (`dvc pull --force <its folder>`, or `dvc checkout --force`) or rebuild it (`dvc repro`)"
+)
+
+
+def read_npz(
+    path: str | Path,
+    keys: tuple[str, ...] | list[str] | None = None,
+    fix: str = NPZ_FIX,
+    what: str = "not a readable .npz",
+) -> dict:
+    """Arrays ``keys`` (None: all) of an ``.npz``, read whole (no pickle), safe in threads.
+
+    A damaged file (truncated, a CRC error, not a zip) or a missing key is a
+    :class:`aumesh.core.errors.CorruptFileError` of one line naming the file and ``fix``, not numpy's or zipfile's
+    traceback; a missing file stays a ``FileNotFoundError``.
+    """
+    from aumesh.core.errors import CorruptFileError
+
+    try:
+        with _NUMPY_HEADER_LOCK, np.load(path, allow_pickle=False) as arrays:
+            missing = [k for k in keys or () if k not in arrays.files]
+            if missing:
+                raise CorruptFileError(
+                    f"{path}: no array {', '.join(map(repr, missing))} in this .npz (it has {sorted(arrays.files)}): "
+                    f"damaged or of another version. Fix: {fix}"
+                )
+            return {k: arrays[k] for k in (keys if keys is not None else arrays.files)}
+    except CorruptFileError:
+        raise
+    except _NPZ_ERRORS as err:
+        if isinstance(err, FileNotFoundError):
+            raise
+        first = (str(err).splitlines() or [""])[0]
+        raise CorruptFileError(
+            f"{path}: {what}: corrupt or truncated ({type(err).__name__}: {first}). Fix: {fix}"
+        ) from None
+
+
 def load_npz(path: str | Path, keys: tuple[str, ...] | list[str]) -> list[np.ndarray]:
-    """Arrays ``keys`` of an ``.npz``, safe in threads (one header parse at a time: see ``_NUMPY_HEADER_LOCK``)."""
-    with _NUMPY_HEADER_LOCK, np.load(path, allow_pickle=False) as arrays:
-        return [arrays[k] for k in keys]
+    """Arrays ``keys`` of an ``.npz``, safe in threads (one header parse at a time: see ``_NUMPY_HEADER_LOCK``); a
+    damaged file is one line (:func:`read_npz`)."""
+    arrays = read_npz(path, keys)
+    return [arrays[k] for k in keys]
 
 
 def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
