@@ -156,6 +156,11 @@ def _watch(watched: list[tuple[int, float, str]]) -> None:
     os._exit(128 + signal.SIGTERM)
 
 
+def supervisor_gone() -> bool:
+    """Whether this stage runs under DVC and that DVC process (or the stage's parent) is gone."""
+    return bool(_WATCHED) and _gone(_WATCHED) is not None
+
+
 def check_supervisor() -> None:
     """Raise :class:`Terminated` now if the DVC process this stage runs under is gone: called where a stage commits
     (an output swapped in, a run marked FINISHED), so a stage quicker than the watcher's poll never commits as an

@@ -15,7 +15,7 @@ import time
 from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
-from aumesh.core.signals import check_supervisor
+from aumesh.core.signals import check_supervisor, supervisor_gone
 from aumesh.tracking.handle import TrackedRun, _NullRun
 from aumesh.tracking.runs import _enabled, _end_failed, _failure, _open_run
 
@@ -61,17 +61,26 @@ class RunBeside:
         for future in self._queued:
             future.result()
 
-    def end(self, error: BaseException | None = None) -> None:
+    def end(self, error: BaseException | None = None, timeout: float | None = None) -> None:
         """End the run FINISHED, or with ``error`` as :func:`aumesh.tracking.runs.tracked_run` does (nothing to end if
-        it never opened)."""
+        it never opened). With ``error`` the calls still queued are dropped, and ``timeout`` bounds the wait: a stage
+        that was told to stop does not wait for the helper's figures or MLflow's import (the helper ends with the
+        stage, and the next run marks the run KILLED)."""
         if error is None:
             self._helper.submit(_end_beside, "FINISHED").result()
-        elif self._opened.exception() is None:
-            with contextlib.suppress(Exception):
-                self._helper.submit(_end_beside, *_failure(error)).result()
+            return
+        if timeout is not None:
+            for future in self._queued[1:]:
+                future.cancel()  # not started yet: never started
+        with contextlib.suppress(Exception):  # TimeoutError, the helper's own error
+            if self._opened.exception(timeout) is None:
+                self._helper.submit(_end_beside, *_failure(error)).result(timeout)
 
 
 _BESIDE: TrackedRun | None = None  # the helper process's open run
+#: how long a stopped stage waits for its helper to mark the run KILLED (it may be drawing figures or still importing
+#: MLflow); after that the run is left to the next run to mark (:func:`aumesh.tracking.runs.close_orphaned_runs`)
+STOP_SECONDS = 1.0
 
 
 def _start_helper(owner_pid: int) -> None:
@@ -151,13 +160,20 @@ def tracked_run_beside(
     # fork (Linux): the helper inherits the imports (NumPy, pandas); elsewhere spawn, the platforms' safe default
     context = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
     owner = os.getpid()
-    with ProcessPoolExecutor(1, mp_context=context, initializer=_start_helper, initargs=(owner,)) as helper:
+    helper = ProcessPoolExecutor(1, mp_context=context, initializer=_start_helper, initargs=(owner,))
+    stopped = False
+    try:
         run = RunBeside(helper, helper.submit(_open_beside, dict(tracking_cfg or {}), run_name, params, tags, owner))
         try:
             yield run
             run.wait()
             check_supervisor()  # under DVC: a run whose DVC was stopped is KILLED, never FINISHED by an orphan
         except BaseException as exc:
-            run.end(exc)
+            # DVC gone (killed, stopped): nobody waits for this stage, which must not run on as an orphan; leave within
+            # STOP_SECONDS. Ctrl-C and SIGTERM of the stage itself end the run with everything logged so far.
+            stopped = isinstance(exc, KeyboardInterrupt) and supervisor_gone()
+            run.end(exc, timeout=STOP_SECONDS if stopped else None)
             raise
         run.end()
+    finally:
+        helper.shutdown(wait=not stopped, cancel_futures=stopped)
