@@ -128,23 +128,52 @@ def main(argv: list[str] | None = None) -> int:
         say(f"aumesh {args.command}: {why}; {_kept(args.command)}" + (f"\n{note}" if note else ""))
         return 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT)
     except OSError as err:
-        import errno
-
-        if err.errno not in (errno.ENOSPC, errno.EDQUOT) or debug:  # a full disk outside the atomic writers (scratch)
+        line = _os_error_line(err)  # a full disk or a read-only folder outside the atomic writers
+        if line is None or debug:
             raise
         note = _dvc_note(args)
-        where = f" while writing {err.filename}" if err.filename else ""
-        say(
-            f"aumesh {args.command}: error: no space left on the device{where}; outputs are swapped in only when "
-            f"complete, so the previous ones are intact. Fix: free space (`df -h .`) and run again."
-            + (f"\n{note}" if note else "")
-        )
+        say(f"aumesh {args.command}: error: {line}" + (f"\n{note}" if note else ""))
         return 2
     except BaseException:  # a bug: the traceback stays; still say how to get DVC's removed outputs back
         note = _dvc_note(args)
         if note:
             say(note)
         raise
+
+
+def _os_error_line(err: OSError) -> str | None:
+    """The one line for a full disk or an unwritable path that reached :func:`main` unnamed (not through the atomic
+    writers, which name their folder): the file when the error has one, the mount ``df`` must look at; None for any
+    other ``OSError`` (a bug: its traceback stays)."""
+    import errno
+    import tempfile
+    from pathlib import Path
+
+    from aumesh.core.paths import mount_of, recorded
+    from aumesh.core.write_errors import NOT_WRITABLE
+
+    if err.errno not in (errno.ENOSPC, errno.EDQUOT, *NOT_WRITABLE):
+        return None
+    if err.errno in NOT_WRITABLE:
+        if not err.filename:
+            return None
+        folder = recorded(Path(err.filename).parent)
+        return (
+            f"{recorded(err.filename)}: {err.strerror} (a read-only workspace or folder?). Fix: make {folder}/ "
+            f"writable (`ls -ld {folder}` shows its owner and mode; `chmod -R u+w {folder}`) and run again."
+        )
+    if err.filename:
+        folder = recorded(Path(err.filename).parent)
+        where = f"while writing {recorded(err.filename)} "
+        hint = f"`df -h {folder}`: the filesystem mounted at {mount_of(folder)}"
+    else:  # the OS named no file: the workspace's device or the temporary folder's
+        tmp = tempfile.gettempdir()
+        where = ""
+        hint = f"`df -h . {tmp}`: the workspace is on {mount_of('.')}, the temporary folder {tmp} on {mount_of(tmp)}"
+    return (
+        f"no space left on the device {where}(outputs are swapped in only when complete, so the previous ones are "
+        f"intact). Fix: free space ({hint}) and run again."
+    )
 
 
 #: Exit statuses of a command that was stopped (128 + SIGINT, SIGTERM, SIGHUP)

@@ -23,15 +23,31 @@ from typing import Any
 import numpy as np
 
 from aumesh.core import swap
+from aumesh.core.paths import recorded  # noqa: F401  (re-exported: callers import it from here)
 from aumesh.core.signals import check_supervisor, process_gone
+from aumesh.core.write_errors import (
+    _allocated_bytes,
+    _is_disk_full_error,
+    _no_space,
+    disk_full,
+    not_writable,
+    unwritable,
+)
 
 
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     """Yield a temp path beside ``path``; on success rename it over ``path``, on error delete it."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path, "tmp"), suffix=suffix or ".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path, "tmp"), suffix=suffix or ".tmp", dir=path.parent)
+    except OSError as err:  # a read-only workspace or folder: one line naming it (a full disk: disk_full)
+        if unwritable(err):
+            raise not_writable(path, err) from None
+        if _no_space(err):
+            raise disk_full(path, 0) from None
+        raise
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; published files get the usual mode
@@ -131,16 +147,27 @@ def atomic_savez(path: str | Path, **arrays: Any) -> Path:
 def scratch_directory(path: str | Path) -> Path:
     """A new temporary folder beside ``path``, named as its temporaries (``.<name>.tmp-<pid>-<host>-*``): the caller
     removes it, and if its process is killed first, :func:`remove_stale_temporaries` of ``path`` does."""
-    path = Path(path)
-    return Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
+    return _new_folder(Path(path))
+
+
+def _new_folder(path: Path) -> Path:
+    """A new temporary folder beside ``path`` (its parents made); an unwritable place is one line naming it."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
+    except OSError as err:
+        if unwritable(err):
+            raise not_writable(path, err) from None
+        if _no_space(err):
+            raise disk_full(path, 0) from None
+        raise
 
 
 @contextmanager
 def atomic_directory(path: str | Path) -> Iterator[Path]:
     """Build a whole folder in a temp sibling, then swap it in; a failure leaves the old folder as it was."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
+    tmp = _new_folder(path)
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; a published folder gets the usual mode
     old = None
     try:
@@ -168,69 +195,6 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
         raise
 
 
-def _no_space(err: BaseException) -> bool:
-    import errno
-
-    return isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)
-
-
-def _is_disk_full_error(err: BaseException) -> bool:
-    from aumesh.core.errors import DiskFullError
-
-    return isinstance(err, DiskFullError)
-
-
-def _allocated_bytes(path: Path) -> int:
-    """Bytes a file or folder takes on its device (allocated blocks: a sparse ``.npy`` takes what was written)."""
-    try:
-        if path.is_dir() and not path.is_symlink():
-            return sum(p.lstat().st_blocks * 512 for p in path.rglob("*"))
-        return path.lstat().st_blocks * 512
-    except OSError:
-        return 0
-
-
-def _size(path: Path) -> int:
-    try:
-        if path.is_dir():
-            return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-        return path.stat().st_size if path.exists() else 0
-    except OSError:
-        return 0
-
-
-def disk_full(path: str | Path, written: int) -> Exception:
-    """The one line for ``ENOSPC`` while ``path`` was being written atomically (its temporary copy already removed):
-    the folder, what the new output had taken and what it needs, and that the previous output is intact."""
-    import errno
-
-    from aumesh.core.errors import DiskFullError
-
-    path = Path(path)
-    try:
-        free = shutil.disk_usage(path.parent).free
-    except OSError:
-        free = 0
-    previous = _size(path)
-    exists = path.exists()
-    path = Path(recorded(path))  # named as the user names it: relative to the workspace (a stage's paths are absolute)
-    folder = path.parent
-    kept = f"the previous {path} is intact (nothing was swapped in)" if exists else f"nothing was written to {path}"
-    need = (
-        f"a complete one takes about {previous:,} bytes (the previous one's size), {free:,} are free"
-        if previous
-        else f"it needs more than the {free:,} bytes free"
-    )
-    taken = f"the new output had taken {written:,} bytes when the disk filled; " if written else ""
-    err = DiskFullError(
-        errno.ENOSPC,
-        f"{folder}/: no space left on the device while writing {path} ({taken}{need}); "
-        f"{kept}. Fix: free space on the "
-        f"device of {folder}/ (`df -h {folder}`) or point the output elsewhere in params.yaml, and run again.",
-    )
-    return err
-
-
 def absolute(path: str | Path) -> Path:
     """``path`` made absolute against the current directory (the stage's workspace), without following symlinks.
 
@@ -238,18 +202,6 @@ def absolute(path: str | Path) -> Path:
     serve several workspaces), so a relative path there names another file or none (README, "Scale out"). Symlinks
     stay as they are (DVC may link the tables into its cache; an error should name the workspace's file)."""
     return Path(os.path.abspath(path))
-
-
-def recorded(path: str | Path, root: str | Path | None = None) -> str:
-    """``path`` as the outputs record it: relative to ``root`` (default: the current directory, the workspace) when
-    inside it, else unchanged. Records are shared (committed, pushed to a DVC remote) and never hold this machine's
-    workspace path."""
-    text = str(path)
-    if not os.path.isabs(text):
-        return text
-    base = os.path.abspath(root if root is not None else os.getcwd())
-    rel = os.path.relpath(text, base)
-    return text if rel == os.pardir or rel.startswith(os.pardir + os.sep) else rel
 
 
 def _json_default(obj: Any) -> Any:
@@ -364,15 +316,17 @@ def check_npy(path: str | Path, fix: str) -> tuple[int, np.dtype, tuple[int, ...
 
     path = Path(path)
     try:
-        with open(path, "rb") as fh:  # numpy's own header reader: Fortran order is the caller's to refuse
+        with open(path, "rb") as fh:  # numpy's own header reader
             version = np.lib.format.read_magic(fh)
             read_header = (
                 np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             )
-            shape, _, dtype = read_header(fh)
+            shape, fortran, dtype = read_header(fh)
             offset = fh.tell()
     except (ValueError, SyntaxError, EOFError) as err:
         raise CorruptFileError(f"{path}: not a readable .npy file ({err}). Fix: {fix}") from None
+    if fortran and len(shape) > 1:
+        raise fortran_order(path)
     need = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     size = path.stat().st_size
     if size < need:
@@ -389,9 +343,22 @@ def _parse_npy_header(header: bytes, path: str) -> tuple[int, np.dtype, tuple[in
     read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
     with _NUMPY_HEADER_LOCK:
         shape, fortran, dtype = read_header(fh)
-    if fortran:
-        raise ValueError(f"{path}: Fortran-ordered array; rows cannot be streamed")
+    if fortran and len(shape) > 1:
+        raise fortran_order(path)
     return len(header), dtype, shape
+
+
+def fortran_order(path: str | Path) -> Exception:
+    """The one line for an ``.npy`` saved in Fortran order (``np.save`` of a transposed array or of
+    ``np.asfortranarray``): its rows are not contiguous on disk, and the passes read rows with plain file I/O (a
+    transposing read would hold the whole array in memory: refused rather than read slowly)."""
+    from aumesh.core.errors import TableError
+
+    return TableError(
+        f"{path}: saved in Fortran order (fortran_order: True in its .npy header): its rows are not contiguous on "
+        f"disk and cannot be read as rows. Fix: rewrite it C-ordered, np.save(path, np.ascontiguousarray(a)) "
+        f"(e.g. a = np.load(path); np.save(path, np.ascontiguousarray(a)))."
+    )
 
 
 class NpyRowFile:
@@ -445,8 +412,13 @@ class NpyRowFile:
         """Write ``rows`` (the file's dtype and row shape) from row ``first_row`` on."""
         view = memoryview(np.ascontiguousarray(rows).data).cast("B")
         pos, done = self.offset + first_row * self.row_bytes, 0
-        while done < len(view):
-            done += os.pwrite(self._fd, view[done:], pos + done)
+        try:
+            while done < len(view):
+                done += os.pwrite(self._fd, view[done:], pos + done)
+        except OSError as err:  # pwrite's error names no file: name it, its folder and its mount
+            if _no_space(err):
+                raise disk_full(self.path, _allocated_bytes(self.path), scratch=True) from None
+            raise
 
     def write_row_map(self, rows: dict[int, np.ndarray]) -> None:
         """Write each ``rows[r]`` (one row, the file's dtype) at row ``r``, one write per run of consecutive row
