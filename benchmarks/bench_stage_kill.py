@@ -78,12 +78,13 @@ def one_kill(ws: Path, env: dict, delay: float) -> tuple[float, int | None]:
     """Seconds from the SIGKILL of ``dvc repro -f evaluate`` to the end of its evaluate stage, and the stage's exit."""
     import psutil
 
+    log = open(ws.parent / "dvc-repro.log", "w")  # noqa: SIM115  (closed below)
     proc = subprocess.Popen(
         [BIN / "dvc", "repro", "-f", "evaluate"],
         cwd=ws,
         env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        stdout=log,
+        stderr=subprocess.STDOUT,
         start_new_session=True,
     )
     stage, deadline = None, time.monotonic() + 600
@@ -96,7 +97,11 @@ def one_kill(ws: Path, env: dict, delay: float) -> tuple[float, int | None]:
         raise SystemExit("the evaluate stage never got to work")
     time.sleep(delay)
     if proc.poll() is not None:
-        raise SystemExit(f"dvc repro ended within {delay} s of the stage's start: use more --frames or less --delay")
+        log.close()
+        raise SystemExit(
+            f"dvc repro ended within {delay} s of the stage's start: use more --frames or less --delay\n"
+            + (ws.parent / "dvc-repro.log").read_text()
+        )
     proc.send_signal(signal.SIGKILL)  # the DVC process only; the shell and the stage are left to notice
     t0 = time.monotonic()
     proc.wait()  # reaped at once, as an interactive shell does
@@ -104,6 +109,7 @@ def one_kill(ws: Path, env: dict, delay: float) -> tuple[float, int | None]:
     seconds = time.monotonic() - t0
     for p in alive:
         p.kill()
+    log.close()
     return seconds, (gone[0].returncode if gone else None)
 
 
