@@ -72,15 +72,20 @@ class RunBeside:
         if timeout is not None:
             for future in self._queued[1:]:
                 future.cancel()  # not started yet: never started
+        deadline = None if timeout is None else time.monotonic() + timeout  # one bound for both waits
+
+        def left() -> float | None:
+            return None if deadline is None else max(0.0, deadline - time.monotonic())
+
         with contextlib.suppress(Exception):  # TimeoutError, the helper's own error
-            if self._opened.exception(timeout) is None:
-                self._helper.submit(_end_beside, *_failure(error)).result(timeout)
+            if self._opened.exception(left()) is None:
+                self._helper.submit(_end_beside, *_failure(error)).result(left())
 
 
 _BESIDE: TrackedRun | None = None  # the helper process's open run
 #: how long a stopped stage waits for its helper to mark the run KILLED (it may be drawing figures or still importing
 #: MLflow); after that the run is left to the next run to mark (:func:`aumesh.tracking.runs.close_orphaned_runs`)
-STOP_SECONDS = 1.0
+STOP_SECONDS = 0.8
 
 
 def _start_helper(owner_pid: int) -> None:
