@@ -2,7 +2,7 @@
 promises about a second).
 
 A git + DVC workspace of one source tree (``--src``: its ``dvc.yaml``, ``conf/``, ``params.yaml``; default this
-checkout) on synthetic tables, ``dvc repro prepare`` once; then ``--runs`` times: ``dvc repro -f evaluate``, wait
+checkout) on synthetic tables, ``dvc repro prepare`` once; then ``--runs`` times: ``dvc repro -f -s evaluate`` (the stage alone), wait
 until the evaluate stage has its MLflow run open and a further ``--delay`` seconds (the middle of the CV passes and
 fits), SIGKILL the DVC process alone (as ``kill -9 <dvc>`` or the OOM killer of DVC) and time until the stage
 process is gone. Prints each time and the median.
@@ -80,7 +80,7 @@ def one_kill(ws: Path, env: dict, delay: float) -> tuple[float, int | None]:
 
     log = open(ws.parent / "dvc-repro.log", "w")  # noqa: SIM115  (closed below)
     proc = subprocess.Popen(
-        [BIN / "dvc", "repro", "-f", "evaluate"],
+        [BIN / "dvc", "repro", "-f", "-s", "evaluate"],
         cwd=ws,
         env=env,
         stdout=log,
