@@ -123,7 +123,10 @@ def _finish_promotion() -> None:
         root = provenance.repo_root()
     except (FileNotFoundError, ValueError):  # outside a workspace: no promotion to finish
         return
-    promotion_journal.recover(root, say=say)
+    try:
+        promotion_journal.recover(root, say=say)
+    except promotion_journal.PromotionBusy:  # a promotion running now, not an interrupted one: only listing here
+        pass
 
 
 def _cmd_promote(args) -> int:
