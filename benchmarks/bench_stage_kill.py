@@ -3,8 +3,7 @@ promises about a second).
 
 A git + DVC workspace of one source tree (``--src``: its ``dvc.yaml``, ``conf/``, ``params.yaml``; default this
 checkout) on synthetic tables, ``dvc repro prepare`` once; then ``--runs`` times: ``dvc repro -f -s evaluate`` (the stage alone), wait
-until the evaluate stage has its MLflow run open and a further ``--delay`` seconds (the middle of the CV passes and
-fits), SIGKILL the DVC process alone (as ``kill -9 <dvc>`` or the OOM killer of DVC) and time until the stage
+``--delay`` seconds after the evaluate stage's process started (the middle of its CV passes and fits), SIGKILL the DVC process alone (as ``kill -9 <dvc>`` or the OOM killer of DVC) and time until the stage
 process is gone. Prints each time and the median.
 
     python benchmarks/bench_stage_kill.py                          # this checkout
@@ -17,13 +16,11 @@ import argparse
 import os
 import shutil
 import signal
-import sqlite3
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from contextlib import closing
 from pathlib import Path
 
 from _common import AUMESH, REPO, ensure_data, source_env, videos_for
@@ -52,16 +49,6 @@ def workspace(root: Path, checkout: Path, data: Path, env: dict) -> Path:
     return ws
 
 
-def _evaluate_running(ws: Path) -> bool:
-    if not (ws / "mlflow.db").exists():
-        return False
-    with closing(sqlite3.connect(ws / "mlflow.db", timeout=1)) as db:
-        try:
-            return db.execute("select count(*) from runs where status = 'RUNNING'").fetchone()[0] > 0
-        except sqlite3.Error:
-            return False
-
-
 def _stage_process(dvc_pid: int):
     import psutil
 
@@ -88,14 +75,14 @@ def one_kill(ws: Path, env: dict, delay: float) -> tuple[float, int | None]:
         start_new_session=True,
     )
     stage, deadline = None, time.monotonic() + 600
-    while proc.poll() is None and time.monotonic() < deadline:
-        stage = stage or _stage_process(proc.pid)
-        if stage is not None and _evaluate_running(ws):
-            break
+    while proc.poll() is None and time.monotonic() < deadline and stage is None:
+        stage = _stage_process(proc.pid)
         time.sleep(0.02)
     if stage is None or proc.poll() is not None:
-        raise SystemExit("the evaluate stage never got to work")
-    time.sleep(delay)
+        raise SystemExit("the evaluate stage never started")
+    # the same moment of the stage's work for every source tree: seconds since its process started (the trees open
+    # their MLflow run at different points)
+    time.sleep(max(0.0, stage.create_time() + delay - time.time()))
     if proc.poll() is not None:
         log.close()
         raise SystemExit(
@@ -118,7 +105,7 @@ def main() -> None:
     parser.add_argument("--src", type=Path, default=None, help="source tree to run (default: this checkout's src/)")
     parser.add_argument("--frames", type=int, default=60_000)
     parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--delay", type=float, default=4.0, help="seconds into the stage's work before the kill")
+    parser.add_argument("--delay", type=float, default=6.0, help="seconds after the stage's start before the kill")
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "out" / "stage_kill")
     args = parser.parse_args()
     src = (args.src or REPO / "src").resolve()
