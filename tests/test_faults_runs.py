@@ -427,7 +427,11 @@ def test_sigterm_to_dvc_repro_stops_the_stage_and_keeps_the_release(dvc_workspac
     assert (ws / "dvc.lock").read_bytes() == lock
     assert not [p for p in ws.rglob(".*.tmp-*")], "temporaries left behind"
     client = mlflow.MlflowClient(f"sqlite:///{ws / 'mlflow.db'}")
-    runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
+    for _ in range(60):  # the stage leaves at once; its MLflow helper ends the run KILLED on its own, just after
+        runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
+        if not [r for r in runs if r.info.status == "RUNNING"]:
+            break
+        time.sleep(0.25)
     assert not [r for r in runs if r.info.status == "RUNNING"]
     if stage == "evaluate":
         newest = max(runs, key=lambda r: r.info.start_time)
