@@ -24,6 +24,8 @@ CANNOT_CHANGE_RESULTS = {
     "src/aumesh/core/signals.py": "stopping on a signal or when DVC is gone",
     "src/aumesh/core/settings.py": "this machine's tracking server and cluster address (like the `tracking` params)",
     "src/aumesh/tracking/": "where runs are logged (the `tracking` params are not stage params either)",
+    "src/aumesh/experiments/promotion_journal.py": "completes or rolls back a killed `aumesh promote` before a stage "
+    "reads params.yaml/promotion.json, and stops the stage if they changed: it computes nothing",
 }
 
 

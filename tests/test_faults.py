@@ -366,6 +366,9 @@ def test_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
     host = socket.gethostname()
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     dead_pid = int(dead.stdout)
+    # release/ in place: the copy aside is debris of a finished swap (a missing release/ gets it back instead:
+    # tests/test_crash_swap.py)
+    (tmp_path / "release").mkdir()
     (tmp_path / f".release.tmp-{dead_pid}-{host}-abc").mkdir()
     (tmp_path / f".release.old-{dead_pid}-{host}-x").mkdir()
     (tmp_path / f".metrics.json.tmp-{dead_pid}-{host}-q1.tmp").write_text("{")

@@ -501,5 +501,10 @@ def compose(overrides: Sequence[str] = (), config_dir: str | Path = "conf", conf
 
 def write_params(data: dict, path: str | Path = "params.yaml") -> Path:
     """Write a composed config as params.yaml, atomically."""
+    return atomic_write_text(Path(path), params_text(data))
+
+
+def params_text(data: dict) -> str:
+    """The text of ``params.yaml`` for a composed config (what :func:`write_params` writes)."""
     header = "# Composed from conf/ by `aumesh compose-params` (dvc exp run rewrites it the same way). Edit conf/, not this file.\n"
-    return atomic_write_text(Path(path), header + yaml.safe_dump(data, sort_keys=False))
+    return header + yaml.safe_dump(data, sort_keys=False)

@@ -12,6 +12,7 @@ package that prints and the only importer of ``argparse``; the handlers import t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import logging
 import os
@@ -127,17 +128,11 @@ def main(argv: list[str] | None = None) -> int:
         say(f"aumesh {args.command}: {why}; {_kept(args.command)}" + (f"\n{note}" if note else ""))
         return 128 + (signal.SIGTERM if isinstance(err, Terminated) else signal.SIGINT)
     except OSError as err:
-        import errno
-
-        if err.errno not in (errno.ENOSPC, errno.EDQUOT) or debug:  # a full disk outside the atomic writers (scratch)
+        line = _os_error_line(err)  # a full disk or a read-only folder outside the atomic writers
+        if line is None or debug:
             raise
         note = _dvc_note(args)
-        where = f" while writing {err.filename}" if err.filename else ""
-        say(
-            f"aumesh {args.command}: error: no space left on the device{where}; outputs are swapped in only when "
-            f"complete, so the previous ones are intact. Fix: free space (`df -h .`) and run again."
-            + (f"\n{note}" if note else "")
-        )
+        say(f"aumesh {args.command}: error: {line}" + (f"\n{note}" if note else ""))
         return 2
     except BaseException:  # a bug: the traceback stays; still say how to get DVC's removed outputs back
         note = _dvc_note(args)
@@ -145,6 +140,44 @@ def main(argv: list[str] | None = None) -> int:
             say(note)
         raise
 
+
+def _os_error_line(err: OSError) -> str | None:
+    """The one line for a full disk or an unwritable path that reached :func:`main` unnamed (not through the atomic
+    writers, which name their folder): the file when the error has one, the mount ``df`` must look at; None for any
+    other ``OSError`` (a bug: its traceback stays)."""
+    import errno
+    import tempfile
+    from pathlib import Path
+
+    from aumesh.core.paths import mount_of, recorded
+    from aumesh.core.write_errors import NOT_WRITABLE
+
+    if err.errno not in (errno.ENOSPC, errno.EDQUOT, *NOT_WRITABLE):
+        return None
+    if err.errno in NOT_WRITABLE:
+        if not err.filename:
+            return None
+        folder = recorded(Path(err.filename).parent)
+        return (
+            f"{recorded(err.filename)}: {err.strerror} (a read-only workspace or folder?). Fix: make {folder}/ "
+            f"writable (`ls -ld {folder}` shows its owner and mode; `chmod -R u+w {folder}`) and run again."
+        )
+    if err.filename:
+        folder = recorded(Path(err.filename).parent)
+        where = f"while writing {recorded(err.filename)} "
+        hint = f"`df -h {folder}`: the filesystem mounted at {mount_of(folder)}"
+    else:  # the OS named no file: the workspace's device or the temporary folder's
+        tmp = tempfile.gettempdir()
+        where = ""
+        hint = f"`df -h . {tmp}`: the workspace is on {mount_of('.')}, the temporary folder {tmp} on {mount_of(tmp)}"
+    return (
+        f"no space left on the device {where}(outputs are swapped in only when complete, so the previous ones are "
+        f"intact). Fix: free space ({hint}) and run again."
+    )
+
+
+#: Exit statuses of a command that was stopped (128 + SIGINT, SIGTERM, SIGHUP)
+STOPPED_CODES = frozenset(128 + int(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP))
 
 #: Commands that stop cleanly on SIGTERM (and, under DVC, when DVC dies): the stages and the sweep.
 STOPPABLE = ("ingest", "prepare", "evaluate", "release", "sweep")
@@ -164,6 +197,15 @@ def run() -> None:
 
     prefer_system_arrow_pool()  # before anything imports pyarrow
     code = main()
+    if code in STOPPED_CODES:
+        # stopped (Ctrl-C, SIGTERM, DVC gone) and already cleaned up on the way out (temporaries removed, the MLflow
+        # run KILLED): leave now, not after the compute threads' tasks in flight, which the interpreter's exit would
+        # wait for (Dask's thread pool is joined at exit: 10-37 s after DVC was killed, issue 44)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError):
+                stream.flush()
+        logging.shutdown()
+        os._exit(code)
     # At exit the interpreter's last garbage collections walk every object of the ~2,900 modules the evaluate stage
     # imports (MLflow, SQLAlchemy, scikit-learn): 0.6-0.8 s a stage at any data size. Frozen objects are skipped
     # (gc.freeze); everything is still released by reference counting, atexit handlers run and files are flushed.

@@ -79,6 +79,7 @@ def _cmd_runs(args) -> int:
     from aumesh.tracking import queries
 
     tracking_cfg = _tracking_cfg(args)
+    _finish_promotion()
     if args.sweeps:
         user = queries.current_owner()["user"] if args.mine else args.user
         sweeps = leaderboard.sweeps_table(tracking_cfg, limit=args.limit, user=user)
@@ -110,6 +111,22 @@ def _cmd_runs(args) -> int:
         print(f"  overrides: {tags['aumesh.sweep.overrides']}")
     print(leaderboard.format_runs_table(table))
     return 0
+
+
+def _finish_promotion() -> None:
+    """A promotion of this workspace killed half-way is completed or rolled back, in one line
+    (:mod:`aumesh.experiments.promotion_journal`; ``aumesh promote`` does it itself)."""
+    from aumesh.core import provenance
+    from aumesh.experiments import promotion_journal
+
+    try:
+        root = provenance.repo_root()
+    except (FileNotFoundError, ValueError):  # outside a workspace: no promotion to finish
+        return
+    try:
+        promotion_journal.recover(root, say=say)
+    except promotion_journal.PromotionBusy:  # a promotion running now, not an interrupted one: only listing here
+        pass
 
 
 def _cmd_promote(args) -> int:

@@ -45,6 +45,14 @@ class DiskFullError(UserError, OSError):
         return str(self.strerror)
 
 
+class NotWritableError(UserError, PermissionError):
+    """An output folder (or ``params.yaml``'s) that cannot be written: read-only filesystem or no permission; the
+    message names the folder and the fix. ``errno`` stays ``EACCES``/``EPERM``/``EROFS``."""
+
+    def __str__(self) -> str:  # the message alone, not OSError's "[Errno 13] ..."
+        return str(self.strerror)
+
+
 class TruncatedFileError(CorruptFileError, EOFError):
     """A file that ends before its header says (an ``EOFError`` too, what the readers raised before)."""
 

@@ -6,12 +6,15 @@ import functools
 import glob
 import io
 import json
+import logging
 import os
 import re
 import shutil
 import socket
 import tempfile
 import threading
+import zipfile
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,15 +22,32 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.core import swap
+from aumesh.core.paths import recorded  # noqa: F401  (re-exported: callers import it from here)
 from aumesh.core.signals import check_supervisor, process_gone
+from aumesh.core.write_errors import (
+    _allocated_bytes,
+    _is_disk_full_error,
+    _no_space,
+    disk_full,
+    not_writable,
+    unwritable,
+)
 
 
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     """Yield a temp path beside ``path``; on success rename it over ``path``, on error delete it."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path, "tmp"), suffix=suffix or ".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path, "tmp"), suffix=suffix or ".tmp", dir=path.parent)
+    except OSError as err:  # a read-only workspace or folder: one line naming it (a full disk: disk_full)
+        if unwritable(err):
+            raise not_writable(path, err) from None
+        if _no_space(err):
+            raise disk_full(path, 0) from None
+        raise
     os.close(fd)
     tmp_path = Path(tmp)
     os.chmod(tmp_path, 0o666 & ~_umask())  # mkstemp makes 0600; published files get the usual mode
@@ -53,6 +73,7 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     """Delete the temporaries of ``path`` (``.<name>.tmp-*``, ``.<name>.old-*``) left by a killed process of this
     host; those of live processes (a concurrent run) stay. Returns what was removed."""
     path = Path(path)
+    restore_previous(path)
     pattern = re.compile(rf"^\.{re.escape(path.name)}\.(?:tmp|old)-(\d+)-(.+)-[^-]*$")
     removed = []
     for candidate in path.parent.glob(f".{glob.escape(path.name)}.*-*") if path.parent.is_dir() else ():
@@ -65,6 +86,33 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
             candidate.unlink(missing_ok=True)
         removed.append(candidate)
     return removed
+
+
+def restore_previous(path: str | Path) -> Path | None:
+    """Put the previous copy of folder ``path`` back when ``path`` is missing and a killed process of this host left
+    it aside (``.<name>.old-<pid>-<host>-x``: killed between :func:`atomic_directory`'s two renames, on a filesystem
+    without ``RENAME_EXCHANGE``); says so in one warning line. Returns the restored path, or None."""
+    path = Path(path)
+    if path.exists() or path.is_symlink() or not path.parent.is_dir():
+        return None
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.old-(\d+)-(.+)-[^-]*$")
+    aside = [
+        c
+        for c in path.parent.glob(f".{glob.escape(path.name)}.old-*")
+        if (m := pattern.match(c.name))
+        and m.group(2) == socket.gethostname()
+        and process_gone(int(m.group(1)), c.lstat().st_mtime)
+    ]
+    if not aside:
+        return None
+    newest = max(aside, key=lambda c: c.lstat().st_mtime)
+    os.replace(newest, path)
+    logging.getLogger(__name__).warning(
+        "%s was missing: restored the previous copy (%s), left aside by a run killed while swapping in a new one",
+        recorded(path),
+        newest.name,
+    )
+    return path
 
 
 def _umask() -> int:
@@ -80,7 +128,12 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 
 def atomic_write_json(path: str | Path, obj: Any) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+    return atomic_write_text(path, json_text(obj))
+
+
+def json_text(obj: Any) -> str:
+    """The text :func:`atomic_write_json` writes for ``obj`` (indented, NumPy scalars and paths as JSON values)."""
+    return json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n"
 
 
 def atomic_savez(path: str | Path, **arrays: Any) -> Path:
@@ -94,22 +147,38 @@ def atomic_savez(path: str | Path, **arrays: Any) -> Path:
 def scratch_directory(path: str | Path) -> Path:
     """A new temporary folder beside ``path``, named as its temporaries (``.<name>.tmp-<pid>-<host>-*``): the caller
     removes it, and if its process is killed first, :func:`remove_stale_temporaries` of ``path`` does."""
-    path = Path(path)
-    return Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
+    return _new_folder(Path(path))
+
+
+def _new_folder(path: Path) -> Path:
+    """A new temporary folder beside ``path`` (its parents made); an unwritable place is one line naming it."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
+    except OSError as err:
+        if unwritable(err):
+            raise not_writable(path, err) from None
+        if _no_space(err):
+            raise disk_full(path, 0) from None
+        raise
 
 
 @contextmanager
 def atomic_directory(path: str | Path) -> Iterator[Path]:
     """Build a whole folder in a temp sibling, then swap it in; a failure leaves the old folder as it was."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(path, "tmp"), dir=path.parent))
+    tmp = _new_folder(path)
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes 0700; a published folder gets the usual mode
     old = None
     try:
         yield tmp
         check_supervisor()  # under DVC: never swap in an output as the orphan of a stopped DVC
-        if path.exists():
+        if path.exists() and swap.exchange(tmp, path):
+            # one atomic step: ``path`` is the new folder, ``tmp`` now holds the previous one (a kill from here on
+            # leaves the new folder and a temporary that the next run's remove_stale_temporaries deletes)
+            shutil.rmtree(tmp, ignore_errors=True)
+            return
+        if path.exists():  # no exchange on this filesystem: two renames, the previous copy aside in between
             old = path.with_name(_temp_prefix(path, "old") + "x")
             os.replace(path, old)
         os.replace(tmp, path)
@@ -126,69 +195,6 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
         raise
 
 
-def _no_space(err: BaseException) -> bool:
-    import errno
-
-    return isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)
-
-
-def _is_disk_full_error(err: BaseException) -> bool:
-    from aumesh.core.errors import DiskFullError
-
-    return isinstance(err, DiskFullError)
-
-
-def _allocated_bytes(path: Path) -> int:
-    """Bytes a file or folder takes on its device (allocated blocks: a sparse ``.npy`` takes what was written)."""
-    try:
-        if path.is_dir() and not path.is_symlink():
-            return sum(p.lstat().st_blocks * 512 for p in path.rglob("*"))
-        return path.lstat().st_blocks * 512
-    except OSError:
-        return 0
-
-
-def _size(path: Path) -> int:
-    try:
-        if path.is_dir():
-            return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-        return path.stat().st_size if path.exists() else 0
-    except OSError:
-        return 0
-
-
-def disk_full(path: str | Path, written: int) -> Exception:
-    """The one line for ``ENOSPC`` while ``path`` was being written atomically (its temporary copy already removed):
-    the folder, what the new output had taken and what it needs, and that the previous output is intact."""
-    import errno
-
-    from aumesh.core.errors import DiskFullError
-
-    path = Path(path)
-    try:
-        free = shutil.disk_usage(path.parent).free
-    except OSError:
-        free = 0
-    previous = _size(path)
-    exists = path.exists()
-    path = Path(recorded(path))  # named as the user names it: relative to the workspace (a stage's paths are absolute)
-    folder = path.parent
-    kept = f"the previous {path} is intact (nothing was swapped in)" if exists else f"nothing was written to {path}"
-    need = (
-        f"a complete one takes about {previous:,} bytes (the previous one's size), {free:,} are free"
-        if previous
-        else f"it needs more than the {free:,} bytes free"
-    )
-    taken = f"the new output had taken {written:,} bytes when the disk filled; " if written else ""
-    err = DiskFullError(
-        errno.ENOSPC,
-        f"{folder}/: no space left on the device while writing {path} ({taken}{need}); "
-        f"{kept}. Fix: free space on the "
-        f"device of {folder}/ (`df -h {folder}`) or point the output elsewhere in params.yaml, and run again.",
-    )
-    return err
-
-
 def absolute(path: str | Path) -> Path:
     """``path`` made absolute against the current directory (the stage's workspace), without following symlinks.
 
@@ -196,18 +202,6 @@ def absolute(path: str | Path) -> Path:
     serve several workspaces), so a relative path there names another file or none (README, "Scale out"). Symlinks
     stay as they are (DVC may link the tables into its cache; an error should name the workspace's file)."""
     return Path(os.path.abspath(path))
-
-
-def recorded(path: str | Path, root: str | Path | None = None) -> str:
-    """``path`` as the outputs record it: relative to ``root`` (default: the current directory, the workspace) when
-    inside it, else unchanged. Records are shared (committed, pushed to a DVC remote) and never hold this machine's
-    workspace path."""
-    text = str(path)
-    if not os.path.isabs(text):
-        return text
-    base = os.path.abspath(root if root is not None else os.getcwd())
-    rel = os.path.relpath(text, base)
-    return text if rel == os.pardir or rel.startswith(os.pardir + os.sep) else rel
 
 
 def _json_default(obj: Any) -> Any:
@@ -245,10 +239,53 @@ def load_npy(path: str | Path) -> np.ndarray:
         return np.load(path, allow_pickle=False)
 
 
+#: what a damaged ``.npz`` raises while it is opened or a member read: a bad or cut zip (``BadZipFile``, a CRC
+#: mismatch included), a cut member (``EOFError``, ``ValueError``), a bad deflate stream (``zlib.error``)
+_NPZ_ERRORS: tuple[type[BaseException], ...] = (zipfile.BadZipFile, EOFError, ValueError, zlib.error, OSError)
+NPZ_FIX = (
+    "restore the tracked copy (`dvc pull --force <its folder>`, or `dvc checkout --force`) or rebuild it (`dvc repro`)"
+)
+
+
+def read_npz(
+    path: str | Path,
+    keys: tuple[str, ...] | list[str] | None = None,
+    fix: str = NPZ_FIX,
+    what: str = "not a readable .npz",
+) -> dict:
+    """Arrays ``keys`` (None: all) of an ``.npz``, read whole (no pickle), safe in threads.
+
+    A damaged file (truncated, a CRC error, not a zip) or a missing key is a
+    :class:`aumesh.core.errors.CorruptFileError` of one line naming the file and ``fix``, not numpy's or zipfile's
+    traceback; a missing file stays a ``FileNotFoundError``.
+    """
+    from aumesh.core.errors import CorruptFileError
+
+    try:
+        with _NUMPY_HEADER_LOCK, np.load(path, allow_pickle=False) as arrays:
+            missing = [k for k in keys or () if k not in arrays.files]
+            if missing:
+                raise CorruptFileError(
+                    f"{path}: no array {', '.join(map(repr, missing))} in this .npz (it has {sorted(arrays.files)}): "
+                    f"damaged or of another version. Fix: {fix}"
+                )
+            return {k: arrays[k] for k in (keys if keys is not None else arrays.files)}
+    except CorruptFileError:
+        raise
+    except _NPZ_ERRORS as err:
+        if isinstance(err, FileNotFoundError):
+            raise
+        first = (str(err).splitlines() or [""])[0]
+        raise CorruptFileError(
+            f"{path}: {what}: corrupt or truncated ({type(err).__name__}: {first}). Fix: {fix}"
+        ) from None
+
+
 def load_npz(path: str | Path, keys: tuple[str, ...] | list[str]) -> list[np.ndarray]:
-    """Arrays ``keys`` of an ``.npz``, safe in threads (one header parse at a time: see ``_NUMPY_HEADER_LOCK``)."""
-    with _NUMPY_HEADER_LOCK, np.load(path, allow_pickle=False) as arrays:
-        return [arrays[k] for k in keys]
+    """Arrays ``keys`` of an ``.npz``, safe in threads (one header parse at a time: see ``_NUMPY_HEADER_LOCK``); a
+    damaged file is one line (:func:`read_npz`)."""
+    arrays = read_npz(path, keys)
+    return [arrays[k] for k in keys]
 
 
 def npy_layout(path: str | Path) -> tuple[int, np.dtype, tuple[int, ...]]:
@@ -279,15 +316,17 @@ def check_npy(path: str | Path, fix: str) -> tuple[int, np.dtype, tuple[int, ...
 
     path = Path(path)
     try:
-        with open(path, "rb") as fh:  # numpy's own header reader: Fortran order is the caller's to refuse
+        with open(path, "rb") as fh:  # numpy's own header reader
             version = np.lib.format.read_magic(fh)
             read_header = (
                 np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             )
-            shape, _, dtype = read_header(fh)
+            shape, fortran, dtype = read_header(fh)
             offset = fh.tell()
     except (ValueError, SyntaxError, EOFError) as err:
         raise CorruptFileError(f"{path}: not a readable .npy file ({err}). Fix: {fix}") from None
+    if fortran and len(shape) > 1:
+        raise fortran_order(path)
     need = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     size = path.stat().st_size
     if size < need:
@@ -304,9 +343,22 @@ def _parse_npy_header(header: bytes, path: str) -> tuple[int, np.dtype, tuple[in
     read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
     with _NUMPY_HEADER_LOCK:
         shape, fortran, dtype = read_header(fh)
-    if fortran:
-        raise ValueError(f"{path}: Fortran-ordered array; rows cannot be streamed")
+    if fortran and len(shape) > 1:
+        raise fortran_order(path)
     return len(header), dtype, shape
+
+
+def fortran_order(path: str | Path) -> Exception:
+    """The one line for an ``.npy`` saved in Fortran order (``np.save`` of a transposed array or of
+    ``np.asfortranarray``): its rows are not contiguous on disk, and the passes read rows with plain file I/O (a
+    transposing read would hold the whole array in memory: refused rather than read slowly)."""
+    from aumesh.core.errors import TableError
+
+    return TableError(
+        f"{path}: saved in Fortran order (fortran_order: True in its .npy header): its rows are not contiguous on "
+        f"disk and cannot be read as rows. Fix: rewrite it C-ordered, np.save(path, np.ascontiguousarray(a)) "
+        f"(e.g. a = np.load(path); np.save(path, np.ascontiguousarray(a)))."
+    )
 
 
 class NpyRowFile:
@@ -360,8 +412,13 @@ class NpyRowFile:
         """Write ``rows`` (the file's dtype and row shape) from row ``first_row`` on."""
         view = memoryview(np.ascontiguousarray(rows).data).cast("B")
         pos, done = self.offset + first_row * self.row_bytes, 0
-        while done < len(view):
-            done += os.pwrite(self._fd, view[done:], pos + done)
+        try:
+            while done < len(view):
+                done += os.pwrite(self._fd, view[done:], pos + done)
+        except OSError as err:  # pwrite's error names no file: name it, its folder and its mount
+            if _no_space(err):
+                raise disk_full(self.path, _allocated_bytes(self.path), scratch=True) from None
+            raise
 
     def write_row_map(self, rows: dict[int, np.ndarray]) -> None:
         """Write each ``rows[r]`` (one row, the file's dtype) at row ``r``, one write per run of consecutive row

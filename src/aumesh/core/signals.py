@@ -8,8 +8,15 @@ release DVC never recorded, or finished its MLflow run FINISHED. Here:
   cleans up after Ctrl-C does so (atomic writers remove their temporaries, the MLflow run is marked KILLED);
 * under DVC (``DVC_STAGE`` in the environment) a daemon thread watches the DVC process (the nearest ancestor whose
   command is ``dvc``; else the nearest that is not a shell) and the stage's own parent; when either is gone it sends
-  the stage SIGTERM, so the orphan stops within :data:`POLL_SECONDS`. Linux's ``PR_SET_PDEATHSIG`` is not enough:
-  the stage's parent is the shell, which outlives DVC.
+  the stage SIGTERM, so the orphan stops at once. Linux's ``PR_SET_PDEATHSIG`` is not enough: the stage's parent is
+  the shell, which outlives DVC. On Linux >= 5.3 the thread waits on a ``pidfd`` of each process (readable the moment
+  it exits, reaped or not), else it polls every :data:`POLL_SECONDS`;
+* the main thread may be inside a long C call (a LAPACK fit) when the SIGTERM comes, and Python runs the handler only
+  when that call returns: if the stage is still there :data:`GRACE_SECONDS` after the SIGTERM, the watcher ends it
+  (``os._exit``; the next run removes its temporaries and marks its MLflow run KILLED);
+* a stopped command leaves at once (:func:`aumesh.cli.run`): not waiting for the compute threads' tasks in flight
+  (Dask's thread pool is joined at exit, and a pass's running tasks took 10-37 s to finish after DVC was killed,
+  issue 44), whose outputs the stage had already thrown away.
 
 Outside DVC no ancestor is watched: ``nohup aumesh evaluate &`` must survive its shell.
 """
@@ -26,6 +33,8 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 POLL_SECONDS = 0.5
+#: how long after its SIGTERM a stage whose DVC is gone may take to stop before the watcher ends it
+GRACE_SECONDS = 3.0
 SHELLS = frozenset({"sh", "bash", "dash", "zsh", "ksh", "mksh", "fish", "busybox", "env", "timeout", "nice"})
 _INSTALLED = False
 
@@ -103,14 +112,53 @@ def _gone(watched: list[tuple[int, float, str]]) -> str | None:
     return None
 
 
+def _pidfds(watched: list[tuple[int, float, str]]) -> list[int]:
+    """A ``pidfd`` of each watched process (Linux >= 5.3), or [] where the system has none."""
+    fds: list[int] = []
+    for pid, _, _ in watched:
+        try:
+            fds.append(os.pidfd_open(pid))
+        except (AttributeError, OSError):  # no pidfd here, or the process is gone already: poll
+            for fd in fds:
+                os.close(fd)
+            return []
+    return fds
+
+
+def wait_gone(watched: list[tuple[int, float, str]]) -> str:
+    """Block until one of the ``watched`` processes is gone; return why (which one)."""
+    import select
+
+    fds = _pidfds(watched)
+    poller = select.poll() if fds else None
+    for fd in fds:
+        poller.register(fd, select.POLLIN)  # type: ignore[union-attr]
+    try:
+        while True:
+            reason = _gone(watched)
+            if reason:
+                return reason
+            if poller is not None:
+                poller.poll(POLL_SECONDS * 1000)  # readable when a process exits; the timeout re-checks anyway
+            else:
+                time.sleep(POLL_SECONDS)
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
 def _watch(watched: list[tuple[int, float, str]]) -> None:
-    while True:
-        time.sleep(POLL_SECONDS)
-        reason = _gone(watched)
-        if reason:
-            _REASON.append(reason)
-            os.kill(os.getpid(), signal.SIGTERM)
-            return
+    reason = wait_gone(watched)
+    _REASON.append(reason)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(GRACE_SECONDS)  # the main thread stops as after Ctrl-C; a daemon thread: gone with the process
+    log.warning("%s and this stage did not stop within %g s of its SIGTERM: ending it now", reason, GRACE_SECONDS)
+    os._exit(128 + signal.SIGTERM)
+
+
+def supervisor_gone() -> bool:
+    """Whether this stage runs under DVC and that DVC process (or the stage's parent) is gone."""
+    return bool(_WATCHED) and _gone(_WATCHED) is not None
 
 
 def check_supervisor() -> None:

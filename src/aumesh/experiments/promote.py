@@ -16,6 +16,10 @@ version (DVC hash), whoever ran it, and says whose run won.
 4. recomposes ``params.yaml`` and writes ``promotion.json`` (``{"promoted": {...}}``, read by the
    release stage into ``model_card.json["promotion"]`` and the card's "Promotion" section).
 
+Steps 3 and 4 are one transaction (:mod:`aumesh.experiments.promotion_journal`): a journal written first lists the
+old and new state of the alias and every file; killed half-way, the next ``aumesh promote``, ``aumesh runs`` or
+evaluate/release stage completes or rolls it back and says which in one line.
+
 Then ``dvc repro`` rebuilds exactly that release (evaluate and release re-run on the new params).
 """
 
@@ -27,7 +31,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.core.errors import UserError
-from aumesh.core.io import atomic_write_json, atomic_write_text
+from aumesh.core.io import json_text
+from aumesh.experiments import promotion_journal
 from aumesh.experiments.promoted_config import (
     EXPERIMENT_GROUP,
     EXPERIMENT_NAME,
@@ -209,11 +214,50 @@ def promote(
     dict
         The ``promoted`` record written to the promotion file (with ``user`` and ``workspace``: whose run won).
     """
-    from aumesh.config import from_dict, write_params
+    from filelock import Timeout
+
+    root = Path(root).resolve()
+    try:
+        with promotion_journal.lock(root):  # one promotion of a workspace at a time
+            promotion_journal.recover_locked(root, say)  # an earlier one killed half-way: completed or rolled back
+            return _promote_locked(
+                parent_run_id,
+                root,
+                tracking_cfg,
+                metric,
+                target,
+                model_name,
+                register,
+                alias,
+                newer_run,
+                across,
+                partial,
+                skip_missing,
+                say,
+            )
+    except Timeout:
+        raise promotion_journal.busy(root) from None
+
+
+def _promote_locked(
+    parent_run_id: str | None,
+    root: Path,
+    tracking_cfg: Mapping[str, Any] | None,
+    metric: str | None,
+    target: str | None,
+    model_name: str | None,
+    register: bool,
+    alias: str,
+    newer_run: Mapping[str, Any] | None,
+    across: bool,
+    partial: bool,
+    skip_missing: bool,
+    say,
+) -> dict[str, Any]:
+    from aumesh.config import from_dict, params_text
     from aumesh.tracking import queries, registry
     from aumesh.tracking import runs as tracking
 
-    root = Path(root).resolve()
     conf_dir = root / "conf"
     check_defaults_entry(conf_dir)
     partial_note = None
@@ -281,30 +325,9 @@ def promote(
     verify_composition(composed, winner.params)
     cfg = from_dict(composed)
 
-    version = None
     name = model_name or DEFAULT_MODEL_NAME
-    if register:
-        version = registry.register_model_version(
-            winner.run_id,
-            MODEL_ARTIFACT_DIR,
-            name,
-            tracking_cfg,
-            alias=alias,
-            tags={
-                "aumesh.parent_run_id": str(sweep_id),
-                "aumesh.metric": choice.metric,
-                "aumesh.value": f"{choice.value:.6f}",
-                "aumesh.config_overrides": " ".join(overrides),
-                "aumesh.user": str(winner.user),
-            },
-            description=f"aumesh promote: {choice.criterion}",
-        )
-
     exp_path = conf_dir / EXPERIMENT_GROUP / f"{EXPERIMENT_NAME}.yaml"
-    exp_path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(exp_path, text)
-    write_params(composed, root / "params.yaml")
-    record = {
+    record: dict[str, Any] = {
         "run_id": winner.run_id,
         "run_name": winner.run_name,
         "parent_run_id": sweep_id,
@@ -323,12 +346,13 @@ def promote(
         ),
         "config_overrides": overrides,
         "config_file": str(exp_path.relative_to(root)),
-        "registered_model": version["name"] if version else None,
-        "model_version": version["version"] if version else None,
-        "alias": alias if version else None,
-        # promotion.json is committed: locations relative to the workspace, never its absolute path, and never a
-        # tracking server's address (the run id finds the run on the team's server)
-        "model_source": _model_source(version["source"], winner.run_id, root) if version else None,
+        # filled in when registered (promotion_journal.with_version); promotion.json is committed: locations
+        # relative to the workspace, never its absolute path, and never a tracking server's address (the run id finds
+        # the run on the team's server)
+        "registered_model": None,
+        "model_version": None,
+        "alias": None,
+        "model_source": None,
         "tracking_uri": tracking.store_label(tracking_cfg),
         "promoted_at": datetime.now(UTC).isoformat(timespec="seconds"),
     }
@@ -336,19 +360,40 @@ def promote(
         record["skipped_missing_artifacts"] = skipped
     if partial_note:
         record["partial"] = partial_note
-    atomic_write_json(root / cfg.paths.promotion_file, {"promoted": record})
-    return record
+    spec = None
+    if register:
+        spec = {
+            "name": name,
+            "alias": alias,
+            "run_id": winner.run_id,
+            "previous_version": (registry.model_version_by_alias(name, alias, tracking_cfg) or {}).get("version"),
+            "tags": {
+                "aumesh.parent_run_id": str(sweep_id),
+                "aumesh.metric": choice.metric,
+                "aumesh.value": f"{choice.value:.6f}",
+                "aumesh.config_overrides": " ".join(overrides),
+                "aumesh.user": str(winner.user),
+            },
+            "description": f"aumesh promote: {choice.criterion}",
+        }
+    promotion_file = str(cfg.paths.promotion_file)
+    # one transaction (aumesh.experiments.promotion_journal): the registry, then the files in this order
+    journal = promotion_journal.new_journal(
+        root,
+        {
+            str(exp_path.relative_to(root)): text,
+            "params.yaml": params_text(composed),
+            promotion_file: None if register else json_text({"promoted": record}),
+        },
+        record,
+        promotion_file,
+        spec,
+        tracking_cfg,
+    )
+    return promotion_journal.run(root, journal)
 
 
-def _model_source(source: str, run_id: str, root: Path) -> str:
-    """The registered model's source as promotion.json holds it: repo-relative inside the workspace, a server's
-    ``mlflow-artifacts:/`` URI as it is; a path elsewhere (another machine's) as ``runs:/<run id>/model``."""
-    from aumesh.core import provenance
-
-    shared = provenance.shareable_location(source, [root]) or source
-    if shared.startswith("file:") or Path(shared).is_absolute():
-        return f"runs:/{run_id}/{MODEL_ARTIFACT_DIR}"
-    return shared
+_model_source = promotion_journal.model_source  # kept for callers of the old name
 
 
 def _workspace_data_md5(root: Path) -> str:

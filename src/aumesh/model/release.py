@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from aumesh.core.io import read_npz
 from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, POSE_COLUMNS
 from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
 from aumesh.model import support
@@ -21,13 +22,18 @@ CARD_JSON = "model_card.json"
 CARD_MD = "MODEL_CARD.md"
 
 
+#: the fix for a damaged release NPZ: the tracked copy (DVC's cache or remote), else rebuilt
+RELEASE_FIX = "`dvc pull --force release` (the tracked copy) or `dvc repro release` (rebuild it)"
+
+
 def load_npz(path: str | Path) -> dict[str, np.ndarray]:
-    """All arrays of a release NPZ, read without pickle (the card's loader); no validation here."""
+    """All arrays of a release NPZ, read without pickle (the card's loader); no validation here. A damaged file
+    (truncated, CRC error, not a zip) is an :class:`aumesh.core.errors.CorruptFileError` naming it and
+    :data:`RELEASE_FIX`."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"release NPZ not found: {path}")
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+    return read_npz(path, fix=RELEASE_FIX, what="not a release NPZ")
 
 
 def _input_rows(coef: np.ndarray, feature_columns: list[str]) -> np.ndarray:

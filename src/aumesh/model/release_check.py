@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.core.errors import MissingFileError, UserError
+from aumesh.core.errors import CorruptFileError, MissingFileError, UserError
 from aumesh.core.schema import N_TARGETS, N_VERTICES
-from aumesh.model.release import load_npz
+from aumesh.model.release import RELEASE_FIX, load_npz
 
 REQUIRED_KEYS: tuple[str, ...] = ("coef", "intercept", "input_columns", "au_columns", "mean_aligned_mesh")
 
@@ -68,8 +68,17 @@ def load_release(source: ReleaseSource) -> dict[str, np.ndarray]:
             )
         try:
             arrays = load_npz(path)
+        except CorruptFileError as exc:  # one line naming the file and the fix (RELEASE_FIX)
+            raise ReleaseError(str(exc)) from None
         except (OSError, ValueError) as exc:
-            raise ReleaseError(f"{path}: not a release NPZ ({exc})") from exc
+            raise ReleaseError(f"{path}: not a release NPZ ({exc}). Fix: {RELEASE_FIX}") from exc
+        try:
+            check_release(arrays, where)
+        except ReleaseError as exc:  # a key missing or misshapen in a file: damaged, or not a release
+            if "Fix:" in str(exc):
+                raise
+            raise ReleaseError(f"{exc}. Fix: {RELEASE_FIX}") from None
+        return arrays
     check_release(arrays, where)
     return arrays
 

@@ -37,12 +37,30 @@ def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
 def start_stage(stage: str, cfg: Config) -> None:
     """Remove what a killed earlier run of ``stage`` left behind (temp folders and files of its outputs, and the
     evaluate passes' scratch folders)."""
+    if stage in ("evaluate", "release"):  # they read what promotion writes (params.yaml; promotion.json)
+        finish_promotion(cfg)
     scratch: list[str | Path] = []
     if stage == "evaluate":
         scratch.append(scratch_path(cfg.paths.prepared_dir))
     for out in [*stage_outputs(stage, cfg.paths), *scratch]:
         for path in remove_stale_temporaries(out):
             log.info("removed %s, left by a killed run", path)
+
+
+def finish_promotion(cfg: Config) -> None:
+    """Complete or roll back a promotion of this workspace that was killed half-way, saying which in one line
+    (:mod:`aumesh.experiments.promotion_journal`); when that changed ``params.yaml`` or the promotion file, this run
+    started from the old ones: stop (exit 2) and say to run again."""
+    from aumesh.core.errors import UserError
+    from aumesh.experiments import promotion_journal
+
+    line, changed = promotion_journal.recover(Path.cwd(), say=lambda text: log.warning("%s", text))
+    stale = [f for f in changed if f in ("params.yaml", cfg.paths.promotion_file)]
+    if stale:
+        raise UserError(
+            f"{' and '.join(stale)} changed by that ({line.split(' (')[0] if line else ''}), after this run had read "
+            f"them. Fix: run again (`dvc repro`: it now sees the promotion's params)."
+        )
 
 
 def removed_by_dvc(stage: str, lock_file: str | Path = "dvc.lock") -> str | None:

@@ -15,7 +15,7 @@ import time
 from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
-from aumesh.core.signals import check_supervisor
+from aumesh.core.signals import check_supervisor, supervisor_gone
 from aumesh.tracking.handle import TrackedRun, _NullRun
 from aumesh.tracking.runs import _enabled, _end_failed, _failure, _open_run
 
@@ -61,22 +61,44 @@ class RunBeside:
         for future in self._queued:
             future.result()
 
-    def end(self, error: BaseException | None = None) -> None:
+    def cancel_queued(self) -> None:
+        """Drop the calls not started yet (a stage that stops does not wait for its figures and metrics)."""
+        for future in self._queued[1:]:
+            future.cancel()
+
+    def end(self, error: BaseException | None = None, timeout: float | None = None) -> None:
         """End the run FINISHED, or with ``error`` as :func:`aumesh.tracking.runs.tracked_run` does (nothing to end if
-        it never opened)."""
+        it never opened). With ``error`` the calls still queued are dropped, and ``timeout`` bounds the wait: a stage
+        that was told to stop does not wait for the helper's figures or MLflow's import (the helper ends with the
+        stage, and the next run marks the run KILLED)."""
         if error is None:
             self._helper.submit(_end_beside, "FINISHED").result()
-        elif self._opened.exception() is None:
-            with contextlib.suppress(Exception):
-                self._helper.submit(_end_beside, *_failure(error)).result()
+            return
+        if timeout is not None:
+            self.cancel_queued()
+            if not self._opened.done():  # the helper still imports MLflow (~4 s of CPU): the next run marks the run
+                return
+        deadline = None if timeout is None else time.monotonic() + timeout  # one bound for both waits
+
+        def left() -> float | None:
+            return None if deadline is None else max(0.0, deadline - time.monotonic())
+
+        with contextlib.suppress(Exception):  # TimeoutError, the helper's own error
+            if self._opened.exception(left()) is None:
+                self._helper.submit(_end_beside, *_failure(error)).result(left())
 
 
 _BESIDE: TrackedRun | None = None  # the helper process's open run
+#: how long a stopped stage waits for its helper to mark the run KILLED (it may be drawing figures or still importing
+#: MLflow); after that the run is left to the next run to mark (:func:`aumesh.tracking.runs.close_orphaned_runs`)
+STOP_SECONDS = 0.8
 
 
-def _start_helper(owner_pid: int) -> None:
+def _start_helper(owner_pid: int, stop_fd: int = -1) -> None:
     """In the helper: Ctrl-C (which a terminal sends to the whole process group) is the stage's to handle, so the run
-    can still be marked KILLED; and the helper ends when its stage process is gone (e.g. killed alone)."""
+    can still be marked KILLED; and the helper ends when its stage process is gone (e.g. killed alone). ``stop_fd``:
+    the read end of a pipe on which a stage whose DVC is gone sends its ``(status, error, traceback)`` and leaves at
+    once; the helper then ends the run with them itself (:func:`_end_for_stopped_owner`)."""
     import signal
     import threading
 
@@ -87,11 +109,34 @@ def _start_helper(owner_pid: int) -> None:
             signal.signal(sig, signal.SIG_IGN)
 
     def watch() -> None:
+        import select
+
         while os.getppid() == owner_pid:
-            time.sleep(0.5)
-        os._exit(1)  # the run stays RUNNING under the stage's pid: the next run marks it KILLED
+            if stop_fd < 0:
+                time.sleep(0.5)
+            elif select.select([stop_fd], [], [], 0.5)[0]:
+                # not a daemon: the helper's own exit (its stage gone, its call queue closed) waits for it
+                ender = threading.Thread(target=_end_for_stopped_owner, args=(os.read(stop_fd, 4096),), daemon=False)
+                ender.start()
+                ender.join()
+                break
+        os._exit(1)  # a run not ended stays RUNNING under the stage's pid: the next run marks it KILLED
 
     threading.Thread(target=watch, name="aumesh-owner-watch", daemon=True).start()
+
+
+def _end_for_stopped_owner(message: bytes, open_wait: float = 15.0) -> None:
+    """End the run as the stage that left without waiting asked (its JSON ``[status, error, traceback]``); a run still
+    opening (MLflow's import) is waited for up to ``open_wait`` seconds."""
+    import json
+
+    with contextlib.suppress(Exception):
+        status, error, tb = json.loads(message.decode())
+        deadline = time.monotonic() + open_wait
+        while _BESIDE is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if _BESIDE is not None:
+            _end_failed(_BESIDE, status, error, tb)
 
 
 def _open_beside(tracking_cfg, run_name, params, tags, owner_pid: int) -> tuple[str, str, str]:
@@ -151,13 +196,38 @@ def tracked_run_beside(
     # fork (Linux): the helper inherits the imports (NumPy, pandas); elsewhere spawn, the platforms' safe default
     context = multiprocessing.get_context("fork" if sys.platform == "linux" else "spawn")
     owner = os.getpid()
-    with ProcessPoolExecutor(1, mp_context=context, initializer=_start_helper, initargs=(owner,)) as helper:
+    # forked: the helper keeps the read end of this pipe, on which a stopped stage hands it the run's end
+    stop_r, stop_w = os.pipe() if context.get_start_method() == "fork" else (-1, -1)
+    helper = ProcessPoolExecutor(1, mp_context=context, initializer=_start_helper, initargs=(owner, stop_r))
+    stopped = False
+    try:
         run = RunBeside(helper, helper.submit(_open_beside, dict(tracking_cfg or {}), run_name, params, tags, owner))
         try:
             yield run
             run.wait()
             check_supervisor()  # under DVC: a run whose DVC was stopped is KILLED, never FINISHED by an orphan
         except BaseException as exc:
-            run.end(exc)
+            # DVC gone (killed, stopped): nobody waits for this stage, which must not run on as an orphan; leave within
+            # STOP_SECONDS. Ctrl-C and SIGTERM of the stage itself end the run with everything logged so far.
+            stopped = isinstance(exc, KeyboardInterrupt) and supervisor_gone()
+            if stopped and stop_w >= 0:  # the helper ends the run itself (KILLED, the reason): not waited for
+                run.cancel_queued()
+                _send_end(stop_w, exc)
+            else:
+                run.end(exc, timeout=STOP_SECONDS if stopped else None)
             raise
         run.end()
+    finally:
+        helper.shutdown(wait=not stopped, cancel_futures=stopped)
+        for fd in (stop_r, stop_w):
+            if fd >= 0:
+                os.close(fd)
+
+
+def _send_end(fd: int, exc: BaseException) -> None:
+    """One write (at most ``PIPE_BUF`` bytes: atomic) of the run's end for the helper (:func:`_start_helper`)."""
+    import json
+
+    status, error, tb = _failure(exc)
+    with contextlib.suppress(OSError):
+        os.write(fd, json.dumps([status, error[:1000], tb[-2000:]]).encode()[:4096])

@@ -102,3 +102,30 @@ def download_run_artifacts(
     """Download a run's artifact (file or directory) into *dst_dir*; return the local path."""
     Path(dst_dir).mkdir(parents=True, exist_ok=True)
     return Path(get_client(tracking_cfg).download_artifacts(run_id, artifact_path, str(dst_dir)))
+
+
+def set_alias(name: str, alias: str, version: str | None, tracking_cfg: Mapping[str, Any] | None = None) -> None:
+    """Point *alias* of registered model *name* at *version*; None removes the alias (a promotion rolled back to
+    "no champion yet")."""
+    from mlflow.exceptions import MlflowException
+
+    client = get_client(tracking_cfg)
+    if version is not None:
+        client.set_registered_model_alias(name, alias, version)
+        return
+    try:
+        client.delete_registered_model_alias(name, alias)
+    except MlflowException:  # no such model or alias: nothing points anywhere already
+        pass
+
+
+def find_version(
+    name: str, run_id: str, tag: str, value: str, tracking_cfg: Mapping[str, Any] | None = None
+) -> dict[str, Any] | None:
+    """The version of *name* registered from run *run_id* with tag ``tag == value`` (e.g. the promotion that created
+    it), as :func:`register_model_version` returns it (``alias`` None), or None."""
+    client = get_client(tracking_cfg)
+    for mv in client.search_model_versions(f"run_id = '{run_id}'"):
+        if mv.name == name and (mv.tags or {}).get(tag) == value:
+            return {"name": name, "version": str(mv.version), "source": mv.source, "alias": None, "run_id": run_id}
+    return None

@@ -203,6 +203,11 @@ def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
                 f", {settings['num_workers']} workers" if "num_workers" in settings else "",
             )
             yield
+    except BaseException:
+        if pool is not None:  # interrupted or failed: the queued tasks are not started, the running ones not awaited
+            pool.shutdown(wait=False, cancel_futures=True)
+            pool = None
+        raise
     finally:
         if pool is not None:
             pool.shutdown()
@@ -325,8 +330,14 @@ def local_map(fn: Callable, items: Sequence[Any]) -> list:
         return [fn(x) for x in items]
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(workers, thread_name_prefix="aumesh-local") as pool:
-        return list(pool.map(fn, items))
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="aumesh-local")
+    try:
+        results = list(pool.map(fn, items))
+    except BaseException:  # Ctrl-C, SIGTERM, DVC gone, an error: the queued jobs are not started, nor waited for
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    return results
 
 
 #: Tasks a process runs between two returns of its freed memory to the system
