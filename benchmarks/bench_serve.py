@@ -15,11 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import signal
-import socket
 import statistics
-import subprocess
 import tempfile
 import time
 import urllib.error
@@ -28,12 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _model(folder: Path) -> Path:
@@ -70,28 +60,12 @@ def main() -> None:
     import mlflow.pyfunc
 
     from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS
-    from aumesh.tracking.server import scoring_command, scoring_environment
+    from aumesh.tracking.server import scoring_server
 
     with tempfile.TemporaryDirectory(prefix="bench-serve-") as tmp:
         model_dir = _model(Path(tmp))
         local = mlflow.pyfunc.load_model(str(model_dir))
-        port = _free_port()
-        log = open(Path(tmp) / "serve.log", "w")
-        proc = subprocess.Popen(
-            scoring_command(str(model_dir), port=port, timeout_s=args.timeout),
-            env=scoring_environment(),
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-        url = f"http://127.0.0.1:{port}"
-        try:
-            for _ in range(180):
-                try:
-                    with urllib.request.urlopen(f"{url}/ping", timeout=2):
-                        break
-                except (urllib.error.URLError, OSError):
-                    time.sleep(1)
+        with scoring_server(str(model_dir), Path(tmp) / "serve.log", timeout_s=args.timeout) as url:
             print(f"mlflow models serve (1 worker, timeout {args.timeout} s), medians of {args.repeats}")
             print(f"{'rows':>7} {'output':>8} {'status':>6} {'wall s':>8} {'ms/row':>7} {'MB':>7} {'predict s':>10}")
             rng = np.random.default_rng(0)
@@ -111,13 +85,6 @@ def main() -> None:
                         f"{runs[-1][1] / 1e6:>7.1f} {predict_s:>10.3f}",
                         flush=True,
                     )
-        finally:
-            try:
-                os.killpg(proc.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
-            proc.wait(timeout=30)
-            log.close()
 
 
 if __name__ == "__main__":

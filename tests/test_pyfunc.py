@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import subprocess
 import sys
-import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -21,7 +18,7 @@ from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, flatten_axis_major
 from aumesh.model.release import load_npz
 from aumesh.tracking import registry
 from aumesh.tracking import runs as tracking
-from conftest import free_port, stop_process_group, upright_truth_release
+from conftest import upright_truth_release
 
 MODEL = "aumesh-au-to-mesh"
 
@@ -103,39 +100,12 @@ def test_pyfunc_input_example_is_a_smile(champion):
     assert set(AU_COLUMNS) < set(example.columns)
 
 
-@contextlib.contextmanager
 def scoring_server(model_uri: str, tmp_path: Path, timeout_s: int | None = None):
     """`mlflow models serve -m MODEL_URI --env-manager local` on 127.0.0.1 (README "Use the model"), started and
-    waited for; yields its URL, stops its process group after."""
-    from aumesh.tracking.server import scoring_command, scoring_environment
+    waited for (:func:`aumesh.tracking.server.scoring_server`); yields its URL, stops its process group after."""
+    from aumesh.tracking.server import scoring_server as served
 
-    port = free_port()
-    log_path = tmp_path / "serve.log"
-    log = open(log_path, "w")
-    proc = subprocess.Popen(
-        scoring_command(model_uri, port=port, timeout_s=timeout_s),
-        env=scoring_environment(),
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 180
-        while True:
-            try:
-                with urllib.request.urlopen(f"{url}/ping", timeout=2) as resp:
-                    if resp.status == 200:
-                        break
-            except (urllib.error.URLError, ConnectionError, OSError):
-                pass
-            assert proc.poll() is None, log_path.read_text()[-3000:]
-            assert time.monotonic() < deadline, "mlflow models serve did not start: " + log_path.read_text()[-3000:]
-            time.sleep(1)
-        yield url
-    finally:
-        stop_process_group(proc)
-        log.close()
+    return served(model_uri, tmp_path / "serve.log", timeout_s=timeout_s)
 
 
 @pytest.mark.slow

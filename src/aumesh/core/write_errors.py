@@ -7,6 +7,7 @@ import errno
 import shutil
 from pathlib import Path
 
+from aumesh.core.errors import DiskFullError, NotWritableError
 from aumesh.core.paths import mount_of, recorded
 
 #: errnos of a folder that cannot be written: no permission, or a read-only filesystem
@@ -19,8 +20,6 @@ def unwritable(err: BaseException) -> bool:
 
 def not_writable(path: str | Path, err: OSError) -> Exception:
     """The one line for a ``path`` that cannot be written (its folder, or the file, read-only or not the user's)."""
-    from aumesh.core.errors import NotWritableError
-
     folder = Path(recorded(Path(path).parent))
     why = "a read-only filesystem" if err.errno == errno.EROFS else "permission denied"
     return NotWritableError(
@@ -32,14 +31,10 @@ def not_writable(path: str | Path, err: OSError) -> Exception:
 
 
 def _no_space(err: BaseException) -> bool:
-    import errno
-
     return isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
 def _is_disk_full_error(err: BaseException) -> bool:
-    from aumesh.core.errors import DiskFullError
-
     return isinstance(err, DiskFullError)
 
 
@@ -67,10 +62,6 @@ def disk_full(path: str | Path, written: int, scratch: bool = False) -> Exceptio
     the folder, the filesystem's mount (``df`` of that folder, not of the workspace: ``build/`` may live elsewhere),
     what the new output had taken and what it needs, and that the previous output is intact; ``scratch``: a working
     file written in place (a pass's rows), not an output."""
-    import errno
-
-    from aumesh.core.errors import DiskFullError
-
     path = Path(path)
     try:
         free = shutil.disk_usage(path.parent).free

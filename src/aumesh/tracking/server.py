@@ -9,9 +9,16 @@ server's disk mounted. The backend URI gets the installed PostgreSQL driver
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import socket
+import subprocess
 import sys
-from collections.abc import Sequence
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 
@@ -119,3 +126,56 @@ def scoring_environment() -> dict[str, str]:
     env = server_environment()
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     return env
+
+
+@contextlib.contextmanager
+def scoring_server(
+    model_uri: str, log_path: str | Path, timeout_s: int | None = None, start_timeout_s: float = 180.0
+) -> Iterator[str]:
+    """:func:`scoring_command` started on a free loopback port (its own process group, output to ``log_path``) and
+    waited for until ``/ping`` answers; yields its URL, stops the whole group (uvicorn's workers too) after.
+
+    Raises
+    ------
+    RuntimeError
+        The server exited, or did not answer within ``start_timeout_s``: the end of its log.
+    """
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    url = f"http://127.0.0.1:{port}"
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(
+            scoring_command(model_uri, port=port, timeout_s=timeout_s),
+            env=scoring_environment(),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        try:
+            deadline = time.monotonic() + start_timeout_s
+            while True:
+                try:
+                    with urllib.request.urlopen(f"{url}/ping", timeout=2) as resp:
+                        if resp.status == 200:
+                            break
+                except (urllib.error.URLError, ConnectionError, OSError):
+                    pass
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    why = "exited" if proc.poll() is not None else f"did not answer in {start_timeout_s:g} s"
+                    raise RuntimeError(f"mlflow models serve {why}: {Path(log_path).read_text()[-3000:]}")
+                time.sleep(0.5)
+            yield url
+        finally:
+            _stop_group(proc)
+
+
+def _stop_group(proc: subprocess.Popen) -> None:
+    """SIGTERM to the process group, SIGKILL after 10 s; reaped."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        if proc.poll() is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=10)
