@@ -419,6 +419,8 @@ def test_a_dropped_table_follows_the_face_track_and_keeps_same_named_videos_apar
         clip = read_clip(table, video=path)
         assert clip.video == ["a/vid000000", "b/vid000000"][i]
         _same_clip(page, clip, bridged_weights(clip))
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    (SHOTS / "clip_same_named_videos_1280x720.png").write_bytes(page.screenshot())  # the selector: both paths
     assert problems == [] and requests == []
 
 
