@@ -649,3 +649,19 @@ def dvc_workspace(tmp_path_factory):
     _run(["git", "add", "-A"], ws)
     _run(["git", "commit", "-qm", "good release"], ws)
     return ws
+
+
+@pytest.fixture
+def conf_ws(tmp_path, monkeypatch):
+    """A promotion workspace, the current folder: conf/ (without promoted.yaml), dvc.yaml, params.yaml composed from
+    that conf/, and an empty promotion.json."""
+    import shutil
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    shutil.copytree(REPO / "conf", ws / "conf", ignore=shutil.ignore_patterns("promoted.yaml"))
+    shutil.copy(REPO / "dvc.yaml", ws / "dvc.yaml")
+    config.write_params(config.compose(config_dir=ws / "conf"), ws / "params.yaml")
+    (ws / "promotion.json").write_text('{"promoted": null}\n')
+    monkeypatch.chdir(ws)
+    return ws

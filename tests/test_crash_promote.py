@@ -6,7 +6,6 @@ one's. An error on the way rolls back at once."""
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -17,7 +16,7 @@ import pytest
 from aumesh import cli, config
 from aumesh.experiments import promote, promotion_journal
 from aumesh.tracking import registry
-from test_promote import REPO, _log_fake_sweep
+from test_promote import _log_fake_sweep
 
 NAME = promote.DEFAULT_MODEL_NAME
 
@@ -79,19 +78,6 @@ def _consistent_new(ws: Path, run_id: str) -> None:
     composed = config.compose(config_dir=ws / "conf")  # conf/ with the new experiment file
     assert config.load_params(ws / "params.yaml") == config.from_dict(composed)
     assert f"model.n_components={composed['model']['n_components']}" in record["config_overrides"]
-
-
-@pytest.fixture
-def conf_ws(tmp_path, monkeypatch):
-    """As tests/test_promote.py's: conf/, dvc.yaml, params.yaml and an empty promotion.json, the current folder."""
-    ws = tmp_path / "ws"
-    ws.mkdir()
-    shutil.copytree(REPO / "conf", ws / "conf", ignore=shutil.ignore_patterns("promoted.yaml"))
-    shutil.copy(REPO / "dvc.yaml", ws / "dvc.yaml")
-    config.write_params(config.compose(config_dir=ws / "conf"), ws / "params.yaml")
-    (ws / "promotion.json").write_text('{"promoted": null}\n')
-    monkeypatch.chdir(ws)
-    return ws
 
 
 @pytest.fixture

@@ -4,7 +4,6 @@ params.yaml, promotion.json, registry alias), and a real promoted configuration 
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -122,16 +121,6 @@ def test_error_metrics_are_minimised_and_nothing_to_promote_is_an_error():
 
 
 # ---------------------------------------------------------------- the experiment file and the defaults list
-@pytest.fixture
-def conf_ws(tmp_path, monkeypatch):
-    ws = tmp_path / "ws"
-    ws.mkdir()
-    shutil.copytree(REPO / "conf", ws / "conf", ignore=shutil.ignore_patterns("promoted.yaml"))
-    shutil.copy(REPO / "dvc.yaml", ws / "dvc.yaml")
-    config.write_params(config.compose(config_dir=ws / "conf"), ws / "params.yaml")
-    (ws / "promotion.json").write_text('{"promoted": null}\n')
-    monkeypatch.chdir(ws)
-    return ws
 
 
 def test_promoted_experiment_overrides_groups_and_cli_overrides_win(conf_ws):
