@@ -18,7 +18,7 @@ Errors are :class:`~aumesh.core.errors.TableError` naming the file, the column, 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -299,3 +299,36 @@ def check_filter_shares(shares: Mapping[str, Mapping], max_fraction: float, wher
                 f"preprocess.max_drop_fraction={max_fraction:g}. Likely cause: {FILTERS[name][1]}. Fix the data, or "
                 f"allow it with preprocess.max_drop_fraction={min(1.0, round(s['fraction'] + 0.05, 2)):g}."
             )
+
+
+def check_instrument_values(
+    df: pd.DataFrame,
+    instruments: Sequence[str],
+    path: Path | str,
+    first_row: int = 0,
+    row_name: Callable[[int], str] | None = None,
+) -> None:
+    """Every instrument value (``model.eiv.instrument_aus``) a finite number.
+
+    A frame the second detector has no value for is refused, not dropped: the instruments are the same frames'
+    second measurement, so a missing one is an export to repair (dropping it silently would fit the model on other
+    frames than ``model/eiv=none`` does), as a face row with only some values missing is the contract's error.
+
+    Raises
+    ------
+    TableError
+        One line naming the file, the column, the row (within the file; ``row_name(i)`` names row ``i`` of ``df``
+        instead, e.g. its CSV line) and the fix.
+    """
+    for name in instruments:
+        values = pd.to_numeric(df[name], errors="coerce").to_numpy(np.float64)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            at = row_name(row) if row_name is not None else f"row {first_row + row}"
+            raise TableError(
+                f"{path}: column {name!r} is {df[name].iloc[row]!r} at {at} ({int(bad.sum())} "
+                f"such rows): model/eiv=instruments needs the second detector's AUs on every frame. Fix: drop "
+                f"the frames the second detector missed from the tables, or use model/eiv=none."
+            )
+        df[name] = values

@@ -322,7 +322,7 @@ def read_pieces_metadata(
     holds hundreds). A piece that breaks the contract is named by checking the pieces one by one.
 
     ``instruments``: a second detector's AU columns (``model.eiv.instrument_aus``), read after the pose and checked
-    finite (:func:`check_instrument_values`).
+    finite (:func:`aumesh.data.contract.check_instrument_values`).
     """
     raw = [_raw_metadata(p.table, p.row_groups, instruments) for p in pieces]
     if len(raw) == 1:
@@ -343,33 +343,8 @@ def _validated(
     """``df`` (rows from ``first_row`` of ``path`` on) checked against the data contract, in the model's column order
     (the instrument columns, when given, after the pose)."""
     df = contract.validate_metadata(df, path, row_offset=first_row, coerce=coerce_numeric)
-    check_instrument_values(df, instruments, path, first_row)
+    contract.check_instrument_values(df, instruments, path, first_row)
     return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments]]
-
-
-def check_instrument_values(df: pd.DataFrame, instruments: Sequence[str], path: Path, first_row: int = 0) -> None:
-    """Every instrument value (``model.eiv.instrument_aus``) a finite number.
-
-    A frame the second detector has no value for is refused, not dropped: the instruments are the same frames'
-    second measurement, so a missing one is an export to repair (dropping it silently would fit the model on other
-    frames than ``model/eiv=none`` does), as a face row with only some values missing is the contract's error.
-
-    Raises
-    ------
-    TableError
-        One line naming the file, the column, the row (within the file) and the fix.
-    """
-    for name in instruments:
-        values = pd.to_numeric(df[name], errors="coerce").to_numpy(np.float64)
-        bad = ~np.isfinite(values)
-        if bad.any():
-            row = int(np.flatnonzero(bad)[0])
-            raise TableError(
-                f"{path}: column {name!r} is {df[name].iloc[row]!r} at row {first_row + row} ({int(bad.sum())} "
-                f"such rows): model/eiv=instruments needs the second detector's AUs on every frame. Fix: drop "
-                f"the frames the second detector missed from the tables, or use model/eiv=none."
-            )
-        df[name] = values
 
 
 def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None, instruments: Sequence[str] = ()) -> pd.DataFrame:
