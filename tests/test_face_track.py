@@ -128,6 +128,16 @@ def test_without_a_track_the_largest_face_is_kept_and_a_clear_largest_always_win
     assert chosen.tolist() == [1, 3] and n == 1
 
 
+def test_pyfeats_unknown_identity_is_no_person():
+    """py-feat's hdbscan clustering labels faces it puts in no cluster "Unknown" (feat/utils/stats.py
+    cluster_identities): two such faces are not one person, so a track so labelled follows the nearest box."""
+    assert face_track.label("Unknown") is None and face_track.label("Person_0") == "Person_0"
+    centres = np.array([[0.0, 0.0], [100.0, 0.0]])
+    ident = np.array(["Unknown", "Person_1"], dtype=object)
+    track = face_track.Face((98.0, 1.0), 10.0, face_track.label("Unknown"))
+    assert face_track.choose(np.array([0, 1]), centres, np.array([100.0, 95.0]), ident, track) == 1
+
+
 def test_the_card_says_how_many_frames_were_ambiguous():
     counts = {"frames_ambiguous_faces": 37, "frames_out": 370, "rows_in": 800, "dropped_no_face": 3}
     counts |= {"frames_with_several_faces": 40, "dropped_extra_faces": 41}

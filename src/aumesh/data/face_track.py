@@ -38,12 +38,17 @@ class Face:
     identity: str | None
 
 
+#: py-feat's Identity of a face its clustering put in no cluster (``feat.utils.stats.cluster_identities``, method
+#: "hdbscan": noise is "Unknown"): not a person, so two "Unknown" faces are not one track.
+UNKNOWN_IDENTITY = "Unknown"
+
+
 def label(value: object) -> str | None:
-    """py-feat's Identity of a row as text, None where it has none (NaN, None, "")."""
+    """py-feat's Identity of a row as text, None where it has none (NaN, None, "", py-feat's "Unknown")."""
     if value is None or (isinstance(value, float) and np.isnan(value)):
         return None
     text = str(value)
-    return text if text and text.lower() != "nan" else None
+    return text if text and text.lower() != "nan" and text != UNKNOWN_IDENTITY else None
 
 
 def choose(
