@@ -474,6 +474,32 @@ def load_params(path: str | Path = "params.yaml") -> Config:
         raise ConfigError(f"{path}: {err}") from None
 
 
+#: Config groups that say where a run executes (``compute``: the Dask scheduler, its address) and where it is logged
+#: (``tracking``: the MLflow store), not what it computes. A laptop and a cluster compute the same model, and a
+#: scheduler's or a server's address is one machine's: these groups are never a run's name, MLflow params, recorded
+#: overrides, promoted config or card (:func:`without_where`, :func:`recorded_overrides`), nor a DVC stage's params.
+WHERE_GROUPS = ("compute", "tracking")
+
+
+def is_where(key: str) -> bool:
+    """Whether a dotted config key (``compute.address``) or a Hydra override (``compute=distributed``,
+    ``+tracking.experiment=x``, ``~compute.address``) names one of :data:`WHERE_GROUPS`."""
+    name = key.lstrip("+~").split("=", 1)[0].strip()
+    return name.split(".", 1)[0].split("@", 1)[0] in WHERE_GROUPS
+
+
+def without_where(config: Mapping[str, Any]) -> dict[str, Any]:
+    """``config`` (nested, or flattened with dotted keys) without the keys of :data:`WHERE_GROUPS`: what a run
+    records of its configuration."""
+    return {k: v for k, v in config.items() if not is_where(str(k))}
+
+
+def recorded_overrides(overrides: Sequence[str]) -> list[str]:
+    """The Hydra overrides a run records (its name, ``aumesh.sweep.overrides``): ``overrides`` without those of
+    :data:`WHERE_GROUPS` (``compute.address=tcp://...`` stays on the command line that gave it)."""
+    return [ov for ov in overrides if not is_where(ov)]
+
+
 def check_overrides(overrides: Sequence[str]) -> None:
     """Refuse overrides of keys that no longer exist, naming the form that replaced them."""
     for ov in overrides:

@@ -1,6 +1,6 @@
 """The experiment commands: ``sweep`` (a Hydra sweep, one MLflow child run per configuration), ``runs`` (a sweep's
-runs, or the team's sweeps), ``promote`` (a sweep's best run into conf/ and the registry) and ``server`` (a team's
-MLflow tracking server)."""
+runs, or the team's sweeps), ``promote`` (a sweep's best run into conf/ and the registry), ``exp apply`` (``dvc exp
+apply`` once the experiment's outputs are known to be restorable) and ``server`` (a team's MLflow tracking server)."""
 
 from __future__ import annotations
 
@@ -181,6 +181,13 @@ def _cmd_promote(args) -> int:
     return 0
 
 
+def _cmd_exp_apply(args) -> int:
+    from aumesh.core import provenance
+    from aumesh.experiments import exp_apply
+
+    return exp_apply.apply(provenance.repo_root(), args.name, force=args.force, say=say)
+
+
 def _cmd_server(args) -> int:
     from aumesh.tracking import server
 
@@ -199,7 +206,7 @@ def _cmd_server(args) -> int:
 
 
 def add_parser(subparsers) -> None:
-    """Add ``sweep``, ``runs``, ``promote`` and ``server`` to the ``aumesh`` command."""
+    """Add ``sweep``, ``runs``, ``promote``, ``exp apply`` and ``server`` to the ``aumesh`` command."""
     from aumesh.core.schema import TARGETS
 
     p = subparsers.add_parser(
@@ -294,6 +301,22 @@ def add_parser(subparsers) -> None:
                 help="when the best run's model artifacts were deleted, promote the next best run whose "
                 "artifacts exist, and say so (without it, refused naming the run and the path)",
             )
+
+    p = subparsers.add_parser("exp", help="DVC experiments, guarded: `aumesh exp apply NAME`")
+    actions = p.add_subparsers(dest="exp_command", required=True, metavar="ACTION")
+    apply = actions.add_parser(
+        "apply",
+        help="`dvc exp apply NAME`, refused (exit 2) when an output of the experiment is in neither DVC's cache nor "
+        "the default remote (dvc exp apply would delete it from the workspace)",
+    )
+    apply.add_argument("name", help="the experiment, as `dvc exp list` names it (or its refs/exps/... ref)")
+    apply.add_argument(
+        "--force",
+        action="store_true",
+        help="apply even so (the missing outputs are deleted; `git checkout dvc.lock params.yaml metrics && dvc "
+        "checkout` restores the workspace)",
+    )
+    apply.set_defaults(func=_cmd_exp_apply)
 
     p = subparsers.add_parser(
         "server",

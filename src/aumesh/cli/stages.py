@@ -1,6 +1,6 @@
 """The pipeline's commands: ``compose-params`` (conf/ -> params.yaml), ``synth`` (synthetic input tables with a
-known truth) and the four DVC stages ``ingest``, ``prepare``, ``evaluate``, ``release`` (each a one-line summary of
-what :mod:`aumesh.stages` did)."""
+known truth) and the DVC stages ``check_params``, ``ingest``, ``prepare``, ``evaluate``, ``release`` (each a one-line
+summary of what :mod:`aumesh.stages` did)."""
 
 from __future__ import annotations
 
@@ -99,6 +99,14 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_check_params(args) -> int:
+    from aumesh.stages import check_params
+
+    check_params.main(args.params)
+    print(f"check_params: {args.params} sets no compute or tracking value other than conf/'s")
+    return 0
+
+
 def _cmd_release(args) -> int:
     from aumesh.stages import release
 
@@ -181,6 +189,11 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=_cmd_synth)
 
     for name, func, text in (
+        (
+            "check_params",
+            _cmd_check_params,
+            "stage: refuse a params.yaml with a scheduler or tracking store of its own",
+        ),
         ("ingest", _cmd_ingest, "stage: py-feat's CSV/parquet tables -> clean frame tables"),
         ("prepare", _cmd_prepare, "stage: filter and align the frame tables"),
         ("evaluate", _cmd_evaluate, "stage: cross-validate and fit; log an MLflow run"),

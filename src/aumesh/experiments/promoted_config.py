@@ -20,6 +20,7 @@ from typing import Any
 
 import yaml
 
+from aumesh.config import WHERE_GROUPS
 from aumesh.config import flatten as flatten_config
 
 EXPERIMENT_GROUP = "experiment"
@@ -36,7 +37,7 @@ MODEL_KEYS = (
 )
 # never promoted: where things live, how runs are logged and where they compute, not what the model is (a sweep on
 # a cluster must not write compute.address into conf/ and params.yaml)
-NOT_PROMOTED = ("paths.", "tracking.", "compute.", "data.chunk_rows")
+NOT_PROMOTED = ("paths.", *(f"{group}." for group in WHERE_GROUPS), "data.chunk_rows")
 
 
 def _param_string(value: Any) -> str:

@@ -107,6 +107,7 @@ class SweepCallback:
 
     # -- implementation
     def _start(self, config, directory: Path, overrides: list[str], mode: str) -> None:
+        from aumesh.config import recorded_overrides
         from aumesh.tracking import runs as tracking
 
         self._t0 = time.perf_counter()
@@ -119,7 +120,7 @@ class SweepCallback:
             params=plain,
             tags={
                 "aumesh.sweep.dir": str(directory.resolve()),
-                "aumesh.sweep.overrides": " ".join(overrides),
+                "aumesh.sweep.overrides": " ".join(recorded_overrides(overrides)),
                 "aumesh.sweep.mode": mode,
                 "aumesh.sweep.launcher": launcher,
                 "aumesh.sweep.n_expected": count_jobs(overrides) if mode == "multirun" else 1,
@@ -131,7 +132,7 @@ class SweepCallback:
             {
                 "run_id": parent,
                 "tracking_uri": tracking.tracking_uri(tracking_cfg) if parent else None,
-                "overrides": overrides,
+                "overrides": recorded_overrides(overrides),
             },
         )
         if parent:
@@ -177,12 +178,14 @@ def _task(config) -> dict[str, Any]:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
+    from aumesh.config import recorded_overrides
     from aumesh.experiments.sweep_child import run_configuration
 
     hc = HydraConfig.get()
     multirun = hc.mode == RunMode.MULTIRUN
     parent = read_parent(hc.sweep.dir if multirun else hc.run.dir)
-    overrides = list(hc.overrides.task)
+    # what the child records (its name, tag): compute.address=... or tracking.* given on the command line are not
+    overrides = recorded_overrides(list(hc.overrides.task))
     if parent is None:
         log.warning(
             "no sweep parent run found in %s: is the aumesh SweepCallback configured "

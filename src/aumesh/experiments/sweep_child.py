@@ -35,9 +35,12 @@ BLAS_THREADS_ENV = "AUMESH_SWEEP_BLAS_THREADS"
 
 
 def run_name(overrides: Sequence[str]) -> str:
-    """Compact child run name from a job's overrides: ``target=neutral,pose=true,n_components=10``."""
+    """Compact child run name from a job's overrides: ``target=neutral,pose=true,n_components=10`` (never those of
+    :data:`aumesh.config.WHERE_GROUPS`: :func:`aumesh.config.recorded_overrides`)."""
+    from aumesh.config import recorded_overrides
+
     parts = []
-    for ov in overrides:
+    for ov in recorded_overrides(overrides):
         key, sep, value = ov.partition("=")
         if not sep or key.startswith("hydra"):
             continue
@@ -91,7 +94,7 @@ def run_configuration(
     dict
         ``run_id``, ``run_name``, ``status`` (``FINISHED``/``FAILED``), ``error`` and summary metrics.
     """
-    from aumesh.config import from_dict
+    from aumesh.config import from_dict, recorded_overrides
     from aumesh.core import provenance
     from aumesh.tracking import runs as tracking
 
@@ -103,7 +106,7 @@ def run_configuration(
     tags = {
         tracking.ROLE_TAG: CHILD_ROLE,
         **run_record.run_tags("sweep", (raw.get("preprocess") or {}).get("target")),
-        "aumesh.sweep.overrides": " ".join(overrides),
+        "aumesh.sweep.overrides": " ".join(recorded_overrides(overrides)),
     }
     handle = None
     t_start = time.perf_counter()

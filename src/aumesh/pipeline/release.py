@@ -9,15 +9,11 @@ from typing import Any
 
 import numpy as np
 
-from aumesh.config import Config
+from aumesh.config import WHERE_GROUPS as WHERE_GROUPS  # re-exported: the one list is aumesh.config's
+from aumesh.config import Config, without_where
 from aumesh.core import provenance
 from aumesh.pipeline import integrity
 from aumesh.pipeline.model_files import METRICS_JSON, MODEL_NPZ, TRACKING_JSON
-
-#: Config groups that say where a run executes and is logged, not what it computes: not stage params in dvc.yaml,
-#: never promoted, and not in the shared card (they hold a server's or a scheduler's address).
-WHERE_GROUPS = ("tracking", "compute")
-
 
 _ESTIMATORS = {
     "none": "aumesh.model.pls.PLSRegression (exact kernel PLS, = sklearn PLSRegression)",
@@ -30,7 +26,7 @@ _ESTIMATORS = {
 
 def shareable_config(cfg: Config) -> dict:
     """The configuration as the model card records it: what the model is, without :data:`WHERE_GROUPS`."""
-    return {k: v for k, v in cfg.to_dict().items() if k not in WHERE_GROUPS}
+    return without_where(cfg.to_dict())
 
 
 def build_card(cfg: Config, model_dir: Path, prepared_dir: Path, promotion: dict | None) -> dict:

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from aumesh.config import without_where
 from aumesh.core.provenance import flatten
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -155,7 +156,7 @@ def log_inputs(
     dict
         :func:`log_degenerate`'s finding (the stage keeps it for ``tracking.json`` and the card).
     """
-    config = cfg.to_dict()
+    config = without_where(cfg.to_dict())  # where the run executed and was logged is no part of its record
     handle.log_config(config)
     opened = flatten(opened_params)
     missing = {k: v for k, v in flatten(config).items() if k not in opened}
@@ -256,7 +257,7 @@ def model_arrays(cfg: Config, prepared: Prepared, cv: CVResult, final: FinalMode
 
     metadata = {
         "mlflow_run_id": run_id,
-        "config": cfg.to_dict(),
+        "config": without_where(cfg.to_dict()),
         "cv": cv.metrics(),
         "data": support.data_support(prepared.summary),
     }

@@ -56,10 +56,14 @@ class TrackedRun:
 
     # -- params / tags / metrics
     def log_params(self, params: Mapping[str, Any]) -> dict[str, str]:
-        """Log flattened, truncated params (see :func:`prepare_params`); returns what was logged."""
+        """Log flattened, truncated params (see :func:`prepare_params`) without the keys of
+        :data:`aumesh.config.WHERE_GROUPS` (a scheduler's or a server's address is not what a run computed); returns
+        what was logged."""
         from mlflow.entities import Param
 
-        flat = prepare_params(params)
+        from aumesh.config import without_where
+
+        flat = prepare_params(without_where(params))
         items = [Param(k, v) for k, v in flat.items()]
         for i in range(0, len(items), MAX_BATCH):
             self.client.log_batch(self.run_id, params=items[i : i + MAX_BATCH])
