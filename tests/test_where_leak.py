@@ -207,3 +207,68 @@ def test_dvc_exp_run_with_a_scheduler_address_is_refused_before_any_stage(tmp_pa
     assert "Running stage" not in ok.stdout + ok.stderr or "check_params" in ok.stdout
     assert address not in (ws / "params.yaml").read_text() + (ws / "dvc.lock").read_text()
     assert yaml.safe_load((ws / "params.yaml").read_text())["compute"]["address"] is None
+
+
+# ------------------------------------------------------------------ slow: aumesh exp apply of an unpushed experiment
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _cache_objects(ws: Path, lock_text: str) -> set[Path]:
+    """The cache files of every cached output a dvc.lock records (a folder's .dir manifest and each file in it)."""
+
+    def obj(md5: str) -> Path:
+        return ws / ".dvc" / "cache" / "files" / "md5" / md5[:2] / md5[2:]
+
+    found = set()
+    for stage in yaml.safe_load(lock_text)["stages"].values():
+        for out in stage.get("outs", []):
+            if not obj(out["md5"]).exists():  # a `cache: false` metrics or plot file: in git
+                continue
+            found.add(obj(out["md5"]))
+            if out["md5"].endswith(".dir"):
+                found |= {obj(e["md5"]) for e in json.loads(obj(out["md5"]).read_text())}
+    return found
+
+
+@pytest.mark.slow
+def test_exp_apply_of_an_experiment_whose_outputs_are_not_cached_is_refused_and_the_recovery_works(
+    tmp_path, fixed_conf
+):
+    """A real ``dvc exp run`` whose outputs then leave the cache (as on a machine that never got them): ``aumesh exp
+    apply`` refuses in one line (exit 2) naming them and leaves the workspace as it was; plain ``dvc exp apply``
+    deletes release/ and ``dvc checkout`` then fails; ``git checkout dvc.lock params.yaml metrics && dvc checkout``
+    brings release/ back byte for byte."""
+    from test_cluster import BIN, _env, _run, make_workspace
+
+    ws = make_workspace(tmp_path / "ws", fixed_conf, seed=4, n_frames=900)
+    config.write_params(config.compose(config_dir=ws / "conf"), ws / "params.yaml")
+    env = _env()
+    _run([BIN / "dvc", "repro", "-q"], ws, env)
+    _run(["git", "add", "-A"], ws, env)
+    _run(["git", "commit", "-qm", "built"], ws, env)
+    before, lock = _tree(ws / "release"), (ws / "dvc.lock").read_text()
+    _run([BIN / "dvc", "exp", "run", "-q", "-n", "leaky", "-S", "model.n_components=4"], ws, env)
+    exp_lock = (ws / "dvc.lock").read_text()
+    assert _tree(ws / "release") != before
+    _run(["bash", "-c", "git checkout dvc.lock params.yaml metrics && dvc checkout -q"], ws, env)
+    assert _tree(ws / "release") == before
+    for path in _cache_objects(ws, exp_lock) - _cache_objects(ws, lock):  # the experiment's own objects leave
+        path.unlink()
+
+    proc = subprocess.run([BIN / "aumesh", "exp", "apply", "leaky"], cwd=ws, env=env, capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("aumesh exp: error: experiment leaky:"), proc.stderr
+    for text in ("release (release,", "build/model (evaluate,", "dvc exp push", "--force", "git checkout dvc.lock"):
+        assert text in lines[0], lines[0]
+    assert "build/prepared" not in lines[0] and "build/ingested" not in lines[0]  # shared with the baseline: cached
+    assert _tree(ws / "release") == before and (ws / "dvc.lock").read_text() == lock
+
+    # what the refusal prevents, and the README's recovery
+    subprocess.run([BIN / "dvc", "exp", "apply", "leaky"], cwd=ws, env=env, capture_output=True, text=True)
+    assert _tree(ws / "release") != before  # release/ deleted (or not the baseline's)
+    assert subprocess.run([BIN / "dvc", "checkout"], cwd=ws, env=env, capture_output=True).returncode != 0
+    _run(["bash", "-c", "git checkout dvc.lock params.yaml metrics && dvc checkout"], ws, env)
+    assert _tree(ws / "release") == before
+    assert (ws / "dvc.lock").read_text() == lock

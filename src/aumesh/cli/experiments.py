@@ -37,7 +37,7 @@ def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
     if args.parent:
         return args.parent
     me = queries.current_owner()
-    parent = queries.latest_parent_run(tracking_cfg, workspace=me["workspace"])
+    parent = queries.latest_parent_run(tracking_cfg, workspace=me["workspaces"])
     if parent is None:
         raise UserError(
             f"no sweep of this workspace (user {me['user']}, workspace {me['workspace'][:8]}) in experiment "
@@ -150,7 +150,7 @@ def _cmd_promote(args) -> int:
             "--sweep ID promotes another, --across ranks the team's runs (`aumesh runs --sweeps` lists them)"
         )
         if not args.latest:  # only this clone's pipeline runs: a teammate's `dvc exp run` is theirs
-            evaluate = queries.latest_evaluate_run(tracking_cfg, workspace=queries.current_owner(root)["workspace"])
+            evaluate = queries.latest_evaluate_run(tracking_cfg, workspace=queries.current_owner(root)["workspaces"])
             if evaluate and evaluate["start_time"] > sweep["start_time"]:
                 newer = evaluate
     record = promote.promote(
@@ -170,7 +170,7 @@ def _cmd_promote(args) -> int:
     print(json.dumps(record, indent=2, default=str))
     if args.across:
         me = queries.current_owner(root)
-        whose = "your own" if record["workspace"] == me["workspace"] else f"{record['user']}'s"
+        whose = "your own" if record["workspace"] in me["workspaces"] else f"{record['user']}'s"
         print(
             f"\nacross the team's runs on this data, {whose} run {record['run_id']} won "
             f"({record['metric']} = {record['value']:.6f}, of sweep {record['parent_run_id']})."

@@ -296,16 +296,20 @@ def user_identity(root: Path | str | None = None) -> str:
 
 
 def workspace_id(root: Path | str) -> str:
-    """A stable id of this clone: 16 hex digits of SHA-256 over its absolute path and its git remote's URL.
+    """A stable id of this clone (16 hex digits), kept in its git folder: the same after a change of the remote URL's
+    spelling or a move, another for a copy (:mod:`aumesh.core.workspace_id`). Stable across runs, commits and DVC
+    temporary copies (they resolve to the workspace, :func:`repo_root`)."""
+    from aumesh.core import workspace_id as ids
 
-    Two clones of one repository on one machine differ by path; the same path on two machines by remote (or not:
-    then they are the same place to the tracking server). Stable across runs, commits and DVC temporary copies
-    (they resolve to the workspace, :func:`repo_root`)."""
-    import hashlib
+    return ids.workspace_id(root)
 
-    root = Path(root).resolve()
-    remote = _git(["config", "--get", "remote.origin.url"], root) or ""
-    return hashlib.sha256(f"{root.as_posix()}\n{remote}".encode()).hexdigest()[:16]
+
+def workspace_ids(root: Path | str) -> list[str]:
+    """:func:`workspace_id` and the ids this clone's runs were tagged with before
+    (:func:`aumesh.core.workspace_id.workspace_ids`): what a query for "this clone's runs" matches."""
+    from aumesh.core import workspace_id as ids
+
+    return ids.workspace_ids(root)
 
 
 def data_digest(root: Path | str, dvc_file: str = "data.dvc") -> dict[str, Any]:

@@ -97,15 +97,29 @@ def _missing_in(odbs: list, output: LockedOutput) -> list[str]:
     return [hi.value for _, _, hi in tree if hi is not None and hi.value and not held(hi.value)]
 
 
-def missing_outputs(root: Path, ref: str) -> tuple[list[tuple[LockedOutput, int]], str]:
-    """The outputs of the experiment at ``ref`` that ``dvc exp apply`` could not check out.
+@dataclass(frozen=True)
+class OutputsCheck:
+    """Where an experiment's cached outputs are: each output with objects in neither the local cache nor the default
+    remote (and how many), the outputs only the remote holds (``dvc pull`` after the apply), and where it looked."""
+
+    missing: list[tuple[LockedOutput, int]]
+    remote_only: list[LockedOutput]
+    where: str
+
+
+def missing_outputs(root: Path, ref: str) -> OutputsCheck:
+    """Look the cached outputs of the experiment at ``ref`` up in the local cache and the default remote.
+
+    Parameters
+    ----------
+    root : Path
+        The DVC workspace.
+    ref : str
+        The experiment's git ref (:func:`experiment_ref`).
 
     Returns
     -------
-    list of (LockedOutput, int)
-        Each output with objects in neither the local cache nor the default remote, and how many objects it lacks.
-    str
-        Where it looked (``"the cache"`` or ``"the cache and remote 'NAME' (URL)"``).
+    OutputsCheck
     """
     import yaml
     from dvc.repo import Repo
@@ -116,15 +130,19 @@ def missing_outputs(root: Path, ref: str) -> tuple[list[tuple[LockedOutput, int]
     with Repo(str(root)) as repo:
         name = repo.config["core"].get("remote")
         where = f"the cache and remote '{name}' ({repo.config['remote'][name]['url']})" if name else "the cache"
-        missing = []
+        missing, remote_only = [], []
         for output in locked_outputs(lock, in_git):
             # DVC 3 outputs (`hash: md5`) live in files/md5/, older ones (md5-dos2unix) in the legacy layout
             local = repo.cache.local if output.hash_name == "md5" else repo.cache.legacy
+            if not _missing_in([local], output):
+                continue
             remote = repo.cloud.get_remote_odb(name, "exp apply", hash_name=output.hash_name) if name else None
             lacking = _missing_in([local, remote], output)
             if lacking:
                 missing.append((output, len(lacking)))
-    return missing, where
+            else:
+                remote_only.append(output)
+    return OutputsCheck(missing, remote_only, where)
 
 
 def refusal(name: str, missing: list[tuple[LockedOutput, int]], where: str) -> ExperimentOutputsMissing:
@@ -164,9 +182,14 @@ def apply(root: str | Path, name: str, force: bool = False, say=print) -> int:
     """
     root = Path(root)
     ref = experiment_ref(root, name)
-    missing, where = missing_outputs(root, ref)
-    if missing and not force:
-        raise refusal(name, missing, where)
-    if missing:
-        say(f"warning: {refusal(name, missing, where)}".replace(" Fix: ", " Applying anyway (--force); "))
-    return subprocess.run([sys.executable, "-m", "dvc", "exp", "apply", ref.rsplit("/", 1)[-1]], cwd=root).returncode
+    check = missing_outputs(root, ref)
+    if check.missing and not force:
+        raise refusal(name, check.missing, check.where)
+    if check.missing:
+        say(f"warning: {refusal(name, check.missing, check.where)}".replace(" Fix: ", " Applying anyway (--force); "))
+    dvc = [sys.executable, "-m", "dvc"]
+    code = subprocess.run([*dvc, "exp", "apply", ref.rsplit("/", 1)[-1]], cwd=root).returncode
+    if check.remote_only and code == 0:  # dvc exp apply checks out from the cache only: fetch the rest
+        say(f"{', '.join(o.path for o in check.remote_only)}: only in the remote; `dvc pull`")
+        code = subprocess.run([*dvc, "pull"], cwd=root).returncode
+    return code

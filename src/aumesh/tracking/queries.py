@@ -9,7 +9,7 @@ objects. Owner filters use the tags every run carries (:func:`aumesh.tracking.ru
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -34,12 +34,15 @@ BASE_COLUMNS = ["run_id", "run_name", "status", "start_time", "end_time", "error
 
 
 # ------------------------------------------------------------------ who is asking
-def current_owner(root: Path | None = None) -> dict[str, str]:
-    """This caller's ``user`` and ``workspace`` (id), as the tags of their runs hold them."""
+def current_owner(root: Path | None = None) -> dict[str, Any]:
+    """This caller's ``user`` and ``workspace`` (id), as the tags of their runs hold them, and ``workspaces``: every
+    id this clone's runs may carry (:func:`aumesh.core.provenance.workspace_ids`: the ids of before too), what the
+    queries' ``workspace`` filter takes."""
     from aumesh.core import provenance
 
     root = Path(root) if root is not None else provenance.repo_root()
-    return {"user": provenance.user_identity(root), "workspace": provenance.workspace_id(root)}
+    ids = provenance.workspace_ids(root)
+    return {"user": provenance.user_identity(root), "workspace": ids[0], "workspaces": ids}
 
 
 def _quoted(value: str) -> str:
@@ -173,7 +176,7 @@ def latest_runs_tagged(
     tracking_cfg: Mapping[str, Any] | None = None,
     max_results: int = 20,
     user: str | None = None,
-    workspace: str | None = None,
+    workspace: str | Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
     """The newest runs of the configured experiment whose *tag* equals *value*, newest first.
 
@@ -185,7 +188,8 @@ def latest_runs_tagged(
         The ``tracking`` config group (``experiment`` names the experiment).
     max_results : int, default 20
     user, workspace : str, optional
-        Only runs of this user (``aumesh.user``) / this clone (``aumesh.workspace.id``).
+        Only runs of this user (``aumesh.user``) / this clone (``aumesh.workspace.id``; a list: any of these ids,
+        :func:`current_owner`'s ``workspaces``).
 
     Returns
     -------
@@ -196,12 +200,18 @@ def latest_runs_tagged(
     exp = _experiment_id(client, tracking_cfg)
     if exp is None:
         return []
-    runs = client.search_runs(
-        [exp],
-        filter_string=_filter({tag: value, USER_TAG: user, WORKSPACE_TAG: workspace}),
-        order_by=["attributes.start_time DESC"],
-        max_results=max_results,
-    )
+    # MLflow's filter has no IN for tags: one search per id of the clone, merged newest first
+    ids: list[str | None] = [workspace] if workspace is None or isinstance(workspace, str) else list(workspace)
+    found = {}
+    for one in ids:
+        for run in client.search_runs(
+            [exp],
+            filter_string=_filter({tag: value, USER_TAG: user, WORKSPACE_TAG: one}),
+            order_by=["attributes.start_time DESC"],
+            max_results=max_results,
+        ):
+            found[run.info.run_id] = run
+    runs = sorted(found.values(), key=lambda r: r.info.start_time, reverse=True)[:max_results]
     return [_record(run) for run in runs]
 
 
@@ -209,14 +219,16 @@ def sweeps(
     tracking_cfg: Mapping[str, Any] | None = None,
     limit: int = 20,
     user: str | None = None,
-    workspace: str | None = None,
+    workspace: str | Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
     """The newest sweep parent runs (of *user* / *workspace* when given), newest first (:func:`run_record` views)."""
     return latest_runs_tagged(ROLE_TAG, SWEEP_PARENT_ROLE, tracking_cfg, limit, user=user, workspace=workspace)
 
 
 def latest_parent_run(
-    tracking_cfg: Mapping[str, Any] | None = None, user: str | None = None, workspace: str | None = None
+    tracking_cfg: Mapping[str, Any] | None = None,
+    user: str | None = None,
+    workspace: str | Sequence[str] | None = None,
 ) -> str | None:
     """Id of the most recently started sweep parent run of the configured experiment (of *user* / *workspace* when
     given); None when there is none."""
@@ -225,7 +237,7 @@ def latest_parent_run(
 
 
 def latest_evaluate_run(
-    tracking_cfg: Mapping[str, Any] | None = None, workspace: str | None = None
+    tracking_cfg: Mapping[str, Any] | None = None, workspace: str | Sequence[str] | None = None
 ) -> dict[str, Any] | None:
     """The newest pipeline evaluate run (of this *workspace* when given), or None."""
     runs = latest_runs_tagged("aumesh.stage", "evaluate", tracking_cfg, 1, workspace=workspace)
