@@ -168,11 +168,13 @@ SWEEP_GRID ?= preprocess.target=absolute,neutral,within features=au,au_pose,au_p
 sweep: $(STAMP)
 	$(BIN)/aumesh sweep -m $(SWEEP_GRID)
 
+# bare, as a user types them: this clone's latest sweep; `promote` refuses to overrule a newer evaluate run of this
+# clone (`aumesh promote --latest` is the explicit way past that refusal, never make's)
 runs: $(STAMP)
-	$(BIN)/aumesh runs --latest
+	$(BIN)/aumesh runs
 
 promote: $(STAMP)
-	$(BIN)/aumesh promote --latest
+	$(BIN)/aumesh promote
 	@echo "now: make repro   (dvc repro rebuilds the promoted release)"
 
 # py-feat's own loader and plot_face_mesh on the release (optional, slow: py-feat pulls torch).

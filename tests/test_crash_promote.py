@@ -15,7 +15,7 @@ import pytest
 
 from aumesh import cli, config
 from aumesh.experiments import promote, promotion_journal
-from aumesh.tracking import registry
+from aumesh.tracking import mlflow_store, registry
 from test_promote import _log_fake_sweep
 
 NAME = promote.DEFAULT_MODEL_NAME
@@ -131,7 +131,8 @@ def test_a_promotion_killed_at_any_step_is_completed_or_rolled_back_by_the_next_
 
 def test_a_promotion_that_fails_half_way_rolls_back_at_once(promoted_once, monkeypatch):
     """An error after the registry and the experiment file (params.yaml cannot be written): the alias is back on
-    version 1 and every file is the old one; the new version stays registered, without the alias."""
+    version 1 and every file is the old one; the new version stays registered, without the alias, and promoting again
+    takes it (registry.register_model_version is idempotent per run: no third version of two runs)."""
     ws, sweep, _ = promoted_once
     old = _state(ws)
     real = promotion_journal.atomic_write_text
@@ -148,9 +149,12 @@ def test_a_promotion_that_fails_half_way_rolls_back_at_once(promoted_once, monke
     assert _state(ws) == old
     assert not (ws / promotion_journal.JOURNAL).exists()
     assert registry.find_version(NAME, _state(ws)["alias"][1], "aumesh.parent_run_id", "x", {}) is None
-    # the failed promotion's version exists, unaliased; promoting again works and takes the alias
+    # the failed promotion's version exists, unaliased; promoting again takes the alias to it, registering nothing new
     promote.promote(sweep, ws, {})
-    assert _state(ws)["alias"][0] == "3"
+    run_id = json.loads((ws / "promotion.json").read_text())["promoted"]["run_id"]
+    versions = mlflow_store.get_client({}).search_model_versions(f"run_id = '{run_id}'")
+    assert [str(v.version) for v in versions if v.name == NAME] == ["2"]
+    assert _state(ws)["alias"][0] == "2"
 
 
 def test_a_journal_without_a_registry_step_is_rolled_forward(conf_ws, capsys):

@@ -21,7 +21,13 @@ def register_model_version(
     tags: Mapping[str, Any] | None = None,
     description: str | None = None,
 ) -> dict[str, Any]:
-    """Register a run's artifact directory as a new version of registered model *name*.
+    """Register a run's artifact directory as a version of registered model *name*: one version per run.
+
+    Idempotent: a run already registered under *name* is not registered again; its (lowest) version gets *tags* and
+    *alias*. Two registrations of one run at once (two clones promoting the same sweep on one server; a workspace's
+    promotion lock does not reach another clone) may both create a version: each then looks again
+    (:func:`_versions_of_run`) and the one whose version is not the lowest deletes its own, so both end on the same
+    version and the registry holds one.
 
     The source is ``<run artifact_uri>/<artifact_path>``: a ``file://`` URI inside the
     run's artifact directory for a local store, an ``mlflow-artifacts:/`` URI for a
@@ -49,7 +55,8 @@ def register_model_version(
     Returns
     -------
     dict
-        ``name``, ``version`` (str), ``source``, ``alias``, ``run_id``.
+        ``name``, ``version`` (str), ``source``, ``alias``, ``run_id``, ``reused`` (True when the run was registered
+        before, by another promotion or a concurrent one).
 
     Raises
     ------
@@ -76,10 +83,36 @@ def register_model_version(
             client.get_registered_model(name)  # created concurrently; re-raise if it still does not exist
     source = f"{run.info.artifact_uri.rstrip('/')}/{artifact_path.strip('/')}"
     clean_tags = {str(k): _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in (tags or {}).items()}
-    mv = client.create_model_version(name, source, run_id=run_id, tags=clean_tags or None, description=description)
+    before = _versions_of_run(client, name, run_id)
+    if before:
+        mv, reused = before[0], True
+    else:
+        mine = client.create_model_version(
+            name, source, run_id=run_id, tags=clean_tags or None, description=description
+        )
+        mv = _versions_of_run(client, name, run_id)[0]  # the lowest: another registration's if it came first
+        reused = str(mv.version) != str(mine.version)
+        if reused:  # a concurrent registration of this run got the lower version: ours goes
+            client.delete_model_version(name, mine.version)
+    if reused:  # the run's version, as this promotion names it (its journal finds it by these tags)
+        for key, value in clean_tags.items():
+            client.set_model_version_tag(name, mv.version, key, value)
     if alias:
         client.set_registered_model_alias(name, alias, mv.version)
-    return {"name": name, "version": str(mv.version), "source": source, "alias": alias, "run_id": run_id}
+    return {
+        "name": name,
+        "version": str(mv.version),
+        "source": mv.source,
+        "alias": alias,
+        "run_id": run_id,
+        "reused": reused,
+    }
+
+
+def _versions_of_run(client, name: str, run_id: str) -> list:
+    """The versions of registered model *name* made from run *run_id*, lowest version first."""
+    found = [mv for mv in client.search_model_versions(f"run_id = '{run_id}'") if mv.name == name]
+    return sorted(found, key=lambda mv: int(mv.version))
 
 
 def model_version_by_alias(
