@@ -31,6 +31,7 @@ from aumesh.stages import check_params
         ("~compute.address", True),
         ("tracking.experiment=x", True),
         ("tracking=mlflow", True),
+        ("compute/sub=x", True),  # a nested group of compute, were there one
         ("model.n_components=10", False),
         ("features=au_pose", False),
         ("computeX.address=1", False),  # a group whose name only starts like one
@@ -83,6 +84,28 @@ def test_check_params_names_each_where_value_that_differs_from_conf(fixed_conf, 
     assert "\n" not in str(err.value)
     config.write_params(changed_model, path)
     check_params.main(path, fixed_conf)  # a model change passes
+
+
+def test_locked_outputs_are_the_cached_outputs_of_a_lock_not_the_files_git_holds():
+    from aumesh.experiments.exp_apply import LockedOutput, locked_outputs
+
+    lock = {
+        "schema": "2.0",
+        "stages": {
+            "evaluate": {
+                "outs": [
+                    {"path": "build/model", "md5": "a" * 32 + ".dir", "hash": "md5"},
+                    {"path": "metrics/metrics.json", "md5": "b" * 32, "hash": "md5"},  # cache: false, in git
+                ]
+            },
+            "release": {"outs": [{"path": "release", "md5": "c" * 32 + ".dir"}]},  # an older lock: no `hash`
+            "check_params": {"deps": [{"path": "params.yaml", "md5": "d" * 32}]},  # no outputs
+        },
+    }
+    assert locked_outputs(lock, ["metrics/metrics.json"]) == [
+        LockedOutput("evaluate", "build/model", "a" * 32 + ".dir", "md5"),
+        LockedOutput("release", "release", "c" * 32 + ".dir", "md5-dos2unix"),
+    ]
 
 
 # ------------------------------------------------------------------ slow: the real path
@@ -260,7 +283,9 @@ def test_exp_apply_of_an_experiment_whose_outputs_are_not_cached_is_refused_and_
     assert proc.returncode == 2, proc.stdout + proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("aumesh exp: error: experiment leaky:"), proc.stderr
-    for text in ("release (release,", "build/model (evaluate,", "dvc exp push", "--force", "git checkout dvc.lock"):
+    for text in ("release (release: its file list)", "build/model (evaluate: its file list)", "not in the cache"):
+        assert text in lines[0], lines[0]
+    for text in ("dvc exp push", "--force", "git checkout dvc.lock params.yaml metrics && dvc checkout"):
         assert text in lines[0], lines[0]
     assert "build/prepared" not in lines[0] and "build/ingested" not in lines[0]  # shared with the baseline: cached
     assert _tree(ws / "release") == before and (ws / "dvc.lock").read_text() == lock

@@ -485,7 +485,7 @@ def is_where(key: str) -> bool:
     """Whether a dotted config key (``compute.address``) or a Hydra override (``compute=distributed``,
     ``+tracking.experiment=x``, ``~compute.address``) names one of :data:`WHERE_GROUPS`."""
     name = key.lstrip("+~").split("=", 1)[0].strip()
-    return name.split(".", 1)[0].split("@", 1)[0] in WHERE_GROUPS
+    return name.split(".", 1)[0].split("@", 1)[0].split("/", 1)[0] in WHERE_GROUPS
 
 
 def without_where(config: Mapping[str, Any]) -> dict[str, Any]:

@@ -55,11 +55,11 @@ import contextlib
 import json
 import os
 import platform
-import shutil
-import subprocess
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+from aumesh.core.git import run_git as _git
 
 #: Path fragment under which DVC creates temporary copies of the repository.
 DVC_EXPS_MARKER = "/.dvc/tmp/exps/"
@@ -75,8 +75,6 @@ _LIBRARIES = (
     "dvc",
     "hydra-core",
 )
-
-_GIT_TIMEOUT_S = 30.0  # git status in a fresh DVC temp copy can be slow on a loaded box
 
 
 def _workspace_from_temp_copy(path: Path) -> Path | None:
@@ -157,27 +155,6 @@ def repo_root(start: Path | None = None) -> Path:
         "'dvc.yaml' or '.git' and it is not inside '<workspace>/.dvc/tmp/exps/'. "
         "Run from inside the aumesh checkout (or pass start=<path inside it>)."
     )
-
-
-def _git(args: Sequence[str], cwd: Path) -> str | None:
-    """Run ``git <args>`` in *cwd*; return stripped stdout or None on any failure."""
-    exe = shutil.which("git")
-    if exe is None:
-        return None
-    try:
-        out = subprocess.run(
-            [exe, *args],
-            cwd=str(cwd),
-            capture_output=True,
-            text=True,
-            timeout=_GIT_TIMEOUT_S,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    if out.returncode != 0:
-        return None
-    return out.stdout.strip()
 
 
 def dvc_written_paths(directory: Path | str) -> list[str]:

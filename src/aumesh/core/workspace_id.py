@@ -29,7 +29,7 @@ import secrets
 from pathlib import Path
 from typing import Any
 
-from aumesh.core.provenance import _git
+from aumesh.core.git import run_git as _git
 
 ID_FILE = "aumesh-workspace-id.json"
 _SCP = re.compile(r"^(?:[^@/]+@)?(?P<host>[^:/]+):(?P<path>.*)$")  # git@host:x/y (git's scp-like syntax)

@@ -80,29 +80,32 @@ def locked_outputs(lock: Mapping[str, Any], in_git: Iterable[str] = ()) -> list[
     return out
 
 
-def _missing_in(odbs: list, output: LockedOutput) -> list[str]:
-    """The objects of ``output`` (its own, and a folder's files) that none of ``odbs`` holds."""
+def _missing_in(odbs: list, output: LockedOutput) -> str | None:
+    """What of ``output`` none of ``odbs`` holds, in words (``"the file"``, ``"its file list"``, ``"3 of 8 files"``),
+    or None when all of it is held."""
     from dvc_data.hashfile.hash_info import HashInfo
     from dvc_data.hashfile.tree import Tree
 
     def held(oid: str) -> bool:
         return any(odb is not None and odb.exists(oid) for odb in odbs)
 
+    is_dir = output.md5.endswith(".dir")
     if not held(output.md5):
-        return [output.md5]
-    if not output.md5.endswith(".dir"):
-        return []
+        return "its file list" if is_dir else "the file"
+    if not is_dir:
+        return None
     odb = next(o for o in odbs if o is not None and o.exists(output.md5))
-    tree = Tree.load(odb, HashInfo("md5", output.md5))
-    return [hi.value for _, _, hi in tree if hi is not None and hi.value and not held(hi.value)]
+    files = [hi.value for _, _, hi in Tree.load(odb, HashInfo("md5", output.md5)) if hi is not None and hi.value]
+    lacking = sum(not held(oid) for oid in files)
+    return f"{lacking} of {len(files)} files" if lacking else None
 
 
 @dataclass(frozen=True)
 class OutputsCheck:
     """Where an experiment's cached outputs are: each output with objects in neither the local cache nor the default
-    remote (and how many), the outputs only the remote holds (``dvc pull`` after the apply), and where it looked."""
+    remote (and what of it, in words), the outputs only the remote holds (``dvc pull`` after the apply), and where it looked."""
 
-    missing: list[tuple[LockedOutput, int]]
+    missing: list[tuple[LockedOutput, str]]
     remote_only: list[LockedOutput]
     where: str
 
@@ -129,7 +132,11 @@ def missing_outputs(root: Path, ref: str) -> OutputsCheck:
     in_git = _git(root, "ls-tree", "-r", "--name-only", ref, "--", *paths).split() if paths else []
     with Repo(str(root)) as repo:
         name = repo.config["core"].get("remote")
-        where = f"the cache and remote '{name}' ({repo.config['remote'][name]['url']})" if name else "the cache"
+        where = (
+            f"in neither the cache nor remote '{name}' ({repo.config['remote'][name]['url']})"
+            if name
+            else "not in the cache (and no default DVC remote)"
+        )
         missing, remote_only = [], []
         for output in locked_outputs(lock, in_git):
             # DVC 3 outputs (`hash: md5`) live in files/md5/, older ones (md5-dos2unix) in the legacy layout
@@ -139,17 +146,17 @@ def missing_outputs(root: Path, ref: str) -> OutputsCheck:
             remote = repo.cloud.get_remote_odb(name, "exp apply", hash_name=output.hash_name) if name else None
             lacking = _missing_in([local, remote], output)
             if lacking:
-                missing.append((output, len(lacking)))
+                missing.append((output, lacking))
             else:
                 remote_only.append(output)
     return OutputsCheck(missing, remote_only, where)
 
 
-def refusal(name: str, missing: list[tuple[LockedOutput, int]], where: str) -> ExperimentOutputsMissing:
+def refusal(name: str, missing: list[tuple[LockedOutput, str]], where: str) -> ExperimentOutputsMissing:
     """The one line :func:`apply` refuses with."""
-    listed = ", ".join(f"{o.path} ({o.stage}, {n} object{'s' if n > 1 else ''})" for o, n in missing)
+    listed = ", ".join(f"{o.path} ({o.stage}: {what})" for o, what in missing)
     return ExperimentOutputsMissing(
-        f"experiment {name}: {listed} in neither {where}, so `dvc exp apply` would delete them from the workspace "
+        f"experiment {name}: {listed} {where}, so `dvc exp apply` would delete them from the workspace "
         f"and `dvc checkout` could not bring them back. Fix: `dvc exp push <git remote> {name}` where it ran, then "
         f"`dvc exp pull <git remote> {name}` here; or run it again here (`dvc exp run -S ...`); or `aumesh exp apply "
         f"{name} --force` (recovery: `{RECOVERY}`)."
