@@ -297,3 +297,17 @@ def test_exp_apply_of_an_experiment_whose_outputs_are_not_cached_is_refused_and_
     _run(["bash", "-c", "git checkout dvc.lock params.yaml metrics && dvc checkout"], ws, env)
     assert _tree(ws / "release") == before
     assert (ws / "dvc.lock").read_text() == lock
+
+    # an experiment whose outputs are only in the default remote: applied, then pulled
+    (tmp_path / "remote").mkdir()
+    _run([BIN / "dvc", "remote", "add", "-d", "team", tmp_path / "remote"], ws, env)
+    _run([BIN / "dvc", "exp", "run", "-q", "-n", "pushed", "-S", "model.n_components=5"], ws, env)
+    pushed, pushed_lock = _tree(ws / "release"), (ws / "dvc.lock").read_text()
+    _run([BIN / "dvc", "push", "-q"], ws, env)  # the experiment's outputs (the workspace holds them now)
+    _run(["bash", "-c", "git checkout dvc.lock params.yaml metrics && dvc checkout -q"], ws, env)
+    for path in _cache_objects(ws, pushed_lock) - _cache_objects(ws, lock):
+        path.unlink()
+    proc = subprocess.run([BIN / "aumesh", "exp", "apply", "pushed"], cwd=ws, env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "only in the remote; `dvc pull`" in proc.stdout + proc.stderr
+    assert _tree(ws / "release") == pushed and (ws / "dvc.lock").read_text() == pushed_lock

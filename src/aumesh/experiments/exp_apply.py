@@ -196,7 +196,7 @@ def apply(root: str | Path, name: str, force: bool = False, say=print) -> int:
         say(f"warning: {refusal(name, check.missing, check.where)}".replace(" Fix: ", " Applying anyway (--force); "))
     dvc = [sys.executable, "-m", "dvc"]
     code = subprocess.run([*dvc, "exp", "apply", ref.rsplit("/", 1)[-1]], cwd=root).returncode
-    if check.remote_only and code == 0:  # dvc exp apply checks out from the cache only: fetch the rest
+    if check.remote_only:  # dvc exp apply checks out from the cache only (and says it failed for these): pull them
         say(f"{', '.join(o.path for o in check.remote_only)}: only in the remote; `dvc pull`")
         code = subprocess.run([*dvc, "pull"], cwd=root).returncode
     return code
