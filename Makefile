@@ -51,7 +51,7 @@ $(PLOTS_TEMPLATE): $(TOOLS_STAMP) $(STAMP) src/aumesh/export/dvc_plots.py
 tools: $(TOOLS_STAMP) $(PLOTS_TEMPLATE)
 
 lock:
-	$(BIN)/uv pip compile pyproject.toml --extra test --extra dev --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
+	$(BIN)/uv pip compile pyproject.toml --extra test --extra dev --extra s3 --python-version 3.11 --python-platform x86_64-manylinux_2_28 -o requirements.lock
 
 # After a change that reruns stages: rebuild, store the outputs in the committed demo remote, drop objects
 # the workspace no longer uses (older commits keep theirs in their own demo-remote/); then commit
