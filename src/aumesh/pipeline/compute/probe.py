@@ -15,6 +15,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from aumesh.core import storage
 from aumesh.core.errors import ClusterError
 from aumesh.pipeline.compute.settings import local_fix
 
@@ -32,8 +33,9 @@ _PROBE_BYTES = 65536
 
 def _fingerprint(path: str) -> tuple[int, str]:
     """``(size, sha256 of the first and last 64 KiB)`` of a file: the same file, or another at the same path."""
-    with open(path, "rb") as fh:
-        size = os.fstat(fh.fileno()).st_size
+    where = storage.input_path(path)  # a local file, or an object's URL (paths.data_dir=s3://...)
+    with storage.open_input(where) as fh:
+        size = storage.size(where)
         digest = hashlib.sha256(fh.read(_PROBE_BYTES))
         if size > _PROBE_BYTES:
             fh.seek(max(_PROBE_BYTES, size - _PROBE_BYTES))
@@ -73,7 +75,7 @@ def check_workers(client, read: str | Path | None, write: str | Path | None) -> 
     """
     if read is None and write is None:
         return
-    read = None if read is None else os.path.abspath(read)
+    read = None if read is None else str(storage.absolute(storage.input_path(read)))
     write = None if write is None else os.path.abspath(write)
     token = uuid.uuid4().hex
     try:  # what the workers must read; a file this process cannot read is the stage's own error, when it reads it
