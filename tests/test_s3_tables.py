@@ -21,6 +21,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path, PurePosixPath
 
@@ -30,7 +31,6 @@ from aumesh.config import compose, write_params
 from aumesh.core import storage
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from aumesh.synthetic.tables import SynthSpec
-from conftest import REPO
 
 BIN = Path(sys.executable).parent
 BUCKET = "lab-tables"
@@ -44,19 +44,22 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+#: No profile: an empty AWS config and credentials file (dvc-s3 reads the file AWS_CONFIG_FILE names, which must exist)
+_EMPTY = Path(tempfile.gettempdir()) / "aumesh-test-empty-aws-config"
+
+
 def aws_env(endpoint: str, credentials: bool = True) -> dict[str, str]:
     """The environment a lab sets for its object store (never the config); without ``credentials``: none anywhere
     (no keys, no profile files, no instance metadata)."""
-    env = {
-        k: v for k, v in os.environ.items() if not k.startswith("AWS_") and not k.startswith("AUMESH_COMPUTE_")
-    }
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AWS_") and not k.startswith("AUMESH_COMPUTE_")}
     env |= {
         "AWS_ENDPOINT_URL": endpoint,
         "AWS_DEFAULT_REGION": "us-east-1",
         "AWS_EC2_METADATA_DISABLED": "true",
-        "AWS_SHARED_CREDENTIALS_FILE": os.devnull,
-        "AWS_CONFIG_FILE": os.devnull,
+        "AWS_SHARED_CREDENTIALS_FILE": str(_EMPTY),
+        "AWS_CONFIG_FILE": str(_EMPTY),
     }
+    _EMPTY.touch()
     if credentials:
         env |= {"AWS_ACCESS_KEY_ID": "lab", "AWS_SECRET_ACCESS_KEY": "lab-secret"}
     env["PATH"] = f"{BIN}{os.pathsep}{env['PATH']}"
@@ -86,7 +89,11 @@ class MotoServer:
         import s3fs
 
         return s3fs.S3FileSystem(
-            key="lab", secret="lab-secret", endpoint_url=self.endpoint, skip_instance_cache=True, use_listings_cache=False
+            key="lab",
+            secret="lab-secret",
+            endpoint_url=self.endpoint,
+            skip_instance_cache=True,
+            use_listings_cache=False,
         )
 
     def stop(self) -> None:
@@ -161,7 +168,9 @@ def test_object_paths_name_and_sort_as_pathlib_does():
         assert (p.name, p.stem, p.suffix) == (ref.name, ref.stem, ref.suffix)
         assert str(p.with_name("m.npy")) == "s3://bkt" + str(ref.with_name("m.npy"))[4:]
     # the order the tables are ingested in: the order pathlib gives the same names on disk
-    assert [str(p)[len("s3://bkt/") :] for p in sorted(paths)] == [str(p)[5:] for p in sorted(PurePosixPath("/bkt") / k for k in keys)]
+    assert [str(p)[len("s3://bkt/") :] for p in sorted(paths)] == [
+        str(p)[5:] for p in sorted(PurePosixPath("/bkt") / k for k in keys)
+    ]
     assert storage.absolute(paths[0]) is paths[0] and not storage.is_url("data") and not storage.is_url(Path("s3:/x"))
 
 
@@ -240,7 +249,9 @@ def test_a_parquet_table_on_s3_is_copied_once_and_prepares_as_on_disk(moto, tmp_
         c = dataclasses.replace(cfg, paths=dataclasses.replace(cfg.paths, data_dir=where))
         manifest = ingest.run(c, tmp_path / name / "ingested")
         reads = {e["read"] for e in manifest["sources"]}
-        assert reads == ({"in place"} if name == "disk" else {"cleaned (on object storage: copied once, not read in place)"})
+        assert reads == (
+            {"in place"} if name == "disk" else {"cleaned (on object storage: copied once, not read in place)"}
+        )
         found = tables.check_tables(manifest["tables"], c.data.mesh_npy, c.data.coerce_numeric)
         prepare.run(found, c, tmp_path / name / "prepared", ingested=manifest["counts"])
     a, b = tmp_path / "disk" / "prepared", tmp_path / "s3" / "prepared"
@@ -250,7 +261,7 @@ def test_a_parquet_table_on_s3_is_copied_once_and_prepares_as_on_disk(moto, tmp_
 
 #: Each failure: (paths.data_dir, whether the stage has credentials, whether the endpoint answers, what the line says)
 FAILURES = {
-    "no bucket": (f"s3://no-such-bucket/tables", True, True, "no bucket 'no-such-bucket'"),
+    "no bucket": ("s3://no-such-bucket/tables", True, True, "no bucket 'no-such-bucket'"),
     "no such prefix": (f"s3://{BUCKET}/no-such-prefix", True, True, "no object under this prefix"),
     "no credentials": (f"s3://{BUCKET}/ingest-cli", False, True, "no credentials for the object store"),
     "endpoint down": (f"s3://{BUCKET}/ingest-cli", True, False, "cannot reach the object store at http://127.0.0.1:"),
@@ -277,3 +288,126 @@ def test_each_object_store_failure_is_one_line_naming_the_url_and_exit_2(case, m
     assert proc.returncode == 2, proc.stderr
     assert line.startswith(f"aumesh ingest: error: {url}: ") and says in line and "Fix: " in line, line
     assert not (tmp_path / "build" / "ingested").exists()
+
+
+def s3_workspace(root: Path, fixed_conf: Path, url: str | None, data: Path) -> Path:
+    """The repo's pipeline in a git + DVC workspace (tests/test_cluster.py's), the py-feat tables in ``data/``
+    (``dvc add``) or, with ``url``, only on S3 (``paths.data_dir=url`` in params.yaml, no data/)."""
+    from test_cluster import make_workspace
+
+    ws = make_workspace(root, fixed_conf, seed=1, n_frames=300)
+    env = aws_env("http://unused")
+    _run(["git", "rm", "-q", "--cached", "data.dvc"], ws, env)
+    shutil.rmtree(ws / "data")
+    (ws / "data.dvc").unlink()
+    if url is None:
+        shutil.copytree(data, ws / "data")
+        _run([BIN / "dvc", "add", "-q", "data"], ws, env)
+    else:
+        write_params(
+            compose(["compute.partition_rows=300", f"paths.data_dir={url}"], config_dir=ws / "conf"), ws / "params.yaml"
+        )
+    _run(["git", "add", "-A"], ws, env)
+    _run(["git", "commit", "-qm", "tables"], ws, env)
+    return ws
+
+
+def compared(ws: Path) -> dict[str, object]:
+    """tests/test_cluster.py's outputs, but the ingest manifest (it names the sources where they are: data/... or
+    s3://...): its counts instead."""
+    from test_cluster import outputs
+
+    out = outputs(ws)
+    manifest = json.loads((ws / "build" / "ingested" / "manifest.json").read_text())
+    out["build/ingested/manifest.json"] = hashlib.sha256(json.dumps(manifest["counts"]).encode()).hexdigest()
+    return out
+
+
+@pytest.fixture(scope="module")
+def repro_pair(moto, tmp_path_factory, fixed_conf):
+    """Two workspaces of the same py-feat tables, one reading them from disk, one from S3, each `dvc repro evaluate`
+    run on this machine: (disk workspace, s3 workspace, url, env)."""
+    root = tmp_path_factory.mktemp("s3-repro")
+    data = pyfeat_tables(root / "tables")
+    url = upload(moto, data, "repro")
+    env = aws_env(moto.endpoint)
+    disk = s3_workspace(root / "disk", fixed_conf, None, data)
+    s3 = s3_workspace(root / "s3", fixed_conf, url, data)
+    for ws in (disk, s3):
+        _run([BIN / "dvc", "repro", "evaluate"], ws, env)
+    return disk, s3, url, env
+
+
+@pytest.mark.slow
+def test_dvc_repro_reads_the_tables_on_s3_tracks_their_etags_and_equals_disk(repro_pair, moto):
+    from test_cluster import assert_same_outputs
+
+    disk, s3, url, env = repro_pair
+    assert_same_outputs(compared(s3), compared(disk))
+    lock = (s3 / "dvc.lock").read_text()
+    import yaml
+
+    deps = {d["path"]: d for d in yaml.safe_load(lock)["stages"]["ingest"]["deps"]}
+    # DVC's external dependency: a hash of the objects' ETags (a listing, no download), 4 objects
+    assert deps[url]["md5"].endswith(".dir") and deps[url]["nfiles"] == 4, deps
+    assert "up to date" in _run([BIN / "dvc", "status", "--with-deps", "evaluate"], s3, env).stdout
+    # an object changed on S3 (a frame less) is a changed dependency: ingest reruns
+    fs = moto.fs()
+    key = sorted(fs.find(url))[-1]
+    original = fs.cat_file(key)
+    fs.pipe_file(key, original[: original.rstrip(b"\n").rfind(b"\n") + 1])
+    try:
+        status = _run([BIN / "dvc", "status", "ingest"], s3, env).stdout
+        assert "changed deps" in status and url in status, status
+    finally:
+        fs.pipe_file(key, original)
+    assert "up to date" in _run([BIN / "dvc", "status", "--with-deps", "evaluate"], s3, env).stdout
+
+
+@pytest.mark.slow
+def test_workers_started_elsewhere_read_the_tables_on_s3_and_equal_disk(repro_pair, tmp_path, monkeypatch):
+    """A real ``dask scheduler`` + 2 ``dask worker`` in another folder, with the lab's AWS_* environment."""
+    from test_cluster import Cluster, assert_same_outputs
+
+    disk, s3, url, env = repro_pair
+    for k, v in env.items():
+        if k.startswith("AWS_"):
+            monkeypatch.setenv(k, v)
+    (tmp_path / "elsewhere").mkdir()
+    cluster = Cluster(tmp_path / "elsewhere")
+    try:
+        proc = _run([BIN / "dvc", "repro", "-f", "evaluate"], s3, env | {"AUMESH_COMPUTE_ADDRESS": cluster.address})
+        assert "Running stage 'ingest'" in proc.stdout
+        from distributed import Client
+
+        with Client(cluster.address, set_as_default=False) as client:  # the passes did run on the workers
+            assert all(n > 0 for n in client.run(lambda dask_worker: len(dask_worker.state.log)).values())
+    finally:
+        cluster.stop()
+    assert_same_outputs(compared(s3), compared(disk))
+
+
+@pytest.mark.slow
+def test_dvc_push_to_an_s3_remote_skips_build_prepared_and_pull_restores_the_rest(repro_pair, moto):
+    import yaml
+
+    disk, _, _, env = repro_pair
+    remote = f"s3://{BUCKET}/dvc-remote"
+    _run([BIN / "dvc", "remote", "add", "--local", "lab", remote], disk, env)
+    _run([BIN / "dvc", "push", "-r", "lab"], disk, env)
+    pushed = {k.rsplit("/", 2)[-2] + k.rsplit("/", 1)[-1] for k in moto.fs().find(f"{BUCKET}/dvc-remote")}
+    outs = {
+        o["path"]: o["md5"]
+        for s in yaml.safe_load((disk / "dvc.lock").read_text())["stages"].values()
+        for o in s.get("outs", [])
+    }
+    assert outs["build/ingested"] in pushed and outs["build/model"] in pushed
+    assert outs["build/prepared"] not in pushed  # push: false
+    before = _digests(disk / "build")
+    shutil.rmtree(disk / "build")
+    shutil.rmtree(disk / ".dvc" / "cache")
+    _run([BIN / "dvc", "pull", "-r", "lab", "--allow-missing"], disk, env)
+    after = _digests(disk / "build")
+    assert after == {k: v for k, v in before.items() if not k.startswith("prepared/")}
+    assert "Running stage 'prepare'" in _run([BIN / "dvc", "repro", "evaluate"], disk, env).stdout  # rebuilt here
+    assert _digests(disk / "build") == before
