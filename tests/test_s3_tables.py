@@ -31,6 +31,7 @@ from aumesh.config import compose, write_params
 from aumesh.core import storage
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from aumesh.synthetic.tables import SynthSpec
+from conftest import REPO
 
 BIN = Path(sys.executable).parent
 BUCKET = "lab-tables"
@@ -410,4 +411,14 @@ def test_dvc_push_to_an_s3_remote_skips_build_prepared_and_pull_restores_the_res
     after = _digests(disk / "build")
     assert after == {k: v for k, v in before.items() if not k.startswith("prepared/")}
     assert "Running stage 'prepare'" in _run([BIN / "dvc", "repro", "evaluate"], disk, env).stdout  # rebuilt here
+    assert _digests(disk / "build") == before
+    # the demo's way (make refresh-demo): build/prepared copied into a folder remote all the same, pulled whole
+    folder = disk.parent / "folder-remote"
+    _run([BIN / "dvc", "remote", "add", "--local", "folder", folder], disk, env)
+    _run([BIN / "dvc", "push", "-r", "folder"], disk, env)
+    _run([sys.executable, REPO / "scripts" / "push_unpushed.py", folder, "build/prepared"], disk, env)
+    shutil.rmtree(disk / "build")
+    shutil.rmtree(disk / ".dvc" / "cache")
+    # no --allow-missing: every object of the three is there (release/ was never built here)
+    _run([BIN / "dvc", "pull", "-r", "folder", "build/ingested", "build/prepared", "build/model"], disk, env)
     assert _digests(disk / "build") == before

@@ -190,13 +190,19 @@ def _call(url: str, fn, *args, **kwargs):
         raise
 
 
-def open_input(path: InputPath, mode: str = "rb") -> IO:
+#: Bytes fetched ahead for a CSV's header and the frame boundaries of its ranges (py-feat's header ~30 KB, a row
+#: ~20 KB): a request of this size each, not :data:`BLOCK_SIZE`.
+LINE_BLOCK_SIZE = 1 << 20
+
+
+def open_input(path: InputPath, mode: str = "rb", block_size: int | None = None) -> IO:
     """``path`` opened for reading: ``open`` for a local file, fsspec's file for a URL (its size and existence
-    checked at once: a missing key or bucket fails here, as :class:`StorageError`)."""
+    checked at once: a missing key or bucket fails here, as :class:`StorageError`), fetching ``block_size`` bytes
+    ahead (default :data:`BLOCK_SIZE`; local files ignore it)."""
     if not isinstance(path, ObjectPath):
         return open(path, mode)
     fs = filesystem(path.url)
-    return _call(path.url, fs.open, path.url, mode)
+    return _call(path.url, fs.open, path.url, mode, block_size=block_size or BLOCK_SIZE)
 
 
 def read_range(path: InputPath, start: int, length: int) -> bytes:

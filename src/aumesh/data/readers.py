@@ -139,7 +139,7 @@ def _header_lines(path: InputPath) -> tuple[str, str]:
     """The header line and (the start of) the next, decoded as ``utf-8-sig`` (a byte-order mark dropped)."""
     try:
         if isinstance(path, ObjectPath):
-            with storage.open_input(path) as raw:
+            with storage.open_input(path, block_size=storage.LINE_BLOCK_SIZE) as raw:
                 stream = gzip.open(raw, "rt", newline="", encoding="utf-8-sig") if path.name.endswith(".gz") else None
                 text = stream or io.TextIOWrapper(raw, encoding="utf-8-sig", newline="")
                 return text.readline(), text.readline(1 << 16)
@@ -187,7 +187,7 @@ def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
     face kept needs no frame before it (:mod:`aumesh.data.face_track`), so cleaning the ranges apart gives the rows
     of one pass over the file. Only a run of frames with several faces longer than that starts a range mid-track."""
     path = source.path
-    with storage.open_input(path) as fh:
+    with storage.open_input(path, block_size=storage.LINE_BLOCK_SIZE) as fh:
         header_end = len(fh.readline())
     size = storage.size(path)
     if path.name.endswith(".gz") or size - header_end <= range_bytes:
@@ -195,7 +195,7 @@ def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
     key_columns = [source.header.index(source.layout.video), source.header.index(FRAME_COLUMN)]
     face_column = source.header.index(source.layout.face_score or AU_COLUMNS[0])
     bounds, carried = [header_end], [False]
-    with storage.open_input(path) as fh:
+    with storage.open_input(path, block_size=storage.LINE_BLOCK_SIZE) as fh:
         target = header_end + range_bytes
         while target < size:
             cut, anchored = _frame_boundary(fh, target, key_columns, face_column, range_bytes)
