@@ -4,7 +4,8 @@ The slow cases start moto's S3-compatible server (``moto_server``, a process of 
 upload the synthetic py-feat tables there and check the S3 route against the same tables read from disk, the
 independent reference: the ingested tables byte for byte, and through ``dvc repro`` the prepared data, the model and
 the metrics, on this machine's threads and on a real ``dask scheduler`` + ``dask worker`` started in another folder
-(the workers read S3 with their own environment's credentials). DVC tracks the S3 folder as an external dependency
+(the workers read S3 with their own environment's credentials: workers started without them are named by the
+cluster probe). DVC tracks the S3 folder as an external dependency
 (its ETags in ``dvc.lock``: an object changed there reruns ingest), ``dvc push``/``dvc pull`` work with an S3 remote
 (dvc-s3 from the lock) and skip ``build/prepared`` (``push: false``). Each failure (no bucket, no such prefix, no
 credentials, the endpoint down) is one line and exit 2. The fast cases: :class:`~aumesh.core.storage.ObjectPath`
@@ -422,3 +423,26 @@ def test_dvc_push_to_an_s3_remote_skips_build_prepared_and_pull_restores_the_res
     # no --allow-missing: every object of the three is there (release/ was never built here)
     _run([BIN / "dvc", "pull", "-r", "folder", "build/ingested", "build/prepared", "build/model"], disk, env)
     assert _digests(disk / "build") == before
+
+
+@pytest.mark.slow
+def test_workers_without_credentials_are_named_by_the_probe(repro_pair, tmp_path, monkeypatch):
+    """The workers read S3 with their own environment: started without the keys, the probe names the first one."""
+    from test_cluster import Cluster
+
+    _, s3, url, env = repro_pair
+    for k in [k for k in os.environ if k.startswith("AWS_")]:
+        monkeypatch.delenv(k)
+    for k, v in aws_env(env["AWS_ENDPOINT_URL"], credentials=False).items():
+        if k.startswith("AWS_"):
+            monkeypatch.setenv(k, v)
+    (tmp_path / "elsewhere").mkdir()
+    cluster = Cluster(tmp_path / "elsewhere", n_workers=1)
+    try:
+        proc = _run(["aumesh", "ingest"], s3, env | {"AUMESH_COMPUTE_ADDRESS": cluster.address}, check=False)
+    finally:
+        cluster.stop()
+    line = _one_line(proc.stderr)
+    assert proc.returncode == 2, proc.stderr
+    assert line.startswith("aumesh ingest: error: worker tcp://127.0.0.1:") and f"cannot read {url}/" in line, line
+    assert "no credentials for the object store" in line and "AWS_ACCESS_KEY_ID" in line, line
