@@ -54,13 +54,13 @@ def _env(**extra: str) -> dict[str, str]:
 
 
 class Cluster:
-    """``dask scheduler`` + ``dask worker`` processes started in ``cwd`` (not a workspace), on loopback."""
+    """``dask scheduler`` + ``dask worker`` processes started in ``cwd`` (not a workspace), on loopback; the workers
+    import the aumesh under ``src`` (default: the one under test)."""
 
-    def __init__(self, cwd: Path, n_workers: int = 2):
+    def __init__(self, cwd: Path, n_workers: int = 2, src: Path = SRC):
         self.cwd, self.port = cwd, _free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
         self.log = open(cwd / "cluster.log", "ab")
-        common = dict(cwd=cwd, env=_env(ARROW_DEFAULT_MEMORY_POOL="system"), stdout=self.log, stderr=subprocess.STDOUT)
         # --idle-timeout / --death-timeout: they stop by themselves if the test process dies before it stops them
         self.scheduler = subprocess.Popen(
             [
@@ -74,33 +74,43 @@ class Cluster:
                 "--idle-timeout",
                 "600",
             ],
-            **common,
+            **self._common(SRC),
         )
-        self.workers = [
-            subprocess.Popen(
-                [
-                    BIN / "dask",
-                    "worker",
-                    self.address,
-                    "--host",
-                    "127.0.0.1",
-                    "--nthreads",
-                    "1",
-                    "--no-dashboard",
-                    "--death-timeout",
-                    "30",
-                    "--local-directory",
-                    str(cwd / f"worker-{i}"),
-                ],
-                **common,
-            )
-            for i in range(n_workers)
-        ]
+        self.workers: list[subprocess.Popen] = []
+        for _ in range(n_workers):
+            self.add_worker(src)
         from distributed import Client
 
         with Client(self.address, timeout=60, set_as_default=False) as client:
             client.wait_for_workers(n_workers, timeout=120)
             self.worker_dirs = set(client.run(os.getcwd).values())
+
+    def _common(self, src: Path) -> dict:
+        path = os.pathsep.join([str(src), *filter(None, [os.environ.get("PYTHONPATH")])])
+        env = _env(ARROW_DEFAULT_MEMORY_POOL="system", PYTHONPATH=path)
+        return dict(cwd=self.cwd, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+
+    def add_worker(self, src: Path = SRC) -> subprocess.Popen:
+        """Start one more worker (it joins when it has started, ~2 s), importing the aumesh under ``src``."""
+        proc = subprocess.Popen(
+            [
+                BIN / "dask",
+                "worker",
+                self.address,
+                "--host",
+                "127.0.0.1",
+                "--nthreads",
+                "1",
+                "--no-dashboard",
+                "--death-timeout",
+                "30",
+                "--local-directory",
+                str(self.cwd / f"worker-{len(self.workers)}"),
+            ],
+            **self._common(src),
+        )
+        self.workers.append(proc)
+        return proc
 
     def stop(self) -> None:
         for proc in [*self.workers, self.scheduler]:
@@ -113,6 +123,16 @@ class Cluster:
                 proc.kill()
                 proc.wait()
         self.log.close()
+
+
+def other_aumesh(root: Path, changed: dict[str, str]) -> Path:
+    """Another clone's aumesh: a copy of the one under test in ``root/src`` (a folder that is neither workspace), with
+    the files ``changed`` (path in the package -> its new text). Returns the folder to put on a worker's PYTHONPATH."""
+    src = root / "src"
+    shutil.copytree(SRC / "aumesh", src / "aumesh", ignore=shutil.ignore_patterns("__pycache__"))
+    for rel, text in changed.items():
+        (src / "aumesh" / rel).write_text(text)
+    return src
 
 
 @pytest.fixture(scope="module")
@@ -268,21 +288,29 @@ MID_RUN = {"prepare": ".prepared.tmp-*/scratch/*.arrow", "evaluate": ".evaluate-
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stage", ["prepare", "evaluate"])
-def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stage, tmp_path, fixed_conf):
+@pytest.mark.parametrize(("stage", "runner"), [("prepare", "aumesh"), ("evaluate", "aumesh"), ("prepare", "dvc")])
+def test_a_scheduler_lost_mid_run_is_one_line_that_says_what_is_left(stage, runner, tmp_path, fixed_conf):
+    """Run by ``aumesh``: the previous output stands, and the line says so. Run by ``dvc repro``: DVC removed the
+    stage's output before it ran the stage, so the line claims nothing of it and the next one names what is gone and
+    the command that brings it back, which does (the same bytes as before)."""
     import mlflow
 
     ws = make_workspace(tmp_path / "ws", fixed_conf, seed=5, n_frames=6000)
     write_params(compose(["compute.partition_rows=100"], config_dir=ws / "conf"), ws / "params.yaml")
     stages = ["ingest", "prepare"] + (["evaluate"] if stage == "evaluate" else [])
-    for s in stages:  # the previous output, built here
-        _run([BIN / "aumesh", s], ws, _env())
+    if runner == "dvc":  # the previous output, built here, in dvc.lock and DVC's cache
+        _run([BIN / "dvc", "repro", "-q", stage], ws, _env())
+        command = [str(BIN / "dvc"), "repro", "-f", "-s", stage]
+    else:
+        for s in stages:  # the previous output, built here
+            _run([BIN / "aumesh", s], ws, _env())
+        command = [str(BIN / "aumesh"), stage]
     before = outputs(ws)
     (tmp_path / "elsewhere").mkdir()
     c = Cluster(tmp_path / "elsewhere", n_workers=1)
     try:
         proc = subprocess.Popen(
-            [str(BIN / "aumesh"), stage],
+            command,
             cwd=ws,
             text=True,
             stdout=subprocess.PIPE,
@@ -298,10 +326,22 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_keeps_the_previous_output(stag
         out, err = proc.communicate(timeout=300)
     finally:
         c.stop()
-    line = _one_line(err)
-    assert proc.returncode == 2, err
-    assert line.startswith(f"aumesh {stage}: error: AUMESH_COMPUTE_ADDRESS={c.address}: lost the Dask scheduler"), line
-    assert "The previous outputs stand." in line
+    lost = f"aumesh {stage}: error: AUMESH_COMPUTE_ADDRESS={c.address}: lost the Dask scheduler"
+    if runner == "dvc":
+        assert proc.returncode != 0, err
+        lines = (out + err).splitlines()
+        at = next(i for i, text in enumerate(lines) if text.startswith(lost))
+        assert "stand" not in lines[at], lines[at]
+        assert lines[at + 1] == (
+            f"DVC removed build/prepared before running {stage}: `dvc checkout {stage}` brings back the last good one."
+        ), err
+        assert not (ws / "build" / "prepared").exists()  # what the line says is gone is gone
+        _run([BIN / "dvc", "checkout", stage], ws, _env())  # and its command brings it back
+    else:
+        line = _one_line(err)
+        assert proc.returncode == 2, err
+        assert line.startswith(lost), line
+        assert line.endswith("The previous outputs stand."), line
     after = outputs(ws)
     if stage == "evaluate":  # and the run that failed is FAILED in MLflow, the one before FINISHED
         runs = mlflow.MlflowClient().search_runs(

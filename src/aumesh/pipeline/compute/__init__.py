@@ -148,23 +148,25 @@ def _connect(cfg: ComputeConfig, read: str | Path | None, write: str | Path | No
 
     threading.Thread(target=steps, name="aumesh-connect", daemon=True).start()
     try:
-        finished = done.wait(cfg.connect_timeout) or done.wait(_LATE_ERROR_WAIT)
-    finally:
+        done.wait(cfg.connect_timeout) or done.wait(_LATE_ERROR_WAIT)
+    finally:  # decided under the lock: the thread either handed its result over or closes it itself
         with lock:
             if "result" not in box and "error" not in box:
                 box["abandoned"] = True
     if "error" in box:
         raise box["error"]
-    if finished and "result" in box:
+    if "result" in box:
         return box["result"]
-    why = {
-        "connect": "no Dask scheduler answered there (something else may listen at that port: a Dask scheduler's "
-        "is 8786 by default; or the scheduler is overloaded)",
-        "workers": "the scheduler answered but no worker joined",
-        "probe": "the workers did not answer the probe (see the workers' logs)",
+    what, hint = {
+        "connect": (
+            "no Dask scheduler answered there",
+            "something else may listen at that port (a Dask scheduler's is 8786 by default), or the scheduler is overloaded",
+        ),
+        "workers": ("the scheduler answered but no worker joined", "the workers may still be starting"),
+        "probe": ("the workers did not answer the probe", "see the workers' logs"),
     }[box["step"]]
     raise ClusterError(
-        f"{where}: {why} within {cfg.connect_timeout:g} s. Fix: correct the address or start a cluster there "
+        f"{where}: {what} within {cfg.connect_timeout:g} s ({hint}). Fix: correct the address or start a cluster there "
         f"(`make cluster`, or `dask scheduler` and `dask worker ADDRESS`), or {local_fix()}; {timeout} sets the wait."
     )
 
