@@ -220,14 +220,26 @@ class LateWorkers:
 
     def stop(self) -> None:
         """Unregister the plugin (the scheduler would run it on every later worker) and remove probe files left."""
-        try:
-            self.client.unsubscribe_topic(self.topic)
-            self.client.unregister_worker_plugin(self.name)
-        except Exception as err:  # the scheduler gone: the plugin went with it
-            log.debug("compute: could not unregister %s: %s", self.name, first_line(err))
+
+        def unregister() -> None:
+            try:
+                self.client.unsubscribe_topic(self.topic)
+                self.client.unregister_worker_plugin(self.name)
+            except Exception as err:  # the scheduler gone: the plugin went with it
+                log.debug("compute: could not unregister %s: %s", self.name, first_line(err))
+
+        # the scheduler drops the plugin at once, then waits for every worker to drop it: a worker that does not
+        # answer (paused, or lost) would hold the stage's end, so that wait is bounded
+        done = threading.Thread(target=unregister, name="aumesh-unregister", daemon=True)
+        done.start()
+        done.join(_UNREGISTER_WAIT)
         if self.write is not None:
             for path in Path(self.write).glob(f".aumesh-probe-{self.token}-*"):
                 path.unlink(missing_ok=True)
+
+
+#: Seconds :meth:`LateWorkers.stop` waits for the workers to drop the plugin (the scheduler has dropped it already).
+_UNREGISTER_WAIT = 2.0
 
 
 def _plugin(read: str | None, write: str | None, token: str, topic: str):
