@@ -355,31 +355,20 @@ def test_a_scheduler_lost_mid_run_is_one_line_that_says_what_is_left(stage, runn
 # ------------------------------------------------------------------------------------------------------- fast cases
 @pytest.mark.slow
 def test_an_address_nobody_answers_is_one_line_and_exit_2_within_the_connect_timeout(tmp_path, monkeypatch, capsys):
-    """The wait is the configured connect timeout, observed, not timed (a loaded machine takes longer to get there):
-    the client is asked for AUMESH_COMPUTE_CONNECT_TIMEOUT's 1 s (compute.connect_timeout's default is 10 s), and
-    ``distributed``'s own message says it gave up after 1 s."""
-    import distributed
-
+    """The connection is refused until AUMESH_COMPUTE_CONNECT_TIMEOUT's 1 s (compute.connect_timeout's default is
+    10 s) have passed, and the line says so: nothing listens there (where ``distributed`` said it timed out, as it
+    says of a peer that is no scheduler). tests/test_cluster_failures.py: silent and HTTP listeners."""
     address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
     monkeypatch.setenv("AUMESH_COMPUTE_ADDRESS", address)
     monkeypatch.setenv("AUMESH_COMPUTE_CONNECT_TIMEOUT", "1")
-    asked = []
-
-    class Client(distributed.Client):  # distributed's client, its arguments recorded
-        def __init__(self, *args, **kwargs):
-            asked.append((args, kwargs))
-            super().__init__(*args, **kwargs)
-
-    monkeypatch.setattr(distributed, "Client", Client)
     with pytest.raises(ClusterError) as err, compute.engine(ComputeConfig()):
         pytest.fail("the engine must not start")
-    assert len(asked) == 1 and asked[0][0] == (address,) and asked[0][1]["timeout"] == 1.0, asked
-    assert str(err.value).startswith(
-        f"AUMESH_COMPUTE_ADDRESS={address}: cannot connect to a Dask scheduler there "
-        f"(OSError: Timed out trying to connect to {address} after 1 s)"
+    assert str(err.value) == (
+        f"AUMESH_COMPUTE_ADDRESS={address}: nothing listens there (every connection refused) within 1 s (the "
+        "scheduler is not running there). Fix: start one (`make cluster`, or `dask scheduler` and `dask worker "
+        "ADDRESS`) or correct the address, or unset AUMESH_COMPUTE_ADDRESS to run here; AUMESH_COMPUTE_CONNECT_TIMEOUT "
+        "sets the wait."
     )
-    assert "\n" not in str(err.value)
-    assert "AUMESH_COMPUTE_CONNECT_TIMEOUT sets the wait" in str(err.value)
 
     # through the command: a stage that reaches its passes stops with the one line, exit 2
     write_tables(tmp_path / "data", SynthSpec(n_frames=200, n_videos=20, seed=1))
@@ -390,7 +379,7 @@ def test_an_address_nobody_answers_is_one_line_and_exit_2_within_the_connect_tim
     capsys.readouterr()
     assert cli.main(["ingest"]) == 2
     line = _one_line(capsys.readouterr().err)
-    assert line.startswith(f"aumesh ingest: error: AUMESH_COMPUTE_ADDRESS={address}: cannot connect"), line
+    assert line.startswith(f"aumesh ingest: error: AUMESH_COMPUTE_ADDRESS={address}: nothing listens there"), line
     assert not (tmp_path / "build" / "ingested").exists() and not list((tmp_path / "build").glob(".*"))
 
 

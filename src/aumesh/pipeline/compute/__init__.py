@@ -109,8 +109,9 @@ def _connect(cfg: ComputeConfig, read: str | Path | None, write: str | Path | No
     The wall clock is a guard around all of it: ``distributed``'s own timeouts do not bound a peer that accepts the
     connection and then says nothing or something else (a silent TCP server, an HTTP server: the client waited for
     the scheduler's handshake forever, 11 min before it was stopped). So the steps run in a daemon thread that is
-    abandoned when the time is up (whatever it made later is closed by it); a nearly simultaneous error of its own
-    (a closed port: ``distributed`` gives up at the same timeout) is waited for a moment, as it says more.
+    abandoned when the time is up (whatever it made later is closed by it); an error of its own raised at that moment
+    is waited for a moment, as it says the same or more. A closed port is told from a peer that is no scheduler
+    (:func:`_listening`): ``distributed`` said "timed out" for both.
     """
     import threading
 
@@ -126,9 +127,12 @@ def _connect(cfg: ComputeConfig, read: str | Path | None, write: str | Path | No
     def steps() -> None:
         made = None
         try:
+            box["step"] = _listening(str(cfg.address), deadline)
+            if box["step"] == "refused":
+                raise ClusterError(_guard_line(cfg, "refused"))
             client = made = _client(cfg, where, timeout)
             box["step"] = "workers"
-            _wait_for_a_worker(client, cfg, deadline, where, timeout)
+            _wait_for_a_worker(client, cfg, deadline)
             box["step"] = "probe"
             check_workers(client, read, write)
             late = LateWorkers(client, read, write)
@@ -157,23 +161,65 @@ def _connect(cfg: ComputeConfig, read: str | Path | None, write: str | Path | No
         raise box["error"]
     if "result" in box:
         return box["result"]
-    what, hint = {
+    raise ClusterError(_guard_line(cfg, box["step"]))
+
+
+def _guard_line(cfg: ComputeConfig, step: str) -> str:
+    """The line of a connection that did not get past ``step`` within ``compute.connect_timeout`` seconds: its
+    address and timeout named where they were set (:func:`~aumesh.pipeline.compute.settings.source_of`)."""
+    where, timeout = f"{source_of('address')}={cfg.address}", source_of("connect_timeout")
+    start = "start one (`make cluster`, or `dask scheduler` and `dask worker ADDRESS`) or correct the address"
+    what, hint, fix = {
+        "refused": ("nothing listens there (every connection refused)", "the scheduler is not running there", start),
         "connect": (
             "no Dask scheduler answered there",
-            "something else may listen at that port (a Dask scheduler's is 8786 by default), or the scheduler is overloaded",
+            "something else listens at that port, a Dask scheduler's is 8786 by default; or the scheduler is stuck",
+            "correct the address (the scheduler prints it: `Scheduler at: tcp://...`)",
         ),
-        "workers": ("the scheduler answered but no worker joined", "the workers may still be starting"),
-        "probe": ("the workers did not answer the probe", "see the workers' logs"),
-    }[box["step"]]
-    raise ClusterError(
-        f"{where}: {what} within {cfg.connect_timeout:g} s ({hint}). Fix: correct the address or start a cluster there "
-        f"(`make cluster`, or `dask scheduler` and `dask worker ADDRESS`), or {local_fix()}; {timeout} sets the wait."
+        "workers": (
+            "the scheduler has no worker",
+            "none joined",
+            f"start workers (`dask worker {cfg.address}`, or `make cluster`)",
+        ),
+        "probe": ("the workers did not answer the probe", "see the workers' logs", "restart the workers"),
+    }[step]
+    return (
+        f"{where}: {what} within {cfg.connect_timeout:g} s ({hint}). Fix: {fix}, or {local_fix()}; "
+        f"{timeout} sets the wait."
     )
 
 
-#: Seconds :func:`_connect` waits, after ``compute.connect_timeout``, for an error of the connection's own that
-#: says more than the guard (``distributed`` gives up on a closed port at the same timeout, a few ms later).
+#: Seconds :func:`_connect` waits, after ``compute.connect_timeout``, for the connection's own error raised at that
+#: moment (the steps end at the same deadline), which says the same or more than the guard.
 _LATE_ERROR_WAIT = 0.25
+
+
+def _listening(address: str, deadline: float) -> str:
+    """Wait until something accepts TCP connections at ``address`` (``tcp://host:port``), as ``distributed`` would
+    before it says it timed out, but knowing why: "connect" once it does, else (every connection refused until the
+    deadline) "refused", which :func:`_connect`'s guard turns into its line. Other schemes, or an address this cannot
+    parse, are left to ``distributed``."""
+    import socket
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        host, port = parse_host_port(location, default_port=8786)
+    except Exception:
+        return "connect"
+    if scheme != "tcp":
+        return "connect"
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=max(deadline - time.monotonic(), 0.01)).close()
+            return "connect"
+        except ConnectionRefusedError:
+            if time.monotonic() >= deadline:
+                return "refused"
+            time.sleep(0.05)  # a scheduler still starting: as distributed, try again until the deadline
+        except OSError:  # no such host, unreachable, timed out: distributed says which
+            return "connect"
 
 
 def _client(cfg: ComputeConfig, where: str, timeout: str):
@@ -189,15 +235,11 @@ def _client(cfg: ComputeConfig, where: str, timeout: str):
         ) from None
 
 
-def _wait_for_a_worker(client, cfg: ComputeConfig, deadline: float, where: str, timeout: str) -> None:
+def _wait_for_a_worker(client, cfg: ComputeConfig, deadline: float) -> None:
     try:
         client.wait_for_workers(1, timeout=max(deadline - time.monotonic(), 0.001))
     except Exception:
-        raise ClusterError(
-            f"{where}: the scheduler has no worker (none joined within {cfg.connect_timeout:g} s). "
-            f"Fix: start workers (`dask worker {cfg.address}`, or `make cluster`), or {local_fix()}; "
-            f"{timeout} sets the wait."
-        ) from None
+        raise ClusterError(_guard_line(cfg, "workers")) from None
 
 
 def _close(client, quiet: bool) -> None:
