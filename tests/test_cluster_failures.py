@@ -283,3 +283,18 @@ def test_the_line_for_another_code_names_both_folders_and_the_files_that_differ(
     assert none is not None and none.startswith("worker tcp://w:1 imports no aumesh, where this stage's ")
     same = {"code": dict(ours), "read": [1, "x"]}
     assert compute_probe._probe_problem("tcp://w:1", same, "/d/t", None, (1, "x"), "t") is None
+
+
+def test_no_line_claims_outputs_stand_that_dvc_removed(monkeypatch):
+    """Under ``dvc repro`` (``DVC_STAGE``) DVC removed a stage's outputs before running it (``release/`` excepted: a
+    ``persist`` output): the stopped stage's and the cluster's lines do not say they stand; outside DVC they do."""
+    from aumesh import cli
+    from aumesh.pipeline import compute
+
+    monkeypatch.delenv("DVC_STAGE", raising=False)
+    assert cli._kept("prepare") == "nothing was swapped in, the previous outputs are intact"
+    assert compute._kept() == " The previous outputs stand."
+    monkeypatch.setenv("DVC_STAGE", "prepare")
+    assert cli._kept("prepare") == "nothing was swapped in"
+    assert cli._kept("release") == "nothing was swapped in, the previous outputs are intact"
+    assert compute._kept() == ""
