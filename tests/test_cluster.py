@@ -251,6 +251,9 @@ def test_two_workspaces_share_one_cluster_started_elsewhere_and_equal_their_loca
     with Client(cluster.address, set_as_default=False) as client:  # the passes did run on the workers
         done = client.run(lambda dask_worker: len(dask_worker.state.log), on_error="raise")
         assert all(n > 0 for n in done.values())
+        # each stage's probe of the workers that join later (a worker plugin) went with the stage
+        plugins = client.run_on_scheduler(lambda dask_scheduler: sorted(dask_scheduler.worker_plugins))
+        assert not [name for name in plugins if name.startswith("aumesh-probe-")], plugins
     for ws in spaces:
         assert_same_outputs(outputs(ws), local[ws])
         _records_hold_no_local_path(ws, cluster)
