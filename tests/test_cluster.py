@@ -85,13 +85,14 @@ class Cluster:
             client.wait_for_workers(n_workers, timeout=120)
             self.worker_dirs = set(client.run(os.getcwd).values())
 
-    def _common(self, src: Path) -> dict:
+    def _common(self, src: Path, cwd: Path | None = None) -> dict:
         path = os.pathsep.join([str(src), *filter(None, [os.environ.get("PYTHONPATH")])])
         env = _env(ARROW_DEFAULT_MEMORY_POOL="system", PYTHONPATH=path)
-        return dict(cwd=self.cwd, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+        return dict(cwd=cwd or self.cwd, env=env, stdout=self.log, stderr=subprocess.STDOUT)
 
-    def add_worker(self, src: Path = SRC) -> subprocess.Popen:
-        """Start one more worker (it joins when it has started, ~2 s), importing the aumesh under ``src``."""
+    def add_worker(self, src: Path = SRC, cwd: Path | None = None) -> subprocess.Popen:
+        """Start one more worker (it joins when it has started, ~2 s), importing the aumesh under ``src``, in ``cwd``
+        (default: the cluster's folder)."""
         proc = subprocess.Popen(
             [
                 BIN / "dask",
@@ -107,7 +108,7 @@ class Cluster:
                 "--local-directory",
                 str(self.cwd / f"worker-{len(self.workers)}"),
             ],
-            **self._common(src),
+            **self._common(src, cwd),
         )
         self.workers.append(proc)
         return proc

@@ -95,18 +95,26 @@ def test_a_worker_running_another_clones_aumesh_is_refused_in_one_line(changed, 
 
 
 @pytest.mark.slow
-def test_a_worker_that_joins_mid_run_with_other_code_stops_the_run_and_none_of_its_results_land(tmp_path, fixed_conf):
-    """A cluster of one worker with this aumesh; once prepare's first pass is under way that worker is paused
-    (SIGSTOP: the run cannot end without the newcomer) and a worker of another clone joins. The stage stops with the
-    one line naming the newcomer, and the previous output is what it was (nothing of the newcomer's landed)."""
+@pytest.mark.parametrize("newcomer", ["other code", "no view of the data"])
+def test_a_worker_that_joins_mid_run_and_fails_the_probe_stops_the_run_and_none_of_its_results_land(
+    newcomer, tmp_path, fixed_conf
+):
+    """A cluster of one worker that serves the stage; once prepare's first pass is under way that worker is paused
+    (SIGSTOP: the run cannot end without the newcomer) and another joins: one of another clone's aumesh, or one that
+    does not see the data (``paths.data_dir=/proc/self/cwd/data``, each process's own directory: the workspace's for
+    the stage and the first worker, started there, another folder for the newcomer). The stage stops with the one
+    line naming the newcomer, and the previous output is what it was (nothing of the newcomer's landed)."""
     ws = make_workspace(tmp_path / "ws", fixed_conf, seed=5, n_frames=6000)
-    write_params(compose(["compute.partition_rows=100"], config_dir=ws / "conf"), ws / "params.yaml")
+    blind = newcomer == "no view of the data"
+    overrides = ["compute.partition_rows=100"] + (["paths.data_dir=/proc/self/cwd/data"] if blind else [])
+    write_params(compose(overrides, config_dir=ws / "conf"), ws / "params.yaml")
     for s in ("ingest", "prepare"):  # the previous output, built here
         _run([BIN / "aumesh", s], ws, _env())
     before = outputs(ws)
-    other = other_aumesh(tmp_path / "other-clone", _changed(PREPARE))
-    (tmp_path / "elsewhere").mkdir()
-    c = Cluster(tmp_path / "elsewhere", n_workers=1)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    src = SRC if blind else other_aumesh(tmp_path / "other-clone", _changed(PREPARE))
+    c = Cluster(ws if blind else elsewhere, n_workers=1)
     paused = None
     try:
         ((ours, paused),) = _workers(c.address).items()
@@ -123,7 +131,7 @@ def test_a_worker_that_joins_mid_run_with_other_code_stops_the_run_and_none_of_i
             assert time.monotonic() < deadline
             time.sleep(0.05)
         os.kill(paused, signal.SIGSTOP)
-        c.add_worker(other)
+        c.add_worker(src, cwd=elsewhere)
         out, err = proc.communicate(timeout=300)  # a cap for a stage that hangs, not a time it must keep
     finally:
         if paused is not None:
@@ -132,8 +140,11 @@ def test_a_worker_that_joins_mid_run_with_other_code_stops_the_run_and_none_of_i
     line = _one_line(err)
     assert proc.returncode == 2, err
     assert line.startswith("aumesh prepare: error: worker tcp://127.0.0.1:"), line
-    assert f"runs other aumesh code: {other / 'aumesh'} (code " in line and f"they differ in {PREPARE}. " in line
     assert not line.startswith(f"aumesh prepare: error: worker {ours} "), line  # the newcomer, not ours
+    if blind:
+        assert " cannot read /proc/self/cwd/data/frames_0000.parquet (FileNotFoundError" in line, line
+    else:
+        assert f"runs other aumesh code: {src / 'aumesh'} (code " in line and f"they differ in {PREPARE}. " in line
     assert_same_outputs(outputs(ws), before)
     assert not list((ws / "build").glob(".*"))  # the run's temporary folders are gone
 
