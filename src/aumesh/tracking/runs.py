@@ -232,14 +232,34 @@ def _fail(handle: TrackedRun, exc: BaseException) -> None:
     _end_failed(handle, *_failure(exc))
 
 
-def _end_failed(handle: TrackedRun, status: str, error: str, tb: str) -> None:
-    """Tag the run with ``error`` (``aumesh.error``), log ``tb`` as ``error.txt`` and terminate it as ``status``."""
+def _end_failed(handle: TrackedRun, status: str, error: str, tb: str) -> bool:
+    """Tag the run with ``error`` (``aumesh.error``), log ``tb`` as ``error.txt`` and terminate it as ``status``;
+    whether the run could be terminated (a server that stopped answering: not).
+
+    After a server was lost (``error`` is a :class:`aumesh.tracking.connection.TrackingServerError`) the status is
+    set first, each request tried once (not with MLflow's retries again), and the tag and traceback only if it was."""
+    from aumesh.tracking.connection import TrackingServerError, no_retries
+
+    if error.startswith(TrackingServerError.__name__):
+        with no_retries():
+            try:
+                handle.client.set_terminated(handle.run_id, status)
+            except Exception:
+                return False
+            with contextlib.suppress(Exception):
+                handle.client.set_tag(handle.run_id, ERROR_TAG, _truncate(error, MAX_TAG_VALUE_LENGTH))
+            with contextlib.suppress(Exception):
+                handle.client.log_text(handle.run_id, tb, "error.txt")
+        return True
     with contextlib.suppress(Exception):
         handle.client.set_tag(handle.run_id, ERROR_TAG, _truncate(error, MAX_TAG_VALUE_LENGTH))
     with contextlib.suppress(Exception):
         handle.client.log_text(handle.run_id, tb, "error.txt")
-    with contextlib.suppress(Exception):
+    try:
         handle.client.set_terminated(handle.run_id, status)
+    except Exception:
+        return False
+    return True
 
 
 @contextlib.contextmanager
