@@ -188,13 +188,16 @@ def _probe_http(uri: str, timeout: float) -> str | None:
             return f"has a host name that does not resolve ({reason.strerror or reason})"
         if isinstance(reason, ConnectionRefusedError):
             return f"refused the connection (nothing listens on port {port})"
-        if isinstance(reason, (TimeoutError, socket.timeout)):
+        if isinstance(reason, TimeoutError):
             return _silent(timeout, port)
         return f"could not be reached ({reason})"
-    except (TimeoutError, socket.timeout):
+    except TimeoutError:
         return _silent(timeout, port)
     except (ConnectionError, OSError) as err:  # reset or closed by something that is not an HTTP server
-        return f"did not answer GET /health as an HTTP server ({type(err).__name__}: {err}; another service on port {port}?)"
+        return (
+            f"did not answer GET /health as an HTTP server ({type(err).__name__}: {err}; another service on port "
+            f"{port}?)"
+        )
 
 
 def _silent(timeout: float, port: int) -> str:
