@@ -9,6 +9,9 @@
 * A damaged SQLite store is one line (:class:`TrackingStoreError`), a locked one is retried with backoff for
   ``tracking.busy_timeout_s`` seconds first, and a copied or moved workspace's store is pointed at its own
   artifacts (:func:`relocate_artifacts`).
+* Where the URI came from (:func:`locate_tracking_uri`) and the check every command that tracks makes before any work
+  (:func:`check_tracking`); a server or database that does not answer, and MLflow's retries bounded, are
+  :mod:`aumesh.tracking.connection`.
 
 The experiment runs go to is :mod:`aumesh.tracking.experiment`; the values MLflow accepts (params cleaning, its
 limits) are :mod:`aumesh.tracking.values`.
@@ -166,6 +169,12 @@ def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
     return locate_tracking_uri(tracking_cfg).uri
 
 
+def tracking_enabled(tracking_cfg: Mapping[str, Any] | None) -> bool:
+    """``tracking.enabled`` (default true; ``"false"``, ``"0"``, ``"no"``, ``"off"`` as text are false)."""
+    value = (tracking_cfg or {}).get("enabled", True)
+    return value if isinstance(value, bool) else str(value).lower() not in {"0", "false", "no", "off"}
+
+
 def check_tracking(tracking_cfg: Mapping[str, Any] | None) -> TrackingURI | None:
     """The check every command that tracks makes before any work (nothing when ``tracking.enabled`` is false).
 
@@ -185,8 +194,7 @@ def check_tracking(tracking_cfg: Mapping[str, Any] | None) -> TrackingURI | None
     """
     from aumesh.tracking import connection
 
-    enabled = (tracking_cfg or {}).get("enabled", True)
-    if enabled is False or str(enabled).lower() in {"0", "false", "no", "off"}:
+    if not tracking_enabled(tracking_cfg):
         return None
     located = locate_tracking_uri(tracking_cfg)
     connection.bound_requests(tracking_cfg)

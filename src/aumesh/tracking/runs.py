@@ -65,6 +65,7 @@ from aumesh.tracking.mlflow_store import (
     WORKSPACE_TAG,
     _default_artifact_location,
     get_client,
+    tracking_enabled,
 )
 from aumesh.tracking.values import MAX_KEY_LENGTH, MAX_TAG_VALUE_LENGTH, _str_value, _truncate
 
@@ -148,8 +149,7 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: in
 
 # ------------------------------------------------------------------------- runs
 def _enabled(tracking_cfg: Mapping[str, Any] | None) -> bool:
-    value = (tracking_cfg or {}).get("enabled", True)
-    return value if isinstance(value, bool) else str(value).lower() not in {"0", "false", "no", "off"}
+    return tracking_enabled(tracking_cfg)
 
 
 def _open_run(
