@@ -218,6 +218,38 @@ def test_lost_run_marked_failed_when_the_store_answers(tmp_path, monkeypatch):
     assert got.data.tags["aumesh.error"].startswith("TrackingServerError: tracking server http://x stopped answering")
 
 
+def lost_while_logging_the_model(handle, arrays) -> None:
+    """Stands in for run_record.log_model in the tracking helper: the server goes away while the model uploads."""
+    raise connection.TrackingServerError(
+        "tracking server http://lab:5000 stopped answering (connection refused)", "Fix: x"
+    )
+
+
+@pytest.mark.slow  # a whole evaluate stage in-process (its helper imports MLflow)
+def test_evaluate_publishes_nothing_after_a_tracking_failure(workspace, monkeypatch, capsys):
+    """The server is lost at the last logging call (the model's upload): build/model and metrics/ stay byte-identical
+    (before the fix the new folder was swapped in with tracking.json naming the FAILED run, exit 1), and the run, its
+    store reachable again, is marked FAILED with the line as its error."""
+    from mlflow import MlflowClient
+
+    from aumesh.pipeline import run_record
+
+    monkeypatch.chdir(workspace)
+    monkeypatch.setattr(run_record, "log_model", lost_while_logging_the_model)  # the helper is forked after this
+    before = tree_digest(workspace / "build" / "model", workspace / "metrics")
+    previous_run = json.loads((workspace / "build" / "model" / "tracking.json").read_text())["run_id"]
+    assert cli.main(["evaluate"]) == 2
+    [line] = error_lines(capsys.readouterr().err)
+    assert "tracking server http://lab:5000 stopped answering" in line and line.endswith("Fix: x.")
+    assert "nothing of this run was published" in line
+    assert tree_digest(workspace / "build" / "model", workspace / "metrics") == before
+    client = MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+    experiment = client.get_experiment_by_name("aumesh").experiment_id
+    [run] = [r for r in client.search_runs([experiment]) if r.info.run_id != previous_run]
+    assert f"MLflow run {run.info.run_id} marked FAILED" in line
+    assert run.info.status == "FAILED" and "stopped answering" in run.data.tags["aumesh.error"]
+
+
 # ------------------------------------------------------------------------------ a real server stopped mid-evaluate
 @pytest.fixture
 def own_server(tmp_path):

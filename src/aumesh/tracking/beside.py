@@ -16,7 +16,7 @@ from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from aumesh.core.signals import check_supervisor, supervisor_gone
-from aumesh.tracking.connection import TrackingServerError
+from aumesh.tracking.connection import TrackingServerError, run_fate
 from aumesh.tracking.handle import TrackedRun, _NullRun
 from aumesh.tracking.runs import _enabled, _end_failed, _failure, _open_run
 
@@ -174,8 +174,6 @@ _LOST: BaseException | None = None  # the helper's server stopped answering: the
 
 def _call_beside(fn, args, kwargs):
     global _LOST
-    from aumesh.tracking.connection import TrackingServerError
-
     if _BESIDE is None:
         raise RuntimeError("the MLflow run did not open (see the first error)")
     if _LOST is not None:  # not each queued call retried for the whole bound again
@@ -250,8 +248,8 @@ def tracked_run_beside(
                 _send_end(stop_w, exc)
                 raise
             marked = run.end(exc, timeout=STOP_SECONDS if stopped else None)
-            if isinstance(exc, TrackingServerError):  # one line: what became of the run
-                raise exc.noted(_run_fate(run, marked)) from exc
+            if isinstance(exc, TrackingServerError) and not exc.names_run:  # one line: what became of the run
+                raise exc.noted(run_fate(run.run_id if marked is not None else None, marked)) from exc
             raise
         run.end()
     finally:
@@ -259,19 +257,6 @@ def tracked_run_beside(
         for fd in (stop_r, stop_w):
             if fd >= 0:
                 os.close(fd)
-
-
-def _run_fate(run: RunBeside, marked: bool | None) -> str:
-    """What became of the MLflow run after its server was lost, for the one line."""
-    if marked is None:
-        return "no MLflow run was opened"
-    run_id = run.run_id
-    if marked:
-        return f"MLflow run {run_id} marked FAILED"
-    return (
-        f"MLflow run {run_id} could not be marked FAILED (the server does not answer; the next run on this machine "
-        "marks it KILLED)"
-    )
 
 
 def _send_end(fd: int, exc: BaseException) -> None:

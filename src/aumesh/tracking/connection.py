@@ -63,9 +63,30 @@ class TrackingServerError(UserError):
     def __str__(self) -> str:
         return f"{self.message}. {self.fix}." if self.fix else self.message
 
+    @property
+    def names_run(self) -> bool:
+        """Whether the message already says what became of the MLflow run (:func:`run_fate`)."""
+        return _RUN_NOTE in self.message or _NO_RUN in self.message
+
     def noted(self, note: str) -> TrackingServerError:
         """The same error with ``note`` (what became of the run, of the outputs) before the fix."""
         return TrackingServerError(f"{self.message}; {note}", self.fix)
+
+
+_RUN_NOTE, _NO_RUN = "MLflow run ", "no MLflow run was opened"
+
+
+def run_fate(run_id: str | None, marked: bool | None) -> str:
+    """What became of the MLflow run after its server was lost, for the one line (``marked``: whether it could be
+    marked FAILED; None: no run was opened)."""
+    if marked is None or run_id is None:
+        return _NO_RUN
+    if marked:
+        return f"{_RUN_NOTE}{run_id} marked FAILED"
+    return (
+        f"{_RUN_NOTE}{run_id} could not be marked FAILED (the server does not answer; the next run on this machine "
+        "marks it KILLED)"
+    )
 
 
 # --------------------------------------------------------------------------- naming the store

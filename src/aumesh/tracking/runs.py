@@ -48,7 +48,7 @@ import socket
 import sys
 import traceback
 from collections.abc import Iterator, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from aumesh.core import provenance
 from aumesh.core.signals import process_gone
@@ -179,8 +179,7 @@ def _open_run(
         if params:
             handle.log_params(params)
     except BaseException as exc:
-        _fail(handle, exc)
-        raise
+        _fail_and_raise(handle, exc)
     return handle
 
 
@@ -228,8 +227,18 @@ def _failure(exc: BaseException) -> tuple[str, str, str]:
     )
 
 
-def _fail(handle: TrackedRun, exc: BaseException) -> None:
-    _end_failed(handle, *_failure(exc))
+def _fail(handle: TrackedRun, exc: BaseException) -> bool:
+    return _end_failed(handle, *_failure(exc))
+
+
+def _fail_and_raise(handle: TrackedRun, exc: BaseException) -> NoReturn:
+    """End the run as ``exc`` says and raise it; a lost server's line also says what became of the run."""
+    from aumesh.tracking.connection import TrackingServerError, run_fate
+
+    marked = _fail(handle, exc)
+    if isinstance(exc, TrackingServerError) and not exc.names_run:
+        raise exc.noted(run_fate(handle.run_id, marked)) from exc
+    raise exc
 
 
 def _end_failed(handle: TrackedRun, status: str, error: str, tb: str) -> bool:
@@ -316,8 +325,7 @@ def tracked_run(
     try:
         yield handle
     except BaseException as exc:
-        _fail(handle, exc)
-        raise
+        _fail_and_raise(handle, exc)
     else:
         handle.client.set_terminated(handle.run_id, "FINISHED")
     finally:
