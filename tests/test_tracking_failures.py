@@ -27,7 +27,7 @@ import yaml
 
 from aumesh import cli
 from aumesh.tracking import connection, mlflow_store
-from conftest import STARTUP_TIMEOUT_S, free_port, server_healthy, stop_process_group
+from conftest import STARTUP_TIMEOUT_S, free_port, new_store, server_healthy, stop_process_group
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -208,7 +208,7 @@ def test_lost_run_marked_failed_when_the_store_answers(tmp_path, monkeypatch):
 
     from aumesh.tracking import runs
 
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    uri = f"sqlite:///{new_store(tmp_path / 'mlflow.db')}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     with pytest.raises(connection.TrackingServerError):
         with runs.tracked_run({"experiment": "lost"}, "r", {"a": 1}) as run:
