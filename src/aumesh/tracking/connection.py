@@ -195,8 +195,16 @@ def _probe_http(uri: str, timeout: float) -> str | None:
     from urllib.parse import urlsplit
 
     port = urlsplit(uri).port or (443 if uri.startswith("https") else 80)
+    context = None
+    if uri.startswith("https"):  # as MLflow's client verifies the server (its environment variables)
+        import ssl
+
+        if os.environ.get("MLFLOW_TRACKING_INSECURE_TLS", "").lower() == "true":
+            context = ssl._create_unverified_context()
+        elif os.environ.get("MLFLOW_TRACKING_SERVER_CERT_PATH"):
+            context = ssl.create_default_context(cafile=os.environ["MLFLOW_TRACKING_SERVER_CERT_PATH"])
     try:
-        with urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=timeout) as resp:
+        with urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=timeout, context=context) as resp:
             resp.read(64)
         return None
     except urllib.error.HTTPError as err:
