@@ -186,9 +186,9 @@ def mid_evaluate(ws: Path, env: dict, home: Path, how: str) -> dict:
 
 
 def stopped_postgres(home: Path) -> str:
-    """A PostgreSQL cluster initialised, started (a connect works) and stopped: its URI."""
+    """A PostgreSQL cluster initialised in ``home`` (a new folder directly under /tmp: as root, PostgreSQL runs as
+    `postgres`, who must reach it), started and stopped: its URI."""
     sudo = ["runuser", "-u", "postgres", "--"] if os.geteuid() == 0 else []
-    home.mkdir(parents=True)
     if sudo:
         shutil.chown(home, user="postgres")
     port = free_port()
@@ -221,7 +221,8 @@ def main() -> None:
     try:
         ws = workspace(root, env)
         port, close_silent = silent_server()
-        pg_uri = stopped_postgres(root / "pg") if (PG_BIN / "initdb").exists() else None
+        pg_home = Path(tempfile.mkdtemp(prefix="aumesh-bench-pg-"))
+        pg_uri = stopped_postgres(pg_home) if (PG_BIN / "initdb").exists() else None
         cases: dict[str, Callable[[int], dict]] = {
             "closed port": lambda i: timed_evaluate(
                 ws, dict(env, MLFLOW_TRACKING_URI=f"http://127.0.0.1:{free_port()}")
@@ -252,6 +253,8 @@ def main() -> None:
     finally:
         if args.workdir is None:
             shutil.rmtree(root, ignore_errors=True)
+        if "pg_home" in locals():
+            shutil.rmtree(pg_home, ignore_errors=True)
 
 
 if __name__ == "__main__":
