@@ -335,6 +335,46 @@ def test_server_stopped_mid_evaluate_keeps_the_previous_model(workspace, own_ser
     assert status == "RUNNING"  # never FINISHED: nothing names it as a finished model
 
 
+@pytest.mark.slow
+@pytest.mark.server
+@pytest.mark.timeout(300)  # four configurations, each failing within the bound once the server is gone
+def test_server_stopped_mid_sweep_is_one_line(tmp_path, own_server):
+    """The server killed once the sweep's parent and first child exist: the sweep ends by itself, and its last word is
+    one line (exit 2) naming the server and how many configurations failed, not "see `aumesh runs`" (exit 1) on a
+    server that is gone, nor Hydra's warning about the parent it could not end."""
+    from test_sweep import make_workspace
+
+    url, _, server = own_server
+    ws = make_workspace(tmp_path / "ws")
+    subprocess.run(["git", "init", "-q"], cwd=ws, check=True)
+    env = dict(os.environ, MLFLOW_TRACKING_URI=url, PYTHONPATH=str(REPO / "src"))
+    sweep = subprocess.Popen(
+        [sys.executable, "-m", "aumesh", "sweep", "-m", "model.n_components=2,3,4,5"],
+        cwd=ws,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        while len(_runs_on(url)) < 2:  # the parent and the first configuration's run
+            assert sweep.poll() is None, sweep.communicate()
+            time.sleep(0.05)
+        os.killpg(sweep.pid, signal.SIGSTOP)
+        stop_process_group(server)
+        os.killpg(sweep.pid, signal.SIGCONT)
+        out, err = sweep.communicate(timeout=250)
+    finally:
+        if sweep.poll() is None:
+            os.killpg(sweep.pid, signal.SIGKILL)
+    assert sweep.returncode == 2, err
+    assert "Traceback" not in out + err and "UserWarning" not in err, err
+    [line] = error_lines(err)
+    assert line.startswith(f"aumesh sweep: error: tracking server {url} (from the MLFLOW_TRACKING_URI environment")
+    assert "of 4 configurations of the sweep failed" in line and "Fix: start the server" in line
+
+
 # ------------------------------------------------------------------------------ a database URI, PostgreSQL stopped
 @pytest.fixture
 def stopped_postgres(tmp_path):

@@ -29,12 +29,12 @@ def _tracking_cfg(args) -> dict[str, Any]:
     return cfg
 
 
-def _check_tracking(tracking_cfg: Mapping[str, Any]) -> dict[str, Any]:
+def _check_tracking(tracking_cfg: Mapping[str, Any], consequence: str = "nothing was run") -> dict[str, Any]:
     """The tracking store checked before the command does anything (one line, exit 2, naming its URI and where it came
     from: :func:`aumesh.tracking.mlflow_store.check_tracking`); returns ``tracking_cfg``."""
     from aumesh.tracking import mlflow_store
 
-    mlflow_store.check_tracking(tracking_cfg)
+    mlflow_store.check_tracking(tracking_cfg, consequence)
     return dict(tracking_cfg)
 
 
@@ -76,14 +76,26 @@ ALLOW_FAILURES = "--allow-failures"
 
 
 def _cmd_sweep(args) -> int:
+    import warnings
+
     from aumesh.experiments import sweep
 
     allow = ALLOW_FAILURES in args.overrides
+    tracking_cfg = _sweep_tracking_cfg(args.overrides)
     if not {"--help", "-h", "--cfg", "-c", "--info", "--hydra-help"} & set(args.overrides):  # Hydra's, no runs
-        _check_tracking(_sweep_tracking_cfg(args.overrides))
-    outcome = sweep.run_sweep([a for a in args.overrides if a != ALLOW_FAILURES])
+        _check_tracking(tracking_cfg)
+    with warnings.catch_warnings():
+        # a server lost mid-sweep: Hydra turns the sweep's end (its parent run) into a warning; the line below says it
+        warnings.filterwarnings("ignore", r"Callback SweepCallback\.\w+ raised TrackingServerError", UserWarning)
+        outcome = sweep.run_sweep([a for a in args.overrides if a != ALLOW_FAILURES])
     if not outcome.n_failed:
         return 0
+    # configurations failed: because the server went away? then that is the one line (exit 2), not "see aumesh runs"
+    _check_tracking(
+        tracking_cfg,
+        f"{outcome.n_failed} of {outcome.n_jobs} configurations of the sweep failed (its runs left RUNNING are marked "
+        "KILLED by the next run on this machine)",
+    )
     print(
         f"{outcome.n_failed} of {outcome.n_jobs} configurations failed (errors: `aumesh runs --sweep "
         f"{outcome.parent_run_id}`); "

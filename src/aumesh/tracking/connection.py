@@ -138,7 +138,9 @@ def check_timeout(tracking_cfg: Mapping[str, Any] | None) -> float:
     return DEFAULT_CHECK_TIMEOUT_S if value is None else max(0.1, float(value))
 
 
-def check_server(uri: str, source: str, timeout: float = DEFAULT_CHECK_TIMEOUT_S) -> None:
+def check_server(
+    uri: str, source: str, timeout: float = DEFAULT_CHECK_TIMEOUT_S, consequence: str = "nothing was run"
+) -> None:
     """Check that a tracking server or database answers, within ``timeout`` seconds in all (name lookup included).
 
     Parameters
@@ -150,6 +152,8 @@ def check_server(uri: str, source: str, timeout: float = DEFAULT_CHECK_TIMEOUT_S
     source : str
         Where ``uri`` came from (named in the message).
     timeout : float
+    consequence : str
+        What the message says became of the command's work (default: nothing was run: the check before any work).
 
     Raises
     ------
@@ -183,7 +187,7 @@ def check_server(uri: str, source: str, timeout: float = DEFAULT_CHECK_TIMEOUT_S
     problem = outcome[0] if outcome else f"did not answer within {timeout:g} s (tracking.check_timeout_s)"
     if problem:
         raise TrackingServerError(
-            f"{what} {shown_uri(uri)} (from {source}) {problem}; nothing was run", _fix(uri, source)
+            f"{what} {shown_uri(uri)} (from {source}) {problem}; {consequence}", _fix(uri, source)
         )
 
 

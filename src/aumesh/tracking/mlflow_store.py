@@ -175,12 +175,13 @@ def tracking_enabled(tracking_cfg: Mapping[str, Any] | None) -> bool:
     return value if isinstance(value, bool) else str(value).lower() not in {"0", "false", "no", "off"}
 
 
-def check_tracking(tracking_cfg: Mapping[str, Any] | None) -> TrackingURI | None:
+def check_tracking(tracking_cfg: Mapping[str, Any] | None, consequence: str = "nothing was run") -> TrackingURI | None:
     """The check every command that tracks makes before any work (nothing when ``tracking.enabled`` is false).
 
     A SQLite store: damaged or locked (:func:`check_store`); a server or database: answers within
-    ``tracking.check_timeout_s`` (:func:`aumesh.tracking.connection.check_server`). MLflow's retries and timeouts are
-    bounded from here on (:func:`aumesh.tracking.connection.bound_requests`).
+    ``tracking.check_timeout_s`` (:func:`aumesh.tracking.connection.check_server`; ``consequence``: what its message
+    says became of the command's work). MLflow's retries and timeouts are bounded from here on
+    (:func:`aumesh.tracking.connection.bound_requests`).
 
     Returns
     -------
@@ -201,7 +202,7 @@ def check_tracking(tracking_cfg: Mapping[str, Any] | None) -> TrackingURI | None
     if sqlite_path(located.uri) is not None:
         check_store(located.uri, busy_timeout(tracking_cfg))
     else:
-        connection.check_server(located.uri, located.source, connection.check_timeout(tracking_cfg))
+        connection.check_server(located.uri, located.source, connection.check_timeout(tracking_cfg), consequence)
     return located
 
 
