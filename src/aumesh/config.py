@@ -190,6 +190,13 @@ class TrackingConfig:
     experiment: str = "aumesh"
     # how long a store locked by another process is retried, with backoff, before one line says so
     busy_timeout_s: float = 60.0
+    # a tracking server or database: seconds the check before any work waits for it (aumesh.tracking.connection)
+    check_timeout_s: float = 5.0
+    # MLflow's HTTP requests (MLFLOW_HTTP_REQUEST_TIMEOUT / _MAX_RETRIES / _BACKOFF_FACTOR, unless set): a server lost
+    # mid-run ends the command in one line within about (max_retries + 1) x request_timeout_s, not MLflow's 25 min
+    request_timeout_s: float = 20.0
+    max_retries: int = 2
+    backoff_factor: float = 1.0
 
 
 @dataclass(frozen=True)

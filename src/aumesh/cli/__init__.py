@@ -170,9 +170,10 @@ def _os_error_line(err: OSError) -> str | None:
         tmp = tempfile.gettempdir()
         where = ""
         hint = f"`df -h . {tmp}`: the workspace is on {mount_of('.')}, the temporary folder {tmp} on {mount_of(tmp)}"
+    kept = "" if os.environ.get("DVC_STAGE") else ", so the previous ones are intact"  # under DVC: _dvc_note's line
     return (
-        f"no space left on the device {where}(outputs are swapped in only when complete, so the previous ones are "
-        f"intact). Fix: free space ({hint}) and run again."
+        f"no space left on the device {where}(outputs are swapped in only when complete{kept}). "
+        f"Fix: free space ({hint}) and run again."
     )
 
 
@@ -187,7 +188,9 @@ def _kept(command: str) -> str:
     if command == "evaluate":
         return "nothing was swapped in; its MLflow run is marked KILLED"
     if command in ("ingest", "prepare", "evaluate", "release"):
-        return "nothing was swapped in, the previous outputs are intact"
+        # under dvc repro, DVC removed them before the stage ran (not release/: persist): _dvc_note's line says so
+        removed = os.environ.get("DVC_STAGE") and command != "release"
+        return "nothing was swapped in" + ("" if removed else ", the previous outputs are intact")
     return "nothing was written"
 
 

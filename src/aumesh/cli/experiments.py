@@ -29,6 +29,29 @@ def _tracking_cfg(args) -> dict[str, Any]:
     return cfg
 
 
+def _check_tracking(tracking_cfg: Mapping[str, Any], consequence: str = "nothing was run") -> dict[str, Any]:
+    """The tracking store checked before the command does anything (one line, exit 2, naming its URI and where it came
+    from: :func:`aumesh.tracking.mlflow_store.check_tracking`); returns ``tracking_cfg``."""
+    from aumesh.tracking import mlflow_store
+
+    mlflow_store.check_tracking(tracking_cfg, consequence)
+    return dict(tracking_cfg)
+
+
+def _sweep_tracking_cfg(overrides: list[str]) -> dict[str, Any]:
+    """The tracking group a sweep composes: params.yaml's (from conf/), with the sweep's own ``tracking.KEY=VALUE``
+    overrides (one value each: a tracking key is never swept)."""
+    import yaml
+
+    cfg = _tracking_cfg(argparse.Namespace())
+    for item in overrides:
+        key, sep, value = item.lstrip("+").partition("=")
+        if sep and key.startswith("tracking.") and "," not in value:
+            with contextlib.suppress(yaml.YAMLError):
+                cfg[key.removeprefix("tracking.")] = yaml.safe_load(value)
+    return cfg
+
+
 def _parent_id(args, tracking_cfg: Mapping[str, Any]) -> str:
     """The sweep a command is about: ``--sweep ID``, else this clone's latest sweep (never a teammate's)."""
     from aumesh.core.errors import UserError
@@ -53,12 +76,26 @@ ALLOW_FAILURES = "--allow-failures"
 
 
 def _cmd_sweep(args) -> int:
+    import warnings
+
     from aumesh.experiments import sweep
 
     allow = ALLOW_FAILURES in args.overrides
-    outcome = sweep.run_sweep([a for a in args.overrides if a != ALLOW_FAILURES])
+    tracking_cfg = _sweep_tracking_cfg(args.overrides)
+    if not {"--help", "-h", "--cfg", "-c", "--info", "--hydra-help"} & set(args.overrides):  # Hydra's, no runs
+        _check_tracking(tracking_cfg)
+    with warnings.catch_warnings():
+        # a server lost mid-sweep: Hydra turns the sweep's end (its parent run) into a warning; the line below says it
+        warnings.filterwarnings("ignore", r"Callback SweepCallback\.\w+ raised TrackingServerError", UserWarning)
+        outcome = sweep.run_sweep([a for a in args.overrides if a != ALLOW_FAILURES])
     if not outcome.n_failed:
         return 0
+    # configurations failed: because the server went away? then that is the one line (exit 2), not "see aumesh runs"
+    _check_tracking(
+        tracking_cfg,
+        f"{outcome.n_failed} of {outcome.n_jobs} configurations of the sweep failed (its runs left RUNNING are marked "
+        "KILLED by the next run on this machine)",
+    )
     print(
         f"{outcome.n_failed} of {outcome.n_jobs} configurations failed (errors: `aumesh runs --sweep "
         f"{outcome.parent_run_id}`); "
@@ -78,7 +115,7 @@ def _cmd_runs(args) -> int:
     from aumesh.experiments import leaderboard
     from aumesh.tracking import queries
 
-    tracking_cfg = _tracking_cfg(args)
+    tracking_cfg = _check_tracking(_tracking_cfg(args))
     _finish_promotion()
     if args.sweeps:
         user = queries.current_owner()["user"] if args.mine else args.user
@@ -134,7 +171,7 @@ def _cmd_promote(args) -> int:
     from aumesh.experiments import promote
     from aumesh.tracking import queries
 
-    tracking_cfg = _tracking_cfg(args)
+    tracking_cfg = _check_tracking(_tracking_cfg(args))
     root = provenance.repo_root()
     newer = parent = None
     if not args.across:

@@ -24,9 +24,10 @@ import csv
 import io
 import re
 from collections.abc import Sequence
-from pathlib import Path
 
+from aumesh.core import storage
 from aumesh.core.errors import TableError
+from aumesh.core.storage import InputPath
 
 BOM = "\ufeff"
 #: Separators that Excel and other tools write instead of py-feat's ``,``.
@@ -37,13 +38,13 @@ _CONVERSION = re.compile(r"In CSV column #(\d+): CSV conversion error to (\w+): 
 RESAVE = "pandas: pd.read_csv(path, sep=';', decimal=',').to_csv(path, index=False)"
 
 
-def first_line(path: Path, offset: int, compressed: bool = False) -> int:
+def first_line(path: InputPath, offset: int, compressed: bool = False) -> int:
     """The line number (header = 1) of the line starting at byte ``offset`` of ``path`` (a gzipped CSV is read as
     one range after its header: line 2). Reads the file up to ``offset``: for error messages only."""
     if compressed:
         return 2
     lines, left = 1, offset
-    with open(path, "rb") as fh:
+    with storage.open_input(path) as fh:
         while left > 0:
             chunk = fh.read(min(left, 16 << 20))
             if not chunk:
@@ -53,7 +54,7 @@ def first_line(path: Path, offset: int, compressed: bool = False) -> int:
     return lines
 
 
-def check_header_line(path: Path, line: str, second: str = "") -> None:
+def check_header_line(path: InputPath, line: str, second: str = "") -> None:
     """The header's first line (``utf-8-sig``-decoded: a BOM is already gone), refused when it holds NUL bytes or is
     separated by ``;`` or tabs instead of ``,``; ``second``: the next line, to tell decimal commas.
 
@@ -102,7 +103,7 @@ def check_names(names: Sequence[str], where: str) -> None:
             )
 
 
-def check_bytes(path: Path, data: bytes, start_line: int | None, offset: int = 0) -> None:
+def check_bytes(path: InputPath, data: bytes, start_line: int | None, offset: int = 0) -> None:
     """A range of CSV bytes (starting at byte ``offset`` of ``path``, line ``start_line``; None: to be counted)
     refused when it holds NUL bytes, before Arrow reads them as text.
 
@@ -134,7 +135,7 @@ def _records(data: bytes) -> Sequence[tuple[int, list[str]]]:
 
 
 def parse_error(
-    path: Path, data: bytes, start_line: int, header: Sequence[str], message: str, columns: Sequence[str]
+    path: InputPath, data: bytes, start_line: int, header: Sequence[str], message: str, columns: Sequence[str]
 ) -> TableError:
     """Arrow's refusal of a CSV range (``data``, starting at line ``start_line``) as one line naming the file, the line
     and what it is: a row cut short at the end of the file, a row of another width, a decimal comma, or a value that

@@ -112,7 +112,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
             rect = np.fmax(w, h)
     else:
         assert source.mesh_npy is not None, source  # open_source pairs a table without mesh columns with its .npy
-        with NpyRowFile(source.mesh_npy) as f:
+        with NpyRowFile(str(source.mesh_npy)) as f:  # local: open_source refuses a remote .npy
             sample = f.read(0, rows)
         mesh = np.ascontiguousarray(sample.astype(np.float32).transpose(0, 2, 1)).reshape(len(sample), -1)
     extents = shape_extents(mesh)

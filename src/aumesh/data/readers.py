@@ -14,17 +14,19 @@ import csv
 import gzip
 import io
 from collections.abc import Iterator, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from aumesh.core import storage
 from aumesh.core.errors import TableError, corrupt_parquet
-from aumesh.core.io import NpyRowFile, absolute, check_npy
+from aumesh.core.io import NpyRowFile, check_npy
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES
+from aumesh.core.storage import InputPath, ObjectPath, StorageError
 from aumesh.data import csv_text, pyfeat
 
 CSV_SUFFIXES = (".csv", ".csv.gz")
@@ -39,22 +41,24 @@ PARQUET_RANGE_ROWS = 16384
 class Source:
     """One input file of ``data/``: a py-feat CSV, a parquet table, or a parquet table with its mesh ``.npy``."""
 
-    path: Path
+    path: InputPath  # a local Path, or an object's URL (paths.data_dir=s3://..., aumesh.core.storage)
     kind: str  # csv | parquet
     layout: pyfeat.Layout
     header: tuple[str, ...]  # every column, in file order
-    mesh_npy: Path | None = None
+    mesh_npy: InputPath | None = None
     n_rows: int | None = None  # parquet: rows (CSV: unknown until read)
 
     def absolute(self) -> Source:
         """The same source named by absolute paths (:func:`aumesh.core.io.absolute`): what partition tasks get, so a
-        cluster worker in another directory reads this workspace's file."""
+        cluster worker in another directory reads this workspace's file (a URL stays as it is)."""
         return replace(
-            self, path=absolute(self.path), mesh_npy=None if self.mesh_npy is None else absolute(self.mesh_npy)
+            self,
+            path=storage.absolute(self.path),
+            mesh_npy=None if self.mesh_npy is None else storage.absolute(self.mesh_npy),
         )
 
 
-def is_table(path: Path) -> bool:
+def is_table(path: InputPath) -> bool:
     return path.name.endswith(CSV_SUFFIXES + PARQUET_SUFFIXES)
 
 
@@ -66,7 +70,7 @@ DATA_NPY_FIX = (
 
 
 def open_source(
-    path: Path, mesh_npy_pattern: str, instruments: Sequence[str] = (), layouts: dict | None = None
+    path: InputPath, mesh_npy_pattern: str, instruments: Sequence[str] = (), layouts: dict | None = None
 ) -> Source:
     """A source's layout from its header (CSV) or schema (parquet); ``instruments``: the second detector's AU
     columns it must hold (``model.eiv.instrument_aus``). ``layouts``: a cache shared by the sources of one run (one
@@ -82,19 +86,28 @@ def open_source(
         header, lay = cache[key]
         return Source(path, "csv", lay, header)
     try:
-        md = pq.read_metadata(path)
+        md = _parquet_metadata(path)
+    except StorageError:
+        raise
     except Exception as err:  # pyarrow raises several types for a bad file
         raise corrupt_parquet(path, err) from None
     names = md.schema.to_arrow_schema().names
     npy = path.with_name(mesh_npy_pattern.format(stem=path.stem))
     split = (
-        npy.exists() and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names) and not {"z_0", "z_477"} <= set(names)
+        storage.exists(npy)
+        and not set(pyfeat.MESH_NAMES["Detectorv2"]) <= set(names)
+        and not {"z_0", "z_477"} <= set(names)
     )
     shape_key = ("parquet", tuple(names), split, tuple(instruments))
     if shape_key not in cache:
         cache[shape_key] = (tuple(names), pyfeat.layout(names, str(path), split_mesh=split, instruments=instruments))
     header, lay = cache[shape_key]
     if split:
+        if isinstance(npy, ObjectPath):  # rows are read with pread (NpyRowFile): a local file
+            raise TableError(
+                f"{npy}: the split layout (a table and its mesh .npy) is read from a local folder only. Fix: save "
+                f"the table with its mesh columns (py-feat's Fex.to_parquet), or `aws s3 sync` the folder to local disk."
+            )
         _, _, shape = check_npy(npy, DATA_NPY_FIX)
         if len(shape) != 3 or shape[1:] != (N_VERTICES, 3):
             raise TableError(
@@ -109,18 +122,32 @@ def open_source(
     return Source(path, "parquet", lay, header, npy if split else None, md.num_rows)
 
 
-def csv_header(path: Path) -> list[str]:
+def _parquet_metadata(path: InputPath) -> pq.FileMetaData:
+    if isinstance(path, ObjectPath):
+        with storage.open_input(path) as fh:
+            return pq.read_metadata(fh)
+    return pq.read_metadata(path)
+
+
+def csv_header(path: InputPath) -> list[str]:
     """The CSV's column names (a byte-order mark, as Excel writes, accepted); a header that is not py-feat's CSV (NUL
     bytes, ``;`` or tab separators) is refused by :func:`aumesh.data.csv_text.check_header_line`."""
     return _parse_header(path, *_header_lines(path))
 
 
-def _header_lines(path: Path) -> tuple[str, str]:
+def _header_lines(path: InputPath) -> tuple[str, str]:
     """The header line and (the start of) the next, decoded as ``utf-8-sig`` (a byte-order mark dropped)."""
-    opener = gzip.open if path.name.endswith(".gz") else open
     try:
+        if isinstance(path, ObjectPath):
+            with storage.open_input(path, block_size=storage.LINE_BLOCK_SIZE) as raw:
+                stream = gzip.open(raw, "rt", newline="", encoding="utf-8-sig") if path.name.endswith(".gz") else None
+                text = stream or io.TextIOWrapper(raw, encoding="utf-8-sig", newline="")
+                return text.readline(), text.readline(1 << 16)
+        opener = gzip.open if path.name.endswith(".gz") else open
         with opener(path, "rt", newline="", encoding="utf-8-sig") as fh:
             return fh.readline(), fh.readline(1 << 16)
+    except StorageError:
+        raise
     except (OSError, UnicodeDecodeError, EOFError) as err:
         raise TableError(
             f"{path}: cannot read the CSV header ({err}). Fix: save it with py-feat's detect(..., save=) "
@@ -128,7 +155,7 @@ def _header_lines(path: Path) -> tuple[str, str]:
         ) from None
 
 
-def _parse_header(path: Path, line: str, second: str) -> list[str]:
+def _parse_header(path: InputPath, line: str, second: str) -> list[str]:
     csv_text.check_header_line(path, line, second)
     header = next(csv.reader([line]), None)
     if not header:
@@ -160,15 +187,15 @@ def csv_spans(source: Source, range_bytes: int = CSV_RANGE_BYTES) -> list[Span]:
     face kept needs no frame before it (:mod:`aumesh.data.face_track`), so cleaning the ranges apart gives the rows
     of one pass over the file. Only a run of frames with several faces longer than that starts a range mid-track."""
     path = source.path
-    with open(path, "rb") as fh:
+    with storage.open_input(path, block_size=storage.LINE_BLOCK_SIZE) as fh:
         header_end = len(fh.readline())
-    size = path.stat().st_size
+    size = storage.size(path)
     if path.name.endswith(".gz") or size - header_end <= range_bytes:
         return [Span(source, header_end, size)]
     key_columns = [source.header.index(source.layout.video), source.header.index(FRAME_COLUMN)]
     face_column = source.header.index(source.layout.face_score or AU_COLUMNS[0])
     bounds, carried = [header_end], [False]
-    with open(path, "rb") as fh:
+    with storage.open_input(path, block_size=storage.LINE_BLOCK_SIZE) as fh:
         target = header_end + range_bytes
         while target < size:
             cut, anchored = _frame_boundary(fh, target, key_columns, face_column, range_bytes)
@@ -228,7 +255,7 @@ def parquet_batches(
     ~40 ms)."""
     types = _types(source.layout)
     try:
-        reader = reader or pq.ParquetFile(source.path)
+        reader = reader or pq.ParquetFile(_parquet_input(source.path))
         for batch in reader.iter_batches(
             batch_size=batch_rows or PARQUET_RANGE_ROWS, columns=columns, use_threads=False
         ):
@@ -242,8 +269,15 @@ def parquet_batches(
                 ]
                 table = pa.Table.from_arrays(cast, names=names)
             yield table
+    except StorageError:
+        raise
     except (pa.ArrowException, OSError) as err:
         raise corrupt_parquet(source.path, err) from None
+
+
+def _parquet_input(path: InputPath):
+    """What ``pq.ParquetFile`` opens: a local path as it is (Arrow's own file), an object through the seam."""
+    return storage.open_input(path) if isinstance(path, ObjectPath) else path
 
 
 def _new_frames(video: np.ndarray, frame: np.ndarray, previous: tuple | None) -> np.ndarray:
@@ -296,14 +330,14 @@ def iter_span_tables(span: Span, columns: Sequence[str] | None = None) -> Iterat
         yield Span(span.source, start, start + carry.num_rows), carry
 
 
-def _cast(column, typ: pa.DataType, path: Path, name: str, first_row: int):
+def _cast(column, typ: pa.DataType, path: InputPath, name: str, first_row: int):
     """``column`` as ``typ``; a value that is not a number is the data contract's error, naming its row and value."""
     try:
         return column.cast(typ)
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
         from aumesh.data import contract  # pandera: imported only when a value is not a number
 
-        contract.numeric_values(column.to_numpy(zero_copy_only=False), path, name, first_row)
+        contract.numeric_values(column.to_numpy(zero_copy_only=False), str(path), name, first_row)
         raise TableError(
             f"{path}: column {name!r} cannot be read as {typ}. Fix: write numbers as numbers (missing "
             f"values as NaN) before `dvc add data`."
@@ -324,9 +358,7 @@ def _csv_options(
 
 def span_bytes(span: Span) -> bytes:
     """An uncompressed CSV span's bytes, refused when they hold NUL bytes (:func:`aumesh.data.csv_text.check_bytes`)."""
-    with open(span.source.path, "rb") as fh:
-        fh.seek(span.start)
-        data = fh.read(span.stop - span.start)
+    data = storage.read_range(span.source.path, span.start, span.stop - span.start)
     csv_text.check_bytes(span.source.path, data, None, span.start)
     return data
 
@@ -348,11 +380,12 @@ def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]
         # streams have no readline)
         read, convert = _csv_options(span.source, columns, types, skip_rows=1)
         try:
-            return pacsv.read_csv(
-                pa.input_stream(str(path), compression="gzip"), read_options=read, convert_options=convert
-            )
+            with storage.open_input(path) if isinstance(path, ObjectPath) else nullcontext(str(path)) as raw:
+                return pacsv.read_csv(
+                    pa.input_stream(raw, compression="gzip"), read_options=read, convert_options=convert
+                )
         except pa.ArrowInvalid as err:
-            with gzip.open(path, "rb") as fh:
+            with storage.open_input(path) as raw, gzip.open(raw, "rb") as fh:
                 fh.readline()
                 data = fh.read()
             raise _csv_error(span, data, err, columns, 2) from None
@@ -492,7 +525,7 @@ def to_block(table: pa.Table, span: Span) -> Block:
         assert span.source.mesh_npy is not None, (
             span.source
         )  # open_source pairs a table without mesh columns with its .npy
-        with NpyRowFile(span.source.mesh_npy) as f:
+        with NpyRowFile(str(span.source.mesh_npy)) as f:  # a local file: open_source refuses a remote .npy
             rows = f.read(span.start, span.stop)
         mesh = np.ascontiguousarray(rows.astype(np.float32).transpose(0, 2, 1)).reshape(len(rows), -1)
     return Block(video.astype(str), frame_col.to_numpy().astype(np.int64), values, identity, mesh)

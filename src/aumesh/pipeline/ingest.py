@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from aumesh.config import Config
+from aumesh.core import storage
 from aumesh.core.errors import TableError
 from aumesh.core.io import absolute, atomic_directory, atomic_write_json, recorded
 from aumesh.core.schema import FRAME_COLUMN, instrument_columns
@@ -56,16 +57,24 @@ CSV_BYTES_PER_ROW = 20_000
 
 
 def find_sources(
-    data_dir: Path, pattern: str, mesh_npy_pattern: str, instruments: Sequence[str] = ()
+    data_dir: str | Path | storage.ObjectPath, pattern: str, mesh_npy_pattern: str, instruments: Sequence[str] = ()
 ) -> list[readers.Source]:
-    """Every table under ``data_dir`` that ``data.tables`` matches (CSV, gzipped CSV, parquet), sorted by path; each
-    must hold the ``instruments`` columns (``model.eiv.instrument_aus``), which the ingested tables then carry."""
-    if not data_dir.is_dir():
+    """Every table under ``data_dir`` (a folder, or an object store's ``s3://bucket/prefix``:
+    :mod:`aumesh.core.storage`) that ``data.tables`` matches (CSV, gzipped CSV, parquet), sorted by path; each must
+    hold the ``instruments`` columns (``model.eiv.instrument_aus``), which the ingested tables then carry."""
+    data_dir = storage.input_path(data_dir)
+    found = storage.list_inputs(data_dir, pattern)
+    if found is None and isinstance(data_dir, storage.ObjectPath):
+        raise TableError(
+            f"{data_dir}: no object under this prefix (paths.data_dir). Fix: upload py-feat's CSVs there "
+            f"(`aws s3 sync DIR {data_dir}`), or correct paths.data_dir."
+        )
+    if found is None:
         raise TableError(
             f"{data_dir}: the data folder does not exist (paths.data_dir). Fix: `dvc pull data.dvc` for the demo tables, "
             f"or copy py-feat's CSVs (detector.detect(video, save=...)) into {data_dir}/ and run `dvc add {data_dir}`."
         )
-    paths = sorted(p for p in data_dir.glob(pattern) if p.is_file() and readers.is_table(p))
+    paths = [p for p in found if readers.is_table(p)]
     if not paths:
         raise TableError(
             f"{data_dir}/{pattern}: no frame tables found (empty input; CSV, .csv.gz or parquet). Fix: copy py-feat's "
@@ -117,13 +126,15 @@ def _identity_task(task: Task) -> ingest.Counts:
 
 def run(cfg: Config, out_dir: str | Path) -> dict:
     """Ingest ``paths.data_dir`` into ``out_dir`` (replaced atomically). Returns the manifest."""
-    data_dir, out_dir = Path(cfg.paths.data_dir), Path(out_dir)
+    data_dir, out_dir = storage.input_path(cfg.paths.data_dir), Path(out_dir)
     # the tasks get absolute paths (a cluster's workers run elsewhere); the manifest records them as given
     instruments = instrument_columns(cfg.model.eiv.instrument_aus)  # () unless model/eiv=instruments
     sources = [s.absolute() for s in find_sources(data_dir, cfg.data.tables, cfg.data.mesh_npy, instruments)]
     how, mesh_units = cfg.data.face_selection, cfg.data.mesh_units
-    with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=sources[0].path, write=tmp):
-        parquet = [s for s in sources if s.kind == "parquet"]
+    with atomic_directory(absolute(out_dir)) as tmp, compute.engine(cfg.compute, read=str(sources[0].path), write=tmp):
+        # a parquet table on an object store is copied once into the ingested tables (as a CSV's rows are), never
+        # read in place: prepare's passes read their tables several times, from local disk
+        parquet = [s for s in sources if s.kind == "parquet" and not storage.is_url(s.path)]
         checks = dict(
             zip(
                 [s.path for s in parquet],
@@ -139,18 +150,28 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             if check is not None and check.clean:
                 entries.append(
                     {
-                        "source": recorded(source.path),
-                        "table": recorded(source.path),
+                        "source": recorded(str(source.path)),
+                        "table": recorded(str(source.path)),
                         "rows": check.rows,
-                        "mesh_npy": None if source.mesh_npy is None else recorded(source.mesh_npy),
+                        "mesh_npy": None if source.mesh_npy is None else recorded(str(source.mesh_npy)),
                         "detector": source.layout.detector,
                         "read": "in place",
                     }
                 )
                 continue
-            reason = "CSV" if check is None else check.reason
+            reason = (
+                check.reason
+                if check is not None
+                else "CSV"
+                if source.kind == "csv"
+                else "on object storage: copied once, not read in place"
+            )
             entries.append(
-                {"source": recorded(source.path), "detector": source.layout.detector, "read": f"cleaned ({reason})"}
+                {
+                    "source": recorded(str(source.path)),
+                    "detector": source.layout.detector,
+                    "read": f"cleaned ({reason})",
+                }
             )
             # a parquet table is streamed whole by one task (batch by batch: memory flat in its rows)
             spans += (
@@ -206,12 +227,12 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         for source, entry in zip(sources, entries, strict=True):
             stats = total.units.get(str(source.path)) or units.UnitStats(source.layout.detector)
             if stats.rows >= UNIT_CHECK_ROWS:
-                check_units(recorded(source.path), source.layout.detector, stats, mesh_units)
+                check_units(recorded(str(source.path)), source.layout.detector, stats, mesh_units)
             elif stats.rows:
                 key = (source.layout.detector, stats.xy, stats.z)
                 pooled, n, shown = few.get(key, (units.UnitStats(source.layout.detector), 0, []))
                 if len(shown) < 3:
-                    shown.append(recorded(source.path))
+                    shown.append(recorded(str(source.path)))
                 few[key] = (pooled + stats, n + 1, shown)
             entry["mesh_units"] = units_record(source, stats, mesh_units)
             before, after, _ = stats.depth_height()
@@ -250,7 +271,7 @@ def check_frames_once(
     ranges: video_frames.FrameRanges,
     sources: Sequence[readers.Source],
     spans: Sequence[readers.Span],
-    in_place: set[Path],
+    in_place: set[storage.InputPath],
     clean: Callable[[list[readers.Span]], Iterator[tuple[readers.Block, ingest.Counts]]],
 ) -> None:
     """Each video's frames kept once across ``data/`` (:mod:`aumesh.data.video_frames`): the files of the videos whose
@@ -270,7 +291,7 @@ def check_frames_once(
     frames: dict[str, dict[str, list[np.ndarray]]] = {v: {} for v in clash}
     for name in sorted({f for files in clash.values() for f in files}):
         source = by_path[name]
-        where = str(recorded(source.path))
+        where = str(recorded(str(source.path)))
         if source.path in in_place:
             batches = readers.parquet_batches(source, [source.layout.video, FRAME_COLUMN])
             blocks = ((b.column(0).to_numpy(zero_copy_only=False), b.column(1).to_numpy()) for b in batches)

@@ -74,69 +74,80 @@ def main(cfg: Config) -> dict:
     from aumesh.tracking import mlflow_store
     from aumesh.tracking import runs as tracking
     from aumesh.tracking.beside import tracked_run_beside
+    from aumesh.tracking.connection import TrackingServerError
 
     start_stage("evaluate", cfg)
     params = cfg.to_dict()
     tracking_cfg = params["tracking"]
-    if cfg.tracking.enabled:  # a damaged or locked store stops the stage before any work, not after the whole CV
-        mlflow_store.check_store(
-            mlflow_store.resolve_tracking_uri(tracking_cfg), mlflow_store.busy_timeout(tracking_cfg)
-        )
+    # the tracking store before any work, not after the whole CV: a damaged or locked SQLite store, a server or
+    # database that does not answer (one line naming its URI and where that came from)
+    mlflow_store.check_tracking(tracking_cfg)
     check_columns(cfg)
     check_eiv_inputs(cfg)  # a bad covariance file stops the stage before any pass
     prepared = load_prepared(cfg.paths.prepared_dir)
     digest = data_digest()
     out = Path(cfg.paths.model_dir)
-    # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
-    with tracked_run_beside(
-        tracking_cfg,
-        run_name=evaluate_run_name(cfg),
-        params=params,
-        tags=run_record.run_tags("evaluate", cfg.preprocess.target),
-    ) as run:
-        cv, final = run_evaluation(prepared, cfg, run, params, digest)
-        metrics = cv.metrics()
-        arrays = run_record.model_arrays(cfg, prepared, cv, final, run.run_id)
-        refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))  # before the model is logged or anything written
-        run.call(run_record.log_model, arrays)
-        run_info = {
-            "run_id": run.run_id,
-            "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
-            "experiment_id": getattr(run, "experiment_id", None),
-            # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
-            # never a server's address (the run id finds the run there)
-            "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None,
-        }
-        with atomic_directory(out) as tmp:
-            model_arrays: dict[str, Any] = {
-                "coef": final.coef,
-                "raw_intercept": final.raw_intercept,
-                "mesh_intercept": final.mesh_intercept,
-                "feature_columns": np.array(final.feature_columns),
-                "n_components": np.array(final.n_components, dtype=np.int32),
+    try:
+        # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
+        with tracked_run_beside(
+            tracking_cfg,
+            run_name=evaluate_run_name(cfg),
+            params=params,
+            tags=run_record.run_tags("evaluate", cfg.preprocess.target),
+        ) as run:
+            cv, final = run_evaluation(prepared, cfg, run, params, digest)
+            metrics = cv.metrics()
+            arrays = run_record.model_arrays(cfg, prepared, cv, final, run.run_id)
+            refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))  # before the model is logged or anything written
+            run.call(run_record.log_model, arrays)
+            run_info = {
+                "run_id": run.run_id,
+                "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
+                "experiment_id": getattr(run, "experiment_id", None),
+                # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
+                # never a server's address (the run id finds the run there)
+                "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None,
             }
-            if final.uncorrected_coef is not None:  # model/eiv: the card's fit of the same rows, beside the corrected
-                model_arrays["coef_uncorrected"] = final.uncorrected_coef
-            if final.identification is not None:
-                model_arrays |= final.identification.release_arrays()
-            np.savez(tmp / MODEL_NPZ, **model_arrays)
-            thresholds, fraction = dvc_metrics.error_curve(cv.frame_vertex_error, CARD_ERROR_CURVE_POINTS)
-            np.savez(
-                tmp / CV_NPZ,
-                r2_per_vertex=cv.r2_per_vertex,
-                r2_per_target=cv.r2_per_target,
-                r2_path_folds=cv.r2_path_folds,
-                vertex_error_per_vertex=cv.vertex_error_per_vertex,
-                cumulative_error_thresholds=thresholds,
-                cumulative_error_fraction=fraction,
-            )
-            shutil.copyfile(cv.frame_vertex_error.path, tmp / FRAME_ERROR_FILE)  # per frame, frames.parquet's order
-            atomic_write_json(
-                tmp / TRACKING_JSON, run_info | {"data_digest": digest, "degenerate": cv.extra.get("degenerate", {})}
-            )
-            atomic_write_json(tmp / METRICS_JSON, metrics)
-        dvc_metrics.write(
-            cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds
-        )  # committed: `dvc metrics/plots diff`
-        run.log_artifact(out / METRICS_JSON)
+            with atomic_directory(out) as tmp:
+                write_model_dir(tmp, cv, final, metrics, run_info | {"data_digest": digest})
+                run.log_artifact(tmp / METRICS_JSON)
+                # every logging call done and the run FINISHED before the folder is swapped in: build/model never
+                # names a run that failed (a lost server ends here, and the previous build/model stays)
+                run.finish()
+    except TrackingServerError as err:
+        raise err.noted(f"nothing of this run was published ({out}/, {cfg.paths.metrics_file} as they were)") from err
+    dvc_metrics.write(cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds)  # committed: `dvc metrics diff`
     return metrics
+
+
+def write_model_dir(tmp: Path, cv: CVResult, final: FinalModel, metrics: dict, run_info: dict) -> None:
+    """The files of ``paths.model_dir`` into the folder ``tmp`` (swapped in by the caller): the model's arrays
+    (``model.npz``), the CV's curves (``cv.npz``), the per-frame errors, ``tracking.json`` (``run_info`` and the
+    degenerate inputs) and ``metrics.json``."""
+    from aumesh.pipeline import dvc_metrics
+
+    model_arrays: dict[str, Any] = {
+        "coef": final.coef,
+        "raw_intercept": final.raw_intercept,
+        "mesh_intercept": final.mesh_intercept,
+        "feature_columns": np.array(final.feature_columns),
+        "n_components": np.array(final.n_components, dtype=np.int32),
+    }
+    if final.uncorrected_coef is not None:  # model/eiv: the card's fit of the same rows, beside the corrected
+        model_arrays["coef_uncorrected"] = final.uncorrected_coef
+    if final.identification is not None:
+        model_arrays |= final.identification.release_arrays()
+    np.savez(tmp / MODEL_NPZ, **model_arrays)
+    thresholds, fraction = dvc_metrics.error_curve(cv.frame_vertex_error, CARD_ERROR_CURVE_POINTS)
+    np.savez(
+        tmp / CV_NPZ,
+        r2_per_vertex=cv.r2_per_vertex,
+        r2_per_target=cv.r2_per_target,
+        r2_path_folds=cv.r2_path_folds,
+        vertex_error_per_vertex=cv.vertex_error_per_vertex,
+        cumulative_error_thresholds=thresholds,
+        cumulative_error_fraction=fraction,
+    )
+    shutil.copyfile(cv.frame_vertex_error.path, tmp / FRAME_ERROR_FILE)  # per frame, frames.parquet's order
+    atomic_write_json(tmp / TRACKING_JSON, run_info | {"degenerate": cv.extra.get("degenerate", {})})
+    atomic_write_json(tmp / METRICS_JSON, metrics)

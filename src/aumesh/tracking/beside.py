@@ -16,6 +16,7 @@ from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from aumesh.core.signals import check_supervisor, supervisor_gone
+from aumesh.tracking.connection import TrackingServerError, run_fate
 from aumesh.tracking.handle import TrackedRun, _NullRun
 from aumesh.tracking.runs import _enabled, _end_failed, _failure, _open_run
 
@@ -35,6 +36,7 @@ class RunBeside:
         self._helper = helper
         self._opened = opened  # of (run_id, experiment_id, tracking_uri)
         self._queued = [opened]
+        self.finished = False  # ended FINISHED by :meth:`finish`
 
     def __repr__(self) -> str:
         return f"RunBeside(opened={self._opened.done()}, queued={len(self._queued)})"
@@ -66,26 +68,47 @@ class RunBeside:
         for future in self._queued[1:]:
             future.cancel()
 
-    def end(self, error: BaseException | None = None, timeout: float | None = None) -> None:
+    def finish(self) -> None:
+        """Wait for everything queued, then end the run FINISHED, now: what the caller publishes after this names a
+        run that is FINISHED (the evaluate stage swaps in ``build/model`` only then). Raises the first error met; the
+        caller's error handling (``tracked_run_beside``) then ends the run FAILED instead."""
+        self.wait()
+        self._helper.submit(_end_beside, "FINISHED").result()
+        self.finished = True
+
+    def end(self, error: BaseException | None = None, timeout: float | None = None) -> bool | None:
         """End the run FINISHED, or with ``error`` as :func:`aumesh.tracking.runs.tracked_run` does (nothing to end if
         it never opened). With ``error`` the calls still queued are dropped, and ``timeout`` bounds the wait: a stage
         that was told to stop does not wait for the helper's figures or MLflow's import (the helper ends with the
-        stage, and the next run marks the run KILLED)."""
+        stage, and the next run marks the run KILLED).
+
+        Returns
+        -------
+        bool or None
+            With ``error``: whether the run was marked (False: the server did not answer, or no answer in time),
+            None when no run was opened.
+        """
         if error is None:
-            self._helper.submit(_end_beside, "FINISHED").result()
-            return
+            if not self.finished:
+                self._helper.submit(_end_beside, "FINISHED").result()
+            return True
         if timeout is not None:
             self.cancel_queued()
             if not self._opened.done():  # the helper still imports MLflow (~4 s of CPU): the next run marks the run
-                return
+                return False
         deadline = None if timeout is None else time.monotonic() + timeout  # one bound for both waits
 
         def left() -> float | None:
             return None if deadline is None else max(0.0, deadline - time.monotonic())
 
+        try:
+            if self._opened.exception(left()) is not None:
+                return None
+        except Exception:  # TimeoutError: still opening
+            return False
         with contextlib.suppress(Exception):  # TimeoutError, the helper's own error
-            if self._opened.exception(left()) is None:
-                self._helper.submit(_end_beside, *_failure(error)).result(left())
+            return bool(self._helper.submit(_end_beside, *_failure(error)).result(left()))
+        return False
 
 
 _BESIDE: TrackedRun | None = None  # the helper process's open run
@@ -146,19 +169,29 @@ def _open_beside(tracking_cfg, run_name, params, tags, owner_pid: int) -> tuple[
     return handle.run_id, handle.experiment_id, handle.tracking_uri
 
 
+_LOST: BaseException | None = None  # the helper's server stopped answering: the calls queued after fail at once
+
+
 def _call_beside(fn, args, kwargs):
+    global _LOST
     if _BESIDE is None:
         raise RuntimeError("the MLflow run did not open (see the first error)")
-    return fn(_BESIDE, *args, **kwargs)
+    if _LOST is not None:  # not each queued call retried for the whole bound again
+        raise _LOST
+    try:
+        return fn(_BESIDE, *args, **kwargs)
+    except TrackingServerError as err:
+        _LOST = err
+        raise
 
 
-def _end_beside(status: str, error: str = "", tb: str = "") -> None:
+def _end_beside(status: str, error: str = "", tb: str = "") -> bool:
     if _BESIDE is None:  # the run never opened: the opening error is what the caller reports
-        return
+        return False
     if status == "FINISHED":
         _BESIDE.client.set_terminated(_BESIDE.run_id, status)
-    else:
-        _end_failed(_BESIDE, status, error, tb)
+        return True
+    return _end_failed(_BESIDE, status, error, tb)
 
 
 @contextlib.contextmanager
@@ -213,8 +246,10 @@ def tracked_run_beside(
             if stopped and stop_w >= 0:  # the helper ends the run itself (KILLED, the reason): not waited for
                 run.cancel_queued()
                 _send_end(stop_w, exc)
-            else:
-                run.end(exc, timeout=STOP_SECONDS if stopped else None)
+                raise
+            marked = run.end(exc, timeout=STOP_SECONDS if stopped else None)
+            if isinstance(exc, TrackingServerError) and not exc.names_run:  # one line: what became of the run
+                raise exc.noted(run_fate(run.run_id if marked is not None else None, marked)) from exc
             raise
         run.end()
     finally:

@@ -254,9 +254,13 @@ class _NullRun(TrackedRun):
         self.tracking_uri = None
 
     def __getattribute__(self, item: str) -> Any:
-        if item.startswith("log_") or item in ("set_tags", "call"):
+        if item.startswith("log_") or item in ("set_tags", "call", "finish"):
             return lambda *a, **k: None
         return object.__getattribute__(self, item)
+
+    def finish(self) -> None:
+        """:meth:`aumesh.tracking.beside.RunBeside.finish` with tracking off: no run to end (declared for the one
+        interface, as :meth:`call`)."""
 
     def call(self, fn, *args, **kwargs) -> None:
         """:meth:`aumesh.tracking.beside.RunBeside.call` with tracking off: nothing to run (``__getattribute__``

@@ -9,6 +9,9 @@
 * A damaged SQLite store is one line (:class:`TrackingStoreError`), a locked one is retried with backoff for
   ``tracking.busy_timeout_s`` seconds first, and a copied or moved workspace's store is pointed at its own
   artifacts (:func:`relocate_artifacts`).
+* Where the URI came from (:func:`locate_tracking_uri`) and the check every command that tracks makes before any work
+  (:func:`check_tracking`); a server or database that does not answer, and MLflow's retries bounded, are
+  :mod:`aumesh.tracking.connection`.
 
 The experiment runs go to is :mod:`aumesh.tracking.experiment`; the values MLflow accepts (params cleaning, its
 limits) are :mod:`aumesh.tracking.values`.
@@ -22,7 +25,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
 from aumesh.core import provenance
 from aumesh.core.errors import UserError
@@ -102,8 +105,47 @@ def _absolute_local_uri(uri: str, root: Callable[[], Path]) -> str:
     return uri
 
 
+class TrackingURI(NamedTuple):
+    """A resolved tracking URI and where it came from (``source``, as messages name it)."""
+
+    uri: str
+    source: str
+
+
+def locate_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> TrackingURI:
+    """:func:`resolve_tracking_uri` and where the URI came from.
+
+    Returns
+    -------
+    TrackingURI
+        ``source`` is :data:`aumesh.tracking.connection.ENV_SOURCE` (``MLFLOW_TRACKING_URI``), ``LOCAL_SOURCE``
+        with the path of ``aumesh.local.yaml``, ``CONF_SOURCE`` (``tracking.tracking_uri``) or ``DEFAULT_SOURCE``.
+    """
+    from aumesh.core import settings
+    from aumesh.tracking import connection
+
+    env = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
+    local = None if env else settings.local_value("tracking", "tracking_uri")
+    if env:
+        uri, source = env, connection.ENV_SOURCE
+    elif local:
+        uri, source = str(local), connection.LOCAL_SOURCE.format(path=settings.settings_path())
+    elif (tracking_cfg or {}).get("tracking_uri"):
+        uri, source = str((tracking_cfg or {})["tracking_uri"]), connection.CONF_SOURCE
+    else:
+        return TrackingURI(
+            f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}", connection.DEFAULT_SOURCE
+        )
+    uri = uri.strip()
+    if uri.startswith(("http://", "https://", "databricks")):
+        return TrackingURI(uri, source)
+    if env:  # the environment's value as given (a path there is the caller's, relative to where they are)
+        return TrackingURI(database_uri(uri), source)
+    return TrackingURI(database_uri(_absolute_local_uri(uri, provenance.repo_root)), source)
+
+
 def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
-    """Return the MLflow tracking URI to use.
+    """Return the MLflow tracking URI to use (where it came from too: :func:`locate_tracking_uri`).
 
     Parameters
     ----------
@@ -124,18 +166,44 @@ def resolve_tracking_uri(tracking_cfg: Mapping[str, Any] | None = None) -> str:
         :func:`aumesh.core.provenance.repo_root`; a driverless ``postgresql://`` gets the driver that is
         installed (:func:`database_uri`).
     """
-    from aumesh.core import settings
+    return locate_tracking_uri(tracking_cfg).uri
 
-    env = os.environ.get("MLFLOW_TRACKING_URI", "").strip()
-    uri = env or settings.local_value("tracking", "tracking_uri") or (tracking_cfg or {}).get("tracking_uri")
-    if not uri:
-        return f"sqlite:///{(provenance.repo_root() / DEFAULT_DB_NAME).as_posix()}"
-    uri = str(uri).strip()
-    if uri.startswith(("http://", "https://", "databricks")):
-        return uri
-    if env:  # the environment's value as given (a path there is the caller's, relative to where they are)
-        return database_uri(uri)
-    return database_uri(_absolute_local_uri(uri, provenance.repo_root))
+
+def tracking_enabled(tracking_cfg: Mapping[str, Any] | None) -> bool:
+    """``tracking.enabled`` (default true; ``"false"``, ``"0"``, ``"no"``, ``"off"`` as text are false)."""
+    value = (tracking_cfg or {}).get("enabled", True)
+    return value if isinstance(value, bool) else str(value).lower() not in {"0", "false", "no", "off"}
+
+
+def check_tracking(tracking_cfg: Mapping[str, Any] | None, consequence: str = "nothing was run") -> TrackingURI | None:
+    """The check every command that tracks makes before any work (nothing when ``tracking.enabled`` is false).
+
+    A SQLite store: damaged or locked (:func:`check_store`); a server or database: answers within
+    ``tracking.check_timeout_s`` (:func:`aumesh.tracking.connection.check_server`; ``consequence``: what its message
+    says became of the command's work). MLflow's retries and timeouts are bounded from here on
+    (:func:`aumesh.tracking.connection.bound_requests`).
+
+    Returns
+    -------
+    TrackingURI or None
+        The store checked; None with tracking off.
+
+    Raises
+    ------
+    TrackingStoreError, aumesh.tracking.connection.TrackingServerError
+        One line naming the store, where its URI came from and the fix.
+    """
+    from aumesh.tracking import connection
+
+    if not tracking_enabled(tracking_cfg):
+        return None
+    located = locate_tracking_uri(tracking_cfg)
+    connection.bound_requests(tracking_cfg)
+    if sqlite_path(located.uri) is not None:
+        check_store(located.uri, busy_timeout(tracking_cfg))
+    else:
+        connection.check_server(located.uri, located.source, connection.check_timeout(tracking_cfg), consequence)
+    return located
 
 
 POSTGRES_SCHEMES = ("postgresql", "postgres")
@@ -216,7 +284,10 @@ def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
 
     For a SQLite store: checked first (:func:`check_store`), pointed at this workspace's ``mlartifacts/`` when the
     workspace was copied or moved (:func:`relocate_artifacts`), and wrapped in :class:`StoreClient`, whose calls retry
-    a locked store for ``tracking.busy_timeout_s`` seconds and name a damaged one (:class:`TrackingStoreError`).
+    a locked store for ``tracking.busy_timeout_s`` seconds and name a damaged one (:class:`TrackingStoreError`). For
+    a server or database: MLflow's retries and timeouts bounded (:func:`aumesh.tracking.connection.bound_requests`)
+    and the client wrapped in :class:`aumesh.tracking.connection.ServerClient`, whose calls name a server that stopped
+    answering in one line (:class:`aumesh.tracking.connection.TrackingServerError`).
 
     Parameters
     ----------
@@ -225,11 +296,14 @@ def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
 
     Returns
     -------
-    mlflow.MlflowClient or StoreClient
+    mlflow.MlflowClient or StoreClient or ServerClient
     """
-    uri = resolve_tracking_uri(tracking_cfg)
+    from aumesh.tracking import connection
+
+    uri, source = locate_tracking_uri(tracking_cfg)
     limit = busy_timeout(tracking_cfg)
     check_store(uri, limit)  # before MLflow's import (seconds): a damaged store says so at once
+    connection.bound_requests(tracking_cfg)  # MLflow reads them at each request: before the first
     _quiet_mlflow()
     from mlflow import MlflowClient
 
@@ -238,8 +312,11 @@ def get_client(tracking_cfg: Mapping[str, Any] | None = None) -> MlflowClient:
         # MlflowClient() builds the store right away: schema creation + migrations
         # for a new SQLite file.
         client = _with_store_retry(lambda: MlflowClient(tracking_uri=uri), uri, limit)
-    # StoreClient forwards every MlflowClient method (retrying a busy store): an MlflowClient to its callers
-    return cast("MlflowClient", StoreClient(client, uri, limit)) if sqlite_path(uri) else client
+    # StoreClient forwards every MlflowClient method (retrying a busy store), ServerClient too (a server that stopped
+    # answering is one line): an MlflowClient to their callers
+    if sqlite_path(uri):
+        return cast("MlflowClient", StoreClient(client, uri, limit))
+    return cast("MlflowClient", connection.ServerClient(client, uri, source))
 
 
 # --------------------------------------------------------------------------- a damaged or busy store

@@ -48,7 +48,7 @@ import socket
 import sys
 import traceback
 from collections.abc import Iterator, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from aumesh.core import provenance
 from aumesh.core.signals import process_gone
@@ -65,6 +65,7 @@ from aumesh.tracking.mlflow_store import (
     WORKSPACE_TAG,
     _default_artifact_location,
     get_client,
+    tracking_enabled,
 )
 from aumesh.tracking.values import MAX_KEY_LENGTH, MAX_TAG_VALUE_LENGTH, _str_value, _truncate
 
@@ -148,8 +149,7 @@ def provenance_tags(tracking_cfg: Mapping[str, Any] | None = None, owner_pid: in
 
 # ------------------------------------------------------------------------- runs
 def _enabled(tracking_cfg: Mapping[str, Any] | None) -> bool:
-    value = (tracking_cfg or {}).get("enabled", True)
-    return value if isinstance(value, bool) else str(value).lower() not in {"0", "false", "no", "off"}
+    return tracking_enabled(tracking_cfg)
 
 
 def _open_run(
@@ -179,8 +179,7 @@ def _open_run(
         if params:
             handle.log_params(params)
     except BaseException as exc:
-        _fail(handle, exc)
-        raise
+        _fail_and_raise(handle, exc)
     return handle
 
 
@@ -228,18 +227,48 @@ def _failure(exc: BaseException) -> tuple[str, str, str]:
     )
 
 
-def _fail(handle: TrackedRun, exc: BaseException) -> None:
-    _end_failed(handle, *_failure(exc))
+def _fail(handle: TrackedRun, exc: BaseException) -> bool:
+    return _end_failed(handle, *_failure(exc))
 
 
-def _end_failed(handle: TrackedRun, status: str, error: str, tb: str) -> None:
-    """Tag the run with ``error`` (``aumesh.error``), log ``tb`` as ``error.txt`` and terminate it as ``status``."""
+def _fail_and_raise(handle: TrackedRun, exc: BaseException) -> NoReturn:
+    """End the run as ``exc`` says and raise it; a lost server's line also says what became of the run."""
+    from aumesh.tracking.connection import TrackingServerError, run_fate
+
+    marked = _fail(handle, exc)
+    if isinstance(exc, TrackingServerError) and not exc.names_run:
+        raise exc.noted(run_fate(handle.run_id, marked)) from exc
+    raise exc
+
+
+def _end_failed(handle: TrackedRun, status: str, error: str, tb: str) -> bool:
+    """Tag the run with ``error`` (``aumesh.error``), log ``tb`` as ``error.txt`` and terminate it as ``status``;
+    whether the run could be terminated (a server that stopped answering: not).
+
+    After a server was lost (``error`` is a :class:`aumesh.tracking.connection.TrackingServerError`) the status is
+    set first, each request tried once (not with MLflow's retries again), and the tag and traceback only if it was."""
+    from aumesh.tracking.connection import TrackingServerError, no_retries
+
+    if error.startswith(TrackingServerError.__name__):
+        with no_retries():
+            try:
+                handle.client.set_terminated(handle.run_id, status)
+            except Exception:
+                return False
+            with contextlib.suppress(Exception):
+                handle.client.set_tag(handle.run_id, ERROR_TAG, _truncate(error, MAX_TAG_VALUE_LENGTH))
+            with contextlib.suppress(Exception):
+                handle.client.log_text(handle.run_id, tb, "error.txt")
+        return True
     with contextlib.suppress(Exception):
         handle.client.set_tag(handle.run_id, ERROR_TAG, _truncate(error, MAX_TAG_VALUE_LENGTH))
     with contextlib.suppress(Exception):
         handle.client.log_text(handle.run_id, tb, "error.txt")
-    with contextlib.suppress(Exception):
+    try:
         handle.client.set_terminated(handle.run_id, status)
+    except Exception:
+        return False
+    return True
 
 
 @contextlib.contextmanager
@@ -296,8 +325,7 @@ def tracked_run(
     try:
         yield handle
     except BaseException as exc:
-        _fail(handle, exc)
-        raise
+        _fail_and_raise(handle, exc)
     else:
         handle.client.set_terminated(handle.run_id, "FINISHED")
     finally:

@@ -16,8 +16,10 @@ tcp://host:8786`` alone selects the cluster) overrides the ``compute`` group of 
 (:func:`aumesh.pipeline.compute.settings.effective`), so ``dvc repro -f`` runs on a cluster without a change to a
 tracked file. One cluster serves many workspaces: the stages hand their tasks absolute paths and per-run scratch
 folders, and a probe on every worker checks, when the stage connects, that it reads the data and writes the output
-folder at those paths (:func:`aumesh.pipeline.compute.probe.check_workers`). A scheduler that does not answer, or is
-lost mid-run, is one line (:class:`aumesh.core.errors.ClusterError`, exit 2).
+folder at those paths and runs this stage's aumesh code (:func:`aumesh.pipeline.compute.probe.check_workers`; a worker
+that joins later likewise, :class:`aumesh.pipeline.compute.probe.LateWorkers`). A scheduler that does not answer
+within ``compute.connect_timeout`` (wall clock), or is lost mid-run, is one line
+(:class:`aumesh.core.errors.ClusterError`, exit 2).
 
 This module is the engine (the scheduler a run uses, the cluster's client) and the map helpers the passes call
 (:func:`map_gather`, :func:`map_reduce`, :func:`local_map`, :func:`task_rows`): every import of ``dask`` and
@@ -33,6 +35,7 @@ import itertools
 import logging
 import os
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
@@ -75,9 +78,11 @@ def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path
     Raises
     ------
     ClusterError
-        No scheduler at the address within ``compute.connect_timeout`` seconds, no worker, a worker that cannot read
-        ``read`` or write ``write``, the scheduler lost or a worker killed mid-run. One line; the outputs were being
-        built in temporary folders, so the previous ones stand.
+        No scheduler at the address, no worker or no probe's answer within ``compute.connect_timeout`` seconds (wall
+        clock), a worker that runs other aumesh code or cannot read ``read`` or write ``write`` (when the stage
+        connects, or when it joins later), the scheduler lost or a worker killed mid-run. One line; the outputs were being
+        built in temporary folders, so outside DVC the previous ones stand (under ``dvc repro`` DVC removed them
+        before the stage ran: the line after says how to get them back).
     """
     import dask
 
@@ -95,30 +100,146 @@ def engine(cfg: ComputeConfig, read: str | Path | None = None, write: str | Path
         _ACTIVE.reset(token)
 
 
-def _connect(cfg: ComputeConfig):
-    """A client of the scheduler at ``cfg.address`` with at least one worker, or a :class:`ClusterError`."""
-    from distributed import Client
+def _connect(cfg: ComputeConfig, read: str | Path | None, write: str | Path | None):
+    """A client of the scheduler at ``cfg.address`` with at least one worker, every worker probed
+    (:func:`~aumesh.pipeline.compute.probe.check_workers`) and the later ones watched
+    (:class:`~aumesh.pipeline.compute.probe.LateWorkers`), within ``compute.connect_timeout`` seconds of wall clock;
+    or a :class:`ClusterError` naming the address, where it was set and the step that did not finish.
+
+    The wall clock is a guard around all of it: ``distributed``'s own timeouts do not bound a peer that accepts the
+    connection and then says nothing or something else (a silent TCP server, an HTTP server: the client waited for
+    the scheduler's handshake forever, 11 min before it was stopped). So the steps run in a daemon thread that is
+    abandoned when the time is up (whatever it made later is closed by it); an error of its own raised at that moment
+    is waited for a moment, as it says the same or more. A closed port is told from a peer that is no scheduler
+    (:func:`_listening`): ``distributed`` said "timed out" for both.
+    """
+    import threading
+
+    from aumesh.pipeline.compute.probe import LateWorkers
 
     where = f"{source_of('address')}={cfg.address}"
     timeout = source_of("connect_timeout")
+    deadline = time.monotonic() + cfg.connect_timeout
+    lock = threading.Lock()
+    box: dict[str, Any] = {"step": "connect"}
+    done = threading.Event()
+
+    def steps() -> None:
+        made = None
+        try:
+            box["step"] = _listening(str(cfg.address), deadline)
+            if box["step"] == "refused":
+                raise ClusterError(_guard_line(cfg, "refused"))
+            client = made = _client(cfg, where, timeout)
+            box["step"] = "workers"
+            _wait_for_a_worker(client, cfg, deadline)
+            box["step"] = "probe"
+            check_workers(client, read, write)
+            late = LateWorkers(client, read, write)
+            late.start()
+            made = (client, late)
+        except BaseException as err:
+            with lock:
+                box.setdefault("error", err)
+        finally:
+            with lock:
+                abandoned = box.get("abandoned", False)
+                if not abandoned and "error" not in box:
+                    box["result"] = made
+            if made is not None and (abandoned or "error" in box):
+                _close(made[0] if isinstance(made, tuple) else made, quiet=True)
+            done.set()
+
+    threading.Thread(target=steps, name="aumesh-connect", daemon=True).start()
     try:
-        client = Client(cfg.address, timeout=cfg.connect_timeout, set_as_default=False)
+        done.wait(cfg.connect_timeout) or done.wait(_LATE_ERROR_WAIT)
+    finally:  # decided under the lock: the thread either handed its result over or closes it itself
+        with lock:
+            if "result" not in box and "error" not in box:
+                box["abandoned"] = True
+    if "error" in box:
+        raise box["error"]
+    if "result" in box:
+        return box["result"]
+    raise ClusterError(_guard_line(cfg, box["step"]))
+
+
+def _guard_line(cfg: ComputeConfig, step: str) -> str:
+    """The line of a connection that did not get past ``step`` within ``compute.connect_timeout`` seconds: its
+    address and timeout named where they were set (:func:`~aumesh.pipeline.compute.settings.source_of`)."""
+    where, timeout = f"{source_of('address')}={cfg.address}", source_of("connect_timeout")
+    start = "start one (`make cluster`, or `dask scheduler` and `dask worker ADDRESS`) or correct the address"
+    what, hint, fix = {
+        "refused": ("nothing listens there (every connection refused)", "the scheduler is not running there", start),
+        "connect": (
+            "no Dask scheduler answered there",
+            "something else listens at that port, a Dask scheduler's is 8786 by default; or the scheduler is stuck",
+            "correct the address (the scheduler prints it: `Scheduler at: tcp://...`)",
+        ),
+        "workers": (
+            "the scheduler has no worker",
+            "none joined",
+            f"start workers (`dask worker {cfg.address}`, or `make cluster`)",
+        ),
+        "probe": ("the workers did not answer the probe", "see the workers' logs", "restart the workers"),
+    }[step]
+    return (
+        f"{where}: {what} within {cfg.connect_timeout:g} s ({hint}). Fix: {fix}, or {local_fix()}; "
+        f"{timeout} sets the wait."
+    )
+
+
+#: Seconds :func:`_connect` waits, after ``compute.connect_timeout``, for the connection's own error raised at that
+#: moment (the steps end at the same deadline), which says the same or more than the guard.
+_LATE_ERROR_WAIT = 0.25
+
+
+def _listening(address: str, deadline: float) -> str:
+    """Wait until something accepts TCP connections at ``address`` (``tcp://host:port``), as ``distributed`` would
+    before it says it timed out, but knowing why: "connect" once it does, else (every connection refused until the
+    deadline) "refused", which :func:`_connect`'s guard turns into its line. Other schemes, or an address this cannot
+    parse, are left to ``distributed``."""
+    import socket
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        host, port = parse_host_port(location, default_port=8786)
+    except Exception:
+        return "connect"
+    if scheme != "tcp":
+        return "connect"
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=max(deadline - time.monotonic(), 0.01)).close()
+            return "connect"
+        except ConnectionRefusedError:
+            if time.monotonic() >= deadline:
+                return "refused"
+            time.sleep(0.05)  # a scheduler still starting: as distributed, try again until the deadline
+        except OSError:  # no such host, unreachable, timed out: distributed says which
+            return "connect"
+
+
+def _client(cfg: ComputeConfig, where: str, timeout: str):
+    from distributed import Client
+
+    try:
+        return Client(cfg.address, timeout=cfg.connect_timeout, set_as_default=False)
     except Exception as err:  # OSError (timed out, refused), ValueError (no port), or a peer that is no scheduler
         raise ClusterError(
             f"{where}: cannot connect to a Dask scheduler there ({first_line(err)}). "
             f"Fix: start one (`make cluster`, or `dask scheduler` and `dask worker ADDRESS`) or correct "
             f"the address, or {local_fix()}; {timeout} sets the wait."
         ) from None
+
+
+def _wait_for_a_worker(client, cfg: ComputeConfig, deadline: float) -> None:
     try:
-        client.wait_for_workers(1, timeout=cfg.connect_timeout)
+        client.wait_for_workers(1, timeout=max(deadline - time.monotonic(), 0.001))
     except Exception:
-        _close(client, quiet=True)
-        raise ClusterError(
-            f"{where}: the scheduler has no worker (none joined within {cfg.connect_timeout:g} s). "
-            f"Fix: start workers (`dask worker {cfg.address}`, or `make cluster`), or {local_fix()}; "
-            f"{timeout} sets the wait."
-        ) from None
-    return client
+        raise ClusterError(_guard_line(cfg, "workers")) from None
 
 
 def _close(client, quiet: bool) -> None:
@@ -148,19 +269,27 @@ def _lost(err: BaseException, client) -> bool:
 
 
 def _distributed(cfg: ComputeConfig, dask, read: str | Path | None, write: str | Path | None) -> Iterator[None]:
-    client = _connect(cfg)
+    client, late = _connect(cfg, read, write)
     where = f"{source_of('address')}={cfg.address}"
     failed = False
+
+    def get(*args, **kwargs):
+        """The client's ``get``, then the late workers' check: no result of a worker that failed its probe lands."""
+        result = client.get(*args, **kwargs)
+        late.check()
+        return result
+
     try:
         n = len(client.scheduler_info().get("workers", {}))
         log.info("compute: dask.distributed scheduler at %s (%d workers)", cfg.address, n)
-        check_workers(client, read, write)
-        with dask.config.set(scheduler=client):
+        with dask.config.set(scheduler=get):
             yield
+        late.check()  # a worker that joined with other code after the last computation: the run is refused alike
     except UserError:
         failed = client.status != "running"
         raise
     except Exception as err:
+        late.check()  # the computation was cancelled because a late worker failed its probe: that line
         if not _lost(err, client):
             raise
         failed = True
@@ -171,15 +300,24 @@ def _distributed(cfg: ComputeConfig, dask, read: str | Path | None, write: str |
                 f"{where}: a task ended its worker's process {dask.config.get('distributed.scheduler.allowed-failures', 3) + 1} "
                 f"times ({first_line(err)}), likely its memory limit. Fix: see the workers' logs; give "
                 "them more memory (`dask worker --memory-limit`) or lower data.chunk_rows and "
-                "compute.partition_rows. The previous outputs stand."
+                f"compute.partition_rows.{_kept()}"
             ) from None
         raise ClusterError(
             f"{where}: lost the Dask scheduler during the run ({first_line(err)}). Fix: restart the "
-            f"scheduler and its workers and run again, or {local_fix()}. The previous outputs "
-            "stand."
+            f"scheduler and its workers and run again, or {local_fix()}.{_kept()}"
         ) from None
     finally:
+        if not failed:
+            late.stop()
         _close(client, quiet=failed)
+
+
+def _kept() -> str:
+    """What a failed run leaves of the stage's previous outputs, as the end of its line: outside DVC they stand (the
+    stages build their outputs in temporary folders and swap them in only when complete); under ``dvc repro``
+    (``DVC_STAGE``) DVC removed them before it ran the stage, and ``aumesh``'s next line names them and the command
+    that brings them back (:func:`aumesh.stages.common.removed_by_dvc`), so nothing is claimed here."""
+    return "" if os.environ.get("DVC_STAGE") else " The previous outputs stand."
 
 
 def _scheduler(cfg: ComputeConfig, dask) -> Iterator[None]:
