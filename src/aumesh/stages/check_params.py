@@ -13,6 +13,9 @@ Why a stage: DVC composes ``params.yaml`` itself (``dvc/utils/hydra.py``) and ru
 deps are the composed file is the one place that runs every time the composition changes, under ``dvc repro``,
 ``dvc exp run`` and queued experiments alike. Why refuse rather than warn: DVC shows a stage's output only when it
 runs, and a warning from an experiment that succeeds still commits the address.
+
+It is the one stage that composes ``conf/``: it computes nothing from it, it only checks that DVC's ``params.yaml``
+(which every other stage reads, never re-composing) was composed from ``conf/`` for these two groups.
 """
 
 from __future__ import annotations
