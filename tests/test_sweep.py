@@ -25,7 +25,7 @@ from aumesh.pipeline import integrity, prepare
 from aumesh.synthetic import tables as synth
 from aumesh.tracking import mlflow_store, queries, registry
 from aumesh.tracking import runs as tracking
-from conftest import built_once, new_store
+from conftest import built_once, default_config, new_store
 
 REPO = Path(__file__).resolve().parents[1]
 SPEC = synth.SynthSpec(n_frames=600, n_videos=60, seed=11)
@@ -342,3 +342,19 @@ def test_a_sweep_over_the_correction_fits_each_and_promotion_does_not_rank_them_
         assert cli.main(["promote"]) == 0
         record = json.loads((ws / "promotion.json").read_text())["promoted"]
         assert record["run_id"] == corrected and "model.eiv" in record["compared"]
+
+
+def test_a_sweep_that_re_prepares_from_an_object_store_is_one_line(tmp_path):
+    """A sweep over prepare's values re-prepares from paths.data_dir's parquet tables, a local folder only: with an
+    s3:// data_dir it stops in one line naming the URL and the ways out, before it reads anything."""
+    from aumesh.core.errors import ConfigError
+    from aumesh.experiments.sweep_cache import PreparedSource, ensure_prepared
+
+    cfg = default_config(**{"paths.data_dir": "s3://lab-tables/celebv"})
+    source = PreparedSource(tmp_path / "prepared", False, {"preprocess.target": "within"}, "k")
+    with pytest.raises(ConfigError) as err:
+        ensure_prepared(source, cfg)
+    line = str(err.value)
+    assert "\n" not in line and line.startswith("paths.data_dir=s3://lab-tables/celebv: this sweep re-prepares")
+    assert "aws s3 sync" in line
+    assert not (tmp_path / "prepared").exists() or not any((tmp_path / "prepared").iterdir())

@@ -31,6 +31,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from aumesh.config import flatten as flatten_config
+from aumesh.core import storage
+from aumesh.core.errors import ConfigError
 from aumesh.core.io import atomic_write_json
 from aumesh.core.schema import instrument_columns
 from aumesh.pipeline.prepared_files import PREPARED_FILES, SUMMARY_FILE
@@ -296,6 +298,13 @@ def ensure_prepared(source: PreparedSource, cfg: Config) -> Path:
             )
             return source.path
         log.info("preparing %s from %s (prepare values differ from params.yaml's)", source.path, cfg.paths.data_dir)
+        if storage.is_url(cfg.paths.data_dir):  # tables.discover reads parquet tables in a local folder only
+            raise ConfigError(
+                f"paths.data_dir={cfg.paths.data_dir}: this sweep re-prepares the data (its values of "
+                f"{', '.join(PREPARE_KEYS)} differ from params.yaml's) and reads the tables from a local folder only. "
+                "Fix: sweep only evaluate's keys on the prepared data, or `dvc exp run -S` those values (ingest reads "
+                "s3://), or copy the tables to a local folder (`aws s3 sync`)."
+            )
         found = tables.discover(cfg.paths.data_dir, cfg.data.tables, cfg.data.mesh_npy, cfg.data.coerce_numeric)
         prep.run(found, cfg, source.path)
         atomic_write_json(stamp_path, {"signature": source.signature, "key": source.key})
