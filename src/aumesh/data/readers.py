@@ -14,7 +14,7 @@ import csv
 import gzip
 import io
 from collections.abc import Iterator, Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -123,10 +123,8 @@ def open_source(
 
 
 def _parquet_metadata(path: InputPath) -> pq.FileMetaData:
-    if isinstance(path, ObjectPath):
-        with storage.open_input(path) as fh:
-            return pq.read_metadata(fh)
-    return pq.read_metadata(path)
+    with _arrow_input(path) as src:
+        return pq.read_metadata(src)
 
 
 def csv_header(path: InputPath) -> list[str]:
@@ -255,29 +253,31 @@ def parquet_batches(
     ~40 ms)."""
     types = _types(source.layout)
     try:
-        reader = reader or pq.ParquetFile(_parquet_input(source.path))
-        for batch in reader.iter_batches(
-            batch_size=batch_rows or PARQUET_RANGE_ROWS, columns=columns, use_threads=False
-        ):
-            table = pa.Table.from_batches([batch])
-            names = table.column_names
-            wrong = [name in types and table.schema.field(name).type != types[name] for name in names]
-            if any(wrong):  # one new table: a set_column per column costs seconds for py-feat's ~1,400 float64 mesh
-                cast = [
-                    _cast(table.column(name), types[name], source.path, name, 0) if bad else table.column(name)
-                    for name, bad in zip(names, wrong, strict=True)
-                ]
-                table = pa.Table.from_arrays(cast, names=names)
-            yield table
+        with _arrow_input(source.path) if reader is None else nullcontext() as src:  # an object's file: closed after
+            reader = reader or pq.ParquetFile(src)
+            for batch in reader.iter_batches(
+                batch_size=batch_rows or PARQUET_RANGE_ROWS, columns=columns, use_threads=False
+            ):
+                table = pa.Table.from_batches([batch])
+                names = table.column_names
+                wrong = [name in types and table.schema.field(name).type != types[name] for name in names]
+                if any(wrong):  # one new table: a set_column per column costs seconds for py-feat's ~1,400 float64 mesh
+                    cast = [
+                        _cast(table.column(name), types[name], source.path, name, 0) if bad else table.column(name)
+                        for name, bad in zip(names, wrong, strict=True)
+                    ]
+                    table = pa.Table.from_arrays(cast, names=names)
+                yield table
     except StorageError:
         raise
     except (pa.ArrowException, OSError) as err:
         raise corrupt_parquet(source.path, err) from None
 
 
-def _parquet_input(path: InputPath):
-    """What ``pq.ParquetFile`` opens: a local path as it is (Arrow's own file), an object through the seam."""
-    return storage.open_input(path) if isinstance(path, ObjectPath) else path
+def _arrow_input(path: InputPath) -> AbstractContextManager:
+    """What Arrow opens, as a context: a local file by its path (Arrow's own reader), an object's file through the
+    seam (:mod:`aumesh.core.storage`), closed when the context ends."""
+    return storage.open_input(path) if isinstance(path, ObjectPath) else nullcontext(str(path))
 
 
 def _new_frames(video: np.ndarray, frame: np.ndarray, previous: tuple | None) -> np.ndarray:
@@ -380,7 +380,7 @@ def _read_csv_span(span: Span, columns: list[str], types: dict[str, pa.DataType]
         # streams have no readline)
         read, convert = _csv_options(span.source, columns, types, skip_rows=1)
         try:
-            with storage.open_input(path) if isinstance(path, ObjectPath) else nullcontext(str(path)) as raw:
+            with _arrow_input(path) as raw:
                 return pacsv.read_csv(
                     pa.input_stream(raw, compression="gzip"), read_options=read, convert_options=convert
                 )
