@@ -347,7 +347,8 @@ def _written_by_probe(path: Path, token: str) -> bool:
 
 
 def _unseen(worker: str, verb: str, path: str | None, cause: str) -> str:
-    if path is not None and storage.is_url(path):  # an object store: the cause (core.storage's line) carries its own fix
+    # an object store: the cause (core.storage's line) carries its own fix
+    if path is not None and storage.is_url(path):
         return f"worker {worker} cannot {verb} {path}: {cause}"
     folder = path if verb == "write into" or path is None else os.path.dirname(path)
     return (
