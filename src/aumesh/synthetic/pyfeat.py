@@ -45,6 +45,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from aumesh.core.families import EMOTION_NAME_MAP
 from aumesh.core.io import atomic_path
 from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.synthetic import tables as synth
@@ -165,10 +166,8 @@ def _frame(
         add(cat("au"), AU_COLUMNS)
         if "au2" in parts[0]["blocks"]:
             add(cat("au2"), synth.INSTRUMENT_COLUMNS)
-        mp_to_v2 = [
-            EMOTION_COLUMNS_MP.index(e)
-            for e in ("neutral", "happiness", "sadness", "surprise", "fear", "disgust", "anger")
-        ]
+        # Detectorv2's columns hold the same probabilities, matched by name (never by position)
+        mp_to_v2 = [EMOTION_COLUMNS_MP.index(EMOTION_NAME_MAP[e]) for e in EMOTION_COLUMNS_V2]
         add(cat("emotion")[:, mp_to_v2], EMOTION_COLUMNS_V2)
         add(cat("affect"), ["valence", "arousal"])
         add(cat("gaze"), GAZE_COLUMNS)
