@@ -3,6 +3,8 @@ py-feat tables written with ``family_truth=True`` by a plain least-squares fit o
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -15,12 +17,12 @@ from aumesh.geometry.landmarks import REGIONS
 from aumesh.synthetic import family_truth
 from aumesh.synthetic import tables as synth
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
-from aumesh.synthetic.pyfeat_columns import mesh_columns
+from aumesh.synthetic.pyfeat_faces import synth_setup, video_rows
 
-# less unexplained expression and landmark jitter than the default, so that 2,400 frames pin the fields down (at the
+# less unexplained expression and landmark jitter than the default, so that 1,200 frames pin the fields down (at the
 # default a fit needs ~10k frames or more for the same precision)
 SPEC = synth.SynthSpec(
-    n_frames=2400, n_videos=4, seed=11, landmark_failure_rate=0.0, unexplained_scale=0.002, noise_px=0.05
+    n_frames=1200, n_videos=3, seed=11, landmark_failure_rate=0.0, unexplained_scale=0.001, noise_px=0.02
 )
 
 
@@ -55,22 +57,22 @@ def test_fields_carry_the_shapes_meanings():
 
 
 @pytest.fixture(scope="module")
-def truth_table(tmp_path_factory) -> pd.DataFrame:
+def truth_table(tmp_path_factory) -> tuple[pd.DataFrame, np.ndarray]:
+    """A ``family_truth=True`` MPDetector table: its columns and its (n, 478, 3) pixel meshes (the split layout, the
+    meshes in a .npy beside the parquet: the quickest to write and read)."""
     folder = tmp_path_factory.mktemp("family-truth")
-    summary = write_pyfeat_tables(
-        folder, SPEC, fmt="parquet", no_face_rate=0.0, extra_face_rate=0.0, z_pixels=True, family_truth=True
-    )
-    return pd.concat([pd.read_parquet(f) for f in summary["files"]], ignore_index=True)
+    summary = write_pyfeat_tables(folder, SPEC, fmt="split", no_face_rate=0.0, extra_face_rate=0.0, family_truth=True)
+    path = Path(summary["files"][0])
+    return pd.read_parquet(path), np.load(path.with_suffix(".npy")).astype(np.float64)
 
 
 def test_fit_of_the_written_table_recovers_the_family_fields(truth_table):
     """Align each frame's mesh onto the template's anchors, fit it on the table's own columns (a constant per video,
     AUs, pose, pose x AU, blendshapes, emotions but neutral) by least squares: each family field comes back, the zero
     fields stay near 0."""
-    df = truth_table
+    df, mesh = truth_table
     arrays = family_truth.family_truth_arrays(SPEC)
     template = arrays["template_px"]
-    mesh = df[mesh_columns("mp")].to_numpy().reshape(len(df), -1, 3)
     anchors = list(ANCHOR_INDICES)
     R, s, t = umeyama_batch(mesh[:, anchors], template[anchors])
     aligned = s[:, None, None] * np.einsum("fvj,fij->fvi", mesh, R) + t[:, None, :]
@@ -104,16 +106,18 @@ def test_fit_of_the_written_table_recovers_the_family_fields(truth_table):
     np.testing.assert_allclose(np.linalg.norm(est_emo, axis=1) / np.linalg.norm(true_emo, axis=1), 1.0, atol=0.1)
 
 
-def test_truth_off_draws_nothing(tmp_path):
-    """Without family_truth the blendshapes follow the AUs (the default tables, byte-identical to before); with it
-    they are independent of them."""
-    on = write_pyfeat_tables(tmp_path / "on", SPEC, fmt="parquet", extra_face_rate=0.0, family_truth=True)
-    off = write_pyfeat_tables(tmp_path / "off", SPEC, fmt="parquet", extra_face_rate=0.0)
-    a, b = (
-        pd.read_parquet(on["files"][0]).dropna(subset=["AU12"]),
-        pd.read_parquet(off["files"][0]).dropna(subset=["AU12"]),
-    )
-    r_on = np.corrcoef(a["mouthSmileLeft"], a["AU12"])[0, 1]
-    r_off = np.corrcoef(b["mouthSmileLeft"], b["AU12"])[0, 1]
-    assert r_off > 0.8 and abs(r_on) < 0.1
-    np.testing.assert_array_equal(a[list(AU_COLUMNS)].to_numpy(), b[list(AU_COLUMNS)].to_numpy())  # same AUs
+def test_truth_off_draws_nothing():
+    """Without family_truth the blendshapes follow the AUs and the mesh is the AU truth's (the default tables,
+    byte-identical to before); with it the blendshapes are independent of the AUs and the mesh moves by them."""
+    counts, gen_args = synth_setup(SPEC)
+    n = int(counts[0])
+    fields = family_truth.family_truth_fields(SPEC)
+    off = video_rows(SPEC, 0, n, gen_args, "mp", 0.0, 0.0, 0)
+    on = video_rows(SPEC, 0, n, gen_args, "mp", 0.0, 0.0, 0, family_fields=fields)
+    a, b = on["blocks"], off["blocks"]
+    smile, au12 = families.BLENDSHAPE_COLUMNS.index("mouthSmileLeft"), AU_COLUMNS.index("AU12")
+    assert np.corrcoef(b["blend"][:, smile], b["au"][:, au12])[0, 1] > 0.8
+    assert abs(np.corrcoef(a["blend"][:, smile], a["au"][:, au12])[0, 1]) < 0.15
+    np.testing.assert_array_equal(a["au"], b["au"])  # the same AUs, poses, ... : only the families differ
+    np.testing.assert_array_equal(a["pose"][:, :3], b["pose"][:, :3])  # (X, Y, Z after them follow the mesh)
+    assert not np.array_equal(a["mesh"], b["mesh"])
