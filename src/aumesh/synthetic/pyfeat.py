@@ -45,9 +45,11 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from aumesh.core.families import EMOTION_NAME_MAP
 from aumesh.core.io import atomic_path
 from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 from aumesh.synthetic import tables as synth
+from aumesh.synthetic.family_truth import family_truth_fields
 from aumesh.synthetic.pyfeat_columns import (
     BLENDSHAPE_COLUMNS,
     EMOTION_COLUMNS_MP,
@@ -165,10 +167,8 @@ def _frame(
         add(cat("au"), AU_COLUMNS)
         if "au2" in parts[0]["blocks"]:
             add(cat("au2"), synth.INSTRUMENT_COLUMNS)
-        mp_to_v2 = [
-            EMOTION_COLUMNS_MP.index(e)
-            for e in ("neutral", "happiness", "sadness", "surprise", "fear", "disgust", "anger")
-        ]
+        # Detectorv2's columns hold the same probabilities, matched by name (never by position)
+        mp_to_v2 = [EMOTION_COLUMNS_MP.index(EMOTION_NAME_MAP[e]) for e in EMOTION_COLUMNS_V2]
         add(cat("emotion")[:, mp_to_v2], EMOTION_COLUMNS_V2)
         add(cat("affect"), ["valence", "arousal"])
         add(cat("gaze"), GAZE_COLUMNS)
@@ -248,6 +248,7 @@ def write_pyfeat_tables(
     videos_per_file: int | None = None,
     seed: int = 0,
     twin_face: bool = False,
+    family_truth: bool = False,
 ) -> dict:
     """Write synth's videos as py-feat 2.1.5 exports them (``clip_0000.csv`` ...); optionally the hand-cleaned tables.
 
@@ -271,6 +272,9 @@ def write_pyfeat_tables(
     twin_face : a second person of about the main face's size beside it in every face frame (``Identity``
         "Person_2"; :func:`aumesh.synthetic.pyfeat_faces.twin_faces`): the largest-face rule cannot tell them apart.
         Off by default (no extra random draw: the tables are byte-identical without it).
+    family_truth : the main face's blendshapes and emotions drawn independently of its AUs and its mesh moved by their
+        known fields (:mod:`aumesh.synthetic.family_truth`; the truth: ``family_truth.family_truth_arrays(spec)``),
+        the clean tables' meshes too. Off by default (no extra random draw: byte-identical tables without it).
 
     Returns a summary: files, clean_files, n_rows, n_frames, n_face_frames, n_no_face, n_extra_faces, n_twin_faces
     (frames with a twin), n_videos.
@@ -297,6 +301,7 @@ def write_pyfeat_tables(
             raise ValueError("clean_dir must differ from out_dir for fmt='parquet'/'split' (same file names)")
 
     counts, gen_args = synth_setup(spec)
+    fields = family_truth_fields(spec) if family_truth else None
     per_file = videos_per_file or spec.n_videos
     files: list[str] = []
     clean_files: list[str] = []
@@ -333,6 +338,7 @@ def write_pyfeat_tables(
             seed,
             summary,
             twin_face,
+            fields,
         )
         summary["files"].append(str(path))
         if clean_path is not None:
@@ -357,6 +363,7 @@ def _write_one(
     seed,
     summary,
     twin_face=False,
+    family_fields=None,
 ) -> None:
     """One output file (and its clean twin), built and written a chunk of whole videos at a time."""
     chunks: list[list[int]] = [[]]
@@ -377,7 +384,18 @@ def _write_one(
     try:
         for k, chunk in enumerate(chunks):
             parts = [
-                video_rows(spec, v, int(counts[v]), gen_args, detector, no_face_rate, extra_face_rate, seed, twin_face)
+                video_rows(
+                    spec,
+                    v,
+                    int(counts[v]),
+                    gen_args,
+                    detector,
+                    no_face_rate,
+                    extra_face_rate,
+                    seed,
+                    twin_face,
+                    family_fields,
+                )
                 for v in chunk
             ]
             frame = _frame(parts, detector, normalized, frame_size, with_mesh=fmt != "split", z_pixels=z_pixels)

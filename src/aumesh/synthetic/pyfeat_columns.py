@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aumesh.core import families
 from aumesh.core.schema import AU_COLUMNS, N_VERTICES
 
 DETECTORS = ("mp", "v2")
@@ -18,62 +19,11 @@ DETECTORS = ("mp", "v2")
 FACE_RECT_COLUMNS = ("FaceRectX", "FaceRectY", "FaceRectWidth", "FaceRectHeight")
 FEX_POSE_COLUMNS = ("Pitch", "Roll", "Yaw")  # py-feat's Fex order (the model's is Pitch, Yaw, Roll)
 HEAD_POSITION_COLUMNS = ("X", "Y", "Z")
-BLENDSHAPE_COLUMNS: tuple[str, ...] = (
-    "_neutral",
-    "browDownLeft",
-    "browDownRight",
-    "browInnerUp",
-    "browOuterUpLeft",
-    "browOuterUpRight",
-    "cheekPuff",
-    "cheekSquintLeft",
-    "cheekSquintRight",
-    "eyeBlinkLeft",
-    "eyeBlinkRight",
-    "eyeLookDownLeft",
-    "eyeLookDownRight",
-    "eyeLookInLeft",
-    "eyeLookInRight",
-    "eyeLookOutLeft",
-    "eyeLookOutRight",
-    "eyeLookUpLeft",
-    "eyeLookUpRight",
-    "eyeSquintLeft",
-    "eyeSquintRight",
-    "eyeWideLeft",
-    "eyeWideRight",
-    "jawForward",
-    "jawLeft",
-    "jawOpen",
-    "jawRight",
-    "mouthClose",
-    "mouthDimpleLeft",
-    "mouthDimpleRight",
-    "mouthFrownLeft",
-    "mouthFrownRight",
-    "mouthFunnel",
-    "mouthLeft",
-    "mouthLowerDownLeft",
-    "mouthLowerDownRight",
-    "mouthPressLeft",
-    "mouthPressRight",
-    "mouthPucker",
-    "mouthRight",
-    "mouthRollLower",
-    "mouthRollUpper",
-    "mouthShrugLower",
-    "mouthShrugUpper",
-    "mouthSmileLeft",
-    "mouthSmileRight",
-    "mouthStretchLeft",
-    "mouthStretchRight",
-    "mouthUpperUpLeft",
-    "mouthUpperUpRight",
-    "noseSneerLeft",
-    "noseSneerRight",
-)
-EMOTION_COLUMNS_MP = ("anger", "disgust", "fear", "happiness", "sadness", "surprise", "neutral")
-EMOTION_COLUMNS_V2 = ("Neutral", "Happy", "Sad", "Surprise", "Fear", "Disgust", "Anger")
+# The blendshape and emotion names and orders each detector writes: aumesh.core.families (py-feat's own lists, cited
+# there). MPDetector writes the emotions in the family's order under its names; Detectorv2 capitalised, its own order.
+BLENDSHAPE_COLUMNS = families.BLENDSHAPE_COLUMNS
+EMOTION_COLUMNS_MP = families.EMOTION_COLUMNS
+EMOTION_COLUMNS_V2 = families.EMOTION_COLUMNS_V2
 IDENTITY_COLUMNS = tuple(f"Identity_{i}" for i in range(1, 513))
 GAZE_COLUMNS = ("gaze_pitch", "gaze_yaw", "gaze_angle")
 FRAME_SIZE_COLUMNS = ("FrameHeight", "FrameWidth")

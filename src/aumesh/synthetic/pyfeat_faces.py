@@ -23,6 +23,7 @@ import numpy as np
 
 from aumesh.core.schema import ANCHOR_INDICES, AU_COLUMNS, N_VERTICES, POSE_COLUMNS, flatten_axis_major
 from aumesh.synthetic import tables as synth
+from aumesh.synthetic.family_truth import BLENDSHAPE_AU, draw_family_values
 from aumesh.synthetic.pyfeat_columns import BLENDSHAPE_COLUMNS, FEX_POSE_COLUMNS
 
 FRAME_WIDTH = 640.0
@@ -86,39 +87,7 @@ def _blendshapes(rng: np.random.Generator, au: np.ndarray) -> np.ndarray:
     m = len(au)
     out = rng.beta(0.5, 6.0, size=(m, len(BLENDSHAPE_COLUMNS)))
     idx = {name: k for k, name in enumerate(BLENDSHAPE_COLUMNS)}
-    follow = {
-        "browInnerUp": "AU01",
-        "browOuterUpLeft": "AU02",
-        "browOuterUpRight": "AU02",
-        "browDownLeft": "AU04",
-        "browDownRight": "AU04",
-        "eyeWideLeft": "AU05",
-        "eyeWideRight": "AU05",
-        "cheekSquintLeft": "AU06",
-        "cheekSquintRight": "AU06",
-        "eyeSquintLeft": "AU07",
-        "eyeSquintRight": "AU07",
-        "noseSneerLeft": "AU09",
-        "noseSneerRight": "AU09",
-        "mouthUpperUpLeft": "AU10",
-        "mouthUpperUpRight": "AU10",
-        "mouthSmileLeft": "AU12",
-        "mouthSmileRight": "AU12",
-        "mouthDimpleLeft": "AU14",
-        "mouthDimpleRight": "AU14",
-        "mouthFrownLeft": "AU15",
-        "mouthFrownRight": "AU15",
-        "mouthShrugLower": "AU17",
-        "mouthStretchLeft": "AU20",
-        "mouthStretchRight": "AU20",
-        "mouthPressLeft": "AU24",
-        "mouthPressRight": "AU24",
-        "jawOpen": "AU26",
-        "mouthRollLower": "AU28",
-        "eyeBlinkLeft": "AU43",
-        "eyeBlinkRight": "AU43",
-    }
-    for bs, a in follow.items():
+    for bs, a in BLENDSHAPE_AU.items():  # the shapes' meanings, the family truth's table
         out[:, idx[bs]] = np.clip(0.8 * au[:, AU_COLUMNS.index(a)] + 0.2 * out[:, idx[bs]], 0.0, 1.0)
     out[:, idx["_neutral"]] = np.clip(1.0 - out[:, 1:].max(axis=1), 0.0, 1.0)
     return out
@@ -223,10 +192,18 @@ def video_rows(
     extra_face_rate: float,
     seed: int,
     twin: bool = False,
+    family_fields: dict[str, np.ndarray] | None = None,
 ) -> dict:
     """One video's rows: synth's frames, no-face rows, background faces (and ``twin``: :func:`twin_faces`); plus the
-    clean frames."""
-    g = synth.generate_video(spec, video, n, *gen_args)
+    clean frames. With ``family_fields`` (:func:`aumesh.synthetic.family_truth.family_fields`, pixels) the main face's
+    blendshapes and emotions are drawn from their own stream (``[seed, spec.seed, video, 6]``) and its mesh moves by
+    their fields (:mod:`aumesh.synthetic.family_truth`); the clean frames hold that mesh too."""
+    family, moved = None, None
+    if family_fields is not None:  # its own stream: without it nothing more is drawn (tables stay byte-identical)
+        family = draw_family_values(np.random.default_rng([seed, spec.seed, video, 6]), n)
+        moved = family[0] @ family_fields["blendshapes"] + family[1] @ family_fields["emotions"]
+    coef, intercept, identity_basis, latent_basis, resemblance = gen_args
+    g = synth.generate_video(spec, video, n, coef, intercept, identity_basis, latent_basis, resemblance, extra=moved)
     plan_rng = np.random.default_rng([seed, spec.seed, video, 1])
     rng = np.random.default_rng([seed, spec.seed, video, 2])
     no_face, extra, extra_first = _plan(plan_rng, n, no_face_rate, extra_face_rate)
@@ -243,6 +220,8 @@ def video_rows(
         detector,
         g.get("au2"),
     )
+    if family is not None:
+        main["blend"], main["emotion"] = family
     # the background person: the main mesh scaled 0.4 about its centre, ~150 px to the side with more room
     ef = np.flatnonzero(extra)
     centre = g["mesh"][ef].mean(axis=1, keepdims=True)

@@ -280,6 +280,7 @@ def generate_video(
     latent_basis: np.ndarray,
     resemblance: np.ndarray | None = None,
     keep_canonical: bool = False,
+    extra: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Frames of one video: AUs as recorded (``au``), the true AUs the mesh follows (``au_true``), pose (radians,
     model order), observed image-space meshes (n, 478, 3) and the video's AU baseline (zeros without coupling;
@@ -288,7 +289,8 @@ def generate_video(
     With detector noise (``spec.au_noise_sd``) also ``au_error`` (n, 20): the error added to the recorded AUs before
     they are clipped to [0, 1]; with ``spec.instrument_noise_sd`` the second detector's AUs ``au2`` (n, 20). With
     ``keep_canonical`` the meshes before rotation, scale, shift and landmark noise, ``canonical`` (n, 478, 3) px:
-    ``x @ coef + intercept + identity + latent``.
+    ``x @ coef + intercept + identity + latent`` (``+ extra``: (n, 1434) axis-major pixels more, e.g. the family
+    truth's displacements, :mod:`aumesh.synthetic.family_truth`; None adds nothing and draws nothing).
     """
     rng = np.random.default_rng([spec.seed, video])
     propensity = rng.uniform(0.3, 1.6, size=5 + len(AU_COLUMNS))
@@ -313,6 +315,8 @@ def generate_video(
         rng.normal(0, spec.unexplained_scale * spec.px_per_iod, size=(n_frames, latent_basis.shape[0])) @ latent_basis
     )
     canonical = x @ coef + intercept + identity + latent  # (n, 1434) axis-major, pixels
+    if extra is not None:
+        canonical = canonical + extra
     canonical = canonical.reshape(n_frames, 3, N_VERTICES).transpose(0, 2, 1)
     centre = canonical.mean(axis=1, keepdims=True)
     rot = Rotation.from_euler("xyz", pose).as_matrix()  # the card's convention for the recorded pose

@@ -1,0 +1,177 @@
+"""The input families beside the AUs: MediaPipe's 52 blendshapes and py-feat's 7 emotions (issue 46).
+
+One place for each family's names and order, and for the names py-feat's two detectors write them under. The lists
+are py-feat 2.1.5's (names and order only, no code; docs/families.md says how they were read and checked):
+
+* blendshapes: ``feat/utils/__init__.py`` ``MP_BLENDSHAPE_NAMES``; both detectors write them under these names, in
+  this order (``MPDetector.forward``: ``pd.DataFrame(bs_array, columns=MP_BLENDSHAPE_NAMES)``;
+  ``Detectorv2.forward``: ``pd.DataFrame(out.blendshapes, columns=MP_BLENDSHAPE_NAMES)``, values in [0, 1]), and
+  ``PLSFeatMeshModel`` (``feat/plotting.py``, ``_FEAT_MESH_SPECS["blendshape"]``) requires an NPZ's
+  ``feature_columns`` to equal them;
+* emotions: ``feat/utils/__init__.py`` ``FEAT_EMOTION_COLUMNS`` (anger .. neutral), the order
+  ``_FEAT_MESH_SPECS["emotion"]`` requires of an NPZ's ``feature_columns`` and the names ``MPDetector.forward``
+  writes (softmax probabilities of its 7 classes). ``Detectorv2.forward`` writes ``out.emotion_names``: the
+  checkpoint's class order ``feat/multitask/__init__.py`` ``EMOTION_NAMES_V24`` (Neutral, Happy, Sad, Surprise, Fear,
+  Disgust, Anger; a softmax), or ``EMOTION_NAMES`` with an eighth ``Contempt`` for a v2.3 checkpoint, which has no
+  place in the family and is left out. The two orders differ: ``emotion_to_mesh_pls_v5`` shipped with Detectorv2's
+  columns under ``FEAT_EMOTION_COLUMNS`` labels (the note above ``_FEAT_MESH_SPECS``), so columns are always mapped
+  by name (:func:`family_columns`), never by position.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+from aumesh.core.errors import TableError
+from aumesh.core.schema import AU_COLUMNS
+
+# feat/utils/__init__.py MP_BLENDSHAPE_NAMES (py-feat 2.1.5): MediaPipe's ARKit-style names, its output order.
+BLENDSHAPE_COLUMNS: tuple[str, ...] = (
+    "_neutral",
+    "browDownLeft",
+    "browDownRight",
+    "browInnerUp",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "cheekPuff",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "eyeLookDownLeft",
+    "eyeLookDownRight",
+    "eyeLookInLeft",
+    "eyeLookInRight",
+    "eyeLookOutLeft",
+    "eyeLookOutRight",
+    "eyeLookUpLeft",
+    "eyeLookUpRight",
+    "eyeSquintLeft",
+    "eyeSquintRight",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "jawForward",
+    "jawLeft",
+    "jawOpen",
+    "jawRight",
+    "mouthClose",
+    "mouthDimpleLeft",
+    "mouthDimpleRight",
+    "mouthFrownLeft",
+    "mouthFrownRight",
+    "mouthFunnel",
+    "mouthLeft",
+    "mouthLowerDownLeft",
+    "mouthLowerDownRight",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "mouthPucker",
+    "mouthRight",
+    "mouthRollLower",
+    "mouthRollUpper",
+    "mouthShrugLower",
+    "mouthShrugUpper",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthStretchLeft",
+    "mouthStretchRight",
+    "mouthUpperUpLeft",
+    "mouthUpperUpRight",
+    "noseSneerLeft",
+    "noseSneerRight",
+)
+
+# feat/utils/__init__.py FEAT_EMOTION_COLUMNS (py-feat 2.1.5): the family's order, MPDetector's column names.
+EMOTION_COLUMNS: tuple[str, ...] = ("anger", "disgust", "fear", "happiness", "sadness", "surprise", "neutral")
+
+# feat/multitask/__init__.py EMOTION_NAMES_V24: what Detectorv2 writes (its checkpoint's order, capitalised).
+EMOTION_COLUMNS_V2: tuple[str, ...] = ("Neutral", "Happy", "Sad", "Surprise", "Fear", "Disgust", "Anger")
+
+#: Each detector's emotion column -> the family's name (by meaning; MPDetector's names are the family's own).
+EMOTION_NAME_MAP: dict[str, str] = {
+    **{name: name for name in EMOTION_COLUMNS},
+    "Neutral": "neutral",
+    "Happy": "happiness",
+    "Sad": "sadness",
+    "Surprise": "surprise",
+    "Fear": "fear",
+    "Disgust": "disgust",
+    "Anger": "anger",
+}
+
+#: The families: name -> the model's input columns, in the order of py-feat's ``feature_columns``.
+FAMILIES: dict[str, tuple[str, ...]] = {
+    "au": AU_COLUMNS,
+    "blendshapes": BLENDSHAPE_COLUMNS,
+    "emotions": EMOTION_COLUMNS,
+}
+
+#: Each detector's header name -> the family's name, per family (the AU and blendshape names are written as is).
+NAME_MAPS: dict[str, Mapping[str, str]] = {
+    "au": {name: name for name in AU_COLUMNS},
+    "blendshapes": {name: name for name in BLENDSHAPE_COLUMNS},
+    "emotions": EMOTION_NAME_MAP,
+}
+
+#: py-feat's ``feature`` key and NPZ stem for the non-AU families (``feat/plotting.py`` ``_FEAT_MESH_SPECS``:
+#: ``load_blendshape_face_mesh_model`` reads ``bs_to_mesh_pls_<version>.npz``, the emotion loader
+#: ``emotion_to_mesh_pls_<version>.npz``).
+PYFEAT_FEATURE: dict[str, tuple[str, str]] = {
+    "blendshapes": ("blendshape", "bs_to_mesh_pls"),
+    "emotions": ("emotion", "emotion_to_mesh_pls"),
+}
+
+
+def check_family(family: str) -> tuple[str, ...]:
+    """The columns of ``family`` (``au``, ``blendshapes``, ``emotions``); a one-line error for any other name."""
+    if family not in FAMILIES:
+        raise ValueError(f"family={family!r}: use one of {', '.join(FAMILIES)}")
+    return FAMILIES[family]
+
+
+def family_columns(header: Iterable[str], family: str, source: str = "the table") -> dict[str, str]:
+    """Which header column holds each of ``family``'s inputs, matched by name (never by position).
+
+    Parameters
+    ----------
+    header : iterable of str
+        A table's column names, in any order; columns outside the family (e.g. Detectorv2's ``Contempt``) are
+        ignored.
+    family : {"au", "blendshapes", "emotions"}
+    source : str
+        The file the header comes from, for the error message.
+
+    Returns
+    -------
+    dict
+        Family name -> header column, in the family's order (``FAMILIES[family]``), e.g. for a Detectorv2 table
+        ``{"anger": "Anger", ..., "happiness": "Happy", ..., "neutral": "Neutral"}``.
+
+    Raises
+    ------
+    TableError
+        One line naming ``source`` and the first family input the header lacks (under either detector's name), or
+        two header columns that name the same input (e.g. ``happiness`` and ``Happy``).
+    """
+    columns = check_family(family)
+    names = NAME_MAPS[family]
+    found: dict[str, str] = {}
+    for col in header:
+        key = names.get(str(col))
+        if key is None:
+            continue
+        if key in found:
+            raise TableError(
+                f"{source}: columns {found[key]!r} and {col!r} both hold {family} input {key!r}. "
+                f"Fix: keep one of them (MPDetector writes {key!r}, Detectorv2 its capitalised name)"
+            )
+        found[key] = str(col)
+    for key in columns:
+        if key not in found:
+            aliases = sorted(h for h, k in names.items() if k == key)
+            raise TableError(
+                f"{source}: no column for {family} input {key!r} (expected one of {', '.join(map(repr, aliases))}). "
+                f"Fix: export the table with py-feat's MPDetector or Detectorv2, which write all "
+                f"{len(columns)} {family} columns"
+            )
+    return {key: found[key] for key in columns}
