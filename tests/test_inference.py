@@ -9,8 +9,9 @@ import pandas as pd
 import pytest
 
 import aumesh
+from aumesh.core.families import feature_set_columns
 from aumesh.core.io import atomic_savez
-from aumesh.core.schema import AU_COLUMNS, N_TARGETS, feature_set_columns
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS
 from aumesh.model.input_columns import PredictionInputError
 from aumesh.model.release import release_arrays
 from aumesh.model.release_check import ReleaseError

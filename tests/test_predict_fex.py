@@ -15,8 +15,9 @@ import pytest
 
 import aumesh
 from aumesh import cli
+from aumesh.core.families import feature_set_columns
 from aumesh.core.io import atomic_savez
-from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS, feature_set_columns
+from aumesh.core.schema import AU_COLUMNS, INPUT_COLUMNS, N_TARGETS
 from aumesh.model.input_columns import PredictionInputError
 from aumesh.model.release import release_arrays
 from aumesh.synthetic.pyfeat_columns import BLENDSHAPE_COLUMNS

@@ -18,15 +18,14 @@ from typing import Any, cast
 import yaml
 
 from aumesh.core.errors import ConfigError
+from aumesh.core.families import FEATURE_SETS, feature_set_columns
 from aumesh.core.io import atomic_write_text
 from aumesh.core.schema import (
     ANCHOR_INDICES,
-    FEATURE_SETS,
     MAX_ABS_PITCH_DEG,
     MAX_ABS_YAW_DEG,
     N_VERTICES,
     TARGETS,
-    feature_set_columns,
 )
 
 #: ``data.face_selection``: which face of a frame with several is the video's subject (aumesh.data.ingest).
@@ -47,6 +46,11 @@ class PathsConfig:
     r2_curve_file: str = "metrics/r2_by_n_components.csv"
     promotion_file: str = "promotion.json"
     validation_dir: str = "validation"
+    # issue 46: the evaluate stage's fit of each input family (``families``), a folder per family, its metrics, and
+    # the release of each (``release_family@<family>``; beside ``release_dir``, which stays the AU release)
+    families_model_dir: str = "build/families"
+    families_metrics_file: str = "metrics/families.json"
+    families_release_dir: str = "releases"
 
 
 @dataclass(frozen=True)
@@ -98,14 +102,19 @@ class FeaturesConfig:
     name: str = "au_pose_interactions"
 
     @property
-    def pose(self) -> bool:
-        """Pose covariates (Pitch, Yaw, Roll) in the design."""
+    def family(self) -> str:
+        """The input family: ``au``, ``blendshapes`` or ``emotions`` (``aumesh.core.families``)."""
         return FEATURE_SETS[self.name][0]
 
     @property
-    def interactions(self) -> bool:
-        """Pose x AU interactions in the design."""
+    def pose(self) -> bool:
+        """Pose covariates (Pitch, Yaw, Roll) in the design."""
         return FEATURE_SETS[self.name][1]
+
+    @property
+    def interactions(self) -> bool:
+        """Pose x input interactions in the design."""
+        return FEATURE_SETS[self.name][2]
 
     @property
     def columns(self) -> list[str]:
@@ -121,13 +130,44 @@ def _old_features_message(data: Mapping[str, Any]) -> str:
         return str(v).strip().lower() in ("true", "1", "yes")
 
     pose, inter = truthy(data.get("pose", True)), truthy(data.get("interactions", True))
-    named = {v: k for k, v in FEATURE_SETS.items()}.get((pose, inter))
+    named = {v: k for k, v in FEATURE_SETS.items()}.get(("au", pose, inter))
     hint = f" (pose={pose}, interactions={inter} is `features={named}`)" if named else ""
     return (
         "features.pose / features.interactions were replaced by the features config group: "
         f"use features=au, features=au_pose or features=au_pose_interactions{hint}; "
         "in params.yaml: `features: {name: au_pose}`"
     )
+
+
+@dataclass(frozen=True)
+class FamilyConfig:
+    """One input family's model beside the AU model (``families.<family>``; ``conf/families/<name>.yaml``)."""
+
+    features: str = ""  # the family's design: a ``features`` option of that family, e.g. blendshapes_pose_interactions
+    n_components: int | None = None  # None: model.n_components, clipped to the design's width
+
+
+@dataclass(frozen=True)
+class BlendshapesFamilyConfig(FamilyConfig):
+    features: str = "blendshapes_pose_interactions"  # py-feat's bs_to_mesh_pls design
+
+
+@dataclass(frozen=True)
+class EmotionsFamilyConfig(FamilyConfig):
+    features: str = "emotions_pose_interactions"  # py-feat's emotion_to_mesh_pls design
+
+
+@dataclass(frozen=True)
+class FamiliesConfig:
+    """The input families ``dvc repro`` fits (in the evaluate stage's one statistics pass) and releases
+    (``release_family@<family>``) beside the AU model of ``features``; the names are ``aumesh.core.families``'."""
+
+    blendshapes: BlendshapesFamilyConfig = field(default_factory=BlendshapesFamilyConfig)
+    emotions: EmotionsFamilyConfig = field(default_factory=EmotionsFamilyConfig)
+
+    def items(self) -> list[tuple[str, FamilyConfig]]:
+        """(family, its config) in a fixed order."""
+        return [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)]
 
 
 #: ``model.eiv.method``: the errors-in-variables correction, one option of the ``model/eiv`` group
@@ -224,6 +264,7 @@ class Config:
     data: DataConfig = field(default_factory=DataConfig)
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     features: FeaturesConfig = field(default_factory=FeaturesConfig)
+    families: FamiliesConfig = field(default_factory=FamiliesConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     cv: CVConfig = field(default_factory=CVConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -403,7 +444,21 @@ def validate(cfg: Config) -> Config:
         raise ConfigError(
             f"features={cfg.features.name!r}: use one of {', '.join(FEATURE_SETS)} (conf/features/<name>.yaml)"
         )
+    _validate_families(cfg)
     return cfg
+
+
+def _validate_families(cfg: Config) -> None:
+    """Each ``families.<family>.features`` is a design of that family; ``n_components`` >= 1 when set."""
+    for family, spec in cfg.families.items():
+        options = [name for name, (fam, _, _) in FEATURE_SETS.items() if fam == family]
+        if spec.features not in options:
+            raise ConfigError(
+                f"families.{family}.features={spec.features!r}: use one of {', '.join(options)} "
+                "(the family's designs; conf/families/<name>.yaml)"
+            )
+        if spec.n_components is not None and spec.n_components < 1:
+            raise ConfigError(f"families.{family}.n_components={spec.n_components}: must be >= 1, or null")
 
 
 def _validate_eiv(cfg: Config) -> None:

@@ -8,7 +8,7 @@ from typing import Any
 from aumesh.card.identification import correction_lines, identification_section
 from aumesh.card.limits import limits_section
 from aumesh.card.markdown import md_code, md_text
-from aumesh.core.schema import FEATURE_SETS
+from aumesh.core.families import FEATURE_SETS
 from aumesh.model.release import NPZ_NAME
 
 CARD_SUMMARY = (
@@ -214,7 +214,7 @@ def model_card_markdown(card: dict[str, Any], directions_table: str | None, figu
     pre, feats, model = cfg["preprocess"], cfg["features"], cfg["model"]
     folds = ", ".join(f"{v:.4f}" for v in cv["r2_folds"])
     counts = data["counts"]
-    pose, interactions = FEATURE_SETS[feats["name"]]
+    _, pose, interactions = FEATURE_SETS[feats["name"]]
     inputs = "20 AU" + (" + 3 pose (Pitch, Yaw, Roll)" if pose else "") + (" + 60 pose x AU" if interactions else "")
     degenerate = data.get("degenerate") or {}
     constant = degenerate.get("constant_inputs") or {}

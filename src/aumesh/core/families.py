@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 
 from aumesh.core.errors import TableError
-from aumesh.core.schema import AU_COLUMNS
+from aumesh.core.schema import AU_COLUMNS, feature_columns
 
 # feat/utils/__init__.py MP_BLENDSHAPE_NAMES (py-feat 2.1.5): MediaPipe's ARKit-style names, its output order.
 BLENDSHAPE_COLUMNS: tuple[str, ...] = (
@@ -120,6 +120,27 @@ PYFEAT_FEATURE: dict[str, tuple[str, str]] = {
     "blendshapes": ("blendshape", "bs_to_mesh_pls"),
     "emotions": ("emotion", "emotion_to_mesh_pls"),
 }
+
+
+#: The feature sets (the ``features`` config group, ``conf/features/<name>.yaml``): name -> (family, pose covariates,
+#: pose x input interactions). One name per design, so no combination of switches can contradict another; the AU
+#: names are the card's (``au_pose_interactions`` is its v2 design), each family has the same three designs
+#: (py-feat's blendshape and emotion models are ``<family>_pose_interactions``: ``PLSFeatMeshModel``'s docstring,
+#: "the absorbed feature x pose interaction terms").
+FEATURE_SETS: dict[str, tuple[str, bool, bool]] = {
+    f"{family}{suffix}": (family, pose, interactions)
+    for family in ("au", "blendshapes", "emotions")
+    for suffix, pose, interactions in (("", False, False), ("_pose", True, False), ("_pose_interactions", True, True))
+}
+
+
+def feature_set_columns(name: str) -> list[str]:
+    """Design-matrix column names of a feature set: ``[inputs | pose | pose x input]`` (e.g. 211 columns for
+    ``blendshapes_pose_interactions``: 52 + 3 + 156)."""
+    if name not in FEATURE_SETS:
+        raise ValueError(f"features={name!r}: use one of {', '.join(FEATURE_SETS)}")
+    family, pose, interactions = FEATURE_SETS[name]
+    return feature_columns(pose, interactions, FAMILIES[family])
 
 
 def check_family(family: str) -> tuple[str, ...]:

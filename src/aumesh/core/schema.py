@@ -5,6 +5,8 @@ One place for every name the card fixes, so no module spells them again.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 # Card, "File format": input_columns = AU01..AU43, Pitch, Yaw, Roll.
@@ -73,36 +75,26 @@ def mesh_columns_axis_major(n_vertices: int = N_VERTICES) -> list[str]:
     return [f"{axis}_{i}" for axis in "xyz" for i in range(n_vertices)]
 
 
-def interaction_columns(au_columns=AU_COLUMNS, pose_columns=POSE_COLUMNS) -> list[str]:
-    """Names of the pose x AU interaction features, pose-major: ``Pitch*AU01 .. Roll*AU43``."""
+def interaction_columns(
+    au_columns: Sequence[str] = AU_COLUMNS, pose_columns: Sequence[str] = POSE_COLUMNS
+) -> list[str]:
+    """Names of the pose x input interaction features, pose-major: ``Pitch*AU01 .. Roll*AU43`` for the AUs."""
     return [f"{p}*{a}" for p in pose_columns for a in au_columns]
 
 
-# The feature sets (the ``features`` config group): name -> (pose covariates, pose x AU interactions).
-# One name per design, so no combination of switches can contradict another.
-FEATURE_SETS: dict[str, tuple[bool, bool]] = {
-    "au": (False, False),
-    "au_pose": (True, False),
-    "au_pose_interactions": (True, True),  # the card's v2 design
-}
+def feature_columns(pose: bool, interactions: bool, inputs: Sequence[str] = AU_COLUMNS) -> list[str]:
+    """Design-matrix column names: ``[inputs | 3 pose | 3 x len(inputs) pose x input]`` (pose-major interactions).
 
-
-def feature_set_columns(name: str) -> list[str]:
-    """Design-matrix column names of a feature set (``features=au|au_pose|au_pose_interactions``)."""
-    if name not in FEATURE_SETS:
-        raise ValueError(f"features={name!r}: use one of {', '.join(FEATURE_SETS)}")
-    return feature_columns(*FEATURE_SETS[name])
-
-
-def feature_columns(pose: bool, interactions: bool) -> list[str]:
-    """Design-matrix column names for a feature configuration (20, 23 or 83 columns)."""
+    For the AUs (the default) 20, 23 or 83 columns; the other input families (``aumesh.core.families``) use the same
+    layout, which is the one py-feat's ``PLSFeatMeshModel`` reads (its first ``len(inputs)`` coefficient rows).
+    """
     if interactions and not pose:
-        raise ValueError("features.interactions=true needs features.pose=true (interactions are pose x AU)")
-    cols = list(AU_COLUMNS)
+        raise ValueError("features.interactions=true needs features.pose=true (interactions are pose x input)")
+    cols = list(inputs)
     if pose:
         cols += list(POSE_COLUMNS)
     if interactions:
-        cols += interaction_columns()
+        cols += interaction_columns(inputs)
     return cols
 
 
