@@ -49,14 +49,14 @@ from aumesh.config import Config
 from aumesh.core.blas import one_blas_thread
 from aumesh.core.errors import ConfigError
 from aumesh.core.io import NpyRowFile, NpyRows, create_npy, scratch_directory
-from aumesh.core.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, instrument_columns
 from aumesh.model import eiv, reliability
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.eiv import EivFit
 from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
-from aumesh.model.statistics import extra_inputs, named_design
+from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, design_union, extra_inputs, named_design
 from aumesh.pipeline import compute
 from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, eiv_record
 from aumesh.pipeline.evaluate.prepared_data import (
@@ -68,7 +68,7 @@ from aumesh.pipeline.evaluate.prepared_data import (
     workers_check,
 )
 from aumesh.pipeline.evaluate.results import CVResult, FinalModel, Fits, FoldStatistics, training_sets
-from aumesh.pipeline.evaluate.statistics_pass import accumulate
+from aumesh.pipeline.evaluate.statistics_pass import accumulate, design_statistics
 from aumesh.pipeline.model_files import FRAME_ERROR_FILE
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
 
@@ -398,10 +398,48 @@ def identification(cfg: Config, stats: FoldStatistics) -> eiv.IdentificationScre
     )
 
 
-def cross_validate_and_fit(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
+@dataclass
+class SharedPass:
+    """The evaluate stage's one statistics pass, shared by every configuration it fits (issue 46, contract item 2).
+
+    ``feature_sets``: the designs besides the first configuration's (``families.<f>.features``). The first call of
+    :meth:`statistics` runs pass A once over the union of the designs
+    (:func:`aumesh.model.statistics.design_union`, with the first configuration's instruments); every call takes its
+    configuration's columns from it by name. ``passes`` counts the passes made.
+    """
+
+    feature_sets: Sequence[str] = ()
+    video_fold: np.ndarray | None = None
+    design: DesignStatistics | None = None
+    passes: int = 0
+
+    def statistics(self, prepared: Prepared, cfg: Config) -> FoldStatistics:
+        """``cfg``'s :class:`FoldStatistics` from the shared pass (run now if it has not been), on the current
+        scheduler."""
+        if self.design is None or self.video_fold is None:
+            self.video_fold = video_folds(prepared.videos.count, cfg.cv.n_splits)
+            columns = design_union([cfg.features.name, *self.feature_sets])
+            self.design = design_statistics(
+                prepared,
+                self.video_fold,
+                cfg.cv.n_splits,
+                cfg.data.chunk_rows,
+                instrument_columns(cfg.model.eiv.instrument_aus),
+                None if columns == FULL_DESIGN else columns,  # the AU design alone: the pass as it always was
+            )
+            self.passes += 1
+        return accumulate(prepared, cfg, self.video_fold, design=self.design)
+
+
+def cross_validate_and_fit(
+    prepared: Prepared, cfg: Config, shared: SharedPass | None = None
+) -> tuple[CVResult, FinalModel]:
     """Cross-validation and the final fit for one configuration (the stage's one typed call): both passes, on
-    the ``compute`` group's scheduler."""
+    the ``compute`` group's scheduler. ``shared``: the stage's one statistics pass (:class:`SharedPass`), run by the
+    first configuration that needs it and reused by the others."""
     with compute.engine(cfg.compute, **workers_check(prepared)):
+        if shared is not None:
+            return cross_validate_and_fit_from_statistics(prepared, cfg, shared.statistics(prepared, cfg))
         video_fold = video_folds(prepared.videos.count, cfg.cv.n_splits)
         return cross_validate_and_fit_from_statistics(prepared, cfg, accumulate(prepared, cfg, video_fold))
 

@@ -382,7 +382,7 @@ def accumulate(
         )
     elif not np.array_equal(design.video_fold, video_fold):
         raise ValueError("accumulate: the design statistics were built with other folds")
-    elif design.instruments != instruments:
+    elif instruments and design.instruments != instruments:  # without instruments any pass serves (by name)
         raise ValueError("accumulate: the design statistics were built with other instrument columns")
     method = cfg.preprocess.neutral.method
     # the folds' statistics are independent: at once on this machine's cores (single-threaded BLAS each: the same bits)
