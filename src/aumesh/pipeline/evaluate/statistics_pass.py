@@ -335,7 +335,7 @@ def check_family_columns(prepared: Prepared, columns: Sequence[str]) -> None:
                 f"{path}: no {family} columns ({', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}; "
                 f"{len(missing)} of {len(inputs)} missing), so the {family} family cannot be fitted. Fix: ingest tables "
                 f"that carry them (py-feat's MPDetector or Detectorv2 write all {len(inputs)}) and rerun ingest and "
-                f"prepare, or leave {family} out of families (and features)"
+                f"prepare (`aumesh synth --families` writes synthetic tables with them)"
             )
 
 
