@@ -80,6 +80,10 @@ def test_union_is_the_au_design_then_each_other_design_once_pose_shared():
     for name in FAMILY_SETS:
         assert set(feature_set_columns(name)) <= set(union)
     assert union.count("Pitch") == 1
+    # a run without an AU design accumulates the pose and its families' designs only
+    assert design_union(["emotions_pose_interactions"]) == [*POSE_COLUMNS, *EMOTION_COLUMNS] + [
+        c for c in feature_set_columns("emotions_pose_interactions") if "*" in c
+    ]
 
 
 def test_shared_pass_statistics_of_a_family_equal_numpy_on_the_same_rows(family_prepared):
