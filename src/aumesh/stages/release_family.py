@@ -40,11 +40,15 @@ log = logging.getLogger(__name__)
 
 
 def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -> dict:
-    """The family's direction check on the release arrays (:mod:`aumesh.card.family_directions`).
+    """The family's direction check on the release arrays (:mod:`aumesh.card.family_directions`), written as
+    ``<family>_directions.json``; called inside the release's temporary folder, so a refusal raised here leaves the
+    previous release as it was.
 
-    HOOK (direction-check engineer, issue 46 item 4): replace the body with ``family_directions``' report-from-NPZ
-    function and its refusal (a permuted emotion table / a blendshape moving the wrong way fails the release: one
-    line, exit 2, the suspected permutation named). Until then the check runs and is recorded, never refused here.
+    HOOK (direction-check engineer, issue 46 item 4; branch i46-dirs): on merge, replace the body with
+    ``report = family_directions.family_direction_report(arrays, where=source)`` then
+    ``family_directions.check_family_directions(report, source)`` (a failing report: one-line DirectionCheckError,
+    exit 2, the suspected permutation named) and ``return report``. Until then the check runs and is recorded in the
+    card, never refused here.
     """
     from aumesh.card import family_directions
 
@@ -59,10 +63,11 @@ def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -
 def export_rig_and_viewer(arrays: dict[str, np.ndarray], folder: Path, family: str, source: str) -> list[Path]:
     """``<family>_to_mesh.glb`` and ``viewer.html`` of the family release.
 
-    HOOK (rig engineer, issue 46 item 5): call the glTF exporter (morph targets named by the family's names) and the
-    viewer's family sliders here, e.g. ``gltf.write_family_glb(arrays, folder / f"{family}_to_mesh.glb", source)``
-    and ``viewer.write_family_viewer(arrays, folder / viewer.VIEWER_NAME, source)``. Until they are merged, nothing is
-    written.
+    HOOK (rig engineer, issue 46 item 5; branch i46-rig): on merge, replace the body with
+    ``from aumesh.export import gltf, viewer`` and
+    ``return [gltf.write_glb(arrays, folder / gltf.glb_name(arrays), source=source),
+    viewer.write_viewer(arrays, folder / viewer.VIEWER_NAME, source=source)]`` (their exporters take a family NPZ:
+    morph targets and sliders named by the family's inputs). Until then nothing is written.
     """
     return []
 
