@@ -79,6 +79,7 @@ def test_every_model_run_is_tagged_with_its_family_and_old_runs_get_it_from_feat
     assert queries.list_child_runs(parent, {}).set_index("run_id").loc[old, "family"] == "emotions"
 
 
+@pytest.mark.slow
 def test_sweep_children_carry_the_family_tag(tmp_path, monkeypatch):
     """Real sweep children (sweep_child.run_configuration): the AU one finishes, the blendshape one fails on these
     AU-only tables, and both say their family."""
@@ -249,3 +250,22 @@ def test_make_promote_family_through_the_makefile(conf_ws, tmp_path):
     exp = yaml.safe_load((conf_ws / "conf" / "experiment" / "promoted.yaml").read_text())
     assert exp == {"families": {"blendshapes": {"features": "blendshapes_pose", "n_components": 12}}}
     assert "families.blendshapes" in proc.stdout
+    # the command line: a run of another family refused in one line (exit 2), nothing written; runs by family
+    before = _texts(conf_ws)
+    aumesh = [sys.executable, "-m", "aumesh"]
+    refused = subprocess.run(
+        [*aumesh, "promote", "--family", "emotions", ids["blendshapes"], "--no-register"],
+        cwd=conf_ws,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    lines = [ln for ln in refused.stderr.splitlines() if ln.startswith("aumesh promote: error:")]
+    assert refused.returncode == 2 and len(lines) == 1, refused.stdout + refused.stderr
+    assert f"run {ids['blendshapes']} is a blendshapes run" in lines[0]
+    assert _texts(conf_ws) == before
+    listed = subprocess.run(
+        [*aumesh, "runs", "--family", "emotions"], cwd=conf_ws, capture_output=True, text=True, timeout=300
+    )
+    assert listed.returncode == 0, listed.stderr
+    assert ids["emotions"][:8] in listed.stdout and ids["blendshapes"][:8] not in listed.stdout
