@@ -335,8 +335,8 @@ def add_parser(subparsers) -> None:
             choices=list(FAMILIES),
             default=None,
             help=(
-                "only this input family's runs (runs are always ranked within their family: an emotion model's R² "
-                "and an AU model's answer different questions)"
+                "only this input family's runs (default: every family's; runs are always ranked within their "
+                "family: an emotion model's R² and an AU model's answer different questions)"
                 if name == "runs"
                 else "promote this input family's model (its best run, into families.<family> of "
                 "conf/experiment/promoted.yaml and promotion.json, registered as aumesh-<family>); the AU "
@@ -358,7 +358,8 @@ def add_parser(subparsers) -> None:
                 nargs="?",
                 default=None,
                 metavar="RUN",
-                help="promote this run (FINISHED, of the --family promoted) instead of the best of a sweep",
+                help="promote this run (FINISHED, of the --family promoted) instead of the best of a sweep "
+                "(default: the best run of the sweep)",
             )
             p.add_argument(
                 "--model-name",
