@@ -93,7 +93,7 @@ def format_runs_table(table: pd.DataFrame) -> str:
         f"ranked by {metric} ({'desc' if not metric.startswith('mae') else 'asc'}),"
         " ties -> fewer components; FAILED runs last"
         + ("; ranked within each input family (# is the rank in its family)" if table["family"].nunique() > 1 else ""),
-        f"{'#':>3} {'family':11} {'run':8} {'status':8} {'target':8} {'neutral':7} {'features':30} "
+        f"{'#':>3} {'run':8} {'status':8} {'family':11} {'target':8} {'neutral':7} {'features':30} "
         f"{'k':>6} {'r2_mean ± std':>17} {'r2_disp':>8} {'mae':>8}  error",
     ]
     for r in table.to_dict(orient="records"):
@@ -103,7 +103,7 @@ def format_runs_table(table: pd.DataFrame) -> str:
         r2 = "" if missing(r["r2_mean"]) else f"{num(r['r2_mean'])} ± {num(r['r2_std'])}"
         rank = "" if missing(r["rank"]) else str(r["rank"])
         lines.append(
-            f"{rank:>3} {str(r['family']):11} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} "
+            f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['family']):11} {str(r['target']):8} "
             f"{str(r['neutral']):7} {str(r['features']):30} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
             f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}"
         )
