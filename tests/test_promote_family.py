@@ -219,7 +219,10 @@ def test_promotion_document_replaces_only_its_own_part():
         "promoted": {"run_id": "x"}
     }
     new = promotion_journal.promotion_document(current, {"run_id": "b1"}, "blendshapes")
-    assert new == {"promoted": {"run_id": "au1"}, "families": {"emotions": {"run_id": "e1"}, "blendshapes": {"run_id": "b1"}}}
+    assert new == {
+        "promoted": {"run_id": "au1"},
+        "families": {"emotions": {"run_id": "e1"}, "blendshapes": {"run_id": "b1"}},
+    }
     new = promotion_journal.promotion_document(current, {"run_id": "au2"}, None)
     assert new == {"promoted": {"run_id": "au2"}, "families": {"emotions": {"run_id": "e1"}}}
 
