@@ -272,3 +272,37 @@ def test_make_promote_family_through_the_makefile(conf_ws, tmp_path):
     )
     assert listed.returncode == 0, listed.stderr
     assert ids["emotions"][:8] in listed.stdout and ids["blendshapes"][:8] not in listed.stdout
+
+
+# ---------------------------------------------------------------- one transaction, as the AU promotion
+@pytest.mark.slow
+def test_a_family_promotion_killed_after_registering_is_completed_keeping_the_au_promotion(conf_ws, tmp_path, capsys):
+    """SIGKILL between the new aumesh-blendshapes version and its alias: the next `aumesh runs` completes it, and
+    promotion.json gets the family's record (with the version) beside the AU promotion's, which stays as it was."""
+    from aumesh import cli
+    from test_crash_promote import CHILD
+
+    parent, ids = _sweep(tmp_path, conf_ws / "conf")
+    au = promote.promote(parent, conf_ws, {})
+    child = CHILD.replace(
+        "promote.promote(parent, Path(root), {})", 'promote.promote(parent, Path(root), {}, family="blendshapes")'
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", child, "after registering", str(conf_ws), parent],
+        cwd=conf_ws,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == -9, proc.stderr
+    assert (conf_ws / promotion_journal.JOURNAL).exists()
+    assert cli.main(["runs", "--sweep", parent]) == 0
+    assert "aumesh: completed the interrupted promotion" in capsys.readouterr().err
+    doc = json.loads((conf_ws / "promotion.json").read_text())
+    assert doc["promoted"] == au
+    bs = doc["families"]["blendshapes"]
+    champion = registry.model_version_by_alias("aumesh-blendshapes", "champion", {})
+    assert bs["run_id"] == ids["blendshapes_pose"] == champion["run_id"] and bs["model_version"] == champion["version"]
+    exp = yaml.safe_load((conf_ws / "conf" / "experiment" / "promoted.yaml").read_text())
+    assert exp["features"]["name"] == "au_pose" and exp["families"]["blendshapes"]["features"] == "blendshapes_pose"
+    assert config.load_params(conf_ws / "params.yaml") == config.from_dict(config.compose(config_dir=conf_ws / "conf"))
