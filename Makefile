@@ -176,8 +176,9 @@ sweep: $(STAMP)
 runs: $(STAMP)
 	$(BIN)/aumesh runs
 
+# FAMILY=blendshapes|emotions promotes that input family's model on its own (`aumesh promote --family`, issue 46)
 promote: $(STAMP)
-	$(BIN)/aumesh promote
+	$(BIN)/aumesh promote $(if $(FAMILY),--family $(FAMILY))
 	@echo "now: make repro   (dvc repro rebuilds the promoted release)"
 
 # py-feat's own loader and plot_face_mesh on the release (optional, slow: py-feat pulls torch).

@@ -133,7 +133,7 @@ def _cmd_runs(args) -> int:
     parent = _parent_id(args, tracking_cfg)
     record = queries.run_record(parent, tracking_cfg)
     children = queries.list_child_runs(parent, tracking_cfg)
-    table = leaderboard.runs_table(children, args.metric)
+    table = leaderboard.runs_table(children, args.metric, family=args.family)
     if args.json:
         print(table.to_json(orient="records", indent=2))
         return 0
@@ -174,7 +174,12 @@ def _cmd_promote(args) -> int:
     tracking_cfg = _check_tracking(_tracking_cfg(args))
     root = provenance.repo_root()
     newer = parent = None
-    if not args.across:
+    family = None if args.family in (None, "au") else args.family
+    if args.run and (args.parent or args.across):
+        from aumesh.core.errors import UserError
+
+        raise UserError(f"run {args.run} is named: --sweep and --across choose among runs. Fix: drop one of them.")
+    if not args.across and not args.run:
         parent = _parent_id(args, tracking_cfg)
     if (
         parent is not None and not args.parent
@@ -187,7 +192,9 @@ def _cmd_promote(args) -> int:
             "--sweep ID promotes another, --across ranks the team's runs (`aumesh runs --sweeps` lists them)"
         )
         if not args.latest:  # only this clone's pipeline runs: a teammate's `dvc exp run` is theirs
-            evaluate = queries.latest_evaluate_run(tracking_cfg, workspace=queries.current_owner(root)["workspaces"])
+            evaluate = queries.latest_evaluate_run(
+                tracking_cfg, workspace=queries.current_owner(root)["workspaces"], family=family or "au"
+            )
             if evaluate and evaluate["start_time"] > sweep["start_time"]:
                 newer = evaluate
     record = promote.promote(
@@ -203,6 +210,8 @@ def _cmd_promote(args) -> int:
         partial=args.partial,
         skip_missing=args.skip_missing,
         say=say,
+        family=family,
+        run_id=args.run,
     )
     print(json.dumps(record, indent=2, default=str))
     if args.across:
@@ -212,6 +221,12 @@ def _cmd_promote(args) -> int:
             f"\nacross the team's runs on this data, {whose} run {record['run_id']} won "
             f"({record['metric']} = {record['value']:.6f}, of sweep {record['parent_run_id']})."
         )
+    if family:
+        print(
+            f"\nwrote families.{family} into conf/experiment/promoted.yaml and promotion.json (the AU promotion and "
+            f"the other families' as they were), and params.yaml; now `dvc repro` rebuilds the {family} release."
+        )
+        return 0
     print(
         "\nwrote conf/experiment/promoted.yaml, params.yaml and promotion.json; now `dvc repro` rebuilds that release."
     )
@@ -244,6 +259,7 @@ def _cmd_server(args) -> int:
 
 def add_parser(subparsers) -> None:
     """Add ``sweep``, ``runs``, ``promote``, ``exp apply`` and ``server`` to the ``aumesh`` command."""
+    from aumesh.core.families import FAMILIES
     from aumesh.core.schema import TARGETS
 
     p = subparsers.add_parser(
@@ -314,6 +330,19 @@ def add_parser(subparsers) -> None:
             "au_reliability_median / au_reliability_min / n_aus_facs_pass rank by AU-field reliability)",
         )
         p.add_argument("--experiment", default=None, help="MLflow experiment (default: tracking.experiment)")
+        p.add_argument(
+            "--family",
+            choices=list(FAMILIES),
+            default=None,
+            help=(
+                "only this input family's runs (default: every family's; runs are always ranked within their "
+                "family: an emotion model's R² and an AU model's answer different questions)"
+                if name == "runs"
+                else "promote this input family's model (its best run, into families.<family> of "
+                "conf/experiment/promoted.yaml and promotion.json, registered as aumesh-<family>); the AU "
+                "promotion and the other families' are left as they are (default: au, the AU model)"
+            ),
+        )
         p.set_defaults(func=func)
         if name == "runs":
             p.add_argument("--json", action="store_true", help="print the table as JSON records")
@@ -324,7 +353,19 @@ def add_parser(subparsers) -> None:
                 default=None,
                 help="only consider runs with this preprocess.target (default: runs of every target)",
             )
-            p.add_argument("--model-name", default=None, help="registered model name (default: aumesh-au-to-mesh)")
+            p.add_argument(
+                "run",
+                nargs="?",
+                default=None,
+                metavar="RUN",
+                help="promote this run (FINISHED, of the --family promoted) instead of the best of a sweep "
+                "(default: the best run of the sweep)",
+            )
+            p.add_argument(
+                "--model-name",
+                default=None,
+                help="registered model name (default: aumesh-au-to-mesh; with --family F: aumesh-F)",
+            )
             p.add_argument("--no-register", action="store_true", help="do not touch the MLflow model registry")
             p.add_argument(
                 "--partial",

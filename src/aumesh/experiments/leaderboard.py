@@ -9,57 +9,69 @@ if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
 
-def runs_table(children: pd.DataFrame, metric: str | None = None) -> pd.DataFrame:
-    """A sweep's children as a table, best first by the promotion criterion (see :mod:`aumesh.experiments.ranking`).
+def runs_table(children: pd.DataFrame, metric: str | None = None, family: str | None = None) -> pd.DataFrame:
+    """A sweep's children as a table, best first by the promotion criterion (see :mod:`aumesh.experiments.ranking`),
+    ranked within each input family (an emotion model's R² and an AU model's answer different questions).
 
     Parameters
     ----------
     children : DataFrame
         :func:`aumesh.tracking.queries.list_child_runs` output.
     metric : str, optional
-        Ranking metric; default: :func:`aumesh.experiments.ranking.default_metric` of the finished runs' targets.
+        Ranking metric; default: :func:`aumesh.experiments.ranking.default_metric` of each family's finished runs'
+        targets.
+    family : str, optional
+        Only the runs of this input family (``au``, ``blendshapes``, ``emotions``).
 
     Returns
     -------
     DataFrame
-        ``rank``, ``run_id``, ``status``, config keys, ``r2_mean``, ``r2_std``,
-        ``r2_displacement_mean``, ``mae_mean``, ``n_components`` (effective), ``error``;
-        FINISHED runs ranked first, then the others. ``attrs["metric"]`` names the ranking metric.
+        ``family``, ``rank`` (within the family), ``run_id``, ``status``, config keys, ``r2_mean``, ``r2_std``,
+        ``r2_displacement_mean``, ``mae_mean``, ``n_components`` (effective), ``error``; family by family
+        (:data:`aumesh.experiments.ranking.FAMILY_ORDER`), FINISHED runs ranked first, then the others.
+        ``attrs["metric"]`` names the ranking metric (the first family's), ``attrs["metrics"]`` each family's.
     """
     import pandas as pd
 
     from aumesh.experiments import ranking
 
     candidates = ranking.candidates_from_frame(children)
-    finished = [c for c in candidates if c.status == "FINISHED"]
-    metric = metric or ranking.default_metric({c.target for c in finished})
-    ranked = ranking.rank([c for c in finished if metric in c.metrics], metric) if finished else []
-    order = [c.run_id for c in ranked] + [c.run_id for c in candidates if c.run_id not in {r.run_id for r in ranked}]
-    by_id = {c.run_id: c for c in candidates}
+    if family is not None:
+        candidates = [c for c in candidates if c.input_family == family]
     rows = []
-    for i, rid in enumerate(order):
-        c = by_id[rid]
-        m = c.metrics
-        rows.append(
-            {
-                "rank": i + 1 if i < len(ranked) else None,
-                "run_id": rid,
-                "status": c.status,
-                "target": c.params.get("preprocess.target"),
-                "neutral": c.params.get("preprocess.neutral.method"),
-                "features": c.params.get("features.name"),
-                "n_components_requested": c.params.get("model.n_components"),
-                "n_components": int(m["n_components"]) if "n_components" in m else None,
-                "r2_mean": m.get("r2_mean"),
-                "r2_std": m.get("r2_std"),
-                "r2_displacement_mean": m.get("r2_displacement_mean"),
-                "mae_mean": m.get("mae_mean"),
-                "error": (c.error or "")[:90] or None,
-            }
-        )
+    metrics: dict[str, str] = {}
+    for fam, group in ranking.by_family(candidates).items():
+        finished = [c for c in group if c.status == "FINISHED"]
+        metrics[fam] = fam_metric = metric or ranking.default_metric({c.target for c in finished})
+        ranked = ranking.rank([c for c in finished if fam_metric in c.metrics], fam_metric) if finished else []
+        done = {r.run_id for r in ranked}
+        order = ranked + [c for c in group if c.run_id not in done]
+        rows += [_row(fam, i + 1 if i < len(ranked) else None, c) for i, c in enumerate(order)]
     table = pd.DataFrame(rows, dtype=object)  # object: missing values stay None, integers stay integers
-    table.attrs["metric"] = metric
+    table.attrs["metric"] = next(iter(metrics.values()), metric or ranking.default_metric(()))
+    table.attrs["metrics"] = metrics
     return table
+
+
+def _row(family: str, rank: int | None, c) -> dict[str, Any]:
+    """One line of :func:`runs_table`."""
+    m = c.metrics
+    return {
+        "family": family,
+        "rank": rank,
+        "run_id": c.run_id,
+        "status": c.status,
+        "target": c.params.get("preprocess.target"),
+        "neutral": c.params.get("preprocess.neutral.method"),
+        "features": c.params.get("features.name"),
+        "n_components_requested": c.params.get("model.n_components"),
+        "n_components": int(m["n_components"]) if "n_components" in m else None,
+        "r2_mean": m.get("r2_mean"),
+        "r2_std": m.get("r2_std"),
+        "r2_displacement_mean": m.get("r2_displacement_mean"),
+        "mae_mean": m.get("mae_mean"),
+        "error": (c.error or "")[:90] or None,
+    }
 
 
 def format_runs_table(table: pd.DataFrame) -> str:
@@ -73,10 +85,15 @@ def format_runs_table(table: pd.DataFrame) -> str:
     def num(v, fmt: str = "{:.4f}") -> str:
         return "" if missing(v) else fmt.format(float(v))
 
+    by = {table.attrs.get("metric", "?")}
+    if len(set(table.attrs.get("metrics", {}).values()) | by) > 1:
+        by = {", ".join(f"{f}: {m}" for f, m in table.attrs["metrics"].items())}
+    metric = by.pop()
     lines = [
-        f"ranked by {table.attrs.get('metric', '?')} ({'desc' if not str(table.attrs.get('metric', '')).startswith('mae') else 'asc'}),"
-        " ties -> fewer components; FAILED runs last",
-        f"{'#':>3} {'run':8} {'status':8} {'target':8} {'neutral':7} {'features':20} "
+        f"ranked by {metric} ({'desc' if not metric.startswith('mae') else 'asc'}),"
+        " ties -> fewer components; FAILED runs last"
+        + ("; ranked within each input family (# is the rank in its family)" if table["family"].nunique() > 1 else ""),
+        f"{'#':>3} {'run':8} {'status':8} {'family':11} {'target':8} {'neutral':7} {'features':30} "
         f"{'k':>6} {'r2_mean ± std':>17} {'r2_disp':>8} {'mae':>8}  error",
     ]
     for r in table.to_dict(orient="records"):
@@ -86,8 +103,8 @@ def format_runs_table(table: pd.DataFrame) -> str:
         r2 = "" if missing(r["r2_mean"]) else f"{num(r['r2_mean'])} ± {num(r['r2_std'])}"
         rank = "" if missing(r["rank"]) else str(r["rank"])
         lines.append(
-            f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['target']):8} {str(r['neutral']):7} "
-            f"{str(r['features']):20} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
+            f"{rank:>3} {str(r['run_id'])[:8]:8} {r['status']:8} {str(r['family']):11} {str(r['target']):8} "
+            f"{str(r['neutral']):7} {str(r['features']):30} {k:>6} {r2:>17} {num(r['r2_displacement_mean']):>8} "
             f"{num(r['mae_mean']):>8}  {'' if missing(r['error']) else r['error']}"
         )
     return "\n".join(lines)

@@ -21,6 +21,17 @@ old and new state of the alias and every file; killed half-way, the next ``aumes
 evaluate/release stage completes or rolls it back and says which in one line.
 
 Then ``dvc repro`` rebuilds exactly that release (evaluate and release re-run on the new params).
+
+``aumesh promote --family <family> [RUN]`` (issue 46) promotes one input family's model on its own, the same way: the
+best run of that family only (a sweep's, ``--across`` the team's, or the run named; a run of another family is
+refused in one line), ranked within the family (:func:`aumesh.experiments.ranking.choose`); it writes
+``families.<family>: {features: <the run's features.name>, n_components: <its effective components>}`` into
+``conf/experiment/promoted.yaml``, registers the run's model as a version of ``aumesh-<family>`` (alias
+``champion``) and writes its record to ``promotion.json["families"][<family>]``, which ``release_family@<family>``
+records in the family's card. The run's other settings (target, neutral, scaling, ...) are the AU model's in the
+pipeline (the evaluate stage fits every family in one pass on one preparation), so a run fitted with others is
+refused (:func:`check_shared`). The AU promotion and the other families' are left as they are; the AU promotion
+(without ``--family``, or ``--family au``) ranks only AU runs and keeps the families' promotions likewise.
 """
 
 from __future__ import annotations
@@ -36,12 +47,14 @@ from aumesh.experiments import promotion_journal
 from aumesh.experiments.promoted_config import (
     EXPERIMENT_GROUP,
     EXPERIMENT_NAME,
+    FAMILY_OWN_KEYS,
     _param_string,
     check_defaults_entry,
     compose_with,
     experiment_yaml,
     hydra_override,
     promoted_values,
+    read_experiment,
     verify_composition,
 )
 from aumesh.experiments.ranking import candidates_from_frame, choose
@@ -50,6 +63,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
 DEFAULT_MODEL_NAME = "aumesh-au-to-mesh"
+#: a family's registered model (``aumesh-blendshapes``, ``aumesh-emotions``): one version a promoted run, as the AU one
+FAMILY_MODEL_NAME = "aumesh-{family}"
 CHAMPION_ALIAS = "champion"
 MODEL_ARTIFACT_DIR = "model"
 
@@ -60,6 +75,60 @@ class OverruleError(UserError, ValueError):
 
 class PromotionError(UserError, ValueError):
     """Promotion refused: an unfinished sweep, or a best run whose model artifacts are gone or outside the workspace."""
+
+
+class FamilyError(UserError, ValueError):
+    """Promotion refused: the run named is of another input family, or was fitted with other shared settings than
+    the pipeline fits the families with."""
+
+
+def check_family(candidate: Any, family: str) -> None:
+    """Refuse (one line) promoting *candidate* (:class:`aumesh.experiments.ranking.Candidate`) as a *family* model
+    when it is a run of another input family."""
+    if candidate.input_family != family:
+        name = candidate.params.get("features.name", "?")
+        flag = "" if candidate.input_family == "au" else f" --family {candidate.input_family}"
+        raise FamilyError(
+            f"run {candidate.run_id} is a {candidate.input_family} run (features.name={name}), not a {family} run: "
+            f"its R² answers another question. Fix: `aumesh promote{flag} {candidate.run_id}`, or name a {family} run."
+        )
+
+
+def check_shared(run_params: Mapping[str, str], workspace: Mapping[str, Any], family: str, run_id: str) -> None:
+    """A family's run must share the settings the pipeline fits every family with (all but its own
+    :data:`aumesh.experiments.promoted_config.FAMILY_OWN_KEYS`): the evaluate stage fits the families in the AU
+    model's one pass, on one preparation (target, neutral, scaling, CV), so a run fitted otherwise would not be
+    rebuilt by ``dvc repro``.
+
+    Parameters
+    ----------
+    run_params : Mapping
+        The run's params as logged.
+    workspace : Mapping
+        ``conf/`` composed as ``dvc repro`` builds it now (with the promoted experiment).
+    family, run_id : str
+
+    Raises
+    ------
+    FamilyError
+        Naming every differing key, both values and the fix.
+    ValueError
+        The run used other data, or has keys ``conf/`` no longer has (:func:`promoted_values`).
+    """
+    from aumesh.config import flatten
+
+    flat = flatten(workspace)
+    differ = [
+        f"{key}={_param_string(value)} (workspace: {_param_string(flat[key])})"
+        for key, value in promoted_values(run_params, workspace).items()
+        if key not in FAMILY_OWN_KEYS and _param_string(value) != _param_string(flat[key])
+    ]
+    if differ:
+        raise FamilyError(
+            f"run {run_id} was fitted with {', '.join(differ)}: the pipeline fits the {family} model with the AU "
+            "model's settings, so `dvc repro` would not rebuild it. Fix: sweep the family with the workspace's "
+            "settings (or --target to restrict), or promote the AU configuration first."
+        )
 
 
 def check_finished(parent: Mapping[str, Any], children: pd.DataFrame, partial: bool) -> str | None:
@@ -175,6 +244,8 @@ def promote(
     partial: bool = False,
     skip_missing: bool = False,
     say=print,
+    family: str | None = None,
+    run_id: str | None = None,
 ) -> dict[str, Any]:
     """Promote the best child of sweep *parent_run_id* (or, *across*, the best run on this data) in workspace *root*
     (see the module docstring).
@@ -208,11 +279,17 @@ def promote(
         ``say``); without it that is refused, naming the run and the path. Only with ``register``.
     say : callable, default print
         Where the notes on skipped runs and partial sweeps go.
+    family : str, optional
+        Promote this input family's model (``blendshapes``, ``emotions``: only its runs compete, into
+        ``families.<family>``); None or ``"au"``: the AU model, as ever (only AU runs compete).
+    run_id : str, optional
+        Promote this run (it must be FINISHED and of *family*) instead of ranking a sweep's.
 
     Returns
     -------
     dict
-        The ``promoted`` record written to the promotion file (with ``user`` and ``workspace``: whose run won).
+        The record written to the promotion file (``promoted``, or ``families.<family>``; with ``user`` and
+        ``workspace``: whose run won).
     """
     from filelock import Timeout
 
@@ -234,6 +311,8 @@ def promote(
                 partial,
                 skip_missing,
                 say,
+                family=None if family in (None, "au") else family,
+                run_id=run_id,
             )
     except Timeout:
         raise promotion_journal.busy(root) from None
@@ -253,6 +332,8 @@ def _promote_locked(
     partial: bool,
     skip_missing: bool,
     say,
+    family: str | None = None,
+    run_id: str | None = None,
 ) -> dict[str, Any]:
     from aumesh.config import from_dict, params_text
     from aumesh.tracking import queries, registry
@@ -261,7 +342,12 @@ def _promote_locked(
     conf_dir = root / "conf"
     check_defaults_entry(conf_dir)
     partial_note = None
-    if across:
+    fam = family or "au"
+    if run_id is not None:
+        candidates = candidates_from_frame(queries.runs_frame([run_id], tracking_cfg))
+        check_family(candidates[0], fam)
+        scope = f"named ({run_id})"
+    elif across:
         data_md5 = _workspace_data_md5(root)
         candidates = candidates_from_frame(queries.finished_runs_on_data(data_md5, tracking_cfg))
         if not candidates:
@@ -279,7 +365,7 @@ def _promote_locked(
             say(partial_note)
         candidates = candidates_from_frame(children)
         scope = "of the sweep"
-    choice = choose(candidates, metric=metric, target=target, scope=scope)
+    choice = choose(candidates, metric=metric, target=target, scope=scope, family=fam)
     skipped: list[dict[str, str]] = []
     while register:  # the model registered must exist: name the run and the path, or (--skip-missing) take the next
         present, where = model_artifacts(choice.run_id, tracking_cfg, root)
@@ -298,7 +384,7 @@ def _promote_locked(
         )
         rest = [c for c in candidates if c.run_id not in {s["run_id"] for s in skipped}]
         try:
-            choice = choose(rest, metric=metric, target=target, scope=scope)
+            choice = choose(rest, metric=metric, target=target, scope=scope, family=fam)
         except ValueError as err:
             raise PromotionError(
                 f"no run {scope} with its model artifacts left ({len(skipped)} skipped): {err}"
@@ -306,27 +392,44 @@ def _promote_locked(
     if skipped:
         say(f"promoting run {choice.run_id} ({choice.metric} = {choice.value:.6f}), the best run whose artifacts exist")
     winner = next(c for c in candidates if c.run_id == choice.run_id)
-    sweep_id = winner.parent_run_id if across else parent_run_id
+    sweep_id = winner.parent_run_id if across or run_id is not None else parent_run_id
 
-    base = compose_with(conf_dir, None)
-    values = promoted_values(winner.params, base)
-    if newer_run is not None:
-        check_not_overruled(values, str(sweep_id), newer_run)
-    overrides = [hydra_override(k, v) for k, v in values.items()]
+    exp_path = conf_dir / EXPERIMENT_GROUP / f"{EXPERIMENT_NAME}.yaml"
+    # promoted.yaml holds the AU promotion and each family's: this promotion rewrites its own part only
+    au_values, au_lines, families, family_lines = read_experiment(exp_path)
     origin = f"run {winner.run_id} of sweep {sweep_id}" if sweep_id else f"evaluate run {winner.run_id}"
-    text = experiment_yaml(
-        values,
-        [
-            origin + (f" (by {winner.user}, across the team's runs)" if across else ""),
-            f"criterion: {choice.metric} = {choice.value:.6f}",
-        ],
-    )
-    composed = compose_with(conf_dir, text)
-    verify_composition(composed, winner.params)
+    origin += f" (by {winner.user}, across the team's runs)" if across else ""
+    if family is None:
+        base = compose_with(conf_dir, None)
+        values = promoted_values(winner.params, base)
+        if newer_run is not None:
+            check_not_overruled(values, str(sweep_id), newer_run)
+        overrides = [hydra_override(k, v) for k, v in values.items()]
+        text = experiment_yaml(
+            values, [origin, f"criterion: {choice.metric} = {choice.value:.6f}"], families, family_lines
+        )
+        composed = compose_with(conf_dir, text)
+        verify_composition(composed, winner.params)
+        extra: dict[str, Any] = {}
+    else:
+        workspace = compose_with(conf_dir, exp_path.read_text() if exp_path.exists() else None)
+        check_shared(winner.params, workspace, family, winner.run_id)
+        spec_values = {"features": winner.params["features.name"], "n_components": winner.n_components}
+        if newer_run is not None:
+            check_not_overruled({"features.name": spec_values["features"]}, str(sweep_id), newer_run)
+        overrides = [hydra_override(f"families.{family}.{k}", v) for k, v in spec_values.items()]
+        text = experiment_yaml(
+            au_values,
+            au_lines,
+            {**families, family: spec_values},
+            {**family_lines, family: f"{origin}; criterion: {choice.metric} = {choice.value:.6f}"},
+        )
+        composed = compose_with(conf_dir, text)
+        _verify_family(composed, workspace, family, spec_values)
+        extra = {"family": family, **spec_values}
     cfg = from_dict(composed)
 
-    name = model_name or DEFAULT_MODEL_NAME
-    exp_path = conf_dir / EXPERIMENT_GROUP / f"{EXPERIMENT_NAME}.yaml"
+    name = model_name or (DEFAULT_MODEL_NAME if family is None else FAMILY_MODEL_NAME.format(family=family))
     record: dict[str, Any] = {
         "run_id": winner.run_id,
         "run_name": winner.run_name,
@@ -355,6 +458,7 @@ def _promote_locked(
         "model_source": None,
         "tracking_uri": tracking.store_label(tracking_cfg),
         "promoted_at": datetime.now(UTC).isoformat(timespec="seconds"),
+        **extra,
     }
     if skipped:
         record["skipped_missing_artifacts"] = skipped
@@ -373,6 +477,7 @@ def _promote_locked(
                 "aumesh.value": f"{choice.value:.6f}",
                 "aumesh.config_overrides": " ".join(overrides),
                 "aumesh.user": str(winner.user),
+                **({"aumesh.family": family} if family else {}),
             },
             "description": f"aumesh promote: {choice.criterion}",
         }
@@ -383,17 +488,49 @@ def _promote_locked(
         {
             str(exp_path.relative_to(root)): text,
             "params.yaml": params_text(composed),
-            promotion_file: None if register else json_text({"promoted": record}),
+            promotion_file: None
+            if register
+            else json_text(
+                promotion_journal.promotion_document(
+                    promotion_journal.read_promotion(root / promotion_file), record, family
+                )
+            ),
         },
         record,
         promotion_file,
         spec,
         tracking_cfg,
+        family=family,
     )
     return promotion_journal.run(root, journal)
 
 
 _model_source = promotion_journal.model_source  # kept for callers of the old name
+
+
+def _verify_family(
+    composed: Mapping[str, Any], workspace: Mapping[str, Any], family: str, spec: Mapping[str, Any]
+) -> None:
+    """The new conf/ composes to the family's promoted design and components, and to everything else as before (the
+    AU model and the other families untouched).
+
+    Raises
+    ------
+    ValueError
+        Naming every key that differs.
+    """
+    from aumesh.config import flatten
+
+    new, old = flatten(composed), flatten(workspace)
+    own = {f"families.{family}.{k}": v for k, v in spec.items()}
+    wrong = [f"{k}: promoted {v!r}, composed {new.get(k)!r}" for k, v in own.items() if new.get(k) != v]
+    wrong += [
+        f"{k}: was {old.get(k)!r}, composed {new.get(k)!r}"
+        for k in sorted(set(new) | set(old))
+        if k not in own and new.get(k) != old.get(k)
+    ]
+    if wrong:
+        raise ValueError(f"the promoted conf/ does not compose to the {family} promotion: " + "; ".join(wrong))
 
 
 def _workspace_data_md5(root: Path) -> str:

@@ -36,8 +36,17 @@ MODEL_KEYS = (
     "model.clip_n_components",
 )
 # never promoted: where things live, how runs are logged and where they compute, not what the model is (a sweep on
-# a cluster must not write compute.address into conf/ and params.yaml)
-NOT_PROMOTED = ("paths.", *(f"{group}." for group in WHERE_GROUPS), "data.chunk_rows")
+# a cluster must not write compute.address into conf/ and params.yaml); nor, by the AU promotion, the families' models
+# (`families.`): each family is promoted on its own (`aumesh promote --family`), into the `families` node
+NOT_PROMOTED = ("paths.", *(f"{group}." for group in WHERE_GROUPS), "data.chunk_rows", "families.")
+FAMILIES_NODE = "families"
+# a run's keys its family's promotion writes (as families.<family>.features / .n_components), not the shared ones
+FAMILY_OWN_KEYS = ("features.name", "model.n_components", "model.clip_n_components")
+_HEADER = (
+    "# @package _global_",
+    "# Written by `aumesh promote`: the promoted sweep run's configuration. conf/config.yaml's",
+    f"# defaults list loads it (`{DEFAULTS_ENTRY}`) after the groups, so these values win.",
+)
 
 
 def _param_string(value: Any) -> str:
@@ -120,8 +129,15 @@ def hydra_override(key: str, value: Any) -> str:
     return f"{key}={value}"
 
 
-def experiment_yaml(values: Mapping[str, Any], provenance_lines: Sequence[str] = ()) -> str:
-    """Text of ``conf/experiment/promoted.yaml`` for dotted *values*."""
+def experiment_yaml(
+    values: Mapping[str, Any],
+    provenance_lines: Sequence[str] = (),
+    families: Mapping[str, Any] | None = None,
+    family_lines: Mapping[str, str] | None = None,
+) -> str:
+    """Text of ``conf/experiment/promoted.yaml`` for dotted *values* (the AU promotion's), then the promoted families
+    (*families*: ``{family: {"features": ..., "n_components": ...}}``, written under ``families:``; *family_lines*:
+    one provenance comment per family). Without families the text is the AU promotion's alone."""
     nested: dict[str, Any] = {}
     for key, value in values.items():
         node = nested
@@ -129,13 +145,63 @@ def experiment_yaml(values: Mapping[str, Any], provenance_lines: Sequence[str] =
         for part in parts[:-1]:
             node = node.setdefault(part, {})
         node[parts[-1]] = list(value) if isinstance(value, tuple) else value
+    if families:
+        nested[FAMILIES_NODE] = {name: dict(spec) for name, spec in families.items()}
     header = [
-        "# @package _global_",
-        "# Written by `aumesh promote`: the promoted sweep run's configuration. conf/config.yaml's",
-        f"# defaults list loads it (`{DEFAULTS_ENTRY}`) after the groups, so these values win.",
+        *_HEADER,
         *[f"# {line}" for line in provenance_lines],
+        *[
+            f"# {FAMILIES_NODE}.{name}: {line}"
+            for name, line in (family_lines or {}).items()
+            if name in (families or {})
+        ],
     ]
     return "\n".join(header) + "\n" + yaml.safe_dump(nested, sort_keys=False)
+
+
+def read_experiment(path: Path) -> tuple[dict[str, Any], list[str], dict[str, Any], dict[str, str]]:
+    """The parts of an existing ``conf/experiment/promoted.yaml`` (:func:`experiment_yaml`'s inverse), so a promotion
+    of one part (the AU model, or one family) rewrites it with the others as they were.
+
+    Returns
+    -------
+    (dict, list of str, dict, dict)
+        The AU promotion's values as dotted keys and its provenance lines; the ``families`` node and each family's
+        provenance line. All empty when the file does not exist.
+
+    Raises
+    ------
+    ValueError
+        The file is not a YAML mapping (the fix is in the message).
+    """
+    path = Path(path)
+    if not path.exists():
+        return {}, [], {}, {}
+    text = path.read_text()
+    try:
+        doc = yaml.safe_load(text) or {}
+    except yaml.YAMLError as err:
+        doc = err
+    if not isinstance(doc, dict):
+        raise ValueError(
+            f"{path}: not a YAML mapping ({doc}). Fix: `git checkout {path.name}` or delete it, then promote again."
+        )
+    families = dict(doc.pop(FAMILIES_NODE, None) or {})
+    au_lines: list[str] = []
+    family_lines: dict[str, str] = {}
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            break
+        if line in _HEADER:
+            continue
+        body = line[2:] if line.startswith("# ") else line[1:]
+        name, sep, rest = body.partition(": ")
+        if sep and name.startswith(f"{FAMILIES_NODE}.") and name.count(".") == 1:
+            family_lines[name.split(".", 1)[1]] = rest
+        else:
+            au_lines.append(body)
+    values = flatten_config(doc) if doc else {}
+    return values, au_lines, families, family_lines
 
 
 def check_defaults_entry(conf_dir: Path) -> None:

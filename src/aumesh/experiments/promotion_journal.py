@@ -66,6 +66,42 @@ def _read(path: Path) -> str | None:
     return path.read_text() if path.exists() else None
 
 
+def read_promotion(path: Path) -> dict[str, Any]:
+    """``promotion.json`` as it stands (``{}`` when absent): ``{"promoted": <the AU promotion's record or null>,
+    "families": {<family>: <its record>}}`` (``families`` once a family was promoted).
+
+    Raises
+    ------
+    CorruptFileError
+        Not a JSON object (the fix is in the message).
+    """
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        doc = json.loads(path.read_text())
+    except ValueError as err:
+        doc = err
+    if not isinstance(doc, dict):
+        raise CorruptFileError(
+            f'{path}: not a JSON object ({doc}). Fix: `git checkout {path.name}` (or write {{"promoted": null}} to '
+            "it), then promote again."
+        )
+    return doc
+
+
+def promotion_document(current: Mapping[str, Any], record: Mapping[str, Any], family: str | None) -> dict[str, Any]:
+    """``promotion.json``'s new content: *current* with *record* in its place, the rest as it was: the AU
+    promotion's (*family* None) under ``promoted``, a family's under ``families.<family>`` (promoting one never
+    touches the others'). With nothing else in *current* the AU promotion's is ``{"promoted": record}``."""
+    doc = {"promoted": current.get("promoted"), **{k: v for k, v in current.items() if k != "promoted"}}
+    if family is None:
+        doc["promoted"] = dict(record)
+    else:
+        doc["families"] = {**(doc.get("families") or {}), family: dict(record)}
+    return doc
+
+
 def new_journal(
     root: Path,
     files: Mapping[str, str | None],
@@ -73,11 +109,14 @@ def new_journal(
     promotion_file: str,
     registry: dict[str, Any] | None,
     tracking_cfg: Mapping[str, Any] | None,
+    family: str | None = None,
 ) -> dict[str, Any]:
     """The journal of a promotion about to start: ``files`` (workspace-relative path -> new text, in the order they
     are written; ``promotion_file``'s new text is None until the version is known when ``registry`` is given),
     ``record`` (``promotion.json``'s record, without the version when ``registry``), ``registry`` (``name``,
-    ``alias``, ``run_id``, ``tags``, ``description``, ``previous_version``) or None."""
+    ``alias``, ``run_id``, ``tags``, ``description``, ``previous_version``) or None; ``family``: the input family
+    promoted (None: the AU model), whose place in ``promotion.json`` the record takes (:func:`promotion_document`,
+    on the file as it is now: ``promotion_current``)."""
     return {
         "id": uuid.uuid4().hex,
         "pid": os.getpid(),
@@ -89,6 +128,8 @@ def new_journal(
         "record": record,
         "registry": None if registry is None else {**registry, "version": None, "source": None},
         "tracking": dict(tracking_cfg or {}),
+        "family": family,
+        "promotion_current": read_promotion(Path(root) / promotion_file),
     }
 
 
@@ -131,7 +172,11 @@ def _known_version(journal: dict[str, Any], root: Path) -> bool:
 def _record_version(journal: dict[str, Any], version: Mapping[str, Any], root: Path) -> None:
     journal["registry"]["version"], journal["registry"]["source"] = version["version"], version["source"]
     journal["record"] = with_version(journal["record"], version, root)
-    journal["files"][journal["promotion_file"]]["new"] = json_text({"promoted": journal["record"]})
+    # journals written before the families have neither key: {"promoted": record}, as then
+    current = journal.get("promotion_current") or {}
+    journal["files"][journal["promotion_file"]]["new"] = json_text(
+        promotion_document(current, journal["record"], journal.get("family"))
+    )
 
 
 def _write_file(root: Path, rel: str, text: str | None) -> None:

@@ -8,7 +8,10 @@ every target (see :mod:`aumesh.pipeline.evaluate`). A metric can also be AU-fiel
 (``au_reliability_median``, ``au_reliability_min``, ``au_reliability_<AU>``: cosine between each AU's fields fitted on
 different folds) or ``n_aus_facs_pass``, which depend only on the slopes too. Asking for a target-space metric over
 mixed targets is an error (restrict with a target). Values within :data:`TIE_TOLERANCE` tie; ties go to fewer
-(effective) components, then fewer requested components, then the earlier run. ``aumesh promote``
+(effective) components, then fewer requested components, then the earlier run. Runs of different input families
+(``au``, ``blendshapes``, ``emotions``: :attr:`Candidate.input_family`) answer different questions (how AUs, how
+blendshapes, how emotions move the face) on different inputs, so their R² are never ranked against each other: the
+ranking is within one family (``family``; :data:`FAMILY_ORDER`). ``aumesh promote``
 (:mod:`aumesh.experiments.promote`) promotes the winner; ``aumesh runs`` (:mod:`aumesh.experiments.leaderboard`)
 shows the ranking.
 """
@@ -23,6 +26,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
 TIE_TOLERANCE = 1e-9
+#: the input families in the order tables list them (aumesh.core.families.FAMILIES)
+FAMILY_ORDER = ("au", "blendshapes", "emotions")
 # metrics in the same space for every preprocess.target: they depend on the slopes only
 CROSS_TARGET_METRICS = ("r2_displacement_mean", "au_reliability_median", "au_reliability_min", "n_aus_facs_pass")
 _METRIC_WORDS = {
@@ -64,6 +69,15 @@ class Candidate:
     user: str | None = None  # aumesh.user: whose run
     workspace: str | None = None  # aumesh.workspace.id: which clone
     parent_run_id: str | None = None  # its sweep (None: a pipeline evaluate run)
+    family: str | None = None  # tag aumesh.family (None: not known from the tags; see input_family)
+
+    @property
+    def input_family(self) -> str:
+        """The run's input family: its tag, else its ``features.name``'s family, else ``au`` (runs from before the
+        families: :func:`aumesh.tracking.values.run_family`)."""
+        from aumesh.tracking.values import run_family
+
+        return self.family or run_family(self.params) or "au"
 
     @property
     def target(self) -> str | None:
@@ -127,6 +141,7 @@ def candidates_from_frame(children: pd.DataFrame) -> list[Candidate]:
                 user=text(row, "user"),
                 workspace=text(row, "workspace"),
                 parent_run_id=text(row, "parent_run_id"),
+                family=text(row, "family"),
             )
         )
     return out
@@ -191,12 +206,22 @@ def _one_correction(pool: list[Candidate]) -> tuple[list[Candidate], str]:
     return keep, note
 
 
+def by_family(candidates: Iterable[Candidate]) -> dict[str, list[Candidate]]:
+    """Candidates grouped by input family, in :data:`FAMILY_ORDER` (then any other name), each group in order."""
+    groups: dict[str, list[Candidate]] = {}
+    for c in candidates:
+        groups.setdefault(c.input_family, []).append(c)
+    order = [f for f in FAMILY_ORDER if f in groups] + sorted(f for f in groups if f not in FAMILY_ORDER)
+    return {f: groups[f] for f in order}
+
+
 def choose(
     candidates: Sequence[Candidate],
     metric: str | None = None,
     target: str | None = None,
     tie_tolerance: float = TIE_TOLERANCE,
     scope: str = "of the sweep",
+    family: str | None = None,
 ) -> Choice:
     """Pick the run to promote (see the module docstring for the criterion).
 
@@ -211,6 +236,9 @@ def choose(
     tie_tolerance : float
     scope : str, default "of the sweep"
         Where the candidates come from, in the criterion's words (``--across``: the team's runs on the data).
+    family : str, optional
+        Only runs of this input family compete (:attr:`Candidate.input_family`). Without it the finished candidates
+        must all be of one family.
 
     Returns
     -------
@@ -219,16 +247,31 @@ def choose(
     Raises
     ------
     ValueError
-        No finished candidate, a metric no candidate has, or a target-space metric over
-        candidates whose targets differ.
+        No finished candidate, a metric no candidate has, a target-space metric over
+        candidates whose targets differ, or (without *family*) candidates of several families.
     """
-    pool = [c for c in candidates if c.status == "FINISHED" and (target is None or c.target == target)]
+    pool = [
+        c
+        for c in candidates
+        if c.status == "FINISHED"
+        and (target is None or c.target == target)
+        and (family is None or c.input_family == family)
+    ]
     if not pool:
         raise ValueError(
             f"no FINISHED run among {len(candidates)} children"
             + (f" with preprocess.target={target}" if target else "")
+            + (f" of the {family} family" if family else "")
             + "; nothing to promote (see `aumesh runs` for their errors)."
         )
+    families = by_family(pool)
+    if len(families) > 1:
+        raise ValueError(
+            f"candidates span input families ({', '.join(f'{f}: {len(g)}' for f, g in families.items())}): their R² "
+            "answer different questions and are not ranked against each other. Fix: rank within one family "
+            "(--family NAME)."
+        )
+    other_families = sum(1 for c in candidates if family is not None and c.input_family != family)
     pool, eiv_note = _one_correction(pool)
     targets = tuple(sorted({str(c.target) for c in pool}))
     chosen_metric = metric or default_metric(targets)
@@ -270,6 +313,11 @@ def choose(
     if target is not None:
         compared += f"; restricted to preprocess.target={target}"
     compared += eiv_note
+    if other_families:
+        compared += (
+            f"; only runs of the {family} family competed (the {other_families} runs of other families answer other "
+            "questions and were not ranked against them)"
+        )
     excluded = len(candidates) - len(ranked)
     return Choice(
         run_id=best.run_id,

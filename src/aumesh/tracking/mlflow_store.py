@@ -45,6 +45,9 @@ HOST_TAG, PID_TAG = "aumesh.host", "aumesh.pid"  # the process that owns a RUNNI
 USER_TAG = "aumesh.user"  # git user.email, else the login (provenance.user_identity)
 WORKSPACE_TAG = "aumesh.workspace.id"  # a stable id of the clone (provenance.workspace_id)
 DATA_TAG = "aumesh.data.md5"  # the DVC hash of the frame tables the run used
+# the input family a model run fitted (au, blendshapes, emotions: features.family, issue 46); set on every run opened
+# with a config (aumesh.tracking.runs._open_run), derived from param features.name for runs made before the tag
+FAMILY_TAG = "aumesh.family"
 SWEEP_PARENT_ROLE, SWEEP_CHILD_ROLE = "sweep-parent", "sweep-child"
 
 _QUIETED = False

@@ -25,12 +25,24 @@ from aumesh.tracking.mlflow_store import (
     WORKSPACE_TAG,
     get_client,
 )
+from aumesh.tracking.values import run_family
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
 
 #: The columns every run table starts with (:func:`list_child_runs`, :func:`finished_runs_on_data`).
-BASE_COLUMNS = ["run_id", "run_name", "status", "start_time", "end_time", "error", "user", "workspace", "parent_run_id"]
+BASE_COLUMNS = [
+    "run_id",
+    "run_name",
+    "status",
+    "start_time",
+    "end_time",
+    "error",
+    "user",
+    "workspace",
+    "parent_run_id",
+    "family",  # the input family (tag aumesh.family; runs from before it: their features.name's family)
+]
 
 
 # ------------------------------------------------------------------ who is asking
@@ -83,7 +95,8 @@ def _search_all(client, experiment_ids: list[str], filter_string: str, order_by:
 # ------------------------------------------------------------------ one run
 def run_record(run_id: str, tracking_cfg: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """A plain-dict view of one run: ``run_id``, ``run_name``, ``status``, ``experiment_id``, ``artifact_uri``,
-    ``start_time`` (ms), ``params``, ``metrics`` (latest values), ``tags``, ``user``, ``workspace``."""
+    ``start_time`` (ms), ``params``, ``metrics`` (latest values), ``tags``, ``user``, ``workspace``, ``family`` (the
+    input family: :func:`aumesh.tracking.values.run_family`)."""
     return _record(get_client(tracking_cfg).get_run(run_id))
 
 
@@ -101,6 +114,7 @@ def _record(run) -> dict[str, Any]:
         "tags": tags,
         "user": tags.get(USER_TAG),
         "workspace": tags.get(WORKSPACE_TAG),
+        "family": run_family(run.data.params, tags),
     }
 
 
@@ -123,6 +137,7 @@ def _frame(runs) -> pd.DataFrame:
             "user": tags.get(USER_TAG),
             "workspace": tags.get(WORKSPACE_TAG),
             "parent_run_id": tags.get(PARENT_TAG),
+            "family": run_family(run.data.params, tags),
         }
         row.update({f"params.{k}": v for k, v in sorted(run.data.params.items())})
         row.update({f"metrics.{k}": v for k, v in sorted(run.data.metrics.items())})
@@ -140,12 +155,31 @@ def list_child_runs(parent_run_id: str, tracking_cfg: Mapping[str, Any] | None =
     -------
     pandas.DataFrame
         Columns ``run_id``, ``run_name``, ``status``, ``start_time``, ``end_time`` (UTC timestamps), ``error``
-        (``aumesh.error`` tag or None), ``user``, ``workspace``, ``parent_run_id``, then ``params.<key>`` (strings)
+        (``aumesh.error`` tag or None), ``user``, ``workspace``, ``parent_run_id``, ``family``, then ``params.<key>`` (strings)
         and ``metrics.<key>`` (latest value).
     """
     client = get_client(tracking_cfg)
     parent = client.get_run(parent_run_id)
     return _frame(_search_all(client, [parent.info.experiment_id], _filter({PARENT_TAG: parent_run_id})))
+
+
+def runs_frame(run_ids: Sequence[str], tracking_cfg: Mapping[str, Any] | None = None) -> pd.DataFrame:
+    """The runs *run_ids* as :func:`list_child_runs` tables them (``aumesh promote --family F RUN``)."""
+    from mlflow.exceptions import MlflowException
+
+    from aumesh.core.errors import UserError
+
+    client = get_client(tracking_cfg)
+    runs = []
+    for run_id in run_ids:
+        try:
+            runs.append(client.get_run(run_id))
+        except MlflowException:
+            raise UserError(
+                f"run {run_id}: no such run in the tracking store ({client.tracking_uri}). Fix: copy a run id from "
+                "`aumesh runs` (or `aumesh runs --sweeps`)."
+            ) from None
+    return _frame(runs)
 
 
 def finished_runs_on_data(data_md5: str, tracking_cfg: Mapping[str, Any] | None = None) -> pd.DataFrame:
@@ -237,8 +271,14 @@ def latest_parent_run(
 
 
 def latest_evaluate_run(
-    tracking_cfg: Mapping[str, Any] | None = None, workspace: str | Sequence[str] | None = None
+    tracking_cfg: Mapping[str, Any] | None = None,
+    workspace: str | Sequence[str] | None = None,
+    family: str = "au",
 ) -> dict[str, Any] | None:
-    """The newest pipeline evaluate run (of this *workspace* when given), or None."""
-    runs = latest_runs_tagged("aumesh.stage", "evaluate", tracking_cfg, 1, workspace=workspace)
-    return runs[0] if runs else None
+    """The newest pipeline evaluate run of input *family* (of this *workspace* when given), or None.
+
+    The evaluate stage logs one run per family it fits (the AU model's and each ``families.<family>``'s, tag
+    :data:`aumesh.tracking.mlflow_store.FAMILY_TAG`); a family's promotion is overruled only by a run of its own
+    family. Runs from before the tag count by their ``features.name``."""
+    runs = latest_runs_tagged("aumesh.stage", "evaluate", tracking_cfg, 20, workspace=workspace)
+    return next((r for r in runs if (r["family"] or "au") == family), None)

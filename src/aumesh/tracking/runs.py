@@ -57,17 +57,19 @@ from aumesh.tracking.handle import TrackedRun, _NullRun
 from aumesh.tracking.mlflow_store import (
     DEFAULT_EXPERIMENT,
     ERROR_TAG,
+    FAMILY_TAG,
     HOST_TAG,
     PARENT_TAG,
     PID_TAG,
     ROLE_TAG,
+    SWEEP_PARENT_ROLE,
     USER_TAG,
     WORKSPACE_TAG,
     _default_artifact_location,
     get_client,
     tracking_enabled,
 )
-from aumesh.tracking.values import MAX_KEY_LENGTH, MAX_TAG_VALUE_LENGTH, _str_value, _truncate
+from aumesh.tracking.values import MAX_KEY_LENGTH, MAX_TAG_VALUE_LENGTH, _str_value, _truncate, run_family
 
 if TYPE_CHECKING:  # pragma: no cover
     import pandas as pd
@@ -172,6 +174,11 @@ def _open_run(
     if parent_run_id:
         all_tags[PARENT_TAG] = parent_run_id
     all_tags.update({str(k): v for k, v in (tags or {}).items()})
+    # every model run says its input family (the family fits of the evaluate stage, sweep children, evaluate runs):
+    # `aumesh runs` and `aumesh promote --family` rank within a family; a sweep's parent spans families, so has none
+    family = run_family(params) if params and all_tags.get(ROLE_TAG) != SWEEP_PARENT_ROLE else None
+    if family is not None:
+        all_tags.setdefault(FAMILY_TAG, family)
     clean = {str(k)[:MAX_KEY_LENGTH]: _str_value(v, MAX_TAG_VALUE_LENGTH) for k, v in all_tags.items()}
     run = client.create_run(exp_id, run_name=run_name, tags=clean)
     handle = TrackedRun(client, run.info.run_id, exp_id)

@@ -61,6 +61,35 @@ def prepare_params(params: Mapping[str, Any]) -> dict[str, str]:
     return {_clean_key(k): _str_value(v, MAX_PARAM_VALUE_LENGTH) for k, v in provenance.flatten(params).items()}
 
 
+def run_family(params: Mapping[str, Any], tags: Mapping[str, Any] | None = None) -> str | None:
+    """The input family of a model run: its ``aumesh.family`` tag, else the family of its ``features.name``
+    (:data:`aumesh.core.families.FEATURE_SETS`: runs logged before the tag existed).
+
+    Parameters
+    ----------
+    params : Mapping
+        The run's params, nested (a composed config) or flattened as logged (``features.name``).
+    tags : Mapping, optional
+        The run's tags.
+
+    Returns
+    -------
+    str or None
+        ``"au"``, ``"blendshapes"`` or ``"emotions"``; None when neither the tag nor a known ``features.name`` says.
+    """
+    from aumesh.core.families import FEATURE_SETS
+    from aumesh.tracking.mlflow_store import FAMILY_TAG
+
+    tagged = (tags or {}).get(FAMILY_TAG)
+    if tagged:
+        return str(tagged)
+    name = params.get("features.name")
+    if name is None and isinstance(params.get("features"), Mapping):
+        name = params["features"].get("name")
+    spec = FEATURE_SETS.get(str(name)) if name is not None else None
+    return spec[0] if spec else None
+
+
 def _metric_value(value: Any) -> float:
     try:
         return float(value)
