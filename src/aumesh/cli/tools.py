@@ -40,11 +40,11 @@ def _cmd_predict(args) -> int:
 
 def _cmd_view(args) -> int:
     from aumesh.export import viewer
-    from aumesh.model.release_check import load_release
+    from aumesh.model.family_inference import load_any_release
 
     refuse_release_path("--out", args.out, force=args.force)
     clips = viewer.table_clips(args.clip, args.video, args.fps, args.mesh_units) if args.clip else None
-    out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name, clips=clips)
+    out = viewer.write_viewer(load_any_release(args.npz), args.out, source=args.npz.name, clips=clips)
     played = f"; plays {len(clips)} video(s) of {args.clip.name}" if clips else ""
     print(f"wrote {out} (open it in a browser; works offline{played})")
     return 0

@@ -116,7 +116,11 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, s
     >>> fex = pd.read_csv("video.csv")   # py-feat's detector output  # doctest: +SKIP
     >>> meshes = aumesh.predict_mesh(m, fex)  # (len(fex), 478, 3)     # doctest: +SKIP
     """
-    arrays = load_release(release)
+    from aumesh.model import family_inference
+
+    arrays = family_inference.load_any_release(release)
+    if family_inference.release_family(arrays) != "au":  # a blendshape or emotion release (issue 46)
+        return family_inference.predict_family_mesh(arrays, aus, pose, strict=strict)
     au, pose_rows, single = input_rows(arrays, aus, pose, strict=strict)
     meshes = predict_rows(arrays, au, pose_rows)
     return meshes[0] if single else meshes

@@ -1,0 +1,146 @@
+"""A family release NPZ (issue 46, contract item 3) with known coefficients, for the rig, viewer, predict and animate
+tests: the synthetic family truth's fields (:func:`aumesh.synthetic.family_truth.family_fields` of the AU truth the
+card's synthetic release carries) as the family's input rows, seeded random pose and pose x input rows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from aumesh.core.families import FAMILIES, feature_set_columns
+from aumesh.core.schema import ANCHOR_INDICES, flatten_axis_major
+from aumesh.model import support
+
+#: the inputs whose synthetic field is zero get a training p99 below support.UNSUPPORTED_P99 (never expressed)
+SUPPORTED_P99, UNSUPPORTED_P99 = 0.6, 0.01
+POSE_FILTER = {"max_abs_pitch_deg": 30.0, "max_abs_yaw_deg": 40.0}
+
+
+def upright_template() -> np.ndarray:
+    """conftest.upright_truth_release's face: the canonical template y up, z out of the face, pixel-like units."""
+    from aumesh.geometry import face
+
+    return 120.0 * face.canonical_template() * np.array([1.0, -1.0, -1.0]) + np.array([320.0, 240.0, 10.0])
+
+
+def family_fit(family: str, *, pose_scale: float = 0.5, seed: int = 0) -> dict:
+    """A family fit in the aligned frame as ``build/families/<family>/model.npz`` holds it: ``coef`` (1434, p),
+    ``intercept`` (1434,), ``feature_columns`` (p,) (``<family>_pose_interactions``), ``fields`` (k, 1434) the
+    family's truth, ``ranges`` (each input's range record: p99 0.6, or 0.01 where the field is zero)."""
+    from aumesh.synthetic.truth import facs_displacement_fields
+    from aumesh.synthetic.family_truth import family_fields
+
+    tpl = upright_template()
+    au_fields = flatten_axis_major(facs_displacement_fields(tpl))  # (20, 1434)
+    fields = family_fields(au_fields, tpl)[family]
+    columns = feature_set_columns(f"{family}_pose_interactions")
+    k = len(FAMILIES[family])
+    rng = np.random.default_rng(seed)
+    coef = rng.normal(0.0, pose_scale, (1434, len(columns)))
+    coef[:, :k] = fields.T
+    zero = ~np.abs(fields).any(axis=1)
+    ranges = {}
+    for j, name in enumerate(FAMILIES[family]):
+        p99 = UNSUPPORTED_P99 if zero[j] else SUPPORTED_P99
+        ranges[name] = support.range_record([0.0, 0.0, p99 / 3, p99, min(1.0, 1.2 * p99)], 0.2)
+    return {
+        "coef": coef,
+        "intercept": flatten_axis_major(tpl),
+        "feature_columns": columns,
+        "fields": fields,
+        "ranges": ranges,
+        "template": tpl,
+    }
+
+
+def _family_release_arrays(family, coef, intercept, feature_columns, n_components, reference, ranges, card_text="",
+                           metadata=None) -> dict:  # fmt: skip
+    """Contract item 3's arrays, until the release engineer's ``aumesh.model.family_release.family_release_arrays``
+    (the one writer) is merged: the same keys, built the same way (AU release's canonical frame)."""
+    import json
+
+    from aumesh.core.families import PYFEAT_FEATURE
+    from aumesh.core.schema import POSE_COLUMNS
+    from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
+
+    inputs = list(FAMILIES[family])
+    cols = list(feature_columns)
+    order = inputs + [c for c in cols if c not in set(inputs)]
+    rows = np.asarray(coef, np.float64)[:, [cols.index(n) for n in order]].T
+    rotation, origin = canonical_frame(reference["mean_aligned_mesh"])
+
+    def mesh(key):
+        return to_canonical(reference[key], rotation, origin).astype(np.float32)
+
+    return {
+        "coef": rotate_axis_major(rows, rotation).astype(np.float32),
+        "intercept": rotate_axis_major(np.asarray(intercept, np.float64), rotation, origin).astype(np.float32),
+        "feature_columns": np.array(inputs),
+        "pose_columns": np.array([p for p in POSE_COLUMNS if p in order], dtype=str).reshape(-1),
+        "mean_aligned_mesh": mesh("mean_aligned_mesh"),
+        "feature_p99": np.array([ranges[c]["p99"] for c in inputs], np.float32),
+        "unsupported_features": np.array(
+            [c for c in inputs if ranges[c]["p99"] < support.UNSUPPORTED_P99], dtype=str
+        ).reshape(-1),
+        "mean_neutral_mesh": mesh("mean_low_au_mesh"),
+        "input_columns": np.array(order),
+        "family": np.array(family),
+        "pyfeat_feature": np.array(PYFEAT_FEATURE[family][0]),
+        "n_components": np.array(n_components, dtype=np.int32),
+        "mean_low_au_mesh": mesh("mean_low_au_mesh"),
+        "reference_anchors": mesh("reference_anchors"),
+        "anchor_indices": np.asarray(reference["anchor_indices"], dtype=np.int32),
+        "model_card": np.array(card_text),
+        "training_metadata": np.array(json.dumps(dict(metadata or {}), sort_keys=True, default=str)),
+    }
+
+
+def family_release_arrays_for(family: str, *, seed: int = 0, pose_scale: float = 0.5) -> dict:
+    """The family release arrays of :func:`family_fit` (the release engineer's writer when merged)."""
+    try:
+        from aumesh.model.family_release import family_release_arrays
+    except ImportError:  # not merged yet
+        family_release_arrays = _family_release_arrays
+    fit = family_fit(family, seed=seed, pose_scale=pose_scale)
+    tpl = fit["template"]
+    anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)
+    reference = {
+        "mean_aligned_mesh": tpl,
+        "mean_low_au_mesh": tpl,
+        "reference_anchors": tpl[anchors],
+        "anchor_indices": anchors,
+    }
+    metadata = {"config": {"preprocess": {"pose_filter": POSE_FILTER}, "features": {"family": family}}}
+    return family_release_arrays(
+        family,
+        fit["coef"],
+        fit["intercept"],
+        fit["feature_columns"],
+        12,
+        reference,
+        fit["ranges"],
+        card_text=f"aumesh synthetic {family} release (tests/family_release_fixture.py)",
+        metadata=metadata,
+    )
+
+
+def family_release(path: Path, family: str, **kw) -> Path:
+    """:func:`family_release_arrays_for` written to ``path`` (``np.savez``)."""
+    np.savez(path, **family_release_arrays_for(family, **kw))
+    return path
+
+
+def numpy_prediction(npz: dict, x: np.ndarray, pose: np.ndarray | None = None) -> np.ndarray:
+    """The NPZ's own arithmetic, written from contract item 3 without aumesh: ``x_full @ coef + intercept`` with
+    ``x_full = [inputs | pose | pose x input]`` (pose-major products named ``Pose*input``), as (N, 478, 3)."""
+    x = np.atleast_2d(np.asarray(x, np.float64))
+    pose = np.zeros((len(x), 3)) if pose is None else np.atleast_2d(np.asarray(pose, np.float64))
+    values = dict(zip([str(c) for c in npz["feature_columns"]], x.T, strict=True))
+    values |= dict(zip(["Pitch", "Yaw", "Roll"], pose.T, strict=True))
+    cols = []
+    for name in [str(c) for c in npz["input_columns"]]:
+        left, _, right = name.partition("*")
+        cols.append(values[name] if not right else values[left] * values[right])
+    flat = np.stack(cols, axis=1) @ npz["coef"].astype(np.float64) + npz["intercept"].astype(np.float64)
+    return np.stack([flat[:, :478], flat[:, 478:956], flat[:, 956:]], axis=-1)
