@@ -98,6 +98,10 @@ class Clip:
     mesh_units : what was done to the mesh, a key of :data:`MESH_UNIT_NOTES`: ``chip``, ``crop256``, ``normalized``,
         ``pixels``, ``pixels-asked``, ``normalized-raw`` or ``none``.
     video_id : the video's identity: py-feat's ``input`` path as written (or ``video_id``), as the ingest names it.
+    family : the inputs that drive the clip's rig: ``au`` (the AUs, ``aus``) or a family of
+        :data:`aumesh.core.families.FAMILIES` (issue 46: ``blendshapes``, ``emotions``), read by name
+        (:func:`aumesh.core.families.family_columns`: Detectorv2's ``Happy`` is ``happiness``) into ``inputs``.
+    inputs : (n, k) float64 the family's inputs in its order, NaN where no face; None for ``family="au"``.
     """
 
     source: str
@@ -115,9 +119,16 @@ class Clip:
     frame_size: tuple[float, float] | None = None
     mesh_units: str = "none"
     video_id: str = ""
+    family: str = "au"
+    inputs: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frame)
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(n, k) what drives the clip's rig: the family's ``inputs``, or the AUs (NaN where no face)."""
+        return self.aus if self.inputs is None else self.inputs
 
     @property
     def duration(self) -> float:
@@ -149,6 +160,7 @@ def read_clip(
     face_selection: str = "largest",
     mesh_npy: str = "{stem}.npy",
     mesh_units: str | None = "detector",
+    family: str = "au",
 ) -> Clip:
     """One video of a py-feat table as a :class:`Clip` (module docstring: time, faces, gaps).
 
@@ -165,6 +177,8 @@ def read_clip(
     mesh_units : ``detector`` (z converted by the detector the columns name) or ``pixels`` (z as written), as the
         ingest's ``data.mesh_units``; None: the recorded mesh is not needed (``aumesh animate``): ``Clip.mesh`` None,
         nothing converted, so nothing about it can refuse the table.
+    family : ``au`` (default), or ``blendshapes`` / ``emotions``: also read that family's columns by name
+        (``Clip.inputs``; ``aumesh animate --family``).
 
     Raises
     ------
@@ -178,7 +192,7 @@ def read_clip(
         ``fps`` not a positive number, unknown ``face_selection`` or ``mesh_units``.
     """
     _check_options(fps, face_selection, mesh_units)  # before the table is read
-    table = read_table(path, mesh_npy=mesh_npy)
+    table = read_table(path, mesh_npy=mesh_npy, family=family)
     where = str(table.path)
     ids = table.videos
     if video is None and len(ids) > 1:
@@ -199,6 +213,8 @@ class ClipTable:
     has_mesh: bool
     block: readers.Block  # every row, in the table's order
     approx: np.ndarray | None  # approx_time of every row, None when the table has none
+    family: str = "au"  # a family's inputs are in block.values under the family's names (read_table's family)
+    family_source: tuple[str, ...] = ()  # the header's column of each family input (Detectorv2's ``Happy``, ...)
 
     @property
     def videos(self) -> list[str]:
@@ -233,13 +249,14 @@ class ClipTable:
         return _video_clip(self, name, fps, face_selection, mesh_units)
 
 
-def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
-    """Every row of a py-feat table, read once (:func:`read_clip`'s formats and checks of the file).
+def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy", family: str = "au") -> ClipTable:
+    """Every row of a py-feat table, read once (:func:`read_clip`'s formats and checks of the file); with a
+    ``family`` other than ``au``, its columns too, found by name (:func:`aumesh.core.families.family_columns`).
 
     Raises
     ------
     MissingFileError, TableError
-        As :func:`read_clip`.
+        As :func:`read_clip`; a family column the table lacks (one line: the file, the column, the fix).
     """
     path = Path(path)
     if not path.is_file():
@@ -250,10 +267,15 @@ def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
     if not readers.is_table(path):
         raise TableError(f"{path}: not a py-feat table. Fix: give a .csv, .csv.gz or .parquet file.")
     source, has_mesh = _open(path, mesh_npy)
-    block, approx = _read(source, has_mesh)
+    columns: dict[str, str] = {}
+    if family != "au":
+        from aumesh.core.families import family_columns
+
+        columns = family_columns(source.header, family, str(path))
+    block, approx = _read(source, has_mesh, columns)
     if not len(block):
         raise TableError(f"{path}: no rows. Fix: export the video's frames with py-feat first.")
-    return ClipTable(path, source, has_mesh, block, approx)
+    return ClipTable(path, source, has_mesh, block, approx, family, tuple(columns.values()))
 
 
 def _check_options(fps: float | None, face_selection: str, mesh_units: str | None = "detector") -> None:
@@ -318,6 +340,7 @@ def _video_clip(
         )
     aus = np.column_stack([chosen.values[c] for c in AU_COLUMNS])
     pose = np.column_stack([chosen.values[c] for c in POSE_COLUMNS])
+    family_inputs = _family_inputs(table, chosen, name, where)
     bad = np.isnan(np.hstack([aus, pose]))
     if bad.any():
         row, col = (int(v[0]) for v in np.nonzero(bad))
@@ -336,6 +359,10 @@ def _video_clip(
     out_aus = np.full((n, len(AU_COLUMNS)), np.nan)
     out_pose = np.full((n, len(POSE_COLUMNS)), np.nan)
     out_aus[at], out_pose[at] = aus, pose
+    out_inputs = None
+    if family_inputs is not None:
+        out_inputs = np.full((n, family_inputs.shape[1]), np.nan)
+        out_inputs[at] = family_inputs
     mesh, units = None, "none"
     if has_mesh and mesh_units is not None:
         units = to_frame_pixels(chosen, lay, mesh_units, where)  # chosen is a copy (take): the table is untouched
@@ -363,7 +390,29 @@ def _video_clip(
         frame_size=_frame_size(block, lay),
         mesh_units=units,
         video_id=video,
+        family=table.family,
+        inputs=out_inputs,
     )
+
+
+def _family_inputs(table: ClipTable, chosen: readers.Block, name: str, where: str) -> np.ndarray | None:
+    """(m, k) the family's inputs of the chosen face rows (None for the AUs); a face row missing one is one line
+    naming the table's column, the frame and the fix."""
+    if table.family == "au":
+        return None
+    from aumesh.core.families import FAMILIES
+
+    names = FAMILIES[table.family]
+    values = np.column_stack([chosen.values[c] for c in names])
+    bad = np.isnan(values)
+    if bad.any():
+        row, col = (int(v[0]) for v in np.nonzero(bad))
+        raise TableError(
+            f"{where}: column {table.family_source[col]!r} is empty in frame {chosen.frame[row]} of video {name!r}, "
+            f"a row with a face. Fix: a face row needs all {len(names)} {table.family} columns (py-feat writes them "
+            f"on every face row)."
+        )
+    return values
 
 
 def _frame_size(block: readers.Block, layout: pyfeat.Layout) -> tuple[float, float] | None:
@@ -402,11 +451,17 @@ def _open(path: Path, mesh_npy: str) -> tuple[readers.Source, bool]:
     return readers.Source(path, kind, lay, tuple(names), None, n_rows), False
 
 
-def _read(source: readers.Source, has_mesh: bool) -> tuple[readers.Block, np.ndarray | None]:
+def _read(
+    source: readers.Source, has_mesh: bool, family: dict[str, str] | None = None
+) -> tuple[readers.Block, np.ndarray | None]:
     """Every row of the table as one :class:`~aumesh.data.readers.Block`, and its ``approx_time`` values (None when
-    absent). A table without a mesh gets NaN mesh columns (what the ingest's no-face and face-size rules read)."""
+    absent). A table without a mesh gets NaN mesh columns (what the ingest's no-face and face-size rules read).
+    ``family`` (family name -> the header's column): those columns are read too, into the block's ``values`` under
+    the family's names (float64)."""
     lay = source.layout
+    family = family or {}
     columns = list(lay.columns) + ([APPROX_TIME] if APPROX_TIME in source.header else [])
+    columns += [c for c in family.values() if c not in columns]
     spans = readers.csv_spans(source) if source.kind == "csv" else [readers.Span(source, 0, source.n_rows or 0)]
     parts = [part for span in spans for part in readers.iter_span_tables(span, columns)]
     blocks, approx = [], []
@@ -416,11 +471,25 @@ def _read(source: readers.Source, has_mesh: bool) -> tuple[readers.Block, np.nda
             nan = pa.array(np.full(table.num_rows, np.nan, np.float32))
             table = pa.Table.from_arrays([*table.columns, *([nan] * len(names))], [*table.column_names, *names])
             span = replace(span, source=replace(source, layout=replace(lay, mesh=tuple(names))))
-        blocks.append(readers.to_block(table, span))
+        block = readers.to_block(table, span)
+        for key, column in family.items():
+            block.values[key] = _float_column(table, column, str(source.path))
+        blocks.append(block)
         if APPROX_TIME in table.column_names:
             approx.append(table.column(APPROX_TIME).to_numpy(zero_copy_only=False))
     block = _concat(blocks)
     return block, (np.concatenate(approx) if approx else None)
+
+
+def _float_column(table: pa.Table, column: str, where: str) -> np.ndarray:
+    """A family column as float64 (empty cells NaN); text in it is one line naming the file, the column and the fix."""
+    try:
+        return table.column(column).cast(pa.float64()).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+        raise TableError(
+            f"{where}: column {column!r} holds values that are not numbers. Fix: write py-feat's scores as numbers "
+            f"(missing values empty or NaN)."
+        ) from None
 
 
 def _concat(blocks: Sequence[readers.Block]) -> readers.Block:
@@ -543,9 +612,9 @@ def bridge(values: np.ndarray, has_face: np.ndarray, time: np.ndarray, max_gap_s
 
 
 def bridged_weights(clip: Clip, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
-    """(n_frames, 20) the clip's AU intensities with its no-face frames bridged (:func:`bridge`): the morph-target
-    weights of its animation."""
-    return bridge(clip.aus, clip.has_face, clip.time, max_gap_s)
+    """(n_frames, k) what drives the clip's rig (:attr:`Clip.weights`: its 20 AU intensities, or its family's k
+    inputs) with its no-face frames bridged (:func:`bridge`): the morph-target weights of its animation."""
+    return bridge(clip.weights, clip.has_face, clip.time, max_gap_s)
 
 
 def bridged_pose(clip: Clip, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
