@@ -54,54 +54,10 @@ def family_fit(family: str, *, pose_scale: float = 0.5, seed: int = 0) -> dict:
     }
 
 
-def _family_release_arrays(family, coef, intercept, feature_columns, n_components, reference, ranges, card_text="",
-                           metadata=None) -> dict:  # fmt: skip
-    """Contract item 3's arrays, until the release engineer's ``aumesh.model.family_release.family_release_arrays``
-    (the one writer) is merged: the same keys, built the same way (AU release's canonical frame)."""
-    import json
-
-    from aumesh.core.families import PYFEAT_FEATURE
-    from aumesh.core.schema import POSE_COLUMNS
-    from aumesh.geometry.frame import canonical_frame, rotate_axis_major, to_canonical
-
-    inputs = list(FAMILIES[family])
-    cols = list(feature_columns)
-    order = inputs + [c for c in cols if c not in set(inputs)]
-    rows = np.asarray(coef, np.float64)[:, [cols.index(n) for n in order]].T
-    rotation, origin = canonical_frame(reference["mean_aligned_mesh"])
-
-    def mesh(key):
-        return to_canonical(reference[key], rotation, origin).astype(np.float32)
-
-    return {
-        "coef": rotate_axis_major(rows, rotation).astype(np.float32),
-        "intercept": rotate_axis_major(np.asarray(intercept, np.float64), rotation, origin).astype(np.float32),
-        "feature_columns": np.array(inputs),
-        "pose_columns": np.array([p for p in POSE_COLUMNS if p in order], dtype=str).reshape(-1),
-        "mean_aligned_mesh": mesh("mean_aligned_mesh"),
-        "feature_p99": np.array([ranges[c]["p99"] for c in inputs], np.float32),
-        "unsupported_features": np.array(
-            [c for c in inputs if ranges[c]["p99"] < support.UNSUPPORTED_P99], dtype=str
-        ).reshape(-1),
-        "mean_neutral_mesh": mesh("mean_low_au_mesh"),
-        "input_columns": np.array(order),
-        "family": np.array(family),
-        "pyfeat_feature": np.array(PYFEAT_FEATURE[family][0]),
-        "n_components": np.array(n_components, dtype=np.int32),
-        "mean_low_au_mesh": mesh("mean_low_au_mesh"),
-        "reference_anchors": mesh("reference_anchors"),
-        "anchor_indices": np.asarray(reference["anchor_indices"], dtype=np.int32),
-        "model_card": np.array(card_text),
-        "training_metadata": np.array(json.dumps(dict(metadata or {}), sort_keys=True, default=str)),
-    }
-
-
 def family_release_arrays_for(family: str, *, seed: int = 0, pose_scale: float = 0.5) -> dict:
-    """The family release arrays of :func:`family_fit` (the release engineer's writer when merged)."""
-    try:
-        from aumesh.model.family_release import family_release_arrays
-    except ImportError:  # not merged yet
-        family_release_arrays = _family_release_arrays
+    """The family release arrays of :func:`family_fit`, made by the release's own writer
+    (:func:`aumesh.model.family_release.family_release_arrays`, contract item 3)."""
+    from aumesh.model.family_release import family_release_arrays
     fit = family_fit(family, seed=seed, pose_scale=pose_scale)
     tpl = fit["template"]
     anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)

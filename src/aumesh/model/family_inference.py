@@ -156,8 +156,8 @@ def au_view(arrays: Mapping[str, Any]) -> dict[str, Any]:
     -------
     dict
         ``au_columns`` (k,) the family's inputs; ``input_columns`` (k + 3,) inputs and ``Pitch, Yaw, Roll``;
-        ``coef`` (k + 3, 1434) their rows (a pose row the design lacks is zero); ``coef_full`` (p, 1434) and
-        ``input_columns_full`` (p,) the whole design; ``feature_p99`` (k + 3,) (pose NaN: not checked);
+        ``coef`` (k + 3, 1434) their rows (a pose row the design lacks is zero); with pose x input terms,
+        ``coef_full`` (p, 1434) and ``input_columns_full`` (p,), the whole design; ``feature_p99`` (k + 3,) (pose NaN: not checked);
         ``pose_columns``; ``family``; and the release's ``intercept``, ``mean_aligned_mesh``,
         ``unsupported_features``, ``training_metadata`` as they are. An AU release is returned as it is.
     """
@@ -180,9 +180,9 @@ def au_view(arrays: Mapping[str, Any]) -> dict[str, Any]:
         input_columns=np.array(inputs),
         pose_columns=np.array(POSE_COLUMNS),
         coef=np.stack([by_name.get(c, np.zeros(N_TARGETS, coef.dtype)) for c in inputs]),
-        coef_full=coef,
-        input_columns_full=np.array(design),
     )
+    if set(design) - set(inputs):  # pose x input terms: the whole design, as the AU release's coef_full
+        view.update(coef_full=coef, input_columns_full=np.array(design))
     if "feature_p99" in arrays:
         p99 = np.asarray(arrays["feature_p99"], dtype=np.float32).reshape(-1)
         view["feature_p99"] = np.concatenate([p99, np.full(len(POSE_COLUMNS), np.nan, np.float32)])
