@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -45,16 +44,14 @@ import pyarrow.parquet as pq
 from aumesh.core.errors import MissingFileError, TableError, UserError, corrupt_parquet
 from aumesh.core.schema import AU_COLUMNS, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS
 from aumesh.data import ingest, pyfeat, readers
+from aumesh.data.clip_time import DEFAULT_FPS, fps_from_approx_time
 from aumesh.data.units import Z_CROP, convert_units, normalized_rows, rect_side
 
 log = logging.getLogger(__name__)
 
 APPROX_TIME = "approx_time"
-DEFAULT_FPS = 25.0
 #: A no-face gap whose neighbouring face frames are further apart than this holds the last pose (seconds).
 MAX_GAP_S = 0.5
-#: Frame rates video files have; ``approx_time`` (whole seconds) usually allows only one of them.
-COMMON_FPS = (24000 / 1001, 24.0, 25.0, 30000 / 1001, 30.0, 48.0, 50.0, 60000 / 1001, 60.0, 100.0, 120.0)
 FACE_SELECTIONS = ("largest", "identity", "error")
 #: How a clip reads z (``--mesh-units`` of ``aumesh view --clip``), as the ingest's ``data.mesh_units``.
 MESH_UNITS = ("detector", "pixels")
@@ -69,7 +66,6 @@ MESH_UNIT_NOTES = {
     "comparison is skewed by the frame's aspect ratio",
     "none": "none",
 }
-_TIME = re.compile(r"^\s*(?:(\d+):)?(\d+):(\d+)(?:\.(\d+))?\s*$")
 
 
 @dataclass(frozen=True)
@@ -192,7 +188,7 @@ def read_clip(
         ``fps`` not a positive number, unknown ``face_selection`` or ``mesh_units``.
     """
     _check_options(fps, face_selection, mesh_units)  # before the table is read
-    table = read_table(path, mesh_npy=mesh_npy, family=family)
+    table = read_table(path, mesh_npy=mesh_npy)
     where = str(table.path)
     ids = table.videos
     if video is None and len(ids) > 1:
@@ -200,7 +196,11 @@ def read_clip(
         shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
         raise TableError(f"{where}: holds {len(ids)} videos ({shown}). Fix: pick one with --video NAME.")
     return table.clip(
-        video if video is not None else ids[0], fps=fps, face_selection=face_selection, mesh_units=mesh_units
+        video if video is not None else ids[0],
+        fps=fps,
+        face_selection=face_selection,
+        mesh_units=mesh_units,
+        family=family,
     )
 
 
@@ -213,8 +213,6 @@ class ClipTable:
     has_mesh: bool
     block: readers.Block  # every row, in the table's order
     approx: np.ndarray | None  # approx_time of every row, None when the table has none
-    family: str = "au"  # a family's inputs are in block.values under the family's names (read_table's family)
-    family_source: tuple[str, ...] = ()  # the header's column of each family input (Detectorv2's ``Happy``, ...)
 
     @property
     def videos(self) -> list[str]:
@@ -236,6 +234,7 @@ class ClipTable:
         fps: float | None = None,
         face_selection: str = "largest",
         mesh_units: str | None = "detector",
+        family: str = "au",
     ) -> Clip:
         """Video ``name`` (one of :attr:`videos`, or its stem where unique) as a :class:`Clip`: :func:`read_clip`
         without reading again.
@@ -246,17 +245,16 @@ class ClipTable:
             No such video, or ``name`` is the stem of several (listed); the video has no frame with a face, or a face row with some AU or pose values missing, or a unit error
             (:func:`read_clip`).
         """
-        return _video_clip(self, name, fps, face_selection, mesh_units)
+        return _video_clip(self, name, fps, face_selection, mesh_units, family)
 
 
-def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy", family: str = "au") -> ClipTable:
-    """Every row of a py-feat table, read once (:func:`read_clip`'s formats and checks of the file); with a
-    ``family`` other than ``au``, its columns too, found by name (:func:`aumesh.core.families.family_columns`).
+def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
+    """Every row of a py-feat table, read once (:func:`read_clip`'s formats and checks of the file).
 
     Raises
     ------
     MissingFileError, TableError
-        As :func:`read_clip`; a family column the table lacks (one line: the file, the column, the fix).
+        As :func:`read_clip`.
     """
     path = Path(path)
     if not path.is_file():
@@ -267,15 +265,10 @@ def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy", family: str = 
     if not readers.is_table(path):
         raise TableError(f"{path}: not a py-feat table. Fix: give a .csv, .csv.gz or .parquet file.")
     source, has_mesh = _open(path, mesh_npy)
-    columns: dict[str, str] = {}
-    if family != "au":
-        from aumesh.core.families import family_columns
-
-        columns = family_columns(source.header, family, str(path))
-    block, approx = _read(source, has_mesh, columns)
+    block, approx = _read(source, has_mesh)
     if not len(block):
         raise TableError(f"{path}: no rows. Fix: export the video's frames with py-feat first.")
-    return ClipTable(path, source, has_mesh, block, approx, family, tuple(columns.values()))
+    return ClipTable(path, source, has_mesh, block, approx)
 
 
 def _check_options(fps: float | None, face_selection: str, mesh_units: str | None = "detector") -> None:
@@ -315,7 +308,12 @@ def to_frame_pixels(faces: readers.Block, layout: pyfeat.Layout, mesh_units: str
 
 
 def _video_clip(
-    table: ClipTable, name: str, fps: float | None, face_selection: str, mesh_units: str | None = "detector"
+    table: ClipTable,
+    name: str,
+    fps: float | None,
+    face_selection: str,
+    mesh_units: str | None = "detector",
+    family: str = "au",
 ) -> Clip:
     _check_options(fps, face_selection, mesh_units)
     block, approx, source, has_mesh, where = table.block, table.approx, table.source, table.has_mesh, str(table.path)
@@ -340,7 +338,7 @@ def _video_clip(
         )
     aus = np.column_stack([chosen.values[c] for c in AU_COLUMNS])
     pose = np.column_stack([chosen.values[c] for c in POSE_COLUMNS])
-    family_inputs = _family_inputs(table, chosen, name, where)
+    family_inputs = _family_inputs(table, chosen, family, name, where)
     bad = np.isnan(np.hstack([aus, pose]))
     if bad.any():
         row, col = (int(v[0]) for v in np.nonzero(bad))
@@ -390,27 +388,31 @@ def _video_clip(
         frame_size=_frame_size(block, lay),
         mesh_units=units,
         video_id=video,
-        family=table.family,
+        family=family,
         inputs=out_inputs,
     )
 
 
-def _family_inputs(table: ClipTable, chosen: readers.Block, name: str, where: str) -> np.ndarray | None:
-    """(m, k) the family's inputs of the chosen face rows (None for the AUs); a face row missing one is one line
-    naming the table's column, the frame and the fix."""
-    if table.family == "au":
+def _family_inputs(table: ClipTable, chosen: readers.Block, family: str, name: str, where: str) -> np.ndarray | None:
+    """(m, k) ``family``'s inputs of the chosen face rows, read by name with the layout's families
+    (:attr:`aumesh.data.pyfeat.Layout.families`: Detectorv2's ``Happy`` is ``happiness``); None for the AUs. A table
+    without the family, or a face row missing one of its values, is one line naming the column and the fix."""
+    if family == "au":
         return None
-    from aumesh.core.families import FAMILIES
+    from aumesh.core.families import check_family, family_columns
 
-    names = FAMILIES[table.family]
-    values = np.column_stack([chosen.values[c] for c in names])
+    held = dict(table.source.layout.families)
+    if family not in held:  # not in the header: family_columns names the first missing input and the fix
+        family_columns(table.source.header, family, where)
+        raise TableError(f"{where}: no {family} columns. Fix: export the table with py-feat's MPDetector or Detectorv2")
+    values = np.column_stack([chosen.values[c] for c in held[family]])
     bad = np.isnan(values)
     if bad.any():
         row, col = (int(v[0]) for v in np.nonzero(bad))
         raise TableError(
-            f"{where}: column {table.family_source[col]!r} is empty in frame {chosen.frame[row]} of video {name!r}, "
-            f"a row with a face. Fix: a face row needs all {len(names)} {table.family} columns (py-feat writes them "
-            f"on every face row)."
+            f"{where}: column {held[family][col]!r} is empty in frame {chosen.frame[row]} of video {name!r}, a row "
+            f"with a face. Fix: a face row needs all {len(check_family(family))} {family} columns (py-feat writes "
+            f"them on every face row)."
         )
     return values
 
@@ -451,17 +453,11 @@ def _open(path: Path, mesh_npy: str) -> tuple[readers.Source, bool]:
     return readers.Source(path, kind, lay, tuple(names), None, n_rows), False
 
 
-def _read(
-    source: readers.Source, has_mesh: bool, family: dict[str, str] | None = None
-) -> tuple[readers.Block, np.ndarray | None]:
+def _read(source: readers.Source, has_mesh: bool) -> tuple[readers.Block, np.ndarray | None]:
     """Every row of the table as one :class:`~aumesh.data.readers.Block`, and its ``approx_time`` values (None when
-    absent). A table without a mesh gets NaN mesh columns (what the ingest's no-face and face-size rules read).
-    ``family`` (family name -> the header's column): those columns are read too, into the block's ``values`` under
-    the family's names (float64)."""
+    absent). A table without a mesh gets NaN mesh columns (what the ingest's no-face and face-size rules read)."""
     lay = source.layout
-    family = family or {}
     columns = list(lay.columns) + ([APPROX_TIME] if APPROX_TIME in source.header else [])
-    columns += [c for c in family.values() if c not in columns]
     spans = readers.csv_spans(source) if source.kind == "csv" else [readers.Span(source, 0, source.n_rows or 0)]
     parts = [part for span in spans for part in readers.iter_span_tables(span, columns)]
     blocks, approx = [], []
@@ -471,25 +467,11 @@ def _read(
             nan = pa.array(np.full(table.num_rows, np.nan, np.float32))
             table = pa.Table.from_arrays([*table.columns, *([nan] * len(names))], [*table.column_names, *names])
             span = replace(span, source=replace(source, layout=replace(lay, mesh=tuple(names))))
-        block = readers.to_block(table, span)
-        for key, column in family.items():
-            block.values[key] = _float_column(table, column, str(source.path))
-        blocks.append(block)
+        blocks.append(readers.to_block(table, span))
         if APPROX_TIME in table.column_names:
             approx.append(table.column(APPROX_TIME).to_numpy(zero_copy_only=False))
     block = _concat(blocks)
     return block, (np.concatenate(approx) if approx else None)
-
-
-def _float_column(table: pa.Table, column: str, where: str) -> np.ndarray:
-    """A family column as float64 (empty cells NaN); text in it is one line naming the file, the column and the fix."""
-    try:
-        return table.column(column).cast(pa.float64()).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
-        raise TableError(
-            f"{where}: column {column!r} holds values that are not numbers. Fix: write py-feat's scores as numbers "
-            f"(missing values empty or NaN)."
-        ) from None
 
 
 def _concat(blocks: Sequence[readers.Block]) -> readers.Block:
@@ -507,76 +489,6 @@ def _concat(blocks: Sequence[readers.Block]) -> readers.Block:
         None if first.identity is None else np.concatenate([b.identity for b in blocks]),
         np.concatenate([b.mesh for b in blocks]),
     )
-
-
-# --------------------------------------------------------------------------------------------------------- frame rate
-
-
-def _approx_seconds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """``approx_time`` values as ``(ok, lower, upper)``: each row's true time lies in ``[lower, upper)``. py-feat's
-    ``"MM:SS"`` truncates to whole seconds (``[t, t + 1)``); ``"[HH:]MM:SS.fff"`` or numbers are taken to the last
-    digit (``[t - r, t + r]``). None when a value is neither."""
-    n = len(values)
-    ok, lower, upper = np.zeros(n, bool), np.zeros(n), np.zeros(n)
-    for i, v in enumerate(values):
-        if v is None or (isinstance(v, float) and math.isnan(v)):
-            continue
-        if isinstance(v, (int, float, np.integer, np.floating)):
-            t = float(v)
-            r = 1.0 if float(t).is_integer() else 1e-3
-            lo, hi = (t, t + 1.0) if r == 1.0 else (t - r, t + r)
-        else:
-            m = _TIME.match(str(v))
-            if not m:
-                return None
-            h, mi, s, frac = m.groups()
-            t = int(h or 0) * 3600 + int(mi) * 60 + int(s)
-            if frac:
-                r = 10.0 ** -len(frac)
-                t += int(frac) * r
-                lo, hi = t - r, t + r
-            else:
-                lo, hi = t, t + 1.0
-        ok[i], lower[i], upper[i] = True, lo, hi
-    return ok, lower, upper
-
-
-def fps_from_approx_time(frame: np.ndarray, approx: np.ndarray) -> float | None:
-    """The frame rate py-feat's ``approx_time`` implies, or None when it does not tell.
-
-    Each row says ``lower <= frame / fps < upper`` (whole seconds for py-feat's ``"MM:SS"``), so ``fps`` lies in
-    ``(max frame / upper, min frame / lower]``. Of the common rates (:data:`COMMON_FPS`: 23.976, 24, 25, 29.97, 30,
-    48, 50, 59.94, 60, 100, 120) in that interval, the one nearest its middle; no common rate but an interval
-    narrower than 1%: its middle, to 3 decimals. A clip shorter than a second bounds the rate only from below: then
-    None (25) unless 25 is too slow for it. Contradictory values (another video's times) give None.
-
-    With ``skip_frames`` a clip of a few minutes may not tell a rate from its NTSC neighbour (30 and 29.97 are 0.1%
-    apart: 0.06 s in a minute); ``--fps`` settles it.
-    """
-    parsed = _approx_seconds(np.asarray(approx, dtype=object))
-    if parsed is None:
-        return None
-    ok, lower, upper = parsed
-    f = np.asarray(frame, np.float64)
-    use = ok & (f > 0)
-    if not use.any():
-        return None
-    lo = float(np.max(f[use] / upper[use]))
-    bounded = use & (lower > 0)
-    hi = float(np.min(f[bounded] / lower[bounded])) if bounded.any() else math.inf
-    tol = 1e-9
-    if lo >= hi * (1 + tol):
-        log.warning("approx_time contradicts itself (frame rate above %.4g and at most %.4g): using 25 fps", lo, hi)
-        return None
-    candidates = [c for c in COMMON_FPS if c > lo * (1 + tol) and c <= hi * (1 + tol)]
-    if math.isinf(hi):
-        if DEFAULT_FPS > lo * (1 + tol):
-            return None
-        return candidates[0] if candidates else None
-    if candidates:
-        middle = (lo + hi) / 2
-        return min(candidates, key=lambda c: abs(c - middle))
-    return round((lo + hi) / 2, 3) if hi - lo <= 0.01 * hi else None
 
 
 # -------------------------------------------------------------------------------------------------------------- gaps

@@ -251,16 +251,6 @@ def family_input_rows(
     return x, pose_rows, single
 
 
-def predict_family_mesh(arrays: Mapping[str, Any], inputs: Any = None, pose: Any = None, *, strict: bool = False):
-    """Meshes of a family release (:func:`aumesh.predict_mesh`'s family branch): (478, 3) for one row, (N, 478, 3)
-    for a DataFrame or a 2-D array, float64, the release's frame and units."""
-    from aumesh.model.inference import predict_rows
-
-    x, pose_rows, single = family_input_rows(arrays, inputs, pose, strict=strict)
-    meshes = predict_rows(au_view(arrays), x, pose_rows)
-    return meshes[0] if single else meshes
-
-
 __all__ = [
     "FAMILY_KEYS",
     "au_view",
@@ -269,6 +259,5 @@ __all__ = [
     "family_inputs",
     "is_family_file",
     "load_any_release",
-    "predict_family_mesh",
     "release_family",
 ]

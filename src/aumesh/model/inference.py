@@ -120,7 +120,9 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, s
 
     arrays = family_inference.load_any_release(release)
     if family_inference.release_family(arrays) != "au":  # a blendshape or emotion release (issue 46)
-        return family_inference.predict_family_mesh(arrays, aus, pose, strict=strict)
+        x, pose_rows, single = family_inference.family_input_rows(arrays, aus, pose, strict=strict)
+        meshes = predict_rows(family_inference.au_view(arrays), x, pose_rows)
+        return meshes[0] if single else meshes
     au, pose_rows, single = input_rows(arrays, aus, pose, strict=strict)
     meshes = predict_rows(arrays, au, pose_rows)
     return meshes[0] if single else meshes
