@@ -58,6 +58,7 @@ def family_release_arrays_for(family: str, *, seed: int = 0, pose_scale: float =
     """The family release arrays of :func:`family_fit`, made by the release's own writer
     (:func:`aumesh.model.family_release.family_release_arrays`, contract item 3)."""
     from aumesh.model.family_release import family_release_arrays
+
     fit = family_fit(family, seed=seed, pose_scale=pose_scale)
     tpl = fit["template"]
     anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)

@@ -269,3 +269,25 @@ def test_a_clip_without_a_family_column_is_one_line(releases, v2_table, tmp_path
     err = _error(capsys, v2_table, "--out", tmp_path / "x.glb", "--release", releases["emotions"], "--family",
                  "blendshapes")  # fmt: skip
     assert "the emotions release" in err and "releases/blendshapes/bs_to_mesh_pls.npz" in err
+
+
+# ---------------------------------------------------------------------------------------------- aumesh predict
+def test_aumesh_predict_streams_a_family_release(releases, v2_table, tmp_path):
+    """``aumesh predict --release <family NPZ>`` on Detectorv2's whole table: its emotion columns by name, its pose
+    (the pose x input terms), no-face rows NaN; the meshes are the NPZ's arithmetic on the table read by pandas."""
+    out = tmp_path / "meshes.npz"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["predict", str(v2_table), "--out", str(out), "--release", str(releases["emotions"])]) == 0
+    got = np.load(out, allow_pickle=False)
+    npz = _npz(releases["emotions"])
+    assert [str(c) for c in got["au_columns"]] == _names(npz) and str(got["family"]) == "emotions"
+    df = pd.read_csv(v2_table)
+    x = df.rename(columns=V2_EMOTIONS)[_names(npz)].to_numpy(np.float64)
+    expected = numpy_prediction(npz, x, df[["Pitch", "Yaw", "Roll"]].to_numpy(np.float64))
+    face = ~got["no_face"]
+    assert (~face).any() and face.any() and np.isnan(got["meshes"][~face]).all()
+    assert (df["FaceScore"].fillna(0).to_numpy() > 0).tolist() == face.tolist()
+    np.testing.assert_allclose(
+        got["meshes"][face], expected[face], rtol=0, atol=4 * EPS32 * np.abs(expected[face]).max()
+    )

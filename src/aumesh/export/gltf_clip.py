@@ -106,7 +106,8 @@ def clip_glb_bytes(
     animation = clip_animation(clip, npz, pose=pose, smooth_frames=smooth_frames, max_gap_s=max_gap_s)
     bridged, held = clip.gaps(max_gap_s)
     extras = {
-        "inputs": gltf.inputs_note(npz) + " over time; mesh at pose 0"
+        "inputs": gltf.inputs_note(npz)
+        + " over time; mesh at pose 0"
         + ("; node 'head' rotation = Rotation.from_euler('xyz', [Pitch, Yaw, Roll])" if pose else ""),
         "units_and_frame": "the release NPZ's (see its model card)",
         "release": release,
