@@ -28,8 +28,8 @@ def family_fit(family: str, *, pose_scale: float = 0.5, seed: int = 0) -> dict:
     """A family fit in the aligned frame as ``build/families/<family>/model.npz`` holds it: ``coef`` (1434, p),
     ``intercept`` (1434,), ``feature_columns`` (p,) (``<family>_pose_interactions``), ``fields`` (k, 1434) the
     family's truth, ``ranges`` (each input's range record: p99 0.6, or 0.01 where the field is zero)."""
-    from aumesh.synthetic.truth import facs_displacement_fields
     from aumesh.synthetic.family_truth import family_fields
+    from aumesh.synthetic.truth import facs_displacement_fields
 
     tpl = upright_template()
     au_fields = flatten_axis_major(facs_displacement_fields(tpl))  # (20, 1434)

@@ -119,7 +119,13 @@ def add_parser(subparsers) -> None:
         required=True,
         help="output file: .npz (meshes (N, 478, 3), no_face (N,)), or .obj / .ply for a one-row table",
     )
-    p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
+    p.add_argument(
+        "--release",
+        type=Path,
+        default=Path("release/au_to_mesh_pls.npz"),
+        help="release NPZ; a blendshape or emotion release (releases/<family>/*.npz) reads the table's 52 "
+        "blendshape or 7 emotion columns by name instead of the AUs (default: %(default)s)",
+    )
     p.add_argument(
         "--ignore",
         nargs="*",

@@ -8,6 +8,12 @@ shows ``base + sum_k w_k * target_k``, exactly the model's mesh at pose 0 (up to
 the NPZ's own precision). Target names (``AU01`` ... ``AU43``) are in the mesh's
 ``extras.targetNames``, the convention three.js, Blender and Babylon.js read.
 
+A family release (issue 46; :mod:`aumesh.model.family_inference`) is rigged the same way: its rig
+(``<family>_to_mesh.glb``) has one morph target per input, ``coef``'s row of that input, named by the family's own names
+in its order: MediaPipe's 52 ARKit-style blendshape names (``_neutral`` kept as MediaPipe names it: no ARKit shape has
+that name, so an ARKit-named avatar, which maps targets by name, leaves it out; :data:`NEUTRAL_NOTE`) or py-feat's
+7 emotions; ``asset.extras`` says the family and the support of its inputs.
+
 Coordinates are the NPZ's, unchanged (the release's frame and units); triangles are the
 project's triangulation of the base mesh, wound so their fronts face out of the face (toward
 the nose tip); normals are the base mesh's area-weighted vertex normals.

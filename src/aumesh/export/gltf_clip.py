@@ -220,7 +220,6 @@ def animate(
     )
 
 
-#: The release each family animates by default (``dvc repro``'s outputs: ``release/`` and ``releases/<family>/``).
 def default_release(family: str | None) -> Path:
     """``release/au_to_mesh_pls.npz`` for the AUs (and None), ``releases/<family>/<py-feat stem>.npz`` for a family
     (contract item 3: ``releases/blendshapes/bs_to_mesh_pls.npz``, ``releases/emotions/emotion_to_mesh_pls.npz``)."""
