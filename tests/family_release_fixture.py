@@ -24,7 +24,7 @@ def upright_template() -> np.ndarray:
     return 120.0 * face.canonical_template() * np.array([1.0, -1.0, -1.0]) + np.array([320.0, 240.0, 10.0])
 
 
-def family_fit(family: str, *, pose_scale: float = 0.5, seed: int = 0) -> dict:
+def family_fit(family: str, *, pose_scale: float = 0.5, seed: int = 0, design: str = "_pose_interactions") -> dict:
     """A family fit in the aligned frame as ``build/families/<family>/model.npz`` holds it: ``coef`` (1434, p),
     ``intercept`` (1434,), ``feature_columns`` (p,) (``<family>_pose_interactions``), ``fields`` (k, 1434) the
     family's truth, ``ranges`` (each input's range record: p99 0.6, or 0.01 where the field is zero)."""
@@ -34,7 +34,7 @@ def family_fit(family: str, *, pose_scale: float = 0.5, seed: int = 0) -> dict:
     tpl = upright_template()
     au_fields = flatten_axis_major(facs_displacement_fields(tpl))  # (20, 1434)
     fields = family_fields(au_fields, tpl)[family]
-    columns = feature_set_columns(f"{family}_pose_interactions")
+    columns = feature_set_columns(f"{family}{design}")
     k = len(FAMILIES[family])
     rng = np.random.default_rng(seed)
     coef = rng.normal(0.0, pose_scale, (1434, len(columns)))
@@ -54,12 +54,14 @@ def family_fit(family: str, *, pose_scale: float = 0.5, seed: int = 0) -> dict:
     }
 
 
-def family_release_arrays_for(family: str, *, seed: int = 0, pose_scale: float = 0.5) -> dict:
+def family_release_arrays_for(
+    family: str, *, seed: int = 0, pose_scale: float = 0.5, design: str = "_pose_interactions"
+) -> dict:
     """The family release arrays of :func:`family_fit`, made by the release's own writer
     (:func:`aumesh.model.family_release.family_release_arrays`, contract item 3)."""
     from aumesh.model.family_release import family_release_arrays
 
-    fit = family_fit(family, seed=seed, pose_scale=pose_scale)
+    fit = family_fit(family, seed=seed, pose_scale=pose_scale, design=design)
     tpl = fit["template"]
     anchors = np.asarray(ANCHOR_INDICES, dtype=np.int32)
     reference = {

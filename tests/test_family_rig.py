@@ -291,3 +291,21 @@ def test_aumesh_predict_streams_a_family_release(releases, v2_table, tmp_path):
     np.testing.assert_allclose(
         got["meshes"][face], expected[face], rtol=0, atol=4 * EPS32 * np.abs(expected[face]).max()
     )
+
+
+@pytest.mark.parametrize("design", ["", "_pose"])
+def test_designs_without_interactions_predict_and_rig(tmp_path, design):
+    """``emotions`` (no pose: pose has no effect) and ``emotions_pose`` (pose rows, no products): the prediction is
+    the NPZ's arithmetic and the rig its pose-0 case."""
+    path = family_release(tmp_path / "e.npz", "emotions", design=design)
+    npz = _npz(path)
+    assert len(npz["input_columns"]) == 7 + (3 if design else 0)
+    x, pose = np.full(7, 0.05), np.array([0.1, -0.2, 0.05])
+    got = aumesh.predict_mesh(path, x, pose)
+    expected = numpy_prediction(npz, x, pose)[0] if design else numpy_prediction(npz, x)[0]
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    doc, accessor = parse_glb(gltf.write_glb(npz, tmp_path / "e.glb"))
+    prim = doc["meshes"][0]["primitives"][0]
+    targets = np.stack([accessor(t["POSITION"]) for t in prim["targets"]]).astype(np.float64)
+    base = accessor(prim["attributes"]["POSITION"]).astype(np.float64)
+    np.testing.assert_allclose(base + np.tensordot(x, targets, 1), numpy_prediction(npz, x)[0], atol=1e-3)
