@@ -40,24 +40,25 @@ def _cmd_predict(args) -> int:
 
 def _cmd_view(args) -> int:
     from aumesh.export import viewer
-    from aumesh.model.release_check import load_release
+    from aumesh.model.family_inference import load_any_release
 
     refuse_release_path("--out", args.out, force=args.force)
     clips = viewer.table_clips(args.clip, args.video, args.fps, args.mesh_units) if args.clip else None
-    out = viewer.write_viewer(load_release(args.npz), args.out, source=args.npz.name, clips=clips)
+    out = viewer.write_viewer(load_any_release(args.npz), args.out, source=args.npz.name, clips=clips)
     played = f"; plays {len(clips)} video(s) of {args.clip.name}" if clips else ""
     print(f"wrote {out} (open it in a browser; works offline{played})")
     return 0
 
 
 def _cmd_animate(args) -> int:
-    from aumesh.export.gltf_clip import animate
+    from aumesh.export.gltf_clip import animate, default_release
 
     refuse_release_path("--out", args.out, force=args.force)
     summary = animate(
         args.table,
-        args.release,
+        args.release if args.release is not None else default_release(args.family),
         args.out,
+        family=args.family,
         video=args.video,
         fps=args.fps,
         pose=args.pose,
@@ -118,7 +119,13 @@ def add_parser(subparsers) -> None:
         required=True,
         help="output file: .npz (meshes (N, 478, 3), no_face (N,)), or .obj / .ply for a one-row table",
     )
-    p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
+    p.add_argument(
+        "--release",
+        type=Path,
+        default=Path("release/au_to_mesh_pls.npz"),
+        help="release NPZ; a blendshape or emotion release (releases/<family>/*.npz) reads the table's 52 "
+        "blendshape or 7 emotion columns by name instead of the AUs (default: %(default)s)",
+    )
     p.add_argument(
         "--ignore",
         nargs="*",
@@ -165,7 +172,8 @@ def add_parser(subparsers) -> None:
 
     p = subparsers.add_parser(
         "animate",
-        help="a video's AUs over time as an animated glTF (.glb): the release's rig with a morph-weight animation",
+        help="a video's AUs (or blendshapes, emotions) over time as an animated glTF (.glb): the release's rig "
+        "with a morph-weight animation",
     )
     p.add_argument(
         "table",
@@ -175,7 +183,21 @@ def add_parser(subparsers) -> None:
         "in a frame the largest is used",
     )
     p.add_argument("--out", type=Path, required=True, help="the .glb to write (binary glTF 2.0)")
-    p.add_argument("--release", type=Path, default=Path("release/au_to_mesh_pls.npz"), help="release NPZ")
+    p.add_argument(
+        "--family",
+        choices=("au", "blendshapes", "emotions"),
+        default=None,
+        help="what drives the rig: the table's AUs, its 52 MediaPipe blendshapes (morph targets with ARKit-style "
+        "names) or its 7 emotions (either detector's names), read by name; the release must be that family's "
+        "(default: the release's own family)",
+    )
+    p.add_argument(
+        "--release",
+        type=Path,
+        default=None,
+        help="release NPZ (default: release/au_to_mesh_pls.npz; with --family blendshapes "
+        "releases/blendshapes/bs_to_mesh_pls.npz, with --family emotions releases/emotions/emotion_to_mesh_pls.npz)",
+    )
     p.add_argument(
         "--video",
         default=None,

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -45,16 +44,14 @@ import pyarrow.parquet as pq
 from aumesh.core.errors import MissingFileError, TableError, UserError, corrupt_parquet
 from aumesh.core.schema import AU_COLUMNS, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS
 from aumesh.data import ingest, pyfeat, readers
+from aumesh.data.clip_time import DEFAULT_FPS, fps_from_approx_time
 from aumesh.data.units import Z_CROP, convert_units, normalized_rows, rect_side
 
 log = logging.getLogger(__name__)
 
 APPROX_TIME = "approx_time"
-DEFAULT_FPS = 25.0
 #: A no-face gap whose neighbouring face frames are further apart than this holds the last pose (seconds).
 MAX_GAP_S = 0.5
-#: Frame rates video files have; ``approx_time`` (whole seconds) usually allows only one of them.
-COMMON_FPS = (24000 / 1001, 24.0, 25.0, 30000 / 1001, 30.0, 48.0, 50.0, 60000 / 1001, 60.0, 100.0, 120.0)
 FACE_SELECTIONS = ("largest", "identity", "error")
 #: How a clip reads z (``--mesh-units`` of ``aumesh view --clip``), as the ingest's ``data.mesh_units``.
 MESH_UNITS = ("detector", "pixels")
@@ -69,7 +66,6 @@ MESH_UNIT_NOTES = {
     "comparison is skewed by the frame's aspect ratio",
     "none": "none",
 }
-_TIME = re.compile(r"^\s*(?:(\d+):)?(\d+):(\d+)(?:\.(\d+))?\s*$")
 
 
 @dataclass(frozen=True)
@@ -98,6 +94,10 @@ class Clip:
     mesh_units : what was done to the mesh, a key of :data:`MESH_UNIT_NOTES`: ``chip``, ``crop256``, ``normalized``,
         ``pixels``, ``pixels-asked``, ``normalized-raw`` or ``none``.
     video_id : the video's identity: py-feat's ``input`` path as written (or ``video_id``), as the ingest names it.
+    family : the inputs that drive the clip's rig: ``au`` (the AUs, ``aus``) or a family of
+        :data:`aumesh.core.families.FAMILIES` (issue 46: ``blendshapes``, ``emotions``), read by name
+        (:func:`aumesh.core.families.family_columns`: Detectorv2's ``Happy`` is ``happiness``) into ``inputs``.
+    inputs : (n, k) float64 the family's inputs in its order, NaN where no face; None for ``family="au"``.
     """
 
     source: str
@@ -115,9 +115,16 @@ class Clip:
     frame_size: tuple[float, float] | None = None
     mesh_units: str = "none"
     video_id: str = ""
+    family: str = "au"
+    inputs: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frame)
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(n, k) what drives the clip's rig: the family's ``inputs``, or the AUs (NaN where no face)."""
+        return self.aus if self.inputs is None else self.inputs
 
     @property
     def duration(self) -> float:
@@ -149,6 +156,7 @@ def read_clip(
     face_selection: str = "largest",
     mesh_npy: str = "{stem}.npy",
     mesh_units: str | None = "detector",
+    family: str = "au",
 ) -> Clip:
     """One video of a py-feat table as a :class:`Clip` (module docstring: time, faces, gaps).
 
@@ -165,6 +173,8 @@ def read_clip(
     mesh_units : ``detector`` (z converted by the detector the columns name) or ``pixels`` (z as written), as the
         ingest's ``data.mesh_units``; None: the recorded mesh is not needed (``aumesh animate``): ``Clip.mesh`` None,
         nothing converted, so nothing about it can refuse the table.
+    family : ``au`` (default), or ``blendshapes`` / ``emotions``: also read that family's columns by name
+        (``Clip.inputs``; ``aumesh animate --family``).
 
     Raises
     ------
@@ -186,7 +196,11 @@ def read_clip(
         shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
         raise TableError(f"{where}: holds {len(ids)} videos ({shown}). Fix: pick one with --video NAME.")
     return table.clip(
-        video if video is not None else ids[0], fps=fps, face_selection=face_selection, mesh_units=mesh_units
+        video if video is not None else ids[0],
+        fps=fps,
+        face_selection=face_selection,
+        mesh_units=mesh_units,
+        family=family,
     )
 
 
@@ -220,6 +234,7 @@ class ClipTable:
         fps: float | None = None,
         face_selection: str = "largest",
         mesh_units: str | None = "detector",
+        family: str = "au",
     ) -> Clip:
         """Video ``name`` (one of :attr:`videos`, or its stem where unique) as a :class:`Clip`: :func:`read_clip`
         without reading again.
@@ -230,7 +245,7 @@ class ClipTable:
             No such video, or ``name`` is the stem of several (listed); the video has no frame with a face, or a face row with some AU or pose values missing, or a unit error
             (:func:`read_clip`).
         """
-        return _video_clip(self, name, fps, face_selection, mesh_units)
+        return _video_clip(self, name, fps, face_selection, mesh_units, family)
 
 
 def read_table(path: str | Path, *, mesh_npy: str = "{stem}.npy") -> ClipTable:
@@ -293,7 +308,12 @@ def to_frame_pixels(faces: readers.Block, layout: pyfeat.Layout, mesh_units: str
 
 
 def _video_clip(
-    table: ClipTable, name: str, fps: float | None, face_selection: str, mesh_units: str | None = "detector"
+    table: ClipTable,
+    name: str,
+    fps: float | None,
+    face_selection: str,
+    mesh_units: str | None = "detector",
+    family: str = "au",
 ) -> Clip:
     _check_options(fps, face_selection, mesh_units)
     block, approx, source, has_mesh, where = table.block, table.approx, table.source, table.has_mesh, str(table.path)
@@ -318,6 +338,7 @@ def _video_clip(
         )
     aus = np.column_stack([chosen.values[c] for c in AU_COLUMNS])
     pose = np.column_stack([chosen.values[c] for c in POSE_COLUMNS])
+    family_inputs = _family_inputs(table, chosen, family, name, where)
     bad = np.isnan(np.hstack([aus, pose]))
     if bad.any():
         row, col = (int(v[0]) for v in np.nonzero(bad))
@@ -336,6 +357,10 @@ def _video_clip(
     out_aus = np.full((n, len(AU_COLUMNS)), np.nan)
     out_pose = np.full((n, len(POSE_COLUMNS)), np.nan)
     out_aus[at], out_pose[at] = aus, pose
+    out_inputs = None
+    if family_inputs is not None:
+        out_inputs = np.full((n, family_inputs.shape[1]), np.nan)
+        out_inputs[at] = family_inputs
     mesh, units = None, "none"
     if has_mesh and mesh_units is not None:
         units = to_frame_pixels(chosen, lay, mesh_units, where)  # chosen is a copy (take): the table is untouched
@@ -363,7 +388,33 @@ def _video_clip(
         frame_size=_frame_size(block, lay),
         mesh_units=units,
         video_id=video,
+        family=family,
+        inputs=out_inputs,
     )
+
+
+def _family_inputs(table: ClipTable, chosen: readers.Block, family: str, name: str, where: str) -> np.ndarray | None:
+    """(m, k) ``family``'s inputs of the chosen face rows, read by name with the layout's families
+    (:attr:`aumesh.data.pyfeat.Layout.families`: Detectorv2's ``Happy`` is ``happiness``); None for the AUs. A table
+    without the family, or a face row missing one of its values, is one line naming the column and the fix."""
+    if family == "au":
+        return None
+    from aumesh.core.families import check_family, family_columns
+
+    held = dict(table.source.layout.families)
+    if family not in held:  # not in the header: family_columns names the first missing input and the fix
+        family_columns(table.source.header, family, where)
+        raise TableError(f"{where}: no {family} columns. Fix: export the table with py-feat's MPDetector or Detectorv2")
+    values = np.column_stack([chosen.values[c] for c in held[family]])
+    bad = np.isnan(values)
+    if bad.any():
+        row, col = (int(v[0]) for v in np.nonzero(bad))
+        raise TableError(
+            f"{where}: column {held[family][col]!r} is empty in frame {chosen.frame[row]} of video {name!r}, a row "
+            f"with a face. Fix: a face row needs all {len(check_family(family))} {family} columns (py-feat writes "
+            f"them on every face row)."
+        )
+    return values
 
 
 def _frame_size(block: readers.Block, layout: pyfeat.Layout) -> tuple[float, float] | None:
@@ -440,76 +491,6 @@ def _concat(blocks: Sequence[readers.Block]) -> readers.Block:
     )
 
 
-# --------------------------------------------------------------------------------------------------------- frame rate
-
-
-def _approx_seconds(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """``approx_time`` values as ``(ok, lower, upper)``: each row's true time lies in ``[lower, upper)``. py-feat's
-    ``"MM:SS"`` truncates to whole seconds (``[t, t + 1)``); ``"[HH:]MM:SS.fff"`` or numbers are taken to the last
-    digit (``[t - r, t + r]``). None when a value is neither."""
-    n = len(values)
-    ok, lower, upper = np.zeros(n, bool), np.zeros(n), np.zeros(n)
-    for i, v in enumerate(values):
-        if v is None or (isinstance(v, float) and math.isnan(v)):
-            continue
-        if isinstance(v, (int, float, np.integer, np.floating)):
-            t = float(v)
-            r = 1.0 if float(t).is_integer() else 1e-3
-            lo, hi = (t, t + 1.0) if r == 1.0 else (t - r, t + r)
-        else:
-            m = _TIME.match(str(v))
-            if not m:
-                return None
-            h, mi, s, frac = m.groups()
-            t = int(h or 0) * 3600 + int(mi) * 60 + int(s)
-            if frac:
-                r = 10.0 ** -len(frac)
-                t += int(frac) * r
-                lo, hi = t - r, t + r
-            else:
-                lo, hi = t, t + 1.0
-        ok[i], lower[i], upper[i] = True, lo, hi
-    return ok, lower, upper
-
-
-def fps_from_approx_time(frame: np.ndarray, approx: np.ndarray) -> float | None:
-    """The frame rate py-feat's ``approx_time`` implies, or None when it does not tell.
-
-    Each row says ``lower <= frame / fps < upper`` (whole seconds for py-feat's ``"MM:SS"``), so ``fps`` lies in
-    ``(max frame / upper, min frame / lower]``. Of the common rates (:data:`COMMON_FPS`: 23.976, 24, 25, 29.97, 30,
-    48, 50, 59.94, 60, 100, 120) in that interval, the one nearest its middle; no common rate but an interval
-    narrower than 1%: its middle, to 3 decimals. A clip shorter than a second bounds the rate only from below: then
-    None (25) unless 25 is too slow for it. Contradictory values (another video's times) give None.
-
-    With ``skip_frames`` a clip of a few minutes may not tell a rate from its NTSC neighbour (30 and 29.97 are 0.1%
-    apart: 0.06 s in a minute); ``--fps`` settles it.
-    """
-    parsed = _approx_seconds(np.asarray(approx, dtype=object))
-    if parsed is None:
-        return None
-    ok, lower, upper = parsed
-    f = np.asarray(frame, np.float64)
-    use = ok & (f > 0)
-    if not use.any():
-        return None
-    lo = float(np.max(f[use] / upper[use]))
-    bounded = use & (lower > 0)
-    hi = float(np.min(f[bounded] / lower[bounded])) if bounded.any() else math.inf
-    tol = 1e-9
-    if lo >= hi * (1 + tol):
-        log.warning("approx_time contradicts itself (frame rate above %.4g and at most %.4g): using 25 fps", lo, hi)
-        return None
-    candidates = [c for c in COMMON_FPS if c > lo * (1 + tol) and c <= hi * (1 + tol)]
-    if math.isinf(hi):
-        if DEFAULT_FPS > lo * (1 + tol):
-            return None
-        return candidates[0] if candidates else None
-    if candidates:
-        middle = (lo + hi) / 2
-        return min(candidates, key=lambda c: abs(c - middle))
-    return round((lo + hi) / 2, 3) if hi - lo <= 0.01 * hi else None
-
-
 # -------------------------------------------------------------------------------------------------------------- gaps
 
 
@@ -543,9 +524,9 @@ def bridge(values: np.ndarray, has_face: np.ndarray, time: np.ndarray, max_gap_s
 
 
 def bridged_weights(clip: Clip, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
-    """(n_frames, 20) the clip's AU intensities with its no-face frames bridged (:func:`bridge`): the morph-target
-    weights of its animation."""
-    return bridge(clip.aus, clip.has_face, clip.time, max_gap_s)
+    """(n_frames, k) what drives the clip's rig (:attr:`Clip.weights`: its 20 AU intensities, or its family's k
+    inputs) with its no-face frames bridged (:func:`bridge`): the morph-target weights of its animation."""
+    return bridge(clip.weights, clip.has_face, clip.time, max_gap_s)
 
 
 def bridged_pose(clip: Clip, max_gap_s: float = MAX_GAP_S) -> np.ndarray:

@@ -8,6 +8,12 @@ shows ``base + sum_k w_k * target_k``, exactly the model's mesh at pose 0 (up to
 the NPZ's own precision). Target names (``AU01`` ... ``AU43``) are in the mesh's
 ``extras.targetNames``, the convention three.js, Blender and Babylon.js read.
 
+A family release (issue 46; :mod:`aumesh.model.family_inference`) is rigged the same way: its rig
+(``<family>_to_mesh.glb``) has one morph target per input, ``coef``'s row of that input, named by the family's own names
+in its order: MediaPipe's 52 ARKit-style blendshape names (``_neutral`` kept as MediaPipe names it: no ARKit shape has
+that name, so an ARKit-named avatar, which maps targets by name, leaves it out; :data:`NEUTRAL_NOTE`) or py-feat's
+7 emotions; ``asset.extras`` says the family and the support of its inputs.
+
 Coordinates are the NPZ's, unchanged (the release's frame and units); triangles are the
 project's triangulation of the base mesh, wound so their fronts face out of the face (toward
 the nose tip); normals are the base mesh's area-weighted vertex normals.
@@ -43,32 +49,58 @@ from aumesh.geometry import face
 GLB_NAME = "au_to_mesh.glb"
 
 
+def target_names(npz: Mapping[str, Any]) -> list[str]:
+    """The rig's morph-target names: ``AU01 .. AU43`` for an AU release, the family's own names for a family release
+    (issue 46: MediaPipe's 52 ARKit-style blendshape names in ``MP_BLENDSHAPE_NAMES`` order, ``_neutral`` first and
+    kept as it is named; py-feat's 7 ``FEAT_EMOTION_COLUMNS``)."""
+    from aumesh.model.family_inference import release_family
+
+    if release_family(npz) == "au":
+        return list(AU_COLUMNS)
+    return [str(c) for c in np.asarray(npz["feature_columns"]).tolist()]
+
+
+def glb_name(npz: Mapping[str, Any]) -> str:
+    """The rig's file name: :data:`GLB_NAME` for an AU release, ``<family>_to_mesh.glb`` for a family release
+    (contract item 3: ``blendshapes_to_mesh.glb``, ``emotions_to_mesh.glb``)."""
+    from aumesh.model.family_inference import release_family
+
+    family = release_family(npz)
+    return GLB_NAME if family == "au" else f"{family}_to_mesh.glb"
+
+
 def rig_arrays(npz: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """Base mesh, AU morph targets, triangles and normals of a release.
+    """Base mesh, morph targets, triangles and normals of a release.
 
     Parameters
     ----------
     npz : mapping
-        Release arrays with the card's ``coef`` (23, 1434), ``intercept`` (1434,) and
-        ``input_columns`` (AU rows are selected by name).
+        Release arrays: an AU release (the card's ``coef`` (23, 1434), ``intercept`` (1434,) and ``input_columns``;
+        AU rows are selected by name) or a family release (contract item 3: ``coef`` (p, 1434) with rows
+        ``input_columns``, the family's ``feature_columns`` first).
 
     Returns
     -------
     dict
-        ``base`` (478, 3) float32 = ``intercept`` as a mesh; ``targets`` (20, 478, 3) float32,
-        ``targets[k]`` = ``coef[AU_COLUMNS[k]]`` as a mesh; ``triangles`` (T, 3) uint16, fronts
-        facing out of the face; ``normals`` (478, 3) float32 unit vertex normals of ``base``.
+        ``base`` (478, 3) float32 = ``intercept`` as a mesh; ``targets`` (k, 478, 3) float32, ``targets[j]`` =
+        the ``coef`` row of input ``target_names(npz)[j]`` as a mesh (k = 20 AUs, 52 blendshapes or 7 emotions);
+        ``names`` (k,) those names; ``triangles`` (T, 3) uint16, fronts facing out of the face; ``normals``
+        (478, 3) float32 unit vertex normals of ``base``.
     """
+    names = target_names(npz)
     coef = np.asarray(npz["coef"], dtype=np.float32)
     columns = [str(c) for c in np.asarray(npz["input_columns"]).tolist()]
-    if columns != list(INPUT_COLUMNS):
+    if names == list(AU_COLUMNS) and columns != list(INPUT_COLUMNS):
         raise ValueError(f"release 'input_columns' is {columns}, expected the card's {list(INPUT_COLUMNS)}")
+    if columns[: len(names)] != names and names != list(AU_COLUMNS):
+        raise ValueError(f"release 'input_columns' must start with its feature_columns {names[:3]} ...")
     base = unflatten_axis_major(np.asarray(npz["intercept"], dtype=np.float32)).astype(np.float32)
-    targets = np.stack([unflatten_axis_major(coef[columns.index(au)]) for au in AU_COLUMNS]).astype(np.float32)
+    targets = np.stack([unflatten_axis_major(coef[columns.index(n)]) for n in names]).astype(np.float32)
     triangles = face.outward_triangles(base, face.triangulate(base))
     return {
         "base": base,
         "targets": targets,
+        "names": np.array(names),
         "triangles": triangles.astype(np.uint16),
         "normals": vertex_normals(base.astype(np.float64), triangles).astype(np.float32),
     }
@@ -93,7 +125,8 @@ class Animation:
     Attributes
     ----------
     times : (n,) seconds, strictly increasing (written as float32).
-    weights : (n, 20) morph-target weights (AU intensities, :data:`~aumesh.core.schema.AU_COLUMNS` order).
+    weights : (n, k) morph-target weights in the rig's target order (:func:`target_names`: k = 20 AU intensities in
+        :data:`~aumesh.core.schema.AU_COLUMNS` order, or a family's k inputs in its order).
     rotations : (n, 4) unit quaternions ``x, y, z, w`` (glTF's order, SciPy's ``as_quat()``) or None (no rotation).
     pivot : (3,) the point the rotation turns about (NPZ coordinates); needed with ``rotations``.
     name : the animation's name.
@@ -118,6 +151,7 @@ def glb_bytes(
     import pygltflib as g
 
     rig = rig_arrays(npz)
+    names = [str(n) for n in rig["names"].tolist()]
     blobs: list[bytes] = []
     views: list[g.BufferView] = []
     accessors: list[g.Accessor] = []
@@ -149,8 +183,10 @@ def glb_bytes(
         # animation data: no bufferView target (the spec reserves targets for vertex and index data)
         times = np.asarray(animation.times, np.float32)
         weights = np.asarray(animation.weights, np.float32)
-        if times.ndim != 1 or weights.shape != (len(times), len(AU_COLUMNS)) or not len(times):
-            raise ValueError(f"animation: times {times.shape} and weights {weights.shape}: need (n,) and (n, 20)")
+        if times.ndim != 1 or weights.shape != (len(times), len(names)) or not len(times):
+            raise ValueError(
+                f"animation: times {times.shape} and weights {weights.shape}: need (n,) and (n, {len(names)})"
+            )
         if (np.diff(times) <= 0).any():
             raise ValueError("animation: times (as float32) must be strictly increasing")
         time_acc = add(times, g.FLOAT, g.SCALAR, None, True)
@@ -185,8 +221,8 @@ def glb_bytes(
             g.Mesh(
                 name=name,
                 primitives=[primitive],
-                weights=[0.0] * len(AU_COLUMNS),
-                extras={"targetNames": list(AU_COLUMNS)},
+                weights=[0.0] * len(names),
+                extras={"targetNames": names},
             )
         ],
         materials=[
@@ -244,21 +280,23 @@ def support_extras(npz: Mapping[str, Any]) -> dict[str, Any]:
     """What the rig's ``asset.extras`` says of its training data's support, when the release records it
     (:func:`aumesh.model.support.release_support`): ``training_range`` ({AU: {"max", "p99"}}: morph weights above
     ``max`` are beyond the data), ``unsupported_targets`` (AUs the data never expressed) and ``detector``; ``{}`` for
-    a release that records none."""
+    a release that records none. For a family release the same, of its inputs (its ``feature_p99`` and
+    ``unsupported_features``)."""
     from aumesh.model import support
 
     found = support.release_support(npz)
     if found is None:
         return {}
+    names = target_names(npz)
     ranges = {
         a: {found.bound: found.upper[a]}
         | ({"p99": found.p99[a]} if found.bound == "max" and np.isfinite(found.p99.get(a, np.nan)) else {})
-        for a in AU_COLUMNS
+        for a in names
         if a in found.upper and np.isfinite(found.upper[a])
     }
     return {
         "training_range": ranges,
-        "unsupported_targets": [a for a in AU_COLUMNS if a in found.unsupported],
+        "unsupported_targets": [a for a in names if a in found.unsupported],
         "detector": found.detector,
     }
 
@@ -268,14 +306,71 @@ def write_glb(npz: Mapping[str, Any], path: str | Path, source: str | None = Non
     from aumesh.core.io import atomic_path
 
     extras = {
-        "inputs": "morph target weights = AU intensities (AU01..AU43); pose = 0",
+        "inputs": inputs_note(npz) + "; pose = 0",
         "units_and_frame": "the release NPZ's (see its model card)",
         "source": source,
+        **family_extras(npz),
         **support_extras(npz),
     }
     with atomic_path(path, suffix=".glb") as tmp:
-        tmp.write_bytes(glb_bytes(npz, extras=extras))
+        tmp.write_bytes(glb_bytes(npz, name=rig_name(npz), extras=extras))
     return Path(path)
 
 
-__all__ = ["GLB_NAME", "Animation", "edit_glb_json", "glb_bytes", "rig_arrays", "write_glb"]
+#: What a family rig's weights are, by family (``asset.extras["inputs"]``).
+_FAMILY_INPUTS = {
+    "blendshapes": "MediaPipe's 52 blendshape scores (0..1; py-feat's MP_BLENDSHAPE_NAMES, ARKit-style names)",
+    "emotions": "py-feat's 7 emotion probabilities (0..1; FEAT_EMOTION_COLUMNS: anger .. neutral)",
+}
+#: MediaPipe's ``_neutral`` has no ARKit blendshape of its name (ARKit's 52 are MediaPipe's other 51 and
+#: ``tongueOut``); the rig keeps it, named as MediaPipe and py-feat name it, so its targets are exactly the model's
+#: inputs in their order (weight j = the table's column j) and an ARKit-named avatar, which maps targets by name,
+#: finds no target of that name and leaves it out (docs/families.md, "Rig, viewer, animation").
+NEUTRAL_NOTE = (
+    "'_neutral' (MediaPipe's neutral-face score) is kept as MediaPipe names it: no ARKit blendshape has that name, so "
+    "an ARKit-named avatar leaves it out; the other 51 targets carry ARKit's names"
+)
+
+
+def inputs_note(npz: Mapping[str, Any]) -> str:
+    """What the rig's morph weights are, in words."""
+    from aumesh.model.family_inference import release_family
+
+    family = release_family(npz)
+    if family == "au":
+        return "morph target weights = AU intensities (AU01..AU43)"
+    return f"morph target weights = {_FAMILY_INPUTS[family]}"
+
+
+def rig_name(npz: Mapping[str, Any]) -> str:
+    """The rig's mesh and node name: ``aumesh AU-to-mesh`` or ``aumesh <family>-to-mesh``."""
+    from aumesh.model.family_inference import release_family
+
+    family = release_family(npz)
+    return "aumesh AU-to-mesh" if family == "au" else f"aumesh {family}-to-mesh"
+
+
+def family_extras(npz: Mapping[str, Any]) -> dict[str, Any]:
+    """A family rig's ``asset.extras``: ``family`` and, for the blendshapes, ``neutral_target`` (:data:`NEUTRAL_NOTE`);
+    ``{}`` for an AU release."""
+    from aumesh.model.family_inference import release_family
+
+    family = release_family(npz)
+    if family == "au":
+        return {}
+    return {"family": family} | ({"neutral_target": NEUTRAL_NOTE} if family == "blendshapes" else {})
+
+
+__all__ = [
+    "GLB_NAME",
+    "Animation",
+    "edit_glb_json",
+    "family_extras",
+    "glb_bytes",
+    "glb_name",
+    "inputs_note",
+    "rig_arrays",
+    "rig_name",
+    "target_names",
+    "write_glb",
+]

@@ -1,6 +1,10 @@
 """A clip as an animated glTF 2.0 file: the release's blendshape rig (:mod:`aumesh.export.gltf`, the same base mesh,
 20 AU morph targets, triangles and material as ``release/au_to_mesh.glb``) plus one animation.
 
+* **family** (issue 46): with a blendshape or emotion release (``aumesh animate --family blendshapes``) the rig is that
+  release's (:func:`aumesh.export.gltf.rig_arrays`: one morph target per input, named by the family: MediaPipe's 52
+  ARKit-style names, py-feat's 7 emotions) and the weights are the clip's columns of that family, read by name
+  (:func:`aumesh.core.families.family_columns`: Detectorv2's ``Happy`` drives ``happiness``); the rest as for AUs.
 * **weights**: a LINEAR sampler on the mesh's morph ``weights``, one keyframe per frame of the clip (py-feat's rows:
   ``skip_frames`` leaves longer steps, which the player interpolates linearly), the frame's AU intensities; no-face
   frames bridged by :func:`aumesh.data.clip.bridge` (interpolated in a gap up to ``max_gap_s``, held in a longer
@@ -102,7 +106,8 @@ def clip_glb_bytes(
     animation = clip_animation(clip, npz, pose=pose, smooth_frames=smooth_frames, max_gap_s=max_gap_s)
     bridged, held = clip.gaps(max_gap_s)
     extras = {
-        "inputs": "morph target weights = AU intensities (AU01..AU43) over time; mesh at pose 0"
+        "inputs": gltf.inputs_note(npz)
+        + " over time; mesh at pose 0"
         + ("; node 'head' rotation = Rotation.from_euler('xyz', [Pitch, Yaw, Roll])" if pose else ""),
         "units_and_frame": "the release NPZ's (see its model card)",
         "release": release,
@@ -117,6 +122,7 @@ def clip_glb_bytes(
         "gap_rule": f"no-face frames: linear interpolation between the neighbouring face frames when they are at most "
         f"{max_gap_s:g} s apart, else the last face frame held ({bridged} gap(s) interpolated, {held} held)",
         "smooth_frames": smooth_frames,
+        **gltf.family_extras(npz),
     }
     return gltf.glb_bytes(npz, name=f"aumesh clip {clip.video}", extras=extras, animation=animation)
 
@@ -161,6 +167,12 @@ def check_clip_inputs(npz: Mapping[str, Any], clip: Clip, *, pose: bool = False,
     from aumesh.model.input_checks import InputRangeWarning, input_rows, logged_range_warnings
 
     face = clip.has_face
+    if clip.inputs is not None:  # a family's clip (issue 46): the family release's checks, by its own names
+        from aumesh.model.family_inference import family_input_rows
+
+        with logged_range_warnings(log, where):
+            family_input_rows(npz, clip.inputs[face], clip.pose[face] if pose else None)
+        return
     with logged_range_warnings(log, where):
         mismatch = support.detector_mismatch(clip.detector, support.release_support(npz), "table")
         if mismatch:
@@ -178,25 +190,49 @@ def animate(
     pose: bool = False,
     smooth_frames: int = 1,
     max_gap_s: float = MAX_GAP_S,
+    family: str | None = None,
 ) -> ClipSummary:
     """``aumesh animate``: read one video of a py-feat table (:func:`~aumesh.data.clip.read_clip`), write its
-    animated GLB with release ``release``'s rig to ``out``."""
+    animated GLB with release ``release``'s rig to ``out``.
+
+    ``family`` (``--family``): ``au``, ``blendshapes`` or ``emotions``, which must be the release's (a one-line error
+    naming both otherwise); None: the release's own. A family's columns are read from the table by name; a column
+    the table lacks is one line naming the file, the column and the fix."""
     from aumesh.core.errors import UserError
-    from aumesh.model.release_check import load_release
+    from aumesh.model.family_inference import load_any_release, release_family
 
     out = Path(out)
     if out.suffix.lower() != ".glb":
         raise UserError(f"--out {out}: write a .glb (binary glTF 2.0) file, e.g. --out clip.glb.")
     smooth(np.zeros((1, 1)), smooth_frames)  # an even --smooth is refused before the table is read
-    npz = load_release(release)
-    clip = read_clip(table, video=video, fps=fps, mesh_units=None)  # the recorded mesh is not animated
+    npz = load_any_release(release)
+    found = release_family(npz)
+    if family is not None and family != found:
+        raise UserError(
+            f"--release {release} is {'an AU' if found == 'au' else f'the {found}'} release, not the {family} "
+            f"release --family {family} needs. Fix: pass --release {default_release(family)} (or drop --family)."
+        )
+    # the recorded mesh is not animated
+    clip = read_clip(table, video=video, fps=fps, mesh_units=None, family=found)
     check_clip_inputs(npz, clip, pose=pose, where=str(table))
     return write_clip_glb(
         npz, clip, out, pose=pose, smooth_frames=smooth_frames, max_gap_s=max_gap_s, release=Path(release).name
     )
 
 
+def default_release(family: str | None) -> Path:
+    """``release/au_to_mesh_pls.npz`` for the AUs (and None), ``releases/<family>/<py-feat stem>.npz`` for a family
+    (contract item 3: ``releases/blendshapes/bs_to_mesh_pls.npz``, ``releases/emotions/emotion_to_mesh_pls.npz``)."""
+    from aumesh.core.families import PYFEAT_FEATURE, check_family
+
+    if family is None or family == "au":
+        return Path("release/au_to_mesh_pls.npz")
+    check_family(family)
+    return Path("releases") / family / f"{PYFEAT_FEATURE[family][1]}.npz"
+
+
 __all__ = [
+    "default_release",
     "ClipSummary",
     "animate",
     "check_clip_inputs",

@@ -294,6 +294,17 @@ def card_rows(metadata: Mapping[str, Any]) -> list[tuple[str, str]]:
     return [(label, str(text)) for label, text in rows]
 
 
+#: The page's heading and the heading of its input sliders, by family (issue 46).
+PAGE_TITLES: dict[str, tuple[str, str]] = {
+    "au": ("aumesh: AUs + head pose \u2192 478-vertex face mesh", "Action Units (intensity 0..1)"),
+    "blendshapes": (
+        "aumesh: blendshapes + head pose \u2192 478-vertex face mesh",
+        "MediaPipe blendshapes (score 0..1; ARKit-style names)",
+    ),
+    "emotions": ("aumesh: emotions + head pose \u2192 478-vertex face mesh", "Emotions (probability 0..1)"),
+}
+
+
 def slider_support(npz: Mapping[str, Any]) -> dict | None:
     """What the page marks on the AU sliders (:func:`aumesh.model.support.release_support`): ``{"bound": "max" |
     "p99", "upper": {AU: the largest value training saw}, "p99": {AU: p99}, "unsupported": [AU, ...]}``, None for a
@@ -304,15 +315,16 @@ def slider_support(npz: Mapping[str, Any]) -> dict | None:
     found = support.release_support(npz)
     if found is None:
         return None
+    names = [str(c) for c in np.asarray(npz.get("au_columns", AU_COLUMNS)).tolist()]  # a family's au_view: its inputs
 
     def finite(values: Mapping[str, float]) -> dict[str, float]:
-        return {a: float(v) for a, v in values.items() if a in AU_COLUMNS and np.isfinite(v)}
+        return {a: float(v) for a, v in values.items() if a in names and np.isfinite(v)}
 
     return {
         "bound": found.bound,
         "upper": finite(found.upper),
         "p99": finite(found.p99),
-        "unsupported": [a for a in AU_COLUMNS if a in found.unsupported],
+        "unsupported": [a for a in names if a in found.unsupported],
     }
 
 
@@ -355,11 +367,17 @@ def viewer_html(
     ``modules`` is the import map (:func:`module_urls`, read from ``node_modules`` when None). ``clips``: videos
     to play, embedded (:func:`clip_data` each; the page opens the first, a selector the others).
     """
+    from aumesh.model.family_inference import au_view, release_family
+
+    family = release_family(npz)
+    if family != "au":  # a blendshape or emotion release (issue 46): its inputs' sliders, by its own names
+        npz = au_view(npz)
     columns = [str(c) for c in np.asarray(npz["input_columns"]).tolist()]
-    if columns != list(INPUT_COLUMNS):
+    if family == "au" and columns != list(INPUT_COLUMNS):
         raise ValueError(
             f"{source or 'release'}: 'input_columns' is {columns}, expected the card's {list(INPUT_COLUMNS)}"
         )
+    inputs = [str(c) for c in np.asarray(npz["au_columns"]).tolist()]
     intercept = np.asarray(npz["intercept"], dtype=np.float32)
     base = unflatten_axis_major(intercept).astype(np.float64)
     metadata = json.loads(str(npz["training_metadata"])) if "training_metadata" in npz else {}
@@ -371,10 +389,13 @@ def viewer_html(
         limits["Yaw"] = round(float(np.radians(pose_filter["max_abs_yaw_deg"])), 2)
     data = {
         "n_vertices": N_VERTICES,
-        "input_columns": list(INPUT_COLUMNS),
-        "au_columns": list(AU_COLUMNS),
+        "input_columns": columns,
+        "au_columns": inputs,
         "pose_columns": list(POSE_COLUMNS),
-        "au_names": dict(AU_NAMES),
+        "au_names": dict(AU_NAMES) if family == "au" else {},
+        "family": family,
+        "title": PAGE_TITLES[family][0],
+        "inputs_heading": PAGE_TITLES[family][1],
         "au_max": 1.0,
         "pose_limits": limits,
         "intercept": _b64(intercept),

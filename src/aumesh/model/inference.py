@@ -28,7 +28,7 @@ import numpy as np
 
 from aumesh.core.schema import POSE_COLUMNS, unflatten_axis_major
 from aumesh.model.input_checks import input_rows
-from aumesh.model.release_check import Release, ReleaseError, ReleaseSource, _names, load_release
+from aumesh.model.release_check import Release, ReleaseError, ReleaseSource, _names
 
 
 def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, strict: bool = False) -> np.ndarray:
@@ -38,7 +38,13 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, s
     ----------
     release : str, path-like or mapping
         A release NPZ path or its loaded arrays (:func:`load_release`; load once when predicting
-        many times).
+        many times). A family release (issue 46: ``releases/blendshapes/bs_to_mesh_pls.npz``,
+        ``releases/emotions/emotion_to_mesh_pls.npz``, or py-feat's own NPZs of that format) takes its family's
+        inputs instead of the AUs, by the same rules: an array in its ``feature_columns`` order ((k,), (N, k), or
+        (k + 3,) / (N, k + 3) with pose), a mapping or a DataFrame by name (Detectorv2's ``Happy`` is
+        ``happiness``; a whole py-feat table must hold every input of the family), its pose x input terms used,
+        and the warnings beyond its ``feature_p99`` and for its ``unsupported_features`` said in the family's
+        names (:mod:`aumesh.model.family_inference`).
     aus : array-like, mapping, DataFrame or None
         AU intensities on py-feat's 0..1 scale (the training tables'):
 
@@ -116,7 +122,13 @@ def predict_mesh(release: ReleaseSource, aus: Any = None, pose: Any = None, *, s
     >>> fex = pd.read_csv("video.csv")   # py-feat's detector output  # doctest: +SKIP
     >>> meshes = aumesh.predict_mesh(m, fex)  # (len(fex), 478, 3)     # doctest: +SKIP
     """
-    arrays = load_release(release)
+    from aumesh.model import family_inference
+
+    arrays = family_inference.load_any_release(release)
+    if family_inference.release_family(arrays) != "au":  # a blendshape or emotion release (issue 46)
+        x, pose_rows, single = family_inference.family_input_rows(arrays, aus, pose, strict=strict)
+        meshes = predict_rows(family_inference.au_view(arrays), x, pose_rows)
+        return meshes[0] if single else meshes
     au, pose_rows, single = input_rows(arrays, aus, pose, strict=strict)
     meshes = predict_rows(arrays, au, pose_rows)
     return meshes[0] if single else meshes

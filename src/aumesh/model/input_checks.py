@@ -532,7 +532,7 @@ def logged_range_warnings(logger: logging.Logger, where: str) -> Iterator[None]:
 
 # The modules a call passes through before a warning is made (predict_mesh -> input_rows -> _warn): the warning points
 # at the first frame outside them, the caller's line (a name, not an import: inference imports this module).
-_OWN_MODULES = frozenset({__name__, "aumesh.model.inference"})
+_OWN_MODULES = frozenset({__name__, "aumesh.model.inference", "aumesh.model.family_inference"})
 
 
 def _warn(message: str, category: type[Warning] = InputRangeWarning) -> None:

@@ -46,7 +46,6 @@ from aumesh.model import support
 from aumesh.model.inference import predict_rows
 from aumesh.model.input_checks import InputRangeWarning, InputTally, logged_range_warnings
 from aumesh.model.input_columns import ColumnSelection, PredictionInputError, short_list
-from aumesh.model.release_check import load_release
 from aumesh.pipeline import predict_stream
 from aumesh.pipeline.predict_stream import choose_columns, table_header
 
@@ -184,9 +183,14 @@ def predict_table(
     suffix = out.suffix.lower()
     if suffix not in OUT_SUFFIXES:
         raise PredictionInputError(f"--out {out}: unsupported suffix {out.suffix!r}; use {', '.join(OUT_SUFFIXES)}")
-    arrays = load_release(release)
+    arrays, family, rename = _release_and_names(release, table, ignore, strict)
     source = predict_stream.open_table(
-        table, [str(a) for a in np.asarray(arrays["au_columns"]).tolist()], ignore, strict=strict, keys=KEY_COLUMNS
+        table,
+        [str(a) for a in np.asarray(arrays["au_columns"]).tolist()],
+        ignore,
+        strict=strict,
+        keys=KEY_COLUMNS,
+        rename=rename,
     )
     if suffix in MESH_SUFFIXES and source.n_rows != 1:
         raise PredictionInputError(
@@ -194,8 +198,13 @@ def predict_table(
         )
     tally = InputTally()
     with logged_range_warnings(log, str(table)):
-        mismatch = support.detector_mismatch(
-            support.table_detector(source.header, str(table)), support.release_support(arrays), "table"
+        # the detector check's words are the AUs' (their two spaces); a family's inputs are checked by their ranges
+        mismatch = (
+            support.detector_mismatch(
+                support.table_detector(source.header, str(table)), support.release_support(arrays), "table"
+            )
+            if family == "au"
+            else None
         )
         if mismatch:
             warnings.warn(mismatch, InputRangeWarning, stacklevel=1)
@@ -204,6 +213,8 @@ def predict_table(
         else:
             _write_mesh_file(arrays, source, out, release, tally)
         message = tally.range_message(arrays)
+        if message and family != "au":
+            message = message.replace("aus: ", f"{family}: ")
         if message:
             warnings.warn(message, InputRangeWarning, stacklevel=1)
     if tally.no_face:
@@ -217,6 +228,29 @@ def predict_table(
         )
     log.info("predicted %d mesh(es) from %s with %s -> %s", tally.rows, table, release, out)
     return out, tally.rows
+
+
+def _release_and_names(
+    release: str | os.PathLike, table: str | os.PathLike, ignore: Sequence[str], strict: bool
+) -> tuple[dict, str, dict[str, str]]:
+    """The release's arrays as the predictor reads them (a family release through
+    :func:`aumesh.model.family_inference.au_view`), its family, and the table's columns to rename to the family's
+    names (Detectorv2's ``Happy`` -> ``happiness``; ``{}`` for the AUs). A whole table (columns besides the inputs)
+    without one of the family's columns is one line naming the file, the column and the fix."""
+    from aumesh.core.families import NAME_MAPS, family_columns
+    from aumesh.core.schema import POSE_COLUMNS
+    from aumesh.model import family_inference as fi
+    from aumesh.model.input_columns import FACE_SCORE_COLUMN
+
+    arrays = fi.load_any_release(release)
+    family = fi.release_family(arrays)
+    if family == "au":
+        return arrays, family, {}
+    header = [c for c in predict_stream.table_header(table) if c not in set(ignore)]
+    known = set(NAME_MAPS[family]) | set(POSE_COLUMNS) | {FACE_SCORE_COLUMN, *KEY_COLUMNS}
+    if not strict and any(c not in known for c in header):
+        family_columns(header, family, str(table))
+    return fi.au_view(arrays), family, fi.renamed(family, header)
 
 
 def _write_mesh_file(arrays, source, out: Path, release, tally: InputTally) -> None:

@@ -120,6 +120,8 @@ class TableSource:
     columns: list[str]
     selection: ColumnSelection
     n_rows: int
+    #: header column -> the name the model reads it by (a family release: Detectorv2's ``Happy`` -> ``happiness``)
+    rename: tuple[tuple[str, str], ...] = ()
 
     @property
     def video(self) -> str | None:
@@ -138,8 +140,11 @@ def open_table(
     *,
     strict: bool = False,
     keys: Sequence[str] = (),
+    rename: Mapping[str, str] | None = None,
 ) -> TableSource:
-    """A table's header, the columns to read (:func:`choose_columns`) and its rows counted.
+    """A table's header, the columns to read (:func:`choose_columns`) and its rows counted. ``rename``: header
+    columns the model knows by another name (a family release's inputs under Detectorv2's names), chosen by that name
+    and read under it (:func:`iter_chunks`).
 
     Raises
     ------
@@ -148,13 +153,17 @@ def open_table(
     """
     path = Path(path)
     header = table_header(path)
-    columns, selection = choose_columns(path, header, au_columns, ignore, strict, keys)
+    rename = dict(rename or {})
+    back = {v: k for k, v in rename.items()}
+    named = [rename.get(c, c) for c in header]
+    columns, selection = choose_columns(path, named, au_columns, [rename.get(c, c) for c in ignore], strict, keys)
+    columns = [back.get(c, c) for c in columns]  # read by the header's names
     # nothing to read (a table of other columns only, not strict): one column still carries the row count
     source = TableSource(path, header, columns or [c for c in header if c not in set(ignore)][:1], selection, 0)
     n_rows = _count_rows(source)
     if not n_rows:
         raise PredictionInputError(f"{path}: no rows to predict")
-    return TableSource(path, header, source.columns, selection, n_rows)
+    return TableSource(path, header, source.columns, selection, n_rows, tuple(rename.items()))
 
 
 def _count_rows(source: TableSource) -> int:
@@ -236,7 +245,7 @@ def iter_chunks(source: TableSource, chunk_rows: int) -> Iterator[pd.DataFrame]:
             df = batch.slice(start, chunk_rows).to_pandas()
             if source.csv and source.video is not None:
                 df[source.video] = df[source.video].fillna("nan")  # pandas' read_csv: NaN, then astype(str)
-            yield df
+            yield df.rename(columns=dict(source.rename)) if source.rename else df
 
 
 def _parquet_batches(source: TableSource, chunk_rows: int) -> Iterator:
@@ -312,7 +321,9 @@ def write_npz(
                     raise PredictionInputError(f"{source.path}: {tally.rows} rows read of {n} counted; it changed")
             for name in ("no_face", "au", "pose"):
                 _copy(npz, name, scratch / f"{name}.npy")
-            npz.add("au_columns", np.asarray(arrays["au_columns"]))
+            npz.add("au_columns", np.asarray(arrays["au_columns"]))  # a family release: its inputs (``au`` too)
+            if "family" in arrays:
+                npz.add("family", np.asarray(arrays["family"]))
             npz.add("pose_columns", np.array(POSE_COLUMNS))
             _write_keys(npz, scratch, names, integral)
     finally:
