@@ -60,21 +60,20 @@ def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -
     return check(arrays["coef"], arrays["feature_columns"].tolist(), arrays["mean_aligned_mesh"], source)
 
 
-def export_rig_and_viewer(arrays: dict[str, np.ndarray], folder: Path, family: str, source: str) -> list[Path]:
-    """``<family>_to_mesh.glb`` and ``viewer.html`` of the family release.
+def export_rig_and_viewer(arrays: dict[str, np.ndarray], folder: Path, source: str) -> list[Path]:
+    """``<family>_to_mesh.glb`` (a morph target per input, named by the family's own names) and ``viewer.html``
+    (a slider per input) of the family release (:mod:`aumesh.export.gltf`, :mod:`aumesh.export.viewer`)."""
+    from aumesh.export import gltf, viewer
 
-    HOOK (rig engineer, issue 46 item 5; branch i46-rig): on merge, replace the body with
-    ``from aumesh.export import gltf, viewer`` and
-    ``return [gltf.write_glb(arrays, folder / gltf.glb_name(arrays), source=source),
-    viewer.write_viewer(arrays, folder / viewer.VIEWER_NAME, source=source)]`` (their exporters take a family NPZ:
-    morph targets and sliders named by the family's inputs). Until then nothing is written.
-    """
-    return []
+    return [
+        gltf.write_glb(arrays, folder / gltf.glb_name(arrays), source=source),
+        viewer.write_viewer(arrays, folder / viewer.VIEWER_NAME, source=source),
+    ]
 
 
 def main(cfg: Config, family: str) -> Path:
     """Write ``paths.families_release_dir/<family>`` atomically (NPZ, ``model_card.json``, ``MODEL_CARD.md``, figures,
-    directions report; rig and viewer when their exporters exist) and return it."""
+    directions report, rig, viewer) and return it."""
     from aumesh.card import family_figures, limits
     from aumesh.card.family_card import family_card_markdown
     from aumesh.card.family_directions import family_displacements
@@ -125,7 +124,7 @@ def main(cfg: Config, family: str) -> Path:
         arrays["model_card"] = np.array(markdown)
         arrays["training_metadata"] = np.array(json.dumps(card, sort_keys=True, default=str))
         atomic_savez(tmp / name, **arrays)
-        export_rig_and_viewer(arrays, tmp, family, name)
+        export_rig_and_viewer(arrays, tmp, name)
         atomic_write_json(tmp / CARD_JSON, card)
         atomic_write_text(tmp / CARD_MD, markdown)
     return out
