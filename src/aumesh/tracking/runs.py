@@ -29,7 +29,10 @@ go, and how a shareable record names it). Reading runs back (sweeps, children, o
 
 Whose and where: every run is tagged ``aumesh.user`` (and ``mlflow.user``, which the UI shows) with git's
 ``user.email`` (else the login) and ``aumesh.workspace.id`` with a stable id of the clone
-(:func:`aumesh.core.provenance.workspace_id`), so a team's runs on one server can be told apart.
+(:func:`aumesh.core.provenance.workspace_id`), so a team's runs on one server can be told apart. Every run opened
+with a configuration (not a sweep's parent, which spans them) is tagged ``aumesh.family`` with its input family
+(``au``, ``blendshapes``, ``emotions``: :func:`aumesh.tracking.values.run_family` of its ``features.name``; a tag
+the caller gives wins), so ``aumesh runs`` and ``aumesh promote --family`` rank within a family (issue 46).
 
 Config keys (``tracking`` group, all optional): ``enabled`` (default True; when
 False :func:`tracked_run` yields a no-op handle), ``tracking_uri``,
