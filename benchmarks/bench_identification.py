@@ -28,7 +28,8 @@ from aumesh.core.io import NpyRows
 from aumesh.core.schema import AU_COLUMNS, N_TARGETS, feature_columns
 from aumesh.model import eiv
 from aumesh.model.cross_products import CrossProducts
-from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, fold_configuration_statistics, within_statistics
+from aumesh.model.pass_design import FULL_DESIGN
+from aumesh.model.statistics import DesignStatistics, fold_configuration_statistics, within_statistics
 
 
 def design_of_reference_shape(folder: Path, n_frames: int, n_videos: int, seed: int = 0) -> tuple:

@@ -18,7 +18,7 @@ import pytest
 
 from aumesh.core.families import BLENDSHAPE_COLUMNS, EMOTION_COLUMNS, feature_set_columns
 from aumesh.core.schema import AU_COLUMNS, POSE_COLUMNS
-from aumesh.model.statistics import FULL_DESIGN, design_union
+from aumesh.model.pass_design import FULL_DESIGN, design_union
 from aumesh.pipeline import evaluate as ev
 from aumesh.pipeline import integrity
 from aumesh.pipeline.evaluate import statistics_pass

@@ -21,7 +21,8 @@ from aumesh.core.schema import AU_COLUMNS, N_TARGETS, POSE_COLUMNS, feature_colu
 from aumesh.data import tables
 from aumesh.model import eiv
 from aumesh.model.features import design_matrix
-from aumesh.model.statistics import FULL_DESIGN, accumulate_design, augmented_index, fold_within_statistics
+from aumesh.model.pass_design import FULL_DESIGN, augmented_index
+from aumesh.model.statistics import accumulate_design, fold_within_statistics
 from aumesh.pipeline import compute, ingest, prepare
 from aumesh.pipeline.evaluate import video_folds
 from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, first_stage, instrumental_fits

@@ -206,7 +206,7 @@ class SweepCache:
         every configuration of the sweep takes its columns from it; a configuration outside that union (not announced)
         costs one more pass, of the union with it.
         """
-        from aumesh.model.statistics import FULL_DESIGN, design_union
+        from aumesh.model.pass_design import FULL_DESIGN, design_union
         from aumesh.pipeline.evaluate import statistics_pass
         from aumesh.pipeline.evaluate.prepared_data import workers_check
 

@@ -109,7 +109,7 @@ def run_configuration(
     name = run_name(overrides)
     tags = {
         tracking.ROLE_TAG: CHILD_ROLE,
-        **run_record.run_tags("sweep", (raw.get("preprocess") or {}).get("target"), _family(raw)),
+        **run_record.run_tags("sweep", (raw.get("preprocess") or {}).get("target")),
         "aumesh.sweep.overrides": " ".join(recorded_overrides(overrides)),
     }
     handle = None
@@ -140,15 +140,6 @@ def run_configuration(
         time.perf_counter() - t_start,
     )
     return {"run_id": getattr(handle, "run_id", None), "run_name": name, "status": "FINISHED", "error": None} | summary
-
-
-def _family(raw: Mapping[str, Any]) -> str | None:
-    """The input family of a composed configuration's ``features.name`` (None when it names no feature set: the
-    configuration then fails validation in its run)."""
-    from aumesh.core.families import FEATURE_SETS
-
-    spec = FEATURE_SETS.get(str((raw.get("features") or {}).get("name")))
-    return spec[0] if spec else None
 
 
 def _evaluate_in_run(

@@ -56,19 +56,12 @@ EFFECTIVE_TAG = "aumesh.n_components.effective"
 FOLD_METRICS = ("r2", "mae", "vertex_error", "r2_displacement")
 
 
-#: the input family a run fitted (``au``, ``blendshapes``, ``emotions``: ``features.family``; issue 46)
-FAMILY_TAG = "aumesh.family"
-
-
-def run_tags(stage: str, target: Any, family: str | None = None) -> dict[str, str]:
+def run_tags(stage: str, target: Any) -> dict[str, str]:
     """The tags an evaluation run is opened with: ``aumesh.stage`` (``"evaluate"`` for the DVC stage, ``"sweep"`` for
-    a sweep child: what :mod:`aumesh.tracking.queries` tells them apart by), ``aumesh.target`` and, given, the input
-    ``family`` as ``aumesh.family`` (the AU model's run ``"au"``, each family fit its family, a sweep child its
-    ``features``' family: what ``aumesh promote --family`` selects by)."""
-    tags = {"aumesh.stage": stage, "aumesh.target": str(target)}
-    if family is not None:
-        tags[FAMILY_TAG] = str(family)
-    return tags
+    a sweep child: what :mod:`aumesh.tracking.queries` tells them apart by) and ``aumesh.target``. The input family
+    (``aumesh.family``) is tagged where every run is opened, from its ``features.name``
+    (:func:`aumesh.tracking.values.run_family`)."""
+    return {"aumesh.stage": stage, "aumesh.target": str(target)}
 
 
 # ------------------------------------------------------------------------------------------- 1. and 2.: inputs
@@ -267,7 +260,7 @@ def log_results(handle, record: ResultsRecord) -> None:
 def model_arrays(cfg: Config, prepared: Prepared, cv: CVResult, final: FinalModel, run_id: str | None) -> dict:
     """The release arrays of ``final`` for the run's MLflow model: its training metadata carries the run id, the
     config, the CV metrics and the data's support, so the model warns beyond the data as the release does (and a
-    registered model says where it came from)."""
+    registered model says where it came from). A family fit's are its release's (``<stem>.npz``: py-feat's keys)."""
     from aumesh.model import support
 
     metadata = {
@@ -276,6 +269,21 @@ def model_arrays(cfg: Config, prepared: Prepared, cv: CVResult, final: FinalMode
         "cv": cv.metrics(),
         "data": support.data_support(prepared.summary),
     }
+    if cfg.features.family != "au":  # a blendshape or emotion fit: the family release's arrays (py-feat's format)
+        from aumesh.model.family_release import family_release_arrays
+        from aumesh.pipeline.release_family import training_ranges
+
+        family = cfg.features.family
+        return family_release_arrays(
+            family,
+            final.coef,
+            final.mesh_intercept,
+            final.feature_columns,
+            final.n_components,
+            prepared.reference,
+            training_ranges(prepared.directory, family),
+            metadata=metadata,
+        )
     return final.release_arrays(prepared.reference, metadata=metadata)
 
 

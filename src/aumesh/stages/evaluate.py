@@ -107,7 +107,7 @@ def main(cfg: Config) -> dict:
     """Cross-validate and fit the prepared data into ``paths.model_dir`` (and the metrics and plot files DVC
     compares), recorded as one MLflow run; returns the CV metrics (``metrics.json``)."""
     from aumesh.core.errors import ConfigError
-    from aumesh.model.statistics import design_union
+    from aumesh.model.pass_design import design_union
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
     from aumesh.pipeline.evaluate.eiv_fits import check_eiv_inputs
@@ -151,7 +151,7 @@ def main(cfg: Config) -> dict:
                     tracking_cfg,
                     run_name=evaluate_run_name(cfg),
                     params=params,
-                    tags=run_record.run_tags("evaluate", cfg.preprocess.target, cfg.features.family),
+                    tags=run_record.run_tags("evaluate", cfg.preprocess.target),
                 )
             )
             family_runs = {
@@ -160,7 +160,7 @@ def main(cfg: Config) -> dict:
                         tracking_cfg,
                         run_name=evaluate_run_name(fcfg),
                         params=fcfg.to_dict(),
-                        tags=run_record.run_tags("evaluate", fcfg.preprocess.target, family),
+                        tags=run_record.run_tags("evaluate", fcfg.preprocess.target),
                     )
                 )
                 for family, fcfg, _ in families

@@ -55,8 +55,9 @@ from aumesh.model.cross_products import CrossProducts
 from aumesh.model.eiv import EivFit
 from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
+from aumesh.model.pass_design import FULL_DESIGN, design_union, extra_inputs, named_design
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
-from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, design_union, extra_inputs, named_design
+from aumesh.model.statistics import DesignStatistics
 from aumesh.pipeline import compute
 from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, eiv_record
 from aumesh.pipeline.evaluate.prepared_data import (
@@ -255,7 +256,7 @@ def error_partition(
     row of the ``.npy`` ``frame_error`` (n_frames,) float32. ``x_offset`` (n_videos, p) and ``y_offset``
     (n_videos, 1434), arrays or :class:`aumesh.core.io.NpyRows`, are the target's per-video centres (None: none);
     only the partition's videos' rows are read. ``columns``: the design of another input family than the AUs (its
-    inputs read by name, :func:`aumesh.model.statistics.named_design`); None: the AU design of ``use_pose``,
+    inputs read by name, :func:`aumesh.model.pass_design.named_design`); None: the AU design of ``use_pose``,
     ``interactions``."""
     g, start, stop = group
     au, pose, video, _ = read_group(directory, g)
@@ -404,7 +405,7 @@ class SharedPass:
 
     ``feature_sets``: the designs besides the first configuration's (``families.<f>.features``). The first call of
     :meth:`statistics` runs pass A once over the union of the designs
-    (:func:`aumesh.model.statistics.design_union`, with the first configuration's instruments); every call takes its
+    (:func:`aumesh.model.pass_design.design_union`, with the first configuration's instruments); every call takes its
     configuration's columns from it by name. ``passes`` counts the passes made.
     """
 

@@ -49,7 +49,7 @@ class FoldStatistics:
     pose_mean: np.ndarray | None = None  # (3,) E[pose] over every frame (radians)
     pose_second: np.ndarray | None = None  # (3, 3) E[pose pose^T]
     # model/eiv=instruments: per fold, within-video statistics of the augmented design [X | Z] (the configuration's
-    # columns, then the same columns of the instrument AUs: aumesh.model.statistics.augmented_index) with Y
+    # columns, then the same columns of the instrument AUs: aumesh.model.pass_design.augmented_index) with Y
     instruments: list[CrossProducts] | None = None
 
     @property

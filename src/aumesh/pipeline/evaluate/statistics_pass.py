@@ -33,17 +33,13 @@ from aumesh.core.io import (
 )
 from aumesh.core.schema import AU_COLUMNS, N_TARGETS, POSE_COLUMNS, instrument_columns
 from aumesh.model.cross_products import CrossProducts
+from aumesh.model.pass_design import FULL_DESIGN, design_union, extra_inputs, head_width, pass_design
 from aumesh.model.statistics import (
-    FULL_DESIGN,
     DesignStatistics,
     DesignSums,
     VideoSumStream,
-    design_union,
-    extra_inputs,
     fold_configuration_statistics,
     fold_within_statistics,
-    head_width,
-    pass_design,
     pose_moments,
     target_offsets,
     within_statistics,
@@ -82,9 +78,9 @@ VIDEO_SUMS = {"video_sum_x": len(FULL_DESIGN), "video_sum_y": N_TARGETS, "video_
 
 
 def video_sums(instruments: Sequence[str] = (), columns: Sequence[str] | None = None) -> dict[str, int]:
-    """:data:`VIDEO_SUMS` with the design's width: the union ``columns``' (:func:`aumesh.model.statistics.design_union`;
+    """:data:`VIDEO_SUMS` with the design's width: the union ``columns``' (:func:`aumesh.model.pass_design.design_union`;
     default :data:`FULL_DESIGN`), plus :data:`FULL_DESIGN`'s again with instruments (the augmented design
-    ``[X | Z | rest]``, :func:`aumesh.model.statistics.pass_design`)."""
+    ``[X | Z | rest]``, :func:`aumesh.model.pass_design.pass_design`)."""
     if not instruments and columns is None:
         return VIDEO_SUMS
     width = len(FULL_DESIGN if columns is None else columns) + (len(FULL_DESIGN) if instruments else 0)
@@ -117,8 +113,8 @@ def design_partition(
     partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned.
     The checksummed blocks of ``meshes.npy`` the row group holds (``check``) are hashed from the bytes read, for the
     driver to compare (:meth:`aumesh.pipeline.integrity.StreamedCheck.check`). With ``instruments`` (the second
-    detector's AU columns) the design is the augmented ``[X | Z]`` (:func:`aumesh.model.statistics.augmented_design`; ``a`` of its width).
-    ``columns``: the union of the designs the pass serves (:func:`aumesh.model.statistics.design_union`; default
+    detector's AU columns) the design is the augmented ``[X | Z]`` (:func:`aumesh.model.pass_design.augmented_design`; ``a`` of its width).
+    ``columns``: the union of the designs the pass serves (:func:`aumesh.model.pass_design.design_union`; default
     :data:`FULL_DESIGN`); the other families' inputs are read by name."""
     g, start, stop = group
     digests = integrity.RangeDigests(check.ranges(g), check.algorithm) if check is not None else None
@@ -223,12 +219,12 @@ def design_statistics(
     statistics.
 
     ``instruments`` (``model/eiv=instruments``: the second detector's AU columns of ``frames.parquet``): the
-    statistics are of the augmented design ``[X | Z]`` (:func:`aumesh.model.statistics.augmented_design`), so every fold's within-video
+    statistics are of the augmented design ``[X | Z]`` (:func:`aumesh.model.pass_design.augmented_design`), so every fold's within-video
     ``Z'X``, ``Z'Z``, ``Z'Y`` follow exactly (:func:`aumesh.model.statistics.fold_within_statistics`); without them
     nothing changes (the same arrays, the same bits).
 
     ``columns``: the union of the designs of every configuration the pass serves
-    (:func:`aumesh.model.statistics.design_union`: the stage's AU model and its families, or every configuration of a
+    (:func:`aumesh.model.pass_design.design_union`: the stage's AU model and its families, or every configuration of a
     sweep; default :data:`FULL_DESIGN`). The AU design's products are the same bits whatever else is accumulated
     (:class:`aumesh.model.statistics.DesignSums`' head); each configuration takes its columns by name.
     """
@@ -341,7 +337,7 @@ def check_family_columns(prepared: Prepared, columns: Sequence[str]) -> None:
 
 
 def pass_columns(cfg: Config, feature_sets: Sequence[str] = ()) -> list[str]:
-    """The union of the designs a run needs (:func:`aumesh.model.statistics.design_union`): ``cfg.features``' and each
+    """The union of the designs a run needs (:func:`aumesh.model.pass_design.design_union`): ``cfg.features``' and each
     of ``feature_sets`` (the stage's ``families.<f>.features``, or a sweep's ``features`` options)."""
     return design_union([cfg.features.name, *feature_sets])
 
@@ -419,7 +415,7 @@ def accumulate(
 
 def instrument_statistics(design: DesignStatistics, columns: list[str]) -> list[CrossProducts]:
     """Per fold, the within-video statistics of the augmented design ``[X | Z]`` of ``columns`` with the mesh
-    (:func:`aumesh.model.statistics.augmented_index`: the configuration's columns, then their instruments), the folds
+    (:func:`aumesh.model.pass_design.augmented_index`: the configuration's columns, then their instruments), the folds
     at once on this machine's cores; training sets are total - fold (docs/method.md eq. 7)."""
     idx = design.augmented_index(columns)
     return compute.local_map(partial(fold_within_statistics, design, idx=idx), range(len(design.folds)))
