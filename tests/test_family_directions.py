@@ -15,13 +15,13 @@ import pytest
 
 from aumesh.card import family_directions as fd
 from aumesh.card.family_expectations import BLENDSHAPE_EXPECTATIONS, EMOTION_PROTOTYPES, blendshape_checks
+from aumesh.core.families import BLENDSHAPE_COLUMNS, EMOTION_COLUMNS
 from aumesh.core.schema import AU_COLUMNS, flatten_axis_major
 from aumesh.geometry import landmarks, measures
 from aumesh.geometry.face import canonical_template
-from aumesh.synthetic.pyfeat_columns import BLENDSHAPE_COLUMNS, EMOTION_COLUMNS_MP
 from aumesh.synthetic.truth import facs_displacement_fields
 
-LABELS = list(EMOTION_COLUMNS_MP)
+LABELS = list(EMOTION_COLUMNS)
 # EMFACS prototypes (the AUs of each emotion), neutral moves nothing
 EMFACS = {
     "anger": ("AU04", "AU05", "AU07", "AU23"),
@@ -136,7 +136,7 @@ def blendshape_coef(au_fields, mesh):
 
 def test_the_families_names_are_pyfeats_in_order():
     assert list(BLENDSHAPE_EXPECTATIONS) == list(BLENDSHAPE_COLUMNS)
-    assert list(EMOTION_PROTOTYPES) == list(EMOTION_COLUMNS_MP)
+    assert list(EMOTION_PROTOTYPES) == list(EMOTION_COLUMNS)
     assert all(n in BUMPS or n in BOTH_AU or n[:-4] in SIDED_AU or n[:-5] in SIDED_AU for n in blendshape_checks())
 
 
@@ -165,7 +165,8 @@ def test_every_transposition_fails_naming_it(emotion_coef, mesh, a, b):
     moved = {n: m for n, m in report["assignment"].items() if n != m}
     assert moved == {LABELS[a]: LABELS[b], LABELS[b]: LABELS[a]}
     msg = report["message"]
-    assert "\n" not in msg and msg.startswith("emo.npz: emotion columns look permuted")
+    want = f"emo.npz: emotion columns labelled {LABELS[min(a, b)]} and {LABELS[max(a, b)]} look swapped: "
+    assert "\n" not in msg and msg.startswith(want), msg
     assert f"'{LABELS[a]}' moves like {LABELS[b]}" in msg and f"'{LABELS[b]}' moves like {LABELS[a]}" in msg
     assert msg.count("moves like") == 2
 
