@@ -288,7 +288,7 @@ def test_every_transposition_and_three_cycle_is_named_at_snr_1(family_truth):
 def test_a_correct_labelling_passes_under_realistic_mixing_and_noise(family_truth):
     # (b) mixing 0.2 and 0.3 with SNR 1 (rows at cosine ~0.85 / ~0.75 to their truth). The benchmark (200 draws):
     # 0 % refused at 0.2, 2.5 % at 0.3; the rule without the margin (any non-identity labelling fails) fails this
-    # test (seen: a draw at 0.2 refused), the centred-cosine assignment before it refuses 7 % / 26 %
+    # test (seen: a draw at 0.2 refused), the centred-cosine assignment before it refuses 7 % / 30.5 %
     e, mesh = family_truth["emotions"], family_truth["mesh"]
     rng = np.random.default_rng(5)
     mild = [fd.emotion_direction_check(fm.mixed(e, rng, 0.2, 1.0), LABELS, mesh)["verdict"] for _ in range(30)]

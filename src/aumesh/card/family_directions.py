@@ -369,14 +369,14 @@ def blendshape_direction_check(
     rms = np.sqrt((disp**2).sum(axis=2).mean(axis=1)) if names else np.zeros(0)
     still = {n for n, r in zip(names, rms, strict=True) if r < STILL_FIELD * float(np.median(rms))}
     rank = {"pass": 0, "doubtful": 1, "fail": 2}
-    entries = {}
+    entries: dict[str, dict[str, Any]] = {}
     for n, field, r in zip(names, disp, rms, strict=True):
         checks = _judge_checks(field, expected[n], areas)
         verdict = "doubtful" if n in still else max((c["verdict"] for c in checks), key=rank.__getitem__)
         entries[n] = {"verdict": verdict, "rms": round(float(r), 6), "checks": checks}
         if n in still:
             entries[n]["reason"] = f"barely moves (rms {r:.2g} IOD, under {STILL_FIELD} of the median checked field)"
-    pairs = {}
+    pairs: dict[str, dict[str, Any]] = {}
     for n in names:
         partner = n[: -len("Left")] + "Right"
         if not n.endswith("Left") or partner not in expected or {"left", "right"} & set(expected[n][0][1]):
@@ -457,7 +457,9 @@ def family_of(arrays: Mapping[str, Any], where: str = "<arrays>") -> str:
     )
 
 
-def family_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any]) -> dict[str, Any]:
+def family_direction_report(
+    npz_path_or_arrays: str | os.PathLike | Mapping[str, Any], where: str | None = None
+) -> dict[str, Any]:
     """Direction report of a blendshape or emotion release (the family's ``<family>_directions.json``).
 
     Parameters
@@ -466,6 +468,8 @@ def family_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str,
         A family release NPZ (issue 46's contract: ``coef`` (p, 1434) axis-major with the family's k inputs first,
         ``feature_columns`` (k,), ``mean_aligned_mesh`` (478, 3), optional ``unsupported_features`` and ``family``),
         or a mapping with those keys.
+    where : str, optional
+        The name messages use (default: the path, or ``"<arrays>"`` for a mapping).
 
     Returns
     -------
@@ -474,7 +478,8 @@ def family_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str,
         ``message`` (one line), ``summary`` (input -> verdict, the card's table), ``counts`` (per verdict) and the
         family's check (:func:`emotion_direction_check` or :func:`blendshape_direction_check`) under ``check``.
     """
-    arrays, where = load_arrays(npz_path_or_arrays)
+    arrays, loaded_from = load_arrays(npz_path_or_arrays)
+    where = loaded_from if where is None else str(where)
     family = family_of(arrays, where)
     for key in ("coef", "feature_columns", "mean_aligned_mesh"):
         if key not in arrays:
