@@ -48,7 +48,7 @@ def _cmd_synth(args) -> int:
         spec = realistic_noise_spec(args.frames, args.videos, args.seed, au_noise_sd=sd, **fields)
     else:
         spec = SynthSpec(args.frames, args.videos, args.seed, au_noise_sd=args.au_noise_sd or 0.0, **fields)
-    summary = write_tables(args.out, spec, args.truth)
+    summary = write_tables(args.out, spec, args.truth, families=args.families)
     if args.truth is not None and spec.au_noise_sd > 0:
         summary["sigma_u"] = str(write_truth_sigma_u(args.truth))
     print(json.dumps(summary, indent=2))
@@ -184,6 +184,13 @@ def add_parser(subparsers) -> None:
         action="store_true",
         help="the issue-43 preset: co-activated AUs (AU09/AU10 r ~0.9, AU06/AU12, AU01/AU02, AU25/AU24) read by a "
         "noisy detector (--au-noise-sd 0 gives its no-noise control)",
+    )
+    p.add_argument(
+        "--families",
+        action="store_true",
+        help="also write the 52 MediaPipe blendshapes and 7 emotions (py-feat's names; blendshapes in [0, 1], "
+        "emotions a softmax) with a known field each on the mesh, for the blendshape and emotion models; with "
+        "--truth their fields are saved too (default: not written, the tables as before)",
     )
     add_force(p)
     p.set_defaults(func=_cmd_synth)

@@ -196,3 +196,54 @@ def family_columns(header: Iterable[str], family: str, source: str = "the table"
                 f"{len(columns)} {family} columns"
             )
     return {key: found[key] for key in columns}
+
+
+#: The families ingest and prepare carry beside the AUs when the tables hold them (the AUs are always required).
+CARRIED_FAMILIES: tuple[str, ...] = ("blendshapes", "emotions")
+
+
+def header_families(header: Iterable[str], source: str = "the table") -> dict[str, dict[str, str]]:
+    """The carried families (:data:`CARRIED_FAMILIES`) a table's header holds whole, each mapped by name.
+
+    A family none of whose names (under either detector's spelling) is in the header is absent: left out, nothing
+    filled in. A family some but not all of whose inputs are there is a half-written export, refused.
+
+    Parameters
+    ----------
+    header : iterable of str
+        The table's column names, any order (Detectorv2's ``Contempt`` and every other column ignored).
+    source : str
+        The file, for the error message.
+
+    Returns
+    -------
+    dict
+        ``{family: {family name: header column}}`` (:func:`family_columns`) for the families held whole, in
+        :data:`CARRIED_FAMILIES` order.
+
+    Raises
+    ------
+    TableError
+        One line naming ``source``, the family, the first input it lacks and the fix (as :func:`family_columns`:
+        also two columns holding one input).
+    """
+    names = [str(c) for c in header]
+    out: dict[str, dict[str, str]] = {}
+    for family in CARRIED_FAMILIES:
+        held = [c for c in names if c in NAME_MAPS[family]]
+        if not held:
+            continue
+        columns = FAMILIES[family]
+        mapped = {NAME_MAPS[family][c] for c in held}
+        missing = [key for key in columns if key not in mapped]
+        if missing:
+            aliases = sorted(h for h, k in NAME_MAPS[family].items() if k == missing[0])
+            raise TableError(
+                f"{source}: holds {len(mapped)} of the {len(columns)} {family} columns but not {missing[0]!r} "
+                f"(expected one of {', '.join(map(repr, aliases))}"
+                + (f"; {len(missing) - 1} more missing" if len(missing) > 1 else "")
+                + f"). Fix: export the table again with py-feat's MPDetector or Detectorv2 (they write all "
+                f"{len(columns)}), or drop every {family} column to train without them"
+            )
+        out[family] = family_columns(names, family, source)
+    return out

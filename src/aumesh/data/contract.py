@@ -332,3 +332,27 @@ def check_instrument_values(
                 f"the frames the second detector missed from the tables, or use model/eiv=none."
             )
         df[name] = values
+
+
+def check_family_values(
+    df: pd.DataFrame, columns: Sequence[str], path: Path | str, first_row: int = 0, family: str = "family"
+) -> None:
+    """Every value of a carried family's ``columns`` (issue 46: the blendshapes or emotions the ingest stage carries)
+    a finite number, as the AUs must be: a kept frame without them is an export to repair, never filled in.
+
+    Raises
+    ------
+    TableError
+        One line naming the file, the column, the row (within the file) and the fix.
+    """
+    for name in columns:
+        values = pd.to_numeric(df[name], errors="coerce").to_numpy(np.float64)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise TableError(
+                f"{path}: {family} column {name!r} is {df[name].iloc[row]!r} at row {first_row + row} "
+                f"({int(bad.sum())} such rows), a frame the other tables' {family} cover. Fix: drop those frames "
+                f"from the table, or drop every {family} column of every table to train without them."
+            )
+        df[name] = values

@@ -13,7 +13,13 @@ What a block goes through (:func:`clean_block`), in order:
    ``Identity`` seen in most of the video's face rows; frames without that person are dropped) or ``error``;
 3. **units** (docs/conventions.md, "py-feat's mesh units"): the mesh leaves in frame pixels, x, y and z
    (:func:`aumesh.data.units.convert_units`: normalized image units by the frame size, z from the detector's crop
-   units by FaceRectWidth, the face's proportions measured for the ingest stage's guard).
+   units by FaceRectWidth, the face's proportions measured for the ingest stage's guard);
+4. **families** (issue 46, docs/families.md): the 52 blendshapes and 7 emotions a source's header holds are carried
+   under the family's names (:attr:`aumesh.data.pyfeat.Layout.families`); in each kept face row a family is measured
+   (every value finite) or not (every value NaN: MPDetector run with ``emotion_model=None`` writes its 7 emotions so
+   in every row), counted per source (:attr:`Counts.families`); a row with only some of them NaN is refused, as a
+   face row with only some AUs missing is (:func:`family_rows`). Which families the stage then carries is the
+   ingest stage's decision over all sources (:func:`aumesh.pipeline.ingest.carried_families`).
 
 A clean parquet table is read in place (:func:`check_clean`) instead of being written again.
 """
@@ -31,6 +37,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from aumesh.core.errors import TableError
+from aumesh.core.families import CARRIED_FAMILIES, FAMILIES
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.data import face_track, pyfeat, video_frames
 from aumesh.data.readers import (
@@ -68,6 +75,8 @@ class Counts:
     units: dict[str, UnitStats] = field(default_factory=dict)  # source path -> its units
     labels: dict[str, set[str]] = field(default_factory=dict)  # source path -> Identity labels of kept rows
     frame_ranges: video_frames.FrameRanges = field(default_factory=dict)  # video -> (source, first, last frame) kept
+    # source path -> family -> [face rows measured, face rows all NaN, where the first all-NaN row is ("" if none)]
+    families: dict[str, dict[str, list]] = field(default_factory=dict)
 
     def __add__(self, other: Counts) -> Counts:
         total = Counts()
@@ -80,7 +89,7 @@ class Counts:
         :class:`Counts` per addition copied every source's units and labels each time). ``other``'s objects are never
         changed, nor shared where this sum changes them."""
         for f in fields(self):
-            if f.name not in ("identities", "units", "labels", "frame_ranges"):
+            if f.name not in ("identities", "units", "labels", "frame_ranges", "families"):
                 setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
         for v, c in other.identities.items():
             mine = self.identities.get(v)
@@ -93,6 +102,11 @@ class Counts:
         for k, names in other.labels.items():
             self.labels.setdefault(k, set()).update(names)
         video_frames.merge_into(self.frame_ranges, other.frame_ranges)
+        for k, held in other.families.items():
+            mine_f = self.families.setdefault(k, {})
+            for family, (measured, unmeasured, first) in held.items():
+                have = mine_f.get(family, [0, 0, ""])
+                mine_f[family] = [have[0] + measured, have[1] + unmeasured, have[2] or first]
         return self
 
     def as_dict(self) -> dict[str, int]:
@@ -246,6 +260,7 @@ def clean_block(
     keep, counts = select_faces(faces, layout, how, subjects, where, tracks)
     out = faces.take(keep)
     check_face_values(out, layout, where, face_rows[keep], place or (lambda row: f"row {row}"))
+    families = family_rows(out, layout, where, face_rows[keep], place or (lambda row: f"row {row}"))
     stats = convert_units(out, layout, mesh_units, where)
     counts.rows_in, counts.no_face, counts.rows_out = len(block), int(empty.sum()), len(out)
     counts.rows_normalized = stats.rows_normalized
@@ -255,7 +270,46 @@ def clean_block(
     counts.frame_ranges = video_frames.block_ranges(out.video, out.frame, where)
     if layout.identity is not None and out.identity is not None:
         counts.labels = {where: identity_labels(out.identity)}
+    if families:
+        counts.families = {where: families}
     return out, counts
+
+
+def family_rows(
+    block: Block, layout: pyfeat.Layout, where: str, rows: np.ndarray, place: Callable[[int], str]
+) -> dict[str, list]:
+    """Per family the kept face rows of ``block`` that measured it (every value finite) and that did not (every value
+    NaN), and where the first of those is: ``{family: [measured, unmeasured, place or ""]}``.
+
+    NaN in a family column of a face row is treated as in the AU columns: a row with only some values missing is
+    corruption, refused; a row with the whole family NaN is that family not measured there (py-feat writes a family
+    it did not run so: MPDetector's ``emotion_model=None`` gives NaN emotions in every row, as a no-face row has NaN
+    AUs). Whether a source that mixes the two is refused is the ingest stage's call over the whole source
+    (:func:`aumesh.pipeline.ingest.carried_families`).
+
+    Raises
+    ------
+    TableError
+        One line naming ``where``, the column, the row's line and the fix.
+    """
+    out: dict[str, list] = {}
+    for family, columns in layout.families:
+        x = np.column_stack([block.values[c] for c in columns]) if len(block) else np.zeros((0, len(columns)))
+        nan = np.isnan(x)
+        finite = np.isfinite(x)
+        measured, unmeasured = finite.all(axis=1), nan.all(axis=1)
+        bad = ~(measured | unmeasured)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            j = int(np.flatnonzero(~finite[i])[0])
+            raise TableError(
+                f"{where}: {family} column {columns[j]!r} is {x[i, j]} at {place(int(rows[i]))}, a face row whose other "
+                f"{family} columns hold values ({int(bad.sum())} such rows). Fix: drop those frames before `dvc add "
+                f"data`, or drop every {family} column to train without them."
+            )
+        first = place(int(rows[int(np.flatnonzero(unmeasured)[0])])) if unmeasured.any() else ""
+        out[family] = [int(measured.sum()), int(unmeasured.sum()), first]
+    return out
 
 
 def check_face_values(
@@ -325,17 +379,36 @@ def identity_counts(block: Block, layout: pyfeat.Layout) -> dict[str, dict[str, 
 # ------------------------------------------------------------------------------------------------------- writing
 
 
-def output_schema(instruments: Sequence[str] = ()) -> pa.Schema:
+def output_schema(instruments: Sequence[str] = (), families: Sequence[str] = ()) -> pa.Schema:
     """The ingested tables' columns: video_id, frame, the AUs and pose (model order), the instrument AUs
-    (``model.eiv.instrument_aus``, only when configured: none by default), the mesh axis-major, float32."""
+    (``model.eiv.instrument_aus``, only when configured: none by default), the ``families``' columns under the
+    family's names (:data:`aumesh.core.families.FAMILIES`, float64), the mesh axis-major, float32."""
     fields = [pa.field(VIDEO_COLUMN, pa.string()), pa.field(FRAME_COLUMN, pa.int64())]
-    fields += [pa.field(c, pa.float64()) for c in (*AU_COLUMNS, *POSE_COLUMNS, *instruments)]
+    names = [c for f in families for c in FAMILIES[f]]
+    fields += [pa.field(c, pa.float64()) for c in (*AU_COLUMNS, *POSE_COLUMNS, *instruments, *names)]
     fields += [pa.field(name, pa.float32()) for name in pyfeat.MESH_NAMES["MPDetector"]]
     return pa.schema(fields)
 
 
+def task_families(spans: Sequence[Span]) -> tuple[str, ...]:
+    """The families every source of ``spans`` holds (:attr:`aumesh.data.pyfeat.Layout.families`): those an ingested
+    table written from them carries. A family a source of the task lacks is not carried by any table of the stage
+    (:func:`aumesh.pipeline.ingest.carried_families`), so nothing is filled in for it."""
+    held = [set(s.source.layout.family_names) for s in spans]
+    return tuple(f for f in CARRIED_FAMILIES if held and all(f in h for h in held))
+
+
+def renamed(block: Block, layout: pyfeat.Layout, families: Sequence[str]) -> Block:
+    """``block`` with only the columns an ingested table holds (:func:`output_schema`), the ``families``' under the
+    family's names (Detectorv2's ``Happy`` as ``happiness``): blocks of sources of either detector then concatenate."""
+    values = {k: block.values[k] for k in (*AU_COLUMNS, *POSE_COLUMNS, *layout.instruments)}
+    values |= {name: block.values[col] for name, col in layout.family_renames(families)}
+    return Block(block.video, block.frame, values, block.identity, block.mesh)
+
+
 def to_table(block: Block, schema: pa.Schema) -> pa.Table:
-    """``block`` as a table of ``schema`` (:func:`output_schema`: its float64 columns are the block's values)."""
+    """``block`` as a table of ``schema`` (:func:`output_schema`: its float64 columns are the block's values, the
+    families' under the family's names: :func:`renamed`)."""
     numeric = [f.name for f in schema if f.type == pa.float64()]
     arrays = [pa.array(block.video, pa.string()), pa.array(block.frame, pa.int64())]
     arrays += [pa.array(block.values[c]) for c in numeric]
@@ -353,12 +426,14 @@ def iter_clean_blocks(
     subjects: dict[str, str] | None,
     mesh_units: str = "detector",
     seeds: Seeds | None = None,
+    families: Sequence[str] | None = None,
 ) -> Iterator[tuple[Block, Counts]]:
     """Each span read and cleaned (:func:`clean_block`), source by source; the small CSV ranges of many files
     parsed together (:func:`aumesh.data.readers.iter_span_groups`). A span starts its videos' face tracks afresh (the
     batches of one span carry them), or, when it starts inside a run of frames with several faces
     (``Span.carried``), from the tracks ``seeds`` gives it (:func:`carried_tracks`): the rows kept do not depend on
-    how the file is cut into spans nor on how spans are packed into tasks."""
+    how the file is cut into spans nor on how spans are packed into tasks. ``families``: the blocks' columns of these
+    families under the family's names (:func:`renamed`; None: as the sources name them)."""
     key, tracks = None, {}
     for table, parts in iter_span_groups(spans):
         block = to_block(table, parts[0][1])
@@ -368,9 +443,10 @@ def iter_clean_blocks(
                 tracks = dict((seeds or {}).get(key, {}))
             part = block if (first, stop) == (0, len(block)) else block.take(np.arange(first, stop))
             src = span.source
-            yield clean_block(
+            out, counts = clean_block(
                 part, src.layout, how, subjects, str(src.path), mesh_units, tracks, partial(row_place, rows)
             )
+            yield (out if families is None else renamed(out, src.layout, families)), counts
 
 
 def concat_blocks(blocks: Sequence[Block]) -> Block:
@@ -402,10 +478,12 @@ def write_clean(
     seeds: Seeds | None = None,
 ) -> Counts:
     """Clean ``spans`` into one parquet ``out`` (uncompressed: the pipeline reads it a few times, at memory speed).
-    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs;
+    The sources' instrument columns (their layout's, ``model.eiv.instrument_aus``) are carried beside the AUs, and
+    the families every source of ``spans`` holds (:func:`task_families`) under the family's names;
     ``seeds``: the face tracks of carried spans (:func:`carried_tracks`). Blocks of fewer than
     :data:`SMALL_BLOCK_ROWS` rows are written together."""
-    schema = output_schema(spans[0].source.layout.instruments if spans else ())
+    families = task_families(spans)
+    schema = output_schema(spans[0].source.layout.instruments if spans else (), families)
     total = Counts()
     pending: list[Block] = []
     writer = pq.ParquetWriter(out, schema, compression="none", use_dictionary=[VIDEO_COLUMN], write_statistics=False)
@@ -418,7 +496,7 @@ def write_clean(
 
     try:
         rows = 0  # in pending
-        for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units, seeds):
+        for block, counts in iter_clean_blocks(spans, how, subjects, mesh_units, seeds, families):
             total += counts
             if len(block) >= SMALL_BLOCK_ROWS:
                 flush()

@@ -37,7 +37,9 @@ class PassThrough:
 
     ``units``: its mesh units, the face's proportions measured on the rows the check read; ``labels``: py-feat's
     Identity labels (None without the column); ``frame_ranges``: each video's frames
-    (:mod:`aumesh.data.video_frames`)."""
+    (:mod:`aumesh.data.video_frames`); ``families``: per family its header holds, ``[rows measured, rows NaN, where
+    the first NaN row is]`` as :attr:`aumesh.data.ingest.Counts.families` (judged on the family's first column: a
+    row with only some of a family's values NaN is refused by prepare's check of the carried columns)."""
 
     clean: bool
     rows: int
@@ -45,6 +47,7 @@ class PassThrough:
     units: UnitStats | None = None
     labels: set[str] | None = None
     frame_ranges: video_frames.FrameRanges | None = None
+    families: dict[str, list] | None = None
 
 
 def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
@@ -62,6 +65,9 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
     # cleaned, where the whole rule applies (a face row with only those missing is then the contract's error)
     cols = [lay.video, FRAME_COLUMN, AU_COLUMNS[0], POSE_COLUMNS[0], *([lay.face_score] if lay.face_score else [])]
     cols += [lay.identity] if lay.identity else []
+    firsts = {family: columns[0] for family, columns in lay.families}  # a family's first column: measured or not
+    cols += [c for c in firsts.values() if c not in cols]
+    families: dict[str, list] = {family: [0, 0, ""] for family in firsts}
     no_face, several, previous = 0, 0, None
     labels: set[str] | None = set() if lay.identity else None
     ranges: video_frames.FrameRanges = {}
@@ -86,6 +92,12 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
         if labels is not None and lay.identity:
             labels |= identity_labels(np.array(pc.unique(table.column(lay.identity)).drop_null().to_pylist()))
         video_frames.merge_into(ranges, _batch_ranges(table, lay.video, str(source.path)))
+        for family, column in firsts.items():
+            nan = np.isnan(table.column(column).to_numpy(zero_copy_only=False).astype(np.float64))
+            seen = families[family]
+            if nan.any() and not seen[2]:
+                seen[2] = f"row {seen[0] + seen[1] + int(np.argmax(nan))}"
+            seen[0], seen[1] = seen[0] + int((~nan).sum()), seen[1] + int(nan.sum())
     if not n:  # an empty table: nothing to clean (prepare names empty input)
         return PassThrough(True, 0)
     if no_face:
@@ -129,7 +141,7 @@ def check_clean(source: Source, mesh_units: str = "detector") -> PassThrough:
         units.crop = ratio_hist(ratio * width / Z_CROP[lay.detector][1])
         pose = {c: part.column(c).to_numpy(zero_copy_only=False).astype(np.float64)[finite] for c in ("Pitch", "Yaw")}
         units.growth = growth_sums(extents[:, 2], extents[:, 1], frontal(pose))
-    return PassThrough(True, n, units=units, labels=labels, frame_ranges=ranges)
+    return PassThrough(True, n, units=units, labels=labels, frame_ranges=ranges, families=families or None)
 
 
 def _batch_ranges(table: pa.Table, video: str, where: str) -> video_frames.FrameRanges:

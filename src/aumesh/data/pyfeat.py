@@ -8,8 +8,10 @@ py-feat 2.1.5 writes one of two layouts (its ``detect(..., save=)`` CSV, or a Fe
 
 and the card's training layout, a table without mesh columns plus an ``[N, 478, 3]`` ``.npy`` beside it. Both
 detectors also write ``FaceRectX/Y/Width/Height``, ``FaceScore``, the 20 AUs, ``Pitch, Roll, Yaw`` (Fex order),
-``FrameWidth``/``FrameHeight``, ``input`` (the video path), ``frame``, ``approx_time`` and ``Identity``; blendshapes,
-emotions, identity embeddings and gaze (about 2,000 columns) are never read.
+``FrameWidth``/``FrameHeight``, ``input`` (the video path), ``frame``, ``approx_time`` and ``Identity``; the 52
+blendshapes and 7 emotions when the header holds them (:attr:`Layout.families`, mapped by name with
+:func:`aumesh.core.families.header_families`: Detectorv2's ``Happy`` is the family's ``happiness``); identity
+embeddings, gaze and the rest (about 1,900 columns) are never read.
 
 The detector is named from the columns (:attr:`Layout.detector`): ``mesh_x_*`` is Detectorv2; the interleaved mesh
 beside py-feat's ``FaceRectWidth``/``FaceRectHeight`` is MPDetector; the interleaved mesh without them is ``table``
@@ -26,6 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from aumesh.core.errors import TableError
+from aumesh.core.families import FAMILIES, header_families
 from aumesh.core.schema import AU_COLUMNS, FRAME_COLUMN, INPUT_PATH_COLUMN, N_VERTICES, POSE_COLUMNS, VIDEO_COLUMN
 from aumesh.data import csv_text
 
@@ -124,12 +127,25 @@ class Layout:
     frame_size: tuple[str, str] | None
     instruments: tuple[str, ...] = ()  # a second detector's AU columns (model.eiv.instrument_aus), AU_COLUMNS order
     box_origin: tuple[str, str] | None = None  # FaceRectX, FaceRectY: with box_size, where a face is (its track)
+    # the carried families the header holds whole (issue 46): (family, its header columns in the family's order)
+    families: tuple[tuple[str, tuple[str, ...]], ...] = ()
+
+    @property
+    def family_names(self) -> tuple[str, ...]:
+        """The families of :attr:`families`, in order."""
+        return tuple(family for family, _ in self.families)
+
+    def family_renames(self, families: Sequence[str]) -> list[tuple[str, str]]:
+        """``(family name, header column)`` of each input of ``families`` (each one of :attr:`families`), in order:
+        what an ingested table's column of that name holds."""
+        held = dict(self.families)
+        return [(name, col) for f in families for name, col in zip(FAMILIES[f], held[f], strict=True)]
 
     @property
     def numeric(self) -> list[str]:
-        """The numeric columns read besides the video and frame (AUs, pose, instrument AUs, face score and box, frame
-        size)."""
-        out = [*AU_COLUMNS, *POSE_COLUMNS, *self.instruments]
+        """The numeric columns read besides the video and frame (AUs, pose, instrument AUs, the families' columns as
+        the header names them, face score and box, frame size)."""
+        out = [*AU_COLUMNS, *POSE_COLUMNS, *self.instruments, *(c for _, cols in self.families for c in cols)]
         out += [self.face_score] if self.face_score else []
         out += list(self.box_size or ()) + list(self.frame_size or ()) + list(self.box_origin or ())
         return out
@@ -249,6 +265,8 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False, instrumen
     csv_text.check_names(names, where)  # a CSV header misread (a byte-order mark, ';' separators) named as such
     video = fex_video_column(names, where)
     check_instruments(names, instruments, where)
+    held = header_families(names, where)  # by name; a family half present is refused here, one absent left out
+    check_unique_names(names, where, [c for cols in held.values() for c in cols.values()])
     mesh, detector = None, "split"
     if set(MESH_NAMES["Detectorv2"]) <= present:
         mesh, detector = MESH_NAMES["Detectorv2"], "Detectorv2"
@@ -271,6 +289,7 @@ def layout(names: Sequence[str], where: str, split_mesh: bool = False, instrumen
         frame_size=optional(*FRAME_SIZE),
         instruments=tuple(instruments),
         box_origin=optional(*FACE_BOX_ORIGIN) if set(FACE_BOX_SIZE) <= present else None,
+        families=tuple((f, tuple(cols.values())) for f, cols in held.items()),
     )
 
 

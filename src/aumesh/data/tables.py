@@ -24,6 +24,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from aumesh.core.errors import TableError, corrupt_parquet
+from aumesh.core.families import family_columns
 from aumesh.core.io import NpyRowFile, check_npy
 from aumesh.core.schema import (
     AU_COLUMNS,
@@ -49,6 +50,8 @@ class FrameTable:
     mesh_npy: Path | None  # None: mesh columns are inside the parquet
     video_from_input: bool  # video_id derived from py-feat's `input` column
     text_columns: frozenset[str] = frozenset()  # mesh columns stored as text, converted (data.coerce_numeric)
+    # the carried families' columns (issue 46): (family, family name, the table's column), in FAMILIES order
+    family_columns: tuple[tuple[str, str, str], ...] = ()
 
 
 def discover(
@@ -83,12 +86,17 @@ def discover(
 
 
 def check_tables(
-    paths: Sequence[str | Path], mesh_npy_pattern: str, coerce_numeric: bool = False, instruments: Sequence[str] = ()
+    paths: Sequence[str | Path],
+    mesh_npy_pattern: str,
+    coerce_numeric: bool = False,
+    instruments: Sequence[str] = (),
+    families: Sequence[str] = (),
 ) -> list[FrameTable]:
     """Schema-check the tables the ingest stage lists (its manifest: cleaned tables and clean ones read in place);
     each must hold the ``instruments`` columns (``model.eiv.instrument_aus``: a table ingested without them names the
-    fix)."""
-    tables = [_check_schema(Path(p), mesh_npy_pattern, coerce_numeric, instruments) for p in paths]
+    fix) and the ``families`` the manifest carries (``manifest["families"]["carried"]``), found by name
+    (:func:`aumesh.core.families.family_columns`: a table read in place may name them as its detector does)."""
+    tables = [_check_schema(Path(p), mesh_npy_pattern, coerce_numeric, instruments, families) for p in paths]
     if sum(t.n_rows for t in tables) == 0:
         raise TableError(
             f"{', '.join(str(p) for p in paths[:3])}: no frame with a face: every table has 0 rows or only "
@@ -99,7 +107,11 @@ def check_tables(
 
 
 def _check_schema(
-    path: Path, mesh_npy_pattern: str, coerce_numeric: bool = False, instruments: Sequence[str] = ()
+    path: Path,
+    mesh_npy_pattern: str,
+    coerce_numeric: bool = False,
+    instruments: Sequence[str] = (),
+    families: Sequence[str] = (),
 ) -> FrameTable:
     try:
         # the footer alone, parsed once for the check and the partitioning (:func:`_footer`): a reader
@@ -112,6 +124,7 @@ def _check_schema(
     n_rows = footer.num_rows
     video_from_input = pyfeat.fex_video_column(names, str(path)) == INPUT_PATH_COLUMN
     pyfeat.check_instruments(names, instruments, str(path))
+    held = [(f, name, col) for f in families for name, col in family_columns(names, f, str(path)).items()]
     has_mesh = any(_MESH_COLUMN.match(name) for name in names)
     mesh_npy = None
     text_columns: set[str] = set()
@@ -161,6 +174,7 @@ def _check_schema(
         mesh_npy=mesh_npy,
         video_from_input=video_from_input,
         text_columns=frozenset(text_columns),
+        family_columns=tuple(held),
     )
 
 
@@ -322,35 +336,51 @@ def read_pieces_metadata(
     holds hundreds). A piece that breaks the contract is named by checking the pieces one by one.
 
     ``instruments``: a second detector's AU columns (``model.eiv.instrument_aus``), read after the pose and checked
-    finite (:func:`aumesh.data.contract.check_instrument_values`).
+    finite (:func:`aumesh.data.contract.check_instrument_values`); then the pieces' carried families
+    (:attr:`FrameTable.family_columns`, alike in every table: :func:`check_tables`) under the family's names, float64,
+    checked finite (:func:`aumesh.data.contract.check_family_values`).
     """
     raw = [_raw_metadata(p.table, p.row_groups, instruments) for p in pieces]
+    families = pieces[0].table.family_columns if pieces else ()
     if len(raw) == 1:
-        return _validated(raw[0], pieces[0].table.path, pieces[0].start, coerce_numeric, instruments)
+        return _validated(raw[0], pieces[0].table.path, pieces[0].start, coerce_numeric, instruments, families)
     try:
         return _validated(
-            pd.concat(raw, ignore_index=True), pieces[0].table.path, pieces[0].start, coerce_numeric, instruments
+            pd.concat(raw, ignore_index=True),
+            pieces[0].table.path,
+            pieces[0].start,
+            coerce_numeric,
+            instruments,
+            families,
         )
     except TableError as err:
         for df, piece in zip(raw, pieces, strict=True):  # the first broken piece, named with its file and row
-            _validated(df, piece.table.path, piece.start, coerce_numeric, instruments)
+            _validated(df, piece.table.path, piece.start, coerce_numeric, instruments, families)
         raise err
 
 
 def _validated(
-    df: pd.DataFrame, path: Path, first_row: int, coerce_numeric: bool, instruments: Sequence[str] = ()
+    df: pd.DataFrame,
+    path: Path,
+    first_row: int,
+    coerce_numeric: bool,
+    instruments: Sequence[str] = (),
+    families: Sequence[tuple[str, str, str]] = (),
 ) -> pd.DataFrame:
     """``df`` (rows from ``first_row`` of ``path`` on) checked against the data contract, in the model's column order
-    (the instrument columns, when given, after the pose)."""
+    (the instrument columns, when given, after the pose; then the families' columns, by the family's names)."""
     df = contract.validate_metadata(df, path, row_offset=first_row, coerce=coerce_numeric)
     contract.check_instrument_values(df, instruments, path, first_row)
-    return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments]]
+    for family in dict.fromkeys(f for f, _, _ in families):
+        contract.check_family_values(df, [n for f, n, _ in families if f == family], path, first_row, family)
+    return df[[VIDEO_COLUMN, FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments, *(n for _, n, _ in families)]]
 
 
 def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None, instruments: Sequence[str] = ()) -> pd.DataFrame:
     """The metadata columns of ``row_groups`` (None: the whole table) as stored, with ``video_id`` as text (py-feat's
-    ``input`` path as written when the table names its videos so); then the ``instruments`` columns, when given."""
-    cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments]
+    ``input`` path as written when the table names its videos so); then the ``instruments`` columns, when given, and
+    the table's carried families (:attr:`FrameTable.family_columns`) renamed to the family's names, float64."""
+    cols = [FRAME_COLUMN, *AU_COLUMNS, *POSE_COLUMNS, *instruments, *(c for _, _, c in table.family_columns)]
     cols.insert(0, INPUT_PATH_COLUMN if table.video_from_input else VIDEO_COLUMN)
     if row_groups is None:
         columns = _read_columns(table.path, cols)
@@ -365,6 +395,8 @@ def _raw_metadata(table: FrameTable, row_groups: Sequence[int] | None, instrumen
     if table.video_from_input:  # the path as written is the video's identity (pyfeat.video_names shows its stem)
         df.insert(0, VIDEO_COLUMN, df.pop(INPUT_PATH_COLUMN))
     df[VIDEO_COLUMN] = df[VIDEO_COLUMN].astype(str)
+    if table.family_columns:  # by name: a table read in place may hold Detectorv2's ``Happy`` for ``happiness``
+        df = df.rename(columns={c: n for _, n, c in table.family_columns if c != n})
     return df
 
 

@@ -45,6 +45,33 @@ SWEEPS_DIR = "build/sweeps"
 PARENT_ENV = "AUMESH_SWEEP_PARENT_RUN_ID"
 
 
+def read_feature_sets(directory: str | Path) -> list[str]:
+    """The ``features`` options the sweep in ``directory`` runs (its parent file's ``feature_sets``; [] when not
+    recorded): every job accumulates the union of their designs in its one statistics pass."""
+    path = Path(directory) / PARENT_FILE
+    if not path.exists():
+        return []
+    return [str(name) for name in json.loads(path.read_text()).get("feature_sets") or []]
+
+
+def swept_feature_sets(overrides: Sequence[str]) -> list[str]:
+    """The ``features`` options named by a sweep's ``overrides`` (``features=a,b,c``, ``features=choice(a,b)`` or one
+    value), in order; [] when the sweep does not set ``features``."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    out: list[str] = []
+    for override in OverridesParser.create().parse_overrides([o for o in overrides if "=" in o]):
+        if override.get_key_element().lstrip("+~") != "features":
+            continue
+        values = (
+            list(override.sweep_string_iterator())
+            if override.is_sweep_override()
+            else [override.get_value_element_as_str()]
+        )
+        out += [str(v) for v in values if str(v) not in out]
+    return out
+
+
 def read_parent(directory: str | Path) -> str | None:
     """The parent run id the callback wrote into a sweep (or run) directory, else ``$AUMESH_SWEEP_PARENT_RUN_ID``."""
     path = Path(directory) / PARENT_FILE
@@ -133,6 +160,8 @@ class SweepCallback:
                 "run_id": parent,
                 "tracking_uri": tracking.tracking_uri(tracking_cfg) if parent else None,
                 "overrides": recorded_overrides(overrides),
+                # the designs every job's one statistics pass accumulates (the union: sweep_cache.statistics_for)
+                "feature_sets": [str((plain.get("features") or {}).get("name")), *swept_feature_sets(overrides)],
             },
         )
         if parent:
@@ -192,7 +221,8 @@ def _task(config) -> dict[str, Any]:
             "(conf/hydra/default.yaml)? Logging this configuration without a parent.",
             hc.sweep.dir if multirun else hc.run.dir,
         )
-    result = run_configuration(_plain_config(config), overrides, parent)
+    feature_sets = read_feature_sets(hc.sweep.dir if multirun else hc.run.dir)
+    result = run_configuration(_plain_config(config), overrides, parent, feature_sets=feature_sets)
     atomic_write_json(Path(hc.runtime.output_dir) / RESULT_FILE, result)
     return result
 

@@ -25,7 +25,7 @@ import hashlib
 import json
 import logging
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -151,11 +151,13 @@ class SweepCache:
     prepared: dict[str, Prepared] = field(default_factory=dict)
     folds: dict[tuple, np.ndarray] = field(default_factory=dict)
     designs: dict[tuple, Any] = field(default_factory=dict)  # (prepared id, n_splits, instruments) -> DesignStatistics
+    feature_sets: dict[tuple, list[str]] = field(default_factory=dict)  # the same key -> the designs' feature sets
     statistics: OrderedDict = field(default_factory=OrderedDict)
     results: OrderedDict = field(default_factory=OrderedDict)
     workspace: dict[str, Any] = field(default_factory=dict)
     hits: int = 0
     misses: int = 0
+    passes: int = 0  # statistics passes over the meshes this process made
 
     def workspace_params(self, root: Path) -> Config | None:
         """The workspace's ``params.yaml`` as a Config (cached by mtime), None if absent."""
@@ -180,6 +182,7 @@ class SweepCache:
             self.prepared = {pid: load_prepared(source.path)}  # one prepared set at a time
             self.folds.clear()
             self.designs.clear()
+            self.feature_sets.clear()
             self.statistics.clear()
             self.results.clear()
         return self.prepared[pid], pid
@@ -192,8 +195,17 @@ class SweepCache:
             self.folds[key] = ev.video_folds(prepared.videos.count, n_splits)
         return self.folds[key]
 
-    def statistics_for(self, prepared: Prepared, pid: str, cfg: Config) -> tuple[FoldStatistics, bool]:
-        """Per-fold statistics of *cfg*'s design and target; (stats, True if reused)."""
+    def statistics_for(
+        self, prepared: Prepared, pid: str, cfg: Config, feature_sets: Sequence[str] = ()
+    ) -> tuple[FoldStatistics, bool]:
+        """Per-fold statistics of *cfg*'s design and target; (stats, True if reused).
+
+        The one pass over the meshes accumulates the union of the designs of *cfg*'s ``features`` and of
+        *feature_sets* (the sweep's ``features`` options: :func:`aumesh.experiments.sweep.swept_feature_sets`), so
+        every configuration of the sweep takes its columns from it; a configuration outside that union (not announced)
+        costs one more pass, of the union with it.
+        """
+        from aumesh.model.statistics import FULL_DESIGN, design_union
         from aumesh.pipeline.evaluate import statistics_pass
         from aumesh.pipeline.evaluate.prepared_data import workers_check
 
@@ -205,13 +217,24 @@ class SweepCache:
         fold = self.fold_of(prepared, pid, cfg.cv.n_splits)
         instruments = instrument_columns(cfg.model.eiv.instrument_aus)
         design_key = (pid, cfg.cv.n_splits, instruments)
-        if design_key not in self.designs:  # the one pass over the meshes; every target/feature set derives from it
+        have = self.designs.get(design_key)
+        if have is None or not set(cfg.features.columns) <= set(have.columns):
+            # the one pass over the meshes; every target/feature set of the union derives from it
             from aumesh.pipeline import compute
 
+            names = [*self.feature_sets.get(design_key, []), cfg.features.name, *feature_sets]
+            self.feature_sets[design_key] = list(dict.fromkeys(names))
+            columns = design_union(self.feature_sets[design_key])
             with compute.engine(cfg.compute, **workers_check(prepared)):
                 self.designs[design_key] = statistics_pass.design_statistics(
-                    prepared, fold, cfg.cv.n_splits, cfg.data.chunk_rows, instruments
+                    prepared,
+                    fold,
+                    cfg.cv.n_splits,
+                    cfg.data.chunk_rows,
+                    instruments,
+                    None if columns == FULL_DESIGN else columns,
                 )
+            self.passes += 1
         stats = statistics_pass.accumulate(prepared, cfg, fold, design=self.designs[design_key])
         self.statistics[key] = stats
         while len(self.statistics) > MAX_CACHED_STATISTICS:

@@ -72,6 +72,7 @@ def run_configuration(
     parent_run_id: str | None = None,
     cache: SweepCache | None = None,
     root: Path | None = None,
+    feature_sets: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Evaluate and log one configuration as a child run; never raises for a bad configuration.
 
@@ -88,6 +89,9 @@ def run_configuration(
         Defaults to :func:`aumesh.experiments.sweep_cache.process_cache`.
     root : Path, optional
         Workspace root; defaults to :func:`aumesh.core.provenance.repo_root`.
+    feature_sets : sequence of str
+        Every ``features`` option of the sweep (:func:`aumesh.experiments.sweep.read_feature_sets`): the statistics
+        pass accumulates the union of their designs once, for every configuration.
 
     Returns
     -------
@@ -105,7 +109,7 @@ def run_configuration(
     name = run_name(overrides)
     tags = {
         tracking.ROLE_TAG: CHILD_ROLE,
-        **run_record.run_tags("sweep", (raw.get("preprocess") or {}).get("target")),
+        **run_record.run_tags("sweep", (raw.get("preprocess") or {}).get("target"), _family(raw)),
         "aumesh.sweep.overrides": " ".join(recorded_overrides(overrides)),
     }
     handle = None
@@ -117,7 +121,7 @@ def run_configuration(
             handle = run
             cfg = from_dict(raw)
             with blas_threads():
-                summary, reused = _evaluate_in_run(run, cfg, cache, root, raw)
+                summary, reused = _evaluate_in_run(run, cfg, cache, root, raw, feature_sets)
             run.log_metrics({"seconds_job": time.perf_counter() - t_start})
     except Exception as exc:  # recorded as FAILED by tracked_run; the sweep goes on
         log.error("configuration %s failed: %s: %s", name, type(exc).__name__, exc)
@@ -138,8 +142,17 @@ def run_configuration(
     return {"run_id": getattr(handle, "run_id", None), "run_name": name, "status": "FINISHED", "error": None} | summary
 
 
+def _family(raw: Mapping[str, Any]) -> str | None:
+    """The input family of a composed configuration's ``features.name`` (None when it names no feature set: the
+    configuration then fails validation in its run)."""
+    from aumesh.core.families import FEATURE_SETS
+
+    spec = FEATURE_SETS.get(str((raw.get("features") or {}).get("name")))
+    return spec[0] if spec else None
+
+
 def _evaluate_in_run(
-    run, cfg: Config, cache: SweepCache, root: Path, opened: Mapping[str, Any]
+    run, cfg: Config, cache: SweepCache, root: Path, opened: Mapping[str, Any], feature_sets: Sequence[str] = ()
 ) -> tuple[dict[str, Any], bool]:
     """Load (or reuse) the data and statistics, evaluate, and record the run as every evaluation run is recorded
     (:mod:`aumesh.pipeline.run_record`; ``opened``: the params the run was opened with); returns (summary metrics,
@@ -156,7 +169,7 @@ def _evaluate_in_run(
         digest = provenance.data_digest(root, "data.dvc")
     run_record.log_inputs(run, cfg, prepared, opened, digest, root)
     t2 = time.perf_counter()
-    stats, reused = cache.statistics_for(prepared, pid, cfg)
+    stats, reused = cache.statistics_for(prepared, pid, cfg, feature_sets)
     t3 = time.perf_counter()
     cv, final, same_model = cache.evaluation_for(prepared, pid, cfg, stats)
     t4 = time.perf_counter()

@@ -27,6 +27,7 @@ float64 rounding (tests/test_statistics.py).
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -41,21 +42,112 @@ from aumesh.model.cross_products import CrossProducts
 from aumesh.model.features import design_matrix
 
 FULL_DESIGN = feature_columns(True, True)
+#: Prefix of the instrument copy's column names in :attr:`DesignStatistics.stat_columns` (``model/eiv=instruments``)
+INSTRUMENT_PREFIX = "Z:"
+
+
+def design_union(feature_sets: Iterable[str]) -> list[str]:
+    """The columns one statistics pass accumulates for the feature sets ``feature_sets`` (names of
+    :data:`aumesh.core.families.FEATURE_SETS`): :data:`FULL_DESIGN` (the AU family's 83 columns, always: the AU model is
+    the stage's, its identification screen and the pose moments read them), then every other design's columns not yet
+    listed, in the order of ``feature_sets``. The pose columns are shared (one copy); each configuration's columns are
+    taken from the union by name (:meth:`DesignStatistics.index`).
+
+    E.g. ``["au_pose_interactions", "blendshapes_pose_interactions", "emotions_pose_interactions"]`` -> 83 + 208 + 28
+    = 319 columns.
+    """
+    from aumesh.core.families import feature_set_columns
+
+    out = list(FULL_DESIGN)
+    seen = set(out)
+    for name in feature_sets:
+        for c in feature_set_columns(name):
+            if c not in seen:
+                seen.add(c)
+                out.append(c)
+    return out
+
+
+def extra_inputs(columns: Sequence[str]) -> list[str]:
+    """The raw input columns (of ``frames.parquet``) the union's columns beyond :data:`FULL_DESIGN` are made of:
+    each plain column, and the input of each ``pose*input`` product, in order of appearance (pose excluded: always
+    read)."""
+    base = set(FULL_DESIGN)
+    out: list[str] = []
+    for c in columns:
+        if c in base:
+            continue
+        name = c.split("*", 1)[1] if "*" in c else c
+        if name not in out and name not in POSE_COLUMNS:
+            out.append(name)
+    return out
+
+
+def named_design(pose: np.ndarray, inputs: np.ndarray, names: Sequence[str], columns: Sequence[str]) -> np.ndarray:
+    """Design columns by name: a plain column is an input (or a pose angle), ``"P*I"`` the product of pose angle ``P``
+    and input ``I`` (pose-major interactions, :func:`aumesh.core.schema.interaction_columns`); the products are the
+    same float64 multiplications as :func:`aumesh.model.features.design_matrix`'s.
+
+    Parameters
+    ----------
+    pose : ndarray, shape (m, 3)
+        Pitch, Yaw, Roll (radians).
+    inputs : ndarray, shape (m, k)
+        The inputs named ``names``.
+    names : sequence of str, length k
+    columns : sequence of str, length p
+
+    Returns
+    -------
+    X : ndarray of float64, shape (m, p)
+    """
+    values = np.hstack([np.asarray(pose, dtype=np.float64), np.asarray(inputs, dtype=np.float64)])
+    where = {name: j for j, name in enumerate([*POSE_COLUMNS, *names])}
+    X = np.empty((len(values), len(columns)))
+    plain = [j for j, c in enumerate(columns) if "*" not in c]
+    products = [j for j, c in enumerate(columns) if "*" in c]
+    if plain:
+        X[:, plain] = values[:, [where[columns[j]] for j in plain]]
+    if products:
+        left = [where[columns[j].split("*", 1)[0]] for j in products]
+        right = [where[columns[j].split("*", 1)[1]] for j in products]
+        X[:, products] = values[:, left] * values[:, right]
+    return X
 
 
 @dataclass
 class DesignStatistics:
-    """Per-fold statistics of (full design, absolute coordinates) and per-video sums, all shifted by (a, b)."""
+    """Per-fold statistics of (the pass's design, absolute coordinates) and per-video sums, all shifted by (a, b).
 
-    folds: list[CrossProducts]  # shifts x_shift = a (83,), y_shift = b (1434,)
+    The pass's design is :attr:`columns` (:func:`design_union`: :data:`FULL_DESIGN` and the other designs a run needs,
+    pose shared); with instruments the statistics' columns are :attr:`stat_columns` (``[FULL_DESIGN | its instrument
+    copy | the rest of the union]``). A configuration's columns are selected by name (:meth:`index`).
+    """
+
+    folds: list[CrossProducts]  # shifts x_shift = a (p,), y_shift = b (1434,)
     video_fold: np.ndarray  # (n_videos,) fold of each video
     video_count: np.ndarray  # (n_videos,) frames per video
-    video_sum_x: RowArray  # (n_videos, 83)  sum over the video's frames of (x - a)
+    video_sum_x: RowArray  # (n_videos, p)  sum over the video's frames of (x - a)
     video_sum_y: RowArray  # (n_videos, 1434) sum over the video's frames of (y - b)
-    neutral_design: dict = field(default_factory=dict)  # neutral method -> (n_videos, 83) mean design row of its frames
+    neutral_design: dict = field(default_factory=dict)  # neutral method -> (n_videos, p) mean design row of its frames
     # model/eiv=instruments: the second detector's AU columns; the statistics are then of the augmented design
-    # [X | Z] (166 columns: FULL_DESIGN, then the same design of the instrument AUs: augmented_index)
+    # [X | Z | rest] (FULL_DESIGN, the same design of the instrument AUs, then the union's other columns: augmented_index)
     instruments: tuple[str, ...] = ()
+    columns: tuple[str, ...] = tuple(FULL_DESIGN)  # the union of the designs accumulated (design_union)
+
+    @property
+    def stat_columns(self) -> list[str]:
+        """The statistics' columns in order: :attr:`columns`, with instruments their :data:`FULL_DESIGN` part
+        followed by its instrument copy (named ``Z:<column>``) before the rest."""
+        return stat_columns(self.columns, bool(self.instruments))
+
+    def index(self, columns: Sequence[str]) -> np.ndarray:
+        """Indices of the design columns ``columns`` in the statistics (by name)."""
+        return column_index(self.stat_columns, columns)
+
+    def augmented_index(self, columns: Sequence[str]) -> np.ndarray:
+        """:func:`augmented_index` of ``columns`` in these statistics."""
+        return augmented_index(columns, self.columns)
 
     @property
     def x_shift(self) -> np.ndarray:
@@ -64,6 +156,30 @@ class DesignStatistics:
     @property
     def y_shift(self) -> np.ndarray:
         return self.folds[0].y_shift
+
+
+def stat_columns(columns: Sequence[str], instruments: bool) -> list[str]:
+    """The columns of a pass's statistics: ``columns`` (the union, :data:`FULL_DESIGN` first), and with
+    ``instruments`` the instrument copy of :data:`FULL_DESIGN` (``Z:<column>``) right after it (docs/method.md eq. 7)."""
+    columns = list(columns)
+    if not instruments:
+        return columns
+    head = len(FULL_DESIGN)
+    if columns[:head] != FULL_DESIGN:
+        raise ValueError("stat_columns: the union must start with FULL_DESIGN (design_union)")
+    return [*columns[:head], *(INSTRUMENT_PREFIX + c for c in FULL_DESIGN), *columns[head:]]
+
+
+def column_index(available: Sequence[str], columns: Sequence[str]) -> np.ndarray:
+    """Positions of ``columns`` in ``available`` (by name); a design column the pass did not accumulate is refused."""
+    where = {c: j for j, c in enumerate(available)}
+    missing = [c for c in columns if c not in where]
+    if missing:
+        raise ValueError(
+            f"the design statistics hold no column {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}: "
+            "the pass was accumulated for other feature sets (design_union of every configuration it serves)"
+        )
+    return np.array([where[c] for c in columns], dtype=np.int64)
 
 
 def fold_order(fold: np.ndarray, n_splits: int) -> tuple[np.ndarray | None, np.ndarray]:
@@ -165,8 +281,12 @@ class DesignSums:
     Sums of disjoint row sets add (``+``), so partitions of the rows are summed in any grouping.
     """
 
-    def __init__(self, p: int, q: int, n_splits: int):
+    def __init__(self, p: int, q: int, n_splits: int, head: int | None = None):
         self.p, self.q, self.K = p, q, n_splits
+        # the first ``head`` columns (the AU design, with instruments [X | Z]) are multiplied in GEMMs of their own, the
+        # same as a pass of those columns alone: the AU model's statistics are the same bits whatever else the pass
+        # accumulates (a GEMM's rounding may depend on its shape); the rest of the union in GEMMs after them
+        self.head = p if head is None else head
         self.cross = np.zeros((n_splits, p + 1, q))  # per fold: [X_f | 1]'Y_f, X'Y and the column sums of Y
         self.squares = np.zeros((q, n_splits))  # per fold: diag(Y'Y)
         self.xtx = np.zeros((n_splits, p, p))
@@ -189,17 +309,31 @@ class DesignSums:
             if lo == hi:
                 continue
             Xf, Yf = X[lo:hi], Y[lo:hi]
-            # (p + 1, q): X_f'Y_f and the column sums of Y_f, a contiguous block per fold (adding into strided column
-            # slices cost 30 % of the GEMM); [X|1]'Y runs ~15 % faster in OpenBLAS than Y'[X|1] on fold blocks of
-            # ~170 rows x 84 (52 vs 45 GFLOP/s, one thread)
-            self.cross[f] += np.hstack([Xf, ones[lo:hi]]).T @ Yf
-            self.xtx[f] += Xf.T @ Xf
-            self.sum_x[f] += Xf.sum(axis=0)
+            h = self.head
+            if h == self.p:
+                # (p + 1, q): X_f'Y_f and the column sums of Y_f, a contiguous block per fold (adding into strided
+                # column slices cost 30 % of the GEMM); [X|1]'Y runs ~15 % faster in OpenBLAS than Y'[X|1] on fold
+                # blocks of ~170 rows x 84 (52 vs 45 GFLOP/s, one thread)
+                self.cross[f] += np.hstack([Xf, ones[lo:hi]]).T @ Yf
+                self.xtx[f] += Xf.T @ Xf
+                self.sum_x[f] += Xf.sum(axis=0)
+            else:  # the head's products exactly as above, then the rest's (rows of the same arrays)
+                Xh, Xr = np.ascontiguousarray(Xf[:, :h]), np.ascontiguousarray(Xf[:, h:])
+                head_cross = np.hstack([Xh, ones[lo:hi]]).T @ Yf
+                self.cross[f, :h] += head_cross[:h]
+                self.cross[f, self.p] += head_cross[h]
+                self.cross[f, h : self.p] += Xr.T @ Yf
+                self.xtx[f, :h, :h] += Xh.T @ Xh
+                rest = Xr.T @ Xf  # (p - h, p): the rest against every column
+                self.xtx[f, h:, :] += rest
+                self.xtx[f, :h, h:] += rest[:, :h].T
+                self.sum_x[f, :h] += Xh.sum(axis=0)
+                self.sum_x[f, h:] += Xr.sum(axis=0)
             self.squares[:, f] += np.einsum("ij,ij->j", Yf, Yf)
             self.n[f] += hi - lo
 
     def __add__(self, other: DesignSums) -> DesignSums:
-        out = DesignSums(self.p, self.q, self.K)
+        out = DesignSums(self.p, self.q, self.K, self.head)
         for name in ("cross", "squares", "xtx", "sum_x", "n"):
             setattr(out, name, getattr(self, name) + getattr(other, name))
         return out
@@ -230,6 +364,8 @@ def accumulate_design(
     mesh_chunks,
     instrument_au: np.ndarray | None = None,
     instruments: tuple[str, ...] = (),
+    columns: Sequence[str] | None = None,
+    inputs: np.ndarray | None = None,
 ) -> DesignStatistics:
     """Pass A over ``mesh_chunks`` (iterable of ``(rows, Y)``, ``Y`` float64 (m, 1434), may be overwritten).
 
@@ -246,14 +382,29 @@ def accumulate_design(
         ``[X | Z]`` (:func:`augmented_design`, 166 columns).
     instruments : tuple of str
         The names of ``instrument_au``'s columns (:func:`aumesh.core.schema.instrument_columns`), recorded.
+    columns : sequence of str, optional
+        The union of the designs to accumulate (:func:`design_union`; default :data:`FULL_DESIGN`).
+    inputs : ndarray (n, k), optional
+        The other families' inputs the union's columns beyond :data:`FULL_DESIGN` need, in :func:`extra_inputs`'
+        order.
     """
-    p, q, K = len(FULL_DESIGN) * (1 if instrument_au is None else 2), N_TARGETS, n_splits
+    columns = list(FULL_DESIGN if columns is None else columns)
+    names = extra_inputs(columns)
+    head = len(FULL_DESIGN) * (1 if instrument_au is None else 2)
+    p, q, K = head + len(columns) - len(FULL_DESIGN), N_TARGETS, n_splits
     video_sum_x = np.zeros((n_videos, p))
     video_sum_y = np.zeros((n_videos, q))
-    sums = DesignSums(p, q, K)
+    sums = DesignSums(p, q, K, head)
     a = b = None
     for rows, Y in mesh_chunks:
-        X = augmented_design(au[rows], pose[rows], None if instrument_au is None else instrument_au[rows])
+        X = pass_design(
+            au[rows],
+            pose[rows],
+            None if instrument_au is None else instrument_au[rows],
+            columns,
+            None if inputs is None else inputs[rows],
+            names,
+        )
         if a is None:  # one provisional shift for every fold, so fold statistics add and subtract
             a, b = X.mean(axis=0), Y.mean(axis=0)
         X -= a
@@ -273,6 +424,7 @@ def accumulate_design(
         video_sum_x=video_sum_x,
         video_sum_y=video_sum_y,
         instruments=() if instrument_au is None else tuple(instruments),
+        columns=tuple(columns),
     )
 
 
@@ -287,15 +439,36 @@ def augmented_design(au: np.ndarray, pose: np.ndarray, instrument_au: np.ndarray
     return np.hstack([X, design_matrix(instrument_au, pose, True, True)])
 
 
-def augmented_index(columns: list[str]) -> np.ndarray:
-    """Indices into the augmented design ``[X | Z]`` (``FULL_DESIGN`` and then its instrument copy) of a configuration's
-    columns and their instruments: ``[idx, 83 + idx]`` (docs/method.md eq. 7).
+def pass_design(
+    au: np.ndarray,
+    pose: np.ndarray,
+    instrument_au: np.ndarray | None,
+    columns: Sequence[str],
+    inputs: np.ndarray | None = None,
+    names: Sequence[str] = (),
+) -> np.ndarray:
+    """The rows of a pass's design: :func:`augmented_design` (the AU family's, the same bits as a pass of it alone),
+    then the union ``columns``' other columns (:func:`named_design` of the other families' ``inputs`` (m, k), named
+    ``names``: :func:`extra_inputs`)."""
+    X = augmented_design(au, pose, instrument_au)
+    rest = list(columns)[len(FULL_DESIGN) :]
+    if not rest:
+        return X
+    if inputs is None:
+        raise ValueError(f"pass_design: the union's columns {rest[:3]} ... need the inputs {list(names)[:3]} ...")
+    return np.hstack([X, named_design(pose, inputs, names, rest)])
+
+
+def augmented_index(columns: Sequence[str], union: Sequence[str] | None = None) -> np.ndarray:
+    """Indices into the augmented design ``[X | Z | rest]`` (``FULL_DESIGN``, its instrument copy, then the union's
+    other columns) of a configuration's columns and their instruments: ``[idx, 83 + idx]`` (docs/method.md eq. 7).
 
     ``Z = design_matrix(instrument AUs, pose, ...)`` of the same feature set, so an AU is instrumented by the second
-    detector's reading of it, a pose angle by itself and pose x AU by pose x instrument AU: just identified.
+    detector's reading of it, a pose angle by itself and pose x AU by pose x instrument AU: just identified. Only the
+    AU family has instruments: ``columns`` are :data:`FULL_DESIGN`'s.
     """
-    idx = np.array([FULL_DESIGN.index(c) for c in columns])
-    return np.r_[idx, len(FULL_DESIGN) + idx]
+    available = stat_columns(FULL_DESIGN if union is None else union, True)
+    return np.r_[column_index(available, columns), column_index(available, [INSTRUMENT_PREFIX + c for c in columns])]
 
 
 def subset(stats: CrossProducts, columns: np.ndarray) -> CrossProducts:
@@ -411,10 +584,10 @@ def configuration_statistics(
 
     Parameters
     ----------
-    columns : the configuration's design columns (a subset of the full design, in its order)
+    columns : the configuration's design columns (a subset of the pass's union, selected by name)
     target : one of :data:`TARGETS`
     neutral : (n_videos, 1434) the videos' neutral meshes (absolute coordinates; float32 is fine)
-    neutral_design_full : (n_videos, 83) mean full-design row of each video's neutral frames
+    neutral_design_full : (n_videos, p) mean design row (the pass's columns) of each video's neutral frames
     video_block : videos per block of the correction sums (bounds the float64 temporaries: ~3 MiB an array
         at 256; a block of 2,048 cost the evaluate stage ~110 MiB at 30k videos but ~50 at 2.9k, so its memory grew
         with the frames until a fold held 2,048 videos)
@@ -439,7 +612,7 @@ def fold_configuration_statistics(
     so a caller may compute them at once."""
     if target not in TARGETS:
         raise ValueError(f"preprocess.target={target!r}: use one of {', '.join(TARGETS)}")
-    idx = np.array([FULL_DESIGN.index(c) for c in columns])
+    idx = design.index(columns)
     videos = np.flatnonzero(design.video_fold == fold)
     moments = _moments(
         design,
@@ -504,7 +677,7 @@ def target_offsets(
         Per-video mesh centre (``neutral`` itself for the neutral targets, so their rows stay bit-identical).
     """
     x_kind, y_kind = TARGETS[target]
-    idx = np.array([FULL_DESIGN.index(c) for c in columns])
+    idx = design.index(columns)
     every = np.arange(len(design.video_count))
     x_offset = y_offset = None
     if x_kind == "neutral":
@@ -526,7 +699,7 @@ def within_statistics(design: DesignStatistics, columns: list[str], video_block:
     (likewise ``X'X`` and ``diag(Y'Y)``); one ``(p, n_videos) @ (n_videos, 1434)`` product, in blocks of videos.
     The result is unshifted and centred (its sums are 0).
     """
-    idx = np.array([FULL_DESIGN.index(c) for c in columns])
+    idx = design.index(columns)
     total = design.folds[0].copy()
     for fold in design.folds[1:]:
         total = total + fold
@@ -551,7 +724,7 @@ def within_statistics(design: DesignStatistics, columns: list[str], video_block:
 def pose_moments(design: DesignStatistics) -> tuple[np.ndarray, np.ndarray]:
     """``E[p]`` (3,) and ``E[p p^T]`` (3, 3) of the raw pose over every frame (radians, POSE_COLUMNS order): what the
     pose x AU columns' share of the detector's error depends on (``aumesh.model.eiv.design_error_covariance``)."""
-    idx = np.array([FULL_DESIGN.index(c) for c in POSE_COLUMNS])
+    idx = design.index(POSE_COLUMNS)
     n = sum(f.n for f in design.folds)
     s = sum(f.sum_x[idx] for f in design.folds)
     ss = sum(f.xtx[np.ix_(idx, idx)] for f in design.folds)

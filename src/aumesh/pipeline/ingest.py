@@ -9,7 +9,9 @@ proportions (:func:`check_units`). The stage writes:
   several faces in a frame, Detectorv2's columns or normalized units), only the contract's columns: video_id, frame,
   20 AUs, Pitch, Yaw, Roll, the mesh axis-major in float32; about a CSV range or ``PARQUET_RANGE_ROWS`` rows per task,
   packed to at least :data:`TASK_ROWS` rows a file;
-* ``manifest.json``: the tables ``prepare`` reads, in order: those files, and clean parquet tables of ``data/`` in
+* ``manifest.json``: ``families``: the families (52 blendshapes, 7 emotions) the tables carry under the family's
+  names and those held by some sources only, with why (:func:`carried_families`, docs/families.md); the tables
+  ``prepare`` reads, in order: those files, and clean parquet tables of ``data/`` in
   place (read as they are: a clean parquet costs only this stage's check, a few columns, not a copy); per source, what
   it held, what was dropped and its ``mesh_units`` (what was converted, how, for how many rows); the totals
   (``rows_z_from_chip``, ``rows_z_from_crop256``, ``identity_labels``, ``frames_ambiguous_faces``: frames with two
@@ -40,6 +42,7 @@ import numpy as np
 from aumesh.config import Config
 from aumesh.core import storage
 from aumesh.core.errors import TableError
+from aumesh.core.families import CARRIED_FAMILIES
 from aumesh.core.io import absolute, atomic_directory, atomic_write_json, recorded
 from aumesh.core.schema import FRAME_COLUMN, instrument_columns
 from aumesh.data import ingest, passthrough, readers, units, video_frames
@@ -247,6 +250,23 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
                 )
             )
             check_units(where, detector, pooled, mesh_units)
+        families = carried_families(
+            [
+                (
+                    str(recorded(str(s.path))),
+                    (total.units.get(str(s.path)) or units.UnitStats(s.layout.detector)).rows,
+                    (
+                        total.families.get(str(s.path))
+                        if checks.get(s.path) is None or not checks[s.path].clean
+                        else checks[s.path].families
+                    )
+                    or {},
+                )
+                for s in sources
+            ]
+        )
+        for family, why in families["not_carried"].items():
+            log.warning("ingest: %s not carried: %s", family, why)
         totals = total.as_dict()
         totals["rows_in"] += in_place
         totals["frames_out"] += in_place
@@ -256,6 +276,7 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
             detectors[source.layout.detector] = detectors.get(source.layout.detector, 0) + 1
         manifest = {
             "tables": tables,
+            "families": families,
             "face_selection": how,
             "mesh_units": mesh_units,
             "counts": totals,
@@ -265,6 +286,70 @@ def run(cfg: Config, out_dir: str | Path) -> dict:
         atomic_write_json(tmp / MANIFEST_FILE, manifest)
     log.info("ingest: %s", totals)
     return manifest
+
+
+def carried_families(held: Sequence[tuple[str, int, dict[str, list]]]) -> dict:
+    """Which families the ingested tables carry, from what each source held.
+
+    Parameters
+    ----------
+    held : per source, ``(name, face rows kept, {family: [rows measured, rows all NaN, where the first NaN row is]})``
+        for the families its header holds whole (:attr:`aumesh.data.ingest.Counts.families`,
+        :attr:`aumesh.data.passthrough.PassThrough.families`).
+
+    Returns
+    -------
+    dict
+        ``{"carried": [family, ...], "not_carried": {family: why}}``: a family is carried when every source with a
+        kept face row measured it in every such row. A family no source holds (or measured) is simply absent; one that
+        some sources hold and others lack (or wrote NaN: MPDetector without an emotion model) is not carried, and
+        ``not_carried`` names the first source without it. Not refused: the AU model must not depend on an optional
+        family, and carrying it for part of the frames would mean filling the others in or fitting the family on
+        other frames than the AUs; a fit of that family is refused later, naming the file (docs/families.md).
+
+    Raises
+    ------
+    TableError
+        A source that measured a family in some face rows and wrote it NaN in others: one line naming the file, the
+        first NaN row and the fix.
+    """
+    for name, _, families in held:
+        for family, (measured, unmeasured, first) in families.items():
+            if measured and unmeasured:
+                raise TableError(
+                    f"{name}: the {family} columns are NaN in {unmeasured:,} of {measured + unmeasured:,} face rows "
+                    f"(first at {first}) and hold values in the others. Fix: drop the frames without {family} from "
+                    f"the table before `dvc add data`, or drop every {family} column to train without them."
+                )
+    with_rows = [(name, families) for name, rows, families in held if rows]
+    carried: list[str] = []
+    not_carried: dict[str, str] = {}
+    for family in CARRIED_FAMILIES:
+        measured = [name for name, f in with_rows if f.get(family, [0])[0]]
+        if not measured:
+            nan = [name for name, f in with_rows if family in f]
+            if nan:  # the columns are there, never measured (MPDetector's emotions with emotion_model=None)
+                not_carried[family] = (
+                    f"{nan[0]} writes the {family} columns NaN in every face row"
+                    + (f" (as do {len(nan) - 1:,} more sources)" if len(nan) > 1 else "")
+                    + f": not measured. Fix: detect with a {family} model (MPDetector(emotion_model='resmasknet') "
+                    f"or Detectorv2)"
+                )
+            continue
+        lacking = [name for name, f in with_rows if not f.get(family, [0])[0]]
+        if not lacking:
+            carried.append(family)
+            continue
+        first = lacking[0]
+        how = "writes them NaN (not measured)" if family in dict(with_rows)[first] else f"has no {family} columns"
+        not_carried[family] = (
+            f"{first} {how}"
+            + (f" (and {len(lacking) - 1:,} more sources)" if len(lacking) > 1 else "")
+            + f", while {len(measured):,} of {len(with_rows):,} sources hold them. Fix: export every video with "
+            f"py-feat's MPDetector (emotion_model='resmasknet' for emotions) or Detectorv2, or leave out the tables "
+            f"without them"
+        )
+    return {"carried": carried, "not_carried": not_carried}
 
 
 def check_frames_once(

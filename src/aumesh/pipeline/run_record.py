@@ -19,8 +19,8 @@ run handle (the tracking helper's :class:`aumesh.tracking.handle.TrackedRun` API
 4. :func:`log_model` -- the release arrays (:func:`model_arrays`: training metadata ``mlflow_run_id``, ``config``,
    ``cv``, ``data`` support) as the run's MLflow pyfunc model under ``model/`` and metric ``seconds_log_model``.
 
-Opening tags, the same keys for both (:func:`run_tags`): ``aumesh.stage`` (``evaluate`` or ``sweep``) and
-``aumesh.target``. What stays the caller's: the stage's metric ``evaluate_seconds`` and artifact ``metrics.json``
+Opening tags, the same keys for both (:func:`run_tags`): ``aumesh.stage`` (``evaluate`` or ``sweep``),
+``aumesh.target`` and ``aumesh.family`` (the input family: ``au`` for the AU model, ``blendshapes``, ``emotions``). What stays the caller's: the stage's metric ``evaluate_seconds`` and artifact ``metrics.json``
 (the file it writes to ``build/``); a sweep child's metrics ``seconds_load``, ``seconds_statistics``,
 ``seconds_cv_fit``, ``seconds_job``, its tags ``aumesh.role``, ``mlflow.parentRunId``, ``aumesh.sweep.overrides``
 and the prepared-cache tags ``aumesh.prepared_dir``, ``aumesh.prepared.key``, ``aumesh.cache.statistics``,
@@ -56,10 +56,19 @@ EFFECTIVE_TAG = "aumesh.n_components.effective"
 FOLD_METRICS = ("r2", "mae", "vertex_error", "r2_displacement")
 
 
-def run_tags(stage: str, target: Any) -> dict[str, str]:
+#: the input family a run fitted (``au``, ``blendshapes``, ``emotions``: ``features.family``; issue 46)
+FAMILY_TAG = "aumesh.family"
+
+
+def run_tags(stage: str, target: Any, family: str | None = None) -> dict[str, str]:
     """The tags an evaluation run is opened with: ``aumesh.stage`` (``"evaluate"`` for the DVC stage, ``"sweep"`` for
-    a sweep child: what :mod:`aumesh.tracking.queries` tells them apart by) and ``aumesh.target``."""
-    return {"aumesh.stage": stage, "aumesh.target": str(target)}
+    a sweep child: what :mod:`aumesh.tracking.queries` tells them apart by), ``aumesh.target`` and, given, the input
+    ``family`` as ``aumesh.family`` (the AU model's run ``"au"``, each family fit its family, a sweep child its
+    ``features``' family: what ``aumesh promote --family`` selects by)."""
+    tags = {"aumesh.stage": stage, "aumesh.target": str(target)}
+    if family is not None:
+        tags[FAMILY_TAG] = str(family)
+    return tags
 
 
 # ------------------------------------------------------------------------------------------- 1. and 2.: inputs
@@ -84,9 +93,15 @@ def log_clipping(cfg: Config, handle) -> None:
 def log_degenerate(prepared: Prepared, cfg: Config, handle) -> dict:
     """Say constant inputs aloud: a console warning and MLflow tags on the open run ``handle``; returns
     :func:`aumesh.pipeline.evaluate.degenerate_inputs` (the card's sentence is made from it)."""
+    from aumesh.core.families import FAMILIES
+    from aumesh.core.schema import POSE_COLUMNS
     from aumesh.pipeline.evaluate import constant_inputs, degenerate_inputs
 
-    found = degenerate_inputs(constant_inputs(prepared), cfg.features.columns)
+    family = cfg.features.family
+    found = degenerate_inputs(
+        constant_inputs(prepared, None if family == "au" else (*FAMILIES[family], *POSE_COLUMNS)),
+        cfg.features.columns,
+    )
     constant = found["constant_inputs"]
     if not constant:
         return found

@@ -1,7 +1,12 @@
-"""The evaluate stage: cross-validation and the final fit (``paths.model_dir``, metrics, plots), tracked in MLflow."""
+"""The evaluate stage: cross-validation and the final fit (``paths.model_dir``, metrics, plots), tracked in MLflow; and,
+from the same statistics pass, each input family's fit (``families``: ``paths.families_model_dir``/<family>,
+``paths.families_metrics_file``), each its own MLflow run (issue 46)."""
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import logging
 import os
 import shutil
 import time
@@ -28,18 +33,51 @@ if TYPE_CHECKING:
     from aumesh.pipeline.evaluate.prepared_data import Prepared
     from aumesh.pipeline.evaluate.results import CVResult, FinalModel
 
+log = logging.getLogger(__name__)
 
-def run_evaluation(prepared: Prepared, cfg: Config, handle, params: dict, digest: dict) -> tuple[CVResult, FinalModel]:
+#: tag of a family fit whose ``model/eiv`` was set aside (the correction is the AU detector's: the family's is none)
+EIV_NOTE_TAG = "aumesh.family.eiv"
+
+
+def family_configs(cfg: Config) -> list[tuple[str, Config, str | None]]:
+    """Each configured input family's configuration (``families.items()``): ``cfg`` with ``features`` :=
+    ``families.<f>.features`` and ``model.n_components`` := ``families.<f>.n_components`` (null: ``model.n_components``
+    clipped to the design's width), fitted with ``model/eiv=none`` (the corrections are the AU detector's); returns
+    ``(family, its config, note)``, the note saying when ``model/eiv`` was set aside (None otherwise)."""
+    from aumesh.config import EivConfig, FeaturesConfig, validate
+    from aumesh.core.families import feature_set_columns
+
+    out = []
+    for family, spec in cfg.families.items():
+        width = len(feature_set_columns(spec.features))
+        k = spec.n_components if spec.n_components is not None else min(cfg.model.n_components, width)
+        note = None
+        if cfg.model.eiv.method != "none":
+            note = (
+                f"model/eiv={cfg.model.eiv.method} corrects the AU detector's noise: the {family} family is fitted "
+                "with model/eiv=none"
+            )
+        model = dataclasses.replace(cfg.model, n_components=k, eiv=EivConfig())
+        out.append(
+            (family, validate(dataclasses.replace(cfg, features=FeaturesConfig(spec.features), model=model)), note)
+        )
+    return out
+
+
+def run_evaluation(
+    prepared: Prepared, cfg: Config, handle, params: dict, digest: dict, shared=None
+) -> tuple[CVResult, FinalModel]:
     """Evaluate one configuration and log it to an open MLflow run ``handle``
     (:class:`aumesh.tracking.beside.RunBeside`) as every evaluation run records it (:mod:`aumesh.pipeline.run_record`;
     the stage's own: metric ``evaluate_seconds``). ``params``: what the run was opened with; ``digest``:
-    ``data.dvc``'s (:func:`aumesh.stages.common.data_digest`)."""
+    ``data.dvc``'s (:func:`aumesh.stages.common.data_digest`); ``shared``: the stage's one statistics pass
+    (:class:`aumesh.pipeline.evaluate.SharedPass`), None for a pass of this configuration alone."""
     from aumesh.pipeline import evaluate as ev
 
     run_record.log_clipping(cfg, handle)
     degenerate = run_record.log_inputs(handle, cfg, prepared, params, digest, Path.cwd())
     t0 = time.perf_counter()
-    cv, final = ev.cross_validate_and_fit(prepared, cfg)
+    cv, final = ev.cross_validate_and_fit(prepared, cfg, shared)
     cv.extra["degenerate"] = degenerate
     timings = {"evaluate_seconds": time.perf_counter() - t0}
     # drawn and logged by the tracking helper, beside the rest of the stage
@@ -68,11 +106,13 @@ def evaluate_run_name(cfg: Config) -> str:
 def main(cfg: Config) -> dict:
     """Cross-validate and fit the prepared data into ``paths.model_dir`` (and the metrics and plot files DVC
     compares), recorded as one MLflow run; returns the CV metrics (``metrics.json``)."""
+    from aumesh.model.statistics import design_union
     from aumesh.pipeline import dvc_metrics
+    from aumesh.pipeline import evaluate as ev
     from aumesh.pipeline.evaluate.eiv_fits import check_eiv_inputs
     from aumesh.pipeline.evaluate.prepared_data import load_prepared
+    from aumesh.pipeline.evaluate.statistics_pass import check_family_columns
     from aumesh.tracking import mlflow_store
-    from aumesh.tracking import runs as tracking
     from aumesh.tracking.beside import tracked_run_beside
     from aumesh.tracking.connection import TrackingServerError
 
@@ -85,45 +125,102 @@ def main(cfg: Config) -> dict:
     check_columns(cfg)
     check_eiv_inputs(cfg)  # a bad covariance file stops the stage before any pass
     prepared = load_prepared(cfg.paths.prepared_dir)
+    families = family_configs(cfg)
+    # a family the prepared frames lack stops the stage before any pass (one line: the file, the family, the fix)
+    check_family_columns(prepared, design_union([cfg.features.name, *(f.features.name for _, f, _ in families)]))
+    shared = ev.SharedPass([f.features.name for _, f, _ in families])  # one statistics pass for every fit
     digest = data_digest()
-    out = Path(cfg.paths.model_dir)
+    out, families_out = Path(cfg.paths.model_dir), Path(cfg.paths.families_model_dir)
+    family_metrics: dict[str, dict] = {}
     try:
-        # MLflow (imported and opened in a helper process) works beside the passes; the logging below is queued to it
-        with tracked_run_beside(
-            tracking_cfg,
-            run_name=evaluate_run_name(cfg),
-            params=params,
-            tags=run_record.run_tags("evaluate", cfg.preprocess.target),
-        ) as run:
-            cv, final = run_evaluation(prepared, cfg, run, params, digest)
+        with contextlib.ExitStack() as stack:
+            # MLflow (imported and opened in helper processes) works beside the passes; the logging below is queued to
+            # them. Every run is opened now (their imports beside the pass) and ends with the stage: a failure anywhere
+            # marks each FAILED and publishes nothing (build/model, build/families and the metrics stay as they were)
+            run = stack.enter_context(
+                tracked_run_beside(
+                    tracking_cfg,
+                    run_name=evaluate_run_name(cfg),
+                    params=params,
+                    tags=run_record.run_tags("evaluate", cfg.preprocess.target, cfg.features.family),
+                )
+            )
+            family_runs = {
+                family: stack.enter_context(
+                    tracked_run_beside(
+                        tracking_cfg,
+                        run_name=evaluate_run_name(fcfg),
+                        params=fcfg.to_dict(),
+                        tags=run_record.run_tags("evaluate", fcfg.preprocess.target, family),
+                    )
+                )
+                for family, fcfg, _ in families
+            }
+            cv, final = run_evaluation(prepared, cfg, run, params, digest, shared)
             metrics = cv.metrics()
             arrays = run_record.model_arrays(cfg, prepared, cv, final, run.run_id)
             refuse_nonfinite(arrays, Path(cfg.paths.prepared_dir))  # before the model is logged or anything written
             run.call(run_record.log_model, arrays)
-            run_info = {
-                "run_id": run.run_id,
-                "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
-                "experiment_id": getattr(run, "experiment_id", None),
-                # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
-                # never a server's address (the run id finds the run there)
-                "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None,
-            }
-            with atomic_directory(out) as tmp:
-                write_model_dir(tmp, cv, final, metrics, run_info | {"data_digest": digest})
-                run.log_artifact(tmp / METRICS_JSON)
-                # every logging call done and the run FINISHED before the folder is swapped in: build/model never
-                # names a run that failed (a lost server ends here, and the previous build/model stays)
-                run.finish()
+            family_results = {}
+            for family, fcfg, note in families:
+                frun = family_runs[family]
+                if note is not None:
+                    log.warning("evaluate: %s", note)
+                    frun.set_tags({EIV_NOTE_TAG: note})
+                fcv, ffinal = run_evaluation(prepared, fcfg, frun, fcfg.to_dict(), digest, shared)
+                farrays = run_record.model_arrays(fcfg, prepared, fcv, ffinal, frun.run_id)
+                refuse_nonfinite(farrays, Path(cfg.paths.prepared_dir))
+                frun.call(run_record.log_model, farrays)
+                family_metrics[family] = fcv.metrics()
+                family_results[family] = (fcv, ffinal, note)
+            tmp = stack.enter_context(atomic_directory(out))
+            write_model_dir(tmp, cv, final, metrics, _run_info(cfg, run, tracking_cfg) | {"data_digest": digest})
+            run.log_artifact(tmp / METRICS_JSON)
+            families_tmp = stack.enter_context(atomic_directory(families_out))
+            for family, (fcv, ffinal, note) in family_results.items():
+                folder = families_tmp / family
+                folder.mkdir()
+                fcfg = next(f for name, f, _ in families if name == family)
+                info = _run_info(fcfg, family_runs[family], tracking_cfg) | {"data_digest": digest, "family": family}
+                if note is not None:
+                    info["eiv_note"] = note
+                write_model_dir(folder, fcv, ffinal, family_metrics[family], info, family=family)
+                family_runs[family].log_artifact(folder / METRICS_JSON)
+            # every logging call done and every run FINISHED before the folders are swapped in (the ExitStack unwinds:
+            # build/families, then build/model): no folder names a run that failed (a lost server ends here, and the
+            # previous folders stay)
+            for handle in (run, *family_runs.values()):
+                handle.finish()
     except TrackingServerError as err:
-        raise err.noted(f"nothing of this run was published ({out}/, {cfg.paths.metrics_file} as they were)") from err
+        raise err.noted(
+            f"nothing of this run was published ({out}/, {families_out}/, {cfg.paths.metrics_file} as they were)"
+        ) from err
     dvc_metrics.write(cfg.paths, metrics, cv.frame_vertex_error, cv.r2_path_folds)  # committed: `dvc metrics diff`
+    atomic_write_json(cfg.paths.families_metrics_file, dvc_metrics.rounded(family_metrics))
     return metrics
 
 
-def write_model_dir(tmp: Path, cv: CVResult, final: FinalModel, metrics: dict, run_info: dict) -> None:
+def _run_info(cfg: Config, run, tracking_cfg: dict) -> dict:
+    """What ``tracking.json`` says of the run that fitted a model folder."""
+    from aumesh.tracking import runs as tracking
+
+    return {
+        "run_id": run.run_id,
+        "run_name": evaluate_run_name(cfg) if cfg.tracking.enabled else None,
+        "experiment_id": getattr(run, "experiment_id", None),
+        # the card built from this is shared: the workspace's store repo-relative (sqlite:///mlflow.db),
+        # never a server's address (the run id finds the run there)
+        "tracking_uri": tracking.store_label(tracking_cfg) if cfg.tracking.enabled else None,
+    }
+
+
+def write_model_dir(
+    tmp: Path, cv: CVResult, final: FinalModel, metrics: dict, run_info: dict, family: str | None = None
+) -> None:
     """The files of ``paths.model_dir`` into the folder ``tmp`` (swapped in by the caller): the model's arrays
     (``model.npz``), the CV's curves (``cv.npz``), the per-frame errors, ``tracking.json`` (``run_info`` and the
-    degenerate inputs) and ``metrics.json``."""
+    degenerate inputs) and ``metrics.json``. A family's folder (``paths.families_model_dir``/<family>) has the same
+    files, and ``model.npz`` a str scalar ``family``."""
     from aumesh.pipeline import dvc_metrics
 
     model_arrays: dict[str, Any] = {
@@ -137,6 +234,8 @@ def write_model_dir(tmp: Path, cv: CVResult, final: FinalModel, metrics: dict, r
         model_arrays["coef_uncorrected"] = final.uncorrected_coef
     if final.identification is not None:
         model_arrays |= final.identification.release_arrays()
+    if family is not None:
+        model_arrays["family"] = np.array(family)
     np.savez(tmp / MODEL_NPZ, **model_arrays)
     thresholds, fraction = dvc_metrics.error_curve(cv.frame_vertex_error, CARD_ERROR_CURVE_POINTS)
     np.savez(

@@ -20,8 +20,14 @@ def main(cfg: Config) -> dict:
 
     start_stage("prepare", cfg)
     manifest = ingest.load_manifest(cfg.paths.ingested_dir)
+    # the families the ingest stage carries (issue 46; a manifest of before: none), read by name from every table
+    families = manifest.get("families") or {"carried": [], "not_carried": {}}
     found = tables.check_tables(
-        manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric, instrument_columns(cfg.model.eiv.instrument_aus)
+        manifest["tables"],
+        cfg.data.mesh_npy,
+        cfg.data.coerce_numeric,
+        instrument_columns(cfg.model.eiv.instrument_aus),
+        families["carried"],
     )
     if found:  # keys naming a column, before the passes (the first table's columns: the contract makes them alike)
         import pyarrow.parquet as pq
@@ -30,7 +36,12 @@ def main(cfg: Config) -> dict:
     from aumesh.model import support
 
     summary = prep.run(
-        found, cfg, cfg.paths.prepared_dir, ingested=manifest["counts"], detectors=support.detector_counts(manifest)
+        found,
+        cfg,
+        cfg.paths.prepared_dir,
+        ingested=manifest["counts"],
+        detectors=support.detector_counts(manifest),
+        families=families,
     )
     log.info("prepared %d frames of %d videos: %s", summary["n_frames"], summary["n_videos"], summary["counts"])
     return summary

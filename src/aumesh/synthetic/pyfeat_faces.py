@@ -201,7 +201,7 @@ def video_rows(
     family, moved = None, None
     if family_fields is not None:  # its own stream: without it nothing more is drawn (tables stay byte-identical)
         family = draw_family_values(np.random.default_rng([seed, spec.seed, video, 6]), n)
-        moved = family[0] @ family_fields["blendshapes"] + family[1] @ family_fields["emotions"]
+        moved = synth.family_displacement(family, family_fields)
     coef, intercept, identity_basis, latent_basis, resemblance = gen_args
     g = synth.generate_video(spec, video, n, coef, intercept, identity_basis, latent_basis, resemblance, extra=moved)
     plan_rng = np.random.default_rng([seed, spec.seed, video, 1])

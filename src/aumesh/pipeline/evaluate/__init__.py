@@ -49,18 +49,26 @@ from aumesh.config import Config
 from aumesh.core.blas import one_blas_thread
 from aumesh.core.errors import ConfigError
 from aumesh.core.io import NpyRowFile, NpyRows, create_npy, scratch_directory
-from aumesh.core.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, feature_columns
+from aumesh.core.schema import AU_COLUMNS, N_TARGETS, N_VERTICES, POSE_COLUMNS, instrument_columns
 from aumesh.model import eiv, reliability
 from aumesh.model.cross_products import CrossProducts
 from aumesh.model.eiv import EivFit
 from aumesh.model.features import design_matrix
 from aumesh.model.kernel_pls import PLSFit, fit_statistics
 from aumesh.model.scoring import r2_path, r2_per_target, r2_variance_weighted, residual_sums
+from aumesh.model.statistics import FULL_DESIGN, DesignStatistics, design_union, extra_inputs, named_design
 from aumesh.pipeline import compute
 from aumesh.pipeline.evaluate.eiv_fits import eiv_fits, eiv_record
-from aumesh.pipeline.evaluate.prepared_data import Prepared, block_rows, fold_grouped_block, read_group, workers_check
+from aumesh.pipeline.evaluate.prepared_data import (
+    Prepared,
+    block_rows,
+    fold_grouped_block,
+    read_columns,
+    read_group,
+    workers_check,
+)
 from aumesh.pipeline.evaluate.results import CVResult, FinalModel, Fits, FoldStatistics, training_sets
-from aumesh.pipeline.evaluate.statistics_pass import accumulate
+from aumesh.pipeline.evaluate.statistics_pass import accumulate, design_statistics
 from aumesh.pipeline.model_files import FRAME_ERROR_FILE
 from aumesh.pipeline.prepared_files import FRAMES_FILE, MESHES_FILE, scratch_path
 
@@ -163,6 +171,7 @@ def cross_validate(
     # pass B: held-out predictions, streamed partition by partition; each frame's error goes to rows of a scratch
     # .npy beside the prepared data (removed with the result), never gathered
     use_pose, inter = cfg.features.pose, cfg.features.interactions
+    columns = cfg.features.columns
     video_fold, video_count = stats.video_fold, prepared.videos.count
     has = video_fold >= 0
     count = np.bincount(video_fold[has], weights=video_count[has], minlength=n_splits).astype(np.int64)
@@ -184,6 +193,7 @@ def cross_validate(
                 frame_error=frame_error,
                 x_offset=stats.x_offset,
                 y_offset=stats.y_offset,
+                columns=None if cfg.features.family == "au" else columns,
             ),
             ErrorPart.__add__,
             prepared.row_groups(),
@@ -197,7 +207,7 @@ def cross_validate(
     sse_v, sst_v = sse_sum.reshape(3, N_VERTICES).sum(0), sst_sum.reshape(3, N_VERTICES).sum(0)
     result = CVResult(
         n_components=A,
-        feature_columns=feature_columns(use_pose, inter),
+        feature_columns=columns,
         r2_folds=[float(r) for r in r2_folds],
         r2_displacement_folds=[float(r) for r in r2d_folds],
         r2_path_folds=np.vstack(paths),
@@ -238,14 +248,19 @@ def error_partition(
     frame_error: Path,
     x_offset=None,
     y_offset=None,
+    columns: Sequence[str] | None = None,
 ) -> ErrorPart:
     """Pass B on one row group: each frame's held-out residual under its fold's model (``coefs[f]`` (p, 1434),
     ``intercepts[f]`` (1434,)), and the error sums per fold; each frame's mean per-vertex error is written to its
     row of the ``.npy`` ``frame_error`` (n_frames,) float32. ``x_offset`` (n_videos, p) and ``y_offset``
     (n_videos, 1434), arrays or :class:`aumesh.core.io.NpyRows`, are the target's per-video centres (None: none);
-    only the partition's videos' rows are read."""
+    only the partition's videos' rows are read. ``columns``: the design of another input family than the AUs (its
+    inputs read by name, :func:`aumesh.model.statistics.named_design`); None: the AU design of ``use_pose``,
+    ``interactions``."""
     g, start, stop = group
     au, pose, video, _ = read_group(directory, g)
+    names = None if columns is None else extra_inputs(columns)
+    inputs = None if names is None else read_columns(directory, g, names)
     fold = video_fold[video]
     videos, local = np.unique(video, return_inverse=True)
     x_rows = None if x_offset is None else np.asarray(x_offset[videos], dtype=np.float64)
@@ -259,7 +274,10 @@ def error_partition(
     with NpyRowFile(directory / MESHES_FILE) as meshes, NpyRowFile(frame_error, writable=True) as errors:
         for lo in range(start, stop, chunk_rows):
             rows, bounds, Y = fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
-            X = design_matrix(au[rows], pose[rows], use_pose, interactions)
+            if inputs is None:
+                X = design_matrix(au[rows], pose[rows], use_pose, interactions)
+            else:
+                X = named_design(pose[rows], inputs[rows], names or [], columns or [])
             if x_rows is not None:  # the target's per-video centres (held-out videos: their own)
                 X -= x_rows[local[rows]]
             if y_rows is not None:
@@ -310,7 +328,7 @@ def final_fit(prepared: Prepared, cfg: Config, stats: FoldStatistics, model: PLS
         coef=model.coef_.copy(),
         raw_intercept=model.raw_intercept_.copy(),
         mesh_intercept=mesh_intercept,
-        feature_columns=feature_columns(cfg.features.pose, cfg.features.interactions),
+        feature_columns=cfg.features.columns,
         n_components=A,
         model=model,
     )
@@ -341,6 +359,14 @@ def cross_validate_and_fit_from_statistics(
     """Cross-validation, the final fit and the AU-field checks of one configuration from its statistics (``stats``:
     :func:`aumesh.pipeline.evaluate.statistics_pass.accumulate`), on the current scheduler."""
     fits = fit_models(cfg, stats)
+    if cfg.features.family != "au":  # the AU-specific pieces (EIV, reliability, FACS, the screen) are the AU model's
+        if cfg.model.eiv.method != "none":
+            raise ConfigError(
+                f"model/eiv={cfg.model.eiv.method} corrects the AU detector's noise, but features={cfg.features.name} "
+                f"is the {cfg.features.family} family. Fix: model/eiv=none for features={cfg.features.name}"
+            )
+        cv = cross_validate(prepared, cfg, stats, fits.folds)
+        return cv, final_fit(prepared, cfg, stats, fits.final)
     corrected = eiv_fits(cfg, stats)  # model/eiv: the same statistics refitted for detector noise (None: none)
     used = corrected or fits
     cv = cross_validate(prepared, cfg, stats, used.folds, path_models=fits.folds)
@@ -372,17 +398,55 @@ def identification(cfg: Config, stats: FoldStatistics) -> eiv.IdentificationScre
     )
 
 
-def cross_validate_and_fit(prepared: Prepared, cfg: Config) -> tuple[CVResult, FinalModel]:
+@dataclass
+class SharedPass:
+    """The evaluate stage's one statistics pass, shared by every configuration it fits (issue 46, contract item 2).
+
+    ``feature_sets``: the designs besides the first configuration's (``families.<f>.features``). The first call of
+    :meth:`statistics` runs pass A once over the union of the designs
+    (:func:`aumesh.model.statistics.design_union`, with the first configuration's instruments); every call takes its
+    configuration's columns from it by name. ``passes`` counts the passes made.
+    """
+
+    feature_sets: Sequence[str] = ()
+    video_fold: np.ndarray | None = None
+    design: DesignStatistics | None = None
+    passes: int = 0
+
+    def statistics(self, prepared: Prepared, cfg: Config) -> FoldStatistics:
+        """``cfg``'s :class:`FoldStatistics` from the shared pass (run now if it has not been), on the current
+        scheduler."""
+        if self.design is None or self.video_fold is None:
+            self.video_fold = video_folds(prepared.videos.count, cfg.cv.n_splits)
+            columns = design_union([cfg.features.name, *self.feature_sets])
+            self.design = design_statistics(
+                prepared,
+                self.video_fold,
+                cfg.cv.n_splits,
+                cfg.data.chunk_rows,
+                instrument_columns(cfg.model.eiv.instrument_aus),
+                None if columns == FULL_DESIGN else columns,  # the AU design alone: the pass as it always was
+            )
+            self.passes += 1
+        return accumulate(prepared, cfg, self.video_fold, design=self.design)
+
+
+def cross_validate_and_fit(
+    prepared: Prepared, cfg: Config, shared: SharedPass | None = None
+) -> tuple[CVResult, FinalModel]:
     """Cross-validation and the final fit for one configuration (the stage's one typed call): both passes, on
-    the ``compute`` group's scheduler."""
+    the ``compute`` group's scheduler. ``shared``: the stage's one statistics pass (:class:`SharedPass`), run by the
+    first configuration that needs it and reused by the others."""
     with compute.engine(cfg.compute, **workers_check(prepared)):
+        if shared is not None:
+            return cross_validate_and_fit_from_statistics(prepared, cfg, shared.statistics(prepared, cfg))
         video_fold = video_folds(prepared.videos.count, cfg.cv.n_splits)
         return cross_validate_and_fit_from_statistics(prepared, cfg, accumulate(prepared, cfg, video_fold))
 
 
 # ------------------------------------------------------------------------------------------- degenerate inputs
-def constant_inputs(prepared: Prepared) -> dict[str, float]:
-    """The AU and pose columns with one value in every prepared frame (column -> that value), from the row groups'
+def constant_inputs(prepared: Prepared, inputs: Sequence[str] | None = None) -> dict[str, float]:
+    """The input columns ``inputs`` (default: the AU and pose columns) with one value in every prepared frame (column -> that value), from the row groups'
     min/max statistics in ``frames.parquet``'s footer (no pass over the data; a column without statistics is read).
 
     Such a column carries no information. It stays in the design: its centred values are exactly 0 (the statistics
@@ -395,7 +459,7 @@ def constant_inputs(prepared: Prepared) -> dict[str, float]:
     md = pq.ParquetFile(path).metadata
     names = md.schema.to_arrow_schema().names
     out = {}
-    for name in (*AU_COLUMNS, *POSE_COLUMNS):
+    for name in (*AU_COLUMNS, *POSE_COLUMNS) if inputs is None else inputs:
         j = names.index(name)
         lo, hi = np.inf, -np.inf
         for g in range(md.num_row_groups):

@@ -38,10 +38,11 @@ from aumesh.model.statistics import (
     DesignStatistics,
     DesignSums,
     VideoSumStream,
-    augmented_design,
-    augmented_index,
+    design_union,
+    extra_inputs,
     fold_configuration_statistics,
     fold_within_statistics,
+    pass_design,
     pose_moments,
     target_offsets,
     within_statistics,
@@ -79,12 +80,14 @@ class DesignPart:
 VIDEO_SUMS = {"video_sum_x": len(FULL_DESIGN), "video_sum_y": N_TARGETS, "video_low_sum_x": len(FULL_DESIGN)}
 
 
-def video_sums(instruments: Sequence[str] = ()) -> dict[str, int]:
-    """:data:`VIDEO_SUMS` with the design's width: twice :data:`FULL_DESIGN`'s with instruments (the augmented design
-    ``[X | Z]``, :func:`aumesh.model.statistics.augmented_design`)."""
-    if not instruments:
+def video_sums(instruments: Sequence[str] = (), columns: Sequence[str] | None = None) -> dict[str, int]:
+    """:data:`VIDEO_SUMS` with the design's width: the union ``columns``' (:func:`aumesh.model.statistics.design_union`;
+    default :data:`FULL_DESIGN`), plus :data:`FULL_DESIGN`'s again with instruments (the augmented design
+    ``[X | Z | rest]``, :func:`aumesh.model.statistics.pass_design`)."""
+    if not instruments and columns is None:
         return VIDEO_SUMS
-    return {name: 2 * width if name != "video_sum_y" else width for name, width in VIDEO_SUMS.items()}
+    width = len(FULL_DESIGN if columns is None else columns) + (len(FULL_DESIGN) if instruments else 0)
+    return {name: width if name != "video_sum_y" else w for name, w in VIDEO_SUMS.items()}
 
 
 def _hash_block(digests: integrity.RangeDigests, meshes: NpyRowFile, file_rows: np.ndarray, Y: np.ndarray) -> None:
@@ -106,21 +109,27 @@ def design_partition(
     split_video: np.ndarray,
     check: integrity.StreamedCheck | None = None,
     instruments: Sequence[str] = (),
+    columns: Sequence[str] | None = None,
 ) -> DesignPart:
     """Pass A on one row group of the prepared data: per-fold sums of the full design with the absolute
     coordinates (shifted by ``a``, ``b``), and the per-video sums; those of videos held whole by this
     partition are written to ``scratch`` as each video finishes, those of videos split across partitions returned.
     The checksummed blocks of ``meshes.npy`` the row group holds (``check``) are hashed from the bytes read, for the
     driver to compare (:meth:`aumesh.pipeline.integrity.StreamedCheck.check`). With ``instruments`` (the second
-    detector's AU columns) the design is the augmented ``[X | Z]`` (:func:`aumesh.model.statistics.augmented_design`; ``a`` of its width)."""
+    detector's AU columns) the design is the augmented ``[X | Z]`` (:func:`aumesh.model.statistics.augmented_design`; ``a`` of its width).
+    ``columns``: the union of the designs the pass serves (:func:`aumesh.model.statistics.design_union`; default
+    :data:`FULL_DESIGN`); the other families' inputs are read by name."""
     g, start, stop = group
     digests = integrity.RangeDigests(check.ranges(g), check.algorithm) if check is not None else None
     au, pose, video, low = read_group(directory, g)
     instrument_au = read_columns(directory, g, instruments) if instruments else None
+    union = list(FULL_DESIGN if columns is None else columns)
+    names = extra_inputs(union)
+    inputs = read_columns(directory, g, names) if names else None
     fold = video_fold[video]
-    widths = video_sums(instruments)
+    widths = video_sums(instruments, columns)
     p, q = widths["video_sum_x"], N_TARGETS
-    sums = DesignSums(p, q, n_splits)
+    sums = DesignSums(p, q, n_splits, len(FULL_DESIGN) * (2 if instruments else 1))
     split: dict[int, tuple[np.ndarray, ...]] = {}
     finished: dict[str, dict[int, np.ndarray]] = {name: {} for name in widths}  # whole videos, until written
 
@@ -152,7 +161,14 @@ def design_partition(
             rows, _, Y = fold_grouped_block(meshes, raw, lo, min(lo + chunk_rows, stop), start, fold, n_splits)
             if digests is not None:
                 _hash_block(digests, meshes, rows + start, Y)
-            X = augmented_design(au[rows], pose[rows], None if instrument_au is None else instrument_au[rows])
+            X = pass_design(
+                au[rows],
+                pose[rows],
+                None if instrument_au is None else instrument_au[rows],
+                union,
+                None if inputs is None else inputs[rows],
+                names,
+            )
             X -= a
             Y = np.subtract(Y, b, out=centred[: len(Y)])  # float64 (the float32 rows widen exactly)
             # a video's rows stay consecutive in the fold-grouped block (a video is in one fold): summed in place
@@ -189,7 +205,12 @@ class NeutralDesign:
 
 
 def design_statistics(
-    prepared: Prepared, video_fold: np.ndarray, n_splits: int, chunk_rows: int, instruments: Sequence[str] = ()
+    prepared: Prepared,
+    video_fold: np.ndarray,
+    n_splits: int,
+    chunk_rows: int,
+    instruments: Sequence[str] = (),
+    columns: Sequence[str] | None = None,
 ) -> DesignStatistics:
     """Pass A: per-fold statistics of the full design with absolute coordinates (one pass, every configuration).
 
@@ -204,23 +225,34 @@ def design_statistics(
     statistics are of the augmented design ``[X | Z]`` (:func:`aumesh.model.statistics.augmented_design`), so every fold's within-video
     ``Z'X``, ``Z'Z``, ``Z'Y`` follow exactly (:func:`aumesh.model.statistics.fold_within_statistics`); without them
     nothing changes (the same arrays, the same bits).
+
+    ``columns``: the union of the designs of every configuration the pass serves
+    (:func:`aumesh.model.statistics.design_union`: the stage's AU model and its families, or every configuration of a
+    sweep; default :data:`FULL_DESIGN`). The AU design's products are the same bits whatever else is accumulated
+    (:class:`aumesh.model.statistics.DesignSums`' head); each configuration takes its columns by name.
     """
     n_videos = len(prepared.video_ids)
     videos = prepared.videos
     first = min(BLOCK_ROWS, prepared.n_frames)
     instruments = tuple(instruments)
+    union = list(FULL_DESIGN if columns is None else columns)
+    names = extra_inputs(union)
     check_instrument_columns(prepared, instruments)
-    head = _head(prepared, first, instruments)
-    a = augmented_design(
+    check_family_columns(prepared, union)
+    head = _head(prepared, first, (*instruments, *names))
+    a = pass_design(
         head[list(AU_COLUMNS)].to_numpy(np.float64),
         head[list(POSE_COLUMNS)].to_numpy(np.float64),
         head[list(instruments)].to_numpy(np.float64) if instruments else None,
+        union,
+        head[names].to_numpy(np.float64) if names else None,
+        names,
     ).mean(axis=0)
     assert prepared.mesh_path is not None  # load_prepared sets it
     b = read_rows(prepared.mesh_path, 0, first).astype(np.float64).mean(axis=0)
     scratch = scratch_directory(scratch_path(prepared.directory))
     try:
-        widths = video_sums(instruments)
+        widths = video_sums(instruments, columns)
         for name, width in widths.items():
             create_npy(scratch / f"{name}.npy", np.float64, (n_videos, width))
         part = compute.map_reduce(
@@ -236,6 +268,7 @@ def design_statistics(
                 split_video=videos.split,
                 check=prepared.mesh_check,
                 instruments=instruments,
+                columns=columns,
             ),
             DesignPart.__add__,
             prepared.row_groups(),
@@ -256,6 +289,7 @@ def design_statistics(
         video_sum_x=NpyRows(scratch / "video_sum_x.npy"),
         video_sum_y=NpyRows(scratch / "video_sum_y.npy"),
         instruments=instruments,
+        columns=tuple(union),
     )
     design.neutral_design = {  # mean design row of each video's neutral frames, per neutral method
         "low_au": NeutralDesign(NpyRows(scratch / "video_low_sum_x.npy"), videos.low_count, a),
@@ -283,6 +317,34 @@ def check_instrument_columns(prepared: Prepared, instruments: Sequence[str]) -> 
         )
 
 
+def check_family_columns(prepared: Prepared, columns: Sequence[str]) -> None:
+    """The inputs of the union's designs are in ``frames.parquet``, or one line naming the file, the family and the fix
+    (contract item 1 of issue 46: a family absent from the source tables is absent from the prepared frames)."""
+    names = extra_inputs(columns)
+    if not names:
+        return
+    from aumesh.core.errors import ConfigError
+    from aumesh.core.families import FAMILIES
+
+    path = prepared.directory / FRAMES_FILE
+    present = set(pq.read_schema(path).names)
+    for family, inputs in FAMILIES.items():
+        missing = [c for c in inputs if c in names and c not in present]
+        if missing:
+            raise ConfigError(
+                f"{path}: no {family} columns ({', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}; "
+                f"{len(missing)} of {len(inputs)} missing), so the {family} family cannot be fitted. Fix: ingest tables "
+                f"that carry them (py-feat's MPDetector or Detectorv2 write all {len(inputs)}) and rerun ingest and "
+                f"prepare, or leave {family} out of families (and features)"
+            )
+
+
+def pass_columns(cfg: Config, feature_sets: Sequence[str] = ()) -> list[str]:
+    """The union of the designs a run needs (:func:`aumesh.model.statistics.design_union`): ``cfg.features``' and each
+    of ``feature_sets`` (the stage's ``families.<f>.features``, or a sweep's ``features`` options)."""
+    return design_union([cfg.features.name, *feature_sets])
+
+
 def _head(prepared: Prepared, n: int, instruments: Sequence[str] = ()) -> pd.DataFrame:
     """The first ``n`` rows of ``frames.parquet`` (AU and pose columns, and the ``instruments``)."""
     batches = pq.ParquetFile(prepared.directory / FRAMES_FILE).iter_batches(
@@ -301,17 +363,26 @@ def accumulate(
     """Per-fold (target, displacement) statistics of ``cfg``'s features and target; ``video_fold`` (n_videos,)
     is each video's fold (:func:`aumesh.pipeline.evaluate.video_folds`).
 
-    ``design`` (from :func:`design_statistics` with the same folds) is reused when given: then no
-    pass over the meshes is needed (aumesh.model.statistics derives every configuration from it).
+    ``design`` (from :func:`design_statistics` with the same folds, any union holding ``cfg.features.columns``) is
+    reused when given: then no pass over the meshes is needed (aumesh.model.statistics derives every configuration
+    from it, its columns taken by name).
     """
     instruments = instrument_columns(cfg.model.eiv.instrument_aus)  # () unless model/eiv=instruments
+    if instruments and cfg.features.family != "au":
+        from aumesh.core.errors import ConfigError
+
+        raise ConfigError(
+            f"model/eiv=instruments corrects the AU detector's noise, but features={cfg.features.name} is the "
+            f"{cfg.features.family} family. Fix: model/eiv=none for features={cfg.features.name}"
+        )
     if design is None:
+        columns = None if cfg.features.family == "au" else pass_columns(cfg)
         design = design_statistics(
-            prepared, video_fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows, instruments
+            prepared, video_fold, cfg.cv.n_splits, chunk_rows or cfg.data.chunk_rows, instruments, columns
         )
     elif not np.array_equal(design.video_fold, video_fold):
         raise ValueError("accumulate: the design statistics were built with other folds")
-    elif design.instruments != instruments:
+    elif instruments and design.instruments != instruments:  # without instruments any pass serves (by name)
         raise ValueError("accumulate: the design statistics were built with other instrument columns")
     method = cfg.preprocess.neutral.method
     # the folds' statistics are independent: at once on this machine's cores (single-threaded BLAS each: the same bits)
@@ -348,5 +419,5 @@ def instrument_statistics(design: DesignStatistics, columns: list[str]) -> list[
     """Per fold, the within-video statistics of the augmented design ``[X | Z]`` of ``columns`` with the mesh
     (:func:`aumesh.model.statistics.augmented_index`: the configuration's columns, then their instruments), the folds
     at once on this machine's cores; training sets are total - fold (docs/method.md eq. 7)."""
-    idx = augmented_index(columns)
+    idx = design.augmented_index(columns)
     return compute.local_map(partial(fold_within_statistics, design, idx=idx), range(len(design.folds)))

@@ -35,7 +35,8 @@ process holds per-partition and per-video summaries only (memory flat in frames)
    frames), for the release's record of what its data supports (:mod:`aumesh.model.support`).
 
 Outputs (in ``paths.prepared_dir``, swapped in atomically as a whole folder):
-``meshes.npy`` (n_kept, 1434) float32; ``frames.parquet`` (video_id, frame, AUs, pose,
+``meshes.npy`` (n_kept, 1434) float32; ``frames.parquet`` (video_id, frame, AUs, pose, the instrument AUs when
+configured, the carried families' columns under the family's names (float64: 52 blendshapes, 7 emotions, issue 46),
 video_index, low_au per kept frame, same order; a row group per partition); ``video_ids.npy``
 (n_videos,) and ``neutral_mean.npy`` / ``neutral_low_au.npy`` (n_videos, 1434) float32 (per-video
 neutral meshes); ``reference.npz`` (reference anchors, mean meshes); ``summary.json`` (counts, ``input_ranges``,
@@ -122,12 +123,16 @@ def run(
     out_dir: str | Path,
     ingested: dict | None = None,
     detectors: dict[str, int] | None = None,
+    families: dict | None = None,
 ) -> dict:
     """Prepare the frame tables into ``out_dir`` (replaced atomically). Returns the summary.
 
     ``ingested``: the ingest stage's counts (rows read, no-face rows and other faces dropped), added to the summary's.
     ``detectors``: ``{detector: n_sources}`` of the ingest manifest (:func:`aumesh.model.support.detector_counts`),
     recorded as the summary's ``detector`` (:func:`aumesh.model.support.detector_summary`; ``unknown`` when None).
+    ``families``: the ingest manifest's ``families`` (``{"carried": [...], "not_carried": {family: why}}``), recorded
+    as the summary's: ``frames.parquet`` holds the carried families' columns (read from the tables,
+    :attr:`aumesh.data.tables.FrameTable.family_columns`), and a fit of another family names why it is not there.
     Frames whose aligned mesh has a vertex beyond ``preprocess.alignment.max_vertex_iod`` are found while pass 3 writes
     them; the passes then run once more without them, so the result is what tables without those frames give (the
     GPA subsample, the thresholds and the means included). Clean data never takes the second round.
@@ -148,6 +153,8 @@ def run(
                 summary = _passes(tables, parts, cfg, tmp, exclude, ingested or {})
                 summary["tables"] = [recorded(p) for p in given]
                 summary["detector"] = support.detector_summary(detectors or {})
+                if families is not None:  # only when given: other callers' summaries are unchanged
+                    summary["families"] = families
                 atomic_write_json(tmp / SUMMARY_FILE, summary)
                 return summary
             except _WildRows as found:

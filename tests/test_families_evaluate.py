@@ -1,0 +1,201 @@
+"""The evaluate stage's one statistics pass for the AU model and the input families (issue 46, contract item 2).
+
+References are independent of the pass: numpy's X'X and X'Y of designs built here column by column, numpy's least
+squares and scikit-learn's PLSRegression on the same rows, the AU fit of a pass of the AU design alone, and the number
+of times pass A reads meshes.npy.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from aumesh.core.families import BLENDSHAPE_COLUMNS, EMOTION_COLUMNS, feature_set_columns
+from aumesh.core.schema import AU_COLUMNS, POSE_COLUMNS
+from aumesh.model.statistics import FULL_DESIGN, design_union
+from aumesh.pipeline import evaluate as ev
+from aumesh.pipeline import integrity
+from aumesh.pipeline.evaluate import statistics_pass
+from aumesh.pipeline.evaluate.prepared_data import load_prepared
+from aumesh.pipeline.prepared_files import FRAMES_FILE, SUMMARY_FILE
+from conftest import default_config
+
+FAMILY_SETS = ["blendshapes_pose_interactions", "emotions_pose"]
+
+
+def add_family_columns(prepared_dir: Path, out: Path, seed: int = 3) -> Path:
+    """A copy of ``prepared_dir`` whose ``frames.parquet`` also carries the 52 blendshape and 7 emotion columns
+    (random, float64; the row groups kept), its checksum recorded again in ``summary.json`` as prepare records it."""
+    shutil.copytree(prepared_dir, out)
+    path = out / FRAMES_FILE
+    source = pq.ParquetFile(prepared_dir / FRAMES_FILE)
+    rng = np.random.default_rng(seed)
+    groups = []
+    for g in range(source.num_row_groups):
+        t = source.read_row_group(g)
+        n = t.num_rows
+        bs = rng.uniform(0.0, 1.0, (n, len(BLENDSHAPE_COLUMNS)))
+        em = rng.dirichlet(np.ones(len(EMOTION_COLUMNS)), n)
+        for j, c in enumerate(BLENDSHAPE_COLUMNS):
+            t = t.append_column(c, pa.array(bs[:, j]))
+        for j, c in enumerate(EMOTION_COLUMNS):
+            t = t.append_column(c, pa.array(em[:, j]))
+        groups.append(t)
+    with pq.ParquetWriter(path, groups[0].schema) as writer:
+        for t in groups:
+            writer.write_table(t, row_group_size=t.num_rows)
+    summary = json.loads((out / SUMMARY_FILE).read_text())
+    summary["checksums"][FRAMES_FILE] = integrity.file_record(path)
+    (out / SUMMARY_FILE).write_text(json.dumps(summary))
+    return out
+
+
+@pytest.fixture(scope="module")
+def family_prepared(recovery_prepared, tmp_path_factory):
+    return add_family_columns(recovery_prepared / "prepared", tmp_path_factory.mktemp("families") / "prepared")
+
+
+def numpy_design(frames, columns: list[str]) -> np.ndarray:
+    """The design ``columns`` built here, one column at a time (the reference of the pass's by-name selection)."""
+    out = np.empty((len(frames), len(columns)))
+    for j, c in enumerate(columns):
+        if "*" in c:
+            p, i = c.split("*")
+            out[:, j] = frames[p].to_numpy(np.float64) * frames[i].to_numpy(np.float64)
+        else:
+            out[:, j] = frames[c].to_numpy(np.float64)
+    return out
+
+
+def test_union_is_the_au_design_then_each_other_design_once_pose_shared():
+    union = design_union(["au_pose_interactions", *FAMILY_SETS])
+    assert union[: len(FULL_DESIGN)] == FULL_DESIGN
+    assert len(union) == len(set(union)) == 83 + (52 + 156) + 7  # emotions_pose: its 7 inputs (pose shared)
+    for name in FAMILY_SETS:
+        assert set(feature_set_columns(name)) <= set(union)
+    assert union.count("Pitch") == 1
+
+
+def test_shared_pass_statistics_of_a_family_equal_numpy_on_the_same_rows(family_prepared):
+    prepared = load_prepared(family_prepared)
+    cfg = default_config(features="blendshapes_pose_interactions", **{"preprocess.target": "absolute"})
+    fold = ev.video_folds(prepared.videos.count, cfg.cv.n_splits)
+    union = design_union(["au_pose_interactions", *FAMILY_SETS])
+    design = statistics_pass.design_statistics(prepared, fold, cfg.cv.n_splits, 256, columns=union)
+    stats = statistics_pass.accumulate(prepared, cfg, fold, design=design)
+
+    frames = prepared.frames
+    X = numpy_design(frames, feature_set_columns("blendshapes_pose_interactions"))
+    Y = np.asarray(prepared.meshes, dtype=np.float64)
+    row_fold = fold[frames["video_index"].to_numpy()]
+    for f, s in enumerate(stats.target):
+        Xf, Yf = X[row_fold == f], Y[row_fold == f]
+        Xc, Yc = Xf - Xf.mean(0), Yf - Yf.mean(0)
+        assert s.n == len(Xf)
+        np.testing.assert_allclose(s.cxx, Xc.T @ Xc, rtol=1e-9, atol=1e-9 * np.abs(Xc.T @ Xc).max())
+        np.testing.assert_allclose(s.cxy, Xc.T @ Yc, rtol=1e-9, atol=1e-9 * np.abs(Xc.T @ Yc).max())
+
+
+def test_a_family_fit_from_the_shared_pass_equals_lstsq_at_full_rank_and_sklearn_pls(family_prepared):
+    from sklearn.cross_decomposition import PLSRegression
+
+    prepared = load_prepared(family_prepared)
+    p = len(feature_set_columns("emotions_pose"))
+    shared = ev.SharedPass(["blendshapes_pose_interactions", "emotions_pose"])
+    frames = prepared.frames
+    X = numpy_design(frames, feature_set_columns("emotions_pose"))
+    Y = np.asarray(prepared.meshes, dtype=np.float64)
+    # full rank: PLS with p components is least squares (the inputs sum to 1 with the intercept: drop neutral's column
+    # from the reference and compare predictions, which do not depend on that choice)
+    cfg = default_config(features="emotions_pose", **{"preprocess.target": "absolute", "model.n_components": p})
+    final = ev.final_fit(
+        prepared, cfg, shared.statistics(prepared, cfg), ev.fit_models(cfg, shared.statistics(prepared, cfg)).final
+    )
+    A = np.hstack([X, np.ones((len(X), 1))])
+    beta, *_ = np.linalg.lstsq(A, Y, rcond=None)
+    np.testing.assert_allclose(X @ final.coef.T + final.raw_intercept, A @ beta, atol=1e-6 * np.abs(Y).max())
+    # fewer components: scikit-learn's PLSRegression(scale=True) on the same rows
+    cfg5 = default_config(features="emotions_pose", **{"preprocess.target": "absolute", "model.n_components": 5})
+    fit5 = ev.fit_models(cfg5, shared.statistics(prepared, cfg5)).final
+    ref = PLSRegression(n_components=5, scale=True, max_iter=10_000, tol=1e-14).fit(X, Y)  # NIPALS converged
+    np.testing.assert_allclose(fit5.coef_, ref.coef_, rtol=1e-6, atol=1e-8 * np.abs(ref.coef_).max())
+    assert shared.passes == 1
+
+
+def test_the_au_fit_is_the_same_bits_with_the_families_in_the_pass(family_prepared):
+    prepared = load_prepared(family_prepared)
+    cfg = default_config()
+    cv_alone, final_alone = ev.cross_validate_and_fit(prepared, cfg)
+    shared = ev.SharedPass(["blendshapes_pose_interactions", "emotions_pose_interactions"])
+    cv_shared, final_shared = ev.cross_validate_and_fit(prepared, cfg, shared)
+    assert shared.design is not None and len(shared.design.columns) > len(FULL_DESIGN)
+    for key in ("coef", "raw_intercept", "mesh_intercept"):
+        assert getattr(final_alone, key).tobytes() == getattr(final_shared, key).tobytes(), key
+    assert cv_alone.metrics() == cv_shared.metrics()
+    assert np.asarray(cv_alone.frame_vertex_error[:]).tobytes() == np.asarray(cv_shared.frame_vertex_error[:]).tobytes()
+    assert cv_alone.r2_path_folds.tobytes() == cv_shared.r2_path_folds.tobytes()
+
+
+def test_the_stage_reads_the_meshes_once_for_the_au_model_and_every_family(family_prepared, monkeypatch):
+    prepared = load_prepared(family_prepared)
+    calls = []
+    original = statistics_pass.design_partition
+    monkeypatch.setattr(
+        statistics_pass, "design_partition", lambda group, **kw: calls.append(group) or original(group, **kw)
+    )
+    shared = ev.SharedPass(["blendshapes_pose_interactions", "emotions_pose_interactions"])
+    cfg = default_config()
+    ev.cross_validate_and_fit(prepared, cfg, shared)
+    for name in shared.feature_sets:
+        ev.cross_validate_and_fit(prepared, default_config(features=name, **{"model.n_components": 10}), shared)
+    assert shared.passes == 1
+    assert sorted(calls) == sorted(prepared.row_groups())  # each row group of meshes.npy read once by pass A
+
+
+def test_a_sweep_accumulates_the_union_of_its_feature_sets_once(family_prepared, monkeypatch):
+    from aumesh.experiments.sweep import swept_feature_sets
+    from aumesh.experiments.sweep_cache import SweepCache
+
+    names = swept_feature_sets(["-m", "features=blendshapes_pose_interactions,emotions_pose,au_pose_interactions"][1:])
+    assert names == ["blendshapes_pose_interactions", "emotions_pose", "au_pose_interactions"]
+    prepared = load_prepared(family_prepared)
+    calls = []
+    original = statistics_pass.design_partition
+    monkeypatch.setattr(
+        statistics_pass, "design_partition", lambda group, **kw: calls.append(group) or original(group, **kw)
+    )
+    cache = SweepCache()
+    results = {}
+    for name in names:
+        cfg = default_config(features=name, **{"model.n_components": 10})
+        stats, _ = cache.statistics_for(prepared, "pid", cfg, names)
+        results[name] = stats
+    assert cache.passes == 1
+    assert len(calls) == len(prepared.row_groups())
+    # the same statistics as a pass of that design alone would give (the emotion design, by another route)
+    alone = statistics_pass.accumulate(
+        prepared,
+        default_config(features="emotions_pose", **{"model.n_components": 10}),
+        cache.fold_of(prepared, "pid", 3),
+    )
+    for a, b in zip(results["emotions_pose"].target, alone.target, strict=True):
+        np.testing.assert_allclose(a.cxy, b.cxy, rtol=1e-9, atol=1e-9 * np.abs(b.cxy).max())
+
+
+def test_a_family_absent_from_the_prepared_frames_is_one_line_naming_the_file_family_and_fix(recovery_prepared):
+    from aumesh.core.errors import ConfigError
+
+    prepared = load_prepared(recovery_prepared / "prepared")  # prepared from tables without the families
+    with pytest.raises(ConfigError) as err:
+        statistics_pass.check_family_columns(prepared, design_union(["blendshapes_pose"]))
+    message = str(err.value)
+    assert "\n" not in message
+    assert str(prepared.directory / FRAMES_FILE) in message and "blendshapes family" in message and "Fix:" in message
+    statistics_pass.check_family_columns(prepared, list(FULL_DESIGN))  # the AUs alone: nothing to refuse
+    assert AU_COLUMNS[0] in FULL_DESIGN and POSE_COLUMNS[0] in FULL_DESIGN
