@@ -50,6 +50,25 @@ MAX_POSE_DROPPED = 0.25
 IMPLAUSIBLE_FIELD_FACTOR = 5.0
 
 
+#: How the warnings name an input family's inputs (issue 46: the family releases' cards reuse these checks):
+#: family -> (one input, the inputs, the smaller designs to suggest, what the inputs stand for).
+INPUT_WORDS: dict[str, tuple[str, str, str, str]] = {
+    "au": ("AU", "AUs", "features=au or au_pose", "how AUs move a face"),
+    "blendshapes": (
+        "blendshape",
+        "blendshapes",
+        "families.blendshapes.features=blendshapes or blendshapes_pose",
+        "how MediaPipe's blendshapes move a face",
+    ),
+    "emotions": (
+        "emotion",
+        "emotions",
+        "families.emotions.features=emotions or emotions_pose",
+        "how emotions move a face",
+    ),
+}
+
+
 # ---------------------------------------------------------------------------------------------------- field sizes
 def au_field_sizes(disp: np.ndarray) -> np.ndarray:
     """Largest vertex displacement of each AU's field.
@@ -118,7 +137,8 @@ def _verb(names: Sequence[str], one: str, many: str) -> str:
     return one if len(names) == 1 else many
 
 
-def _data_warnings(data: Mapping[str, Any], n_features: int | None) -> list[dict[str, Any]]:
+def _data_warnings(data: Mapping[str, Any], n_features: int | None, family: str = "au") -> list[dict[str, Any]]:
+    _, _, smaller, meaning = INPUT_WORDS[family]
     out = []
     n_frames, n_videos = data.get("n_frames"), data.get("n_videos")
     if n_frames is not None and n_features:
@@ -130,8 +150,8 @@ def _data_warnings(data: Mapping[str, Any], n_features: int | None) -> list[dict
                     f"{n_frames:,} training frames for {n_features} features ({per:.1f} per feature; at least "
                     f"{MIN_FRAMES_PER_FEATURE} wanted, the reference card has ~4,150): the fit can overfit, and "
                     f"consecutive frames of a video add little information; more data, or fewer features "
-                    f"(features=au or au_pose), would help",
-                    "as a general model of how AUs move a face",
+                    f"({smaller}), would help",
+                    f"as a general model of {meaning}",
                     n_frames=n_frames,
                     n_features=n_features,
                     frames_per_feature=round(per, 2),
@@ -155,7 +175,8 @@ def _data_warnings(data: Mapping[str, Any], n_features: int | None) -> list[dict
         out.append(
             _warning(
                 "few_people",
-                f"{who} in the training data (py-feat's Identity labels): every AU field mixes what the AU does with "
+                f"{who} in the training data (py-feat's Identity labels): every {INPUT_WORDS[family][0]} field mixes "
+                f"what the {INPUT_WORDS[family][0]} does with "
                 + ("how this face is built and moves" if people == 1 else "how these faces are built and move"),
                 "as a model of other people's faces, or of a population",
                 identity_labels=people,
@@ -191,6 +212,7 @@ def _field_warnings(
     au_directions: Mapping[str, str] | None,
     au_field_iod: Mapping[str, float] | None,
     constant: Sequence[str] = (),
+    family: str = "au",
 ) -> list[dict[str, Any]]:
     """Reliability, FACS direction and field size; ``constant`` inputs (no field at all, their own warning) are not
     judged here: their zero field has cosine 0 and no direction, which says nothing about the data's noise."""
@@ -242,7 +264,8 @@ def _field_warnings(
                     f"{_fmt_list(list(big))} {_verb(list(big), 'moves', 'move')} vertices by "
                     + ", ".join(f"{v:.2f}" for v in big.values())
                     + f" inter-ocular distances at intensity 1, more than {IMPLAUSIBLE_FIELD_FACTOR:g}x the median "
-                    f"AU ({median:.3f}): likely an AU the data barely varied, given a huge and meaningless field",
+                    f"{INPUT_WORDS[family][0]} ({median:.3f}): likely an {INPUT_WORDS[family][0]} the data barely "
+                    "varied, given a huge and meaningless field",
                     f"to drive {_fmt_list(list(big))} (the figures show {_verb(list(big), 'it', 'them')} greyed out)",
                     aus=list(big),
                     field_iod=big,
@@ -340,22 +363,32 @@ def _degenerate_warnings(data: Mapping[str, Any]) -> list[dict[str, Any]]:
     ]
 
 
-def _detector_warning(data: Mapping[str, Any]) -> list[dict[str, Any]]:
+def _detector_warning(data: Mapping[str, Any], family: str = "au") -> list[dict[str, Any]]:
     detector = data.get("detector") or {}
     name = detector.get("name")
     if name not in ("mixed", "unknown"):
         return []
+    one, many = INPUT_WORDS[family][:2]
+    if family == "au":
+        mixed = (
+            "tables from several py-feat detectors: their AUs mean different things (Detectorv2: presence "
+            "probabilities; MPDetector: a linear map of MediaPipe's blendshapes)"
+        )
+    else:  # Detectorv2's own network writes both families; MPDetector takes them from MediaPipe's models
+        mixed = (
+            f"tables from several py-feat detectors: their {many} come from different networks (Detectorv2's "
+            f"multitask network; MPDetector's MediaPipe models), so one value is not one expression across the data"
+        )
     what = (
-        "tables from several py-feat detectors: their AUs mean different things (Detectorv2: presence "
-        "probabilities; MPDetector: a linear map of MediaPipe's blendshapes)"
+        mixed
         if name == "mixed"
-        else "tables of unknown origin (not a py-feat detector export): the AUs' scale and meaning are unknown"
+        else f"tables of unknown origin (not a py-feat detector export): the {many}' scale and meaning are unknown"
     )
     return [
         _warning(
             f"detector_{name}",
             what,
-            "with AU values from a detector other than the training data's, as if they were the same scale",
+            f"with {one} values from a detector other than the training data's, as if they were the same scale",
             detector=name,
         )
     ]
@@ -365,6 +398,7 @@ def release_warnings(
     card: Mapping[str, Any],
     au_directions: Mapping[str, str] | None = None,
     au_field_iod: Mapping[str, float] | None = None,
+    family: str = "au",
 ) -> list[dict[str, Any]]:
     """The limits of a release, machine-readable: ``model_card.json``'s ``warnings``.
 
@@ -377,7 +411,10 @@ def release_warnings(
     au_directions : mapping, optional
         AU -> "pass" | "doubtful" | "fail" (the card's ``au_directions``; read from ``card`` when not given).
     au_field_iod : mapping, optional
-        AU -> largest vertex displacement at intensity 1, inter-ocular distances (:func:`au_field_sizes`).
+        AU -> largest vertex displacement at intensity 1, inter-ocular distances (:func:`au_field_sizes`); for a
+        family release, each of its inputs'.
+    family : str
+        The input family the release maps (:data:`INPUT_WORDS`): the words of the messages; the checks are the same.
 
     Returns
     -------
@@ -390,16 +427,16 @@ def release_warnings(
     n_features = (card.get("model") or {}).get("n_features")
     directions = au_directions if au_directions is not None else card.get("au_directions")
     return [
-        *_data_warnings(data, n_features),
+        *_data_warnings(data, n_features, family),
         *_unsupported_warning(data),
         *_field_warnings(
-            cv, directions, au_field_iod, list((data.get("degenerate") or {}).get("constant_inputs") or {})
+            cv, directions, au_field_iod, list((data.get("degenerate") or {}).get("constant_inputs") or {}), family
         ),
         *_cv_warning(cv),
         *_pose_warning(data.get("counts") or {}),
         *_faces_warning(data.get("counts") or {}),
         *_degenerate_warnings(data),
-        *_detector_warning(data),
+        *_detector_warning(data, family),
         *identification_warning(card),
     ]
 
@@ -410,14 +447,22 @@ CHECKED = (
 )
 
 
-def limits_section(warnings: Sequence[Mapping[str, Any]]) -> list[str]:
+#: What a family release's checks look at (:func:`release_warnings` with ``family``; no FACS or identification check)
+CHECKED_FAMILY = (
+    "data size (frames, videos, people), inputs the data barely exercised, field size, fold spread, pose filter, "
+    "constant inputs, detector"
+)
+
+
+def limits_section(warnings: Sequence[Mapping[str, Any]], checked: str = CHECKED) -> list[str]:
     """The card's "## Limits of this release": one bullet per warning (what was found, what not to use it for), or
-    one line saying that no limit was found."""
+    one line saying that no limit was found; ``checked`` says what the checks looked at (:data:`CHECKED`,
+    :data:`CHECKED_FAMILY`)."""
     lines = ["## Limits of this release", ""]
     if not warnings:
-        return lines + [f"No limit found by the release's checks ({CHECKED}).", ""]
+        return lines + [f"No limit found by the release's checks ({checked}).", ""]
     lines += [
-        f"{len(warnings)} limit{'s' if len(warnings) != 1 else ''} found ({CHECKED} checked); machine-readable in "
+        f"{len(warnings)} limit{'s' if len(warnings) != 1 else ''} found ({checked} checked); machine-readable in "
         "`model_card.json`'s `warnings`.",
         "",
     ]

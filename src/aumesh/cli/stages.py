@@ -1,5 +1,6 @@
 """The pipeline's commands: ``compose-params`` (conf/ -> params.yaml), ``synth`` (synthetic input tables with a
-known truth) and the DVC stages ``check_params``, ``ingest``, ``prepare``, ``evaluate``, ``release`` (each a one-line
+known truth) and the DVC stages ``check_params``, ``ingest``, ``prepare``, ``evaluate``, ``release``,
+``release_family`` (each a one-line
 summary of what :mod:`aumesh.stages` did)."""
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from aumesh.cli.outputs import add_force, refuse_release_path
+from aumesh.core.families import PYFEAT_FEATURE
 
 if TYPE_CHECKING:
     from aumesh.config import Config
@@ -116,6 +118,15 @@ def _cmd_release(args) -> int:
     return 0
 
 
+def _cmd_release_family(args) -> int:
+    from aumesh.stages import release_family
+
+    out = release_family.main(_params(args), args.family)
+    files = [f for f in out.rglob("*") if f.is_file()]
+    print(f"release_family: {out} ({len(files)} files, {sum(f.suffix == '.png' for f in files)} figures)")
+    return 0
+
+
 def add_parser(subparsers) -> None:
     """Add ``compose-params``, ``synth`` and the stages ``ingest``, ``prepare``, ``evaluate``, ``release``."""
     p = subparsers.add_parser(
@@ -213,3 +224,15 @@ def add_parser(subparsers) -> None:
             help="the composed configuration to read (`aumesh compose-params` or `dvc exp run` write it)",
         )
         p.set_defaults(func=func)
+
+    # release_family@<family> (dvc.yaml foreach): one family's release in py-feat's format -> releases/<family>/
+    p = subparsers.add_parser(
+        "release_family", help="stage: write a family's release (py-feat's NPZ, model card, figures) to releases/"
+    )
+    p.add_argument("family", choices=list(PYFEAT_FEATURE), help="the input family to release")
+    p.add_argument(
+        "--params",
+        default="params.yaml",
+        help="the composed configuration to read (`aumesh compose-params` or `dvc exp run` write it)",
+    )
+    p.set_defaults(func=_cmd_release_family)

@@ -77,9 +77,12 @@ def range_record(quantiles: Sequence[float], active_fraction: float | None) -> d
     return record
 
 
-def unsupported_inputs(input_ranges: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """The AUs (in AU order) whose training p99 is below :data:`UNSUPPORTED_P99`: inputs the data never expressed."""
-    return [a for a in AU_COLUMNS if a in input_ranges and float(input_ranges[a]["p99"]) < UNSUPPORTED_P99]
+def unsupported_inputs(input_ranges: Mapping[str, Mapping[str, Any]], columns: Sequence[str] = AU_COLUMNS) -> list[str]:
+    """The inputs of ``columns`` (the AUs by default; a family's inputs for its release, in that order) whose training
+    p99 is below :data:`UNSUPPORTED_P99`: inputs the data never expressed (one of 100 frames or fewer shows them at
+    0.05 or more, whatever their scale's top: AU presence, blendshape scores and emotion probabilities all lie in
+    [0, 1])."""
+    return [a for a in columns if a in input_ranges and float(input_ranges[a]["p99"]) < UNSUPPORTED_P99]
 
 
 def detector_counts(manifest: Mapping[str, Any]) -> dict[str, int]:
@@ -141,10 +144,11 @@ def data_support(summary: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def feature_p99(input_ranges: Mapping[str, Mapping[str, Any]]) -> np.ndarray:
-    """(23,) float32 p99 of each input in :data:`~aumesh.core.schema.INPUT_COLUMNS` order (the NPZ's
-    ``feature_p99``, py-feat's name); NaN for an input the ranges lack."""
-    return np.array([float(input_ranges[c]["p99"]) if c in input_ranges else np.nan for c in INPUT_COLUMNS], np.float32)
+def feature_p99(input_ranges: Mapping[str, Mapping[str, Any]], columns: Sequence[str] = INPUT_COLUMNS) -> np.ndarray:
+    """(len(columns),) float32 p99 of each input in ``columns`` order (default the 23
+    :data:`~aumesh.core.schema.INPUT_COLUMNS`; a family's inputs for its release): the NPZ's ``feature_p99``,
+    py-feat's name; NaN for an input the ranges lack."""
+    return np.array([float(input_ranges[c]["p99"]) if c in input_ranges else np.nan for c in columns], np.float32)
 
 
 # --------------------------------------------------------------------------------------------- inference side

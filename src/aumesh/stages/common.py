@@ -37,7 +37,11 @@ def stage_outputs(stage: str, paths: PathsConfig) -> list[str]:
 def start_stage(stage: str, cfg: Config) -> None:
     """Remove what a killed earlier run of ``stage`` left behind (temp folders and files of its outputs, and the
     evaluate passes' scratch folders)."""
-    if stage in ("evaluate", "release"):  # they read what promotion writes (params.yaml; promotion.json)
+    if stage in (
+        "evaluate",
+        "release",
+        "release_family",
+    ):  # they read what promotion writes (params.yaml; promotion.json)
         finish_promotion(cfg)
     scratch: list[str | Path] = []
     if stage == "evaluate":

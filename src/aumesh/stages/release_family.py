@@ -1,0 +1,126 @@
+"""The family release stage (``release_family@<family>``): a family's fit -> ``releases/<family>/``, atomically.
+
+``releases/<family>/`` holds ``<stem>.npz`` in py-feat's loader format (:mod:`aumesh.model.family_release`),
+``model_card.json``, ``MODEL_CARD.md``, ``figures/``, ``<family>_directions.json`` and the rig and viewer; a failure
+anywhere leaves the previous release as it was (:func:`aumesh.core.io.atomic_directory`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from aumesh.config import Config
+from aumesh.core.io import (
+    atomic_directory,
+    atomic_savez,
+    atomic_write_json,
+    atomic_write_text,
+    remove_stale_temporaries,
+)
+from aumesh.model.family_release import check_release_family, family_release_arrays, npz_name
+from aumesh.model.release import CARD_JSON, CARD_MD
+from aumesh.pipeline import integrity
+from aumesh.pipeline.model_files import CV_NPZ, MODEL_NPZ
+from aumesh.pipeline.prepared_files import FRAMES_FILE, REFERENCE_FILE
+from aumesh.pipeline.release import load_model, refuse_implausible_face, refuse_nonfinite
+from aumesh.pipeline.release_family import (
+    build_family_card,
+    family_fit_dir,
+    family_promotion,
+    family_release_dir,
+    training_ranges,
+)
+from aumesh.stages.common import start_stage
+
+log = logging.getLogger(__name__)
+
+
+def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -> dict:
+    """The family's direction check on the release arrays (:mod:`aumesh.card.family_directions`).
+
+    HOOK (direction-check engineer, issue 46 item 4): replace the body with ``family_directions``' report-from-NPZ
+    function and its refusal (a permuted emotion table / a blendshape moving the wrong way fails the release: one
+    line, exit 2, the suspected permutation named). Until then the check runs and is recorded, never refused here.
+    """
+    from aumesh.card import family_directions
+
+    check = (
+        family_directions.emotion_direction_check
+        if family == "emotions"
+        else family_directions.blendshape_direction_check
+    )
+    return check(arrays["coef"], arrays["feature_columns"].tolist(), arrays["mean_aligned_mesh"], source)
+
+
+def export_rig_and_viewer(arrays: dict[str, np.ndarray], folder: Path, family: str, source: str) -> list[Path]:
+    """``<family>_to_mesh.glb`` and ``viewer.html`` of the family release.
+
+    HOOK (rig engineer, issue 46 item 5): call the glTF exporter (morph targets named by the family's names) and the
+    viewer's family sliders here, e.g. ``gltf.write_family_glb(arrays, folder / f"{family}_to_mesh.glb", source)``
+    and ``viewer.write_family_viewer(arrays, folder / viewer.VIEWER_NAME, source)``. Until they are merged, nothing is
+    written.
+    """
+    return []
+
+
+def main(cfg: Config, family: str) -> Path:
+    """Write ``paths.families_release_dir/<family>`` atomically (NPZ, ``model_card.json``, ``MODEL_CARD.md``, figures,
+    directions report; rig and viewer when their exporters exist) and return it."""
+    from aumesh.card import family_figures, limits
+    from aumesh.card.family_card import family_card_markdown
+    from aumesh.card.family_directions import family_displacements
+
+    check_release_family(family)
+    out = family_release_dir(cfg, family)
+    start_stage("release_family", cfg)  # a promotion killed half-way finished first (it writes promotion.json)
+    for path in remove_stale_temporaries(out):  # what a killed run of this family's release left
+        log.info("removed %s, left by a killed run", path)
+    fit_dir, prepared_dir = family_fit_dir(cfg, family), Path(cfg.paths.prepared_dir)
+    integrity.verify_prepared(prepared_dir, integrity.load_summary(prepared_dir), [REFERENCE_FILE, FRAMES_FILE])
+    model = load_model(fit_dir)
+    reference = integrity.load_reference(prepared_dir)
+    ranges = training_ranges(prepared_dir, family)
+    promotion = family_promotion(cfg.paths.promotion_file, family)
+    design = [str(c) for c in model["feature_columns"].tolist()]
+    card = build_family_card(cfg, family, fit_dir, prepared_dir, promotion, ranges, int(model["n_components"]), design)
+    refuse_nonfinite({"coef": model["coef"], "intercept": model["mesh_intercept"]}, fit_dir / MODEL_NPZ)
+    card["data"]["face_shape"] = refuse_implausible_face(
+        model["mesh_intercept"], reference["mean_aligned_mesh"], fit_dir / MODEL_NPZ, prepared_dir / REFERENCE_FILE
+    )
+    arrays = family_release_arrays(
+        family,
+        model["coef"],
+        model["mesh_intercept"],
+        design,
+        int(model["n_components"]),
+        reference,
+        ranges,
+        metadata=card,
+    )
+    refuse_nonfinite(arrays, fit_dir / MODEL_NPZ)  # before anything is written: the previous release stays
+    name = npz_name(family)
+    inputs = arrays["feature_columns"].tolist()
+    disp, _ = family_displacements(arrays["coef"], inputs, arrays["mean_aligned_mesh"], inputs, name)
+    field_iod = {n: float(s) for n, s in zip(inputs, limits.au_field_sizes(disp), strict=True)}
+    with atomic_directory(out) as tmp:
+        report = directions_report(arrays, family, name)
+        atomic_write_json(tmp / f"{family}_directions.json", report)
+        card["directions"] = {
+            "verdict": report["verdict"],
+            "message": report["message"],
+            "file": f"{family}_directions.json",
+        }
+        card["warnings"] = limits.release_warnings(card, None, field_iod, family=family)
+        figures = family_figures.render_family(arrays, tmp / "figures", cv_path=fit_dir / CV_NPZ)
+        markdown = family_card_markdown(card, [str(f) for f in figures])
+        arrays["model_card"] = np.array(markdown)
+        arrays["training_metadata"] = np.array(json.dumps(card, sort_keys=True, default=str))
+        atomic_savez(tmp / name, **arrays)
+        export_rig_and_viewer(arrays, tmp, family, name)
+        atomic_write_json(tmp / CARD_JSON, card)
+        atomic_write_text(tmp / CARD_MD, markdown)
+    return out
