@@ -125,10 +125,12 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=2, help="draws per permutation per setting")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-blendshapes", action="store_true")
+    ap.add_argument("--skip-emotions", action="store_true")
     args = ap.parse_args()
     t0 = time.perf_counter()
     truth = fm.truth_fields()
-    emotions(args, truth)
+    if not args.skip_emotions:
+        emotions(args, truth)
     if not args.skip_blendshapes:
         blendshapes(args, truth)
     print(f"\n{time.perf_counter() - t0:.0f} s")
