@@ -80,6 +80,10 @@ def test_union_is_the_au_design_then_each_other_design_once_pose_shared():
     for name in FAMILY_SETS:
         assert set(feature_set_columns(name)) <= set(union)
     assert union.count("Pitch") == 1
+    # a run without an AU design accumulates the pose and its families' designs only
+    assert design_union(["emotions_pose_interactions"]) == [*POSE_COLUMNS, *EMOTION_COLUMNS] + [
+        c for c in feature_set_columns("emotions_pose_interactions") if "*" in c
+    ]
 
 
 def test_shared_pass_statistics_of_a_family_equal_numpy_on_the_same_rows(family_prepared):
@@ -199,3 +203,125 @@ def test_a_family_absent_from_the_prepared_frames_is_one_line_naming_the_file_fa
     assert str(prepared.directory / FRAMES_FILE) in message and "blendshapes family" in message and "Fix:" in message
     statistics_pass.check_family_columns(prepared, list(FULL_DESIGN))  # the AUs alone: nothing to refuse
     assert AU_COLUMNS[0] in FULL_DESIGN and POSE_COLUMNS[0] in FULL_DESIGN
+
+
+# ------------------------------------------------------------------------------ the stage, on family-truth tables
+FAMILY_SPEC_KW = dict(n_frames=3000, n_videos=100, seed=5, identity_scale=0.001, unexplained_scale=0.001, noise_px=0.02)
+
+
+@pytest.fixture(scope="module")
+def family_workspace(tmp_path_factory):
+    """ingest, prepare and evaluate (``aumesh`` in-process, the fixed configuration: families on by default) on
+    synthetic tables whose blendshapes and emotions move the mesh by known fields (``aumesh synth --families``)."""
+    from aumesh import cli
+    from aumesh.config import write_params
+    from aumesh.synthetic import tables as synth
+    from conftest import new_store
+
+    ws = tmp_path_factory.mktemp("family-ws") / "ws"
+    ws.mkdir()
+    synth.write_tables(ws / "data", synth.SynthSpec(**FAMILY_SPEC_KW), ws / "truth.npz", families=True)
+    write_params(default_config().to_dict(), ws / "params.yaml")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(ws)
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{new_store(ws / 'mlflow.db')}")
+        for stage in ("ingest", "prepare", "evaluate"):
+            assert cli.main([stage]) == 0
+    return ws
+
+
+def _fields_in_reference_frame(fields: np.ndarray, truth, prepared) -> np.ndarray:
+    """Canonical-frame fields (k, 1434) mapped into the aligned frame by the anchors' similarity (as the AU truth)."""
+    from aumesh.core.schema import N_VERTICES
+    from aumesh.geometry.align import umeyama_batch
+
+    anchors = truth["template_px"][truth["anchor_indices"]]
+    R, s, _ = umeyama_batch(anchors[None], prepared.reference["reference_anchors"].astype(np.float64))
+    f = fields.reshape(-1, 3, N_VERTICES).transpose(0, 2, 1)
+    return (s[0] * f @ R[0].T).transpose(0, 2, 1).reshape(len(fields), -1)
+
+
+def test_the_stage_writes_each_family_beside_the_au_model(family_workspace):
+    ws = family_workspace
+    model_files = sorted(p.name for p in (ws / "build/model").iterdir())
+    metrics = json.loads((ws / "metrics/families.json").read_text())
+    au_metrics = json.loads((ws / "metrics/metrics.json").read_text())
+    assert sorted(metrics) == ["blendshapes", "emotions"]
+    for family, features in (
+        ("blendshapes", "blendshapes_pose_interactions"),
+        ("emotions", "emotions_pose_interactions"),
+    ):
+        folder = ws / "build/families" / family
+        assert sorted(p.name for p in folder.iterdir()) == model_files
+        with np.load(folder / "model.npz") as npz:
+            assert str(npz["family"]) == family
+            assert list(npz["feature_columns"]) == feature_set_columns(features)
+            assert npz["coef"].shape == (1434, len(feature_set_columns(features)))
+        assert set(au_metrics) - set(metrics[family]) <= {
+            "au_reliability", "au_reliability_min", "au_reliability_median", "n_aus_facs_pass", "n_aus_unidentified",
+            "au_identification",
+        }  # fmt: skip
+        assert metrics[family]["n_features"] == len(feature_set_columns(features))
+        assert json.loads((folder / "metrics.json").read_text())["r2_mean"] == pytest.approx(metrics[family]["r2_mean"])
+    with np.load(ws / "build/model/model.npz") as npz:
+        assert "family" not in npz.files  # build/model is the AU model, as it always was
+
+
+def test_each_family_fit_is_its_own_run_tagged_with_its_family(family_workspace, monkeypatch):
+    from mlflow.tracking import MlflowClient
+
+    from aumesh.tracking import queries  # noqa: F401 - MLflow through aumesh's store helpers
+
+    ws = family_workspace
+    client = MlflowClient(f"sqlite:///{ws / 'mlflow.db'}")
+    runs = [r for e in client.search_experiments() for r in client.search_runs([e.experiment_id])]
+    by_family = {r.data.tags.get("aumesh.family"): r for r in runs if r.data.tags.get("aumesh.stage") == "evaluate"}
+    assert set(by_family) == {"au", "blendshapes", "emotions"}
+    assert by_family["blendshapes"].data.params["features.name"] == "blendshapes_pose_interactions"
+    assert by_family["emotions"].data.params["features.name"] == "emotions_pose_interactions"
+    assert all(r.info.status == "FINISHED" for r in by_family.values())
+    for family, run in by_family.items():
+        folder = ws / ("build/model" if family == "au" else f"build/families/{family}")
+        assert json.loads((folder / "tracking.json").read_text())["run_id"] == run.info.run_id
+        assert run.data.metrics["r2_mean"] == pytest.approx(
+            json.loads((folder / "metrics.json").read_text())["r2_mean"]
+        )
+
+
+def test_the_fitted_family_fields_recover_the_truth(family_workspace):
+    ws = family_workspace
+    prepared = load_prepared(ws / "build/prepared")
+    truth = np.load(ws / "truth.npz")
+
+    def cos(a, b):
+        return np.einsum("kj,kj->k", a, b) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+
+    with np.load(ws / "build/families/blendshapes/model.npz") as npz:
+        est_bs = npz["coef"][:, : len(BLENDSHAPE_COLUMNS)].T  # the fields at pose 0: the inputs' own columns
+    true_bs = _fields_in_reference_frame(truth["blendshape_fields"], truth, prepared)
+    moving = np.linalg.norm(true_bs, axis=1) > 0
+    c_bs = cos(est_bs[moving], true_bs[moving])
+    # 3,000 frames for 211 columns fitted with 83 PLS components (model.n_components, the families' default): each
+    # moving shape's field comes back pointing its own way, most of them closely
+    assert np.median(c_bs) > 0.95 and c_bs.min() > 0.7, np.round(c_bs, 3)
+    with np.load(ws / "build/families/emotions/model.npz") as npz:
+        est = npz["coef"][:, : len(EMOTION_COLUMNS)].T
+    true = _fields_in_reference_frame(truth["emotion_fields"], truth, prepared)
+    n = EMOTION_COLUMNS.index("neutral")  # probabilities sum to 1: only differences from neutral are identified
+    others = [j for j in range(len(EMOTION_COLUMNS)) if j != n]
+    c_emo = cos(est[others] - est[n], true[others] - true[n])
+    assert c_emo.min() > 0.9, np.round(c_emo, 3)
+    # a permutation of the labels is caught: each estimated field is closest to its own true field
+    d_est, d_true = est[others] - est[n], true[others] - true[n]
+    unit_est = d_est / np.linalg.norm(d_est, axis=1, keepdims=True)
+    unit_true = d_true / np.linalg.norm(d_true, axis=1, keepdims=True)
+    assert (np.argmax(unit_est @ unit_true.T, axis=1) == np.arange(len(others))).all()
+
+
+def test_the_stage_au_model_is_the_au_fit_of_a_pass_without_families(family_workspace):
+    ws = family_workspace
+    prepared = load_prepared(ws / "build/prepared")
+    _, final = ev.cross_validate_and_fit(prepared, default_config())  # the AU design's pass alone
+    with np.load(ws / "build/model/model.npz") as npz:
+        assert npz["coef"].tobytes() == final.coef.tobytes()
+        assert npz["mesh_intercept"].tobytes() == final.mesh_intercept.tobytes()

@@ -161,7 +161,9 @@ class SweepCallback:
                 "tracking_uri": tracking.tracking_uri(tracking_cfg) if parent else None,
                 "overrides": recorded_overrides(overrides),
                 # the designs every job's one statistics pass accumulates (the union: sweep_cache.statistics_for)
-                "feature_sets": [str((plain.get("features") or {}).get("name")), *swept_feature_sets(overrides)],
+                "feature_sets": list(
+                    dict.fromkeys([str((plain.get("features") or {}).get("name")), *swept_feature_sets(overrides)])
+                ),
             },
         )
         if parent:

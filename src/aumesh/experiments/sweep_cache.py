@@ -158,6 +158,7 @@ class SweepCache:
     hits: int = 0
     misses: int = 0
     passes: int = 0  # statistics passes over the meshes this process made
+    pass_reused: bool = False  # the last statistics_for took its columns from an earlier pass
 
     def workspace_params(self, root: Path) -> Config | None:
         """The workspace's ``params.yaml`` as a Config (cached by mtime), None if absent."""
@@ -218,7 +219,8 @@ class SweepCache:
         instruments = instrument_columns(cfg.model.eiv.instrument_aus)
         design_key = (pid, cfg.cv.n_splits, instruments)
         have = self.designs.get(design_key)
-        if have is None or not set(cfg.features.columns) <= set(have.columns):
+        self.pass_reused = have is not None and set(cfg.features.columns) <= set(have.columns)
+        if not self.pass_reused:
             # the one pass over the meshes; every target/feature set of the union derives from it
             from aumesh.pipeline import compute
 

@@ -177,6 +177,8 @@ def _evaluate_in_run(
         "aumesh.prepared_dir": str(source.path),
         "aumesh.prepared.key": source.key,
         "aumesh.cache.statistics": "reused" if reused else "computed",
+        # the pass over the meshes (the union of the sweep's designs): computed by the first configuration only
+        "aumesh.cache.pass": "reused" if reused or cache.pass_reused else "computed",
     }
     if same_model:
         tags["aumesh.cache.result"] = "reused (clipped n_components: same model as an earlier configuration)"

@@ -48,17 +48,20 @@ INSTRUMENT_PREFIX = "Z:"
 
 def design_union(feature_sets: Iterable[str]) -> list[str]:
     """The columns one statistics pass accumulates for the feature sets ``feature_sets`` (names of
-    :data:`aumesh.core.families.FEATURE_SETS`): :data:`FULL_DESIGN` (the AU family's 83 columns, always: the AU model is
-    the stage's, its identification screen and the pose moments read them), then every other design's columns not yet
-    listed, in the order of ``feature_sets``. The pose columns are shared (one copy); each configuration's columns are
-    taken from the union by name (:meth:`DesignStatistics.index`).
+    :data:`aumesh.core.families.FEATURE_SETS`): :data:`FULL_DESIGN` (the AU family's 83 columns) when any of them is an
+    AU design (the AU model, its identification screen and instruments read the whole AU design), else the pose
+    columns (the pose moments read them); then every other design's columns not yet listed, in the order of
+    ``feature_sets``. The pose columns are shared (one copy); each configuration's columns are taken from the union by
+    name (:meth:`DesignStatistics.index`).
 
     E.g. ``["au_pose_interactions", "blendshapes_pose_interactions", "emotions_pose_interactions"]`` -> 83 + 208 + 28
-    = 319 columns.
+    = 319 columns; ``["blendshapes_pose_interactions"]`` -> 3 + 208.
     """
-    from aumesh.core.families import feature_set_columns
+    from aumesh.core.families import FEATURE_SETS, feature_set_columns
 
-    out = list(FULL_DESIGN)
+    feature_sets = list(feature_sets)
+    au = any(FEATURE_SETS[name][0] == "au" for name in feature_sets if name in FEATURE_SETS)
+    out = list(FULL_DESIGN) if au else list(POSE_COLUMNS)
     seen = set(out)
     for name in feature_sets:
         for c in feature_set_columns(name):
@@ -68,11 +71,24 @@ def design_union(feature_sets: Iterable[str]) -> list[str]:
     return out
 
 
+def has_au_head(columns: Sequence[str]) -> bool:
+    """The union starts with :data:`FULL_DESIGN` (:func:`design_union` of a run with an AU design)."""
+    return list(columns[: len(FULL_DESIGN)]) == FULL_DESIGN
+
+
+def head_width(columns: Sequence[str], instruments: bool) -> int:
+    """Columns of a pass's statistics multiplied in GEMMs of their own (:class:`DesignSums`' head): the AU design (with
+    ``instruments`` its instrument copy too) when the union starts with it, else the whole union."""
+    if has_au_head(columns):
+        return len(FULL_DESIGN) * (2 if instruments else 1)
+    return len(columns)
+
+
 def extra_inputs(columns: Sequence[str]) -> list[str]:
-    """The raw input columns (of ``frames.parquet``) the union's columns beyond :data:`FULL_DESIGN` are made of:
-    each plain column, and the input of each ``pose*input`` product, in order of appearance (pose excluded: always
-    read)."""
-    base = set(FULL_DESIGN)
+    """The raw input columns (of ``frames.parquet``) the union's columns beyond its AU head (:func:`has_au_head`) are
+    made of: each plain column, and the input of each ``pose*input`` product, in order of appearance (pose excluded:
+    always read)."""
+    base = set(FULL_DESIGN) if has_au_head(columns) else set()
     out: list[str] = []
     for c in columns:
         if c in base:
@@ -390,8 +406,8 @@ def accumulate_design(
     """
     columns = list(FULL_DESIGN if columns is None else columns)
     names = extra_inputs(columns)
-    head = len(FULL_DESIGN) * (1 if instrument_au is None else 2)
-    p, q, K = head + len(columns) - len(FULL_DESIGN), N_TARGETS, n_splits
+    head = head_width(columns, instrument_au is not None)
+    p, q, K = len(columns) + (len(FULL_DESIGN) if instrument_au is not None else 0), N_TARGETS, n_splits
     video_sum_x = np.zeros((n_videos, p))
     video_sum_y = np.zeros((n_videos, q))
     sums = DesignSums(p, q, K, head)
@@ -450,6 +466,10 @@ def pass_design(
     """The rows of a pass's design: :func:`augmented_design` (the AU family's, the same bits as a pass of it alone),
     then the union ``columns``' other columns (:func:`named_design` of the other families' ``inputs`` (m, k), named
     ``names``: :func:`extra_inputs`)."""
+    if not has_au_head(columns):  # no AU design in the run: the other families' designs alone
+        if instrument_au is not None:
+            raise ValueError("pass_design: instruments are the AU design's; the union has no AU design")
+        return named_design(pose, np.empty((len(pose), 0)) if inputs is None else inputs, names, columns)
     X = augmented_design(au, pose, instrument_au)
     rest = list(columns)[len(FULL_DESIGN) :]
     if not rest:

@@ -23,7 +23,7 @@ Opening tags, the same keys for both (:func:`run_tags`): ``aumesh.stage`` (``eva
 ``aumesh.target`` and ``aumesh.family`` (the input family: ``au`` for the AU model, ``blendshapes``, ``emotions``). What stays the caller's: the stage's metric ``evaluate_seconds`` and artifact ``metrics.json``
 (the file it writes to ``build/``); a sweep child's metrics ``seconds_load``, ``seconds_statistics``,
 ``seconds_cv_fit``, ``seconds_job``, its tags ``aumesh.role``, ``mlflow.parentRunId``, ``aumesh.sweep.overrides``
-and the prepared-cache tags ``aumesh.prepared_dir``, ``aumesh.prepared.key``, ``aumesh.cache.statistics``,
+and the prepared-cache tags ``aumesh.prepared_dir``, ``aumesh.prepared.key``, ``aumesh.cache.statistics``, ``aumesh.cache.pass``,
 ``aumesh.cache.result``.
 """
 

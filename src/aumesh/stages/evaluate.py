@@ -106,6 +106,7 @@ def evaluate_run_name(cfg: Config) -> str:
 def main(cfg: Config) -> dict:
     """Cross-validate and fit the prepared data into ``paths.model_dir`` (and the metrics and plot files DVC
     compares), recorded as one MLflow run; returns the CV metrics (``metrics.json``)."""
+    from aumesh.core.errors import ConfigError
     from aumesh.model.statistics import design_union
     from aumesh.pipeline import dvc_metrics
     from aumesh.pipeline import evaluate as ev
@@ -125,9 +126,17 @@ def main(cfg: Config) -> dict:
     check_columns(cfg)
     check_eiv_inputs(cfg)  # a bad covariance file stops the stage before any pass
     prepared = load_prepared(cfg.paths.prepared_dir)
-    families = family_configs(cfg)
-    # a family the prepared frames lack stops the stage before any pass (one line: the file, the family, the fix)
-    check_family_columns(prepared, design_union([cfg.features.name, *(f.features.name for _, f, _ in families)]))
+    # the model of ``features`` needs its inputs (one line naming the file, the family and the fix, before any pass);
+    # a configured family the prepared frames lack is not fitted: one warning line naming the file, family and fix
+    check_family_columns(prepared, design_union([cfg.features.name]))
+    families = []
+    for family, fcfg, note in family_configs(cfg):
+        try:
+            check_family_columns(prepared, design_union([fcfg.features.name]))
+        except ConfigError as err:
+            log.warning("evaluate: families.%s not fitted: %s", family, err)
+            continue
+        families.append((family, fcfg, note))
     shared = ev.SharedPass([f.features.name for _, f, _ in families])  # one statistics pass for every fit
     digest = data_digest()
     out, families_out = Path(cfg.paths.model_dir), Path(cfg.paths.families_model_dir)

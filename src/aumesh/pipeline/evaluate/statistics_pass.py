@@ -42,6 +42,7 @@ from aumesh.model.statistics import (
     extra_inputs,
     fold_configuration_statistics,
     fold_within_statistics,
+    head_width,
     pass_design,
     pose_moments,
     target_offsets,
@@ -129,7 +130,7 @@ def design_partition(
     fold = video_fold[video]
     widths = video_sums(instruments, columns)
     p, q = widths["video_sum_x"], N_TARGETS
-    sums = DesignSums(p, q, n_splits, len(FULL_DESIGN) * (2 if instruments else 1))
+    sums = DesignSums(p, q, n_splits, head_width(union, bool(instruments)))
     split: dict[int, tuple[np.ndarray, ...]] = {}
     finished: dict[str, dict[int, np.ndarray]] = {name: {} for name in widths}  # whole videos, until written
 
@@ -335,7 +336,7 @@ def check_family_columns(prepared: Prepared, columns: Sequence[str]) -> None:
                 f"{path}: no {family} columns ({', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}; "
                 f"{len(missing)} of {len(inputs)} missing), so the {family} family cannot be fitted. Fix: ingest tables "
                 f"that carry them (py-feat's MPDetector or Detectorv2 write all {len(inputs)}) and rerun ingest and "
-                f"prepare, or leave {family} out of families (and features)"
+                f"prepare (`aumesh synth --families` writes synthetic tables with them)"
             )
 
 
@@ -408,7 +409,8 @@ def accumulate(
         video_fold=video_fold,
         x_offset=x_offset,
         y_offset=y_offset,
-        au_within=within_statistics(design, list(AU_COLUMNS)),  # the identification screen's moments, every target
+        # the identification screen's moments, every target (a pass without the AU design has none)
+        au_within=within_statistics(design, list(AU_COLUMNS)) if set(AU_COLUMNS) <= set(design.columns) else None,
         pose_mean=pose_mean,
         pose_second=pose_second,
         instruments=instrument_statistics(design, cfg.features.columns) if instruments else None,
