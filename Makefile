@@ -29,7 +29,7 @@ help:
 	@echo "make mlflow-server - start an MLflow tracking server (SQLite backend) on 127.0.0.1:5000"
 	@echo "make mlflow-server-postgres - a team's tracking server: MLFLOW_DB=postgresql://USER@DBHOST/DB MLFLOW_HOST=0.0.0.0"
 	@echo "make cluster     - start a local Dask cluster (a scheduler + CLUSTER_WORKERS workers on 127.0.0.1:CLUSTER_PORT); make cluster-stop"
-	@echo "make pyfeat-check - py-feat's own client on release/ (throwaway venv with py-feat + torch, ~6.5 GB; PYFEAT_VENV=DIR keeps one)"
+	@echo "make pyfeat-check - py-feat's own client on release/ and releases/<family>/ (throwaway venv with py-feat + torch, ~6.5 GB; PYFEAT_VENV=DIR keeps one)"
 
 # The environment: a fresh venv, exact pins from requirements.lock, then the package itself without deps.
 $(STAMP): requirements.lock pyproject.toml
@@ -183,4 +183,6 @@ promote: $(STAMP)
 # py-feat's own loader and plot_face_mesh on the release (optional, slow: py-feat pulls torch).
 pyfeat-check: $(STAMP)
 	$(BIN)/python scripts/check_pyfeat_client.py --release release/au_to_mesh_pls.npz --out build/pyfeat-check \
+		$(if $(wildcard releases/blendshapes/bs_to_mesh_pls.npz),--blendshape-release releases/blendshapes/bs_to_mesh_pls.npz) \
+		$(if $(wildcard releases/emotions/emotion_to_mesh_pls.npz),--emotion-release releases/emotions/emotion_to_mesh_pls.npz) \
 		$(if $(PYFEAT_VENV),--venv $(PYFEAT_VENV))

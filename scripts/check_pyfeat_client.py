@@ -7,13 +7,19 @@ the local path), AU12, AU26 and AU04 are predicted and drawn with ``feat.plottin
 and the face is checked upright with each AU moving the right way in screen space, as py-feat draws
 it. PNGs and ``pyfeat_check.json`` go to ``--out``. Exit status: the probe's (1 if a check fails).
 
+The family releases (issue 46) are checked the same way when given: ``--blendshape-release``
+(``releases/blendshapes/bs_to_mesh_pls.npz``) through ``load_blendshape_face_mesh_model`` and
+``plot_face_mesh(blendshapes=...)``, ``--emotion-release`` (``releases/emotions/emotion_to_mesh_pls.npz``) through
+``load_emotion_face_mesh_model`` and ``plot_face_mesh(emotion=...)`` (``scripts/pyfeat_probe.py`` says what is checked).
+
 Installing: py-feat needs torch and torchvision. pip (not uv) is used on purpose: on this project's
 machines pip finds CPU/local torch wheels on disk where uv would download multi-GB CUDA builds. The
 default pins (``--torch``) are torch 2.14.1 + torchvision 0.29.1 (torchvision from PyPI does not
 import beside torch 2.13.0); the environment is about 6.5 GB and takes minutes to build. Pass
 ``--venv DIR`` to build it once at DIR and reuse it on later runs (it is then kept).
 
-    python scripts/check_pyfeat_client.py --release release/au_to_mesh_pls.npz --out build/pyfeat-check
+    python scripts/check_pyfeat_client.py --release release/au_to_mesh_pls.npz --out build/pyfeat-check \
+        --blendshape-release releases/blendshapes/bs_to_mesh_pls.npz --emotion-release releases/emotions/emotion_to_mesh_pls.npz
 """
 
 from __future__ import annotations
@@ -57,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     parser.add_argument("--release", default="release/au_to_mesh_pls.npz", help="release NPZ to check")
+    parser.add_argument("--blendshape-release", default=None, help="blendshape release NPZ to check too")
+    parser.add_argument("--emotion-release", default=None, help="emotion release NPZ to check too")
     parser.add_argument("--out", default="build/pyfeat-check", help="folder for the PNGs and pyfeat_check.json")
     parser.add_argument(
         "--venv",
@@ -68,12 +76,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--intensity", type=float, default=1.0, help="AU intensity of the checked predictions")
     args = parser.parse_args(argv)
     release = Path(args.release)
-    if not release.is_file():
-        print(
-            f"check_pyfeat_client: release NPZ not found: {release} (run `make demo` or pass --release)",
-            file=sys.stderr,
-        )
-        return 2
+    given = {
+        "--release": release,
+        "--blendshape-release": args.blendshape_release,
+        "--emotion-release": args.emotion_release,
+    }
+    for flag, path in given.items():
+        if path is not None and not Path(path).is_file():
+            print(
+                f"check_pyfeat_client: release NPZ not found: {path} (run `make demo` or pass {flag})",
+                file=sys.stderr,
+            )
+            return 2
+    families = [
+        arg
+        for flag, path in given.items()
+        if flag != "--release" and path is not None
+        for arg in (flag, str(Path(path).resolve()))
+    ]
     started = time.perf_counter()
     tmp = None if args.venv else tempfile.mkdtemp(prefix="aumesh-pyfeat-")
     venv = Path(args.venv) if args.venv else Path(tmp) / "venv"
@@ -90,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                 str(Path(args.out).resolve()),
                 "--intensity",
                 str(args.intensity),
+                *families,
             ]
         ).returncode
     finally:

@@ -9,6 +9,8 @@ writes ``build/families/<family>/model.npz``.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -125,6 +127,23 @@ def test_feature_columns_are_pyfeats_lists():
     # aumesh's lists against py-feat's, copied as text above: the loader raises "feature_columns drifted" otherwise
     assert list(BLENDSHAPE_COLUMNS) == PYFEAT_MP_BLENDSHAPE_NAMES
     assert list(EMOTION_COLUMNS) == PYFEAT_FEAT_EMOTION_COLUMNS
+
+
+PYFEAT_UTILS = Path("/tmp/pyfeat/src/feat/utils/__init__.py")  # py-feat 2.1.5's source, where it is unpacked
+
+
+@pytest.mark.skipif(not PYFEAT_UTILS.is_file(), reason="py-feat 2.1.5's source is not unpacked at /tmp/pyfeat")
+def test_feature_columns_are_pyfeats_source_lists():
+    # the same lists read from py-feat's own source (its module-level literals), not from a copy
+    import ast
+
+    found = {}
+    for node in ast.parse(PYFEAT_UTILS.read_text()).body:
+        if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
+            if node.targets[0].id in ("MP_BLENDSHAPE_NAMES", "FEAT_EMOTION_COLUMNS"):
+                found[node.targets[0].id] = ast.literal_eval(node.value)
+    assert found["MP_BLENDSHAPE_NAMES"] == list(BLENDSHAPE_COLUMNS)
+    assert found["FEAT_EMOTION_COLUMNS"] == list(EMOTION_COLUMNS)
 
 
 def test_round_trip_pyfeat_predict_is_the_fit_at_pose_0(made):

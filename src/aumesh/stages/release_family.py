@@ -43,7 +43,8 @@ def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -
     """The family's direction check on the release arrays (:mod:`aumesh.card.family_directions`): the report
     (``<family>_directions.json``; ``summary`` is {input: verdict}), and the refusal of a release whose emotion labels
     look permuted or whose blendshapes move the wrong way / side (a one-line
-    :class:`aumesh.core.errors.DirectionCheckError`, exit 2, the suspected permutation named; nothing is written)."""
+    :class:`aumesh.core.errors.DirectionCheckError`, exit 2, the suspected permutation named). Called inside
+    the release's temporary folder, so a refusal leaves the previous release as it was."""
     from aumesh.card import family_directions
 
     report = family_directions.family_direction_report({**arrays, "family": np.array(family)}, where=source)
@@ -54,10 +55,11 @@ def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -
 def export_rig_and_viewer(arrays: dict[str, np.ndarray], folder: Path, family: str, source: str) -> list[Path]:
     """``<family>_to_mesh.glb`` and ``viewer.html`` of the family release.
 
-    HOOK (rig engineer, issue 46 item 5): call the glTF exporter (morph targets named by the family's names) and the
-    viewer's family sliders here, e.g. ``gltf.write_family_glb(arrays, folder / f"{family}_to_mesh.glb", source)``
-    and ``viewer.write_family_viewer(arrays, folder / viewer.VIEWER_NAME, source)``. Until they are merged, nothing is
-    written.
+    HOOK (rig engineer, issue 46 item 5; branch i46-rig): on merge, replace the body with
+    ``from aumesh.export import gltf, viewer`` and
+    ``return [gltf.write_glb(arrays, folder / gltf.glb_name(arrays), source=source),
+    viewer.write_viewer(arrays, folder / viewer.VIEWER_NAME, source=source)]`` (their exporters take a family NPZ:
+    morph targets and sliders named by the family's inputs). Until then nothing is written.
     """
     return []
 
