@@ -106,7 +106,7 @@ AREA_NAMES: tuple[str, ...] = tuple(landmarks.AREA_SEEDS)
 AREA_GROUPS: tuple[str, ...] = tuple(dict.fromkeys(landmarks.region_group(a) for a in AREA_NAMES))
 
 
-def _local(vec: np.ndarray, side: np.ndarray | int) -> np.ndarray:
+def local_terms(vec: np.ndarray, side: np.ndarray | int) -> np.ndarray:
     """Face-frame vectors (..., 3) (x left, y down, z away) -> (lateral, up, toward); ``side`` +1/-1 for bilateral
     areas (lateral = outward), 0 for midline (lateral = subject's left)."""
     side = np.asarray(side)
@@ -121,8 +121,14 @@ def _direction_word(local: np.ndarray, bilateral: bool) -> str:
     return words[k][0 if local[k] >= 0 else 1]
 
 
-class _Areas:
-    """The area partition of one mesh: per vertex its area group and side (+1 left, -1 right, 0 midline)."""
+class Areas:
+    """The area partition of one mesh: per vertex its area group and side (+1 left, -1 right, 0 midline).
+
+    Parameters
+    ----------
+    mesh : np.ndarray, shape (478, 3)
+        Face-frame mesh (:func:`aumesh.geometry.face.face_frame`); areas by :func:`aumesh.geometry.measures.face_areas`.
+    """
 
     def __init__(self, mesh: np.ndarray):
         area = measures.face_areas(mesh)
@@ -136,14 +142,14 @@ class _Areas:
         return self.group == AREA_GROUPS.index(group)
 
 
-def _weighted_direction(disp: np.ndarray, areas: _Areas, group: str, side: int = 0) -> tuple[np.ndarray, float]:
+def weighted_direction(disp: np.ndarray, areas: Areas, group: str, side: int = 0) -> tuple[np.ndarray, float]:
     """Displacement-weighted mean of the group's vertices' displacements in local terms, and their mean magnitude.
 
     Weights are the vertices' displacement magnitudes, so vertices that move most decide the direction and a few
     near-still vertices of the area do not dilute it (bilateral areas: lateral = outward on each side). ``side`` +1 / -1
     keeps only the subject's left / right half of a bilateral group (0: both)."""
     m = areas.mask(group) & ((areas.side == side) if side else True)
-    local = _local(disp[m], areas.side[m])
+    local = local_terms(disp[m], areas.side[m])
     w = np.linalg.norm(disp[m], axis=1)
     mean_mag = float(w.mean()) if w.size else 0.0
     if w.sum() <= MIN_MAGNITUDE:
@@ -198,12 +204,12 @@ def judge_fields(disp: np.ndarray, aus: list[str], mesh: np.ndarray | None = Non
     unknown = sorted(set(aus) - set(FACS_EXPECTATIONS))
     if unknown:
         raise KeyError(f"no FACS expectation for {unknown}; known: {sorted(FACS_EXPECTATIONS)}")
-    areas = _Areas(face.canonical_template() if mesh is None else mesh)
+    areas = Areas(face.canonical_template() if mesh is None else mesh)
     return [_judge(d, au, areas) for d, au in zip(fields, aus, strict=True)]
 
 
 def _side_checks(
-    disp: np.ndarray, areas: _Areas, group: str, want: np.ndarray, energy: np.ndarray
+    disp: np.ndarray, areas: Areas, group: str, want: np.ndarray, energy: np.ndarray
 ) -> dict[str, dict[str, Any]]:
     """Each side of a bilateral group judged alone (outward = away from the midline on that side).
 
@@ -217,7 +223,7 @@ def _side_checks(
     out: dict[str, dict[str, Any]] = {}
     for name, side in (("left", 1), ("right", -1)):
         share = float(energy[in_group & (areas.side == side)].sum()) / total if total > 0 else 0.0
-        local, _ = _weighted_direction(disp, areas, group, side)
+        local, _ = weighted_direction(disp, areas, group, side)
         norm = float(np.linalg.norm(local))
         if share < UNILATERAL_SHARE or norm <= MIN_MAGNITUDE:
             continue
@@ -227,7 +233,7 @@ def _side_checks(
     return out
 
 
-def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
+def _judge(disp: np.ndarray, au: str, areas: Areas) -> dict[str, Any]:
     exp = FACS_EXPECTATIONS[au]
     groups = list(exp.get("regions", [g for g, _ in exp["checks"]]))
     nearby = list(exp["nearby"])
@@ -240,7 +246,7 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
     top = ranked[0]
     facs_share = sum(shares[g] for g in groups)
     nearby_share = facs_share + sum(shares[g] for g in nearby)
-    top_local, top_mag = _weighted_direction(disp, areas, top)
+    top_local, top_mag = weighted_direction(disp, areas, top)
 
     # where: the largest motion in the FACS region, or a majority of the energy there
     if not moves:
@@ -269,7 +275,7 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
     for group, terms in exp["checks"]:
         want = sum(w * np.asarray(FACE_TERMS[t], dtype=float) for t, w in terms.items())
         want = want / np.linalg.norm(want)
-        local, mag = _weighted_direction(disp, areas, group)
+        local, mag = weighted_direction(disp, areas, group)
         norm = float(np.linalg.norm(local))
         cos = float(local @ want / norm) if norm > MIN_MAGNITUDE else 0.0
         expected = " + ".join(terms)
@@ -334,7 +340,9 @@ def _judge(disp: np.ndarray, au: str, areas: _Areas) -> dict[str, Any]:
     }
 
 
-def _load_arrays(src: str | os.PathLike | Mapping[str, Any]) -> tuple[dict[str, Any], str]:
+def load_arrays(src: str | os.PathLike | Mapping[str, Any]) -> tuple[dict[str, Any], str]:
+    """A release's arrays and the name errors use: a mapping as is (``"<arrays>"``), a path read by
+    :func:`aumesh.model.release.load_npz` (named by its path)."""
     if isinstance(src, Mapping):
         return dict(src), "<arrays>"
     from aumesh.model.release import load_npz
@@ -415,12 +423,12 @@ def au_direction_report(npz_path_or_arrays: str | os.PathLike | Mapping[str, Any
         ``region_shares`` (every area group, largest first), ``checks`` (per FACS region: expected and observed
         direction, cosine, share, verdict), ``reason``).
     """
-    arrays, where = _load_arrays(npz_path_or_arrays)
+    arrays, where = load_arrays(npz_path_or_arrays)
     disp, face_mesh, cols = au_displacements(arrays, where)
     mean = np.asarray(arrays["mean_aligned_mesh"], dtype=np.float64)
     aus = dict(zip(cols, judge_fields(disp, cols, face_mesh), strict=True))
     summary = {v: sum(1 for e in aus.values() if e["verdict"] == v) for v in _RANK}
-    area_groups = _Areas(face_mesh).group
+    area_groups = Areas(face_mesh).group
     return {
         "source": where,
         "units": "inter-ocular distance (33-263) of mean_aligned_mesh; directions in the subject's face terms; "

@@ -33,21 +33,47 @@ the margin it is doubtful (the two move alike: the sides cannot be told apart).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+import itertools
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from aumesh.card.directions import FAIL_COSINE, MIN_MAGNITUDE, PASS_COSINE, _Areas, _local, _weighted_direction
+from aumesh.card import directions
+from aumesh.card.directions import (
+    AREA_NAMES,
+    FAIL_COSINE,
+    MIN_MAGNITUDE,
+    PASS_COSINE,
+    Areas,
+    load_arrays,
+    local_terms,
+    weighted_direction,
+)
 from aumesh.card.facs_regions import FACE_TERMS
 from aumesh.card.family_expectations import EMOTION_PROTOTYPES, Checks, blendshape_checks, unchecked_blendshapes
 from aumesh.core import schema
+from aumesh.core.errors import DirectionCheckError
+from aumesh.core.families import FAMILIES, PYFEAT_FEATURE
 from aumesh.core.schema import N_TARGETS
 from aumesh.geometry import face, landmarks, measures
 
 #: inter-ocular units: a Left/Right pair whose motions' lateral centroids differ by less cannot be told apart
 SIDE_MARGIN = 0.05
-AREA_NAMES: tuple[str, ...] = tuple(landmarks.AREA_SEEDS)
+#: summed pair cosines (of 21): how much the best labelling must beat the written one to fail the check
+#: (calibrated in docs/families-directions.md and benchmarks/bench_family_directions.py)
+PERMUTATION_MARGIN = 1.0
+#: inter-ocular units: a pair fails as swapped only when its Left lies right of its Right by more (the truth's pairs
+#: differ by 0.14-1.0, a weak fit's leaked fields of an unexpressed pair by 0.07: docs/families-directions.md)
+SIDE_FAIL = 0.1
+#: a blendshape moving against its meaning fails only with this focus (its area's share of the motion over the area's
+#: share of the vertices) or more: a fitted field of a shape the data does not express (leakage, noise) is diffuse
+FAIL_FOCUS = 2.0
+#: a blendshape field under this fraction of the median checked field (rms) barely moves: doubtful, never failed
+STILL_FIELD = 0.1
 
 
 def family_displacements(
@@ -126,7 +152,7 @@ def area_descriptors(disp: np.ndarray, mesh: np.ndarray) -> np.ndarray:
     """
     area = measures.face_areas(mesh)
     side = np.array([landmarks.region_side(a) for a in AREA_NAMES])[area]
-    local = _local(np.asarray(disp, dtype=np.float64), side)
+    local = local_terms(np.asarray(disp, dtype=np.float64), side)
     counts = np.bincount(area, minlength=len(AREA_NAMES)).astype(np.float64)
     out = np.stack(
         [np.stack([np.bincount(area, weights=f[:, j], minlength=len(AREA_NAMES)) for j in range(3)], 1) for f in local]
@@ -153,17 +179,74 @@ def emotion_score_matrix(disp: np.ndarray, mesh: np.ndarray) -> np.ndarray:
     """Cosines (7, 7) of each emotion field (rows, ``EMOTION_PROTOTYPES`` order) to each prototype (columns).
 
     Descriptors are centred across the seven on both sides (the rows of a softmax family are defined up to a common
-    vector; see the module docstring).
+    vector; see the module docstring). Descriptive (the report's ``scores``); the decision is
+    :func:`emotion_permutation_scores`'.
     """
     d = area_descriptors(disp, mesh)
     p = prototype_descriptors(list(EMOTION_PROTOTYPES.values()))
     return _cosines(d - d.mean(axis=0), p - p.mean(axis=0))
 
 
+_PAIRS = np.array([(i, j) for i in range(7) for j in range(i + 1, 7)])  # the 21 unordered pairs of the seven
+
+
+@functools.cache
+def _permutations(n: int) -> np.ndarray:
+    """All n! permutations of range(n), (n!, n), the identity first (5040 for the seven emotions)."""
+    return np.array(list(itertools.permutations(range(n))), dtype=np.intp)
+
+
+def emotion_permutation_scores(disp: np.ndarray, mesh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairwise score of every labelling of the seven emotion fields.
+
+    For a labelling pi (field k is emotion ``pi[k]``) the score is the sum over the 21 pairs (i, j) of the cosine
+    between the descriptor of ``field_i - field_j`` and that of ``prototype_pi[i] - prototype_pi[j]``. Differences
+    are what a softmax family defines (a common vector added to every row cancels), so no centring is needed, and
+    each pair is judged on its own difference: a weak field (disgust's is the smallest) is not swamped by the strong
+    ones, as it is in a centred cosine assignment (:func:`emotion_score_matrix`; measured in
+    docs/families-directions.md: 31 % against 18 % non-identity assignments at mixing 0.3).
+
+    Parameters
+    ----------
+    disp : np.ndarray, shape (7, 478, 3)
+        The fields as labelled, ``EMOTION_PROTOTYPES`` order, face frame (:func:`family_displacements`).
+    mesh : np.ndarray, shape (478, 3)
+        The face-frame mean mesh.
+
+    Returns
+    -------
+    scores : np.ndarray, shape (5040,)
+        The score of each permutation of ``perms``; at most 21.
+    perms : np.ndarray, shape (5040, 7)
+        The permutations, the identity (the labelling as written) first.
+    """
+    d = area_descriptors(disp, mesh).reshape(7, -1)
+    p = prototype_descriptors(list(EMOTION_PROTOTYPES.values())).reshape(7, -1)
+    i, j = _PAIRS[:, 0], _PAIRS[:, 1]
+    fd = d[i] - d[j]
+    pd = p[:, None, :] - p[None, :, :]  # (7, 7, D): prototype a minus prototype b
+    fd = fd / np.maximum(np.linalg.norm(fd, axis=1, keepdims=True), 1e-300)
+    pd = pd / np.maximum(np.linalg.norm(pd, axis=2, keepdims=True), 1e-300)
+    cos = np.einsum("kd,abd->kab", fd, pd)  # (21, 7, 7): pair k's field difference against a - b
+    perms = _permutations(7)
+    scores = cos[np.arange(len(_PAIRS))[None, :], perms[:, i], perms[:, j]].sum(axis=1)
+    return scores, perms
+
+
+def _names(labels: Sequence[str]) -> str:
+    return " and ".join(labels) if len(labels) == 2 else ", ".join(labels[:-1]) + " and " + labels[-1]
+
+
 def emotion_direction_check(
     coef: np.ndarray, feature_columns: Sequence[str], mean_mesh: np.ndarray, where: str = "<arrays>"
 ) -> dict[str, Any]:
     """Check that each emotion column moves the face like its prototype; name the permutation when not.
+
+    The labelling with the highest pairwise score (:func:`emotion_permutation_scores`, all 5040 labellings) is the
+    suspected one. It **fails** the check when it is not the labelling as written and beats it by at least
+    ``PERMUTATION_MARGIN``; below the margin it is **doubtful** (fields mixed with each other, as a real fit's are,
+    can make a close labelling win by a little: docs/families-directions.md, "Calibration"). A label whose own
+    pairwise score is <= 0 (it moves against its prototype relative to the others) is doubtful too.
 
     Parameters
     ----------
@@ -173,42 +256,63 @@ def emotion_direction_check(
     Returns
     -------
     dict
-        ``verdict`` ("pass" / "fail"), ``message`` (one line), ``labels`` (the 7 names), ``scores`` (7 x 7 list,
-        rows = columns as labelled, columns = prototypes), ``assignment`` (label -> the prototype it moves like),
-        ``own_score`` (label -> its score with its own prototype), ``assignment_gain`` (summed score of the
-        assignment minus that of the labelling).
+        ``verdict`` ("pass" / "doubtful" / "fail"), ``message`` (one line), ``labels`` (the 7 names), ``inputs``
+        (label -> verdict), ``scores`` (7 x 7 centred cosines, rows = columns as labelled, columns = prototypes;
+        descriptive), ``assignment`` (label -> the prototype it moves like under the best labelling), ``moved``
+        (the labels it moves), ``own_score`` (label -> mean pair cosine with its own prototype), ``labelled_score``
+        and ``best_score`` (pairwise scores, of 21), ``assignment_gain`` (their difference), ``margin``.
     """
     labels = list(EMOTION_PROTOTYPES)
-    from scipy.optimize import linear_sum_assignment
-
     disp, mesh = family_displacements(coef, feature_columns, mean_mesh, labels, where)
-    s = emotion_score_matrix(disp, mesh)
-    rows, cols = linear_sum_assignment(-s)
-    like = {labels[r]: labels[c] for r, c in zip(rows, cols, strict=True)}
-    own = {n: float(s[k, k]) for k, n in enumerate(labels)}
+    scores, perms = emotion_permutation_scores(disp, mesh)
+    best = int(np.argmax(scores))
+    gain = float(scores[best] - scores[0])
+    like = {labels[k]: labels[int(c)] for k, c in enumerate(perms[best])}
     moved = [n for n in labels if like[n] != n]
+    own = _own_scores(disp, mesh)
     weak = [n for n in labels if own[n] <= FAIL_COSINE]
-    if moved:
-        named = ", ".join(f"'{n}' moves like {like[n]}" for n in moved)
+    named = ", ".join(f"'{n}' moves like {like[n]}" for n in moved)
+    scored = f"pairwise score {scores[best]:.2f} against {scores[0]:.2f} as labelled, margin {PERMUTATION_MARGIN}"
+    if moved and gain >= PERMUTATION_MARGIN:
+        verdict = "fail"
+        what = "look swapped" if len(moved) == 2 else "look permuted"
+        message = f"{where}: emotion columns labelled {_names(moved)} {what}: {named} ({scored})"
+    elif moved:
+        verdict = "doubtful"
         message = (
-            f"{where}: emotion columns look permuted: {named} (assignment of each column's motion to the prototypes); "
-            f"map the detector's columns by name (aumesh's emotion family), never by position"
+            f"{where}: emotion columns labelled {_names(moved)} may be permuted: {named} ({scored}: within the "
+            f"margin, fields this mixed cannot be told apart)"
         )
     elif weak:
+        verdict = "doubtful"
         message = f"{where}: emotion columns {weak} do not move like their prototypes (own score <= {FAIL_COSINE})"
     else:
+        verdict = "pass"
         message = f"{where}: emotion columns move like their prototypes (lowest own score {min(own.values()):.2f})"
+    inputs = {n: verdict if n in moved else "doubtful" if n in weak else "pass" for n in labels}
     return {
-        "verdict": "fail" if moved or weak else "pass",
+        "verdict": verdict,
         "message": message,
         "labels": labels,
-        "scores": np.round(s, 4).tolist(),
+        "inputs": inputs,
+        "scores": np.round(emotion_score_matrix(disp, mesh), 4).tolist(),
         "assignment": like,
+        "moved": moved,
         "own_score": {n: round(v, 4) for n, v in own.items()},
-        # how much the best assignment beats the labelling (0 when it is the identity): not yet a threshold, see
-        # docs/families-directions.md (fields mixed with each other can also give a non-identity assignment)
-        "assignment_gain": round(float(s[rows, cols].sum() - np.trace(s)), 4),
+        "labelled_score": round(float(scores[0]), 4),
+        "best_score": round(float(scores[best]), 4),
+        "assignment_gain": round(gain, 4),
+        "margin": PERMUTATION_MARGIN,
     }
+
+
+def _own_scores(disp: np.ndarray, mesh: np.ndarray) -> dict[str, float]:
+    """Per label, the mean over the six others of cos(field_i - field_j, prototype_i - prototype_j)."""
+    labels = list(EMOTION_PROTOTYPES)
+    d = area_descriptors(disp, mesh).reshape(7, -1)
+    p = prototype_descriptors(list(EMOTION_PROTOTYPES.values())).reshape(7, -1)
+    pair = np.array([[_cosines((d[i] - d[j])[None], (p[i] - p[j])[None])[0, 0] for j in range(7)] for i in range(7)])
+    return {n: float((pair[i].sum() - pair[i, i]) / 6) for i, n in enumerate(labels)}
 
 
 def _lateral_centroid(field: np.ndarray, mesh: np.ndarray, group_mask: np.ndarray) -> float:
@@ -220,47 +324,93 @@ def _lateral_centroid(field: np.ndarray, mesh: np.ndarray, group_mask: np.ndarra
     return float((e * x).sum() / e.sum())
 
 
-def _judge_checks(field: np.ndarray, checks: Checks, areas: _Areas) -> list[dict[str, Any]]:
+def _focus(field: np.ndarray, areas: Areas, group: str, side: int = 0) -> float:
+    """Share of the field's displacement energy in the area (group, side) over the area's share of the vertices:
+    > 1 when the field moves there more than on average over the face, ~0 when its motion is elsewhere."""
+    energy = (field**2).sum(axis=1)
+    mask = areas.mask(group) & ((areas.side == side) if side else True)
+    if energy.sum() <= MIN_MAGNITUDE**2 or not mask.any():
+        return 0.0
+    return float(energy[mask].sum() / energy.sum() / mask.mean())
+
+
+def _judge_checks(field: np.ndarray, checks: Checks, areas: Areas, strong: bool) -> list[dict[str, Any]]:
+    """Each (area, expected) check of one blendshape: cosine, focus, verdict.
+
+    "fail" needs evidence, not noise: the motion clearly opposite (cos <= ``-PASS_COSINE``), concentrated in the
+    area (focus >= ``FAIL_FOCUS``) and the field no smaller than the family's median (``strong``); a cosine <=
+    ``FAIL_COSINE`` without that is doubtful. A field whose motion is not in its area (focus < 1) is doubtful.
+    """
     out = []
     for area, terms in checks:
         group, side = landmarks.region_group(area), landmarks.region_side(area)
-        local, mag = _weighted_direction(field, areas, group, side)
+        local, mag = weighted_direction(field, areas, group, side)
         norm = float(np.linalg.norm(local))
         cos = float(local @ _unit(terms) / norm) if norm > MIN_MAGNITUDE else 0.0
+        focus = _focus(field, areas, group, side)
         verdict = "fail" if cos <= FAIL_COSINE else "doubtful" if cos < PASS_COSINE else "pass"
+        if verdict == "fail" and not (cos <= -PASS_COSINE and focus >= FAIL_FOCUS and strong):
+            verdict = "doubtful"
+        if focus < 1.0 and verdict == "pass":
+            verdict = "doubtful"
         out.append(
-            {"area": area, "expected": terms, "cosine": round(cos, 4), "magnitude": round(mag, 6), "verdict": verdict}
+            {
+                "area": area,
+                "expected": terms,
+                "cosine": round(cos, 4),
+                "focus": round(focus, 3),
+                "magnitude": round(mag, 6),
+                "verdict": verdict,
+            }
         )
     return out
 
 
 def blendshape_direction_check(
-    coef: np.ndarray, feature_columns: Sequence[str], mean_mesh: np.ndarray, where: str = "<arrays>"
+    coef: np.ndarray,
+    feature_columns: Sequence[str],
+    mean_mesh: np.ndarray,
+    where: str = "<arrays>",
+    unsupported: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Check each blendshape with an expected motion, and each Left/Right pair's sides.
+
+    A blendshape whose field is under ``STILL_FIELD`` of the median checked field (root mean square over the mesh)
+    barely moves: its direction is noise, so it is doubtful ("barely moves"), never failed, and its pair is not
+    judged by side (the data rarely expressed it; py-feat's v6 blendshape model lists such shapes as
+    ``unsupported_features``). The ``unsupported`` ones (the release's ``unsupported_features``) are left unchecked.
 
     Parameters
     ----------
     coef, feature_columns, mean_mesh, where
         As in :func:`family_displacements`; the checked names present in ``feature_columns`` are judged.
+    unsupported : sequence of str
+        Inputs the data never expressed (the release's ``unsupported_features``): unchecked.
 
     Returns
     -------
     dict
-        ``verdict`` (worst of the entries), ``message`` (one line), ``blendshapes`` (name -> ``verdict`` and
-        ``checks``: area, expected, cosine, magnitude, verdict), ``pairs`` ("<stem>Left/Right" -> the two lateral
-        centroids (IOD), verdict), ``unchecked`` (name -> reason).
+        ``verdict`` (worst of the entries), ``message`` (one line), ``inputs`` (name -> verdict, "unchecked" for
+        the unchecked), ``blendshapes`` (name -> ``verdict``, ``rms`` (IOD) and ``checks``: area, expected, cosine,
+        magnitude, verdict), ``pairs`` ("<stem>Left/Right" -> the two lateral centroids (IOD), verdict),
+        ``unchecked`` (name -> reason).
     """
-    expected = {n: c for n, c in blendshape_checks().items() if n in list(feature_columns)}
+    skip = {str(n) for n in unsupported}
+    expected = {n: c for n, c in blendshape_checks().items() if n in list(feature_columns) and n not in skip}
     names = list(expected)
     disp, mesh = family_displacements(coef, feature_columns, mean_mesh, names, where)
-    areas = _Areas(mesh)
+    areas = Areas(mesh)
+    rms = np.sqrt((disp**2).sum(axis=2).mean(axis=1)) if names else np.zeros(0)
+    still = {n for n, r in zip(names, rms, strict=True) if r < STILL_FIELD * float(np.median(rms))}
     rank = {"pass": 0, "doubtful": 1, "fail": 2}
-    entries = {}
-    for n, field in zip(names, disp, strict=True):
-        checks = _judge_checks(field, expected[n], areas)
-        entries[n] = {"verdict": max((c["verdict"] for c in checks), key=rank.__getitem__), "checks": checks}
-    pairs = {}
+    entries: dict[str, dict[str, Any]] = {}
+    for n, field, r in zip(names, disp, rms, strict=True):
+        checks = _judge_checks(field, expected[n], areas, bool(r >= np.median(rms)))
+        verdict = "doubtful" if n in still else max((c["verdict"] for c in checks), key=rank.__getitem__)
+        entries[n] = {"verdict": verdict, "rms": round(float(r), 6), "checks": checks}
+        if n in still:
+            entries[n]["reason"] = f"barely moves (rms {r:.2g} IOD, under {STILL_FIELD} of the median checked field)"
+    pairs: dict[str, dict[str, Any]] = {}
     for n in names:
         partner = n[: -len("Left")] + "Right"
         if not n.endswith("Left") or partner not in expected or {"left", "right"} & set(expected[n][0][1]):
@@ -268,7 +418,11 @@ def blendshape_direction_check(
         mask = areas.mask(landmarks.region_group(expected[n][0][0]))
         left = _lateral_centroid(disp[names.index(n)], mesh, mask)
         right = _lateral_centroid(disp[names.index(partner)], mesh, mask)
-        verdict = "fail" if left - right < -SIDE_MARGIN else "doubtful" if left - right < SIDE_MARGIN else "pass"
+        verdict = "fail" if left - right < -SIDE_FAIL else "doubtful" if left - right < SIDE_MARGIN else "pass"
+        group = landmarks.region_group(expected[n][0][0])
+        focused = min(_focus(disp[names.index(m)], areas, group) for m in (n, partner)) >= 1.0
+        if verdict == "fail" and ({n, partner} & still or not focused):
+            verdict = "doubtful"  # noise or motion elsewhere: its centroid is not a side
         pairs[f"{n[: -len('Left')]}Left/Right"] = {
             "left_x": round(left, 4),
             "right_x": round(right, 4),
@@ -290,10 +444,151 @@ def blendshape_direction_check(
         alike = [p for p, e in pairs.items() if e["verdict"] == "doubtful"]
         parts.append("doubtful: " + ", ".join(loose + [f"{p} (sides alike)" for p in alike]))
     message = f"{where}: blendshape " + ("; ".join(parts) if parts else f"directions {worst} ({len(names)} checked)")
+    unchecked = unchecked_blendshapes()
+    unchecked.update({n: "never expressed in the training data (unsupported_features)" for n in sorted(skip)})
+    inputs = {
+        n: entries[n]["verdict"] if n in entries else "unchecked"
+        for n in feature_columns
+        if n in expected or n in unchecked
+    }
+    for p, e in pairs.items():  # a swapped pair fails both of its shapes
+        stem = p[: -len("Left/Right")]
+        for side in ("Left", "Right"):
+            if rank[e["verdict"]] > rank[inputs[stem + side]]:
+                inputs[stem + side] = e["verdict"]
     return {
         "verdict": worst,
         "message": message,
+        "inputs": inputs,
         "blendshapes": entries,
         "pairs": pairs,
-        "unchecked": unchecked_blendshapes(),
+        "unchecked": unchecked,
     }
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The release's check: a family release NPZ -> report, JSON, refusal (stages/release_family.py calls these)
+# ----------------------------------------------------------------------------------------------------------------
+
+#: the fix every refusal ends with
+DIRECTION_FIX = (
+    "Fix: check the detector's column names and order in the source tables (aumesh matches the family's columns by "
+    "name: aumesh.core.families.family_columns), correct them and run `dvc repro` again"
+)
+
+
+def family_of(arrays: Mapping[str, Any], where: str = "<arrays>") -> str:
+    """The family of a release's arrays: its ``family`` key, else the family whose inputs ``feature_columns`` are."""
+    if "family" in arrays:
+        family = str(np.asarray(arrays["family"]).item())
+        if family in PYFEAT_FEATURE:
+            return family
+    cols = [str(s) for s in np.asarray(arrays.get("feature_columns", [])).tolist()]
+    for family in PYFEAT_FEATURE:
+        if set(FAMILIES[family]) <= set(cols):
+            return family
+    raise KeyError(
+        f"{where}: not a blendshape or emotion release: 'feature_columns' holds neither family's names "
+        f"({', '.join(PYFEAT_FEATURE)}; aumesh.core.families.FAMILIES)"
+    )
+
+
+def family_direction_report(
+    npz_path_or_arrays: str | os.PathLike | Mapping[str, Any], where: str | None = None
+) -> dict[str, Any]:
+    """Direction report of a blendshape or emotion release (the family's ``<family>_directions.json``).
+
+    Parameters
+    ----------
+    npz_path_or_arrays : path or mapping
+        A family release NPZ (issue 46's contract: ``coef`` (p, 1434) axis-major with the family's k inputs first,
+        ``feature_columns`` (k,), ``mean_aligned_mesh`` (478, 3), optional ``unsupported_features`` and ``family``),
+        or a mapping with those keys.
+    where : str, optional
+        The name messages use (default: the path, or ``"<arrays>"`` for a mapping).
+
+    Returns
+    -------
+    dict
+        JSON-serialisable: ``source``, ``family``, ``units``, ``thresholds``, ``verdict`` (pass / doubtful / fail),
+        ``message`` (one line), ``summary`` (input -> verdict, the card's table), ``counts`` (per verdict) and the
+        family's check (:func:`emotion_direction_check` or :func:`blendshape_direction_check`) under ``check``.
+    """
+    arrays, loaded_from = load_arrays(npz_path_or_arrays)
+    where = loaded_from if where is None else str(where)
+    family = family_of(arrays, where)
+    for key in ("coef", "feature_columns", "mean_aligned_mesh"):
+        if key not in arrays:
+            raise KeyError(
+                f"{where}: missing key {key!r}; a {family} release NPZ needs coef, feature_columns, "
+                "mean_aligned_mesh (issue 46's contract)"
+            )
+    coef = np.asarray(arrays["coef"])
+    cols = [str(s) for s in np.asarray(arrays["feature_columns"]).tolist()]
+    mean = np.asarray(arrays["mean_aligned_mesh"])
+    unsupported = [str(s) for s in np.asarray(arrays.get("unsupported_features", [])).tolist()]
+    if family == "emotions":
+        check = emotion_direction_check(coef, cols, mean, where)
+        thresholds = {"permutation_margin": PERMUTATION_MARGIN, "fail_cosine": FAIL_COSINE}
+    else:
+        check = blendshape_direction_check(coef, cols, mean, where, unsupported)
+        thresholds = {
+            "pass_cosine": PASS_COSINE,
+            "fail_cosine": FAIL_COSINE,
+            "side_margin": SIDE_MARGIN,
+            "side_fail": SIDE_FAIL,
+            "fail_focus": FAIL_FOCUS,
+            "still_field": STILL_FIELD,
+        }
+    summary = dict(check["inputs"])
+    return {
+        "source": where,
+        "family": family,
+        "units": "face frame of mean_aligned_mesh, inter-ocular distance (33-263); directions in the subject's terms",
+        "thresholds": thresholds,
+        "verdict": check["verdict"],
+        "message": check["message"],
+        "summary": summary,
+        "counts": {v: sum(1 for x in summary.values() if x == v) for v in ("pass", "doubtful", "fail", "unchecked")},
+        "check": check,
+    }
+
+
+def report_filename(family: str) -> str:
+    """``<family>_directions.json``, the report's name in ``releases/<family>/``."""
+    return f"{family}_directions.json"
+
+
+def write_report(report: Mapping[str, Any], path: str | os.PathLike) -> Path:
+    """Write a family report as JSON atomically (:func:`aumesh.card.directions.write_report`); ``path`` a folder
+    writes ``<folder>/<family>_directions.json``."""
+    target = Path(path)
+    if target.is_dir():
+        target = target / report_filename(str(report["family"]))
+    return directions.write_report(report, target)
+
+
+def check_family_directions(report: Mapping[str, Any], source: str | os.PathLike | None = None) -> None:
+    """Refuse a release whose report fails: a one-line :class:`aumesh.core.errors.DirectionCheckError`.
+
+    Parameters
+    ----------
+    report : mapping
+        :func:`family_direction_report`'s output.
+    source : path or str, optional
+        The file named in the message (default: the report's ``source``).
+
+    Raises
+    ------
+    DirectionCheckError
+        When ``report["verdict"] == "fail"``: the suspected permutation ("emotion columns labelled happiness and
+        surprise look swapped: ...") or the blendshapes moving the wrong way / side, then :data:`DIRECTION_FIX`.
+        A doubtful report passes (its message goes to the card's warnings).
+    """
+    if report.get("verdict") != "fail":
+        return
+    where = str(report.get("source", "<arrays>"))
+    message = str(report["message"])
+    if source is not None and message.startswith(where + ": "):
+        message = f"{source}: {message[len(where) + 2 :]}"
+    raise DirectionCheckError(f"{message}. {DIRECTION_FIX}".replace("\n", " "))

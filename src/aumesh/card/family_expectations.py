@@ -80,8 +80,10 @@ EMOTION_PROTOTYPES: dict[str, Checks] = {
         ("lower_eyelid", {"up": 1.0}),
         ("lip_corner", {"inward": 1.0}),
     ],
-    # disgust: AU9+10(+15) - nose wrinkled, upper lip raised
-    "disgust": [("nose", {"up": 1.0}), ("upper_lip", {"up": 1.0})],
+    # disgust: AU9 or AU10 (+15/16/17/26 by variant: EMFACS-7's disgust prototypes 9, 9+16+15+26, 9+17, 10, ...) -
+    # the nose wrinkled and the infraorbital triangle / nasolabial furrow raised, which every variant shares; the
+    # lips are not checked (AU10 raises the upper lip, AU15/16/26 lower the corners or the lower lip)
+    "disgust": [("nose", {"up": 1.0}), ("nasolabial", {"up": 1.0})],
     # fear: AU1+2+4+5+7+20+26 - brows raised, upper lids raised, lips stretched, jaw dropped
     "fear": [
         ("brow_inner", {"up": 1.0}),

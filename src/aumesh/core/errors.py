@@ -61,3 +61,8 @@ class ClusterError(UserError):
     """A Dask cluster that cannot serve the run: no scheduler at the address, a scheduler lost mid-run, a worker that
     cannot read the data or write the output folders at the paths the stage uses; the message names the address or
     the worker and the path, and the fix."""
+
+
+class DirectionCheckError(UserError, ValueError):
+    """A release whose inputs do not move the face the way their names say (permuted or mirrored columns); the
+    message names the release file, the suspected permutation or blendshape, and the fix."""

@@ -40,24 +40,16 @@ log = logging.getLogger(__name__)
 
 
 def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -> dict:
-    """The family's direction check on the release arrays (:mod:`aumesh.card.family_directions`), written as
-    ``<family>_directions.json``; called inside the release's temporary folder, so a refusal raised here leaves the
-    previous release as it was.
-
-    HOOK (direction-check engineer, issue 46 item 4; branch i46-dirs): on merge, replace the body with
-    ``report = family_directions.family_direction_report(arrays, where=source)`` then
-    ``family_directions.check_family_directions(report, source)`` (a failing report: one-line DirectionCheckError,
-    exit 2, the suspected permutation named) and ``return report``. Until then the check runs and is recorded in the
-    card, never refused here.
-    """
+    """The family's direction check on the release arrays (:mod:`aumesh.card.family_directions`): the report
+    (``<family>_directions.json``; ``summary`` is {input: verdict}), and the refusal of a release whose emotion labels
+    look permuted or whose blendshapes move the wrong way / side (a one-line
+    :class:`aumesh.core.errors.DirectionCheckError`, exit 2, the suspected permutation named). Called inside
+    the release's temporary folder, so a refusal leaves the previous release as it was."""
     from aumesh.card import family_directions
 
-    check = (
-        family_directions.emotion_direction_check
-        if family == "emotions"
-        else family_directions.blendshape_direction_check
-    )
-    return check(arrays["coef"], arrays["feature_columns"].tolist(), arrays["mean_aligned_mesh"], source)
+    report = family_directions.family_direction_report({**arrays, "family": np.array(family)}, where=source)
+    family_directions.check_family_directions(report, source)
+    return report
 
 
 def export_rig_and_viewer(arrays: dict[str, np.ndarray], folder: Path, source: str) -> list[Path]:
