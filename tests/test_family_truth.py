@@ -36,7 +36,7 @@ def _up(field_flat: np.ndarray, template: np.ndarray, vertices) -> float:
 def test_fields_carry_the_shapes_meanings():
     """Independent of the table: the truth's fields move the face as the names say (the direction a later check must
     find), and a Left/Right pair sums to its AU's field."""
-    arrays = family_truth.family_truth_arrays(SPEC)
+    arrays = family_truth.family_truth_arrays(*synth.true_coefficients(SPEC)[:2])
     bs, emo, t = arrays["blendshape_fields"], arrays["emotion_fields"], arrays["template_px"]
     b = {n: bs[k] for k, n in enumerate(families.BLENDSHAPE_COLUMNS)}
     e = {n: emo[k] for k, n in enumerate(families.EMOTION_COLUMNS)}
@@ -71,7 +71,7 @@ def test_fit_of_the_written_table_recovers_the_family_fields(truth_table):
     AUs, pose, pose x AU, blendshapes, emotions but neutral) by least squares: each family field comes back, the zero
     fields stay near 0."""
     df, mesh = truth_table
-    arrays = family_truth.family_truth_arrays(SPEC)
+    arrays = family_truth.family_truth_arrays(*synth.true_coefficients(SPEC)[:2])
     template = arrays["template_px"]
     anchors = list(ANCHOR_INDICES)
     R, s, t = umeyama_batch(mesh[:, anchors], template[anchors])
@@ -111,7 +111,7 @@ def test_truth_off_draws_nothing():
     byte-identical to before); with it the blendshapes are independent of the AUs and the mesh moves by them."""
     counts, gen_args = synth_setup(SPEC)
     n = int(counts[0])
-    fields = family_truth.family_truth_fields(SPEC)
+    fields = family_truth.family_truth_fields(*synth.true_coefficients(SPEC)[:2])
     off = video_rows(SPEC, 0, n, gen_args, "mp", 0.0, 0.0, 0)
     on = video_rows(SPEC, 0, n, gen_args, "mp", 0.0, 0.0, 0, family_fields=fields)
     a, b = on["blocks"], off["blocks"]

@@ -129,26 +129,31 @@ def draw_family_values(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np
     return blend, p / p.sum(axis=1, keepdims=True)
 
 
-def family_truth_fields(spec) -> dict[str, np.ndarray]:
-    """:func:`family_fields` on ``spec``'s AU truth, in pixels of the canonical template
-    (:func:`aumesh.synthetic.tables.true_coefficients`: ``spec.reversed_aus`` reverse the shapes built on them)."""
+def family_truth_fields(au_coef: np.ndarray, intercept: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`family_fields` on a synthetic spec's AU truth, in pixels of the canonical template.
+
+    Parameters
+    ----------
+    au_coef : ndarray, shape (>= 20, 1434)
+        The truth's rows (:func:`aumesh.synthetic.tables.true_coefficients`: ``spec.reversed_aus`` reverse the shapes
+        built on them); the first 20 are the AU fields.
+    intercept : ndarray, shape (1434,)
+        The template mesh, axis-major pixels.
+    """
     from aumesh.core.schema import unflatten_axis_major
-    from aumesh.synthetic import tables as synth
 
-    coef, intercept, _ = synth.true_coefficients(spec)
-    return family_fields(coef[: len(AU_COLUMNS)], unflatten_axis_major(intercept))
+    return family_fields(np.asarray(au_coef)[: len(AU_COLUMNS)], unflatten_axis_major(intercept))
 
 
-def family_truth_arrays(spec) -> dict[str, np.ndarray]:
-    """The family truth of tables written with ``family_truth=True``, for ``np.savez``: ``blendshape_fields``
-    (52, 1434) and ``emotion_fields`` (7, 1434) axis-major pixels, ``blendshape_columns``, ``emotion_columns``, and,
-    as in the AU truth NPZ (``aumesh synth --truth``), ``template_px`` (478, 3) and ``anchor_indices`` (12,), for
-    mapping the fields into a fitted model's aligned frame (:func:`aumesh.synthetic.truth.au_field_cosines`' way)."""
+def family_truth_arrays(au_coef: np.ndarray, intercept: np.ndarray) -> dict[str, np.ndarray]:
+    """The family truth of tables written with ``family_truth=True`` (AU truth ``au_coef``, ``intercept``: as
+    :func:`family_truth_fields`), for ``np.savez``: ``blendshape_fields`` (52, 1434) and ``emotion_fields`` (7, 1434)
+    axis-major pixels, ``blendshape_columns``, ``emotion_columns``, and, as in the AU truth NPZ (``aumesh synth
+    --truth``), ``template_px`` (478, 3) and ``anchor_indices`` (12,), for mapping the fields into a fitted model's
+    aligned frame (:func:`aumesh.synthetic.truth.au_field_cosines`' way)."""
     from aumesh.core.schema import ANCHOR_INDICES, unflatten_axis_major
-    from aumesh.synthetic import tables as synth
 
-    fields = family_truth_fields(spec)
-    _, intercept, _ = synth.true_coefficients(spec)
+    fields = family_truth_fields(au_coef, intercept)
     return {
         "blendshape_fields": fields["blendshapes"],
         "emotion_fields": fields["emotions"],

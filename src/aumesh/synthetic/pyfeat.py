@@ -273,7 +273,7 @@ def write_pyfeat_tables(
         "Person_2"; :func:`aumesh.synthetic.pyfeat_faces.twin_faces`): the largest-face rule cannot tell them apart.
         Off by default (no extra random draw: the tables are byte-identical without it).
     family_truth : the main face's blendshapes and emotions drawn independently of its AUs and its mesh moved by their
-        known fields (:mod:`aumesh.synthetic.family_truth`; the truth: ``family_truth.family_truth_arrays(spec)``),
+        known fields (:mod:`aumesh.synthetic.family_truth`; the truth: ``family_truth.family_truth_arrays(*tables.true_coefficients(spec)[:2])``),
         the clean tables' meshes too. Off by default (no extra random draw: byte-identical tables without it).
 
     Returns a summary: files, clean_files, n_rows, n_frames, n_face_frames, n_no_face, n_extra_faces, n_twin_faces
@@ -301,7 +301,7 @@ def write_pyfeat_tables(
             raise ValueError("clean_dir must differ from out_dir for fmt='parquet'/'split' (same file names)")
 
     counts, gen_args = synth_setup(spec)
-    fields = family_truth_fields(spec) if family_truth else None
+    fields = family_truth_fields(*synth.true_coefficients(spec)[:2]) if family_truth else None
     per_file = videos_per_file or spec.n_videos
     files: list[str] = []
     clean_files: list[str] = []

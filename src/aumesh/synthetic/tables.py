@@ -442,7 +442,7 @@ def write_tables(
     if families:
         from aumesh.synthetic.family_truth import family_truth_fields
 
-        fields = family_truth_fields(spec)
+        fields = family_truth_fields(*true_coefficients(spec)[:2])
 
     files, failures, file_no, video, baselines = [], 0, 0, 0, []
     n_au = len(AU_COLUMNS)
@@ -517,7 +517,7 @@ def _family_truth(spec: SynthSpec) -> dict[str, np.ndarray]:
     ``template_px`` and ``anchor_indices`` it already holds: the same arrays)."""
     from aumesh.synthetic.family_truth import family_truth_arrays
 
-    arrays = family_truth_arrays(spec)
+    arrays = family_truth_arrays(*true_coefficients(spec)[:2])
     return {k: v for k, v in arrays.items() if k not in ("template_px", "anchor_indices")}
 
 
