@@ -37,8 +37,11 @@ EMOTION_AU = {
 }
 
 
-def family_values(frames: pa.Table, family: str, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """The family's columns for the prepared frames: AU columns under the family's names, small noise elsewhere."""
+def family_values(
+    frames: pa.Table, family: str, rng: np.random.Generator, softmax: bool = False
+) -> dict[str, np.ndarray]:
+    """The family's columns for the prepared frames: AU columns under the family's names, small noise elsewhere;
+    ``softmax``: each frame's inputs scaled to sum to 1 (as py-feat's emotions do)."""
     n = frames.num_rows
     source = BLENDSHAPE_AU if family == "blendshapes" else EMOTION_AU
     out = {}
@@ -50,6 +53,9 @@ def family_values(frames: pa.Table, family: str, rng: np.random.Generator) -> di
             out[name] = frames.column(au).to_numpy().astype(np.float64)
         else:
             out[name] = rng.uniform(0.0, 0.2, n)
+    if softmax:
+        total = sum(out.values()) + 1e-3  # + a floor on neutral's share: no frame sums to 0
+        out = {name: (v + (1e-3 if name == "neutral" else 0.0)) / total for name, v in out.items()}
     return out
 
 
@@ -62,7 +68,7 @@ def _design(values: dict[str, np.ndarray], pose: np.ndarray, columns: list[str])
     return np.column_stack([named[c] for c in columns])
 
 
-def make_family_fit(ws: Path, family: str, seed: int = 0) -> dict[str, np.ndarray]:
+def make_family_fit(ws: Path, family: str, seed: int = 0, softmax: bool = False) -> dict[str, np.ndarray]:
     """Add ``family``'s columns to ``ws``'s prepared frames (checksum updated, as prepare would record it) and write
     ``build/families/<family>/`` as the evaluate stage would (model.npz per the contract, metrics, tracking, cv)."""
     from aumesh.config import load_params
@@ -73,7 +79,7 @@ def make_family_fit(ws: Path, family: str, seed: int = 0) -> dict[str, np.ndarra
     prepared = ws / cfg.paths.prepared_dir
     frames_path = prepared / "frames.parquet"
     frames = pq.read_table(frames_path)
-    values = family_values(frames, family, np.random.default_rng(seed))
+    values = family_values(frames, family, np.random.default_rng(seed), softmax)
     for name, v in values.items():
         if name in frames.column_names:
             frames = frames.drop_columns([name])
@@ -145,6 +151,13 @@ def test_release_family_writes_pyfeats_npz_card_and_figures(family_ws, family):
     codes = {w["code"] for w in card["warnings"]}
     assert "small_data_frames" in codes  # 400 frames for 211 / 28 features
     assert ("unsupported_inputs" in codes) == bool(ZERO_INPUTS[family])
+    # a family whose inputs sum to one value in every frame (a softmax) is said to identify only differences; numpy's
+    # row sums of the frames decide which case this is
+    sums = np.column_stack([frames.column(c).to_numpy() for c in FAMILIES[family]]).sum(axis=1)
+    assert ("inputs_sum_constant" in codes) == bool(np.ptp(sums) < 1e-3), (family, np.ptp(sums))
+    assert card["data"]["input_sum"] == pytest.approx({"min": sums.min(), "max": sums.max()})
+    # the rig (a morph target per input, by name) and the viewer are part of the release
+    assert {f"{family}_to_mesh.glb", "viewer.html"} <= set(names)
     md = (out / "MODEL_CARD.md").read_text()
     assert "## Limits of this release" in md and "## What the training data expressed" in md
     for name in ZERO_INPUTS[family]:
@@ -162,6 +175,17 @@ def test_release_family_writes_pyfeats_npz_card_and_figures(family_ws, family):
     expected_mesh = rotate_axis_major(x0 @ fit["coef"].T + fit["mesh_intercept"], rotation, origin)
     got = fit["x"][:20, :k].astype(np.float32) @ arrays["coef"][:k] + arrays["intercept"]
     assert np.abs(got - expected_mesh).max() < 1e-4 * np.abs(expected_mesh).max()
+
+
+def test_emotions_that_sum_to_one_are_said_to_identify_differences_only(family_ws):
+    """py-feat's emotions are a softmax: the design's intercept is their sum, so the card says one emotion's field
+    alone is not identified (the same family's table without the constraint says nothing: the test above)."""
+    make_family_fit(family_ws, "emotions", softmax=True)
+    assert _release("emotions") == 0
+    card = json.loads((family_ws / "releases/emotions/model_card.json").read_text())
+    (warning,) = [w for w in card["warnings"] if w["code"] == "inputs_sum_constant"]
+    assert warning["sum_min"] == pytest.approx(1.0) and warning["sum_max"] == pytest.approx(1.0)
+    assert "only differences" in warning["message"]
 
 
 def test_family_promotion_is_on_the_card(family_ws):

@@ -80,7 +80,8 @@ def fig_family_panels(
     lims = display_limits(neutral, disp, 1.0, supported)
     cols = min(8, len(names))
     rows = math.ceil(len(names) / cols)
-    fig = new_figure(1.9 * cols, 2.15 * rows + 0.9)
+    height = 2.15 * rows + 1.1  # inches: the rows, and a header for the two-line title above the first row's labels
+    fig = new_figure(1.9 * cols, height)
     axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     for k, ax in enumerate(axes):
         if k >= len(names):
@@ -95,9 +96,10 @@ def fig_family_panels(
         f"{family}: each input at its training p99 (the most py-feat gives it), others 0, pose 0\nred tint = "
         "displacement" + ("; grey = never expressed in the training data" if not supported.all() else ""),
         fontsize=10,
+        y=1 - 0.08 / height,
+        va="top",
     )
-    height = 2.15 * rows + 0.9
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.75 / height, wspace=0.02, hspace=0.2)
+    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - 0.95 / height, wspace=0.02, hspace=0.2)
     return fig
 
 

@@ -207,6 +207,33 @@ def _unsupported_warning(data: Mapping[str, Any]) -> list[dict[str, Any]]:
     ]
 
 
+#: Spread of the per-frame input sum (max - min) under which a family's inputs count as summing to a constant
+CONSTANT_SUM_SPREAD = 1e-3
+
+
+def _sum_warning(data: Mapping[str, Any], family: str) -> list[dict[str, Any]]:
+    """A family whose inputs sum to one value in every training frame (``data.input_sum``: py-feat's emotions are a
+    softmax): its design is rank-deficient, so only differences between the inputs' fields are identified."""
+    span = data.get("input_sum") or {}
+    if not span or span["max"] - span["min"] > CONSTANT_SUM_SPREAD * max(1.0, abs(span["max"])):
+        return []
+    one, many, _, _ = INPUT_WORDS[family]
+    total = 0.5 * (span["min"] + span["max"])
+    return [
+        _warning(
+            "inputs_sum_constant",
+            f"the {many} sum to {total:.3g} in every training frame (min {span['min']:.6g}, max {span['max']:.6g}): "
+            f"the intercept is their sum, so only differences between {many}' fields are identified; the mesh of "
+            f"one {one} with the others 0 (plot_face_mesh({family[:-1]}={{name: 0.8}})) holds a share of the fit's "
+            f"arbitrary choice",
+            f"to read one {one}'s field alone: give {many} that sum to {total:.3g} (e.g. the rest on neutral), "
+            "or compare two of them",
+            sum_min=span["min"],
+            sum_max=span["max"],
+        )
+    ]
+
+
 def _field_warnings(
     cv: Mapping[str, Any],
     au_directions: Mapping[str, str] | None,
@@ -429,6 +456,7 @@ def release_warnings(
     return [
         *_data_warnings(data, n_features, family),
         *_unsupported_warning(data),
+        *_sum_warning(data, family),
         *_field_warnings(
             cv, directions, au_field_iod, list((data.get("degenerate") or {}).get("constant_inputs") or {}), family
         ),

@@ -79,6 +79,40 @@ def _active(part: tuple[str, int, tuple[str, ...]]) -> np.ndarray:
     return np.array([*(v > support.ACTIVE_AU).sum(axis=0), len(v)], np.int64)
 
 
+def _sum_range(part: tuple[str, int, tuple[str, ...]]) -> np.ndarray:
+    """(2,) float64: the smallest and largest sum of the family's inputs over one row group's frames."""
+    total = _row_group_values(part).sum(axis=1)
+    return np.array([total.min(), total.max()]) if len(total) else np.array([np.inf, -np.inf])
+
+
+def input_sum_range(prepared_dir: str | Path, family: str) -> dict[str, float]:
+    """The smallest and largest per-frame sum of ``family``'s inputs over the training frames.
+
+    A family whose inputs sum to the same value in every frame (py-feat's emotions: a softmax, so 1) has a design of
+    lower rank than its width: the intercept is the sum of the inputs' columns (and each pose column the sum of its
+    pose x input columns), so only differences between the inputs' fields are identified
+    (:func:`aumesh.card.limits.release_warnings`' ``inputs_sum_constant``).
+
+    Returns
+    -------
+    dict
+        ``{"min": float, "max": float}``.
+    """
+    from aumesh.pipeline import compute
+
+    path = Path(prepared_dir) / FRAMES_FILE
+    parts = [(str(path), g, tuple(FAMILIES[family])) for g in range(pq_row_groups(path))]
+    lo_hi = compute.map_reduce(_sum_range, lambda a, b: np.array([min(a[0], b[0]), max(a[1], b[1])]), parts)
+    return {"min": float(lo_hi[0]), "max": float(lo_hi[1])}
+
+
+def pq_row_groups(path: Path) -> int:
+    """Row groups of the parquet file ``path``."""
+    import pyarrow.parquet as pq
+
+    return pq.ParquetFile(path).num_row_groups
+
+
 def training_ranges(prepared_dir: str | Path, family: str) -> dict[str, dict[str, float | None]]:
     """Each of ``family``'s inputs' range record over the training frames (``frames.parquet``: the frames every fit
     uses), as prepare records the AUs' (:func:`aumesh.pipeline.prepare.summary.input_ranges`).

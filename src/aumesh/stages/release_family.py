@@ -32,6 +32,7 @@ from aumesh.pipeline.release_family import (
     family_fit_dir,
     family_promotion,
     family_release_dir,
+    input_sum_range,
     training_ranges,
 )
 from aumesh.stages.common import start_stage
@@ -83,6 +84,7 @@ def main(cfg: Config, family: str) -> Path:
     promotion = family_promotion(cfg.paths.promotion_file, family)
     design = [str(c) for c in model["feature_columns"].tolist()]
     card = build_family_card(cfg, family, fit_dir, prepared_dir, promotion, ranges, int(model["n_components"]), design)
+    card["data"]["input_sum"] = input_sum_range(prepared_dir, family)  # a softmax family: only differences identified
     refuse_nonfinite({"coef": model["coef"], "intercept": model["mesh_intercept"]}, fit_dir / MODEL_NPZ)
     card["data"]["face_shape"] = refuse_implausible_face(
         model["mesh_intercept"], reference["mean_aligned_mesh"], fit_dir / MODEL_NPZ, prepared_dir / REFERENCE_FILE
