@@ -14,8 +14,9 @@ import pandas as pd
 import pytest
 
 from aumesh.core.errors import TableError
-from aumesh.data import tables
-from aumesh.pipeline import ingest, prepare
+from aumesh.pipeline import ingest
+from aumesh.stages import ingest as ingest_stage
+from aumesh.stages import prepare as prepare_stage
 from aumesh.synthetic.pyfeat import write_pyfeat_tables
 from aumesh.synthetic.tables import SynthSpec
 from conftest import default_config
@@ -56,12 +57,12 @@ def _cfg(data_dir: Path):
 
 
 def _ingest_prepare(data_dir: Path, work: Path) -> tuple[dict, pd.DataFrame]:
-    """The ingest stage, then prepare as the stage runs it (the manifest's families): (manifest, frames.parquet)."""
+    """The ingest and prepare stages (``aumesh ingest``, ``aumesh prepare``): (manifest, frames.parquet)."""
     cfg = _cfg(data_dir)
-    manifest = ingest.run(cfg, work / "ingested")
-    carried = manifest["families"]["carried"]
-    found = tables.check_tables(manifest["tables"], cfg.data.mesh_npy, cfg.data.coerce_numeric, (), carried)
-    prepare.run(found, cfg, work / "prepared", ingested=manifest["counts"], families=manifest["families"])
+    paths = dataclasses.replace(cfg.paths, ingested_dir=str(work / "ingested"), prepared_dir=str(work / "prepared"))
+    cfg = dataclasses.replace(cfg, paths=paths)
+    manifest = ingest_stage.main(cfg)
+    prepare_stage.main(cfg)
     return manifest, pd.read_parquet(work / "prepared" / "frames.parquet")
 
 

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from aumesh.core.schema import AU_COLUMNS, N_VERTICES, POSE_COLUMNS
 from aumesh.synthetic import tables as synth
+from aumesh.synthetic.family_truth import family_source
 from conftest import REPO
 
 #: The i46 commit before the families' option: its generator is the reference for "unchanged without the flag".
@@ -72,7 +73,7 @@ def _mesh(df: pd.DataFrame) -> np.ndarray:
 def test_the_families_are_written_with_a_known_field_on_the_mesh(tmp_path):
     spec = synth.SynthSpec(**KWARGS)
     synth.write_tables(tmp_path / "plain", spec)
-    synth.write_tables(tmp_path / "fam", spec, tmp_path / "truth.npz", families=True)
+    synth.write_tables(tmp_path / "fam", spec, tmp_path / "truth.npz", families=family_source(spec))
     plain = pd.concat([pd.read_parquet(f) for f in sorted((tmp_path / "plain").glob("*.parquet"))], ignore_index=True)
     fam = pd.concat([pd.read_parquet(f) for f in sorted((tmp_path / "fam").glob("*.parquet"))], ignore_index=True)
     truth = np.load(tmp_path / "truth.npz")

@@ -50,7 +50,12 @@ def _cmd_synth(args) -> int:
         spec = realistic_noise_spec(args.frames, args.videos, args.seed, au_noise_sd=sd, **fields)
     else:
         spec = SynthSpec(args.frames, args.videos, args.seed, au_noise_sd=args.au_noise_sd or 0.0, **fields)
-    summary = write_tables(args.out, spec, args.truth, families=args.families)
+    families = None
+    if args.families:
+        from aumesh.synthetic.family_truth import family_source
+
+        families = family_source(spec)
+    summary = write_tables(args.out, spec, args.truth, families=families)
     if args.truth is not None and spec.au_noise_sd > 0:
         summary["sigma_u"] = str(write_truth_sigma_u(args.truth))
     print(json.dumps(summary, indent=2))

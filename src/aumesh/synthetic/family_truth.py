@@ -162,3 +162,17 @@ def family_truth_arrays(au_coef: np.ndarray, intercept: np.ndarray) -> dict[str,
         "template_px": unflatten_axis_major(intercept),
         "anchor_indices": np.asarray(ANCHOR_INDICES, dtype=np.int32),
     }
+
+
+def family_source(spec):
+    """What ``aumesh synth --families`` writes (:class:`aumesh.synthetic.tables.FamilySource`): the fields of
+    :func:`family_truth_fields`, :func:`draw_family_values` for each video's values, and the truth NPZ's family keys
+    (:func:`family_truth_arrays` without ``template_px`` and ``anchor_indices``, which the AU truth already holds: the
+    same arrays)."""
+    from aumesh.synthetic import tables as synth
+
+    coef, intercept, _ = synth.true_coefficients(spec)
+    truth = {
+        k: v for k, v in family_truth_arrays(coef, intercept).items() if k not in ("template_px", "anchor_indices")
+    }
+    return synth.FamilySource(family_truth_fields(coef, intercept), draw_family_values, truth)

@@ -33,6 +33,7 @@ Fex order Pitch, Roll, Yaw) or ``pyfeat`` (AU/pose parquet + ``[N, 478, 3]`` flo
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -392,19 +393,31 @@ def detector_readings(spec: SynthSpec, video: int, read: np.ndarray) -> dict[str
     return out
 
 
+@dataclass(frozen=True)
+class FamilySource:
+    """What :func:`write_tables` needs to write the blendshape and emotion families (issue 46): built by
+    :func:`aumesh.synthetic.family_truth.family_source` (which depends on this module, not the other way round).
+
+    ``fields``: ``"blendshapes"`` (52, 1434) and ``"emotions"`` (7, 1434), axis-major pixels of the canonical frame;
+    ``draw(rng, n)``: ``n`` frames' blendshapes (n, 52) and emotions (n, 7); ``truth``: arrays the truth NPZ adds."""
+
+    fields: dict[str, np.ndarray]
+    draw: Callable[[np.random.Generator, int], tuple[np.ndarray, np.ndarray]]
+    truth: dict[str, np.ndarray]
+
+
 def write_tables(
-    out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | None = None, families: bool = False
+    out_dir: str | Path, spec: SynthSpec, truth_path: str | Path | None = None, families: FamilySource | None = None
 ) -> dict:
     """Write synthetic frame tables under ``out_dir``; optionally save the ground truth as an NPZ.
 
-    With ``families`` (``aumesh synth --families``, issue 46) each table also holds the 52 blendshapes and 7 emotions
-    (``core.families.BLENDSHAPE_COLUMNS``, ``EMOTION_COLUMNS``: MPDetector's names) after the pose, drawn per video
-    from their own random stream (``[seed, video, 6]``: blendshapes in [0, 1], emotions a softmax;
-    :func:`aumesh.synthetic.family_truth.draw_family_values`), independent of the AUs, and each canonical mesh moves
-    by their known fields (:func:`aumesh.synthetic.family_truth.family_truth_fields`); the truth NPZ then also holds
-    :func:`aumesh.synthetic.family_truth.family_truth_arrays`' ``blendshape_fields`` (52, 1434), ``emotion_fields``
-    (7, 1434), ``blendshape_columns``, ``emotion_columns``. Without it nothing more is drawn: the tables and truth are
-    byte-identical to the generator before it.
+    With ``families`` (``aumesh synth --families``, issue 46: :func:`aumesh.synthetic.family_truth.family_source`)
+    each table also holds the 52 blendshapes and 7 emotions (``core.families.BLENDSHAPE_COLUMNS``,
+    ``EMOTION_COLUMNS``: MPDetector's names) after the pose, drawn per video from their own random stream
+    (``[seed, video, 6]``: blendshapes in [0, 1], emotions a softmax), independent of the AUs, and each canonical mesh
+    moves by their known fields (:func:`family_displacement`); the truth NPZ then also holds ``families.truth``
+    (``blendshape_fields`` (52, 1434), ``emotion_fields`` (7, 1434), ``blendshape_columns``, ``emotion_columns``).
+    Without it nothing more is drawn: the tables and truth are byte-identical to the generator before it.
 
     The truth NPZ holds ``coef`` (83, 1434) and ``intercept`` of the true map in the canonical template
     frame (px), ``au_fields`` (20, 1434) = its AU rows (the true AU displacement fields), ``au_columns``,
@@ -438,11 +451,6 @@ def write_tables(
         :, np.r_[ANCHOR_INDICES, np.add(ANCHOR_INDICES, N_VERTICES), np.add(ANCHOR_INDICES, 2 * N_VERTICES)]
     ] = 0.0
     resemblance = identity_resemblance(coef, identity_basis)
-    fields = None
-    if families:
-        from aumesh.synthetic.family_truth import family_truth_fields
-
-        fields = family_truth_fields(*true_coefficients(spec)[:2])
 
     files, failures, file_no, video, baselines = [], 0, 0, 0, []
     n_au = len(AU_COLUMNS)
@@ -451,8 +459,8 @@ def write_tables(
         parts, rows = [], 0
         while video < spec.n_videos and (rows == 0 or rows + counts[video] <= spec.frames_per_file):
             n = int(counts[video])
-            family = None if fields is None else family_values(spec, video, n)
-            moved = None if family is None or fields is None else family_displacement(family, fields)
+            family = None if families is None else families.draw(np.random.default_rng([spec.seed, video, 6]), n)
+            moved = None if family is None or families is None else family_displacement(family, families.fields)
             g = generate_video(spec, video, n, coef, intercept, identity_basis, latent_basis, resemblance, extra=moved)
             if family is not None:
                 g["blendshapes"], g["emotions"] = family
@@ -488,7 +496,7 @@ def write_tables(
             anchor_indices=np.array(ANCHOR_INDICES, dtype=np.int32),
             spec=np.array(repr(_spec_record(spec))),
             **noise,
-            **({} if fields is None else _family_truth(spec)),
+            **({} if families is None else families.truth),
         )
     return {
         "files": [str(f) for f in files],
@@ -498,27 +506,10 @@ def write_tables(
     }
 
 
-def family_values(spec: SynthSpec, video: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """A video's blendshapes (n, 52) in [0, 1] and emotions (n, 7), a softmax, from their own stream
-    ``[spec.seed, video, 6]`` (:func:`aumesh.synthetic.family_truth.draw_family_values`)."""
-    from aumesh.synthetic.family_truth import draw_family_values
-
-    return draw_family_values(np.random.default_rng([spec.seed, video, 6]), n)
-
-
 def family_displacement(family: tuple[np.ndarray, np.ndarray], fields: dict[str, np.ndarray]) -> np.ndarray:
     """(n, 1434) axis-major pixels the families move each canonical mesh by: ``blendshapes @ fields + emotions @
     fields`` (:func:`aumesh.synthetic.family_truth.family_truth_fields`)."""
     return family[0] @ fields["blendshapes"] + family[1] @ fields["emotions"]
-
-
-def _family_truth(spec: SynthSpec) -> dict[str, np.ndarray]:
-    """The truth NPZ's family keys (:func:`aumesh.synthetic.family_truth.family_truth_arrays` without the
-    ``template_px`` and ``anchor_indices`` it already holds: the same arrays)."""
-    from aumesh.synthetic.family_truth import family_truth_arrays
-
-    arrays = family_truth_arrays(*true_coefficients(spec)[:2])
-    return {k: v for k, v in arrays.items() if k not in ("template_px", "anchor_indices")}
 
 
 def write_truth_sigma_u(truth_path: str | Path, name: str = "sigma_u.npy") -> Path:
