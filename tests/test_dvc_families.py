@@ -1,7 +1,7 @@
 """Issue 46: the families are comparable in `dvc exp show`: metrics/families.json's keys beside metrics/metrics.json's.
 
 A tiny git + DVC workspace (as tests/test_dvc_pipeline.py's) on synthetic tables with the blendshape and emotion
-families (`write_tables(..., families=True)`): `dvc repro evaluate` committed as the baseline, then a real
+families (`write_tables(..., families=family_truth.family_source(spec))`): `dvc repro evaluate` committed as the baseline, then a real
 `dvc exp run evaluate -S families.emotions.features=emotions_pose`. `dvc exp show --json` lists, for the baseline and
 the experiment, every family's metrics under metrics/families.json with metrics/metrics.json's keys (its CV keys at
 least); the
@@ -22,6 +22,7 @@ import pytest
 import yaml
 
 from aumesh.config import compose, write_params
+from aumesh.synthetic import family_truth
 from aumesh.synthetic.tables import SynthSpec, write_tables
 from conftest import REPO
 from test_dvc_pipeline import BIN, _run
@@ -60,7 +61,8 @@ def family_workspace(tmp_path, fixed_conf):
     _run([BIN / "dvc", "init", "-q"], ws)
     shutil.copy(REPO / ".dvc" / "config", ws / ".dvc" / "config")
     _run([BIN / "dvc", "remote", "remove", "demo"], ws)
-    write_tables(ws / "data", SynthSpec(n_frames=600, n_videos=60, seed=11), families=True)
+    spec = SynthSpec(n_frames=600, n_videos=60, seed=11)
+    write_tables(ws / "data", spec, families=family_truth.family_source(spec))
     _run([BIN / "dvc", "add", "-q", "data"], ws)
     _run(["git", "add", "-A"], ws)
     _run(["git", "commit", "-qm", "init"], ws)

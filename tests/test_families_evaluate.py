@@ -215,12 +215,14 @@ def family_workspace(tmp_path_factory):
     synthetic tables whose blendshapes and emotions move the mesh by known fields (``aumesh synth --families``)."""
     from aumesh import cli
     from aumesh.config import write_params
+    from aumesh.synthetic import family_truth
     from aumesh.synthetic import tables as synth
     from conftest import new_store
 
     ws = tmp_path_factory.mktemp("family-ws") / "ws"
     ws.mkdir()
-    synth.write_tables(ws / "data", synth.SynthSpec(**FAMILY_SPEC_KW), ws / "truth.npz", families=True)
+    spec = synth.SynthSpec(**FAMILY_SPEC_KW)
+    synth.write_tables(ws / "data", spec, ws / "truth.npz", families=family_truth.family_source(spec))
     write_params(default_config().to_dict(), ws / "params.yaml")
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(ws)
