@@ -45,7 +45,17 @@ def test_load_params_reports_the_file(tmp_path):
         config.load_params(tmp_path / "missing.yaml")
 
 
-@pytest.mark.parametrize("option,columns", [("au", 20), ("au_pose", 23), ("au_pose_interactions", 83)])
+@pytest.mark.parametrize(
+    "option,columns",
+    [
+        ("au", 20),
+        ("au_pose", 23),
+        ("au_pose_interactions", 83),
+        ("blendshapes", 52),
+        ("blendshapes_pose_interactions", 52 + 3 + 3 * 52),
+        ("emotions_pose", 7 + 3),
+    ],
+)
 def test_feature_sets_are_group_options(option, columns, fixed_conf):
     cfg = config.from_dict(config.compose([f"features={option}"], config_dir=fixed_conf))
     assert cfg.features.name == option and len(cfg.features.columns) == columns
@@ -60,3 +70,18 @@ def test_the_replaced_feature_switches_name_the_group(fixed_conf):
     data["features"] = {"pose": True, "interactions": "false"}
     with pytest.raises(ValueError, match=r"is `features=au_pose`"):
         config.from_dict(data)
+
+
+def test_each_family_takes_its_own_designs_or_none(fixed_conf):
+    cfg = config.from_dict(
+        config.compose(
+            ["families.emotions.features=none", "families.blendshapes.n_components=5"], config_dir=fixed_conf
+        )
+    )
+    assert dict(cfg.families.items())["emotions"].features == "none"
+    assert dict(cfg.families.items())["blendshapes"].n_components == 5
+    # another family's design is refused, naming the family's own options
+    with pytest.raises(ValueError, match=r"families.emotions.features='blendshapes_pose'.*emotions_pose_interactions"):
+        config.from_dict(config.compose(["families.emotions.features=blendshapes_pose"], config_dir=fixed_conf))
+    with pytest.raises(ValueError, match=r"families.blendshapes.n_components=0"):
+        config.from_dict(config.compose(["families.blendshapes.n_components=0"], config_dir=fixed_conf))

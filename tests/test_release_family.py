@@ -96,6 +96,7 @@ def make_family_fit(ws: Path, family: str, seed: int = 0, softmax: bool = False)
     pls = PLSRegression(n_components=8, scale=False).fit(x, meshes)
     out = ws / cfg.paths.families_model_dir / family
     out.mkdir(parents=True, exist_ok=True)
+    (out / "skipped.json").unlink(missing_ok=True)  # the good workspace's evaluate had no families to fit
     for name in ("metrics.json", "tracking.json", "cv.npz"):
         shutil.copy(ws / cfg.paths.model_dir / name, out / name)
     model = {
@@ -242,3 +243,36 @@ def test_a_family_missing_from_the_frames_is_one_line(family_ws, capsys):
     assert _release("emotions") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert any("frames.parquet: no column 'anger'" in line and "Fix:" in line for line in err), err
+
+
+def test_a_family_the_tables_lack_is_released_as_not_released(family_ws, caplog):
+    """The good workspace's tables carry no families: evaluate leaves a skipped.json saying why (so dvc repro's
+    release_family@<family> has its dependency), and the release stage writes a record that says so, with no NPZ."""
+    from aumesh import cli
+
+    assert cli.main(["evaluate"]) == 0
+    skipped = json.loads((family_ws / "build/families/blendshapes/skipped.json").read_text())
+    assert "frames.parquet" in skipped["reason"] and "blendshape" in skipped["reason"]
+    assert not (family_ws / "build/families/blendshapes/model.npz").exists()
+    with caplog.at_level("WARNING"):
+        assert _release("blendshapes") == 0
+    out = family_ws / "releases" / "blendshapes"
+    assert sorted(p.name for p in out.iterdir()) == ["NOT_RELEASED.md", "model_card.json"]
+    card = json.loads((out / "model_card.json").read_text())
+    assert card["released"] is False and card["reason"] == skipped["reason"]
+    assert "blendshapes not released" in caplog.text
+
+
+def test_a_family_set_to_none_is_neither_fitted_nor_released(family_ws):
+    from aumesh import cli
+
+    make_family_fit(family_ws, "emotions")  # the tables carry emotions: only the setting leaves them out
+    text = (family_ws / "params.yaml").read_text()
+    (family_ws / "params.yaml").write_text(text.replace("features: emotions_pose_interactions", "features: none", 1))
+    assert cli.main(["evaluate"]) == 0
+    assert json.loads((family_ws / "build/families/emotions/skipped.json").read_text())["reason"] == (
+        "families.emotions.features=none"
+    )
+    assert "emotions" not in json.loads((family_ws / "metrics/families.json").read_text())
+    assert _release("emotions") == 0
+    assert json.loads((family_ws / "releases/emotions/model_card.json").read_text())["released"] is False

@@ -139,11 +139,18 @@ def _old_features_message(data: Mapping[str, Any]) -> str:
     )
 
 
+#: ``families.<family>.features`` of a family ``dvc repro`` neither fits nor releases (its release stage writes a
+#: record saying so)
+FAMILY_OFF = "none"
+
+
 @dataclass(frozen=True)
 class FamilyConfig:
     """One input family's model beside the AU model (``families.<family>``; ``conf/families/<name>.yaml``)."""
 
-    features: str = ""  # the family's design: a ``features`` option of that family, e.g. blendshapes_pose_interactions
+    features: str = (
+        ""  # the family's design (a ``features`` option of the family, e.g. blendshapes_pose_interactions) or none
+    )
     n_components: int | None = None  # None: model.n_components, clipped to the design's width
 
 
@@ -451,11 +458,11 @@ def validate(cfg: Config) -> Config:
 def _validate_families(cfg: Config) -> None:
     """Each ``families.<family>.features`` is a design of that family; ``n_components`` >= 1 when set."""
     for family, spec in cfg.families.items():
-        options = [name for name, (fam, _, _) in FEATURE_SETS.items() if fam == family]
+        options = [name for name, (fam, _, _) in FEATURE_SETS.items() if fam == family] + [FAMILY_OFF]
         if spec.features not in options:
             raise ConfigError(
                 f"families.{family}.features={spec.features!r}: use one of {', '.join(options)} "
-                "(the family's designs; conf/families/<name>.yaml)"
+                f"(the family's designs, or {FAMILY_OFF}: not fitted, not released; conf/families/<name>.yaml)"
             )
         if spec.n_components is not None and spec.n_components < 1:
             raise ConfigError(f"families.{family}.n_components={spec.n_components}: must be >= 1, or null")

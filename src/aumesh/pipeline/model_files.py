@@ -13,3 +13,6 @@ CARD_ERROR_CURVE_POINTS = 1001
 TRACKING_JSON = "tracking.json"
 #: The CV's summary metrics (also ``paths.metrics_file`` for DVC).
 METRICS_JSON = "metrics.json"
+#: In ``paths.families_model_dir``/<family> instead of a fit: the family was not fitted (``families.<f>.features=none``,
+#: or the tables do not carry it) and why (``{"family", "reason"}``); ``release_family@<family>`` then records that
+SKIPPED_JSON = "skipped.json"

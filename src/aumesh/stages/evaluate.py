@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from aumesh.config import Config
+from aumesh.config import FAMILY_OFF, Config
 from aumesh.core.io import atomic_directory, atomic_write_json
 from aumesh.pipeline import run_record
 from aumesh.pipeline.model_files import (
@@ -24,6 +24,7 @@ from aumesh.pipeline.model_files import (
     FRAME_ERROR_FILE,
     METRICS_JSON,
     MODEL_NPZ,
+    SKIPPED_JSON,
     TRACKING_JSON,
 )
 from aumesh.pipeline.release import refuse_nonfinite
@@ -43,12 +44,15 @@ def family_configs(cfg: Config) -> list[tuple[str, Config, str | None]]:
     """Each configured input family's configuration (``families.items()``): ``cfg`` with ``features`` :=
     ``families.<f>.features`` and ``model.n_components`` := ``families.<f>.n_components`` (null: ``model.n_components``
     clipped to the design's width), fitted with ``model/eiv=none`` (the corrections are the AU detector's); returns
-    ``(family, its config, note)``, the note saying when ``model/eiv`` was set aside (None otherwise)."""
+    ``(family, its config, note)``, the note saying when ``model/eiv`` was set aside (None otherwise). A family set to
+    ``none`` is left out."""
     from aumesh.config import EivConfig, FeaturesConfig, validate
     from aumesh.core.families import feature_set_columns
 
     out = []
     for family, spec in cfg.families.items():
+        if spec.features == FAMILY_OFF:
+            continue
         width = len(feature_set_columns(spec.features))
         k = spec.n_components if spec.n_components is not None else min(cfg.model.n_components, width)
         note = None
@@ -130,11 +134,15 @@ def main(cfg: Config) -> dict:
     # a configured family the prepared frames lack is not fitted: one warning line naming the file, family and fix
     check_family_columns(prepared, design_union([cfg.features.name]))
     families = []
+    # families not fitted, and why: their folder holds SKIPPED_JSON, so release_family@<family> (whose dvc.yaml dep the
+    # folder is) writes a release that says so instead of failing on a missing dependency
+    skipped = {f: f"families.{f}.features=none" for f, spec in cfg.families.items() if spec.features == FAMILY_OFF}
     for family, fcfg, note in family_configs(cfg):
         try:
             check_family_columns(prepared, design_union([fcfg.features.name]))
         except ConfigError as err:
             log.warning("evaluate: families.%s not fitted: %s", family, err)
+            skipped[family] = str(err)
             continue
         families.append((family, fcfg, note))
     shared = ev.SharedPass([f.features.name for _, f, _ in families])  # one statistics pass for every fit
@@ -195,6 +203,9 @@ def main(cfg: Config) -> dict:
                     info["eiv_note"] = note
                 write_model_dir(folder, fcv, ffinal, family_metrics[family], info, family=family)
                 family_runs[family].log_artifact(folder / METRICS_JSON)
+            for family, reason in skipped.items():
+                (families_tmp / family).mkdir()
+                atomic_write_json(families_tmp / family / SKIPPED_JSON, {"family": family, "reason": reason})
             # every logging call done and every run FINISHED before the folders are swapped in (the ExitStack unwinds:
             # build/families, then build/model): no folder names a run that failed (a lost server ends here, and the
             # previous folders stay)

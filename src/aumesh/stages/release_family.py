@@ -24,7 +24,7 @@ from aumesh.core.io import (
 from aumesh.model.family_release import check_release_family, family_release_arrays, npz_name
 from aumesh.model.release import CARD_JSON, CARD_MD
 from aumesh.pipeline import integrity
-from aumesh.pipeline.model_files import CV_NPZ, MODEL_NPZ
+from aumesh.pipeline.model_files import CV_NPZ, MODEL_NPZ, SKIPPED_JSON
 from aumesh.pipeline.prepared_files import FRAMES_FILE, REFERENCE_FILE
 from aumesh.pipeline.release import load_model, refuse_implausible_face, refuse_nonfinite
 from aumesh.pipeline.release_family import (
@@ -38,6 +38,9 @@ from aumesh.pipeline.release_family import (
 from aumesh.stages.common import start_stage
 
 log = logging.getLogger(__name__)
+
+#: What ``releases/<family>/`` holds, beside ``model_card.json``, when the family was not fitted
+NOT_RELEASED_MD = "NOT_RELEASED.md"
 
 
 def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -> dict:
@@ -64,6 +67,21 @@ def export_rig_and_viewer(arrays: dict[str, np.ndarray], folder: Path, source: s
     ]
 
 
+def write_not_released(out: Path, family: str, reason: str) -> Path:
+    """``releases/<family>/`` of a family the evaluate stage did not fit: ``model_card.json`` (``released: false``
+    and why) and ``NOT_RELEASED.md``, atomically, and one warning line; no NPZ, so no tool mistakes it for a model."""
+    log.warning("release_family: %s not released: %s", family, reason)
+    text = (
+        f"# {family}: not released\n\nThe evaluate stage did not fit the {family} family: {reason}\n\n"
+        f"Set `families.{family}.features` to one of the family's designs (conf/families/) on tables that carry it, "
+        "then `dvc repro`.\n"
+    )
+    with atomic_directory(out) as tmp:
+        atomic_write_json(tmp / CARD_JSON, {"family": {"name": family}, "released": False, "reason": reason})
+        atomic_write_text(tmp / NOT_RELEASED_MD, text)
+    return out
+
+
 def main(cfg: Config, family: str) -> Path:
     """Write ``paths.families_release_dir/<family>`` atomically (NPZ, ``model_card.json``, ``MODEL_CARD.md``, figures,
     directions report, rig, viewer) and return it."""
@@ -77,6 +95,8 @@ def main(cfg: Config, family: str) -> Path:
     for path in remove_stale_temporaries(out):  # what a killed run of this family's release left
         log.info("removed %s, left by a killed run", path)
     fit_dir, prepared_dir = family_fit_dir(cfg, family), Path(cfg.paths.prepared_dir)
+    if (fit_dir / SKIPPED_JSON).exists():  # not fitted (families.<f>.features=none, or tables without the family)
+        return write_not_released(out, family, json.loads((fit_dir / SKIPPED_JSON).read_text())["reason"])
     integrity.verify_prepared(prepared_dir, integrity.load_summary(prepared_dir), [REFERENCE_FILE, FRAMES_FILE])
     model = load_model(fit_dir)
     reference = integrity.load_reference(prepared_dir)
