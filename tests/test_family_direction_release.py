@@ -143,6 +143,13 @@ def test_a_blendshape_release_passes_and_an_eyeblink_swap_is_refused(tmp_path, t
         r"eyeBlinkLeft/Right\. Fix: check the detector's column names",
     ):
         fd.check_family_directions(bad)
+    # the same swapped release, from tables whose eyeBlinkLeft and Right moved together: the fit could not tell the
+    # sides apart, so the side is doubtful (a card warning), not a refusal
+    npz = tmp_path / "bad" / "bs_to_mesh_pls.npz"
+    together = fd.family_direction_report(npz, together=["eyeBlinkLeft/Right"])
+    assert together["check"]["pairs"]["eyeBlinkLeft/Right"]["verdict"] == "doubtful"
+    assert together["summary"]["eyeBlinkLeft"] == "doubtful" and together["verdict"] != "fail"
+    fd.check_family_directions(together)
 
 
 def test_a_release_of_no_family_is_a_one_line_error(tmp_path, truth):

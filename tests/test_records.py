@@ -124,6 +124,7 @@ SWEEP_ONLY = {
         "aumesh.prepared_dir",
         "aumesh.prepared.key",
         "aumesh.cache.statistics",
+        "aumesh.cache.pass",  # the union's one statistics pass computed or reused (issue 46: one pass a sweep)
     },
     "params": set(),
 }

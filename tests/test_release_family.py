@@ -276,3 +276,30 @@ def test_a_family_set_to_none_is_neither_fitted_nor_released(family_ws):
     assert "emotions" not in json.loads((family_ws / "metrics/families.json").read_text())
     assert _release("emotions") == 0
     assert json.loads((family_ws / "releases/emotions/model_card.json").read_text())["released"] is False
+
+
+def test_left_right_pairs_that_move_together_in_the_data_are_found(family_ws):
+    """sides_together (the release's input to the direction check) against numpy's correlation of the frames: a pair
+    written as one value on both sides moves together; independent sides do not."""
+    from aumesh.pipeline.release_family import sides_together
+
+    make_family_fit(family_ws, "blendshapes")
+    frames_path = family_ws / "build/prepared/frames.parquet"
+    frames = pq.read_table(frames_path)
+    copied = frames.column("eyeBlinkLeft").to_numpy() * 0.5 + 0.01  # Right = a linear copy of Left: correlation 1
+    frames = frames.drop_columns(["eyeBlinkRight"]).append_column("eyeBlinkRight", pa.array(copied))
+    pq.write_table(frames, frames_path, row_group_size=150)
+    values = {c: frames.column(c).to_numpy() for c in frames.column_names}
+    expected = sorted(
+        f"{n[:-4]}Left/Right"
+        for n in FAMILIES["blendshapes"]
+        if n.endswith("Left")
+        and np.ptp(values[n]) > 0
+        and np.ptp(values[n[:-4] + "Right"]) > 0
+        and np.corrcoef(values[n], values[n[:-4] + "Right"])[0, 1] >= 0.95
+        or n.endswith("Left")
+        and (np.ptp(values[n]) == 0 or np.ptp(values[n[:-4] + "Right"]) == 0)
+    )
+    got = sides_together(family_ws / "build/prepared", "blendshapes")
+    assert "eyeBlinkLeft/Right" in got
+    assert sorted(got) == expected

@@ -66,6 +66,10 @@ SIDE_MARGIN = 0.05
 #: summed pair cosines (of 21): how much the best labelling must beat the written one to fail the check
 #: (calibrated in docs/families-directions.md and benchmarks/bench_family_directions.py)
 PERMUTATION_MARGIN = 1.0
+#: Correlation over the training frames from which a Left/Right pair's two inputs count as moving together: the fit
+#: then cannot tell their sides apart (a table whose Left and Right columns are copies of one value), so a side check
+#: of the pair is doubtful, not failed
+TOGETHER_CORRELATION = 0.95
 #: inter-ocular units: a pair fails as swapped only when its Left lies right of its Right by more (the truth's pairs
 #: differ by 0.14-1.0, a weak fit's leaked fields of an unexpressed pair by 0.07: docs/families-directions.md)
 SIDE_FAIL = 0.1
@@ -372,6 +376,7 @@ def blendshape_direction_check(
     mean_mesh: np.ndarray,
     where: str = "<arrays>",
     unsupported: Sequence[str] = (),
+    together: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Check each blendshape with an expected motion, and each Left/Right pair's sides.
 
@@ -386,6 +391,10 @@ def blendshape_direction_check(
         As in :func:`family_displacements`; the checked names present in ``feature_columns`` are judged.
     unsupported : sequence of str
         Inputs the data never expressed (the release's ``unsupported_features``): unchecked.
+    together : sequence of str
+        Left/Right pairs (``"<stem>Left/Right"``) whose two inputs moved together in the training data (correlation
+        at least :data:`TOGETHER_CORRELATION`): the fit cannot tell their sides apart, so their side is doubtful,
+        never failed.
 
     Returns
     -------
@@ -421,13 +430,12 @@ def blendshape_direction_check(
         verdict = "fail" if left - right < -SIDE_FAIL else "doubtful" if left - right < SIDE_MARGIN else "pass"
         group = landmarks.region_group(expected[n][0][0])
         focused = min(_focus(disp[names.index(m)], areas, group) for m in (n, partner)) >= 1.0
-        if verdict == "fail" and ({n, partner} & still or not focused):
-            verdict = "doubtful"  # noise or motion elsewhere: its centroid is not a side
-        pairs[f"{n[: -len('Left')]}Left/Right"] = {
-            "left_x": round(left, 4),
-            "right_x": round(right, 4),
-            "verdict": verdict,
-        }
+        pair = f"{n[: -len('Left')]}Left/Right"
+        if verdict == "fail" and ({n, partner} & still or not focused or pair in together):
+            verdict = "doubtful"  # noise, motion elsewhere, or sides the data never told apart: its centroid is no side
+        pairs[pair] = {"left_x": round(left, 4), "right_x": round(right, 4), "verdict": verdict}
+        if pair in together:
+            pairs[pair]["reason"] = "the two inputs moved together in the training data: their sides are unidentified"
     swapped = [p for p, e in pairs.items() if e["verdict"] == "fail"]
     failed = [n for n, e in entries.items() if e["verdict"] == "fail"]
     worst = max(
@@ -494,7 +502,7 @@ def family_of(arrays: Mapping[str, Any], where: str = "<arrays>") -> str:
 
 
 def family_direction_report(
-    npz_path_or_arrays: str | os.PathLike | Mapping[str, Any], where: str | None = None
+    npz_path_or_arrays: str | os.PathLike | Mapping[str, Any], where: str | None = None, together: Sequence[str] = ()
 ) -> dict[str, Any]:
     """Direction report of a blendshape or emotion release (the family's ``<family>_directions.json``).
 
@@ -506,6 +514,8 @@ def family_direction_report(
         or a mapping with those keys.
     where : str, optional
         The name messages use (default: the path, or ``"<arrays>"`` for a mapping).
+    together : sequence of str
+        Blendshape Left/Right pairs the training data never told apart (:func:`blendshape_direction_check`).
 
     Returns
     -------
@@ -531,7 +541,7 @@ def family_direction_report(
         check = emotion_direction_check(coef, cols, mean, where)
         thresholds = {"permutation_margin": PERMUTATION_MARGIN, "fail_cosine": FAIL_COSINE}
     else:
-        check = blendshape_direction_check(coef, cols, mean, where, unsupported)
+        check = blendshape_direction_check(coef, cols, mean, where, unsupported, together)
         thresholds = {
             "pass_cosine": PASS_COSINE,
             "fail_cosine": FAIL_COSINE,
@@ -539,6 +549,7 @@ def family_direction_report(
             "side_fail": SIDE_FAIL,
             "fail_focus": FAIL_FOCUS,
             "still_field": STILL_FIELD,
+            "together_correlation": TOGETHER_CORRELATION,
         }
     summary = dict(check["inputs"])
     return {

@@ -106,6 +106,38 @@ def input_sum_range(prepared_dir: str | Path, family: str) -> dict[str, float]:
     return {"min": float(lo_hi[0]), "max": float(lo_hi[1])}
 
 
+def _pair_sums(part: tuple[str, int, tuple[str, ...]]) -> np.ndarray:
+    """(2 + 2k + k,) float64 per row group of the (Left, Right) columns: n, sums, sums of squares, cross sums."""
+    v = _row_group_values(part)
+    left, right = v[:, 0::2], v[:, 1::2]
+    return np.concatenate([[len(v)], v.sum(axis=0), (v**2).sum(axis=0), (left * right).sum(axis=0)])
+
+
+def sides_together(prepared_dir: str | Path, family: str) -> list[str]:
+    """The blendshape Left/Right pairs (``"<stem>Left/Right"``) whose two inputs' correlation over the training
+    frames is at least :data:`aumesh.card.family_directions.TOGETHER_CORRELATION` (or that never vary): the fit
+    cannot tell their sides apart (the direction check then leaves their side doubtful). ``[]`` for the emotions."""
+    from aumesh.card.family_directions import TOGETHER_CORRELATION
+    from aumesh.pipeline import compute
+
+    names = FAMILIES[family]
+    stems = [n[: -len("Left")] for n in names if n.endswith("Left") and n[: -len("Left")] + "Right" in names]
+    if not stems:
+        return []
+    columns = tuple(c for stem in stems for c in (stem + "Left", stem + "Right"))
+    path = Path(prepared_dir) / FRAMES_FILE
+    parts = [(str(path), g, columns) for g in range(pq_row_groups(path))]
+    total = compute.map_reduce(_pair_sums, np.add, parts)
+    k = len(columns)
+    n, sums, squares, cross = total[0], total[1 : 1 + k], total[1 + k : 1 + 2 * k], total[1 + 2 * k :]
+    mean = sums / max(n, 1.0)
+    var = np.maximum(squares / max(n, 1.0) - mean**2, 0.0)
+    cov = cross / max(n, 1.0) - mean[0::2] * mean[1::2]
+    sd = np.sqrt(var[0::2] * var[1::2])
+    corr = np.where(sd > 0, cov / np.where(sd > 0, sd, 1.0), 1.0)
+    return [f"{stem}Left/Right" for stem, r in zip(stems, corr, strict=True) if r >= TOGETHER_CORRELATION]
+
+
 def pq_row_groups(path: Path) -> int:
     """Row groups of the parquet file ``path``."""
     import pyarrow.parquet as pq

@@ -33,6 +33,7 @@ from aumesh.pipeline.release_family import (
     family_promotion,
     family_release_dir,
     input_sum_range,
+    sides_together,
     training_ranges,
 )
 from aumesh.stages.common import start_stage
@@ -43,7 +44,7 @@ log = logging.getLogger(__name__)
 NOT_RELEASED_MD = "NOT_RELEASED.md"
 
 
-def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -> dict:
+def directions_report(arrays: dict[str, np.ndarray], family: str, source: str, together: list[str]) -> dict:
     """The family's direction check on the release arrays (:mod:`aumesh.card.family_directions`): the report
     (``<family>_directions.json``; ``summary`` is {input: verdict}), and the refusal of a release whose emotion labels
     look permuted or whose blendshapes move the wrong way / side (a one-line
@@ -51,7 +52,9 @@ def directions_report(arrays: dict[str, np.ndarray], family: str, source: str) -
     the release's temporary folder, so a refusal leaves the previous release as it was."""
     from aumesh.card import family_directions
 
-    report = family_directions.family_direction_report({**arrays, "family": np.array(family)}, where=source)
+    report = family_directions.family_direction_report(
+        {**arrays, "family": np.array(family)}, where=source, together=together
+    )
     family_directions.check_family_directions(report, source)
     return report
 
@@ -125,7 +128,7 @@ def main(cfg: Config, family: str) -> Path:
     disp, _ = family_displacements(arrays["coef"], inputs, arrays["mean_aligned_mesh"], inputs, name)
     field_iod = {n: float(s) for n, s in zip(inputs, limits.au_field_sizes(disp), strict=True)}
     with atomic_directory(out) as tmp:
-        report = directions_report(arrays, family, name)
+        report = directions_report(arrays, family, name, sides_together(prepared_dir, family))
         atomic_write_json(tmp / f"{family}_directions.json", report)
         card["directions"] = {
             "verdict": report["verdict"],
