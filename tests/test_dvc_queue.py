@@ -38,14 +38,16 @@ def _run(args: list[str], cwd: Path, env: dict, timeout: float = 600.0) -> subpr
 
 
 def _evaluate_runs(db: Path) -> list[tuple[str, str, str]]:
-    """(run_uuid, status, model.n_components) of every `evaluate` run in an MLflow SQLite store."""
+    """(run_uuid, status, model.n_components) of every `evaluate` run of the AU model in an MLflow SQLite store (the
+    stage's family fits, tagged aumesh.family blendshapes / emotions, are runs of their own)."""
     if not db.exists():
         return []
     with sqlite3.connect(db) as con:
         return con.execute(
             "SELECT r.run_uuid, r.status, p.value FROM runs r "
             "JOIN tags t ON t.run_uuid = r.run_uuid AND t.key = 'aumesh.stage' AND t.value = 'evaluate' "
-            "JOIN params p ON p.run_uuid = r.run_uuid AND p.key = 'model.n_components'"
+            "JOIN params p ON p.run_uuid = r.run_uuid AND p.key = 'model.n_components' "
+            "JOIN tags f ON f.run_uuid = r.run_uuid AND f.key = 'aumesh.family' AND f.value = 'au'"
         ).fetchall()
 
 

@@ -420,8 +420,12 @@ def test_dvc_push_to_an_s3_remote_skips_build_prepared_and_pull_restores_the_res
     _run([sys.executable, REPO / "scripts" / "push_unpushed.py", folder, "build/prepared"], disk, env)
     shutil.rmtree(disk / "build")
     shutil.rmtree(disk / ".dvc" / "cache")
-    # no --allow-missing: every object of the three is there (release/ was never built here)
-    _run([BIN / "dvc", "pull", "-r", "folder", "build/ingested", "build/prepared", "build/model"], disk, env)
+    # no --allow-missing: every object of the four is there (release/ was never built here)
+    _run(
+        [BIN / "dvc", "pull", "-r", "folder", "build/ingested", "build/prepared", "build/model", "build/families"],
+        disk,
+        env,
+    )
     assert _digests(disk / "build") == before
 
 
