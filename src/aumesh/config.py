@@ -139,18 +139,15 @@ def _old_features_message(data: Mapping[str, Any]) -> str:
     )
 
 
-#: ``families.<family>.features`` of a family ``dvc repro`` neither fits nor releases (its release stage writes a
-#: record saying so)
-FAMILY_OFF = "none"
+FAMILY_OFF = "none"  # families.<family>.features of a family neither fitted nor released (its release says so)
 
 
 @dataclass(frozen=True)
 class FamilyConfig:
     """One input family's model beside the AU model (``families.<family>``; ``conf/families/<name>.yaml``)."""
 
-    features: str = (
-        ""  # the family's design (a ``features`` option of the family, e.g. blendshapes_pose_interactions) or none
-    )
+    # the family's design (a ``features`` option of the family, e.g. blendshapes_pose_interactions), or none
+    features: str = ""
     n_components: int | None = None  # None: model.n_components, clipped to the design's width
 
 
@@ -166,14 +163,12 @@ class EmotionsFamilyConfig(FamilyConfig):
 
 @dataclass(frozen=True)
 class FamiliesConfig:
-    """The input families ``dvc repro`` fits (in the evaluate stage's one statistics pass) and releases
-    (``release_family@<family>``) beside the AU model of ``features``; the names are ``aumesh.core.families``'."""
+    """The input families (``aumesh.core.families``) ``dvc repro`` fits and releases beside the AU model."""
 
     blendshapes: BlendshapesFamilyConfig = field(default_factory=BlendshapesFamilyConfig)
     emotions: EmotionsFamilyConfig = field(default_factory=EmotionsFamilyConfig)
 
-    def items(self) -> list[tuple[str, FamilyConfig]]:
-        """(family, its config) in a fixed order."""
+    def items(self) -> list[tuple[str, FamilyConfig]]:  # (family, its config), in a fixed order
         return [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)]
 
 

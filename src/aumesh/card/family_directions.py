@@ -66,10 +66,6 @@ SIDE_MARGIN = 0.05
 #: summed pair cosines (of 21): how much the best labelling must beat the written one to fail the check
 #: (calibrated in docs/families-directions.md and benchmarks/bench_family_directions.py)
 PERMUTATION_MARGIN = 1.0
-#: Correlation over the training frames from which a Left/Right pair's two inputs count as moving together: the fit
-#: then cannot tell their sides apart (a table whose Left and Right columns are copies of one value), so a side check
-#: of the pair is doubtful, not failed
-TOGETHER_CORRELATION = 0.95
 #: inter-ocular units: a pair fails as swapped only when its Left lies right of its Right by more (the truth's pairs
 #: differ by 0.14-1.0, a weak fit's leaked fields of an unexpressed pair by 0.07: docs/families-directions.md)
 SIDE_FAIL = 0.1
@@ -392,9 +388,8 @@ def blendshape_direction_check(
     unsupported : sequence of str
         Inputs the data never expressed (the release's ``unsupported_features``): unchecked.
     together : sequence of str
-        Left/Right pairs (``"<stem>Left/Right"``) whose two inputs moved together in the training data (correlation
-        at least :data:`TOGETHER_CORRELATION`): the fit cannot tell their sides apart, so their side is doubtful,
-        never failed.
+        Left/Right pairs (``"<stem>Left/Right"``) whose two inputs moved together in the training data
+        (:func:`aumesh.pipeline.release_family.sides_together`): their sides are unidentified, so doubtful, never failed.
 
     Returns
     -------
@@ -549,7 +544,6 @@ def family_direction_report(
             "side_fail": SIDE_FAIL,
             "fail_focus": FAIL_FOCUS,
             "still_field": STILL_FIELD,
-            "together_correlation": TOGETHER_CORRELATION,
         }
     summary = dict(check["inputs"])
     return {

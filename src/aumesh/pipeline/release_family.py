@@ -106,6 +106,12 @@ def input_sum_range(prepared_dir: str | Path, family: str) -> dict[str, float]:
     return {"min": float(lo_hi[0]), "max": float(lo_hi[1])}
 
 
+#: Correlation over the training frames from which a Left/Right pair's two inputs count as moving together: the fit
+#: then cannot tell their sides apart (tables writing one value on both sides), so the direction check's side verdict
+#: of the pair is doubtful, not failed
+TOGETHER_CORRELATION = 0.95
+
+
 def _pair_sums(part: tuple[str, int, tuple[str, ...]]) -> np.ndarray:
     """(2 + 2k + k,) float64 per row group of the (Left, Right) columns: n, sums, sums of squares, cross sums."""
     v = _row_group_values(part)
@@ -115,9 +121,8 @@ def _pair_sums(part: tuple[str, int, tuple[str, ...]]) -> np.ndarray:
 
 def sides_together(prepared_dir: str | Path, family: str) -> list[str]:
     """The blendshape Left/Right pairs (``"<stem>Left/Right"``) whose two inputs' correlation over the training
-    frames is at least :data:`aumesh.card.family_directions.TOGETHER_CORRELATION` (or that never vary): the fit
+    frames is at least :data:`TOGETHER_CORRELATION` (or that never vary): the fit
     cannot tell their sides apart (the direction check then leaves their side doubtful). ``[]`` for the emotions."""
-    from aumesh.card.family_directions import TOGETHER_CORRELATION
     from aumesh.pipeline import compute
 
     names = FAMILIES[family]
